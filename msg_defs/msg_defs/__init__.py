@@ -1,0 +1,1 @@
+"""msg_defs: inkdiag's wire contract (topics, QoS, layouts, codecs, validation)."""
