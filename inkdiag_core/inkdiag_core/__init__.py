@@ -5,6 +5,23 @@ fault estimators. numpy, scipy, scikit-learn and joblib only: this package
 never imports rclpy or any message package (a test checks it).
 """
 
+from .model import (
+    InkChannelModel,
+    InkChannelParams,
+    alpha,
+    fault_fm,
+    fm_to_viscosity,
+    viscosity_to_fm,
+)
+
 __version__ = "0.1.0"
 
-__all__ = ["__version__"]
+__all__ = [
+    "InkChannelModel",
+    "InkChannelParams",
+    "__version__",
+    "alpha",
+    "fault_fm",
+    "fm_to_viscosity",
+    "viscosity_to_fm",
+]
