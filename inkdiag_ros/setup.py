@@ -1,0 +1,31 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "inkdiag_ros"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "tests"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*.yaml")),
+    ],
+    package_data={package_name: ["config/*.yaml"]},
+    python_requires=">=3.10",
+    # rclpy and the message packages come from ROS 2 (sourced Jazzy or the
+    # PyPI wheels of requirements/ros.txt), never from install_requires.
+    install_requires=["numpy>=1.26"],
+    zip_safe=True,
+    maintainer="inkdiag developers",
+    maintainer_email="inkdiag@example.com",
+    description="inkdiag rclpy nodes.",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "loopback = inkdiag_ros.loopback:main",
+        ],
+    },
+)

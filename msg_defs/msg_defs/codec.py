@@ -1,0 +1,262 @@
+"""Trace frames to and from ``std_msgs/Float32MultiArray``.
+
+One message carries one *frame*: the traces of a contiguous range of nozzles
+of one printhead, measured at once. The layout is the standard row-major
+MultiArray layout plus a short header in the leading padding that
+``layout.data_offset`` reserves for exactly that purpose:
+
+=========================  ==================================================
+field                      value
+=========================  ==================================================
+``layout.dim[0]``          ``label="nozzle"``, ``size=n_nozzles``, ``stride=n_nozzles*n_samples``
+``layout.dim[1]``          ``label="sample"``, ``size=n_samples``, ``stride=n_samples``
+``layout.data_offset``     ``HEADER_LEN`` (8)
+``data[0:8]``              header, float32 holding exact integers (< 2**24):
+                           ``[schema_version, first_nozzle, frame_lo, frame_hi,
+                           sample_rate_hz, stamp_s_lo, stamp_s_hi, stamp_us]``
+``data[8:]``               traces, row-major: ``data[8 + i*n_samples + k]`` is
+                           sample ``k`` of nozzle ``first_nozzle + i``
+=========================  ==================================================
+
+``frame_id = frame_hi * 2**24 + frame_lo``; ``stamp`` (the measurement time,
+s since the epoch) ``= (stamp_s_hi * 2**24 + stamp_s_lo) + stamp_us * 1e-6``.
+The rows are the nozzles ``first_nozzle .. first_nozzle + n_nozzles - 1``.
+Trace samples are in the sensor's unit (V); ``sample_rate_hz`` says how they
+were sampled (float32-exact values only, e.g. 10e6).
+
+Encoding and decoding take the buffer fast path: ``array.array.frombytes``
+into ``msg.data`` (a memcpy in rclpy), ``np.frombuffer`` on receipt
+(zero-copy: the decoded traces are a read-only view into the message).
+
+Every check on receipt raises :class:`FrameError` (a ``ValueError``) saying
+what was expected and what arrived. Non-finite *samples* are not a frame
+error: rows are judged one by one downstream (the FDI node labels them
+invalid); only the frame's structure is validated here.
+"""
+
+from __future__ import annotations
+
+import array
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from std_msgs.msg import Float32MultiArray, MultiArrayDimension
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "HEADER_LEN",
+    "NOZZLE_LABEL",
+    "SAMPLE_LABEL",
+    "TRACE_MSG_TYPE",
+    "FrameError",
+    "TraceFrame",
+    "encode_traces",
+    "decode_traces",
+]
+
+#: Version of this trace layout; bumped on any incompatible change.
+SCHEMA_VERSION = 1
+#: Number of float32 header values in the leading padding.
+HEADER_LEN = 8
+NOZZLE_LABEL = "nozzle"
+SAMPLE_LABEL = "sample"
+
+#: The ROS message type of a trace frame.
+TRACE_MSG_TYPE = Float32MultiArray
+
+_EXACT = 1 << 24  # float32 holds every integer below 2**24 exactly
+
+
+class FrameError(ValueError):
+    """A trace message that does not follow the layout; says what was expected and found."""
+
+
+@dataclass(frozen=True)
+class TraceFrame:
+    """A decoded trace frame.
+
+    Attributes
+    ----------
+    traces : ndarray, shape (n_nozzles, n_samples), float32
+        Read-only view into the message buffer (copy it to modify).
+    first_nozzle : int
+        Id of the nozzle in row 0; row ``i`` is nozzle ``first_nozzle + i``.
+    frame_id : int
+        The publisher's frame counter.
+    sample_rate_hz : float
+        Sample rate of the traces, Hz.
+    stamp : float
+        Measurement time, s since the epoch (microsecond resolution).
+    """
+
+    traces: np.ndarray
+    first_nozzle: int = 0
+    frame_id: int = 0
+    sample_rate_hz: float = 10e6
+    stamp: float = 0.0
+
+    @property
+    def n_nozzles(self) -> int:
+        return int(self.traces.shape[0])
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.traces.shape[1])
+
+    @property
+    def nozzle_ids(self) -> np.ndarray:
+        """Nozzle id of each row, int64 (n_nozzles,)."""
+        return np.arange(self.first_nozzle, self.first_nozzle + self.n_nozzles, dtype=np.int64)
+
+
+def _check_uint(name: str, value, limit: int) -> int:
+    if isinstance(value, bool) or not float(value).is_integer() or not 0 <= int(value) < limit:
+        raise FrameError(f"{name} must be an integer in [0, {limit}), got {value!r}")
+    return int(value)
+
+
+def encode_traces(
+    traces,
+    *,
+    first_nozzle: int = 0,
+    frame_id: int = 0,
+    sample_rate_hz: float = 10e6,
+    stamp: float = 0.0,
+) -> Float32MultiArray:
+    """Encode a (n_nozzles, n_samples) array as a ``Float32MultiArray`` frame.
+
+    Parameters
+    ----------
+    traces : array_like, shape (n_nozzles, n_samples)
+        Sensor samples (V); cast to float32.
+    first_nozzle : int
+        Id of the nozzle in row 0, ``0 <= first_nozzle < 2**24``.
+    frame_id : int
+        Frame counter, ``0 <= frame_id < 2**48``.
+    sample_rate_hz : float
+        Sample rate, Hz; must be exactly representable in float32.
+    stamp : float
+        Measurement time, s since the epoch (kept to the microsecond).
+
+    Raises
+    ------
+    FrameError
+        On a wrong shape or out-of-range header value.
+    """
+    x = np.asarray(traces)
+    if x.ndim != 2 or x.shape[0] == 0 or x.shape[1] == 0:
+        raise FrameError(
+            f"traces must be a non-empty 2-D array (n_nozzles, n_samples), got shape {x.shape}"
+        )
+    n, s = x.shape
+    first = _check_uint("first_nozzle", first_nozzle, _EXACT)
+    if first + n > _EXACT:
+        raise FrameError(f"nozzle ids must stay below 2**24, got first_nozzle={first} with {n} rows")
+    fid = _check_uint("frame_id", frame_id, _EXACT * _EXACT)
+    fs = float(sample_rate_hz)
+    if not (math.isfinite(fs) and fs > 0 and float(np.float32(fs)) == fs):
+        raise FrameError(f"sample_rate_hz must be positive and float32-exact, got {sample_rate_hz!r}")
+    st = float(stamp)
+    if not (math.isfinite(st) and st >= 0):
+        raise FrameError(f"stamp must be a finite time >= 0 s, got {stamp!r}")
+    sec = int(st)
+    usec = min(int(round((st - sec) * 1e6)), 999_999)
+    sec = _check_uint("stamp seconds", sec, _EXACT * _EXACT)
+
+    buf = np.empty(HEADER_LEN + n * s, dtype=np.float32)
+    buf[:HEADER_LEN] = (
+        SCHEMA_VERSION, first, fid % _EXACT, fid // _EXACT, fs, sec % _EXACT, sec // _EXACT, usec,
+    )
+    buf[HEADER_LEN:].reshape(n, s)[...] = x
+
+    msg = Float32MultiArray()
+    msg.layout.dim = [
+        MultiArrayDimension(label=NOZZLE_LABEL, size=n, stride=n * s),
+        MultiArrayDimension(label=SAMPLE_LABEL, size=s, stride=s),
+    ]
+    msg.layout.data_offset = HEADER_LEN
+    data = array.array("f")
+    data.frombytes(buf.tobytes())
+    msg.data = data  # array.array: rclpy copies it with one memcpy
+    return msg
+
+
+def decode_traces(msg, *, max_nozzle_id: int | None = None) -> TraceFrame:
+    """Decode and validate a trace frame.
+
+    Parameters
+    ----------
+    msg : std_msgs.msg.Float32MultiArray
+    max_nozzle_id : int, optional
+        When given, every row's nozzle id must be ``<= max_nozzle_id``
+        (the receiving head's last nozzle).
+
+    Returns
+    -------
+    TraceFrame
+
+    Raises
+    ------
+    FrameError
+        Wrong message type, number of dimensions, labels, sizes, strides,
+        data offset, data length, schema version or header values.
+    """
+    if not isinstance(msg, Float32MultiArray):
+        raise FrameError(f"expected a std_msgs/Float32MultiArray, got {type(msg).__name__}")
+    dims = msg.layout.dim
+    if len(dims) != 2:
+        raise FrameError(
+            f"expected 2 dimensions ('{NOZZLE_LABEL}', '{SAMPLE_LABEL}'), got {len(dims)}"
+            + (f": {[d.label for d in dims]}" if dims else " (empty layout)")
+        )
+    labels = (dims[0].label, dims[1].label)
+    if labels != (NOZZLE_LABEL, SAMPLE_LABEL):
+        raise FrameError(f"expected dimension labels ('{NOZZLE_LABEL}', '{SAMPLE_LABEL}'), got {labels}")
+    n, s = int(dims[0].size), int(dims[1].size)
+    if n == 0 or s == 0:
+        raise FrameError(f"empty frame: {n} nozzles x {s} samples")
+    if int(dims[1].stride) != s or int(dims[0].stride) != n * s:
+        raise FrameError(
+            f"expected row-major strides ({n * s}, {s}) for {n} x {s}, "
+            f"got ({dims[0].stride}, {dims[1].stride})"
+        )
+    if int(msg.layout.data_offset) != HEADER_LEN:
+        raise FrameError(
+            f"expected layout.data_offset {HEADER_LEN} (the header), got {msg.layout.data_offset}"
+        )
+    try:  # received messages hold an array.array: zero-copy view
+        data = np.frombuffer(msg.data, dtype=np.float32)
+    except TypeError:  # a hand-built message may hold a list
+        data = np.asarray(msg.data, dtype=np.float32)
+    want = HEADER_LEN + n * s
+    if data.size != want:
+        raise FrameError(
+            f"expected {want} data values ({HEADER_LEN} header + {n} x {s}), got {data.size}"
+        )
+    head = data[:HEADER_LEN].astype(np.float64)
+    if head[0] != SCHEMA_VERSION:
+        raise FrameError(f"expected trace schema version {SCHEMA_VERSION}, got {head[0]:g}")
+    if not np.all(np.isfinite(head)) or np.any(head[[1, 2, 3, 5, 6, 7]] < 0) or np.any(
+        head[[1, 2, 3, 5, 6, 7]] != np.floor(head[[1, 2, 3, 5, 6, 7]])
+    ):
+        raise FrameError(f"header values must be non-negative integers, got {head.tolist()}")
+    if not head[4] > 0:
+        raise FrameError(f"expected a positive sample_rate_hz in the header, got {head[4]:g}")
+    if head[7] > 999_999:
+        raise FrameError(f"stamp microseconds must be < 1e6, got {head[7]:g}")
+    first = int(head[1])
+    if max_nozzle_id is not None and first + n - 1 > max_nozzle_id:
+        raise FrameError(
+            f"nozzle range {first}..{first + n - 1} out of bounds: this head's nozzles are "
+            f"0..{max_nozzle_id}"
+        )
+    traces = data[HEADER_LEN:].reshape(n, s)
+    traces.flags.writeable = False  # a view into the message: never write through it
+    return TraceFrame(
+        traces=traces,
+        first_nozzle=first,
+        frame_id=int(head[3]) * _EXACT + int(head[2]),
+        sample_rate_hz=float(head[4]),
+        stamp=(int(head[6]) * _EXACT + int(head[5])) + int(head[7]) * 1e-6,
+    )
