@@ -14,9 +14,17 @@ from .model import (
     viscosity_to_fm,
 )
 
+from .persistence import ModelFileError, load_model, save_model
+from .screening import INVALID_REASONS, screen_traces
+
 __version__ = "0.1.0"
 
 __all__ = [
+    "INVALID_REASONS",
+    "ModelFileError",
+    "load_model",
+    "save_model",
+    "screen_traces",
     "InkChannelModel",
     "InkChannelParams",
     "__version__",

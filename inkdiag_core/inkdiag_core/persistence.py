@@ -1,0 +1,197 @@
+"""Model files: joblib plus a manifest that is verified before anything is unpickled.
+
+``joblib.load`` unpickles, and unpickling can run arbitrary code; loading
+across scikit-learn versions is unsupported. So every model file
+``<name>.joblib`` has a manifest ``<name>.joblib.manifest.json`` beside it:
+
+.. code-block:: json
+
+    {"format": "inkdiag-model", "format_version": 1,
+     "sha256": "...", "size_bytes": 123,
+     "versions": {"python": "3.11.7", "numpy": "...", "scipy": "...",
+                  "scikit-learn": "...", "joblib": "...", "inkdiag_core": "..."},
+     "created_utc": "2026-11-22T08:00:00Z",
+     "config": {...}, "scores": {...}}
+
+:func:`load_model` refuses, with :class:`ModelFileError` (a ``ValueError``)
+saying what is wrong, a missing file or manifest, a manifest that does not
+parse, a file whose sha256 or size differs from the manifest (tampered or
+truncated), or a file written with other numpy / scipy / scikit-learn /
+joblib versions than the running ones. Only then does it unpickle.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import os
+import platform
+import tempfile
+from pathlib import Path
+
+import joblib
+import numpy
+import scipy
+import sklearn
+
+__all__ = ["ModelFileError", "save_model", "load_model", "read_manifest", "library_versions"]
+
+FORMAT = "inkdiag-model"
+FORMAT_VERSION = 1
+#: Libraries whose versions must match for a model to load.
+PINNED_LIBRARIES = ("numpy", "scipy", "scikit-learn", "joblib")
+
+
+class ModelFileError(ValueError):
+    """A model file that must not be loaded: missing, tampered, or from other library versions."""
+
+
+def library_versions() -> dict:
+    """Versions of the running interpreter and libraries, as written to manifests."""
+    from . import __version__
+
+    return {
+        "python": platform.python_version(),
+        "numpy": numpy.__version__,
+        "scipy": scipy.__version__,
+        "scikit-learn": sklearn.__version__,
+        "joblib": joblib.__version__,
+        "inkdiag_core": __version__,
+    }
+
+
+def _manifest_path(path: Path) -> Path:
+    return path.with_name(path.name + ".manifest.json")
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def save_model(model, path, *, config: dict | None = None, scores: dict | None = None) -> Path:
+    """Write ``model`` with joblib and its manifest beside it; return the manifest path.
+
+    Parameters
+    ----------
+    model : object
+        Typically a fitted scikit-learn Pipeline.
+    path : str or Path
+        Destination ``.joblib`` file; its directory is created if needed.
+    config, scores : dict, optional
+        Training configuration and scores (JSON-serialisable), kept in the manifest.
+
+    Both files are written to temporary names and renamed, so a crash never
+    leaves a model without a matching manifest.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    manifest = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "file": path.name,
+        "versions": library_versions(),
+        "created_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "config": config or {},
+        "scores": scores or {},
+    }
+    json.dumps(manifest)  # fail before writing anything if config/scores are not JSON
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+    os.close(fd)
+    try:
+        joblib.dump(model, tmp)
+        manifest["sha256"] = _sha256(Path(tmp))
+        manifest["size_bytes"] = os.path.getsize(tmp)
+        mpath = _manifest_path(path)
+        mtmp = str(mpath) + ".tmp"
+        with open(mtmp, "w") as f:
+            json.dump(manifest, f, indent=2, sort_keys=True)
+        os.replace(tmp, path)
+        os.replace(mtmp, mpath)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return mpath
+
+
+def read_manifest(path) -> dict:
+    """Read and check the manifest of ``path`` (the model file itself is not read)."""
+    path = Path(path)
+    mpath = _manifest_path(path)
+    if not path.is_file():
+        raise ModelFileError(f"model file {path} does not exist")
+    if not mpath.is_file():
+        raise ModelFileError(
+            f"model file {path} has no manifest {mpath.name}: refusing to unpickle an unverified file"
+        )
+    try:
+        manifest = json.loads(mpath.read_text())
+    except (OSError, ValueError) as exc:
+        raise ModelFileError(f"manifest {mpath} is not valid JSON: {exc}") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+        raise ModelFileError(f"manifest {mpath} is not an {FORMAT} manifest")
+    if manifest.get("format_version") != FORMAT_VERSION:
+        raise ModelFileError(
+            f"manifest {mpath} has format_version {manifest.get('format_version')!r}, "
+            f"expected {FORMAT_VERSION}"
+        )
+    for key in ("sha256", "size_bytes", "versions"):
+        if key not in manifest:
+            raise ModelFileError(f"manifest {mpath} lacks '{key}'")
+    return manifest
+
+
+def load_model(path, *, check_versions: bool = True):
+    """Verify ``path`` against its manifest, then unpickle it.
+
+    Parameters
+    ----------
+    path : str or Path
+        The ``.joblib`` file written by :func:`save_model`.
+    check_versions : bool
+        Refuse files written with other numpy/scipy/scikit-learn/joblib
+        versions (default). Turn off only for files you trust and have checked.
+
+    Returns
+    -------
+    model : object
+    manifest : dict
+
+    Raises
+    ------
+    ModelFileError
+        Missing file or manifest, bad manifest, size or sha256 mismatch,
+        library version mismatch.
+    """
+    path = Path(path)
+    manifest = read_manifest(path)
+    size = path.stat().st_size
+    if size != manifest["size_bytes"]:
+        raise ModelFileError(
+            f"model file {path} is {size} bytes, its manifest says {manifest['size_bytes']}: "
+            "truncated or tampered, refusing to load"
+        )
+    digest = _sha256(path)
+    if digest != manifest["sha256"]:
+        raise ModelFileError(
+            f"model file {path} has sha256 {digest[:16]}..., its manifest says "
+            f"{str(manifest['sha256'])[:16]}...: tampered, refusing to load"
+        )
+    if check_versions:
+        running = library_versions()
+        wrong = {
+            lib: (manifest["versions"].get(lib), running[lib])
+            for lib in PINNED_LIBRARIES
+            if manifest["versions"].get(lib) != running[lib]
+        }
+        if wrong:
+            detail = ", ".join(f"{k} {v[0]} (file) vs {v[1]} (running)" for k, v in wrong.items())
+            raise ModelFileError(
+                f"model file {path} was written with other library versions: {detail}; "
+                "retrain it (scripts/run does) instead of loading it"
+            )
+    return joblib.load(path), manifest
