@@ -60,15 +60,23 @@ KPI_NAMES = (
 )
 """Names of the columns returned by :func:`extract_kpis`, in order."""
 
-MIN_SAMPLES = 16
-"""Fewest samples per trace that :func:`extract_kpis` accepts."""
+MIN_SAMPLES = 2
+"""Fewest samples per trace that :func:`extract_kpis` accepts.
+
+Two samples are the least that have a non-DC FFT bin. This is a floor for robustness, not a
+recommendation: the model has 5 parameters, fewer than 5 samples leave the fit
+under-determined (the KPIs are then finite but arbitrary) and below about 16 samples the
+bin window around the peak is too narrow for a reliable damping estimate. It is this low
+so that :class:`KpiExtractor` passes scikit-learn's estimator checks, which use 2 to 10
+columns.
+"""
 
 # Number of FFT bins around the dominant peak used by the fit.
 _WINDOW_BINS = 16
 # Gauss-Newton (variable projection) steps after the equation-error initialisation.
 _N_ITER = 3
 # Bounds on the per-sample decay rate sigma = zeta * w0 / fs.
-_SIGMA_MIN = 1e-6
+_SIGMA_MIN = 1e-9
 _SIGMA_MAX = 5.0
 # A trace whose AC power is at most this fraction of its total power counts as flat.
 _FLAT_RTOL = 1e-12
@@ -227,7 +235,7 @@ def _window_projector(n_bins, n_samples):
     """
     j = np.arange(n_bins)
     B = np.stack([np.ones(n_bins), np.exp(-2j * np.pi * j / n_samples)], axis=1)
-    P = B @ np.linalg.solve(B.conj().T @ B, B.conj().T)
+    P = B @ np.linalg.pinv(B)  # pinv: for K <= 2 the complement is empty
     return (np.eye(n_bins) - P).T
 
 
@@ -315,7 +323,7 @@ def extract_kpis(traces, sample_rate_hz):
         - ``dominant_frequency_hz``: damped frequency ``w_d / (2 pi)``, Hz, in
           ``(fs / (4 N), fs / 2)`` for an oscillating trace.
         - ``damping_ratio``: ``zeta``, dimensionless, in ``[0, 1)``; values below about
-          ``1e-6 fs / w_d`` are not resolved (the decay rate is floored at ``1e-6 fs``).
+          ``1e-9 fs / w_d`` are not resolved (the decay rate is floored at ``1e-9 fs``).
         - ``amplitude``: ``A`` at ``t = 0``, signal units, ``>= 0``.
         - ``phase_rad``: ``phi`` at ``t = 0``, rad, wrapped to ``(-pi, pi]``.
         - ``energy``: ``sum_k (y[k] - mean(y))**2 / sample_rate_hz``, signal**2 * s: the
@@ -355,7 +363,7 @@ def extract_kpis(traces, sample_rate_hz):
     >>> w0 = w_d / np.sqrt(1 - zeta**2)
     >>> y = 0.1 + 2.0 * np.exp(-zeta * w0 * t) * np.cos(w_d * t + 0.5)
     >>> np.round(extract_kpis(y, fs)[0, :5], 4)
-    array([1.0000e-01, 2.3700e+05, 7.0000e-02, 2.0000e+00, 5.0000e-01])
+    array([1.00e-01, 2.37e+05, 7.00e-02, 2.00e+00, 5.00e-01])
     """
     fs = _check_sample_rate(sample_rate_hz)
     y = _check_traces(traces)
