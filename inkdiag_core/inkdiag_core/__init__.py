@@ -14,12 +14,24 @@ from .model import (
     viscosity_to_fm,
 )
 
+from .fdi import FEATURE_SETS, fd_labels, make_fdi_pipeline
+from .kpis import KPI_NAMES, KpiExtractor, extract_kpis, reconstruct
+from .residual import ResidualFilter, design_residual_filter
 from .persistence import ModelFileError, load_model, save_model
 from .screening import INVALID_REASONS, screen_traces
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "FEATURE_SETS",
+    "KPI_NAMES",
+    "KpiExtractor",
+    "ResidualFilter",
+    "design_residual_filter",
+    "extract_kpis",
+    "fd_labels",
+    "make_fdi_pipeline",
+    "reconstruct",
     "INVALID_REASONS",
     "ModelFileError",
     "load_model",
