@@ -211,28 +211,11 @@ def design_residual_filter(kind: str = "original", *, params: InkChannelParams |
         D_f = np.ones((1, 1))
         loop_ss = (Ad, L, Cb, np.zeros((1, 1)))
     else:
-        # PI output injection: u = Kp e + Ki sum(e); the integrator state q[k+1] = q[k] + e[k]
+        # PI output injection: u = Kp e + Ki sum(e) (see _pi_observer)
         Kp, Ki = L, _pi_integral_gain(Ad, Cb, L)
-        n = 3
-        # states [x_hat (3), q (1)]; e = y - C x_hat
-        A_o = np.zeros((n + 1, n + 1))
-        A_o[:n, :n] = Ad - Kp @ Cb - Ki @ Cb
-        A_o[:n, n:] = Ki
-        A_o[n:, :n] = -Cb
-        A_o[n, n] = 1.0
-        B_o = np.vstack([Kp + Ki, [[1.0]]])
-        C_o = np.hstack([-Cb, [[0.0]]])
-        D_o = np.ones((1, 1))
-        # loop transfer for margins: plant C (zI - Ad)^-1 times PI controller (Kp + Ki z/(z-1))
-        A_l = np.zeros((n + 1, n + 1))
-        A_l[:n, :n] = Ad
-        A_l[:n, n:] = Ki
-        A_l[n, n] = 1.0
-        B_l = np.vstack([Kp + Ki, [[1.0]]])
-        C_l = np.hstack([Cb, [[0.0]]])
-        loop_ss = (A_l, B_l, C_l, np.zeros((1, 1)))
+        A_f, B_f, C_f, D_f = _pi_observer(Ad, Cb, Kp, Ki)
+        loop_ss = _pi_loop(Ad, Cb, Kp, Ki)
         # band emphasis r_mod = (1 + sum g_i H_i) r, in series after the observer
-        A_f, B_f, C_f, D_f = A_o, B_o, C_o, D_o
         sum_ss = None
         for f_band in MODIFIED_BANDS_HZ:
             Ab_, Bb_, Cb_, Db_ = _bandpass(f_band, band_zeta, fs)
@@ -253,27 +236,42 @@ def _pi_integral_gain(Ad, Cb, Kp, target_pm_deg: float = 45.0):
     best = np.zeros_like(Kp)
     for scale in np.geomspace(1e-4, 1.0, 25) * np.linalg.norm(Kp):
         Ki = scale * direction
-        n = 3
-        A_o = np.zeros((n + 1, n + 1))
-        A_o[:n, :n] = Ad - Kp @ Cb - Ki @ Cb
-        A_o[:n, n:] = Ki
-        A_o[n:, :n] = -Cb
-        A_o[n, n] = 1.0
+        A_o = _pi_observer(Ad, Cb, Kp, Ki)[0]
         if np.max(np.abs(np.linalg.eigvals(A_o))) >= 1.0 - 1e-9:
             continue
-        A_l = np.zeros((n + 1, n + 1))
-        A_l[:n, :n] = Ad
-        A_l[:n, n:] = Ki
-        A_l[n, n] = 1.0
-        B_l = np.vstack([Kp + Ki, [[1.0]]])
-        C_l = np.hstack([Cb, [[0.0]]])
-        num, den = scipy.signal.ss2tf(A_l, B_l, C_l, np.zeros((1, 1)))
-        pm = FilterDesign("probe", A_o, B_l, C_l, np.zeros((1, 1)), num[0], den,
-                          (num[0], den), 1.0, 3).margins(4000)["phase_margin_deg"]
-        if pm < target_pm_deg:
+        num, den = scipy.signal.ss2tf(*_pi_loop(Ad, Cb, Kp, Ki))
+        probe = FilterDesign("probe", A_o, Kp, Cb, np.zeros((1, 1)), num[0], den, (num[0], den), 1.0, 3)
+        if probe.margins(4000)["phase_margin_deg"] < target_pm_deg:
             break
         best = Ki
     return best
+
+
+def _pi_observer(Ad, Cb, Kp, Ki):
+    """Observer with PI output injection as a system from y to r.
+
+    States ``[x_hat (3), q]`` with ``e = y - C x_hat``, ``q[k+1] = q[k] + e[k]`` and
+    ``x_hat[k+1] = A_d x_hat[k] + Kp e[k] + Ki q[k+1]``; output ``r = e``.
+    """
+    n = Ad.shape[0]
+    A = np.zeros((n + 1, n + 1))
+    A[:n, :n] = Ad - (Kp + Ki) @ Cb
+    A[:n, n:] = Ki
+    A[n:, :n] = -Cb
+    A[n, n] = 1.0
+    B = np.vstack([Kp + Ki, [[1.0]]])
+    return A, B, np.hstack([-Cb, [[0.0]]]), np.ones((1, 1))
+
+
+def _pi_loop(Ad, Cb, Kp, Ki):
+    """Open observer loop from the output error e to y_hat (for margins)."""
+    n = Ad.shape[0]
+    A = np.zeros((n + 1, n + 1))
+    A[:n, :n] = Ad
+    A[:n, n:] = Ki
+    A[n, n] = 1.0
+    B = np.vstack([Kp + Ki, [[1.0]]])
+    return A, B, np.hstack([Cb, [[0.0]]]), np.zeros((1, 1))
 
 
 def _series(first, second):
