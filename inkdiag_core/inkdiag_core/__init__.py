@@ -5,6 +5,7 @@ fault estimators. numpy, scipy, scikit-learn and joblib only: this package
 never imports rclpy or any message package (a test checks it).
 """
 
+from .estimation import FmBatchEstimate, FmEstimate, estimate_fm, estimate_fm_batch
 from .model import (
     InkChannelModel,
     InkChannelParams,
@@ -13,6 +14,7 @@ from .model import (
     fm_to_viscosity,
     viscosity_to_fm,
 )
+from .observer import UIODesign, design_uio
 
 from .fdi import FEATURE_SETS, fd_labels, make_fdi_pipeline
 from .kpis import KPI_NAMES, KpiExtractor, extract_kpis, reconstruct
@@ -44,4 +46,10 @@ __all__ = [
     "fault_fm",
     "fm_to_viscosity",
     "viscosity_to_fm",
+    "FmEstimate",
+    "FmBatchEstimate",
+    "estimate_fm",
+    "estimate_fm_batch",
+    "UIODesign",
+    "design_uio",
 ]

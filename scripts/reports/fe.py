@@ -1,0 +1,266 @@
+"""Fault-estimation report: the thesis's section 4.4-4.5 side by side with ours.
+
+    python scripts/reports/fe.py [--seed 0]
+
+Writes reports/fe.md and reports/fe_*.png (one core, about a minute).
+"""
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import argparse  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "inkdiag_core"))
+
+import matplotlib  # noqa: E402
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from inkdiag_core import InkChannelModel, design_uio, estimate_fm_batch  # noqa: E402
+from inkdiag_core.fe_datasets import common_x0, physics_set, synthetic_set  # noqa: E402
+
+FS = 10e6
+STEADY = 0.2  # steady state starts at 20 % of the trace
+ENV_FLOOR = 0.01  # ... and ends where the clean signal's envelope falls below 1 % of its peak
+
+
+def steady_mask(y_clean, n_win=42):
+    """Samples of the steady-state part: k >= 0.2 N and windowed RMS >= 1 % of its max."""
+    n, N = y_clean.shape
+    p = np.cumsum(np.pad(y_clean**2, ((0, 0), (n_win, 0))), axis=1)
+    rms = np.sqrt((p[:, n_win:] - p[:, :-n_win]) / n_win)
+    mask = rms >= ENV_FLOOR * rms.max(axis=1, keepdims=True)
+    mask[:, : int(STEADY * N)] = False
+    return mask
+
+
+def accuracy(est, ds):
+    """Per trace: 100 (1 - mean over the steady-state part of |f_hat(k) - f| / |f|)."""
+    m = steady_mask(ds.y_clean) & np.isfinite(est.trace)
+    rel = np.abs(est.trace - ds.fm[:, None]) / np.abs(ds.fm[:, None])
+    with np.errstate(invalid="ignore"):
+        a = 100 * (1 - np.where(m, rel, 0).sum(1) / np.maximum(m.sum(1), 1))
+    return np.where(m.sum(1) > 0, a, np.nan)
+
+
+def run(ds, method, x0):
+    return estimate_fm_batch(ds.y, MODEL, FS, method=method,
+                             x0=None if method == "vp" else x0)
+
+
+MODEL = InkChannelModel()
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default=str(ROOT / "reports"))
+    args = ap.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t_start = time.time()
+    seed = args.seed
+    x0c = common_x0(MODEL)
+
+    A, C, B_f = MODEL.observable()
+    uio_ct = design_uio(A, C, B_f)
+    uio_dt = design_uio(MODEL.discretize(FS), C, B_f, dt=1 / FS)
+
+    sets = {
+        "synthetic DT model (eq. 25), common x0": synthetic_set(MODEL, kind="dt", seed=seed),
+        "synthetic CT exact (eq. 26, RK45), common x0": synthetic_set(MODEL, kind="ct", seed=seed),
+        "synthetic CT exact, unknown x0": synthetic_set(MODEL, kind="ct", x0="random",
+                                                        seed=seed + 1),
+    }
+    for snr in (40, 30, 20):
+        sets[f"synthetic CT exact, unknown x0, {snr} dB"] = synthetic_set(
+            MODEL, kind="ct", x0="random", snr_db=snr, seed=seed + 2 + snr)
+    phys = {snr: physics_set(MODEL, n_per_class=30, snr_db=snr, seed=seed + 100)
+            for snr in (40, 30)}
+    for snr, d in phys.items():
+        sets[f"physics-based (fallback), {snr} dB"] = d
+
+    methods = ("dt", "ct", "vp")
+    results = {}
+    for name, ds in sets.items():
+        for m in methods:
+            est = run(ds, m, x0c)
+            results[name, m] = (est, accuracy(est, ds))
+
+    # ---------------------------------------------------------------- figures
+    lv = np.arange(49)
+    ds_dt = sets["synthetic DT model (eq. 25), common x0"]
+    ds_ct = sets["synthetic CT exact (eq. 26, RK45), common x0"]
+    t_us = np.arange(ds_ct.y.shape[1]) / FS * 1e6
+    for tag, ds, m, title in (("fig24_dt_trace", ds_dt, "dt", "DT approach on eq. (25) data"),
+                              ("fig26_ct_trace", ds_ct, "ct", "CT approach on exact CT data")):
+        est = results[[k for k in sets if sets[k] is ds][0], m][0]
+        i = 24
+        fig, ax = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
+        ax[0].plot(t_us, np.full_like(t_us, ds.fm[i]), "b", label="true f_m")
+        ax[0].plot(t_us, est.trace[i], "r--", label="estimate")
+        ax[0].set_ylabel("f_m (1/s)")
+        ax[0].legend()
+        ax[0].set_title(f"{title}, level {i} (Fig. {tag[3:5]})")
+        ax[1].semilogy(t_us, np.abs(est.trace[i] - ds.fm[i]))
+        ax[1].set_ylabel("|f_m - f_hat| (1/s)")
+        ax[1].set_xlabel("t (us)")
+        fig.tight_layout()
+        fig.savefig(out / f"fe_{tag}.png", dpi=110)
+        plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for key, lab in (((list(sets)[0], "dt"), "DT on eq. (25) data (Fig. 25)"),
+                     ((list(sets)[1], "ct"), "CT on exact CT data (Fig. 27)"),
+                     ((list(sets)[1], "dt"), "DT on exact CT data (Appendix E bias)"),
+                     ((list(sets)[2], "vp"), "VP, unknown x0, noise-free"),
+                     (("synthetic CT exact, unknown x0, 30 dB", "vp"), "VP, unknown x0, 30 dB")):
+        ax.plot(lv, results[key][1], ".-", label=lab)
+    ax.axhline(99, color="k", lw=0.5)
+    ax.set_xlabel("fault level (d_mu = +0.2 mu ... +10 mu)")
+    ax.set_ylabel("accuracy (%)")
+    ax.set_ylim(60, 100.5)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "fe_fig25_27_accuracy.png", dpi=110)
+    plt.close(fig)
+
+    ph = phys[40]
+    healthy = synthetic_set(MODEL, kind="ct", n_levels=1, seed=seed)  # shape reference
+    del healthy
+    fig, ax = plt.subplots(2, 2, figsize=(9, 6))
+    from inkdiag_core.fe_datasets import _transition_ct  # healthy reference, same x0
+    for c, axi, lab in zip((0, 1, 2), (ax[0, 0], ax[0, 1], ax[1, 0]),
+                           ("slightly", "intermediately", "deeply")):
+        i = int(np.flatnonzero(ph.level == c)[0])
+        yh = ph.x0[i] @ _transition_ct(MODEL, 0.0, FS, ph.y.shape[1]).T
+        axi.plot(t_us, yh, "b", lw=0.8, label="healthy, same x0")
+        axi.plot(t_us, ph.y[i], "r", lw=0.8, label=f"{lab} dried")
+        axi.set_title(f"{lab} dried (Figs. 28/30/32)", fontsize=9)
+        axi.legend(fontsize=7)
+    name40 = "physics-based (fallback), 40 dB"
+    for m, mk in (("vp", "o"), ("dt", "x"), ("ct", "+")):
+        ax[1, 1].plot(-ph.fm, -results[name40, m][0].fm, mk, ms=4, label=m)
+    lim = [0, -ph.fm.min() * 1.1]
+    ax[1, 1].plot(lim, lim, "k", lw=0.5)
+    ax[1, 1].set_xlim(lim)
+    ax[1, 1].set_ylim(lim)
+    ax[1, 1].set_xlabel("-f_m true (1/s)")
+    ax[1, 1].set_ylabel("-f_m estimated (1/s)")
+    ax[1, 1].set_title("all physics-based signals (Figs. 29/31/33)", fontsize=9)
+    ax[1, 1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "fe_fig28_33_physics.png", dpi=110)
+    plt.close(fig)
+
+    # ---------------------------------------------------------------- markdown
+    thesis = {
+        ("synthetic DT model (eq. 25), common x0", "dt"): "> 99 (all levels)",
+        ("synthetic CT exact (eq. 26, RK45), common x0", "ct"): "> 98 (all levels)",
+        ("physics-based (fallback), 40 dB", "dt"): "92.94, 99.52 (2 selected signals)",
+        ("physics-based (fallback), 40 dB", "ct"): "89.38 (1 selected signal)",
+    }
+    lines = []
+    P = lines.append
+    P("# Fault estimation (thesis 4.3-4.5): reproduction and an x0-free estimator")
+    P("")
+    P(f"Generated by `python scripts/reports/fe.py --seed {seed}`; model {MODEL!r}, "
+      f"{FS / 1e6:.0f} MHz, {ds_ct.y.shape[1]} samples.")
+    P("")
+    P("## UIO existence (eq. 13-20), computed")
+    P("")
+    P("```")
+    P(uio_ct.summary())
+    P("")
+    P(uio_dt.summary())
+    P("```")
+    P("")
+    P("Continuous time: one zero eigenvalue of F = (I-HC)A is unobservable, so no gain makes the "
+      "error stable; the CT UIO must be started from the true x0 and integrates any input error. "
+      "Discrete time (eq. 25 with A_H^DT): F's non-zero eigenvalues have |lambda| = "
+      f"{np.abs(uio_dt.eig_F).max():.4f} < 1, i.e. the DT UIO forgets a wrong x0 with a time "
+      f"constant of {-1e6 / FS / np.log(np.abs(uio_dt.eig_F).max()):.1f} us -- but this decay "
+      "comes from the O(dt^2) terms of expm(A dt), the same order as the fault effect that "
+      "Appendix E drops, so it does not rescue the DT method on data it did not generate.")
+    P("")
+    P("## Accuracy definition")
+    P("")
+    P("Per trace: `100 (1 - mean_k |f_hat(k) - f_m| / |f_m|)` over the steady-state part: samples "
+      f"from {int(STEADY * 100)} % of the trace on, while the clean signal's one-period RMS is at least "
+      f"{int(ENV_FLOOR * 100)} % of its peak (after that the ring-down has decayed and the per-sample "
+      "estimate is numerical noise). `f_hat(k)` is the sliding one-period least-squares estimate "
+      "`e^+ r` for DT/CT; VP fits the whole trace, so its trace is constant. Negative values mean "
+      "errors larger than |f_m|. Synthetic rows: median and worst over the 49 levels; "
+      "physics rows: median and 10th percentile over ALL signals.")
+    P("")
+    P("## Side-by-side")
+    P("")
+    P("| dataset | method | ours: median % | ours: worst / P10 % | thesis % |")
+    P("|---|---|---:|---:|---|")
+    for name in sets:
+        for m in methods:
+            a = results[name, m][1]
+            lo = np.nanmin(a) if name.startswith("synthetic") else np.nanpercentile(a, 10)
+            th = thesis.get((name, m), "n/a")
+            P(f"| {name} | {m} | {np.nanmedian(a):.2f} | {lo:.2f} | {th} |")
+    P("")
+    P("DT and CT are given the common x0 on every dataset (the thesis's practice, 4.4.1 and 4.6); "
+      "VP is given no x0. Thesis physics-based numbers are for hand-selected signals; ours are over "
+      "all signals.")
+    P("")
+    P("## Findings")
+    P("")
+    a_dt_ct = results[list(sets)[1], "dt"][1]
+    P(f"* DT on its own eq. (25) data: {np.nanmin(results[list(sets)[0], 'dt'][1]):.3f} % worst "
+      "(exact up to rounding). DT on exact continuous-time data: median "
+      f"{np.nanmedian(a_dt_ct):.1f} %, worst {np.nanmin(a_dt_ct):.1f} %. This is the Appendix E "
+      "approximation: expm((A_H + f_m E) dt) - expm(A_H dt) = f_m dt E + f_m dt^2 (A_H E + E A_H)/2 "
+      "+ O(f_m^2 dt^2); the dt^2 terms are a fraction |A_H| dt / 2 ~ 0.075 of the retained term at "
+      "10 MHz (w0 dt = 0.15), and the (f_m dt)^2 terms grow with the fault (f_m dt reaches 0.3 at "
+      "+10 mu), so the bias is small only for the smallest faults.")
+    a_ct = results[list(sets)[1], "ct"][1]
+    P(f"* CT on exact CT data: median {np.nanmedian(a_ct):.2f} %, worst {np.nanmin(a_ct):.2f} % "
+      "(thesis > 98 %). Its remaining error is the interpolation of the sampled output inside the "
+      "marginally stable CT UIO (cubic between samples here; a linear hold gives errors of a few "
+      "10 % because the UIO's zero eigenvalues integrate it).")
+    a_vp = results[list(sets)[2], "vp"][1]
+    a_vp30 = results["synthetic CT exact, unknown x0, 30 dB", "vp"][1]
+    a_ph = results[name40, "vp"][1]
+    P(f"* VP with unknown x0: worst {np.nanmin(a_vp):.4f} % noise-free (target >= 99.5 on every "
+      f"level), worst {np.nanmin(a_vp30):.2f} % / median {np.nanmedian(a_vp30):.2f} % at 30 dB "
+      f"(target >= 95), physics-based median {np.nanmedian(a_ph):.2f} % at 40 dB (target >= 95).")
+    z = (results["synthetic CT exact, unknown x0, 30 dB", "vp"][0].fm
+         - sets["synthetic CT exact, unknown x0, 30 dB"].fm) \
+        / results["synthetic CT exact, unknown x0, 30 dB", "vp"][0].std
+    cover = np.mean(np.abs(z) < 1.96) * 100
+    P(f"* VP uncertainty: at 30 dB the standardised errors have std {np.std(z):.2f} and the 95 % "
+      f"CI covers the truth for {cover:.0f} % of the 49 levels.")
+    P("* With the common x0 on unknown-x0 data, DT and CT fail (accuracies far below 0): the "
+      "thesis's 4.6 diagnosis, reproduced.")
+    P("* Physics-based set: `simulate_nonlinear` (branch `sim`) did not exist when this report "
+      "was written; the set is the documented fallback `fe_datasets.physics_set` (4-state model "
+      "with a quadratic Borda-Carnot nozzle loss, K = 0.5, solve_ivp RK45, random x0, "
+      "viscosity x1.5-2.5 / 2.5-4.5 / 4.5-8 for slightly / intermediately / deeply dried, 30 "
+      "signals each). Its nonlinearity is mild at these flow amplitudes.")
+    P("")
+    P("## Figures")
+    P("")
+    for f in ("fe_fig24_dt_trace.png", "fe_fig26_ct_trace.png", "fe_fig25_27_accuracy.png",
+              "fe_fig28_33_physics.png"):
+        P(f"![{f}]({f})")
+    P("")
+    P(f"Runtime: {time.time() - t_start:.0f} s.")
+    (out / "fe.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,160 @@
+"""Fault estimation: UIO existence, the thesis's DT/CT methods, the x0-free estimator."""
+
+import numpy as np
+import pytest
+
+from inkdiag_core import (
+    InkChannelModel,
+    design_uio,
+    estimate_fm,
+    estimate_fm_batch,
+    fm_to_viscosity,
+    viscosity_to_fm,
+)
+from inkdiag_core.fe_datasets import common_x0, random_x0, synthetic_set
+
+FS = 10e6
+N = 512
+
+
+@pytest.fixture(scope="module")
+def model():
+    return InkChannelModel()
+
+
+def _ct_reference(model, fm, x0, n=N):
+    """Exact samples by an eigen-decomposition (a path no estimator uses)."""
+    A, C, _ = model.observable(fm)
+    lam, V = np.linalg.eig(A)
+    t = np.arange(n) / FS
+    m0 = np.linalg.solve(V, x0.astype(complex))
+    return ((C @ V).ravel() * m0 * np.exp(np.outer(t, lam))).sum(axis=1).real
+
+
+# -- UIO --------------------------------------------------------------------
+def test_uio_decouples_and_existence_report(model):
+    A, C, B_f = model.observable()
+    d = design_uio(A, C, B_f)
+    np.testing.assert_allclose((np.eye(3) - d.H @ C) @ B_f, 0.0, atol=1e-12)
+    assert d.rank_CBf == d.rank_Bf == 1 and d.rank_condition
+    # the design brief's finding, computed: eig(F) = {0, 0, -R_r/I_r}, obs. rank 1
+    p = model.params
+    eig = np.sort_complex(d.eig_F)
+    np.testing.assert_allclose(eig.real, [-p.R_r / p.I_r, 0, 0], atol=1e-3 * p.R_r / p.I_r)
+    assert d.obs_rank == 1
+    assert not d.stable and not d.detectable and not d.exists and d.K1 is None
+    assert "no UIO with asymptotically stable error exists" in d.summary()
+    # exact T (eq. 19) vs the approximation T = A H (eq. 20)
+    np.testing.assert_allclose(d.T, A @ d.H - d.H @ C @ A @ d.H, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(d.T_approx, A @ d.H)
+
+
+def test_uio_offers_chen_patton_gain_when_detectable():
+    # F = (I - HC) A = [[-1, 0], [1, 0]]: the marginal 0 is observable, -1 is not
+    A = np.array([[-1.0, 0.0], [0.0, -2.0]])
+    C = np.array([[1.0, 1.0]])
+    B_f = np.array([[0.0], [1.0]])
+    d = design_uio(A, C, B_f)
+    assert d.exists and d.K1 is not None
+    assert np.all(np.linalg.eigvals(d.F_cp).real < 0)
+
+
+# -- thesis methods -----------------------------------------------------------
+@pytest.mark.parametrize("rel", [0.5, 3.0, 8.0])
+def test_ct_method_on_exact_data(model, rel):
+    fm = float(viscosity_to_fm(model.params, model.params.mu * (1 + rel)))
+    x0 = common_x0(model)
+    y = _ct_reference(model, fm, x0)
+    est = estimate_fm(y, model, FS, method="ct", x0=x0)
+    assert est.method == "ct" and est.trace.shape == (N,)
+    assert abs(est.fm / fm - 1) < 5e-3
+
+
+def test_dt_method_on_eq25_data(model):
+    ds = synthetic_set(model, kind="dt", n_levels=5)
+    est = estimate_fm_batch(ds.y, model, FS, method="dt", x0=ds.x0)
+    np.testing.assert_allclose(est.fm, ds.fm, rtol=1e-6)
+
+
+def test_dt_method_appendix_e_bias_grows_with_fm(model):
+    x0 = common_x0(model)
+    errs = []
+    for rel in (0.2, 2.0):
+        fm = float(viscosity_to_fm(model.params, model.params.mu * (1 + rel)))
+        est = estimate_fm(_ct_reference(model, fm, x0), model, FS, method="dt", x0=x0)
+        errs.append(abs(est.fm / fm - 1))
+    assert errs[0] < 0.01 < errs[1]
+
+
+# -- x0-free estimator --------------------------------------------------------
+@pytest.mark.parametrize("rel", [0.2, 1.0, 4.0, 10.0])
+def test_vp_recovers_fm_without_x0(model, rel):
+    rng = np.random.default_rng(3)
+    fm = float(viscosity_to_fm(model.params, model.params.mu * (1 + rel)))
+    x0 = random_x0(model, 1, rng)[0]
+    y = _ct_reference(model, fm, x0) + 3e-12  # plus a DC offset
+    est = estimate_fm(y, model, FS)  # auto -> vp
+    assert est.method == "vp"
+    assert abs(est.fm / fm - 1) < 1e-4
+    np.testing.assert_allclose(est.x0, x0, rtol=1e-3, atol=1e-6 * np.abs(x0).max())
+    np.testing.assert_allclose(est.offset, 3e-12, rtol=1e-3)
+    d_mu, mu = fm_to_viscosity(model.params, est.fm)
+    assert est.d_mu == pytest.approx(float(d_mu)) and est.viscosity == pytest.approx(float(mu))
+    assert est.d_mu == pytest.approx(rel * model.params.mu, rel=1e-3)
+
+
+def test_healthy_trace_gives_zero_within_ci(model):
+    rng = np.random.default_rng(5)
+    y = _ct_reference(model, 0.0, common_x0(model))
+    y = y + 0.03 * np.sqrt(np.mean(y**2)) * rng.standard_normal(N)  # ~30 dB
+    est = estimate_fm(y, model, FS, method="vp")
+    lo, hi = est.ci
+    assert lo < 0.0 < hi
+    assert np.isfinite(est.std) and est.std > 0
+
+
+def test_vp_noise_and_calibrated_uncertainty(model):
+    rng = np.random.default_rng(7)
+    fm = float(viscosity_to_fm(model.params, model.params.mu * 3))
+    Y = np.stack([_ct_reference(model, fm, x) for x in random_x0(model, 40, rng)])
+    Y += np.sqrt(np.mean(Y**2, axis=1, keepdims=True) / 1e3) * rng.standard_normal(Y.shape)
+    est = estimate_fm_batch(Y, model, FS)
+    assert np.all(np.abs(est.fm / fm - 1) < 0.05)  # >= 95 % at 30 dB
+    z = (est.fm - fm) / est.std
+    assert 0.5 < np.std(z) < 1.6
+
+
+def test_model_as_matrices(model):
+    fm = -4e5
+    y = _ct_reference(model, fm, common_x0(model))
+    est = estimate_fm(y, model.observable(), FS)
+    assert abs(est.fm / fm - 1) < 1e-4
+    assert np.isnan(est.d_mu)
+
+
+# -- bad inputs ---------------------------------------------------------------
+def test_bad_inputs(model):
+    y = _ct_reference(model, -1e5, common_x0(model))
+    with pytest.raises(ValueError, match="at least 16 samples"):
+        estimate_fm(y[:10], model, FS)
+    y_nan = y.copy()
+    y_nan[3] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        estimate_fm(y_nan, model, FS)
+    with pytest.raises(ValueError, match="1-D"):
+        estimate_fm(np.stack([y, y]), model, FS)
+    with pytest.raises(ValueError, match=r"model C must have shape \(1, 3\)"):
+        A, C, B_f = model.observable()
+        estimate_fm(y, (A, C.T, B_f), FS)
+    with pytest.raises(ValueError, match="InkChannelModel"):
+        estimate_fm(y, "model", FS)
+    with pytest.raises(ValueError, match="method 'dt' needs x0"):
+        estimate_fm(y, model, FS, method="dt")
+    with pytest.raises(ValueError, match="method 'ct' needs x0"):
+        estimate_fm(y, model, FS, method="ct")
+    with pytest.raises(ValueError, match=r"x0 must have shape \(3,\)"):
+        estimate_fm(y, model, FS, method="dt", x0=np.zeros(4))
+    with pytest.raises(ValueError, match="valid methods are auto, dt, ct, vp"):
+        estimate_fm(y, model, FS, method="kalman")
+    with pytest.raises(ValueError, match="sample_rate_hz"):
+        estimate_fm(y, model, -1.0)
