@@ -1,0 +1,572 @@
+"""Key performance indicators (KPIs) of self-sensing traces (thesis sections 3.3-3.4).
+
+Each trace is modelled as one exponentially damped sinusoid on a DC level,
+
+    y[k] = dc + A * exp(-zeta * w0 * t_k) * cos(w_d * t_k + phi),
+    w_d = w0 * sqrt(1 - zeta**2),   t_k = k / sample_rate_hz,   k = 0 .. n_samples - 1,
+
+and :func:`extract_kpis` returns, per trace, the seven KPIs of :data:`KPI_NAMES`.
+:func:`reconstruct` rebuilds the model trace from them (thesis Figure 8).
+:class:`KpiExtractor` wraps :func:`extract_kpis` as a scikit-learn transformer so that a
+whole fault classifier is one ``Pipeline``.
+
+Method
+------
+The fit is a least-squares fit done in the frequency domain, batched over traces:
+
+1. one real FFT of every trace (``scipy.fft.rfft``, in the input precision);
+2. the dominant FFT bin (largest ``|Y[m]|``, ``m >= 1``) selects a window of
+   ``_WINDOW_BINS`` consecutive bins;
+3. the DFT of a damped sinusoid has a closed form (a finite geometric series),
+   ``Y[m] = (C G_m(z) + conj(C) G_m(conj(z))) / 2`` with ``z = exp(-sigma + i omega)``
+   (per-sample units), ``C = A exp(i phi)`` and
+   ``G_m(z) = (1 - z**N) / (1 - z exp(-2 pi i m / N))``; the DC level only enters bin 0;
+4. multiplying by the denominator makes the window bins linear in the unknowns
+   (a frequency-domain Prony / equation-error fit), which gives the initial ``(omega, sigma)``;
+5. a few Gauss-Newton steps of variable projection (``C`` solved by linear least squares for
+   each ``(omega, sigma)``) refine the exact, not linearised, model on the window bins;
+6. the DC level follows from bin 0 minus the fitted sinusoid's contribution.
+
+Restricting the fit to the bins around the dominant peak makes the cost independent of
+the number of iterations' trace length, keeps other modes and out-of-band noise out of the
+fit, and means that on a multi-mode trace the KPIs describe the mode with the largest FFT
+peak. Every step is vectorised over the batch: there is no loop over traces.
+"""
+
+import numbers
+
+import numpy as np
+import scipy.fft
+from sklearn.base import BaseEstimator, TransformerMixin
+from sklearn.utils.validation import check_is_fitted, validate_data
+
+__all__ = [
+    "KPI_NAMES",
+    "MIN_SAMPLES",
+    "InvalidTraceError",
+    "KpiExtractor",
+    "extract_kpis",
+    "reconstruct",
+]
+
+KPI_NAMES = (
+    "dc_offset",
+    "dominant_frequency_hz",
+    "damping_ratio",
+    "amplitude",
+    "phase_rad",
+    "energy",
+    "magnitude",
+)
+"""Names of the columns returned by :func:`extract_kpis`, in order."""
+
+MIN_SAMPLES = 2
+"""Fewest samples per trace that :func:`extract_kpis` accepts.
+
+Two samples are the least that have a non-DC FFT bin. This is a floor for robustness, not a
+recommendation: the model has 5 parameters, fewer than 5 samples leave the fit
+under-determined (the KPIs are then finite but arbitrary) and below about 16 samples the
+bin window around the peak is too narrow for a reliable damping estimate. It is this low
+so that :class:`KpiExtractor` passes scikit-learn's estimator checks, which use 2 to 10
+columns.
+"""
+
+# Number of FFT bins around the dominant peak used by the fit.
+_WINDOW_BINS = 16
+# Gauss-Newton (variable projection) steps after the equation-error initialisation.
+_N_ITER = 3
+# Bounds on the per-sample decay rate sigma = zeta * w0 / fs.
+_SIGMA_MIN = 1e-9
+_SIGMA_MAX = 5.0
+# A trace whose AC power is at most this fraction of its total power counts as flat.
+_FLAT_RTOL = 1e-12
+
+
+class InvalidTraceError(ValueError):
+    """Traces or a sample rate that :func:`extract_kpis` cannot use (a ``ValueError``)."""
+
+
+def _check_sample_rate(sample_rate_hz):
+    """Return ``sample_rate_hz`` as a float after checking it is finite and positive."""
+    if isinstance(sample_rate_hz, (bool, np.bool_)) or not isinstance(
+        sample_rate_hz, numbers.Real
+    ):
+        raise InvalidTraceError(
+            "sample_rate_hz must be a positive finite real number, "
+            f"found {sample_rate_hz!r} of type {type(sample_rate_hz).__name__}"
+        )
+    fs = float(sample_rate_hz)
+    if not (np.isfinite(fs) and fs > 0.0):
+        raise InvalidTraceError(f"sample_rate_hz must be positive and finite, found {fs!r}")
+    return fs
+
+
+def _check_traces(traces, name="traces"):
+    """Validate a batch of traces once, at the boundary.
+
+    Parameters
+    ----------
+    traces : array_like, shape (n_traces, n_samples) or (n_samples,)
+        Real traces; a 1-D array is one trace and is promoted to a batch of one.
+    name : str
+        Name used in error messages.
+
+    Returns
+    -------
+    y : ndarray of float32 or float64, shape (n_traces, n_samples)
+        C-contiguous; float32 input stays float32, any other real input becomes float64.
+
+    Raises
+    ------
+    InvalidTraceError
+        Wrong number of dimensions, fewer than :data:`MIN_SAMPLES` samples, a complex or
+        non-numeric dtype, or NaN / Inf values. The message says what was expected and
+        what was found.
+    """
+    y = np.asarray(traces)
+    if y.dtype.kind == "c":
+        raise InvalidTraceError(f"{name} must be real, found complex dtype {y.dtype}")
+    if y.dtype.kind not in "biuf":
+        try:
+            y = y.astype(np.float64)
+        except (TypeError, ValueError) as exc:
+            raise InvalidTraceError(
+                f"{name} must be a real numeric array, found dtype {y.dtype}"
+            ) from exc
+    if y.ndim == 1:
+        y = y[np.newaxis, :]
+    if y.ndim != 2:
+        raise InvalidTraceError(
+            f"{name} must have shape (n_traces, n_samples) or (n_samples,), "
+            f"found ndim={y.ndim} with shape {y.shape}"
+        )
+    if y.shape[1] < MIN_SAMPLES:
+        raise InvalidTraceError(
+            f"{name} must have at least {MIN_SAMPLES} samples per trace, "
+            f"found {y.shape[1]} (shape {y.shape})"
+        )
+    y = np.ascontiguousarray(y, dtype=np.float32 if y.dtype == np.float32 else np.float64)
+    finite = np.isfinite(y)
+    if not finite.all():
+        bad_rows = np.flatnonzero(~finite.all(axis=1))
+        raise InvalidTraceError(
+            f"{name} must be finite, found {int((~finite).sum())} NaN or Inf value(s) "
+            f"in {bad_rows.size} trace(s), first in trace {int(bad_rows[0])}"
+        )
+    return y
+
+
+def _rdot(a, b):
+    """Real inner product ``Re(sum(conj(a) * b))`` over the last axis, shape (n,)."""
+    return np.einsum("ij,ij->i", a.real, b.real) + np.einsum("ij,ij->i", a.imag, b.imag)
+
+
+def _solve2(a11, a12, a22, b1, b2):
+    """Solve the batched symmetric 2x2 systems ``[[a11, a12], [a12, a22]] x = b``.
+
+    Singular systems (a zero determinant) give ``x = 0``.
+    """
+    det = a11 * a22 - a12 * a12
+    scale = np.abs(a11 * a22)
+    ok = det > 1e-14 * scale
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    return (a22 * b1 - a12 * b2) * inv, (a11 * b2 - a12 * b1) * inv
+
+
+def _basis(omega, sigma, u, n_samples):
+    """Window-bin DFTs of the damped cosine and sine for each trace.
+
+    Returns ``(z, zn, D, E, G, H)`` where ``z = exp(-sigma + i omega)`` (n,), ``zn = z**N``,
+    ``D = 1 / (1 - z u)``, ``E = 1 / (1 - conj(z) u)``, ``G = (1 - zn) D`` and
+    ``H = (1 - conj(zn)) E``, all (n, K).
+    """
+    lam = -sigma + 1j * omega
+    z = np.exp(lam)
+    zn = np.exp(n_samples * lam)
+    d = 1.0 - z[:, None] * u
+    e = 1.0 - np.conj(z)[:, None] * u
+    D = np.conj(d) / (d.real**2 + d.imag**2)
+    E = np.conj(e) / (e.real**2 + e.imag**2)
+    G = (1.0 - zn)[:, None] * D
+    H = np.conj(1.0 - zn)[:, None] * E
+    return z, zn, D, E, G, H
+
+
+def _linear_fit(Yw, G, H):
+    """Least-squares ``C`` for fixed ``(omega, sigma)``; returns ``c1, c2, P, Q, gram``."""
+    P = 0.5 * (G + H)
+    Q = 0.5j * (G - H)
+    pp, pq, qq = _rdot(P, P), _rdot(P, Q), _rdot(Q, Q)
+    c1, c2 = _solve2(pp, pq, qq, _rdot(P, Yw), _rdot(Q, Yw))
+    return c1, c2, P, Q, (pp, pq, qq)
+
+
+def _prony_init(Yw, u, proj):
+    """Equation-error (frequency-domain Prony) estimate of ``(omega, sigma)``.
+
+    On the window bins, ``Y[m] (1 + a1 u_m + a2 u_m**2) = alpha + beta u_m`` holds exactly
+    for a noise-free damped sinusoid, with ``a1 = -2 Re z`` and ``a2 = |z|**2``. ``alpha``
+    and ``beta`` are projected out (``proj``), then ``a1, a2`` solve a 2x2 least-squares
+    problem. Returns ``omega, sigma`` and a boolean mask of traces where it succeeded.
+    """
+    c1 = u * Yw
+    c2 = u * c1
+    y_p = Yw @ proj
+    c1_p = c1 @ proj
+    c2_p = c2 @ proj
+    a1, a2 = _solve2(
+        _rdot(c1_p, c1_p), _rdot(c1_p, c2_p), _rdot(c2_p, c2_p),
+        -_rdot(c1_p, y_p), -_rdot(c2_p, y_p),
+    )
+    re_z = -0.5 * a1
+    im2 = a2 - re_z * re_z
+    ok = (a2 > 0.0) & (im2 > 0.0)
+    omega = np.arctan2(np.sqrt(np.where(ok, im2, 1.0)), re_z)
+    sigma = -0.5 * np.log(np.where(ok, a2, 1.0))
+    return omega, sigma, ok
+
+
+def _window_projector(n_bins, n_samples):
+    """(K, K) projector onto the complement of span{1, u} for consecutive bins.
+
+    ``u_m = exp(-2 pi i m / N)`` over ``K`` consecutive bins is a per-trace phase times
+    ``exp(-2 pi i j / N)``, ``j = 0 .. K-1``, so the projector is the same for every trace.
+    It acts on row vectors: ``v_perp = v @ proj``.
+    """
+    j = np.arange(n_bins)
+    B = np.stack([np.ones(n_bins), np.exp(-2j * np.pi * j / n_samples)], axis=1)
+    P = B @ np.linalg.pinv(B)  # pinv: for K <= 2 the complement is empty
+    return (np.eye(n_bins) - P).T
+
+
+def _fit_windows(Yw, u, m_peak, n_samples):
+    """Fit one damped sinusoid to window bins; returns ``omega, sigma, C`` (per sample)."""
+    n_bins = Yw.shape[1]
+    omega, sigma, ok = _prony_init(Yw, u, _window_projector(n_bins, n_samples))
+    bin_w = 2.0 * np.pi / n_samples
+    omega = np.where(ok, omega, bin_w * m_peak)
+    sigma = np.where(ok, sigma, bin_w)
+    omega_lo, omega_hi = 0.5 * bin_w, np.pi - 0.5 * bin_w
+    omega = np.clip(omega, omega_lo, omega_hi)
+    sigma = np.clip(sigma, _SIGMA_MIN, _SIGMA_MAX)
+
+    best = None
+    for it in range(_N_ITER + 1):
+        z, zn, D, E, G, H = _basis(omega, sigma, u, n_samples)
+        c1, c2, P, Q, (pp, pq, qq) = _linear_fit(Yw, G, H)
+        r = Yw - (c1[:, None] * P + c2[:, None] * Q)
+        rss = _rdot(r, r)
+        if best is None:
+            best = [omega, sigma, c1, c2, rss]
+        else:
+            better = rss < best[4]
+            best = [np.where(better, new, old) for new, old in
+                    zip((omega, sigma, c1, c2, rss), best)]
+        if it == _N_ITER:
+            break
+        # Jacobian of the model with respect to omega and sigma (variable projection,
+        # Kaufman's form): dG/domega = i D (z u G - N z^N), dG/dsigma = i dG/domega,
+        # and the conjugate-mode term H likewise with -i.
+        C = c1 + 1j * c2
+        dG = 1j * D * (z[:, None] * u * G - (n_samples * zn)[:, None])
+        dH = -1j * E * (np.conj(z)[:, None] * u * H - np.conj(n_samples * zn)[:, None])
+        a = (0.5 * C)[:, None] * dG
+        b = (0.5 * np.conj(C))[:, None] * dH
+        jw = a + b
+        js = 1j * (a - b)
+        # Normal matrix of the projected Jacobian: <J_i, J_j> - g_i^T Gram^-1 g_j.
+        gw = (_rdot(P, jw), _rdot(Q, jw))
+        gs = (_rdot(P, js), _rdot(Q, js))
+        iw = _solve2(pp, pq, qq, *gw)
+        i_s = _solve2(pp, pq, qq, *gs)
+        nww = _rdot(jw, jw) - (gw[0] * iw[0] + gw[1] * iw[1])
+        nws = _rdot(jw, js) - (gw[0] * i_s[0] + gw[1] * i_s[1])
+        nss = _rdot(js, js) - (gs[0] * i_s[0] + gs[1] * i_s[1])
+        d_omega, d_sigma = _solve2(nww, nws, nss, _rdot(jw, r), _rdot(js, r))
+        # Keep steps within two bins so that a poor start cannot jump to another peak.
+        d_omega = np.clip(d_omega, -2 * bin_w, 2 * bin_w)
+        d_sigma = np.clip(d_sigma, -2 * bin_w - 0.5 * sigma, 2 * bin_w + sigma)
+        # A step from a point worse than the best one restarts halfway from the best.
+        worse = rss > best[4]
+        omega = np.where(worse, 0.5 * (omega + best[0]), omega + d_omega)
+        sigma = np.where(worse, 0.5 * (sigma + best[1]), sigma + d_sigma)
+        omega = np.clip(omega, omega_lo, omega_hi)
+        sigma = np.clip(sigma, _SIGMA_MIN, _SIGMA_MAX)
+    omega, sigma, c1, c2, _ = best
+    return omega, sigma, c1 + 1j * c2
+
+
+def extract_kpis(traces, sample_rate_hz):
+    """Extract the seven KPIs of every trace in a batch.
+
+    Each trace is fitted with ``y[k] = dc + A exp(-zeta w0 t_k) cos(w_d t_k + phi)``,
+    ``w_d = w0 sqrt(1 - zeta**2)``, ``t_k = k / sample_rate_hz`` counted from the first
+    sample, by least squares on the FFT bins around the dominant spectral peak (see the
+    module docstring). Fully vectorised over the batch.
+
+    Parameters
+    ----------
+    traces : array_like, shape (n_traces, n_samples) or (n_samples,)
+        Self-sensing traces in signal units (V, or whatever the sensor reports), at least
+        :data:`MIN_SAMPLES` samples each. A 1-D array is one trace: a batch of one.
+        float32 input is transformed in single precision (as it is sent); other real
+        dtypes in double precision. An empty batch gives an empty (0, 7) result.
+    sample_rate_hz : float
+        Sampling rate in Hz, positive and finite.
+
+    Returns
+    -------
+    kpis : ndarray of float64, shape (n_traces, 7)
+        Columns in the order of :data:`KPI_NAMES`:
+
+        - ``dc_offset``: ``dc``, signal units.
+        - ``dominant_frequency_hz``: damped frequency ``w_d / (2 pi)``, Hz, in
+          ``(fs / (4 N), fs / 2)`` for an oscillating trace.
+        - ``damping_ratio``: ``zeta``, dimensionless, in ``[0, 1)``; values below about
+          ``1e-9 fs / w_d`` are not resolved (the decay rate is floored at ``1e-9 fs``).
+        - ``amplitude``: ``A`` at ``t = 0``, signal units, ``>= 0``.
+        - ``phase_rad``: ``phi`` at ``t = 0``, rad, wrapped to ``(-pi, pi]``.
+        - ``energy``: ``sum_k (y[k] - mean(y))**2 / sample_rate_hz``, signal**2 * s: the
+          energy of the mean-removed trace (model-free, computed by Parseval from the FFT).
+        - ``magnitude``: single-sided amplitude spectrum at the FFT peak,
+          ``2 |Y[m*]| / N`` with ``Y = rfft(y)`` and ``m* = argmax_{m >= 1} |Y[m]|``
+          (``|Y[m*]| / N`` if ``m*`` is the Nyquist bin); signal units. It equals ``A``
+          for an undamped sinusoid on a bin frequency.
+
+    Raises
+    ------
+    InvalidTraceError
+        (a ``ValueError``) for ndim other than 1 or 2, fewer than :data:`MIN_SAMPLES`
+        samples, complex or non-numeric data, NaN / Inf values, or a non-positive or
+        non-finite ``sample_rate_hz``.
+
+    Notes
+    -----
+    - Multi-mode traces: the KPIs describe the mode with the largest FFT peak; the other
+      modes are kept out of the fit by the bin window, and only bias it through their
+      spectral leakage into that window.
+    - Flat traces (AC power at most ``1e-12`` of the total power, e.g. a constant or an
+      all-zero trace) give ``dc_offset = mean``, and ``0`` for frequency, damping ratio,
+      amplitude, phase, energy and magnitude: finite values, so classifiers never see NaN.
+    - Every output is finite for every accepted input. A trace that is not a damped
+      sinusoid (noise, a step, an overdamped decay) still gets the least-squares best single
+      damped sinusoid near its FFT peak, which may be meaningless.
+    - Very heavy damping (the envelope falling by ``1/e`` within a few samples) leaves
+      little information in the trace; the fit then relies on the exactness of the model
+      and degrades quickly with noise.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> fs, t = 10e6, np.arange(512) / 10e6
+    >>> w_d, zeta = 2 * np.pi * 237e3, 0.07
+    >>> w0 = w_d / np.sqrt(1 - zeta**2)
+    >>> y = 0.1 + 2.0 * np.exp(-zeta * w0 * t) * np.cos(w_d * t + 0.5)
+    >>> np.round(extract_kpis(y, fs)[0, :5], 4)
+    array([1.00e-01, 2.37e+05, 7.00e-02, 2.00e+00, 5.00e-01])
+    """
+    fs = _check_sample_rate(sample_rate_hz)
+    y = _check_traces(traces)
+    n_traces, n_samples = y.shape
+    out = np.zeros((n_traces, len(KPI_NAMES)))
+    if n_traces == 0:
+        return out
+
+    spec = scipy.fft.rfft(y, axis=-1)
+    half = n_samples // 2
+    # |Y[m]|^2 for m = 1 .. N/2 (the mean only enters bin 0).
+    ac = spec[:, 1:]
+    power = ac.real**2 + ac.imag**2
+    m_peak = np.argmax(power, axis=1) + 1
+    peak_power = np.take_along_axis(power, (m_peak - 1)[:, None], axis=1)[:, 0].astype(
+        np.float64
+    )
+    # Parseval: sum_k (y_k - mean)^2 = (2 sum_{m=1}^{N/2} |Y_m|^2 - [N even] |Y_{N/2}|^2) / N.
+    ac_sumsq = 2.0 * power.sum(axis=1, dtype=np.float64)
+    nyq_scale = np.full(n_traces, 2.0)
+    if n_samples % 2 == 0:
+        ac_sumsq -= power[:, -1]
+        nyq_scale[m_peak == half] = 1.0
+    ac_sumsq /= n_samples
+    mean = spec[:, 0].real.astype(np.float64) / n_samples
+
+    # Window of K consecutive bins around the peak, inside 1 .. N/2.
+    n_bins = min(_WINDOW_BINS, half)
+    start = np.clip(m_peak - n_bins // 2, 1, half - n_bins + 1)
+    idx = start[:, None] + np.arange(n_bins)
+    Yw = np.take_along_axis(spec, idx, axis=1).astype(np.complex128)
+    u = np.exp((-2j * np.pi / n_samples) * idx)
+    omega, sigma, C = _fit_windows(Yw, u, m_peak, n_samples)
+
+    # DC from bin 0: Y_0 = N dc + Re(C G_0), G_0 = (1 - z^N) / (1 - z).
+    lam = -sigma + 1j * omega
+    g0 = (1.0 - np.exp(n_samples * lam)) / (1.0 - np.exp(lam))
+    dc = (spec[:, 0].real - (C * g0).real) / n_samples
+
+    w0 = np.hypot(omega, sigma)
+    phase = np.angle(C)
+    phase = np.where(phase <= -np.pi, phase + 2.0 * np.pi, phase)
+    out[:, 0] = dc
+    out[:, 1] = omega * fs / (2.0 * np.pi)
+    out[:, 2] = sigma / w0
+    out[:, 3] = np.abs(C)
+    out[:, 4] = phase
+    out[:, 5] = ac_sumsq / fs
+    out[:, 6] = nyq_scale * np.sqrt(peak_power) / n_samples
+
+    flat = ac_sumsq <= _FLAT_RTOL * (ac_sumsq + n_samples * mean**2)
+    bad = ~np.isfinite(out).all(axis=1)
+    if flat.any() or bad.any():
+        out[flat, 1:] = 0.0
+        out[flat, 0] = mean[flat]
+        # Should not happen; if it does, fall back to the FFT peak rather than emit NaN.
+        bad &= ~flat
+        out[bad, 0] = mean[bad]
+        out[bad, 1] = m_peak[bad] * fs / n_samples
+        out[bad, 2] = 0.0
+        out[bad, 3] = out[bad, 6]
+        out[bad, 4] = 0.0
+    return out
+
+
+def reconstruct(kpis, n_samples, sample_rate_hz):
+    """Rebuild the fitted damped sinusoids from their KPIs (thesis Figure 8).
+
+    Parameters
+    ----------
+    kpis : array_like, shape (n_traces, 7) or (7,)
+        KPIs in the order of :data:`KPI_NAMES`, as returned by :func:`extract_kpis`;
+        ``energy`` and ``magnitude`` are not used.
+    n_samples : int
+        Samples per rebuilt trace, ``>= 1``.
+    sample_rate_hz : float
+        Sampling rate in Hz, positive and finite.
+
+    Returns
+    -------
+    y : ndarray of float64, shape (n_traces, n_samples)
+        ``dc + A exp(-zeta w0 t_k) cos(w_d t_k + phi)``, ``w_d = 2 pi f``,
+        ``w0 = w_d / sqrt(1 - zeta**2)``, ``t_k = k / sample_rate_hz``.
+
+    Raises
+    ------
+    InvalidTraceError
+        (a ``ValueError``) for a wrong shape, non-finite KPIs, a damping ratio outside
+        ``[0, 1)``, a bad ``n_samples`` or a bad ``sample_rate_hz``.
+    """
+    fs = _check_sample_rate(sample_rate_hz)
+    k = np.asarray(kpis, dtype=np.float64)
+    if k.ndim == 1:
+        k = k[np.newaxis, :]
+    if k.ndim != 2 or k.shape[1] != len(KPI_NAMES):
+        raise InvalidTraceError(
+            f"kpis must have shape (n_traces, {len(KPI_NAMES)}) or ({len(KPI_NAMES)},), "
+            f"found shape {np.shape(kpis)}"
+        )
+    if not np.isfinite(k).all():
+        raise InvalidTraceError("kpis must be finite, found NaN or Inf")
+    if isinstance(n_samples, (bool, np.bool_)) or not isinstance(n_samples, numbers.Integral):
+        raise InvalidTraceError(f"n_samples must be an integer, found {n_samples!r}")
+    if n_samples < 1:
+        raise InvalidTraceError(f"n_samples must be at least 1, found {n_samples}")
+    zeta = k[:, 2]
+    if np.any((zeta < 0.0) | (zeta >= 1.0)):
+        raise InvalidTraceError(
+            f"damping_ratio must be in [0, 1), found values in [{zeta.min()}, {zeta.max()}]"
+        )
+    t = np.arange(n_samples) / fs
+    w_d = 2.0 * np.pi * k[:, 1]
+    decay = zeta * w_d / np.sqrt(1.0 - zeta**2)
+    return k[:, [0]] + k[:, [3]] * np.exp(-decay[:, None] * t) * np.cos(
+        w_d[:, None] * t + k[:, [4]]
+    )
+
+
+class KpiExtractor(TransformerMixin, BaseEstimator):
+    """scikit-learn transformer from traces to the seven KPIs of :func:`extract_kpis`.
+
+    Stateless apart from the input width: ``fit`` only validates. Use it as the first step
+    of a ``Pipeline`` (KPIs, scaler, classifier) that joblib saves and loads whole.
+
+    Parameters
+    ----------
+    sample_rate_hz : float, default=10e6
+        Sampling rate of the traces in Hz.
+
+    Attributes
+    ----------
+    n_features_in_ : int
+        Samples per trace seen in ``fit``; ``transform`` requires the same.
+    feature_names_in_ : ndarray of str, shape (n_features_in_,)
+        Column names, set only when ``X`` in ``fit`` has string column names.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> t = np.arange(512) / 10e6
+    >>> X = np.cos(2 * np.pi * 2e5 * t)[None, :].repeat(3, axis=0)
+    >>> KpiExtractor().fit_transform(X).shape
+    (3, 7)
+    """
+
+    def __init__(self, sample_rate_hz=10e6):
+        self.sample_rate_hz = sample_rate_hz
+
+    def _validate(self, X, reset):
+        X = validate_data(self, X, reset=reset, dtype=[np.float64, np.float32])
+        if X.shape[1] < MIN_SAMPLES:
+            raise InvalidTraceError(
+                f"X has {X.shape[1]} feature(s) (samples per trace), but "
+                f"{type(self).__name__} needs at least {MIN_SAMPLES}"
+            )
+        return X
+
+    def fit(self, X, y=None):
+        """Validate the traces and the sample rate.
+
+        Parameters
+        ----------
+        X : array_like, shape (n_traces, n_samples)
+            Traces, one per row.
+        y : None
+            Ignored.
+
+        Returns
+        -------
+        self : KpiExtractor
+        """
+        _check_sample_rate(self.sample_rate_hz)
+        self._validate(X, reset=True)
+        return self
+
+    def transform(self, X):
+        """Extract the KPIs of every trace.
+
+        Parameters
+        ----------
+        X : array_like, shape (n_traces, n_samples)
+            Traces, one per row, with ``n_samples == n_features_in_``.
+
+        Returns
+        -------
+        kpis : ndarray of float64, shape (n_traces, 7)
+            Columns in the order of :data:`KPI_NAMES`.
+        """
+        check_is_fitted(self)
+        X = self._validate(X, reset=False)
+        return extract_kpis(X, self.sample_rate_hz)
+
+    def get_feature_names_out(self, input_features=None):
+        """Names of the output columns: :data:`KPI_NAMES`.
+
+        Parameters
+        ----------
+        input_features : None
+            Ignored; the output columns do not depend on the input names.
+
+        Returns
+        -------
+        names : ndarray of object, shape (7,)
+        """
+        check_is_fitted(self)
+        return np.asarray(KPI_NAMES, dtype=object)
