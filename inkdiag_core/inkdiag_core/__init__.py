@@ -5,6 +5,7 @@ fault estimators. numpy, scipy, scikit-learn and joblib only: this package
 never imports rclpy or any message package (a test checks it).
 """
 
+from .faults import FaultClass
 from .model import (
     InkChannelModel,
     InkChannelParams,
@@ -13,10 +14,14 @@ from .model import (
     fm_to_viscosity,
     viscosity_to_fm,
 )
+from .simulator import SimulationResult, simulate
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "FaultClass",
+    "SimulationResult",
+    "simulate",
     "InkChannelModel",
     "InkChannelParams",
     "__version__",
