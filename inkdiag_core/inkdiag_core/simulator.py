@@ -55,7 +55,7 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 from scipy.special import ndtri
 
-from .faults import MECHANISMS, FaultClass, as_fault_class
+from .faults import MECHANISMS, PARTICLE_LENGTH_FRACTION, FaultClass, as_fault_class
 from .model import InkChannelParams
 
 __all__ = [
@@ -360,12 +360,24 @@ def _draw_channels(classes, base: InkChannelParams, spreads: Spreads, rng):
     bubble = kinds == "chamber_bubble"
     B_extra[bubble] += _bubble_compliance(severity[bubble])
 
-    # effective nozzle bore (radius, ink-column length)
-    r_eff = np.where(kinds == "narrowed", severity * r_n, r_n)
+    # ink column in the nozzle bore (a nozzle bubble cuts it short)
     col = np.where(kinds == "nozzle_bubble", (1.0 - severity) * L_n, L_n)
+    I_n = rho * (col + np.pi * r_n / 4.0) / (np.pi * r_n**2)
+    R_n = 8.0 * mu_nozzle * col / (np.pi * r_n**4)
 
-    I_n = rho * (col + np.pi * r_eff / 4.0) / (np.pi * r_eff**2)
-    R_n = 8.0 * mu_nozzle * col / (np.pi * r_eff**4)
+    # particle of radius a = severity * r_n over a length PARTICLE_LENGTH_FRACTION * L_n:
+    # that stretch of the bore is a concentric annulus (Poiseuille flow in an annulus)
+    part = kinds == "particle"
+    if part.any():
+        ell = PARTICLE_LENGTH_FRACTION * L_n[part]
+        r, a = r_n[part], severity[part] * r_n[part]
+        area = np.pi * (r**2 - a**2)
+        r_ann = 8.0 * mu_nozzle[part] * ell / (
+            np.pi * (r**4 - a**4 - (r**2 - a**2) ** 2 / np.log(r / a))
+        )
+        free = L_n[part] - ell
+        I_n[part] = rho[part] * ((free + np.pi * r / 4.0) / (np.pi * r**2) + ell / area)
+        R_n[part] = 8.0 * mu_nozzle[part] * free / (np.pi * r**4) + r_ann
     I_r = rho * L_r / (np.pi * r_r**2)
     R_r = 8.0 * mu * L_r / (np.pi * r_r**4)
     B_t = B_act + base.V_ch / (rho * base.c**2) + B_extra
