@@ -6,6 +6,9 @@ never imports rclpy or any message package (a test checks it).
 """
 
 from .estimation import FmBatchEstimate, FmEstimate, estimate_fm, estimate_fm_batch
+from .faults import FaultClass
+from .fdi import FEATURE_SETS, fd_labels, make_fdi_pipeline
+from .kpis import KPI_NAMES, KpiExtractor, extract_kpis, reconstruct
 from .model import (
     InkChannelModel,
     InkChannelParams,
@@ -15,41 +18,42 @@ from .model import (
     viscosity_to_fm,
 )
 from .observer import UIODesign, design_uio
-
-from .fdi import FEATURE_SETS, fd_labels, make_fdi_pipeline
-from .kpis import KPI_NAMES, KpiExtractor, extract_kpis, reconstruct
-from .residual import ResidualFilter, design_residual_filter
 from .persistence import ModelFileError, load_model, save_model
+from .residual import ResidualFilter, design_residual_filter
 from .screening import INVALID_REASONS, screen_traces
+from .simulator import SimulationResult, simulate
 
 __version__ = "0.1.0"
 
 __all__ = [
     "FEATURE_SETS",
-    "KPI_NAMES",
-    "KpiExtractor",
-    "ResidualFilter",
-    "design_residual_filter",
-    "extract_kpis",
-    "fd_labels",
-    "make_fdi_pipeline",
-    "reconstruct",
     "INVALID_REASONS",
-    "ModelFileError",
-    "load_model",
-    "save_model",
-    "screen_traces",
+    "KPI_NAMES",
+    "FaultClass",
+    "FmBatchEstimate",
+    "FmEstimate",
     "InkChannelModel",
     "InkChannelParams",
+    "KpiExtractor",
+    "ModelFileError",
+    "ResidualFilter",
+    "SimulationResult",
+    "UIODesign",
     "__version__",
     "alpha",
-    "fault_fm",
-    "fm_to_viscosity",
-    "viscosity_to_fm",
-    "FmEstimate",
-    "FmBatchEstimate",
+    "design_residual_filter",
+    "design_uio",
     "estimate_fm",
     "estimate_fm_batch",
-    "UIODesign",
-    "design_uio",
+    "extract_kpis",
+    "fault_fm",
+    "fd_labels",
+    "fm_to_viscosity",
+    "load_model",
+    "make_fdi_pipeline",
+    "reconstruct",
+    "save_model",
+    "screen_traces",
+    "simulate",
+    "viscosity_to_fm",
 ]
