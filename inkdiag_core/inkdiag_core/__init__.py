@@ -57,3 +57,11 @@ __all__ = [
     "simulate",
     "viscosity_to_fm",
 ]
+
+from .trend import FmTrend, FmTrendBank, deeply_dried_fm  # noqa: E402
+
+__all__ += ["FmTrend", "FmTrendBank", "deeply_dried_fm"]
+
+from .labelling import FrameLabels, label_traces  # noqa: E402
+
+__all__ += ["FrameLabels", "label_traces"]

@@ -43,6 +43,8 @@ from dataclasses import dataclass
 import numpy as np
 from std_msgs.msg import Float32MultiArray, MultiArrayDimension
 
+from .errors import MessageError
+
 __all__ = [
     "SCHEMA_VERSION",
     "HEADER_LEN",
@@ -68,7 +70,7 @@ TRACE_MSG_TYPE = Float32MultiArray
 _EXACT = 1 << 24  # float32 holds every integer below 2**24 exactly
 
 
-class FrameError(ValueError):
+class FrameError(MessageError):
     """A trace message that does not follow the layout; says what was expected and found."""
 
 
@@ -108,6 +110,16 @@ class TraceFrame:
     def nozzle_ids(self) -> np.ndarray:
         """Nozzle id of each row, int64 (n_nozzles,)."""
         return np.arange(self.first_nozzle, self.first_nozzle + self.n_nozzles, dtype=np.int64)
+
+    def rows_of(self, nozzle_ids):
+        """The rows of the given nozzles that this frame holds.
+
+        Returns ``(ids, traces)``: the ids (int64, sorted, only those in this
+        frame's range) and their traces (a float32 copy, (len(ids), n_samples)).
+        """
+        ids = np.unique(np.asarray(list(nozzle_ids), dtype=np.int64))
+        ids = ids[(ids >= self.first_nozzle) & (ids < self.first_nozzle + self.n_nozzles)]
+        return ids, np.array(self.traces[ids - self.first_nozzle])
 
 
 def _check_uint(name: str, value, limit: int) -> int:
@@ -182,7 +194,8 @@ def encode_traces(
     return msg
 
 
-def decode_traces(msg, *, max_nozzle_id: int | None = None) -> TraceFrame:
+def decode_traces(msg, *, max_nozzle_id: int | None = None, n_samples: int | None = None,
+                  sample_rate_hz: float | None = None) -> TraceFrame:
     """Decode and validate a trace frame.
 
     Parameters
@@ -191,6 +204,11 @@ def decode_traces(msg, *, max_nozzle_id: int | None = None) -> TraceFrame:
     max_nozzle_id : int, optional
         When given, every row's nozzle id must be ``<= max_nozzle_id``
         (the receiving head's last nozzle).
+    n_samples : int, optional
+        When given, the frame must have exactly this many samples per trace
+        (what the receiver's model was built for).
+    sample_rate_hz : float, optional
+        When given, the header's sample rate must equal it.
 
     Returns
     -------
@@ -251,6 +269,10 @@ def decode_traces(msg, *, max_nozzle_id: int | None = None) -> TraceFrame:
             f"nozzle range {first}..{first + n - 1} out of bounds: this head's nozzles are "
             f"0..{max_nozzle_id}"
         )
+    if n_samples is not None and s != n_samples:
+        raise FrameError(f"expected {n_samples} samples per trace, got {s}")
+    if sample_rate_hz is not None and float(head[4]) != float(np.float32(sample_rate_hz)):
+        raise FrameError(f"expected sample_rate_hz {sample_rate_hz:g}, got {head[4]:g}")
     traces = data[HEADER_LEN:].reshape(n, s)
     traces.flags.writeable = False  # a view into the message: never write through it
     return TraceFrame(

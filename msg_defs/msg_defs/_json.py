@@ -1,0 +1,65 @@
+"""Shared helpers of the JSON messages (std_msgs/String): envelope and field checks."""
+
+from __future__ import annotations
+
+import json
+import math
+
+from std_msgs.msg import String
+
+from .errors import MessageError
+
+#: Version of every inkdiag JSON schema; bumped on any incompatible change.
+JSON_SCHEMA_VERSION = 1
+
+
+def dump(schema: str, body: dict) -> String:
+    """``std_msgs/String`` holding ``{"schema": ..., "schema_version": ..., **body}``."""
+    doc = {"schema": schema, "schema_version": JSON_SCHEMA_VERSION}
+    doc.update(body)
+    return String(data=json.dumps(doc, separators=(",", ":"), allow_nan=False))
+
+
+def load(msg, schema: str) -> dict:
+    """Parse a String message and check its envelope; raise MessageError otherwise."""
+    if not isinstance(msg, String):
+        raise MessageError(f"expected a std_msgs/String, got {type(msg).__name__}")
+    try:
+        doc = json.loads(msg.data)
+    except ValueError as exc:
+        raise MessageError(f"{schema}: not valid JSON ({exc})") from None
+    if not isinstance(doc, dict):
+        raise MessageError(f"{schema}: expected a JSON object, got {type(doc).__name__}")
+    if doc.get("schema") != schema:
+        raise MessageError(f"expected schema {schema!r}, got {doc.get('schema')!r}")
+    if doc.get("schema_version") != JSON_SCHEMA_VERSION:
+        raise MessageError(
+            f"{schema}: expected schema_version {JSON_SCHEMA_VERSION}, got {doc.get('schema_version')!r}"
+        )
+    return doc
+
+
+def field(doc: dict, schema: str, name: str, kind, *, nonneg: bool = False):
+    """``doc[name]`` checked to be of ``kind`` (int, float, str, list or dict)."""
+    if name not in doc:
+        raise MessageError(f"{schema}: missing field {name!r}")
+    value = doc[name]
+    if kind is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    elif kind is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    else:
+        ok = isinstance(value, kind)
+    if not ok:
+        raise MessageError(
+            f"{schema}: field {name!r} must be {kind.__name__}, got {type(value).__name__} {value!r:.60}"
+        )
+    if nonneg and value < 0:
+        raise MessageError(f"{schema}: field {name!r} must be >= 0, got {value!r}")
+    return float(value) if kind is float else value
+
+
+def finite_or_none(x):
+    """JSON has no NaN/Inf: unknown numbers travel as null."""
+    x = float(x)
+    return x if math.isfinite(x) else None

@@ -1,0 +1,85 @@
+"""``/diagnostics``: one ``diagnostic_msgs/DiagnosticArray`` per head and period.
+
+Each FDI node publishes, every ``diagnostics_period_s``, an array with one
+``DiagnosticStatus``:
+
+- ``name``: ``"inkdiag fdi: <namespace>"`` (e.g. ``inkdiag fdi: /head_07``);
+- ``hardware_id``: the printhead's namespace;
+- ``level``: ``OK``; ``WARN`` when malformed frames or invalid rows arrived in the
+  last period; ``ERROR`` when no model is loaded; ``STALE`` when no frame arrived
+  in the last period;
+- ``message``: one line saying why;
+- ``values`` (all strings, as the message type wants), keys :data:`KEYS`:
+  ``model_id``, ``frames_received``, ``frames_labelled``, ``frames_malformed``,
+  ``rows_invalid``, ``frames_per_s``, ``traces_per_s`` (over the last period),
+  ``last_error`` (the last malformed frame's reason) and then ``count.<class>``
+  for each class value and ``count.invalid`` (cumulative rows per label).
+"""
+
+from __future__ import annotations
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+__all__ = ["DIAGNOSTICS_MSG_TYPE", "LEVELS", "KEYS", "build_diagnostics", "diagnostics_values"]
+
+DIAGNOSTICS_MSG_TYPE = DiagnosticArray
+#: Level names accepted by :func:`build_diagnostics` -> message constants (bytes values).
+LEVELS = {
+    "ok": DiagnosticStatus.OK,
+    "warn": DiagnosticStatus.WARN,
+    "error": DiagnosticStatus.ERROR,
+    "stale": DiagnosticStatus.STALE,
+}
+KEYS = ("model_id", "frames_received", "frames_labelled", "frames_malformed", "rows_invalid",
+        "frames_per_s", "traces_per_s", "last_error")
+COUNT_PREFIX = "count."
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    return str(v)
+
+
+def build_diagnostics(*, namespace: str, level: str, message: str, values: dict, counts: dict,
+                      stamp=None) -> DiagnosticArray:
+    """One head's DiagnosticArray.
+
+    Parameters
+    ----------
+    namespace : str
+        The head's namespace (``hardware_id``).
+    level : {"ok", "warn", "error", "stale"}
+    message : str
+    values : dict
+        Keys of :data:`KEYS` (others are appended after them).
+    counts : dict of str -> int
+        Cumulative rows per class value (and ``"invalid"``).
+    stamp : builtin_interfaces/Time, optional
+        ``header.stamp`` (the node's clock).
+    """
+    status = DiagnosticStatus()
+    status.level = LEVELS[level]
+    status.name = f"inkdiag fdi: {namespace}"
+    status.hardware_id = namespace
+    status.message = message
+    ordered = [k for k in KEYS if k in values] + [k for k in values if k not in KEYS]
+    status.values = [KeyValue(key=k, value=_fmt(values[k])) for k in ordered] + [
+        KeyValue(key=COUNT_PREFIX + c, value=str(int(n))) for c, n in sorted(counts.items())
+    ]
+    arr = DiagnosticArray()
+    if stamp is not None:
+        arr.header.stamp = stamp
+    arr.status = [status]
+    return arr
+
+
+def diagnostics_values(msg: DiagnosticArray) -> dict:
+    """``{status.name: {"level": "ok"|..., "message": ..., key: value, ...}}`` of an array."""
+    names = {v: k for k, v in LEVELS.items()}
+    out = {}
+    for st in msg.status:
+        d = {"level": names.get(st.level, repr(st.level)), "message": st.message}
+        d.update({kv.key: kv.value for kv in st.values})
+        out[st.name] = d
+    return out

@@ -1,0 +1,166 @@
+"""Fault labels per frame: one ``std_msgs/String`` JSON object, topic ``labels``.
+
+Operator-readable (``ros2 topic echo`` shows the JSON). Every label frame
+answers one trace frame::
+
+    {
+      "schema": "inkdiag.labels", "schema_version": 1,
+      "frame_id": 42,                 # the trace frame's id
+      "stamp": 1763798400.125,        # the trace frame's measurement time, s since the epoch
+      "first_nozzle": 0, "n_nozzles": 64,
+      "model_id": "fdi-rf-kpi_y-3f2a9c1b",   # which FDI model labelled it
+      "counts": {"healthy_nozzle": 55, "deeply_dried": 1, ..., "invalid": 1},
+      "faults": [{"nozzle": 7, "class": "deeply_dried", "confidence": 0.91}, ...],
+      "invalid": [{"nozzle": 12, "reason": "non_finite"}, ...]
+    }
+
+``counts`` has one entry per class present in the frame plus ``"invalid"``
+(always present); they sum to ``n_nozzles``. ``faults`` lists every valid
+nozzle whose class is not healthy (not in :data:`HEALTHY_CLASSES`), sorted
+by nozzle id, with the classifier's probability of that class
+(``confidence`` in [0, 1], 3 decimals). ``invalid`` lists the rows that
+could not be judged and why (``non_finite``, ``flat``, ``clipped``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from std_msgs.msg import String
+
+from . import _json
+from .errors import MessageError
+
+__all__ = [
+    "LABELS_SCHEMA",
+    "LABELS_MSG_TYPE",
+    "HEALTHY_CLASSES",
+    "DRIED_CLASSES",
+    "INVALID_KEY",
+    "LabelsReport",
+    "encode_labels",
+    "decode_labels",
+]
+
+LABELS_SCHEMA = "inkdiag.labels"
+LABELS_MSG_TYPE = String
+#: Classes that are not listed under ``faults`` (only counted).
+HEALTHY_CLASSES = ("ok_signal", "healthy_nozzle")
+#: The drying classes, in increasing severity.
+DRIED_CLASSES = ("slightly_dried", "intermediately_dried", "deeply_dried")
+#: Key of the invalid-row count in ``counts``.
+INVALID_KEY = "invalid"
+
+
+@dataclass(frozen=True)
+class LabelsReport:
+    """One frame's labels, as carried by the ``labels`` topic.
+
+    Attributes
+    ----------
+    frame_id, first_nozzle, n_nozzles : int
+    stamp : float
+        Measurement time of the trace frame, s since the epoch.
+    model_id : str
+    counts : dict of str -> int
+        Per class value, plus ``"invalid"``; sums to ``n_nozzles``.
+    faults : tuple of (nozzle, class, confidence)
+        Valid, non-healthy nozzles, by nozzle id.
+    invalid : tuple of (nozzle, reason)
+    """
+
+    frame_id: int
+    stamp: float
+    first_nozzle: int
+    n_nozzles: int
+    model_id: str
+    counts: dict = field(default_factory=dict)
+    faults: tuple = ()
+    invalid: tuple = ()
+
+    @classmethod
+    def from_arrays(cls, *, frame_id, stamp, first_nozzle, classes, confidence, valid, reasons,
+                    model_id: str) -> "LabelsReport":
+        """Build a report from the per-row arrays of one frame.
+
+        Parameters
+        ----------
+        classes : array_like of str, shape (n,)
+            Predicted class value per row (ignored where ``valid`` is False).
+        confidence : array_like of float, shape (n,)
+            Probability of the predicted class.
+        valid : array_like of bool, shape (n,)
+        reasons : array_like of str, shape (n,)
+            Why a row is invalid (``""`` for valid rows).
+        """
+        classes = np.asarray(classes, dtype=object)
+        valid = np.asarray(valid, dtype=bool)
+        n = valid.shape[0]
+        if classes.shape != (n,) or np.shape(confidence) != (n,) or np.shape(reasons) != (n,):
+            raise MessageError(
+                f"labels: classes, confidence, valid and reasons must all have shape ({n},), got "
+                f"{classes.shape}, {np.shape(confidence)}, {valid.shape}, {np.shape(reasons)}"
+            )
+        ids = np.arange(first_nozzle, first_nozzle + n)
+        values, k = np.unique(classes[valid].astype(str), return_counts=True)
+        counts = {str(v): int(c) for v, c in zip(values, k)}
+        counts[INVALID_KEY] = int(n - valid.sum())
+        faulty = valid & ~np.isin(classes.astype(str), HEALTHY_CLASSES)
+        conf = np.round(np.asarray(confidence, dtype=float)[faulty], 3)
+        faults = tuple(zip(ids[faulty].tolist(), classes[faulty].astype(str).tolist(), conf.tolist()))
+        bad = ~valid
+        invalid = tuple(zip(ids[bad].tolist(), np.asarray(reasons, dtype=object)[bad].astype(str).tolist()))
+        return cls(int(frame_id), float(stamp), int(first_nozzle), int(n), str(model_id), counts,
+                   faults, invalid)
+
+    def nozzles_of(self, class_values) -> list:
+        """Ids of the listed nozzles whose class is one of ``class_values``."""
+        wanted = set(class_values)
+        return [nz for nz, c, _ in self.faults if c in wanted]
+
+
+def encode_labels(report: LabelsReport) -> String:
+    """``std_msgs/String`` with the report's JSON (see the module docstring)."""
+    return _json.dump(LABELS_SCHEMA, {
+        "frame_id": report.frame_id,
+        "stamp": round(report.stamp, 6),
+        "first_nozzle": report.first_nozzle,
+        "n_nozzles": report.n_nozzles,
+        "model_id": report.model_id,
+        "counts": report.counts,
+        "faults": [{"nozzle": nz, "class": c, "confidence": p} for nz, c, p in report.faults],
+        "invalid": [{"nozzle": nz, "reason": r} for nz, r in report.invalid],
+    })
+
+
+def decode_labels(msg) -> LabelsReport:
+    """Parse and validate a ``labels`` message; raise :class:`MessageError` otherwise."""
+    s = LABELS_SCHEMA
+    doc = _json.load(msg, s)
+    frame_id = _json.field(doc, s, "frame_id", int, nonneg=True)
+    stamp = _json.field(doc, s, "stamp", float, nonneg=True)
+    first = _json.field(doc, s, "first_nozzle", int, nonneg=True)
+    n = _json.field(doc, s, "n_nozzles", int, nonneg=True)
+    model_id = _json.field(doc, s, "model_id", str)
+    counts = _json.field(doc, s, "counts", dict)
+    if not all(isinstance(v, int) and v >= 0 for v in counts.values()):
+        raise MessageError(f"{s}: counts must be non-negative integers, got {counts}")
+    if sum(counts.values()) != n:
+        raise MessageError(f"{s}: counts sum to {sum(counts.values())}, n_nozzles is {n}")
+    faults, invalid = [], []
+    try:
+        for f in _json.field(doc, s, "faults", list):
+            nz, c, p = int(f["nozzle"]), str(f["class"]), float(f["confidence"])
+            if not first <= nz < first + n:
+                raise MessageError(f"{s}: fault nozzle {nz} outside {first}..{first + n - 1}")
+            faults.append((nz, c, p))
+        for f in _json.field(doc, s, "invalid", list):
+            invalid.append((int(f["nozzle"]), str(f["reason"])))
+    except (KeyError, TypeError, ValueError) as exc:
+        if isinstance(exc, MessageError):
+            raise
+        raise MessageError(f"{s}: malformed faults/invalid entry ({exc!r})") from None
+    if counts.get(INVALID_KEY, 0) != len(invalid):
+        raise MessageError(f"{s}: counts['invalid'] = {counts.get(INVALID_KEY)}, {len(invalid)} listed")
+    return LabelsReport(frame_id, stamp, first, n, model_id, counts, tuple(faults), tuple(invalid))
