@@ -201,3 +201,60 @@ def test_non_positive_physical_parameters_raise():
         DriveWaveform(rise_s=-1e-6)
     with pytest.raises(ValueError, match="gain_rel"):
         Spreads(gain_rel=-0.1)
+
+
+# --- nonlinear variant --------------------------------------------------------------------
+
+from inkdiag_core import simulate_nonlinear  # noqa: E402
+from inkdiag_core.nonlinear import DEFAULT_COUPLING_M3_PER_V, NonlinearTerms  # noqa: E402
+
+NL = {FaultClass.HEALTHY_NOZZLE: 1, FaultClass.DEEPLY_DRIED: 1, FaultClass.MATURE_AIR_BUBBLE: 1,
+      FaultClass.FULLY_BLOCKED: 1, FaultClass.EMPTY_CHANNEL_1: 1}
+
+
+def test_nonlinear_with_terms_off_is_the_linear_simulator():
+    base = InkChannelParams(b=DEFAULT_COUPLING_M3_PER_V)
+    a = simulate_nonlinear(NL, seed=1, n_samples=128, spreads=Spreads.none(),
+                           terms=NonlinearTerms.off())
+    b = simulate(NL, seed=1, n_samples=128, spreads=Spreads.none(), base_params=base)
+    ya, yb = a.y_si(), b.y_si()
+    assert (np.abs(ya - yb).max(axis=1) / np.abs(yb).max(axis=1)).max() < 1e-6
+    np.testing.assert_allclose(a.x0, b.x0, rtol=1e-6, atol=1e-9 * np.abs(b.x0).max())
+
+
+def test_nonlinear_same_format_and_same_channels_as_linear():
+    base = InkChannelParams(b=DEFAULT_COUPLING_M3_PER_V)
+    a = simulate_nonlinear(NL, seed=4, n_samples=64)
+    b = simulate(NL, seed=4, n_samples=64, base_params=base)
+    assert isinstance(a, SimulationResult)
+    assert a.traces.dtype == np.float32 and a.traces.shape == (5, 64)
+    for k in ("r_n", "L_n", "temperature_k", "B_t"):
+        np.testing.assert_array_equal(a.params[k], b.params[k])
+    np.testing.assert_array_equal(a.fm, b.fm)
+    assert a.traces.tobytes() == simulate_nonlinear(NL, seed=4, n_samples=64).traces.tobytes()
+
+
+def test_nonlinear_is_amplitude_dependent_but_close_to_linear():
+    counts = {FaultClass.HEALTHY_NOZZLE: 1}
+    ys = []
+    for volts in (10.0, 30.0):
+        r = simulate_nonlinear(counts, n_samples=256, spreads=Spreads.none(),
+                               drive=DriveWaveform(amplitude_v=volts))
+        ys.append(r.y_si()[0] / volts)
+    lin = simulate(counts, n_samples=256, spreads=Spreads.none(),
+                   base_params=InkChannelParams(b=DEFAULT_COUPLING_M3_PER_V)).y_si()[0] / 20.0
+    peak = np.abs(lin).max()
+    diff = np.abs(ys[0] - ys[1]).max() / peak
+    assert 3e-3 < diff < 0.1  # clearly nonlinear, but a perturbation
+    # frequency stays within 1 % of the linear model's (FFT peak of a zero-padded trace)
+    f = [np.argmax(np.abs(np.fft.rfft(y - y.mean(), 2**15))) * 10e6 / 2**15 for y in (ys[1], lin)]
+    assert f[0] == pytest.approx(f[1], rel=0.01)
+
+
+def test_nonlinear_bad_arguments():
+    with pytest.raises(ValueError, match="rtol"):
+        simulate_nonlinear({FaultClass.OK_SIGNAL: 1}, rtol=0.0)
+    with pytest.raises(ValueError, match="counts"):
+        simulate_nonlinear({"bogus": 1})
+    with pytest.raises(ValueError, match="sample_rate_hz"):
+        simulate_nonlinear({FaultClass.EMPTY_CHANNEL_1: 1}, sample_rate_hz=2e6)

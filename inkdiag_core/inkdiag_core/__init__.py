@@ -14,6 +14,7 @@ from .model import (
     fm_to_viscosity,
     viscosity_to_fm,
 )
+from .nonlinear import simulate_nonlinear
 from .simulator import SimulationResult, simulate
 
 __version__ = "0.1.0"
@@ -22,6 +23,7 @@ __all__ = [
     "FaultClass",
     "SimulationResult",
     "simulate",
+    "simulate_nonlinear",
     "InkChannelModel",
     "InkChannelParams",
     "__version__",

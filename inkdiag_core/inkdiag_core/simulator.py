@@ -422,7 +422,7 @@ def _draw_channels(classes, base: InkChannelParams, spreads: Spreads, rng):
 
     return {
         "k_r": k_r, "k_n": k_n, "d_r": d_r, "d_n": d_n, "b_r": b_r, "b_n": b_n,
-        "drive": drive, "fm": fm, "mu": mu, "mu_nozzle": mu_nozzle,
+        "drive": drive, "fm": fm, "mu": mu, "mu_nozzle": mu_nozzle, "kinds": kinds,
         "params": {
             "temperature_k": temperature, "drive_v": None, "rho": rho, "r_n": r_n,
             "L_n": L_n, "r_r": r_r, "L_r": L_r, "B_act": B_act, "b": b, "B_t": B_t,
