@@ -149,6 +149,13 @@ def test_single_trace_is_a_batch_of_one():
     np.testing.assert_array_equal(extract_kpis(traces[1], FS), extract_kpis(traces[1:2], FS))
 
 
+def test_kpis_do_not_depend_on_the_batch():
+    traces, _ = damped_sinusoids(20, np.random.default_rng(9), snr_db=20.0)
+    full = extract_kpis(traces, FS)
+    for i in range(len(traces)):
+        np.testing.assert_array_equal(extract_kpis(traces[i : i + 1], FS), full[i : i + 1])
+
+
 def test_empty_batch():
     assert extract_kpis(np.zeros((0, N), dtype=np.float32), FS).shape == (0, 7)
 

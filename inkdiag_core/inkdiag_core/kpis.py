@@ -23,12 +23,13 @@ The fit is a least-squares fit done in the frequency domain, batched over traces
    ``G_m(z) = (1 - z**N) / (1 - z exp(-2 pi i m / N))``; the DC level only enters bin 0;
 4. multiplying by the denominator makes the window bins linear in the unknowns
    (a frequency-domain Prony / equation-error fit), which gives the initial ``(omega, sigma)``;
-5. a few Gauss-Newton steps of variable projection (``C`` solved by linear least squares for
-   each ``(omega, sigma)``) refine the exact, not linearised, model on the window bins;
+5. Gauss-Newton steps of variable projection (``C`` solved by linear least squares for
+   each ``(omega, sigma)``) refine the exact, not linearised, model on the window bins
+   (``_N_ITER``, one by default);
 6. the DC level follows from bin 0 minus the fitted sinusoid's contribution.
 
-Restricting the fit to the bins around the dominant peak makes the cost independent of
-the number of iterations' trace length, keeps other modes and out-of-band noise out of the
+Restricting the fit to the bins around the dominant peak makes the cost of each iteration
+independent of the trace length, keeps other modes and out-of-band noise out of the
 fit, and means that on a multi-mode trace the KPIs describe the mode with the largest FFT
 peak. Every step is vectorised over the batch: there is no loop over traces.
 """
@@ -73,8 +74,11 @@ columns.
 
 # Number of FFT bins around the dominant peak used by the fit.
 _WINDOW_BINS = 16
-# Gauss-Newton (variable projection) steps after the equation-error initialisation.
-_N_ITER = 3
+# Gauss-Newton (variable projection) steps after the equation-error initialisation. The
+# initialisation is exact on noise-free traces; one step brings the 95th-percentile damping
+# error at 30 dB SNR from about 1.1% to 0.6%, and further steps changed nothing measurable
+# (seeded sweep over K = 8, 12, 16 bins and 1 to 3 steps) while each costs ~25% of the run.
+_N_ITER = 1
 # Bounds on the per-sample decay rate sigma = zeta * w0 / fs.
 _SIGMA_MIN = 1e-9
 _SIGMA_MAX = 5.0
@@ -156,67 +160,67 @@ def _check_traces(traces, name="traces"):
     return y
 
 
-def _rdot(a, b):
-    """Real inner product ``Re(sum(conj(a) * b))`` over the last axis, shape (n,)."""
-    return np.einsum("ij,ij->i", a.real, b.real) + np.einsum("ij,ij->i", a.imag, b.imag)
-
-
 def _solve2(a11, a12, a22, b1, b2):
     """Solve the batched symmetric 2x2 systems ``[[a11, a12], [a12, a22]] x = b``.
 
-    Singular systems (a zero determinant) give ``x = 0``.
+    Singular or non-finite systems give ``x = 0``.
     """
     det = a11 * a22 - a12 * a12
-    scale = np.abs(a11 * a22)
-    ok = det > 1e-14 * scale
+    ok = det > 1e-14 * np.abs(a11 * a22)
     inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
     return (a22 * b1 - a12 * b2) * inv, (a11 * b2 - a12 * b1) * inv
 
 
-def _basis(omega, sigma, u, n_samples):
-    """Window-bin DFTs of the damped cosine and sine for each trace.
+def _rq(x, H, y):
+    """Real inner products ``Re(x^H H y)`` of coefficient vectors, (n, k) x (n, k, k) -> (n,).
 
-    Returns ``(z, zn, D, E, G, H)`` where ``z = exp(-sigma + i omega)`` (n,), ``zn = z**N``,
-    ``D = 1 / (1 - z u)``, ``E = 1 / (1 - conj(z) u)``, ``G = (1 - zn) D`` and
-    ``H = (1 - conj(zn)) E``, all (n, K).
+    ``H`` is the Hermitian Gram matrix of a set of basis vectors and ``x``, ``y`` are the
+    coefficients of two vectors in that basis, so this is ``Re <X, Y>`` of those vectors.
     """
-    lam = -sigma + 1j * omega
-    z = np.exp(lam)
-    zn = np.exp(n_samples * lam)
-    d = 1.0 - z[:, None] * u
-    e = 1.0 - np.conj(z)[:, None] * u
-    D = np.conj(d) / (d.real**2 + d.imag**2)
-    E = np.conj(e) / (e.real**2 + e.imag**2)
-    G = (1.0 - zn)[:, None] * D
-    H = np.conj(1.0 - zn)[:, None] * E
-    return z, zn, D, E, G, H
+    return np.einsum("ni,ni->n", np.conj(x), np.einsum("nij,nj->ni", H, y)).real
 
 
-def _linear_fit(Yw, G, H):
-    """Least-squares ``C`` for fixed ``(omega, sigma)``; returns ``c1, c2, P, Q, gram``."""
-    P = 0.5 * (G + H)
-    Q = 0.5j * (G - H)
-    pp, pq, qq = _rdot(P, P), _rdot(P, Q), _rdot(Q, Q)
-    c1, c2 = _solve2(pp, pq, qq, _rdot(P, Yw), _rdot(Q, Yw))
-    return c1, c2, P, Q, (pp, pq, qq)
+def _window_projector(n_bins, n_samples):
+    """Constants for projecting out ``span{1, u}`` on ``K`` consecutive bins.
+
+    On bins ``m = s .. s+K-1``, ``u_m = exp(-2 pi i m / N) = e_s w_j`` with a per-trace phase
+    ``e_s`` and ``w_j = exp(-2 pi i j / N)``, so ``span{1, u} = span{1, w}`` for every
+    trace. Returns ``w`` (K,) and ``M = (B^H B)^+`` (2, 2) for ``B = [1, w]``.
+    """
+    w = np.exp(-2j * np.pi * np.arange(n_bins) / n_samples)
+    B = np.stack([np.ones(n_bins), w], axis=1)
+    return w, np.linalg.pinv(B.conj().T @ B)  # pinv: for K <= 2 the complement is empty
 
 
-def _prony_init(Yw, u, proj):
+def _prony_init(Yw, e_s, w, M):
     """Equation-error (frequency-domain Prony) estimate of ``(omega, sigma)``.
 
     On the window bins, ``Y[m] (1 + a1 u_m + a2 u_m**2) = alpha + beta u_m`` holds exactly
     for a noise-free damped sinusoid, with ``a1 = -2 Re z`` and ``a2 = |z|**2``. ``alpha``
-    and ``beta`` are projected out (``proj``), then ``a1, a2`` solve a 2x2 least-squares
-    problem. Returns ``omega, sigma`` and a boolean mask of traces where it succeeded.
+    and ``beta`` are projected out, then the real ``a1, a2`` solve a 2x2 least-squares
+    problem. All inner products come from a few sums over the window: the Hermitian
+    products of ``v_p = w**p Y`` (p = 0, 1, 2) are ``sum_j w_j**(q-p) |Y_j|**2``, and their
+    components along ``B = [1, w]`` are ``sum_j w_j**p Y_j`` and ``sum_j w_j**(p-1) Y_j``.
+    Returns ``omega, sigma`` and a boolean mask of the traces where it succeeded.
     """
-    c1 = u * Yw
-    c2 = u * c1
-    y_p = Yw @ proj
-    c1_p = c1 @ proj
-    c2_p = c2 @ proj
+    powers = np.stack([w**p for p in (-1, 0, 1, 2)], axis=1)  # (K, 4)
+    # einsum rather than a BLAS matrix product: BLAS may sum a lone row (gemv) in another
+    # order than a batch (gemm), and the KPIs of a trace must not depend on its batch.
+    t = np.einsum("nk,kp->np", Yw, powers)  # t[:, p + 1] = sum_j w_j^p Y_j
+    a2 = (Yw.real**2 + Yw.imag**2).astype(np.complex128)
+    s = np.einsum("nk,kp->np", a2, powers[:, 1:])  # s[:, k] = sum_j w_j^k |Y_j|^2
+
+    def h(p, q):  # <P v_p, P v_q>, P the projector onto the complement of span{1, w}
+        k = q - p
+        raw = s[:, k] if k >= 0 else np.conj(s[:, -k])
+        bp0, bp1 = np.conj(t[:, p + 1]), np.conj(t[:, p])
+        bq0, bq1 = t[:, q + 1], t[:, q]
+        return raw - (bp0 * (M[0, 0] * bq0 + M[0, 1] * bq1) + bp1 * (M[1, 0] * bq0 + M[1, 1] * bq1))
+
+    # c1 = u Y = e_s v_1, c2 = u^2 Y = e_s^2 v_2, and the projector commutes with e_s.
     a1, a2 = _solve2(
-        _rdot(c1_p, c1_p), _rdot(c1_p, c2_p), _rdot(c2_p, c2_p),
-        -_rdot(c1_p, y_p), -_rdot(c2_p, y_p),
+        h(1, 1).real, (e_s * h(1, 2)).real, h(2, 2).real,
+        -(np.conj(e_s) * h(1, 0)).real, -(np.conj(e_s) ** 2 * h(2, 0)).real,
     )
     re_z = -0.5 * a1
     im2 = a2 - re_z * re_z
@@ -226,23 +230,32 @@ def _prony_init(Yw, u, proj):
     return omega, sigma, ok
 
 
-def _window_projector(n_bins, n_samples):
-    """(K, K) projector onto the complement of span{1, u} for consecutive bins.
+def _fit_windows(Yw, start, m_peak, n_samples):
+    """Fit one damped sinusoid to ``K`` window bins per trace, bins ``start .. start+K-1``.
 
-    ``u_m = exp(-2 pi i m / N)`` over ``K`` consecutive bins is a per-trace phase times
-    ``exp(-2 pi i j / N)``, ``j = 0 .. K-1``, so the projector is the same for every trace.
-    It acts on row vectors: ``v_perp = v @ proj``.
+    Returns ``omega`` (rad/sample), ``sigma`` (1/sample) and the complex amplitude
+    ``C = A exp(i phi)``, each (n,).
+
+    The model on bin ``m`` is ``(C G_m + conj(C) H_m) / 2`` with ``G_m = alpha D_m``,
+    ``H_m = conj(alpha) E_m``, ``alpha = 1 - z**N``, ``D = 1 / (1 - z u)`` and
+    ``E = 1 / (1 - conj(z) u)``; its derivatives with respect to ``omega`` and ``sigma``
+    are combinations of ``D, E, D**2, E**2`` (``z u D = D - 1``). So every vector the
+    Gauss-Newton step needs has per-trace coefficients in the basis
+    ``[D, E, D**2, E**2, Y]``, and all inner products come from that basis' (n, 5, 5)
+    Hermitian Gram matrix: the only work on (n, K) arrays is building the basis.
     """
-    j = np.arange(n_bins)
-    B = np.stack([np.ones(n_bins), np.exp(-2j * np.pi * j / n_samples)], axis=1)
-    P = B @ np.linalg.pinv(B)  # pinv: for K <= 2 the complement is empty
-    return (np.eye(n_bins) - P).T
-
-
-def _fit_windows(Yw, u, m_peak, n_samples):
-    """Fit one damped sinusoid to window bins; returns ``omega, sigma, C`` (per sample)."""
     n_bins = Yw.shape[1]
-    omega, sigma, ok = _prony_init(Yw, u, _window_projector(n_bins, n_samples))
+    e_s = np.exp((-2j * np.pi / n_samples) * start)
+    w, M = _window_projector(n_bins, n_samples)
+    n_iter = _N_ITER
+    if n_bins >= 3:
+        omega, sigma, ok = _prony_init(Yw, e_s, w, M)
+    else:
+        # Fewer than 3 bins (traces of < 6 samples) under-determine (omega, sigma): take
+        # them from the FFT peak and fit only C, rather than decide on rounding noise.
+        omega = sigma = np.zeros(Yw.shape[0])
+        ok = np.zeros(Yw.shape[0], dtype=bool)
+        n_iter = 0
     bin_w = 2.0 * np.pi / n_samples
     omega = np.where(ok, omega, bin_w * m_peak)
     sigma = np.where(ok, sigma, bin_w)
@@ -250,50 +263,83 @@ def _fit_windows(Yw, u, m_peak, n_samples):
     omega = np.clip(omega, omega_lo, omega_hi)
     sigma = np.clip(sigma, _SIGMA_MIN, _SIGMA_MAX)
 
+    n = Yw.shape[0]
+    V = np.empty((n, 5, n_bins), dtype=np.complex128)
+    V[:, 4] = Yw
+    H = np.empty((n, 5, 5), dtype=np.complex128)
+    H[:, 4, 4] = (Yw.real**2 + Yw.imag**2).sum(axis=1)
+    zero = np.zeros(n, dtype=np.complex128)
     best = None
-    for it in range(_N_ITER + 1):
-        z, zn, D, E, G, H = _basis(omega, sigma, u, n_samples)
-        c1, c2, P, Q, (pp, pq, qq) = _linear_fit(Yw, G, H)
-        r = Yw - (c1[:, None] * P + c2[:, None] * Q)
-        rss = _rdot(r, r)
-        if best is None:
-            best = [omega, sigma, c1, c2, rss]
-        else:
-            better = rss < best[4]
-            best = [np.where(better, new, old) for new, old in
-                    zip((omega, sigma, c1, c2, rss), best)]
-        if it == _N_ITER:
-            break
-        # Jacobian of the model with respect to omega and sigma (variable projection,
-        # Kaufman's form): dG/domega = i D (z u G - N z^N), dG/dsigma = i dG/domega,
-        # and the conjugate-mode term H likewise with -i.
+    for it in range(n_iter + 1):
+        z = np.exp(-sigma + 1j * omega)
+        zn = np.exp(n_samples * (-sigma + 1j * omega))
+        for row, zeta in ((0, z * e_s), (1, np.conj(z) * e_s)):
+            d = 1.0 - zeta[:, None] * w
+            V[:, row] = np.conj(d) * (1.0 / (d.real**2 + d.imag**2))
+        last = it == n_iter
+        k = 2 if last else 4  # the final pass only needs C: no derivative terms
+        if not last:
+            np.multiply(V[:, 0], V[:, 0], out=V[:, 2])
+            np.multiply(V[:, 1], V[:, 1], out=V[:, 3])
+        rows = [0, 1, 4] if last else [0, 1, 2, 3, 4]
+        Vk = V[:, rows]
+        Hk = np.matmul(np.conj(Vk[:, :-1]), Vk.transpose(0, 2, 1))  # (n, k, k+1)
+        H[:, :k, :k] = Hk[:, :, :k]
+        H[:, :k, 4] = Hk[:, :, k]
+        H[:, 4, :k] = np.conj(Hk[:, :, k])
+        if last:
+            H[:, 2:4, :] = 0.0
+            H[:, :, 2:4] = 0.0
+        alpha = 1.0 - zn
+        beta = np.conj(alpha)
+        # Linear least squares for C = c1 + i c2 with P = (G + H)/2, Q = i (G - H)/2.
+        p = np.stack([alpha / 2, beta / 2, zero, zero, zero], axis=1)
+        q = np.stack([0.5j * alpha, -0.5j * beta, zero, zero, zero], axis=1)
+        e_y = np.zeros((n, 5), dtype=np.complex128)
+        e_y[:, 4] = 1.0
+        pp, pq, qq = _rq(p, H, p), _rq(p, H, q), _rq(q, H, q)
+        c1, c2 = _solve2(pp, pq, qq, _rq(p, H, e_y), _rq(q, H, e_y))
         C = c1 + 1j * c2
-        dG = 1j * D * (z[:, None] * u * G - (n_samples * zn)[:, None])
-        dH = -1j * E * (np.conj(z)[:, None] * u * H - np.conj(n_samples * zn)[:, None])
-        a = (0.5 * C)[:, None] * dG
-        b = (0.5 * np.conj(C))[:, None] * dH
+        r = np.stack([-0.5 * alpha * C, -0.5 * beta * np.conj(C), zero, zero, e_y[:, 4]], axis=1)
+        # The residual from the Gram expansion cancels to ~1e-16 of ||Y||^2: only used to
+        # rank iterates, where that is enough.
+        rss = _rq(r, H, r)
+        if best is None:
+            best = [omega, sigma, C, rss]
+        else:
+            better = rss < best[3]
+            best = [np.where(better, new, old) for new, old in zip((omega, sigma, C, rss), best)]
+        if last:
+            break
+        # Jacobian columns (variable projection, Kaufman's form):
+        # dG/domega = i (alpha D^2 - (alpha + N z^N) D), dG/dsigma = i dG/domega,
+        # dH/domega = -i (beta E^2 - (beta + N conj(z^N)) E), dH/dsigma = -i dH/domega.
+        gamma = n_samples * zn
+        a = np.stack([-0.5j * C * (alpha + gamma), zero, 0.5j * C * alpha, zero, zero], axis=1)
+        b = np.stack([zero, 0.5j * np.conj(C) * (beta + np.conj(gamma)), zero,
+                      -0.5j * np.conj(C) * beta, zero], axis=1)
         jw = a + b
         js = 1j * (a - b)
         # Normal matrix of the projected Jacobian: <J_i, J_j> - g_i^T Gram^-1 g_j.
-        gw = (_rdot(P, jw), _rdot(Q, jw))
-        gs = (_rdot(P, js), _rdot(Q, js))
+        gw = (_rq(p, H, jw), _rq(q, H, jw))
+        gs = (_rq(p, H, js), _rq(q, H, js))
         iw = _solve2(pp, pq, qq, *gw)
         i_s = _solve2(pp, pq, qq, *gs)
-        nww = _rdot(jw, jw) - (gw[0] * iw[0] + gw[1] * iw[1])
-        nws = _rdot(jw, js) - (gw[0] * i_s[0] + gw[1] * i_s[1])
-        nss = _rdot(js, js) - (gs[0] * i_s[0] + gs[1] * i_s[1])
-        d_omega, d_sigma = _solve2(nww, nws, nss, _rdot(jw, r), _rdot(js, r))
+        nww = _rq(jw, H, jw) - (gw[0] * iw[0] + gw[1] * iw[1])
+        nws = _rq(jw, H, js) - (gw[0] * i_s[0] + gw[1] * i_s[1])
+        nss = _rq(js, H, js) - (gs[0] * i_s[0] + gs[1] * i_s[1])
+        d_omega, d_sigma = _solve2(nww, nws, nss, _rq(jw, H, r), _rq(js, H, r))
         # Keep steps within two bins so that a poor start cannot jump to another peak.
         d_omega = np.clip(d_omega, -2 * bin_w, 2 * bin_w)
         d_sigma = np.clip(d_sigma, -2 * bin_w - 0.5 * sigma, 2 * bin_w + sigma)
         # A step from a point worse than the best one restarts halfway from the best.
-        worse = rss > best[4]
+        worse = rss > best[3]
         omega = np.where(worse, 0.5 * (omega + best[0]), omega + d_omega)
         sigma = np.where(worse, 0.5 * (sigma + best[1]), sigma + d_sigma)
         omega = np.clip(omega, omega_lo, omega_hi)
         sigma = np.clip(sigma, _SIGMA_MIN, _SIGMA_MAX)
-    omega, sigma, c1, c2, _ = best
-    return omega, sigma, c1 + 1j * c2
+    omega, sigma, C, _ = best
+    return omega, sigma, C
 
 
 def extract_kpis(traces, sample_rate_hz):
@@ -395,8 +441,7 @@ def extract_kpis(traces, sample_rate_hz):
     start = np.clip(m_peak - n_bins // 2, 1, half - n_bins + 1)
     idx = start[:, None] + np.arange(n_bins)
     Yw = np.take_along_axis(spec, idx, axis=1).astype(np.complex128)
-    u = np.exp((-2j * np.pi / n_samples) * idx)
-    omega, sigma, C = _fit_windows(Yw, u, m_peak, n_samples)
+    omega, sigma, C = _fit_windows(Yw, start, m_peak, n_samples)
 
     # DC from bin 0: Y_0 = N dc + Re(C G_0), G_0 = (1 - z^N) / (1 - z).
     lam = -sigma + 1j * omega
