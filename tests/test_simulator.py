@@ -258,3 +258,19 @@ def test_nonlinear_bad_arguments():
         simulate_nonlinear({"bogus": 1})
     with pytest.raises(ValueError, match="sample_rate_hz"):
         simulate_nonlinear({FaultClass.EMPTY_CHANNEL_1: 1}, sample_rate_hz=2e6)
+
+
+def test_severity_override_sets_the_drying_level_and_leaves_other_traces_alone():
+    k = np.array([1.0, 2.0, 5.0])
+    counts = {FaultClass.HEALTHY_NOZZLE: 2, FaultClass.DEEPLY_DRIED: 3}
+    r = simulate(counts, seed=2, severity={"deeply_dried": k})
+    r0 = simulate(counts, seed=2)
+    np.testing.assert_allclose(r.mu_nozzle[2:] / r.mu[2:], k)
+    np.testing.assert_array_equal(r.traces[:2], r0.traces[:2])
+    assert r.fm[2] == 0.0 and r.fm[4] < r.fm[3] < 0
+    with pytest.raises(ValueError, match="severity"):
+        simulate(counts, severity={FaultClass.DEEPLY_DRIED: [1.0]})
+    with pytest.raises(ValueError, match="severity"):
+        simulate(counts, severity={FaultClass.DEEPLY_DRIED: [1.0, -2.0, 3.0]})
+    with pytest.raises(ValueError, match="severity"):
+        simulate(counts, severity={FaultClass.HEALTHY_NOZZLE: [1.0, 2.0]})

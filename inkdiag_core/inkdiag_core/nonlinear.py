@@ -66,6 +66,7 @@ from .simulator import (
     _check_counts,
     _check_positive_float,
     _check_positive_int,
+    _check_severity,
     _class_max_frequency,
     _draw_channels,
     _dominant,
@@ -195,6 +196,7 @@ def simulate_nonlinear(
     drive: DriveWaveform | None = None,
     base_params: InkChannelParams | None = None,
     terms: NonlinearTerms | None = None,
+    severity=None,
     rtol: float = 1e-10,
     method: str = "DOP853",
     batch_size: int = 32,
@@ -203,7 +205,7 @@ def simulate_nonlinear(
 
     Parameters
     ----------
-    counts, sample_rate_hz, n_samples, seed, spreads, drive
+    counts, sample_rate_hz, n_samples, seed, spreads, drive, severity
         As :func:`inkdiag_core.simulate`.
     base_params : InkChannelParams, optional
         Nominal channel; default ``InkChannelParams(b=DEFAULT_COUPLING_M3_PER_V)``.
@@ -255,7 +257,7 @@ def simulate_nonlinear(
                                 np.empty((0, 3)), np.empty((0, 3, 3)), e, e, e, {}, 0.0)
 
     # identical draws to simulate(): channels, then gain and offset, then noise
-    ch = _draw_channels(classes, base, spreads, rng)
+    ch = _draw_channels(classes, base, spreads, rng, _check_severity(severity, classes))
     amplitude = drive.amplitude_v * ch["drive"]
     gain_nominal = PHYSICAL_CONSTANTS["sensor_gain_v_per_m3s"] * InkChannelParams().b / base.b
     gain = gain_nominal * (
