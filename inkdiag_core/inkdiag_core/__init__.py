@@ -17,6 +17,7 @@ from .model import (
     fm_to_viscosity,
     viscosity_to_fm,
 )
+from .nonlinear import simulate_nonlinear
 from .observer import UIODesign, design_uio
 from .persistence import ModelFileError, load_model, save_model
 from .residual import ResidualFilter, design_residual_filter
@@ -55,6 +56,7 @@ __all__ = [
     "save_model",
     "screen_traces",
     "simulate",
+    "simulate_nonlinear",
     "viscosity_to_fm",
 ]
 

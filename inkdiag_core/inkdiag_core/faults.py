@@ -38,7 +38,8 @@ mature_air_bubble, intermediate_air_bubble
     ``R_n -> (1 - phi) R_n``) and the resonance rises (330-360 kHz). The
     ink beyond the bubble and the bubble's spring form a separate, slow
     (< 80 kHz), weakly driven mode that the 3-state model leaves out.
-    A mature bubble has grown closer to the chamber (larger ``phi``).
+    A mature bubble has grown closer to the chamber (larger ``phi``: 0.82-0.91
+    against 0.72-0.82).
 small_air_bubble
     A small free bubble of radius ``r_b`` in the chamber adds the gas
     compliance ``B_b = V_b / (kappa p_g - 2 sigma / (3 r_b))`` with
@@ -63,9 +64,16 @@ partially_blocked
 slightly_dried, intermediately_dried, deeply_dried
     Evaporation at the meniscus thickens the ink in the nozzle: the nozzle
     viscosity is the channel's ink viscosity times a factor ``k`` (ranges
-    2.4-4.4, 4.0-5.6, 6.0-9.5; they touch at the edges because drying is
-    continuous). Only ``R_n`` changes, ``f_m = -alpha (mu_nozzle - mu)``
-    (Appendix F).
+    2.2-4.0, 4.0-5.4, 5.8-9.2). Only ``R_n`` changes,
+    ``f_m = -alpha (mu_nozzle - mu)`` (Appendix F).
+
+Severity ranges of neighbouring classes touch but do not overlap (slightly /
+intermediately dried at k = 4.0; intermediate / mature bubble at phi = 0.82):
+drying and bubble growth are continuous, but a class is a range of the
+physical state, so a classifier that knew the true state could always name
+the class. What makes classes hard to tell apart is the physical spread of
+every trace (ink temperature, geometry and piezo tolerances, sensor gain and
+offset, noise, quantisation; see ``simulator.Spreads``), never the labels.
 """
 
 from __future__ import annotations
@@ -188,7 +196,7 @@ MECHANISMS = {
         "empty", "ink-film mass ratio m (-)", 1.1, 1.6, 1.0,
         "partially empty: residual ink film mass-loads the actuator"),
     FaultClass.MATURE_AIR_BUBBLE: Mechanism(
-        "nozzle_bubble", "bubble position phi (fraction of L_n)", 0.80, 0.91, 1.0,
+        "nozzle_bubble", "bubble position phi (fraction of L_n)", 0.82, 0.91, 1.0,
         "bubble in the nozzle bore decouples the outer ink column"),
     FaultClass.INTERMEDIATE_AIR_BUBBLE: Mechanism(
         "nozzle_bubble", "bubble position phi (fraction of L_n)", 0.72, 0.82, 1.0,
@@ -203,10 +211,10 @@ MECHANISMS = {
         "particle", "particle radius ratio beta = a / r_n (-)", 0.57, 0.67, 1.0,
         "particle lodged in the bore: annular gap adds resistance and inertance"),
     FaultClass.SLIGHTLY_DRIED: Mechanism(
-        "dried", "nozzle viscosity factor k (-)", 2.2, 4.2, 1.0,
+        "dried", "nozzle viscosity factor k (-)", 2.2, 4.0, 1.0,
         "nozzle ink viscosity mu_nozzle = k mu"),
     FaultClass.INTERMEDIATELY_DRIED: Mechanism(
-        "dried", "nozzle viscosity factor k (-)", 3.8, 5.4, 1.0,
+        "dried", "nozzle viscosity factor k (-)", 4.0, 5.4, 1.0,
         "nozzle ink viscosity mu_nozzle = k mu"),
     FaultClass.DEEPLY_DRIED: Mechanism(
         "dried", "nozzle viscosity factor k (-)", 5.8, 9.2, 1.0,
