@@ -11,7 +11,7 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
-        ("share/" + package_name + "/config", glob("config/*.yaml")),
+        ("share/" + package_name + "/config", glob(package_name + "/config/*.yaml")),
     ],
     package_data={package_name: ["config/*.yaml"]},
     python_requires=">=3.10",
@@ -26,6 +26,10 @@ setup(
     entry_points={
         "console_scripts": [
             "loopback = inkdiag_ros.loopback:main",
+            "printhead_sim = inkdiag_ros.printhead_sim:main",
+            "fdi = inkdiag_ros.fdi_node:main",
+            "fe = inkdiag_ros.fe_node:main",
+            "graph = inkdiag_ros.graph:main",
         ],
     },
 )

@@ -37,7 +37,7 @@ from .estimates import (
     encode_estimates,
     encode_estimates_array,
 )
-from .truth import TRUTH_MSG_TYPE, GroundTruth, decode_truth, encode_truth
+from .truth import TRUTH_MSG_TYPE, GroundTruth, decode_truth, encode_truth, truth_from_arrays
 from .diagnostics import DIAGNOSTICS_MSG_TYPE, build_diagnostics, diagnostics_values
 from .qos import DIAGNOSTICS_QOS, RELIABLE_QOS, TRACES_QOS
 from . import topics
@@ -81,4 +81,5 @@ __all__ = [
     "encode_traces",
     "encode_truth",
     "topics",
+    "truth_from_arrays",
 ]

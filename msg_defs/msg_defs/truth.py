@@ -21,7 +21,7 @@ from std_msgs.msg import String
 from . import _json
 from .errors import MessageError
 
-__all__ = ["TRUTH_SCHEMA", "TRUTH_MSG_TYPE", "GroundTruth", "encode_truth", "decode_truth"]
+__all__ = ["TRUTH_SCHEMA", "TRUTH_MSG_TYPE", "GroundTruth", "encode_truth", "decode_truth", "truth_from_arrays"]
 
 TRUTH_SCHEMA = "inkdiag.ground_truth"
 TRUTH_MSG_TYPE = String
@@ -62,3 +62,15 @@ def decode_truth(msg) -> GroundTruth:
                        _json.field(doc, s, "stamp", float, nonneg=True),
                        _json.field(doc, s, "first_nozzle", int, nonneg=True),
                        _json.field(doc, s, "n_nozzles", int, nonneg=True), faults)
+
+
+def truth_from_arrays(*, frame_id, stamp, first_nozzle, classes, fm, mu_nozzle,
+                      healthy=("ok_signal", "healthy_nozzle")) -> GroundTruth:
+    """A :class:`GroundTruth` listing the non-healthy rows of per-row arrays."""
+    import numpy as np
+
+    values = np.array([getattr(c, "value", c) for c in classes], dtype=object)
+    rows = np.flatnonzero(~np.isin(values.astype(str), healthy))
+    return GroundTruth(int(frame_id), float(stamp), int(first_nozzle), int(values.size),
+                       tuple((int(first_nozzle + i), str(values[i]), float(fm[i]), float(mu_nozzle[i]))
+                             for i in rows))

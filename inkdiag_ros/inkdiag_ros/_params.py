@@ -1,0 +1,49 @@
+"""Parameter declaration with descriptors (description, type, range), shared by the nodes."""
+
+from __future__ import annotations
+
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    ParameterType,
+    SetParametersResult,
+)
+
+_TYPES = {
+    bool: ParameterType.PARAMETER_BOOL,
+    int: ParameterType.PARAMETER_INTEGER,
+    float: ParameterType.PARAMETER_DOUBLE,
+    str: ParameterType.PARAMETER_STRING,
+    "int[]": ParameterType.PARAMETER_INTEGER_ARRAY,
+    "str[]": ParameterType.PARAMETER_STRING_ARRAY,
+}
+
+
+def declare(node, name, default, description, *, kind=None, range_=None, read_only=False):
+    """Declare ``name`` with a typed descriptor; ``range_=(lo, hi)`` for numbers (inclusive)."""
+    kind = kind or type(default)
+    d = ParameterDescriptor(name=name, type=_TYPES[kind], description=description,
+                            read_only=read_only)
+    if range_ is not None and kind is int:
+        d.integer_range = [IntegerRange(from_value=int(range_[0]), to_value=int(range_[1]), step=1)]
+    elif range_ is not None and kind is float:
+        d.floating_point_range = [FloatingPointRange(from_value=float(range_[0]),
+                                                     to_value=float(range_[1]), step=0.0)]
+    node.declare_parameter(name, default, d)
+
+
+def values(node, names) -> dict:
+    return {n: node.get_parameter(n).value for n in names}
+
+
+def result(ok: bool, reason: str = "") -> SetParametersResult:
+    return SetParametersResult(successful=ok, reason=reason)
+
+
+def fixed_at_start(params, dynamic=()):
+    """Reject runtime changes of parameters that only take effect at start."""
+    fixed = [p.name for p in params if p.name not in dynamic]
+    if fixed:
+        return result(False, f"{', '.join(fixed)}: fixed at start; restart the node to change")
+    return result(True)

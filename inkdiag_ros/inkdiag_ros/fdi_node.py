@@ -1,0 +1,145 @@
+"""fdi: fault detection and isolation of every trace frame of one printhead.
+
+Subscribes to ``traces`` (sensor-data QoS); per frame: decode and validate ->
+screen and classify the whole batch with the FDI model -> publish ``labels``
+and ``drying_nozzles`` (reliable). A malformed frame is logged (throttled)
+with what was wrong and counted; invalid rows (NaN/Inf, flat, clipped) are
+labelled invalid with their reason. Publishes ``/diagnostics`` every
+``diagnostics_period_s``. The model file is verified against its manifest
+(sha256, library versions) before it is loaded.
+
+    fdi --ros-args -r __ns:=/head_00 -p model_path:=models/fdi_default.joblib
+"""
+
+from __future__ import annotations
+
+import sys
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+
+from inkdiag_core import ModelFileError, label_traces, load_model
+from msg_defs import (
+    DIAGNOSTICS_MSG_TYPE,
+    DIAGNOSTICS_QOS,
+    DRYING_MSG_TYPE,
+    LABELS_MSG_TYPE,
+    RELIABLE_QOS,
+    TRACE_MSG_TYPE,
+    TRACES_QOS,
+    DryingNozzles,
+    FrameError,
+    LabelsReport,
+    build_diagnostics,
+    decode_traces,
+    encode_drying,
+    encode_labels,
+    topics,
+)
+
+from . import _params
+from .stats import FdiStats
+
+PARAMS = (
+    ("model_path", "", "FDI model file (.joblib with its .manifest.json beside it)", str, None),
+    ("n_nozzles", 0, "nozzles of this head: frames with ids >= n_nozzles are rejected (0: no check)",
+     int, (0, 2**24)),
+    ("n_samples", 512, "samples per trace the model was built for; other frames are rejected",
+     int, (16, 65536)),
+    ("sample_rate_hz", 10e6, "sample rate the model was built for, Hz; other frames are rejected",
+     float, (1e3, 1e9)),
+    ("diagnostics_period_s", 1.0, "period of /diagnostics, s", float, (0.1, 60.0)),
+)
+
+
+def model_id(manifest: dict) -> str:
+    """Short id of a model file: its configured name and the first 12 hex digits of its sha256."""
+    name = str(manifest.get("config", {}).get("name", "fdi"))
+    return f"{name}-{str(manifest.get('sha256', ''))[:12]}"
+
+
+class FdiNode(Node):
+    """Decode -> label_traces -> encode -> publish, with counters for /diagnostics."""
+
+    def __init__(self, **kwargs):
+        super().__init__("fdi", **kwargs)
+        for name, default, desc, kind, rng in PARAMS:
+            _params.declare(self, name, default, desc, kind=kind, range_=rng)
+        self.config = _params.values(self, [q[0] for q in PARAMS])
+        self.add_on_set_parameters_callback(lambda params: _params.fixed_at_start(params))
+        self.stats = FdiStats()
+        self.model = None
+        self.model_id = "none"
+        self._load(self.config["model_path"])
+        n = self.config["n_nozzles"]
+        self._max_id = n - 1 if n > 0 else None
+        self._labels_pub = self.create_publisher(LABELS_MSG_TYPE, topics.LABELS, RELIABLE_QOS)
+        self._drying_pub = self.create_publisher(DRYING_MSG_TYPE, topics.DRYING_NOZZLES, RELIABLE_QOS)
+        self._diag_pub = self.create_publisher(DIAGNOSTICS_MSG_TYPE, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
+        self._sub = self.create_subscription(TRACE_MSG_TYPE, topics.TRACES, self._on_traces, TRACES_QOS)
+        self._diag_timer = self.create_timer(self.config["diagnostics_period_s"], self._on_diagnostics)
+
+    def _load(self, path: str) -> None:
+        if not path:
+            self.get_logger().error("no model_path given: frames will not be labelled")
+            return
+        try:
+            self.model, manifest = load_model(path)
+        except ModelFileError as exc:
+            self.get_logger().error(f"FDI model not loaded: {exc}")
+            return
+        self.model_id = model_id(manifest)
+        self.get_logger().info(f"FDI model {self.model_id} loaded from {path}")
+
+    def _on_traces(self, msg) -> None:
+        self.stats.frames_received += 1
+        try:
+            frame = decode_traces(msg, max_nozzle_id=self._max_id, n_samples=self.config["n_samples"],
+                                  sample_rate_hz=self.config["sample_rate_hz"])
+        except FrameError as exc:
+            self.stats.malformed(str(exc))
+            self.get_logger().warning(f"dropped a malformed trace frame: {exc}", throttle_duration_sec=1.0)
+            return
+        if self.model is None:
+            return
+        try:
+            rows = label_traces(self.model, frame.traces)
+        except Exception as exc:  # the node never dies of input: count, log, go on
+            self.stats.failed(f"frame {frame.frame_id}: {type(exc).__name__}: {exc}")
+            self.get_logger().error(f"labelling frame {frame.frame_id} failed: {exc!r}",
+                                    throttle_duration_sec=1.0)
+            return
+        report = LabelsReport.from_arrays(
+            frame_id=frame.frame_id, stamp=frame.stamp, first_nozzle=frame.first_nozzle,
+            classes=rows.classes, confidence=rows.confidence, valid=rows.valid,
+            reasons=rows.reasons, model_id=self.model_id)
+        self._labels_pub.publish(encode_labels(report))
+        self._drying_pub.publish(encode_drying(DryingNozzles.from_labels(report)))
+        self.stats.labelled(report.counts, report.n_nozzles)
+
+    def _on_diagnostics(self) -> None:
+        level, message, values = self.stats.period(self.model is not None)
+        values = {"model_id": self.model_id, **values}
+        self._diag_pub.publish(build_diagnostics(
+            namespace=self.get_namespace(), level=level, message=message, values=values,
+            counts=dict(self.stats.counts), stamp=self.get_clock().now().to_msg()))
+
+
+def main(args=None) -> int:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = FdiNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,174 @@
+"""graph: the simulated printhead, fdi and fe in one process on one executor, with a live summary.
+
+    graph [--duration 20] [--model models/fdi_default.joblib] [--namespace /head_00]
+          [--train-if-missing] [--ros-args -p printhead_sim.n_nozzles:=128 --params-file my.yaml]
+
+Parameters come from the packaged ``config/inkdiag.yaml``, then any
+``--ros-args`` given (``-p name:=value`` applies to every node that declares
+it; ``--params-file`` with ``/**/fdi:`` style keys targets one node). Prints
+once a second what the operator topics say, and at the end (after
+``--duration`` s, Ctrl-C or SIGTERM) a scorecard against the ground truth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.resources
+import sys
+import time
+
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.utilities import remove_ros_args
+
+from msg_defs import (
+    DIAGNOSTICS_MSG_TYPE,
+    DIAGNOSTICS_QOS,
+    DRIED_CLASSES,
+    ESTIMATES_MSG_TYPE,
+    LABELS_MSG_TYPE,
+    RELIABLE_QOS,
+    TRUTH_MSG_TYPE,
+    decode_estimates,
+    decode_labels,
+    decode_truth,
+    diagnostics_values,
+    topics,
+)
+
+from .fdi_node import FdiNode
+from .fe_node import FeNode
+from .printhead_sim import PrintheadSim
+from .scorecard import Scorecard
+
+
+def default_params_file() -> str:
+    """Path of the packaged ``config/inkdiag.yaml``."""
+    return str(importlib.resources.files("inkdiag_ros") / "config" / "inkdiag.yaml")
+
+
+class OperatorMonitor(Node):
+    """Listens to what an operator would ``ros2 topic echo``; keeps the latest of each."""
+
+    def __init__(self, **kwargs):
+        super().__init__("operator_monitor", **kwargs)
+        self.score = Scorecard()
+        self.last_labels = None
+        self.last_estimates = None
+        self.last_diag = {}
+        self.n_labels = self.n_truth = 0
+        self._subs = [
+            self.create_subscription(LABELS_MSG_TYPE, topics.LABELS, self._on_labels, RELIABLE_QOS),
+            self.create_subscription(TRUTH_MSG_TYPE, topics.GROUND_TRUTH, self._on_truth, RELIABLE_QOS),
+            self.create_subscription(ESTIMATES_MSG_TYPE, topics.FM_ESTIMATES, self._on_est, RELIABLE_QOS),
+            self.create_subscription(DIAGNOSTICS_MSG_TYPE, topics.DIAGNOSTICS, self._on_diag,
+                                     DIAGNOSTICS_QOS),
+        ]
+
+    def _on_labels(self, msg):
+        self.last_labels = decode_labels(msg)
+        self.score.add_labels(self.last_labels)
+        self.n_labels += 1
+
+    def _on_truth(self, msg):
+        self.score.add_truth(decode_truth(msg))
+        self.n_truth += 1
+
+    def _on_est(self, msg):
+        self.last_estimates = decode_estimates(msg)
+        self.score.add_estimates(self.last_estimates)
+
+    def _on_diag(self, msg):
+        self.last_diag.update(diagnostics_values(msg))
+
+    def summary(self, t: float) -> str:
+        parts = [f"t={t:5.1f}s frames {self.n_truth:4d} simulated / {self.n_labels:4d} labelled"]
+        rep = self.last_labels
+        if rep is not None:
+            faults = [f"{nz}:{c}({p:.2f})" for nz, c, p in rep.faults if c not in DRIED_CLASSES]
+            dried = [f"{nz}:{c}" for nz, c, p in rep.faults if c in DRIED_CLASSES]
+            parts.append(f"faults [{', '.join(faults)}]")
+            parts.append(f"drying [{', '.join(dried)}]")
+            if rep.counts.get("invalid"):
+                parts.append(f"invalid {rep.counts['invalid']}")
+        est = self.last_estimates
+        if est is not None and est.table.shape[0]:
+            r = dict(zip(("nozzle", "fm", "fm_std", "d_mu", "viscosity", "fm_trend", "fm_rate",
+                          "eta_deeply_dried_s"), est.table[0]))
+            eta = r["eta_deeply_dried_s"]
+            eta_s = "deep" if eta == 0 else ("-" if eta != eta else f"{eta:.0f}s")
+            parts.append(f"f_m[{int(r['nozzle'])}] {r['fm']:.3g}/s trend {r['fm_trend']:.3g} "
+                         f"mu {1e3 * r['viscosity']:.1f} mPa.s ETA deep {eta_s}")
+        for name, d in self.last_diag.items():
+            parts.append(f"diag {d['level'].upper()} {d.get('traces_per_s', '?')} traces/s")
+        return " | ".join(parts)
+
+
+def run(duration_s: float, *, namespace: str, model_path: str | None, args=None, out=print,
+        context=None) -> Scorecard:
+    """Run the graph for ``duration_s`` (0: until shutdown) and return the scorecard."""
+    own = context is None
+    if own:
+        rclpy.init(args=args)
+    kw = {"namespace": namespace}
+    if context is not None:
+        kw["context"] = context
+    nodes = []
+    executor = SingleThreadedExecutor(**({"context": context} if context is not None else {}))
+    try:
+        fdi_over = [Parameter("model_path", value=str(model_path))] if model_path else []
+        nodes = [PrintheadSim(**kw), FdiNode(parameter_overrides=fdi_over, **kw), FeNode(**kw),
+                 OperatorMonitor(**kw)]
+        for n in nodes:
+            executor.add_node(n)
+        monitor = nodes[-1]
+        t0 = time.monotonic()
+        next_print = t0 + 1.0
+        ctx = executor.context
+        while ctx.ok() and (duration_s <= 0 or time.monotonic() - t0 < duration_s):
+            executor.spin_once(timeout_sec=0.05)
+            if time.monotonic() >= next_print:
+                out(monitor.summary(time.monotonic() - t0))
+                next_print += 1.0
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        executor.shutdown()
+        score = nodes[-1].score if len(nodes) == 4 else Scorecard()
+        for n in nodes:
+            n.destroy_node()
+        if own:
+            rclpy.try_shutdown()
+    return score
+
+
+def main(args=None) -> int:
+    argv = list(sys.argv if args is None else args)
+    parser = argparse.ArgumentParser(prog="graph", description=__doc__.splitlines()[0])
+    parser.add_argument("--duration", type=float, default=20.0, help="seconds to run (0: until Ctrl-C)")
+    parser.add_argument("--namespace", default="/head_00", help="the printhead's namespace")
+    parser.add_argument("--model", default=None, help="FDI model file (default: the params file's)")
+    parser.add_argument("--train-if-missing", action="store_true",
+                        help="train and cache the default model first if the file is missing or stale")
+    ns = parser.parse_args(remove_ros_args(argv)[1:])
+    # the packaged params first, the user's --ros-args after it (later wins)
+    ros_args = ["--ros-args", "--params-file", default_params_file()]
+    if "--ros-args" in argv:
+        i = argv.index("--ros-args")
+        ros_args += argv[i + 1:]
+        argv = argv[:i]
+    if ns.train_if_missing:
+        from .model_cache import DEFAULT_MODEL, ensure_default_model
+
+        ns.model = str(ensure_default_model(ns.model or DEFAULT_MODEL))
+    print(f"inkdiag graph: printhead_sim -> fdi -> fe in {ns.namespace}, "
+          f"{'until Ctrl-C' if ns.duration <= 0 else f'{ns.duration:g} s'} (Ctrl-C stops early)")
+    score = run(ns.duration, namespace=ns.namespace, model_path=ns.model, args=argv[:1] + ros_args)
+    print(score.format())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,122 @@
+"""printhead_sim: a simulated printhead publishing trace frames and their ground truth.
+
+Publishes ``traces`` (one frame of all its nozzles per timer tick, sensor-data
+QoS) and ``ground_truth`` (reliable), both relative to the node's namespace.
+The fault scenario (fixed faults, a random fault fraction, drying nozzles
+whose nozzle viscosity rises over time) is :class:`inkdiag_ros.scenario.HeadScenario`.
+
+    printhead_sim --ros-args -r __ns:=/head_00 -p n_nozzles:=256 -p drying_nozzles:=[40]
+    python -m inkdiag_ros.printhead_sim --ros-args --params-file inkdiag.yaml
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+
+from msg_defs import (
+    RELIABLE_QOS,
+    TRACE_MSG_TYPE,
+    TRACES_QOS,
+    TRUTH_MSG_TYPE,
+    encode_traces,
+    encode_truth,
+    topics,
+    truth_from_arrays,
+)
+
+from . import _params
+from .scenario import HeadScenario, simulate_head
+
+PARAMS = (
+    # name, default, description, kind, range
+    ("n_nozzles", 64, "nozzles of the simulated head (one frame holds all of them)", int, (1, 100_000)),
+    ("first_nozzle", 0, "id of the head's first nozzle", int, (0, 2**24 - 1)),
+    ("frame_rate_hz", 5.0, "frames published per second", float, (0.01, 1000.0)),
+    ("sample_rate_hz", 10e6, "ADC sample rate of the traces, Hz", float, (1e6, 100e6)),
+    ("n_samples", 512, "samples per trace", int, (16, 65536)),
+    ("seed", 0, "seed of the scenario and of the simulator's noise", int, (0, 2**31 - 1)),
+    ("fault_nozzles", [3, 11, 19, 27], "nozzle ids with a fixed fault", "int[]", None),
+    ("fault_classes", ["fully_blocked", "mature_air_bubble", "small_air_bubble", "empty_channel_1"],
+     "fault class value of each fault_nozzles entry", "str[]", None),
+    ("random_fault_fraction", 0.0, "fraction of the other nozzles given a random non-drying fault",
+     float, (0.0, 1.0)),
+    ("drying_nozzles", [40], "nozzle ids that dry over time", "int[]", None),
+    ("drying_start_factor", 2.4, "nozzle viscosity / ink viscosity of the drying nozzles at start",
+     float, (1.0, 20.0)),
+    ("drying_end_factor", 9.0, "nozzle viscosity factor reached after drying_duration_s", float, (1.0, 20.0)),
+    ("drying_duration_s", 20.0, "time of the linear rise from start to end factor, s", float, (0.1, 1e6)),
+    ("max_frames", 0, "stop publishing after this many frames (0: never)", int, (0, 2**31 - 1)),
+)
+
+
+class PrintheadSim(Node):
+    """Simulated printhead: timer -> scenario -> simulator -> encode -> publish."""
+
+    def __init__(self, **kwargs):
+        super().__init__("printhead_sim", **kwargs)
+        for name, default, desc, kind, rng in PARAMS:
+            _params.declare(self, name, default, desc, kind=kind, range_=rng)
+        p = _params.values(self, [q[0] for q in PARAMS])
+        self.config = p
+        self._scenario = HeadScenario(
+            n_nozzles=p["n_nozzles"], first_nozzle=p["first_nozzle"],
+            fault_nozzles=p["fault_nozzles"], fault_classes=p["fault_classes"],
+            random_fault_fraction=p["random_fault_fraction"], drying_nozzles=p["drying_nozzles"],
+            drying_start_factor=p["drying_start_factor"], drying_end_factor=p["drying_end_factor"],
+            drying_duration_s=p["drying_duration_s"], seed=p["seed"])
+        self.add_on_set_parameters_callback(lambda params: _params.fixed_at_start(params))
+        self._rng = np.random.default_rng(p["seed"] + 1)
+        self._pub = self.create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
+        self._truth_pub = self.create_publisher(TRUTH_MSG_TYPE, topics.GROUND_TRUTH, RELIABLE_QOS)
+        self._t0 = None
+        self.frames_published = 0
+        self._timer = self.create_timer(1.0 / p["frame_rate_hz"], self._on_timer)
+        self.get_logger().info(
+            f"simulating {p['n_nozzles']} nozzles from {p['first_nozzle']} at {p['frame_rate_hz']:g} Hz; "
+            f"faults {dict(zip(p['fault_nozzles'], p['fault_classes']))}, drying {list(p['drying_nozzles'])}")
+
+    @property
+    def scenario(self) -> HeadScenario:
+        return self._scenario
+
+    def _on_timer(self) -> None:
+        p = self.config
+        if p["max_frames"] and self.frames_published >= p["max_frames"]:
+            return
+        now = self.get_clock().now().nanoseconds * 1e-9
+        self._t0 = now if self._t0 is None else self._t0
+        classes, mu_nozzle = self._scenario.at(now - self._t0)
+        traces, labels, fm, mu_true = simulate_head(
+            classes, mu_nozzle, sample_rate_hz=p["sample_rate_hz"], n_samples=p["n_samples"],
+            rng=self._rng)
+        fid = self.frames_published
+        self._pub.publish(encode_traces(traces, first_nozzle=p["first_nozzle"], frame_id=fid,
+                                        sample_rate_hz=p["sample_rate_hz"], stamp=now))
+        self._truth_pub.publish(encode_truth(truth_from_arrays(
+            frame_id=fid, stamp=now, first_nozzle=p["first_nozzle"], classes=labels, fm=fm,
+            mu_nozzle=mu_true)))
+        self.frames_published += 1
+
+
+def main(args=None) -> int:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = PrintheadSim()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,140 @@
+"""The simulated printhead's fault scenario (pure Python, no ROS).
+
+:class:`HeadScenario` says, for a time ``t`` since the start, which class each
+nozzle has and, for drying nozzles, their nozzle ink viscosity. The physics
+call that turns that into traces is :func:`simulate_head`, the one place
+where the simulator is called.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+import inkdiag_core
+from inkdiag_core import FaultClass, InkChannelParams, simulate
+from inkdiag_core.faults import DRIED_CLASSES, HEALTHY_CLASSES, MECHANISMS
+
+__all__ = ["HeadScenario", "simulate_head", "dried_class_of"]
+
+#: Classes a random fault is drawn from (drying is the progression's job).
+RANDOM_FAULT_CLASSES = tuple(c for c in FaultClass
+                             if c not in HEALTHY_CLASSES and c not in DRIED_CLASSES)
+
+
+def dried_class_of(k: np.ndarray) -> np.ndarray:
+    """Drying class of nozzle viscosity factors ``k`` (object array of FaultClass).
+
+    Boundaries are the midpoints where the class ranges of ``MECHANISMS`` touch.
+    """
+    s, i, d = DRIED_CLASSES
+    lo_i = 0.5 * (MECHANISMS[s].high + MECHANISMS[i].low)
+    lo_d = 0.5 * (MECHANISMS[i].high + MECHANISMS[d].low)
+    k = np.asarray(k, dtype=float)
+    return np.where(k < lo_i, s, np.where(k < lo_d, i, d)).astype(object)
+
+
+class HeadScenario:
+    """Faults of a simulated head over time.
+
+    Parameters
+    ----------
+    n_nozzles, first_nozzle : int
+    fault_nozzles : sequence of int
+        Nozzle ids with a fixed fault, and ``fault_classes`` their class values.
+    random_fault_fraction : float
+        Fraction of the other nozzles given a random (non-drying) fault, fixed for the run.
+    drying_nozzles : sequence of int
+        Nozzles that dry: their nozzle viscosity factor goes linearly from
+        ``drying_start_factor`` to ``drying_end_factor`` over ``drying_duration_s``, then holds.
+    seed : int
+    """
+
+    def __init__(self, *, n_nozzles, first_nozzle=0, fault_nozzles=(), fault_classes=(),
+                 random_fault_fraction=0.0, drying_nozzles=(), drying_start_factor=2.4,
+                 drying_end_factor=9.0, drying_duration_s=20.0, seed=0):
+        ids = np.arange(first_nozzle, first_nozzle + n_nozzles)
+        fault_nozzles = [int(x) for x in fault_nozzles]
+        drying_nozzles = [int(x) for x in drying_nozzles]
+        if len(fault_nozzles) != len(fault_classes):
+            raise ValueError(f"fault_nozzles ({len(fault_nozzles)}) and fault_classes "
+                             f"({len(fault_classes)}) must have the same length")
+        for name, lst in (("fault_nozzles", fault_nozzles), ("drying_nozzles", drying_nozzles)):
+            out = [x for x in lst if not first_nozzle <= x < first_nozzle + n_nozzles]
+            if out:
+                raise ValueError(f"{name} {out} outside this head's nozzles "
+                                 f"{first_nozzle}..{first_nozzle + n_nozzles - 1}")
+        if set(fault_nozzles) & set(drying_nozzles):
+            raise ValueError(f"nozzles both faulty and drying: {sorted(set(fault_nozzles) & set(drying_nozzles))}")
+        if not 0.0 <= random_fault_fraction <= 1.0:
+            raise ValueError(f"random_fault_fraction must be in [0, 1], got {random_fault_fraction}")
+        if not (1.0 <= drying_start_factor <= drying_end_factor and drying_duration_s > 0):
+            raise ValueError("need 1 <= drying_start_factor <= drying_end_factor and drying_duration_s > 0")
+        self.first_nozzle = int(first_nozzle)
+        self.n_nozzles = int(n_nozzles)
+        self.classes = np.full(n_nozzles, FaultClass.HEALTHY_NOZZLE, dtype=object)
+        for nz, c in zip(fault_nozzles, fault_classes):
+            self.classes[nz - first_nozzle] = inkdiag_core.faults.as_fault_class(c, "fault_classes")
+        rng = np.random.default_rng(seed)
+        free = np.setdiff1d(ids, fault_nozzles + drying_nozzles) - first_nozzle
+        k = int(round(random_fault_fraction * free.size))
+        pick = rng.choice(free, size=k, replace=False)
+        self.classes[pick] = np.asarray(RANDOM_FAULT_CLASSES, dtype=object)[
+            rng.integers(len(RANDOM_FAULT_CLASSES), size=k)]
+        self.drying_rows = np.asarray(drying_nozzles, dtype=np.int64) - first_nozzle
+        self.k0, self.k1, self.duration_s = float(drying_start_factor), float(drying_end_factor), float(drying_duration_s)
+
+    def viscosity_factor(self, t_s: float) -> float:
+        """Nozzle viscosity factor of the drying nozzles at ``t_s``."""
+        return self.k0 + (self.k1 - self.k0) * min(max(t_s, 0.0) / self.duration_s, 1.0)
+
+    def at(self, t_s: float):
+        """``(classes, mu_nozzle)`` at ``t_s``: FaultClass per row and (n,) Pa s (NaN = class spread)."""
+        classes = self.classes.copy()
+        mu = np.full(self.n_nozzles, math.nan)
+        k = self.viscosity_factor(t_s)
+        classes[self.drying_rows] = dried_class_of(np.full(self.drying_rows.size, k))
+        mu[self.drying_rows] = k * InkChannelParams().mu
+        return classes, mu
+
+
+def _simulate_nozzles(classes, *, mu_nozzle=None, sample_rate_hz=10e6, n_samples=512, seed=0):
+    """Per-nozzle simulation on top of ``simulate`` (until ``inkdiag_core.simulate_nozzles``).
+
+    Rows of ``simulate`` come grouped by class; they are put back in the order
+    of ``classes``. A finite ``mu_nozzle`` of a dried row fixes that row's
+    viscosity factor ``mu_nozzle / InkChannelParams().mu``.
+    """
+    classes = np.asarray(classes, dtype=object)
+    order = {c: i for i, c in enumerate(FaultClass)}
+    kind = np.array([order[c] for c in classes])
+    perm = np.argsort(kind, kind="stable")  # row j of the result is nozzle perm[j]
+    counts = {c: int((kind == order[c]).sum()) for c in FaultClass if (kind == order[c]).any()}
+    severity = None
+    if mu_nozzle is not None:
+        mu = np.asarray(mu_nozzle, dtype=float)[perm]
+        sorted_classes = classes[perm]
+        severity = {}
+        for c in DRIED_CLASSES:
+            rows = sorted_classes == c
+            if rows.any() and np.isfinite(mu[rows]).all():
+                severity[c] = mu[rows] / InkChannelParams().mu
+    r = simulate(counts, sample_rate_hz=sample_rate_hz, n_samples=n_samples, seed=seed,
+                 severity=severity or None)
+    inv = np.empty_like(perm)
+    inv[perm] = np.arange(perm.size)
+    return r.traces[inv], r.labels[inv], r.fm[inv], r.mu_nozzle[inv]
+
+
+def simulate_head(classes, mu_nozzle, *, sample_rate_hz, n_samples, rng):
+    """The one physics call of the simulated head.
+
+    Returns ``(traces float32 (n, n_samples) V, labels, fm 1/s, mu_nozzle Pa s)``.
+    """
+    fn = getattr(inkdiag_core, "simulate_nozzles", None)
+    if fn is None:
+        return _simulate_nozzles(classes, mu_nozzle=mu_nozzle, sample_rate_hz=sample_rate_hz,
+                                 n_samples=n_samples, seed=rng)
+    r = fn(classes, mu_nozzle=mu_nozzle, sample_rate_hz=sample_rate_hz, n_samples=n_samples, seed=rng)
+    return r.traces, r.labels, r.fm, r.mu_nozzle

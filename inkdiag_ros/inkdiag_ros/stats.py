@@ -1,0 +1,69 @@
+"""Counters of the FDI node, kept out of the node (as ``ros2 topic hz`` keeps its statistics)."""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+
+
+class FdiStats:
+    """What the FDI node has seen; :meth:`period` turns it into a diagnostics snapshot."""
+
+    def __init__(self):
+        self.frames_received = 0
+        self.frames_labelled = 0
+        self.frames_malformed = 0
+        self.frames_failed = 0
+        self.rows_invalid = 0
+        self.traces_labelled = 0
+        self.counts = Counter()
+        self.last_error = ""
+        self._mark = (time.monotonic(), 0, 0, 0, 0)
+
+    def malformed(self, reason: str) -> None:
+        self.frames_malformed += 1
+        self.last_error = reason
+
+    def failed(self, reason: str) -> None:
+        self.frames_failed += 1
+        self.last_error = reason
+
+    def labelled(self, counts: dict, n_rows: int) -> None:
+        self.frames_labelled += 1
+        self.traces_labelled += n_rows
+        self.counts.update(counts)
+        self.rows_invalid += counts.get("invalid", 0)
+
+    def period(self, model_loaded: bool):
+        """``(level, message, values)`` over the time since the last call."""
+        now = time.monotonic()
+        t0, f0, n0, m0, i0 = self._mark
+        dt = max(now - t0, 1e-9)
+        d_frames = self.frames_labelled - f0
+        d_bad = self.frames_malformed + self.frames_failed - m0
+        d_invalid = self.rows_invalid - i0
+        values = {
+            "frames_received": self.frames_received,
+            "frames_labelled": self.frames_labelled,
+            "frames_malformed": self.frames_malformed,
+            "frames_failed": self.frames_failed,
+            "rows_invalid": self.rows_invalid,
+            "frames_per_s": d_frames / dt,
+            "traces_per_s": (self.traces_labelled - n0) / dt,
+            "last_error": self.last_error,
+        }
+        if not model_loaded:
+            level, message = "error", "no FDI model loaded: frames are not labelled"
+        elif d_bad:
+            level, message = "warn", f"{d_bad} malformed or failed frame(s) in the last {dt:.1f} s"
+        elif d_invalid:
+            level, message = "warn", f"{d_invalid} invalid row(s) in the last {dt:.1f} s"
+        elif self.frames_received == 0:
+            level, message = "stale", "no trace frame received yet"
+        elif d_frames == 0:
+            level, message = "stale", f"no trace frame labelled in the last {dt:.1f} s"
+        else:
+            level, message = "ok", f"{d_frames} frame(s) labelled in the last {dt:.1f} s"
+        self._mark = (now, self.frames_labelled, self.traces_labelled,
+                      self.frames_malformed + self.frames_failed, self.rows_invalid)
+        return level, message, values
