@@ -1,0 +1,140 @@
+"""msg_defs JSON and numeric messages: round trips, schema versions, validation errors."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+from std_msgs.msg import Float64MultiArray, String
+
+import msg_defs
+from msg_defs import (
+    FIELDS,
+    DryingNozzles,
+    FmEstimates,
+    LabelsReport,
+    MessageError,
+    build_diagnostics,
+    decode_drying,
+    decode_estimates,
+    decode_estimates_array,
+    decode_labels,
+    decode_truth,
+    diagnostics_values,
+    encode_drying,
+    encode_estimates,
+    encode_estimates_array,
+    encode_labels,
+    encode_truth,
+    truth_from_arrays,
+)
+
+
+def _report():
+    classes = ["healthy_nozzle", "deeply_dried", "ok_signal", "fully_blocked", "", "slightly_dried"]
+    valid = [True, True, True, True, False, True]
+    reasons = ["", "", "", "", "non_finite", ""]
+    conf = [0.99, 0.9123, 0.8, 0.77, math.nan, 0.6]
+    return LabelsReport.from_arrays(frame_id=2**30, stamp=1763798400.125, first_nozzle=100,
+                                    classes=classes, confidence=conf, valid=valid, reasons=reasons,
+                                    model_id="fdi-abc")
+
+
+def test_labels_round_trip_and_content():
+    rep = _report()
+    msg = encode_labels(rep)
+    doc = json.loads(msg.data)
+    assert doc["schema"] == "inkdiag.labels" and doc["schema_version"] == msg_defs.JSON_SCHEMA_VERSION
+    assert doc["counts"] == {"deeply_dried": 1, "fully_blocked": 1, "healthy_nozzle": 1,
+                             "ok_signal": 1, "slightly_dried": 1, "invalid": 1}
+    assert doc["faults"] == [{"nozzle": 101, "class": "deeply_dried", "confidence": 0.912},
+                             {"nozzle": 103, "class": "fully_blocked", "confidence": 0.77},
+                             {"nozzle": 105, "class": "slightly_dried", "confidence": 0.6}]
+    assert doc["invalid"] == [{"nozzle": 104, "reason": "non_finite"}]
+    back = decode_labels(msg)
+    assert back == rep
+    d = DryingNozzles.from_labels(back)
+    assert d.nozzles == (101, 105) and d.classes == ("deeply_dried", "slightly_dried")
+    assert decode_drying(encode_drying(d)) == d
+
+
+@pytest.mark.parametrize("mutate, match", [
+    (lambda d: d.update(schema_version=2), "schema_version"),
+    (lambda d: d.update(schema="other"), "expected schema"),
+    (lambda d: d.pop("frame_id"), "missing field 'frame_id'"),
+    (lambda d: d.update(n_nozzles=7), "counts sum to 6"),
+    (lambda d: d.update(stamp="now"), "'stamp' must be float"),
+    (lambda d: d["faults"].append({"nozzle": 999, "class": "x", "confidence": 1}), "outside"),
+    (lambda d: d["faults"].append({"nozzle": 101}), "malformed"),
+])
+def test_labels_validation(mutate, match):
+    doc = json.loads(encode_labels(_report()).data)
+    mutate(doc)
+    with pytest.raises(MessageError, match=match):
+        decode_labels(String(data=json.dumps(doc)))
+
+
+def test_not_json_and_wrong_type():
+    with pytest.raises(MessageError, match="not valid JSON"):
+        decode_labels(String(data="{nope"))
+    with pytest.raises(MessageError, match="std_msgs/String"):
+        decode_drying(Float64MultiArray())
+    with pytest.raises(ValueError):  # MessageError is a ValueError; FrameError is a MessageError
+        raise msg_defs.FrameError("x")
+    assert issubclass(msg_defs.FrameError, MessageError)
+
+
+def test_drying_validation():
+    bad = json.loads(encode_drying(DryingNozzles(1, 2.0, (3,), ("deeply_dried",))).data)
+    bad["classes"] = ["fully_blocked"]
+    with pytest.raises(MessageError, match="dried class"):
+        decode_drying(String(data=json.dumps(bad)))
+
+
+def _estimates():
+    n = 3
+    return FmEstimates.from_columns(
+        17, 12.5, nozzle=[4, 9, 40], fm=[-4e5, -8e5, -1.5e6], fm_std=[1e4, 2e4, 3e4],
+        d_mu=[0.013, 0.027, 0.05], viscosity=[0.023, 0.037, 0.06], fm_trend=[math.nan, -7.9e5, -1.49e6],
+        fm_rate=[math.nan, -1e4, -2e4], eta_deeply_dried_s=[math.nan, 60.0, 0.0]) if n else None
+
+
+def test_estimates_json_and_array_agree():
+    e = _estimates()
+    js = decode_estimates(encode_estimates(e))
+    arr_msg = encode_estimates_array(e)
+    assert [d.label for d in arr_msg.layout.dim] == ["estimate", "field"]
+    assert arr_msg.layout.dim[1].size == len(FIELDS) and arr_msg.layout.data_offset == 3
+    arr = decode_estimates_array(arr_msg)
+    for got in (js, arr):
+        assert got.frame_id == 17 and got.stamp == 12.5
+        np.testing.assert_array_equal(got.table, e.table)  # NaN == NaN positions too
+    doc = json.loads(encode_estimates(e).data)
+    assert doc["estimates"][0]["fm_trend"] is None and doc["estimates"][0]["nozzle"] == 4
+    with pytest.raises(MessageError, match="missing fields"):
+        FmEstimates.from_columns(1, 1.0, nozzle=[1])
+    arr_msg.layout.dim[1].size = 5
+    with pytest.raises(MessageError, match="field size"):
+        decode_estimates_array(arr_msg)
+
+
+def test_truth_round_trip():
+    t = truth_from_arrays(frame_id=3, stamp=1.5, first_nozzle=10,
+                          classes=["healthy_nozzle", "deeply_dried", "ok_signal"],
+                          fm=[0.0, -1.2e6, 0.0], mu_nozzle=[0.01, 0.06, 0.01])
+    assert t.faults == ((11, "deeply_dried", -1.2e6, 0.06),) and t.n_nozzles == 3
+    assert decode_truth(encode_truth(t)) == t
+
+
+def test_diagnostics_levels_and_values():
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    arr = build_diagnostics(namespace="/head_07", level="warn", message="2 malformed",
+                            values={"model_id": "m", "frames_received": 5, "traces_per_s": 1234.5678},
+                            counts={"healthy_nozzle": 10, "invalid": 2})
+    st = arr.status[0]
+    assert st.level == DiagnosticStatus.WARN and st.hardware_id == "/head_07"
+    assert st.name == "inkdiag fdi: /head_07"
+    v = diagnostics_values(arr)["inkdiag fdi: /head_07"]
+    assert v["level"] == "warn" and v["traces_per_s"] == "1234.57" and v["count.invalid"] == "2"
+    assert [kv.key for kv in st.values][:3] == ["model_id", "frames_received", "traces_per_s"]
