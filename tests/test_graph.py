@@ -1,0 +1,127 @@
+"""The whole graph: one process on one executor, and three processes on localhost."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from rclpy.parameter import Parameter
+
+from msg_defs import (
+    ESTIMATES_MSG_TYPE,
+    LABELS_MSG_TYPE,
+    RELIABLE_QOS,
+    decode_estimates,
+    decode_labels,
+    topics,
+)
+
+P = Parameter
+FAULTS = {3: "fully_blocked", 9: "mature_air_bubble", 14: "empty_channel_1", 21: "small_air_bubble"}
+DRYING = 17
+SIM = {"n_nozzles": 24, "frame_rate_hz": 10.0, "fault_nozzles": list(FAULTS),
+       "fault_classes": list(FAULTS.values()), "drying_nozzles": [DRYING],
+       "drying_start_factor": 2.6, "drying_end_factor": 8.5, "drying_duration_s": 3.0}
+
+
+def test_graph_end_to_end_in_one_process(ros, fdi_model):
+    from inkdiag_ros.fdi_node import FdiNode
+    from inkdiag_ros.fe_node import FeNode
+    from inkdiag_ros.graph import OperatorMonitor
+    from inkdiag_ros.printhead_sim import PrintheadSim
+
+    kw = {"context": ros.context, "namespace": "/head_01"}
+    ros.add(PrintheadSim(parameter_overrides=[P(k, value=v) for k, v in SIM.items()], **kw))
+    ros.add(FdiNode(parameter_overrides=[P("model_path", value=str(fdi_model)),
+                                         P("n_nozzles", value=24)], **kw))
+    ros.add(FeNode(**kw))
+    mon = ros.add(OperatorMonitor(**kw))
+    ros.spin_until(lambda: len(mon.score.fm_rows) >= 25, 15, "25 f_m estimates of the drying nozzle")
+    # injected faults -> their labels, in most frames
+    reps = [r for r in mon.score.labels.values()]
+    for nz, cls in FAULTS.items():
+        hits = sum(dict((n, c) for n, c, _ in r.faults).get(nz) == cls for r in reps)
+        assert hits >= 0.8 * len(reps), (nz, cls, hits, len(reps))
+    assert mon.score.label_scores()["accuracy"] > 0.95
+    # the drying nozzle: f_m rising (more negative) and within tolerance of the truth
+    rows = np.array([r[2:] for r in mon.score.fm_rows if r[1] == DRYING])
+    est, trend, true = rows[:, 0], rows[:, 1], rows[:, 2]
+    assert true[-1] < 1.8 * true[0] < 0  # it did dry (truth)
+    assert trend[-1] < 1.8 * trend[0]  # and the estimate followed
+    assert np.median(np.abs(est - true) / np.abs(true)) < 0.15
+    assert abs(trend[-1] - true[-1]) / abs(true[-1]) < 0.2
+    assert "faults [3:fully_blocked" in mon.summary(1.0)
+
+
+def _node_proc(module, ros_args, domain_id):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    return subprocess.Popen([sys.executable, "-m", module, "--ros-args", "-r", "__ns:=/head_02",
+                             *ros_args], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+
+
+def test_three_processes_on_localhost(ros, fdi_model):
+    def p(k, v):
+        v = "[" + ",".join(f"'{x}'" if isinstance(x, str) else str(x) for x in v) + "]" if isinstance(v, list) else v
+        return ["-p", f"{k}:={v}"]
+
+    sim_args = [a for k, v in SIM.items() for a in p(k, v)]
+    procs = [
+        _node_proc("inkdiag_ros.printhead_sim", sim_args, ros.domain_id),
+        _node_proc("inkdiag_ros.fdi_node", p("model_path", str(fdi_model)) + p("n_nozzles", 24),
+                   ros.domain_id),
+        _node_proc("inkdiag_ros.fe_node", [], ros.domain_id),
+    ]
+    try:
+        probe = ros.node("probe", namespace="/head_02")
+        labels, est = [], []
+        probe.create_subscription(LABELS_MSG_TYPE, topics.LABELS, lambda m: labels.append(decode_labels(m)),
+                                  RELIABLE_QOS)
+        probe.create_subscription(ESTIMATES_MSG_TYPE, topics.FM_ESTIMATES,
+                                  lambda m: est.append(decode_estimates(m)), RELIABLE_QOS)
+        ros.spin_until(lambda: len(labels) >= 5 and len(est) >= 3, 40,
+                       "labels and f_m estimates from the three processes")
+        got = dict((nz, c) for nz, c, _ in labels[-1].faults)
+        assert sum(got.get(nz) == c for nz, c in FAULTS.items()) >= 3
+        assert DRYING in est[-1].nozzles.tolist()
+    finally:
+        for pr in procs:
+            pr.send_signal(signal.SIGINT)
+        outs = []
+        for pr in procs:
+            try:
+                outs.append(pr.communicate(timeout=10)[0])
+            except subprocess.TimeoutExpired:
+                pr.kill()
+                outs.append(pr.communicate()[0])
+    for pr, out in zip(procs, outs):
+        assert pr.returncode == 0, out[-2000:]  # SIGINT: a clean shutdown
+        assert "Traceback" not in out, out[-2000:]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM])
+def test_graph_runner_stops_cleanly_on_signal(ros, fdi_model, sig):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    pr = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.graph", "--duration", "0", "--model",
+                           str(fdi_model), "--ros-args", "-p", "n_nozzles:=16", "-p", "fault_nozzles:=[3]",
+                           "-p", "fault_classes:=['fully_blocked']", "-p", "drying_nozzles:=[9]"],
+                          env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines = []
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        line = pr.stdout.readline()
+        lines.append(line)
+        if "labelled" in line and "faults [" in line:
+            break
+    pr.send_signal(sig)
+    try:
+        rest = pr.communicate(timeout=15)[0]
+    except subprocess.TimeoutExpired:
+        pr.kill()
+        pytest.fail("graph runner did not stop on the signal:\n" + "".join(lines))
+    out = "".join(lines) + rest
+    assert pr.returncode == 0, out[-2000:]
+    assert "scorecard against the simulator's ground truth" in out and "Traceback" not in out
