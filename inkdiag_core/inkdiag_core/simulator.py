@@ -69,6 +69,8 @@ the same for every class. ``scripts/reports/sim.py`` prints the resulting accura
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 import numbers
 from dataclasses import dataclass, field, fields
@@ -76,10 +78,11 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 from scipy.special import ndtri
 
-from .faults import MECHANISMS, PARTICLE_LENGTH_FRACTION, FaultClass, as_fault_class
+from .faults import DRIED_CLASSES, MECHANISMS, PARTICLE_LENGTH_FRACTION, FaultClass, as_fault_class
 from .model import InkChannelParams
 
 __all__ = [
+    "simulate_nozzles",
     "DriveWaveform",
     "Spreads",
     "SimulationResult",
@@ -280,6 +283,17 @@ class SimulationResult:
     def label_values(self) -> np.ndarray:
         """Labels as their snake_case strings, shape (n,)."""
         return np.array([c.value for c in self.labels])
+
+    def take(self, index) -> "SimulationResult":
+        """The rows ``index`` (an integer index array), every per-trace field alike."""
+        index = np.asarray(index, dtype=np.intp)
+        per_row = {
+            f.name: getattr(self, f.name)[index]
+            for f in dataclasses.fields(self)
+            if isinstance(getattr(self, f.name), np.ndarray)
+        }
+        params = {k: np.asarray(v)[index] for k, v in self.params.items()}
+        return dataclasses.replace(self, params=params, **per_row)
 
 
 # ---------------------------------------------------------------------------
@@ -843,3 +857,59 @@ def simulate(
         sensor_gain=gain, sensor_offset=offset, snr_db=snr, params=params,
         noise_std_v=noise_std,
     )
+
+
+def simulate_nozzles(classes, *, mu_nozzle=None, sample_rate_hz: float = 10e6, n_samples: int = 512,
+                     seed=0, spreads: Spreads | None = None, drive: DriveWaveform | None = None,
+                     base_params: InkChannelParams | None = None) -> SimulationResult:
+    """One trace per nozzle, in the nozzles' order: a frame of a printhead.
+
+    Parameters
+    ----------
+    classes : sequence of FaultClass (or their string values), length n
+        The condition of each nozzle.
+    mu_nozzle : array_like, shape (n,), optional
+        Nozzle ink viscosity (Pa s, at the nominal ink temperature) of the
+        dried nozzles, for a drying that progresses over time; it enters as
+        the factor ``mu_nozzle / base_params.mu``, which each trace's ink
+        temperature then scales like the channel's ink. ``NaN`` (or no array)
+        draws it from the class's range as :func:`simulate` does. Ignored for
+        the other classes.
+    sample_rate_hz, n_samples, seed, spreads, drive, base_params
+        As in :func:`simulate`.
+
+    Returns
+    -------
+    SimulationResult
+        Row ``i`` is nozzle ``i``.
+    """
+    classes = [as_fault_class(c, "classes") for c in classes]
+    n = len(classes)
+    if n == 0:
+        raise ValueError("classes must name at least one nozzle")
+    base = InkChannelParams() if base_params is None else base_params
+    mu = np.full(n, np.nan) if mu_nozzle is None else np.asarray(mu_nozzle, dtype=float).reshape(-1)
+    if mu.shape != (n,):
+        raise ValueError(f"mu_nozzle must have one value per nozzle ({n}), got shape {np.shape(mu_nozzle)}")
+    if np.any(mu[np.isfinite(mu)] <= 0):
+        raise ValueError("mu_nozzle must be positive (Pa s) where given")
+    labels = np.array([c.value for c in classes])
+    rng = np.random.default_rng(seed)
+    order, counts, severity = [], {}, {}
+    for c in FaultClass:  # simulate() returns rows grouped in declaration order
+        rows = np.flatnonzero(labels == c.value)
+        if rows.size == 0:
+            continue
+        order.append(rows)
+        counts[c] = rows.size
+        if c in DRIED_CLASSES and np.isfinite(mu[rows]).any():
+            m = MECHANISMS[c]
+            k = mu[rows] / base.mu
+            drawn = rng.uniform(m.low, m.high, rows.size)
+            severity[c] = np.where(np.isfinite(k), k, drawn)
+    res = simulate(counts, sample_rate_hz=sample_rate_hz, n_samples=n_samples, seed=rng,
+                   spreads=spreads, drive=drive, base_params=base, severity=severity or None)
+    perm = np.concatenate(order)
+    inverse = np.empty(n, dtype=np.intp)
+    inverse[perm] = np.arange(n)
+    return res.take(inverse)
