@@ -36,10 +36,14 @@ Every trace draws, independently of its class:
 ==============================  ========================  =====================================
 quantity                        default spread            why
 ==============================  ========================  =====================================
-ink temperature                 30 C, std 1.0 K (normal)  head heater regulation; viscosity of
+ink temperature                 30 C, std 1.5 K (normal)  head heater regulation; viscosity of
                                                           all the ink follows by Andrade's law,
                                                           -3 %/K at 30 C (typical inkjet ink):
-                                                          +-3 % R_n, R_r (1 sigma)
+                                                          +-4.5 % R_n, R_r (1 sigma). Widened
+                                                          from 1.0 K so that the RF baseline
+                                                          lands near the thesis's (94-96 %):
+                                                          a head's ink temperature varies with
+                                                          print load and position.
 nozzle radius r_n               1 % (log-normal)          electroformed/laser-drilled nozzle
                                                           plate, +-0.15 um on 15 um
 nozzle length L_n               2 %                       nozzle-plate thickness tolerance
@@ -58,9 +62,10 @@ ADC                             12 bit over +-2 V         quantisation, clipping
 Severity within each class's range (:data:`inkdiag_core.faults.MECHANISMS`) is drawn
 uniformly. What makes the 12 classes hard to separate, as in the thesis (RF on the 7 KPIs
 about 94 %, Table 2), is physics: (i) the severity ranges are wide and neighbouring drying
-classes touch (drying is continuous), (ii) a particle in the bore adds resistance much
+classes touch, without overlapping (drying is continuous; slight drying starts close to
+a healthy nozzle, so fault detection is not trivial either), (ii) a particle in the bore adds resistance much
 like dried ink (partially blocked overlaps the drying classes), (iii) a nozzle bubble's
-position is continuous (mature and intermediate bubbles overlap), (iv) ok_signal and
+position is continuous (mature and intermediate bubbles touch), (iv) ok_signal and
 healthy_nozzle differ only by the drive amplitude, which the per-channel coupling, gain
 and drive tolerances blur, and (v) temperature moves every class's damping by a few %.
 No spread depends on the label, and the noise level, offset and gain distributions are
@@ -178,7 +183,7 @@ class Spreads:
         ADC input range is +-adc_range_v, V (values beyond are clipped).
     """
 
-    temperature_std_k: float = 1.0
+    temperature_std_k: float = 1.5
     nozzle_radius_rel: float = 0.01
     nozzle_length_rel: float = 0.02
     restrictor_radius_rel: float = 0.01
