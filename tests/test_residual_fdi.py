@@ -100,3 +100,34 @@ def test_pipeline_arguments_are_checked():
         make_fdi_pipeline("svm")
     with pytest.raises(ValueError, match="features"):
         make_fdi_pipeline("rf", "everything")
+
+
+def test_default_model_trains_saves_and_classifies(tmp_path):
+    from inkdiag_core import load_model, simulate
+    from inkdiag_core.fdi import classify, train_default_model
+
+    steps = []
+    manifest = train_default_model(tmp_path / "fdi.joblib", n_per_class=40, seed=1,
+                                   progress=lambda s, t, m: steps.append(s))
+    assert steps == [1, 2, 3, 4] and manifest.is_file()
+    pipe, info = load_model(tmp_path / "fdi.joblib")
+    assert 0 < info["config"]["fd_threshold"] <= 0.5
+    assert info["scores"]["validation_fi_accuracy"] > 0.7  # 12 classes: chance is 0.08
+    sim = simulate({"deeply_dried": 20, "healthy_nozzle": 20, "empty_channel_1": 20}, seed=9)
+    labels, conf, p_faulty = classify(pipe, sim.traces, fd_threshold=info["config"]["fd_threshold"])
+    assert np.mean(labels == sim.label_values()) > 0.8
+    assert np.all((conf > 0) & (conf <= 1)) and np.all((p_faulty >= 0) & (p_faulty <= 1))
+    # a lower threshold never turns a faulty verdict healthy
+    labels_low, _, _ = classify(pipe, sim.traces, fd_threshold=0.05)
+    healthy = np.isin(labels, ["ok_signal", "healthy_nozzle"])
+    assert np.all(~np.isin(labels_low[~healthy], ["ok_signal", "healthy_nozzle"]))
+    with pytest.raises(ValueError, match="fd_threshold"):
+        classify(pipe, sim.traces, fd_threshold=0)
+
+
+def test_fnr_threshold_misses_at_most_the_target():
+    from inkdiag_core.fdi import fnr_threshold
+
+    p = np.linspace(0.01, 1.0, 1000)
+    t = fnr_threshold(p, 0.005)
+    assert np.mean(p < t) <= 0.005 and t <= 0.5

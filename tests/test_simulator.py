@@ -274,3 +274,31 @@ def test_severity_override_sets_the_drying_level_and_leaves_other_traces_alone()
         simulate(counts, severity={FaultClass.DEEPLY_DRIED: [1.0, -2.0, 3.0]})
     with pytest.raises(ValueError, match="severity"):
         simulate(counts, severity={FaultClass.HEALTHY_NOZZLE: [1.0, 2.0]})
+
+
+def test_simulate_nozzles_keeps_nozzle_order_and_given_viscosities():
+    from inkdiag_core.simulator import simulate_nozzles
+
+    classes = ["healthy_nozzle", "deeply_dried", "slightly_dried", "healthy_nozzle",
+               "fully_blocked", "slightly_dried"]
+    mu = np.array([np.nan, np.nan, 0.035, np.nan, np.nan, np.nan])
+    res = simulate_nozzles(classes, mu_nozzle=mu, seed=3)
+    assert res.label_values().tolist() == classes
+    assert res.traces.shape == (6, 512)
+    # the given viscosity factor is used as it is (the channel's own ink viscosity scales it)
+    assert res.params["severity"][2] == pytest.approx(3.5)
+    assert 1.6 <= res.params["severity"][5] <= 4.0
+    assert res.fm[0] == 0 and res.fm[1] < res.fm[2] < 0  # deeper drying, larger |f_m|
+    again = simulate_nozzles(classes, mu_nozzle=mu, seed=3)
+    assert np.array_equal(again.traces, res.traces)
+
+
+def test_simulate_nozzles_rejects_bad_arguments():
+    from inkdiag_core.simulator import simulate_nozzles
+
+    with pytest.raises(ValueError, match="classes"):
+        simulate_nozzles(["leaky"])
+    with pytest.raises(ValueError, match="one value per nozzle"):
+        simulate_nozzles(["deeply_dried"], mu_nozzle=[0.1, 0.2])
+    with pytest.raises(ValueError, match="at least one nozzle"):
+        simulate_nozzles([])

@@ -22,7 +22,7 @@ from .observer import UIODesign, design_uio
 from .persistence import ModelFileError, load_model, save_model
 from .residual import ResidualFilter, design_residual_filter
 from .screening import INVALID_REASONS, screen_traces
-from .simulator import SimulationResult, simulate
+from .simulator import SimulationResult, simulate, simulate_nozzles
 
 __version__ = "0.1.0"
 
@@ -57,6 +57,7 @@ __all__ = [
     "screen_traces",
     "simulate",
     "simulate_nonlinear",
+    "simulate_nozzles",
     "viscosity_to_fm",
 ]
 

@@ -64,7 +64,7 @@ partially_blocked
 slightly_dried, intermediately_dried, deeply_dried
     Evaporation at the meniscus thickens the ink in the nozzle: the nozzle
     viscosity is the channel's ink viscosity times a factor ``k`` (ranges
-    2.2-4.0, 4.0-5.4, 5.8-9.2). Only ``R_n`` changes,
+    1.6-4.0, 4.0-5.4, 5.8-9.2: slight drying starts close to a healthy nozzle). Only ``R_n`` changes,
     ``f_m = -alpha (mu_nozzle - mu)`` (Appendix F).
 
 Severity ranges of neighbouring classes touch but do not overlap (slightly /
@@ -211,7 +211,7 @@ MECHANISMS = {
         "particle", "particle radius ratio beta = a / r_n (-)", 0.57, 0.67, 1.0,
         "particle lodged in the bore: annular gap adds resistance and inertance"),
     FaultClass.SLIGHTLY_DRIED: Mechanism(
-        "dried", "nozzle viscosity factor k (-)", 2.2, 4.0, 1.0,
+        "dried", "nozzle viscosity factor k (-)", 1.6, 4.0, 1.0,
         "nozzle ink viscosity mu_nozzle = k mu"),
     FaultClass.INTERMEDIATELY_DRIED: Mechanism(
         "dried", "nozzle viscosity factor k (-)", 4.0, 5.4, 1.0,

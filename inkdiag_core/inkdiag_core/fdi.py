@@ -40,6 +40,10 @@ from .residual import ResidualFilter
 
 __all__ = [
     "FEATURE_SETS",
+    "classify",
+    "fault_probability",
+    "fnr_threshold",
+    "train_default_model",
     "BandEnergies",
     "SecondModeKpis",
     "fd_labels",
@@ -191,3 +195,117 @@ def make_fdi_pipeline(kind: str = "rf", features: str = "kpi_y", *, sample_rate_
         return Pipeline([("features", feats), ("classifier", clf)])
     clf = KNeighborsClassifier(n_neighbors=n_neighbors)
     return Pipeline([("features", feats), ("scale", StandardScaler()), ("classifier", clf)])
+
+
+def fault_probability(pipeline, traces) -> tuple:
+    """Class probabilities and P(faulty) of a fitted FI pipeline.
+
+    Returns
+    -------
+    proba : ndarray, shape (n, n_classes)
+        ``pipeline.predict_proba(traces)``, columns in ``pipeline.classes_`` order.
+    p_faulty : ndarray, shape (n,)
+        1 minus the probability of the two healthy classes.
+    """
+    proba = pipeline.predict_proba(traces)
+    healthy = np.isin(np.asarray(pipeline.classes_, dtype=object), HEALTHY_VALUES)
+    return proba, 1.0 - proba[:, healthy].sum(axis=1)
+
+
+def classify(pipeline, traces, *, fd_threshold: float = 0.5):
+    """Label traces with a fitted FI pipeline and a fault-detection threshold.
+
+    A trace is faulty when ``P(faulty) >= fd_threshold``; a faulty trace gets
+    the most probable *fault* class even where a healthy class has the single
+    largest probability (the false-negative-averse operating point), and a
+    healthy one the more probable healthy class.
+
+    Parameters
+    ----------
+    pipeline : fitted Pipeline with ``predict_proba`` and ``classes_`` (FaultClass values)
+    traces : ndarray, shape (n, n_samples)
+    fd_threshold : float in (0, 1]
+
+    Returns
+    -------
+    labels : ndarray of str, shape (n,)
+    confidence : ndarray, shape (n,)
+        Probability of the returned class.
+    p_faulty : ndarray, shape (n,)
+    """
+    if not 0.0 < fd_threshold <= 1.0:
+        raise ValueError(f"fd_threshold must be in (0, 1], got {fd_threshold!r}")
+    classes = np.asarray(pipeline.classes_, dtype=object)
+    healthy = np.isin(classes, HEALTHY_VALUES)
+    proba, p_faulty = fault_probability(pipeline, traces)
+    faulty = p_faulty >= fd_threshold
+    masked = np.where(healthy[None, :] == faulty[:, None], -1.0, proba)  # keep the allowed group
+    idx = np.argmax(masked, axis=1)
+    return classes[idx].astype(str), proba[np.arange(len(idx)), idx], p_faulty
+
+
+def fnr_threshold(p_faulty_of_faults, fnr_target: float = 0.005) -> float:
+    """Largest threshold on P(faulty) that misses at most ``fnr_target`` of the given faults."""
+    p = np.sort(np.asarray(p_faulty_of_faults, float))
+    if p.size == 0:
+        return 0.5
+    k = int(np.floor(fnr_target * p.size))
+    return float(min(p[k], 0.5))
+
+
+def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: str = "rf",
+                        features: str = "rich", fnr_target: float = 0.005, progress=None):
+    """Train the FDI model the nodes load by default, and save it with its manifest.
+
+    Simulates ``n_per_class`` traces of each of the 12 classes, fits the
+    pipeline on 75% of them, picks the false-negative-averse fault-detection
+    threshold on the other 25% (FNR <= ``fnr_target``), scores that split, and
+    saves the model (:func:`inkdiag_core.save_model`) with the threshold in
+    the manifest's ``config['fd_threshold']``.
+
+    Parameters
+    ----------
+    path : str or Path
+        Destination ``.joblib``.
+    progress : callable(step: int, total: int, message: str), optional
+        Called after each stage (for a progress bar).
+
+    Returns
+    -------
+    pathlib.Path
+        The manifest written beside the model.
+    """
+    from sklearn.model_selection import train_test_split
+
+    from .faults import FaultClass
+    from .persistence import save_model
+    from .simulator import simulate
+
+    report = progress or (lambda step, total, message: None)
+    total = 4
+    sim = simulate({c: int(n_per_class) for c in FaultClass}, seed=seed)
+    report(1, total, f"simulated {len(sim)} traces")
+    y = sim.label_values()
+    Xtr, Xval, ytr, yval = train_test_split(sim.traces, y, test_size=0.25, random_state=seed, stratify=y)
+    pipe = make_fdi_pipeline(kind, features, random_state=seed).fit(Xtr, ytr)
+    report(2, total, f"fitted {kind} on {features} features")
+    labels0, _, p_faulty = classify(pipe, Xval, fd_threshold=0.5)
+    is_fault = fd_labels(yval) == 1
+    threshold = fnr_threshold(p_faulty[is_fault], fnr_target)
+    labels, _, _ = classify(pipe, Xval, fd_threshold=threshold)
+    flagged = ~np.isin(labels, HEALTHY_VALUES)
+    scores = {
+        "validation_fi_accuracy": float(np.mean(labels0 == yval)),
+        "validation_fi_accuracy_at_threshold": float(np.mean(labels == yval)),
+        "validation_fd_fnr": float(np.mean(~flagged[is_fault])),
+        "validation_fd_fpr": float(np.mean(flagged[~is_fault])),
+        "n_validation": int(len(yval)),
+    }
+    report(3, total, f"validation FI accuracy {100 * scores['validation_fi_accuracy']:.1f}%")
+    config = {"kind": kind, "features": features, "n_per_class": int(n_per_class), "seed": int(seed),
+              "sample_rate_hz": float(sim.sample_rate_hz), "n_samples": int(sim.traces.shape[1]),
+              "fd_threshold": threshold, "fnr_target": float(fnr_target),
+              "classes": [str(c) for c in pipe.classes_]}
+    manifest = save_model(pipe, path, config=config, scores=scores)
+    report(4, total, f"saved {path}")
+    return manifest
