@@ -95,8 +95,8 @@ def ros():
 @pytest.fixture(scope="session")
 def fdi_model(tmp_path_factory):
     """A small but real FDI model (RF on KPI_Y, trained on simulated traces) with its manifest."""
-    from inkdiag_ros.model_cache import _train_fallback
+    from inkdiag_core.fdi import train_default_model
 
     path = tmp_path_factory.mktemp("model") / "fdi_small.joblib"
-    _train_fallback(path, n_per_class=80, n_estimators=40, seed=0, progress=False)
+    train_default_model(path, n_per_class=80, features="kpi_y", seed=0)
     return path

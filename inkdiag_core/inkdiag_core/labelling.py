@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .fdi import classify
 from .screening import screen_traces
 
 __all__ = ["FrameLabels", "label_traces"]
@@ -27,7 +28,7 @@ class FrameLabels:
     reasons: np.ndarray
 
 
-def label_traces(pipeline, traces) -> FrameLabels:
+def label_traces(pipeline, traces, *, fd_threshold: float = 0.5) -> FrameLabels:
     """Screen a frame (:func:`screen_traces`) and classify its valid rows in one batch.
 
     Parameters
@@ -36,6 +37,9 @@ def label_traces(pipeline, traces) -> FrameLabels:
         (class values as strings), taking raw traces (n, n_samples).
     traces : array_like, shape (n, n_samples)
         Sensor samples, V.
+    fd_threshold : float
+        Fault-detection threshold on P(faulty) (:func:`inkdiag_core.fdi.classify`;
+        the default model stores its false-negative-averse one in its manifest).
     """
     x = np.asarray(traces)
     valid, reasons = screen_traces(x)
@@ -43,8 +47,7 @@ def label_traces(pipeline, traces) -> FrameLabels:
     classes = np.full(n, "", dtype=object)
     confidence = np.full(n, np.nan)
     if valid.any():
-        proba = pipeline.predict_proba(x[valid])
-        best = proba.argmax(axis=1)
-        classes[valid] = np.asarray(pipeline.classes_, dtype=object)[best]
-        confidence[valid] = proba[np.arange(best.size), best]
+        labels, conf, _ = classify(pipeline, x[valid], fd_threshold=fd_threshold)
+        classes[valid] = labels.astype(object)
+        confidence[valid] = conf
     return FrameLabels(classes, confidence, valid, reasons)

@@ -54,9 +54,9 @@ PARAMS = (
 
 
 def model_id(manifest: dict) -> str:
-    """Short id of a model file: its configured name and the first 12 hex digits of its sha256."""
-    name = str(manifest.get("config", {}).get("name", "fdi"))
-    return f"{name}-{str(manifest.get('sha256', ''))[:12]}"
+    """Short id of a model file: ``fdi-<kind>-<features>-<first 12 hex digits of its sha256>``."""
+    cfg = manifest.get("config", {})
+    return f"fdi-{cfg.get('kind', '?')}-{cfg.get('features', '?')}-{str(manifest.get('sha256', ''))[:12]}"
 
 
 class FdiNode(Node):
@@ -71,6 +71,7 @@ class FdiNode(Node):
         self.stats = FdiStats()
         self.model = None
         self.model_id = "none"
+        self.fd_threshold = 0.5
         self._load(self.config["model_path"])
         n = self.config["n_nozzles"]
         self._max_id = n - 1 if n > 0 else None
@@ -90,7 +91,9 @@ class FdiNode(Node):
             self.get_logger().error(f"FDI model not loaded: {exc}")
             return
         self.model_id = model_id(manifest)
-        self.get_logger().info(f"FDI model {self.model_id} loaded from {path}")
+        self.fd_threshold = float(manifest.get("config", {}).get("fd_threshold", 0.5))
+        self.get_logger().info(f"FDI model {self.model_id} loaded from {path} "
+                               f"(fault-detection threshold {self.fd_threshold:.3g})")
 
     def _on_traces(self, msg) -> None:
         self.stats.frames_received += 1
@@ -104,7 +107,7 @@ class FdiNode(Node):
         if self.model is None:
             return
         try:
-            rows = label_traces(self.model, frame.traces)
+            rows = label_traces(self.model, frame.traces, fd_threshold=self.fd_threshold)
         except Exception as exc:  # the node never dies of input: count, log, go on
             self.stats.failed(f"frame {frame.frame_id}: {type(exc).__name__}: {exc}")
             self.get_logger().error(f"labelling frame {frame.frame_id} failed: {exc!r}",

@@ -1,62 +1,31 @@
-"""The default FDI model on disk: verify it, or train and save it (with a progress bar).
+"""The default FDI model on disk: verify it, or train and save it with a progress bar.
 
-Training is the core's job (``inkdiag_core.fdi.train_default_model`` when it
-exists); until then :func:`_train_fallback` builds the same kind of model from
-core pieces: ``simulate`` -> ``make_fdi_pipeline("rf", "kpi_y")`` -> ``save_model``.
+Training is the core's :func:`inkdiag_core.fdi.train_default_model`; this
+module only decides when (missing or unverifiable file) and shows progress.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
-from inkdiag_core import FaultClass, ModelFileError, load_model, make_fdi_pipeline, save_model, simulate
+from inkdiag_core import ModelFileError, load_model
+from inkdiag_core.fdi import train_default_model as _core_train
 
 DEFAULT_MODEL = Path("models") / "fdi_default.joblib"
 
 
-def _train_fallback(path, *, n_per_class=400, seed=0, n_estimators=100, progress=True):
-    try:
-        from tqdm import tqdm
-    except ImportError:  # pragma: no cover - tqdm is in requirements/dev.txt
-        tqdm = None
-    steps = ["simulate training set", "fit RF on KPI_Y", "score held-out set", "save with manifest"]
-    bar = tqdm(total=len(steps), desc="training default FDI model", unit="step",
-               disable=not progress) if tqdm else None
+def train_default_model(path, *, progress=True, **kwargs):
+    """Train and save the default model at ``path`` (tqdm progress bar); return the manifest path."""
+    if not progress:
+        return _core_train(path, **kwargs)
+    from tqdm import tqdm
 
-    def step(i):
-        if bar is not None:
-            bar.set_postfix_str(steps[i])
+    with tqdm(total=4, desc="training the default FDI model", unit="step") as bar:
+        def report(step, total, message):
+            bar.set_postfix_str(message)
+            bar.update(step - bar.n)
 
-    step(0)
-    counts = {c: n_per_class for c in FaultClass}
-    train = simulate(counts, seed=seed)
-    test = simulate({c: max(n_per_class // 4, 10) for c in FaultClass}, seed=seed + 1)
-    bar and bar.update()
-    step(1)
-    pipe = make_fdi_pipeline("rf", "kpi_y", n_estimators=n_estimators, random_state=seed)
-    pipe.fit(train.traces, train.label_values())
-    bar and bar.update()
-    step(2)
-    acc = float(np.mean(pipe.predict(test.traces) == test.label_values()))
-    bar and bar.update()
-    step(3)
-    config = {"name": "fdi-rf-kpi_y", "kind": "rf", "features": "kpi_y", "n_per_class": n_per_class,
-              "n_estimators": n_estimators, "seed": seed, "n_samples": 512, "sample_rate_hz": 10e6}
-    mpath = save_model(pipe, path, config=config, scores={"accuracy_12_class_held_out": acc})
-    bar and bar.update()
-    bar and bar.close()
-    return mpath
-
-
-def train_default_model(path, *, n_per_class=400, seed=0, progress=True):
-    """Train and save the default model at ``path``; return the manifest path."""
-    try:
-        from inkdiag_core.fdi import train_default_model as core_train
-    except ImportError:
-        return _train_fallback(path, n_per_class=n_per_class, seed=seed, progress=progress)
-    return core_train(path, n_per_class=n_per_class, seed=seed, progress=progress)
+        return _core_train(path, progress=report, **kwargs)
 
 
 def ensure_default_model(path=DEFAULT_MODEL, *, progress=True, log=print):
@@ -69,6 +38,6 @@ def ensure_default_model(path=DEFAULT_MODEL, *, progress=True, log=print):
         except ModelFileError as exc:
             log(f"inkdiag: cached model unusable ({exc}); retraining")
     else:
-        log(f"inkdiag: no FDI model at {path}; training the default one (once)")
+        log(f"inkdiag: no FDI model at {path}; training the default one (once, about a minute)")
     train_default_model(path, progress=progress)
     return path

@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 import inkdiag_core
-from inkdiag_core import FaultClass, InkChannelParams, simulate
+from inkdiag_core import FaultClass, InkChannelParams, simulate_nozzles
 from inkdiag_core.faults import DRIED_CLASSES, HEALTHY_CLASSES, MECHANISMS
 
 __all__ = ["HeadScenario", "simulate_head", "dried_class_of"]
@@ -99,42 +99,10 @@ class HeadScenario:
         return classes, mu
 
 
-def _simulate_nozzles(classes, *, mu_nozzle=None, sample_rate_hz=10e6, n_samples=512, seed=0):
-    """Per-nozzle simulation on top of ``simulate`` (until ``inkdiag_core.simulate_nozzles``).
-
-    Rows of ``simulate`` come grouped by class; they are put back in the order
-    of ``classes``. A finite ``mu_nozzle`` of a dried row fixes that row's
-    viscosity factor ``mu_nozzle / InkChannelParams().mu``.
-    """
-    classes = np.asarray(classes, dtype=object)
-    order = {c: i for i, c in enumerate(FaultClass)}
-    kind = np.array([order[c] for c in classes])
-    perm = np.argsort(kind, kind="stable")  # row j of the result is nozzle perm[j]
-    counts = {c: int((kind == order[c]).sum()) for c in FaultClass if (kind == order[c]).any()}
-    severity = None
-    if mu_nozzle is not None:
-        mu = np.asarray(mu_nozzle, dtype=float)[perm]
-        sorted_classes = classes[perm]
-        severity = {}
-        for c in DRIED_CLASSES:
-            rows = sorted_classes == c
-            if rows.any() and np.isfinite(mu[rows]).all():
-                severity[c] = mu[rows] / InkChannelParams().mu
-    r = simulate(counts, sample_rate_hz=sample_rate_hz, n_samples=n_samples, seed=seed,
-                 severity=severity or None)
-    inv = np.empty_like(perm)
-    inv[perm] = np.arange(perm.size)
-    return r.traces[inv], r.labels[inv], r.fm[inv], r.mu_nozzle[inv]
-
-
 def simulate_head(classes, mu_nozzle, *, sample_rate_hz, n_samples, rng):
     """The one physics call of the simulated head.
 
     Returns ``(traces float32 (n, n_samples) V, labels, fm 1/s, mu_nozzle Pa s)``.
     """
-    fn = getattr(inkdiag_core, "simulate_nozzles", None)
-    if fn is None:
-        return _simulate_nozzles(classes, mu_nozzle=mu_nozzle, sample_rate_hz=sample_rate_hz,
-                                 n_samples=n_samples, seed=rng)
-    r = fn(classes, mu_nozzle=mu_nozzle, sample_rate_hz=sample_rate_hz, n_samples=n_samples, seed=rng)
+    r = simulate_nozzles(classes, mu_nozzle=mu_nozzle, sample_rate_hz=sample_rate_hz, n_samples=n_samples, seed=rng)
     return r.traces, r.labels, r.fm, r.mu_nozzle
