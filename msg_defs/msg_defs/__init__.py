@@ -16,6 +16,7 @@ from .codec import (
     TraceFrame,
     decode_traces,
     encode_traces,
+    restamp_traces,
 )
 from ._json import JSON_SCHEMA_VERSION
 from .labels import (
@@ -80,6 +81,7 @@ __all__ = [
     "encode_labels",
     "encode_traces",
     "encode_truth",
+    "restamp_traces",
     "topics",
     "truth_from_arrays",
 ]

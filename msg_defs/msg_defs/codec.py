@@ -55,6 +55,7 @@ __all__ = [
     "TraceFrame",
     "encode_traces",
     "decode_traces",
+    "restamp_traces",
 ]
 
 #: Version of this trace layout; bumped on any incompatible change.
@@ -282,3 +283,18 @@ def decode_traces(msg, *, max_nozzle_id: int | None = None, n_samples: int | Non
         sample_rate_hz=float(head[4]),
         stamp=(int(head[6]) * _EXACT + int(head[5])) + int(head[7]) * 1e-6,
     )
+
+
+def restamp_traces(msg, *, frame_id: int, stamp: float) -> None:
+    """Rewrite the frame id and stamp of an encoded frame in place (for replaying frames).
+
+    Cheaper than encoding again: only the header values change.
+    """
+    fid = _check_uint("frame_id", frame_id, _EXACT * _EXACT)
+    st = float(stamp)
+    if not (math.isfinite(st) and st >= 0):
+        raise FrameError(f"stamp must be a finite time >= 0 s, got {stamp!r}")
+    sec = int(st)
+    usec = min(int(round((st - sec) * 1e6)), 999_999)
+    msg.data[2], msg.data[3] = fid % _EXACT, fid // _EXACT
+    msg.data[5], msg.data[6], msg.data[7] = sec % _EXACT, sec // _EXACT, usec

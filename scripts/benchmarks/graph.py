@@ -1,0 +1,230 @@
+"""Benchmark of the fdi node on a full printhead, against the bare transport ceiling in the same run.
+
+    scripts/bench graph [--nozzles 2656] [--seconds 8] [--window 2] [--model models/fdi_default.joblib]
+
+Pre-generates frames of a 2,656-nozzle head (512 samples, simulate_nozzles with
+a seeded mix of classes), then replays them from this process into a second
+process, twice:
+
+1. ceiling: a plain subscriber in the second process that decodes each frame
+   (zero-copy header + view) and answers with a tiny ack carrying the frame id;
+2. fdi: the real fdi node (``python -m inkdiag_ros.fdi_node``) with the model,
+   whose ``labels`` messages are the answers.
+
+Both use the same closed loop: at most ``--window`` frames in flight
+(published, not yet answered), so the consumer sets the pace and nothing is
+dropped by the best-effort QoS on purpose. A frame unanswered for 2 s is
+counted lost (and the fdi node's own counters from /diagnostics say where it
+went). Latency is from the frame's source timestamp (set at publish) to its
+answer arriving here (one clock). Prints traces/s of both, the ratio, loss,
+and p50/p99 latency.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+ACK = "bench_ack"
+
+
+def sink_main() -> int:
+    """Second process of the ceiling run: decode each frame, ack its id."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.node import Node
+    from std_msgs.msg import String
+
+    from msg_defs import RELIABLE_QOS, TRACE_MSG_TYPE, TRACES_QOS, decode_traces, topics
+
+    rclpy.init()
+    node = Node("bench_sink")
+    pub = node.create_publisher(String, ACK, RELIABLE_QOS)
+
+    def on_frame(msg):
+        f = decode_traces(msg)
+        float(f.traces[0, 0])  # touch the data
+        pub.publish(String(data=f"{f.frame_id}"))
+
+    node.create_subscription(TRACE_MSG_TYPE, topics.TRACES, on_frame, TRACES_QOS)
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+def make_frames(n_nozzles, n_frames, seed):
+    from inkdiag_core import FaultClass, simulate_nozzles
+
+    rng = np.random.default_rng(seed)
+    classes = list(FaultClass)
+    p = np.full(len(classes), 0.1 / (len(classes) - 2))
+    p[[classes.index(FaultClass.OK_SIGNAL), classes.index(FaultClass.HEALTHY_NOZZLE)]] = 0.45
+    return [simulate_nozzles(rng.choice(np.array(classes, dtype=object), size=n_nozzles, p=p),
+                             seed=seed + i).traces for i in range(n_frames)]
+
+
+def replay(node, executor, pub, msgs, answered, seconds, window, lost_after_s=2.0):
+    """Closed-loop replay; returns (published, answered ids, latencies s, lost ids, elapsed s)."""
+    from msg_defs import restamp_traces
+
+    in_flight = {}  # frame_id -> publish time
+    lat, lost = [], []
+    fid = 0
+    t0 = time.perf_counter()
+    end = time.monotonic() + seconds
+    while time.monotonic() < end or in_flight:
+        if time.monotonic() < end and len(in_flight) < window:
+            msg = msgs[fid % len(msgs)]
+            now = time.time()
+            restamp_traces(msg, frame_id=fid, stamp=now)
+            pub.publish(msg)
+            in_flight[fid] = now
+            fid += 1
+            continue
+        executor.spin_once(timeout_sec=0.005)
+        while answered:
+            a_id, t_recv = answered.pop()
+            if a_id in in_flight:
+                lat.append(t_recv - in_flight.pop(a_id))
+        t = time.time()
+        for k in [k for k, v in in_flight.items() if t - v > lost_after_s]:
+            lost.append(in_flight.pop(k))
+        if time.monotonic() > end + 10:
+            break
+    return fid, np.array(lat), lost, time.perf_counter() - t0
+
+
+def wait_for_match(executor, pub, sub_topic_count, timeout=30.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.05)
+        if pub.get_subscription_count() > 0 and sub_topic_count():
+            return True
+    return False
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--role", default="bench", choices=["bench", "sink"])
+    ap.add_argument("--nozzles", type=int, default=2656)
+    ap.add_argument("--frames", type=int, default=8, help="distinct frames to pre-generate and cycle")
+    ap.add_argument("--seconds", type=float, default=8.0, help="replay time of each phase")
+    ap.add_argument("--window", type=int, default=4,
+                    help="messages in flight at most (<= the traces QoS depth 5, or the subscriber drops by design)")
+    ap.add_argument("--chunk", type=int, default=200,
+                    help="nozzles per message: a head scan travels as contiguous nozzle ranges")
+    ap.add_argument("--model", default=str(ROOT / "models" / "fdi_default.joblib"))
+    ap.add_argument("--seed", type=int, default=0)
+    ns = ap.parse_args()
+    if ns.role == "sink":
+        return sink_main()
+
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from std_msgs.msg import String
+
+    from inkdiag_core.persistence import read_manifest
+    from inkdiag_ros.model_cache import ensure_default_model
+    from msg_defs import (DIAGNOSTICS_MSG_TYPE, DIAGNOSTICS_QOS, LABELS_MSG_TYPE, RELIABLE_QOS,
+                          TRACE_MSG_TYPE, TRACES_QOS, decode_labels, diagnostics_values, encode_traces,
+                          topics)
+
+    model = ensure_default_model(ns.model)
+    cfg = read_manifest(model).get("config", {})
+    t = time.perf_counter()
+    frames = make_frames(ns.nozzles, ns.frames, ns.seed)
+    msgs = [encode_traces(x[i:i + ns.chunk], first_nozzle=i, frame_id=0, stamp=0.0)
+            for x in frames for i in range(0, ns.nozzles, ns.chunk)]
+    per_msg = [m.layout.dim[0].size for m in msgs]
+    print(f"graph benchmark: {ns.frames} pre-generated frames of {ns.nozzles} nozzles x 512 samples "
+          f"({frames[0].nbytes / 1e6:.1f} MB each, {time.perf_counter() - t:.1f} s) as messages of {ns.chunk} nozzles; "
+          f"window {ns.window} messages in flight; "
+          f"{ns.seconds:g} s per phase; model {Path(model).name} "
+          f"({cfg.get('kind')}, {cfg.get('features')})")
+
+    rclpy.init()
+    node = Node("bench_replayer")
+    ex = SingleThreadedExecutor()
+    ex.add_node(node)
+    pub = node.create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
+    answered, diag = [], {}
+    node.create_subscription(String, ACK, lambda m: answered.append((int(m.data), time.time())), RELIABLE_QOS)
+    node.create_subscription(LABELS_MSG_TYPE, topics.LABELS,
+                             lambda m: answered.append((decode_labels(m).frame_id, time.time())), RELIABLE_QOS)
+    node.create_subscription(DIAGNOSTICS_MSG_TYPE, topics.DIAGNOSTICS,
+                             lambda m: diag.update(diagnostics_values(m)), DIAGNOSTICS_QOS)
+    env = dict(os.environ)
+    results = {}
+    phases = [
+        ("ceiling: plain subscriber", [sys.executable, __file__, "--role", "sink"],
+         lambda: node.count_publishers(ACK) > 0),
+        ("fdi node", [sys.executable, "-m", "inkdiag_ros.fdi_node", "--ros-args", "-p",
+                      f"model_path:={model}", "-p", f"n_nozzles:={ns.nozzles}", "-p", "diagnostics_period_s:=0.5",
+                      "--log-level", "warn"],
+         lambda: node.count_publishers(topics.LABELS) > 0),
+    ]
+    try:
+        for name, cmd, matched in phases:
+            proc = subprocess.Popen(cmd, env=env, cwd=ROOT)
+            try:
+                if not wait_for_match(ex, pub, matched):
+                    print(f"{name}: the second process never matched", file=sys.stderr)
+                    return 1
+                # warm-up: one frame through, unmeasured
+                replay(node, ex, pub, msgs, answered, 0.5, 1)
+                answered.clear()
+                sent, lat, lost, el = replay(node, ex, pub, msgs, answered, ns.seconds, ns.window)
+                ex.spin_once(timeout_sec=0.6)
+                t_end = time.monotonic() + 1.5
+                while time.monotonic() < t_end:
+                    ex.spin_once(timeout_sec=0.05)
+                results[name] = (sent, lat, lost, el, dict(next(iter(diag.values()), {})))
+            finally:
+                proc.send_signal(2)
+                try:
+                    proc.wait(timeout=10)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+    rates = {}
+    for name, (sent, lat, lost, el, d) in results.items():
+        done = lat.size
+        if not done:
+            print(f"{name:<26} nothing answered: published {sent}, lost {len(lost)}")
+            continue
+        rates[name] = done * float(np.mean(per_msg)) / el
+        line = (f"{name:<26} {rates[name]:>9,.0f} traces/s ({done / el:6.1f} msgs/s)  "
+                f"published {sent}, answered {done}, lost {len(lost)}  "
+                f"latency p50 {1e3 * np.percentile(lat, 50):6.1f} ms  p99 {1e3 * np.percentile(lat, 99):6.1f} ms")
+        print(line)
+        if d:
+            print(f"{'':<26} fdi's own counters: received {d.get('frames_received')}, labelled "
+                  f"{d.get('frames_labelled')}, malformed {d.get('frames_malformed')}, "
+                  f"failed {d.get('frames_failed')} (includes the warm-up frames)")
+    c, f = rates.get("ceiling: plain subscriber"), rates.get("fdi node")
+    if c and f and results["fdi node"][1].size:
+        print(f"fdi / ceiling = {f / c:.2f}x (aim >= 0.3x); fdi p99 {'<=' if np.percentile(results['fdi node'][1], 99) <= 0.1 else '>'} 100 ms")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
