@@ -30,6 +30,7 @@ setup(
             "fdi = inkdiag_ros.fdi_node:main",
             "fe = inkdiag_ros.fe_node:main",
             "graph = inkdiag_ros.graph:main",
+            "echo = inkdiag_ros.echo:main",
         ],
     },
 )

@@ -11,7 +11,7 @@ Each FDI node publishes, every ``diagnostics_period_s``, an array with one
 - ``message``: one line saying why;
 - ``values`` (all strings, as the message type wants), keys :data:`KEYS`:
   ``model_id``, ``frames_received``, ``frames_labelled``, ``frames_malformed``,
-  ``rows_invalid``, ``frames_per_s``, ``traces_per_s`` (over the last period),
+  ``frames_failed`` (the model raised), ``rows_invalid``, ``frames_per_s``, ``traces_per_s`` (over the last period),
   ``last_error`` (the last malformed frame's reason) and then ``count.<class>``
   for each class value and ``count.invalid`` (cumulative rows per label).
 """
@@ -30,8 +30,8 @@ LEVELS = {
     "error": DiagnosticStatus.ERROR,
     "stale": DiagnosticStatus.STALE,
 }
-KEYS = ("model_id", "frames_received", "frames_labelled", "frames_malformed", "rows_invalid",
-        "frames_per_s", "traces_per_s", "last_error")
+KEYS = ("model_id", "frames_received", "frames_labelled", "frames_malformed", "frames_failed",
+        "rows_invalid", "frames_per_s", "traces_per_s", "last_error")
 COUNT_PREFIX = "count."
 
 
