@@ -86,6 +86,25 @@ def test_dt_method_appendix_e_bias_grows_with_fm(model):
     assert errs[0] < 0.01 < errs[1]
 
 
+@pytest.mark.parametrize("rel", [0.2, 2.0, 10.0])
+def test_dt_exact_recovers_fm_on_exact_ct_data(model, rel):
+    # noise-free exact CT samples: the linearised exact discretisation, re-linearised,
+    # removes the Appendix E bias ("dt" is off by > 1 % at rel = 2, see above)
+    fm = float(viscosity_to_fm(model.params, model.params.mu * (1 + rel)))
+    x0 = common_x0(model)
+    est = estimate_fm(_ct_reference(model, fm, x0), model, FS, method="dt_exact", x0=x0)
+    assert est.method == "dt_exact" and est.trace.shape == (N,)
+    assert abs(est.fm / fm - 1) < 0.01
+    steady = est.trace[int(0.2 * N):int(0.6 * N)]
+    assert np.all(np.abs(steady / fm - 1) < 0.01)
+
+
+def test_dt_exact_needs_x0(model):
+    y = _ct_reference(model, -1e5, common_x0(model))
+    with pytest.raises(ValueError, match="method 'dt_exact' needs x0"):
+        estimate_fm(y, model, FS, method="dt_exact")
+
+
 # -- x0-free estimator --------------------------------------------------------
 @pytest.mark.parametrize("rel", [0.2, 1.0, 4.0, 10.0])
 def test_vp_recovers_fm_without_x0(model, rel):
@@ -154,7 +173,7 @@ def test_bad_inputs(model):
         estimate_fm(y, model, FS, method="ct")
     with pytest.raises(ValueError, match=r"x0 must have shape \(3,\)"):
         estimate_fm(y, model, FS, method="dt", x0=np.zeros(4))
-    with pytest.raises(ValueError, match="valid methods are auto, dt, ct, vp"):
+    with pytest.raises(ValueError, match="valid methods are auto, dt, dt_exact, ct, vp"):
         estimate_fm(y, model, FS, method="kalman")
     with pytest.raises(ValueError, match="sample_rate_hz"):
         estimate_fm(y, model, -1.0)
