@@ -6,6 +6,7 @@ never imports rclpy or any message package (a test checks it).
 """
 
 from .estimation import FmBatchEstimate, FmEstimate, estimate_fm, estimate_fm_batch
+from .faults import FaultClass
 from .model import (
     InkChannelModel,
     InkChannelParams,
@@ -21,6 +22,8 @@ from .kpis import KPI_NAMES, KpiExtractor, extract_kpis, reconstruct
 from .residual import ResidualFilter, design_residual_filter
 from .persistence import ModelFileError, load_model, save_model
 from .screening import INVALID_REASONS, screen_traces
+from .nonlinear import simulate_nonlinear
+from .simulator import SimulationResult, simulate
 
 __version__ = "0.1.0"
 
@@ -39,6 +42,10 @@ __all__ = [
     "load_model",
     "save_model",
     "screen_traces",
+    "FaultClass",
+    "SimulationResult",
+    "simulate",
+    "simulate_nonlinear",
     "InkChannelModel",
     "InkChannelParams",
     "__version__",
