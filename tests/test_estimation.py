@@ -122,6 +122,22 @@ def test_vp_recovers_fm_without_x0(model, rel):
     assert est.d_mu == pytest.approx(rel * model.params.mu, rel=1e-3)
 
 
+def test_vp_trace_is_growing_window_fit(model):
+    fm = float(viscosity_to_fm(model.params, model.params.mu * 3))
+    y = _ct_reference(model, fm, common_x0(model))
+    est = estimate_fm(y, model, FS, method="vp")
+    assert est.trace.shape == (N,)
+    assert np.isnan(est.trace[0]) and est.trace[-1] == pytest.approx(est.fm, rel=1e-12)
+    ok = np.isfinite(est.trace)
+    assert ok[N // 4:].all() and np.all(np.abs(est.trace[ok] / fm - 1) < 1e-3)
+    # each window end is a fit on [0, k]: the value at k equals fitting y[:k + 1]
+    k = int(np.flatnonzero(ok)[0])
+    assert est.trace[k] == pytest.approx(estimate_fm(y[:k + 1], model, FS, method="vp").fm,
+                                         rel=1e-9)
+    const = estimate_fm(y, model, FS, method="vp", vp_trace_points=0)
+    assert const.fm == est.fm and np.all(const.trace == const.fm)
+
+
 def test_healthy_trace_gives_zero_within_ci(model):
     rng = np.random.default_rng(5)
     y = _ct_reference(model, 0.0, common_x0(model))

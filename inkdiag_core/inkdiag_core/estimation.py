@@ -87,8 +87,9 @@ class FmEstimate:
         Steady-state estimate of f_m, 1/s (negative for a drying nozzle).
     trace : ndarray, shape (n_samples,)
         Per-sample estimate, 1/s; NaN where undefined (before the first full
-        window, or where the regressor is too small). Constant for ``"vp"``,
-        which fits the whole trace at once.
+        window, or where the regressor is too small). For ``"vp"``: the
+        growing-window fit on samples [0, k] (NaN for the first two periods),
+        ending at ``fm``; constant when ``vp_trace_points`` < 2.
     method : str
         The method that ran ("dt", "dt_exact", "ct" or "vp").
     std : float
@@ -527,7 +528,7 @@ def _vp_basis(sc: _Scaled, fs, N, *, deriv=False):
     return B, dB, lam, V, Vi
 
 
-@functools.lru_cache(maxsize=8)
+@functools.lru_cache(maxsize=64)
 def _vp_grid(key, N, lo, hi, n_grid):
     sc = _scaled_cached(key)
     grid = np.linspace(lo, hi, n_grid) * _T0
@@ -604,6 +605,33 @@ def _vp_batch(sc: _Scaled, key, Ys, *, fm_bounds, n_grid=160, max_iter=8, tol=1e
     return f / _T0, std / _T0, xs0, theta[:, 3]
 
 
+def _vp_growing_trace(sc: _Scaled, key, Ys, fm_full, *, fm_bounds, n_grid, points):
+    """Per-sample "vp" estimate: the fit on samples [0, k] for ``points`` window ends k
+    (geometrically spaced from two periods of the healthy mode to the full trace),
+    linearly interpolated in k; NaN before the first window end. The last point is the
+    full-trace fit, i.e. ``trace[-1] == fm``. Like a recursive estimator's trace it shows
+    how the estimate settles as samples arrive (it is not a sliding-window estimate:
+    the fault is piecewise constant over one ~50 us trace, and the ring-down's shrinking
+    amplitude would make late sliding windows uninformative)."""
+    n, N = Ys.shape
+    k_first = min(N, max(MIN_SAMPLES, 2 * _period_samples(sc.A, sc.dt)))
+    ends = np.unique(np.round(np.geomspace(k_first, N, max(int(points), 2))).astype(int))
+    vals = np.empty((n, ends.size))
+    for j, k in enumerate(ends[:-1]):
+        vals[:, j] = _vp_batch(sc, key, Ys[:, :k], fm_bounds=fm_bounds, n_grid=n_grid)[0]
+    vals[:, -1] = fm_full
+    trace = np.full((n, N), np.nan)
+    pos = ends - 1  # sample index of each window's last sample
+    idx = np.arange(pos[0], N)
+    seg = np.clip(np.searchsorted(pos, idx, side="right") - 1, 0, max(pos.size - 2, 0))
+    if pos.size == 1:
+        trace[:, idx] = vals[:, :1]
+        return trace
+    w = (idx - pos[seg]) / (pos[seg + 1] - pos[seg])
+    trace[:, idx] = vals[:, seg] * (1 - w) + vals[:, seg + 1] * w
+    return trace
+
+
 # ---------------------------------------------------------------------------
 # public API
 # ---------------------------------------------------------------------------
@@ -614,7 +642,7 @@ def _default_bounds(A, B_f):
 
 def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, exact_T=True,
                       prefilter_hz=None, window=None, steady_frac=0.2, fm_bounds=None,
-                      n_grid=160, n_iter=3, sensitivity=True):
+                      n_grid=160, n_iter=3, sensitivity=True, vp_trace_points=12):
     """Estimate f_m for many traces at once.
 
     Parameters
@@ -646,6 +674,10 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, exact
     sensitivity : bool
         "dt_exact" regressor includes the UIO state's sensitivity to f (default);
         False gives the bare ``C D x_hat`` regressor (slower, linear convergence).
+    vp_trace_points : int
+        "vp" ``.trace``: growing-window fits on samples [0, k] at this many window
+        ends, interpolated (default 12; costs about that many extra fits). 0 or 1:
+        ``.trace`` is ``.fm`` repeated (the cheap path when only ``.fm`` is used).
 
     Returns
     -------
@@ -694,7 +726,11 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, exact
         if not bounds[0] < bounds[1]:
             raise ValueError(f"fm_bounds must be (low, high) with low < high, got {fm_bounds!r}")
         fm, std, xs0, off_s = _vp_batch(sc, key, Ys, fm_bounds=bounds, n_grid=n_grid)
-        trace = np.repeat(fm[:, None], N, axis=1)
+        if vp_trace_points and vp_trace_points > 1:
+            trace = _vp_growing_trace(sc, key, Ys, fm, fm_bounds=bounds, n_grid=n_grid,
+                                      points=int(vp_trace_points))
+        else:
+            trace = np.repeat(fm[:, None], N, axis=1)
         x0_out = sc.from_scaled_x(xs0, c)
         offset = off_s * c
     ci = np.stack([fm - 1.959964 * std, fm + 1.959964 * std], axis=1)
