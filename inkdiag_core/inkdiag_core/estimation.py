@@ -381,9 +381,12 @@ def _dt_exact_pass(sc: _Scaled, Ys, Xs0, f0, *, exact_T, prefilter_hz, sample_ra
 
 
 def _dt_exact_batch(sc: _Scaled, Ys, Xs0, *, exact_T=True, prefilter_hz=None, sample_rate_hz,
-                    window=None, steady_frac=0.2, rel_floor=1e-12, n_iter=3, sensitivity=True):
+                    window=None, steady_frac=0.2, rel_floor=1e-12, n_iter=3, sensitivity=True,
+                    bounds_s=(-np.inf, np.inf)):
     """"dt_exact": a pass around f = 0, then ``n_iter`` re-linearisations around the
-    current steady-state estimate (removes the O(f_m^2) bias of the first pass)."""
+    current steady-state estimate (removes the O(f_m^2) bias of the first pass). Each
+    linearisation point is clipped to ``bounds_s`` (scaled f), so a wild step on noisy or
+    mismatched data does not move the next expm far outside the model's range."""
     n, N = Ys.shape
     W = window or _period_samples(sc.A, sc.dt)
     f = np.zeros(n)
@@ -392,10 +395,9 @@ def _dt_exact_batch(sc: _Scaled, Ys, Xs0, *, exact_T=True, prefilter_hz=None, sa
                                       prefilter_hz=prefilter_hz, sample_rate_hz=sample_rate_hz,
                                       W=W, steady_start=int(steady_frac * N),
                                       rel_floor=rel_floor, sensitivity=sensitivity)
-        # a NaN (no regressor energy) or a step outside the model's range keeps the last f
-        ok = np.isfinite(f_new) & (f_new * sc.dt > -5.0)
-        f = np.where(ok, f_new, f)
-    return f, trace
+        # a NaN (no regressor energy) keeps the last f
+        f = np.clip(np.where(np.isfinite(f_new), f_new, f), *bounds_s)
+    return f_new, trace
 
 
 # ---------------------------------------------------------------------------
@@ -666,7 +668,8 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, exact
     steady_frac : float
         ``.fm`` for "dt"/"ct" is the regression over samples ``>= steady_frac * n``.
     fm_bounds : (float, float), optional
-        Search interval of "vp" in 1/s (default ``(-15, 0.9) * |A33|``).
+        Search interval of "vp" in 1/s (default ``(-15, 0.9) * |A33|``); "dt_exact"
+        clips its linearisation points to it.
     n_grid : int
         Grid points of the "vp" search before Gauss-Newton.
     n_iter : int
@@ -697,6 +700,9 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, exact
             "UIO is not asymptotically stable; use method='vp' when x0 is unknown"
         )
     X0 = _check_x0(x0, n) if x0 is not None else None
+    bounds = _default_bounds(A, B_f) if fm_bounds is None else tuple(map(float, fm_bounds))
+    if not bounds[0] < bounds[1]:
+        raise ValueError(f"fm_bounds must be (low, high) with low < high, got {fm_bounds!r}")
     sc = _scaled(A, C, B_f, fs)
     c = np.sqrt(np.mean(Y * Y, axis=1))
     c = np.where(c > 0, c, 1.0)
@@ -712,7 +718,8 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, exact
             fm_s, trace_s = _dt_exact_batch(sc, Ys, Xs0, exact_T=exact_T,
                                             prefilter_hz=prefilter_hz, sample_rate_hz=fs,
                                             window=window, steady_frac=steady_frac,
-                                            n_iter=n_iter, sensitivity=sensitivity)
+                                            n_iter=n_iter, sensitivity=sensitivity,
+                                            bounds_s=(bounds[0] * _T0, bounds[1] * _T0))
         else:
             fm_s, trace_s = _ct_batch(sc, Ys, Xs0, exact_T=exact_T,
                                       prefilter_hz=1e6 if prefilter_hz is None else prefilter_hz,
@@ -722,9 +729,6 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, exact
         x0_out = X0
     else:
         key = (tuple(A.ravel()), tuple(C.ravel()), tuple(B_f.ravel()), float(fs))
-        bounds = _default_bounds(A, B_f) if fm_bounds is None else tuple(map(float, fm_bounds))
-        if not bounds[0] < bounds[1]:
-            raise ValueError(f"fm_bounds must be (low, high) with low < high, got {fm_bounds!r}")
         fm, std, xs0, off_s = _vp_batch(sc, key, Ys, fm_bounds=bounds, n_grid=n_grid)
         if vp_trace_points and vp_trace_points > 1:
             trace = _vp_growing_trace(sc, key, Ys, fm, fm_bounds=bounds, n_grid=n_grid,
