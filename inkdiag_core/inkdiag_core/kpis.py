@@ -268,24 +268,22 @@ def _fit_windows(Yw, start, m_peak, n_samples):
     # Basis rows: 0 = D, 1 = E, 2 = Y, 3 = D**2, 4 = E**2; h[i][j] = <V_i, V_j>.
     V = np.empty((n, 5, n_bins), dtype=np.complex128)
     V[:, 2] = Yw
+    tmp = np.empty((n, n_bins), dtype=np.complex128)
     best = None
     for it in range(n_iter + 1):
         lam = -sigma + 1j * omega
         z = np.exp(lam)
         zn = np.exp(n_samples * lam)
-        for row, zeta in ((0, z * e_s), (1, np.conj(z) * e_s)):
-            d = np.multiply.outer(zeta, -w, out=V[:, row])
-            d += 1.0
-            # 1 / d without a complex division: conj(d) / |d|^2.
-            mag2 = d.real**2
-            mag2 += d.imag**2
-            np.conjugate(d, out=d)
-            d /= mag2
         last = it == n_iter
         k = 3 if last else 5  # the final pass only needs C: no derivative terms
-        if not last:
-            np.multiply(V[:, 0], V[:, 0], out=V[:, 3])
-            np.multiply(V[:, 1], V[:, 1], out=V[:, 4])
+        for row, zeta in ((0, z * e_s), (1, np.conj(z) * e_s)):
+            # D (or E) = 1 / (1 - zeta w), built contiguous, then stored with its square.
+            d = np.multiply.outer(zeta, w, out=tmp)
+            np.subtract(1.0, d, out=d)
+            np.reciprocal(d, out=d)
+            V[:, row] = d
+            if not last:
+                np.multiply(d, d, out=V[:, row + 3])
         Vk = V[:, :k]
         H = np.matmul(np.conj(Vk), Vk.transpose(0, 2, 1))  # (n, k, k)
         h00, h11, h22 = H[:, 0, 0].real, H[:, 1, 1].real, H[:, 2, 2].real
