@@ -181,20 +181,26 @@ def _window_projector(n_bins, n_samples):
 
     On bins ``m = s .. s+K-1``, ``u_m = exp(-2 pi i m / N) = e_s w_j`` with a per-trace phase
     ``e_s`` and ``w_j = exp(-2 pi i j / N)``, so ``span{1, u} = span{1, w}`` for every
-    trace. Returns ``w`` (K,), ``M = (B^H B)^+`` (2, 2) for ``B = [1, w]`` and the powers
-    ``[w**-1, w**0, w**1, w**2]`` (K, 4) used by :func:`_prony_init`; cached per
-    ``(K, N)`` and read-only.
+    trace. Returns ``w`` (K,), ``M = (B^H B)^+`` (2, 2) for ``B = [1, w]`` and two real
+    (2K, 8) and (2K, 6) matrices for :func:`_prony_init`: on the interleaved
+    ``(Re Y_j, Im Y_j)`` of a window they give ``(Re, Im) sum_j w_j**p Y_j``,
+    p = -1 .. 2, and on its squares ``(Re, Im) sum_j w_j**p |Y_j|**2``, p = 0 .. 2.
+    Cached per ``(K, N)`` and read-only.
     """
     w = np.exp(-2j * np.pi * np.arange(n_bins) / n_samples)
     B = np.stack([np.ones(n_bins), w], axis=1)
     M = np.linalg.pinv(B.conj().T @ B)  # pinv: for K <= 2 the complement is empty
-    powers = np.stack([w**p for p in (-1, 0, 1, 2)], axis=1)
-    for arr in (w, M, powers):
+    powers = np.stack([w**p for p in (-1, 0, 1, 2)], axis=1)  # (K, 4)
+    r_t = np.empty((2 * n_bins, 8))
+    r_t[0::2, :4], r_t[1::2, :4] = powers.real, -powers.imag
+    r_t[0::2, 4:], r_t[1::2, 4:] = powers.imag, powers.real
+    r_s = np.repeat(np.concatenate([powers[:, 1:].real, powers[:, 1:].imag], axis=1), 2, axis=0)
+    for arr in (w, M, r_t, r_s):
         arr.flags.writeable = False
-    return w, M, powers
+    return w, M, r_t, r_s
 
 
-def _prony_init(Yw, e_s, M, powers):
+def _prony_init(Yw, e_s, M, r_t, r_s):
     """Equation-error (frequency-domain Prony) estimate of ``(omega, sigma)``.
 
     On the window bins, ``Y[m] (1 + a1 u_m + a2 u_m**2) = alpha + beta u_m`` holds exactly
@@ -207,9 +213,12 @@ def _prony_init(Yw, e_s, M, powers):
     """
     # einsum rather than a BLAS matrix product: BLAS may sum a lone row (gemv) in another
     # order than a batch (gemm), and the KPIs of a trace must not depend on its batch.
-    t = np.einsum("nk,kp->np", Yw, powers)  # t[:, p + 1] = sum_j w_j^p Y_j
-    a2 = (Yw.real**2 + Yw.imag**2).astype(np.complex128)
-    s = np.einsum("nk,kp->np", a2, powers[:, 1:])  # s[:, k] = sum_j w_j^k |Y_j|^2
+    # Real einsums on the interleaved (Re, Im) parts: a few times faster than complex ones.
+    yr = Yw.view(np.float64)
+    t = np.einsum("nk,kp->np", yr, r_t)
+    t = t[:, :4] + 1j * t[:, 4:]  # t[:, p + 1] = sum_j w_j^p Y_j
+    s = np.einsum("nk,kp->np", yr * yr, r_s)
+    s = s[:, :3] + 1j * s[:, 3:]  # s[:, k] = sum_j w_j^k |Y_j|^2
 
     def h(p, q):  # <P v_p, P v_q>, P the projector onto the complement of span{1, w}
         k = q - p
@@ -248,10 +257,10 @@ def _fit_windows(Yw, start, m_peak, n_samples):
     """
     n, n_bins = Yw.shape
     e_s = np.exp((-2j * np.pi / n_samples) * start)
-    w, M, powers = _window_projector(n_bins, n_samples)
+    w, M, r_t, r_s = _window_projector(n_bins, n_samples)
     n_iter = _N_ITER
     if n_bins >= 3:
-        omega, sigma, ok = _prony_init(Yw, e_s, M, powers)
+        omega, sigma, ok = _prony_init(Yw, e_s, M, r_t, r_s)
     else:
         # Fewer than 3 bins (traces of < 6 samples) under-determine (omega, sigma): take
         # them from the FFT peak and fit only C, rather than decide on rounding noise.
