@@ -86,6 +86,25 @@ def test_dt_method_appendix_e_bias_grows_with_fm(model):
     assert errs[0] < 0.01 < errs[1]
 
 
+@pytest.mark.parametrize("rel", [0.2, 2.0, 10.0])
+def test_dt_exact_recovers_fm_on_exact_ct_data(model, rel):
+    # noise-free exact CT samples: the linearised exact discretisation, re-linearised,
+    # removes the Appendix E bias ("dt" is off by > 1 % at rel = 2, see above)
+    fm = float(viscosity_to_fm(model.params, model.params.mu * (1 + rel)))
+    x0 = common_x0(model)
+    est = estimate_fm(_ct_reference(model, fm, x0), model, FS, method="dt_exact", x0=x0)
+    assert est.method == "dt_exact" and est.trace.shape == (N,)
+    assert abs(est.fm / fm - 1) < 0.01
+    steady = est.trace[int(0.2 * N):int(0.6 * N)]
+    assert np.all(np.abs(steady / fm - 1) < 0.01)
+
+
+def test_dt_exact_needs_x0(model):
+    y = _ct_reference(model, -1e5, common_x0(model))
+    with pytest.raises(ValueError, match="method 'dt_exact' needs x0"):
+        estimate_fm(y, model, FS, method="dt_exact")
+
+
 # -- x0-free estimator --------------------------------------------------------
 @pytest.mark.parametrize("rel", [0.2, 1.0, 4.0, 10.0])
 def test_vp_recovers_fm_without_x0(model, rel):
@@ -101,6 +120,22 @@ def test_vp_recovers_fm_without_x0(model, rel):
     d_mu, mu = fm_to_viscosity(model.params, est.fm)
     assert est.d_mu == pytest.approx(float(d_mu)) and est.viscosity == pytest.approx(float(mu))
     assert est.d_mu == pytest.approx(rel * model.params.mu, rel=1e-3)
+
+
+def test_vp_trace_is_growing_window_fit(model):
+    fm = float(viscosity_to_fm(model.params, model.params.mu * 3))
+    y = _ct_reference(model, fm, common_x0(model))
+    est = estimate_fm(y, model, FS, method="vp")
+    assert est.trace.shape == (N,)
+    assert np.isnan(est.trace[0]) and est.trace[-1] == pytest.approx(est.fm, rel=1e-12)
+    ok = np.isfinite(est.trace)
+    assert ok[N // 4:].all() and np.all(np.abs(est.trace[ok] / fm - 1) < 1e-3)
+    # each window end is a fit on [0, k]: the value at k equals fitting y[:k + 1]
+    k = int(np.flatnonzero(ok)[0])
+    assert est.trace[k] == pytest.approx(estimate_fm(y[:k + 1], model, FS, method="vp").fm,
+                                         rel=1e-9)
+    const = estimate_fm(y, model, FS, method="vp", vp_trace_points=0)
+    assert const.fm == est.fm and np.all(const.trace == const.fm)
 
 
 def test_healthy_trace_gives_zero_within_ci(model):
@@ -154,7 +189,7 @@ def test_bad_inputs(model):
         estimate_fm(y, model, FS, method="ct")
     with pytest.raises(ValueError, match=r"x0 must have shape \(3,\)"):
         estimate_fm(y, model, FS, method="dt", x0=np.zeros(4))
-    with pytest.raises(ValueError, match="valid methods are auto, dt, ct, vp"):
+    with pytest.raises(ValueError, match="valid methods are auto, dt, dt_exact, ct, vp"):
         estimate_fm(y, model, FS, method="kalman")
     with pytest.raises(ValueError, match="sample_rate_hz"):
         estimate_fm(y, model, -1.0)

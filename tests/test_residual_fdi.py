@@ -5,7 +5,7 @@ import pytest
 from sklearn.utils.estimator_checks import parametrize_with_checks
 
 from inkdiag_core import InkChannelModel
-from inkdiag_core.fdi import BandEnergies, SecondModeKpis, fd_labels, make_fdi_pipeline
+from inkdiag_core.fdi import BandEnergies, RawTraceFeatures, SecondModeKpis, fd_labels, make_fdi_pipeline
 from inkdiag_core.kpis import extract_kpis
 from inkdiag_core.residual import MODIFIED_BANDS_HZ, ResidualFilter, design_residual_filter
 
@@ -71,7 +71,7 @@ def test_residual_loses_the_empty_channel_frequency_and_modified_keeps_it():
     assert np.median(extract_kpis(r, FS)[:, 1]) == pytest.approx(2124e3, rel=0.02)
 
 
-@parametrize_with_checks([SecondModeKpis(), BandEnergies(), ResidualFilter("original"), ResidualFilter("modified")])
+@parametrize_with_checks([SecondModeKpis(), BandEnergies(), RawTraceFeatures(), ResidualFilter("original"), ResidualFilter("modified")])
 def test_feature_transformers_follow_the_sklearn_contract(estimator, check):
     check(estimator)
 
@@ -131,3 +131,12 @@ def test_fnr_threshold_misses_at_most_the_target():
     p = np.linspace(0.01, 1.0, 1000)
     t = fnr_threshold(p, 0.005)
     assert np.mean(p < t) <= 0.005 and t <= 0.5
+
+
+def test_raw_trace_features_are_the_three_parts_side_by_side():
+    X = damped(300e3, 0.05, 6, seed=5) + 0.3 * damped(1.2e6, 0.02, 6, seed=6)
+    both = RawTraceFeatures().fit(X).transform(X)
+    parts = np.hstack([extract_kpis(X, FS), SecondModeKpis().fit(X).transform(X), BandEnergies().fit(X).transform(X)])
+    np.testing.assert_allclose(both, parts)
+    assert len(RawTraceFeatures().fit(X).get_feature_names_out()) == both.shape[1]
+    assert np.median(both[:, 7]) == pytest.approx(1.2e6, rel=0.02)  # the second mode is found

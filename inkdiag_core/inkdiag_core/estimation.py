@@ -2,7 +2,7 @@
 
 The fault is multiplicative: ``A_faulty = A + f_m B_f e3^T`` (eq. 12-13; with
 ``B_f = e3`` this changes entry (3, 3) only), ``f_m = -dR_n / I_n < 0`` for a
-drying nozzle (Appendix F). Three estimators:
+drying nozzle (Appendix F). Four estimators:
 
 ``"dt"`` -- the thesis's discrete-time approach (eq. 22-25). The healthy model is
     discretised exactly, ``A_H^DT = expm(A_H dt)``, and the fault is the
@@ -13,6 +13,19 @@ drying nozzle (Appendix F). Three estimators:
     (eq. 5) and ``f_hat = e^+ r`` (eq. 6) is solved by least squares over a
     sliding window (``.trace``) and over the steady-state part (``.fm``), so a
     zero crossing of ``x3`` never divides by zero. Needs ``x0``.
+``"dt_exact"`` -- ours: the "dt" regression with the exact discretisation
+    linearised in f_m instead of Appendix E's ``B_f x3(k) f_m dt``:
+    ``A_d(f) = expm((A_H + f e3 e3^T) dt) ~ A_d(f0) + (f - f0) D(f0)``, ``D`` the
+    Frechet derivative of expm in the direction ``e3 e3^T dt`` (block-matrix
+    expm, one per trace). The DT UIO is built on ``A_d(f0)`` and started from
+    ``x0``; ``r(k) = y(k+1) - C A_d(f0) x_hat(k)``, and the regressor is
+    ``e(k) = C D(f0) x_hat(k) + C A_d(f0) dx_hat(k)/df``: the second term (the
+    UIO state's sensitivity, one extra 3-state recursion) is needed because
+    the UIO decouples only the ``e3`` part of ``D``; without it the fixed-point
+    iteration converges only linearly (about x0.5 per pass). ``f - f0 = e^+ r``,
+    then ``n_iter`` (default 3) re-linearisations around the steady-state
+    estimate: Gauss-Newton, quadratic convergence, exact at the fixed point on
+    exact continuous-time data. Needs ``x0``.
 ``"ct"`` -- the thesis's continuous-time approach (eq. 26). The UIO runs in
     continuous time (``F = (I - HC) A``, ``T = F H``), driven by the sampled
     output held first-order (linear) between samples and integrated exactly;
@@ -56,7 +69,7 @@ __all__ = [
     "estimate_fm_batch",
 ]
 
-METHODS = ("auto", "dt", "ct", "vp")
+METHODS = ("auto", "dt", "dt_exact", "ct", "vp")
 MIN_SAMPLES = 16
 _T0 = 1e-6  # internal time unit, s
 
@@ -74,10 +87,11 @@ class FmEstimate:
         Steady-state estimate of f_m, 1/s (negative for a drying nozzle).
     trace : ndarray, shape (n_samples,)
         Per-sample estimate, 1/s; NaN where undefined (before the first full
-        window, or where the regressor is too small). Constant for ``"vp"``,
-        which fits the whole trace at once.
+        window, or where the regressor is too small). For ``"vp"``: the
+        growing-window fit on samples [0, k] (NaN for the first two periods),
+        ending at ``fm``; constant when ``vp_trace_points`` < 2.
     method : str
-        The method that ran ("dt", "ct" or "vp").
+        The method that ran ("dt", "dt_exact", "ct" or "vp").
     std : float
         Standard deviation of ``fm`` (1/s), NaN where the method gives none.
     ci : tuple of float
@@ -303,6 +317,90 @@ def _dt_batch(sc: _Scaled, Ys, Xs0, *, exact_T=True, prefilter_hz=None, sample_r
 
 
 # ---------------------------------------------------------------------------
+# ours: the DT approach with the exact discretisation, linearised in f_m
+# ---------------------------------------------------------------------------
+def _expm_frechet_batch(sc: _Scaled, f):
+    """``A_d(f) = expm((As + f G e3^T) dt)`` and its derivative ``D(f) = dA_d/df``
+    for scaled faults f (n,): the Frechet derivative ``L(M, G e3^T dt)`` of expm at
+    ``M = (As + f G e3^T) dt``, from the block identity
+    ``expm([[M, E], [0, M]]) = [[expm(M), L(M, E)], [0, expm(M)]]`` (stacked, one
+    6x6 expm per trace). Returns (n, 3, 3) each."""
+    n = f.shape[0]
+    M = np.broadcast_to(sc.A * sc.dt, (n, 3, 3)).copy()
+    M[:, :, 2] += (f * sc.dt)[:, None] * sc.G[None, :]
+    big = np.zeros((n, 6, 6))
+    big[:, :3, :3] = M
+    big[:, 3:, 3:] = M
+    big[:, :3, 5] = sc.G * sc.dt  # E = G e3^T dt
+    X = sla.expm(big)
+    return X[:, :3, :3], X[:, :3, 3:]
+
+
+def _dt_exact_pass(sc: _Scaled, Ys, Xs0, f0, *, exact_T, prefilter_hz, sample_rate_hz, W,
+                   steady_start, rel_floor, sensitivity=True):
+    """One pass of the linearised exact-DT regression around the scaled faults f0 (n,).
+
+    Model: ``x(k+1) = A_d(f) x(k) ~ A_d(f0) x(k) + (f - f0) D(f0) x(k)``. The DT UIO
+    (eq. 14-19) is built on ``A_d(f0)`` per trace and started from x0; then
+    ``r(k) = y(k+1) - C A_d(f0) x_hat(k)``, ``e(k) = C D(f0) x_hat(k)`` and
+    ``f - f0 = e^+ r`` (eq. 6), windowed as for "dt". Returns (fm, trace) scaled."""
+    n, N = Ys.shape
+    Ad, D = _expm_frechet_batch(sc, f0)
+    H = sc.G / float(sc.C @ sc.G)  # H = B_f (C B_f)^+, independent of A
+    IHC = np.eye(3) - np.outer(H, sc.C)
+    F = IHC @ Ad  # (n, 3, 3)
+    T = F @ H if exact_T else Ad @ H  # (n, 3)
+    dF = IHC @ D  # dF/df
+    dT = dF @ H if exact_T else D @ H
+    z = Xs0 - Ys[:, :1] * H[None, :]
+    sz = np.zeros_like(z)  # dz/df; x_hat(0) = x0 does not depend on f
+    Z = np.empty((N, n, 3))
+    SZ = np.empty((N, n, 3))
+    for k in range(N):  # vectorised over traces; 3x3 per step
+        Z[k] = z
+        SZ[k] = sz
+        yk = Ys[:, k:k + 1]
+        if sensitivity:
+            sz = np.einsum("nij,nj->ni", F, sz) + np.einsum("nij,nj->ni", dF, z) + yk * dT
+        z = np.einsum("nij,nj->ni", F, z) + yk * T
+    Xh = Z[:-1] + Ys[:, :-1].T[:, :, None] * H  # x_hat(k), (N-1, n, 3)
+    CAd = np.einsum("i,nij->nj", sc.C, Ad)
+    CD = np.einsum("i,nij->nj", sc.C, D)
+    r = Ys[:, 1:] - np.einsum("knj,nj->nk", Xh, CAd)
+    e = np.einsum("knj,nj->nk", Xh, CD)
+    if sensitivity:  # + C A_d(f0) dx_hat/df: the UIO does not decouple D's O(dt^2) part
+        e = e + np.einsum("knj,nj->nk", SZ[:-1], CAd)
+    if prefilter_hz:
+        a = float(np.exp(-2 * np.pi * prefilter_hz / sample_rate_hz))
+        r = scipy.signal.lfilter([1 - a], [1, -a], r, axis=1)
+        e = scipy.signal.lfilter([1 - a], [1, -a], e, axis=1)
+    trace, dfm = _windowed_regression(e, r, W, steady_start, rel_floor)
+    full = np.full((n, N), np.nan)
+    full[:, 1:] = f0[:, None] + trace
+    return f0 + dfm, full
+
+
+def _dt_exact_batch(sc: _Scaled, Ys, Xs0, *, exact_T=True, prefilter_hz=None, sample_rate_hz,
+                    window=None, steady_frac=0.2, rel_floor=1e-12, n_iter=3, sensitivity=True,
+                    bounds_s=(-np.inf, np.inf)):
+    """"dt_exact": a pass around f = 0, then ``n_iter`` re-linearisations around the
+    current steady-state estimate (removes the O(f_m^2) bias of the first pass). Each
+    linearisation point is clipped to ``bounds_s`` (scaled f), so a wild step on noisy or
+    mismatched data does not move the next expm far outside the model's range."""
+    n, N = Ys.shape
+    W = window or _period_samples(sc.A, sc.dt)
+    f = np.zeros(n)
+    for _ in range(int(n_iter) + 1):
+        f_new, trace = _dt_exact_pass(sc, Ys, Xs0, f, exact_T=exact_T,
+                                      prefilter_hz=prefilter_hz, sample_rate_hz=sample_rate_hz,
+                                      W=W, steady_start=int(steady_frac * N),
+                                      rel_floor=rel_floor, sensitivity=sensitivity)
+        # a NaN (no regressor energy) keeps the last f
+        f = np.clip(np.where(np.isfinite(f_new), f_new, f), *bounds_s)
+    return f_new, trace
+
+
+# ---------------------------------------------------------------------------
 # the thesis's CT approach (eq. 26)
 # ---------------------------------------------------------------------------
 def _cubic_hold(M, Nv, dt):
@@ -432,7 +530,7 @@ def _vp_basis(sc: _Scaled, fs, N, *, deriv=False):
     return B, dB, lam, V, Vi
 
 
-@functools.lru_cache(maxsize=8)
+@functools.lru_cache(maxsize=64)
 def _vp_grid(key, N, lo, hi, n_grid):
     sc = _scaled_cached(key)
     grid = np.linspace(lo, hi, n_grid) * _T0
@@ -509,6 +607,33 @@ def _vp_batch(sc: _Scaled, key, Ys, *, fm_bounds, n_grid=160, max_iter=8, tol=1e
     return f / _T0, std / _T0, xs0, theta[:, 3]
 
 
+def _vp_growing_trace(sc: _Scaled, key, Ys, fm_full, *, fm_bounds, n_grid, points):
+    """Per-sample "vp" estimate: the fit on samples [0, k] for ``points`` window ends k
+    (geometrically spaced from two periods of the healthy mode to the full trace),
+    linearly interpolated in k; NaN before the first window end. The last point is the
+    full-trace fit, i.e. ``trace[-1] == fm``. Like a recursive estimator's trace it shows
+    how the estimate settles as samples arrive (it is not a sliding-window estimate:
+    the fault is piecewise constant over one ~50 us trace, and the ring-down's shrinking
+    amplitude would make late sliding windows uninformative)."""
+    n, N = Ys.shape
+    k_first = min(N, max(MIN_SAMPLES, 2 * _period_samples(sc.A, sc.dt)))
+    ends = np.unique(np.round(np.geomspace(k_first, N, max(int(points), 2))).astype(int))
+    vals = np.empty((n, ends.size))
+    for j, k in enumerate(ends[:-1]):
+        vals[:, j] = _vp_batch(sc, key, Ys[:, :k], fm_bounds=fm_bounds, n_grid=n_grid)[0]
+    vals[:, -1] = fm_full
+    trace = np.full((n, N), np.nan)
+    pos = ends - 1  # sample index of each window's last sample
+    idx = np.arange(pos[0], N)
+    seg = np.clip(np.searchsorted(pos, idx, side="right") - 1, 0, max(pos.size - 2, 0))
+    if pos.size == 1:
+        trace[:, idx] = vals[:, :1]
+        return trace
+    w = (idx - pos[seg]) / (pos[seg + 1] - pos[seg])
+    trace[:, idx] = vals[:, seg] * (1 - w) + vals[:, seg + 1] * w
+    return trace
+
+
 # ---------------------------------------------------------------------------
 # public API
 # ---------------------------------------------------------------------------
@@ -519,7 +644,7 @@ def _default_bounds(A, B_f):
 
 def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, exact_T=True,
                       prefilter_hz=None, window=None, steady_frac=0.2, fm_bounds=None,
-                      n_grid=160):
+                      n_grid=160, n_iter=3, sensitivity=True, vp_trace_points=12):
     """Estimate f_m for many traces at once.
 
     Parameters
@@ -529,9 +654,9 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, exact
     model : InkChannelModel or tuple (A, C, B_f)
         Healthy model (eq. 12), shapes (3, 3), (1, 3), (3, 1) if given as matrices.
     sample_rate_hz : float
-    method : {"auto", "dt", "ct", "vp"}
+    method : {"auto", "dt", "dt_exact", "ct", "vp"}
     x0 : array_like, shape (3,) or (n_traces, 3), optional
-        Initial state (SI) for "dt" and "ct" (required there); ignored by "vp".
+        Initial state (SI) for "dt", "dt_exact" and "ct" (required there); ignored by "vp".
     exact_T : bool
         UIO injection ``T = (I - HC) A H`` (eq. 19, default) or ``T = A H`` (eq. 20).
     prefilter_hz : float, optional
@@ -543,9 +668,19 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, exact
     steady_frac : float
         ``.fm`` for "dt"/"ct" is the regression over samples ``>= steady_frac * n``.
     fm_bounds : (float, float), optional
-        Search interval of "vp" in 1/s (default ``(-15, 0.9) * |A33|``).
+        Search interval of "vp" in 1/s (default ``(-15, 0.9) * |A33|``); "dt_exact"
+        clips its linearisation points to it.
     n_grid : int
         Grid points of the "vp" search before Gauss-Newton.
+    n_iter : int
+        Re-linearisations of "dt_exact" after its first pass around f = 0.
+    sensitivity : bool
+        "dt_exact" regressor includes the UIO state's sensitivity to f (default);
+        False gives the bare ``C D x_hat`` regressor (slower, linear convergence).
+    vp_trace_points : int
+        "vp" ``.trace``: growing-window fits on samples [0, k] at this many window
+        ends, interpolated (default 12; costs about that many extra fits). 0 or 1:
+        ``.trace`` is ``.fm`` repeated (the cheap path when only ``.fm`` is used).
 
     Returns
     -------
@@ -559,23 +694,32 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, exact
     n, N = Y.shape
     if method == "auto":
         method = "vp"
-    if method in ("dt", "ct") and x0 is None:
+    if method in ("dt", "dt_exact", "ct") and x0 is None:
         raise ValueError(
             f"method {method!r} needs x0 (the initial state, shape (3,), SI): the thesis's "
             "UIO is not asymptotically stable; use method='vp' when x0 is unknown"
         )
     X0 = _check_x0(x0, n) if x0 is not None else None
+    bounds = _default_bounds(A, B_f) if fm_bounds is None else tuple(map(float, fm_bounds))
+    if not bounds[0] < bounds[1]:
+        raise ValueError(f"fm_bounds must be (low, high) with low < high, got {fm_bounds!r}")
     sc = _scaled(A, C, B_f, fs)
     c = np.sqrt(np.mean(Y * Y, axis=1))
     c = np.where(c > 0, c, 1.0)
     Ys = Y / c[:, None]
     std = np.full(n, np.nan)
     offset = np.zeros(n)
-    if method in ("dt", "ct"):
+    if method in ("dt", "dt_exact", "ct"):
         Xs0 = sc.to_scaled_x(X0, c)
         if method == "dt":
             fm_s, trace_s = _dt_batch(sc, Ys, Xs0, exact_T=exact_T, prefilter_hz=prefilter_hz,
                                       sample_rate_hz=fs, window=window, steady_frac=steady_frac)
+        elif method == "dt_exact":
+            fm_s, trace_s = _dt_exact_batch(sc, Ys, Xs0, exact_T=exact_T,
+                                            prefilter_hz=prefilter_hz, sample_rate_hz=fs,
+                                            window=window, steady_frac=steady_frac,
+                                            n_iter=n_iter, sensitivity=sensitivity,
+                                            bounds_s=(bounds[0] * _T0, bounds[1] * _T0))
         else:
             fm_s, trace_s = _ct_batch(sc, Ys, Xs0, exact_T=exact_T,
                                       prefilter_hz=1e6 if prefilter_hz is None else prefilter_hz,
@@ -585,11 +729,12 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, exact
         x0_out = X0
     else:
         key = (tuple(A.ravel()), tuple(C.ravel()), tuple(B_f.ravel()), float(fs))
-        bounds = _default_bounds(A, B_f) if fm_bounds is None else tuple(map(float, fm_bounds))
-        if not bounds[0] < bounds[1]:
-            raise ValueError(f"fm_bounds must be (low, high) with low < high, got {fm_bounds!r}")
         fm, std, xs0, off_s = _vp_batch(sc, key, Ys, fm_bounds=bounds, n_grid=n_grid)
-        trace = np.repeat(fm[:, None], N, axis=1)
+        if vp_trace_points and vp_trace_points > 1:
+            trace = _vp_growing_trace(sc, key, Ys, fm, fm_bounds=bounds, n_grid=n_grid,
+                                      points=int(vp_trace_points))
+        else:
+            trace = np.repeat(fm[:, None], N, axis=1)
         x0_out = sc.from_scaled_x(xs0, c)
         offset = off_s * c
     ci = np.stack([fm - 1.959964 * std, fm + 1.959964 * std], axis=1)
@@ -611,8 +756,9 @@ def estimate_fm(y, model, sample_rate_hz, *, method="auto", x0=None, **kwargs) -
         at least 16 finite samples.
     model : InkChannelModel or tuple (A, C, B_f)
     sample_rate_hz : float
-    method : {"auto", "dt", "ct", "vp"}
-        "dt"/"ct": the thesis's approaches (need ``x0``); "vp": variable projection
+    method : {"auto", "dt", "dt_exact", "ct", "vp"}
+        "dt"/"ct": the thesis's approaches (need ``x0``); "dt_exact": "dt" with the
+        exact discretisation linearised in f_m (needs ``x0``); "vp": variable projection
         (no ``x0``, gives ``std`` and ``ci``); "auto": "vp".
     x0 : array_like, shape (3,), optional
         Initial state ``[V_r + V_n, V_r', V_n']`` (m^3, m^3/s, m^3/s) at t = 0.

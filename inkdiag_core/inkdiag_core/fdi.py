@@ -35,7 +35,7 @@ from sklearn.pipeline import FeatureUnion, Pipeline
 from sklearn.preprocessing import StandardScaler
 from sklearn.utils.validation import check_is_fitted, validate_data
 
-from .kpis import MIN_SAMPLES, KpiExtractor, extract_kpis, reconstruct
+from .kpis import KPI_NAMES, MIN_SAMPLES, KpiExtractor, extract_kpis, reconstruct
 from .residual import ResidualFilter
 
 __all__ = [
@@ -45,6 +45,7 @@ __all__ = [
     "fnr_threshold",
     "train_default_model",
     "BandEnergies",
+    "RawTraceFeatures",
     "SecondModeKpis",
     "fd_labels",
     "make_fdi_pipeline",
@@ -62,6 +63,55 @@ def fd_labels(labels) -> np.ndarray:
     """Fault-detection targets: 0 for the healthy classes, 1 for every fault (int, (n,))."""
     values = np.array([getattr(c, "value", c) for c in np.asarray(labels, dtype=object)], dtype=object)
     return (~np.isin(values, HEALTHY_VALUES)).astype(int)
+
+
+def _second_mode(X, k1, fs):
+    """Second-mode KPIs (n, 5) of traces ``X`` whose dominant-mode KPIs are ``k1``."""
+    rest = X - reconstruct(k1, X.shape[1], fs)
+    k2 = extract_kpis(rest, fs)
+    eps = 1e-30
+    return np.column_stack([
+        k2[:, 1], k2[:, 2], k2[:, 3] / (k1[:, 3] + eps), k2[:, 4], k2[:, 5] / (k1[:, 5] + eps),
+    ])
+
+
+def _band_energies(X, fs, band_edges_hz):
+    """Log10 fraction of each trace's AC energy per band, (n, n_bands)."""
+    P = np.abs(scipy.fft.rfft(X - X.mean(axis=1, keepdims=True), axis=1)) ** 2
+    f = np.fft.rfftfreq(X.shape[1], 1.0 / fs)
+    idx = np.searchsorted(f, np.asarray(band_edges_hz, float))
+    csum = np.concatenate([np.zeros((P.shape[0], 1)), np.cumsum(P, axis=1)], axis=1)
+    band = csum[:, idx[1:]] - csum[:, idx[:-1]]
+    return np.log10(band / (csum[:, -1:] + 1e-300) + 1e-12)
+
+
+class RawTraceFeatures(TransformerMixin, BaseEstimator):
+    """KPI_Y, second-mode KPIs and band energies of the raw trace, sharing one KPI fit.
+
+    Output (n, 7 + 5 + n_bands): :data:`KPI_NAMES`, then the columns of
+    :class:`SecondModeKpis`, then those of :class:`BandEnergies`.
+    """
+
+    def __init__(self, sample_rate_hz=10e6, band_edges_hz=BAND_EDGES_HZ):
+        self.sample_rate_hz = sample_rate_hz
+        self.band_edges_hz = band_edges_hz
+
+    def fit(self, X, y=None):
+        validate_data(self, X, dtype=[np.float64, np.float32], ensure_min_features=MIN_SAMPLES)
+        BandEnergies(self.sample_rate_hz, self.band_edges_hz).fit(X)  # validates the edges
+        return self
+
+    def transform(self, X):
+        check_is_fitted(self, "n_features_in_")
+        X = validate_data(self, X, dtype=[np.float64, np.float32], reset=False)
+        fs = float(self.sample_rate_hz)
+        k1 = extract_kpis(X, fs)
+        return np.hstack([k1, _second_mode(X, k1, fs), _band_energies(X, fs, self.band_edges_hz)])
+
+    def get_feature_names_out(self, input_features=None):
+        return np.concatenate([np.array(KPI_NAMES, dtype=object),
+                               SecondModeKpis().get_feature_names_out(),
+                               BandEnergies(band_edges_hz=self.band_edges_hz).get_feature_names_out()])
 
 
 class SecondModeKpis(TransformerMixin, BaseEstimator):
@@ -87,13 +137,7 @@ class SecondModeKpis(TransformerMixin, BaseEstimator):
         check_is_fitted(self, "n_features_in_")
         X = validate_data(self, X, dtype=[np.float64, np.float32], reset=False)
         fs = float(self.sample_rate_hz)
-        k1 = extract_kpis(X, fs)
-        rest = X - reconstruct(k1, X.shape[1], fs)
-        k2 = extract_kpis(rest, fs)
-        eps = 1e-30
-        return np.column_stack([
-            k2[:, 1], k2[:, 2], k2[:, 3] / (k1[:, 3] + eps), k2[:, 4], k2[:, 5] / (k1[:, 5] + eps),
-        ])
+        return _second_mode(X, extract_kpis(X, fs), fs)
 
     def get_feature_names_out(self, input_features=None):
         return np.array(["mode2_frequency_hz", "mode2_damping_ratio", "mode2_amplitude_ratio",
@@ -121,15 +165,7 @@ class BandEnergies(TransformerMixin, BaseEstimator):
     def transform(self, X):
         check_is_fitted(self, "n_features_in_")
         X = validate_data(self, X, dtype=[np.float64, np.float32], reset=False)
-        n_s = X.shape[1]
-        P = np.abs(scipy.fft.rfft(X - X.mean(axis=1, keepdims=True), axis=1)) ** 2
-        f = np.fft.rfftfreq(n_s, 1.0 / float(self.sample_rate_hz))
-        edges = np.asarray(self.band_edges_hz, float)
-        idx = np.searchsorted(f, edges)
-        csum = np.concatenate([np.zeros((P.shape[0], 1)), np.cumsum(P, axis=1)], axis=1)
-        band = csum[:, idx[1:]] - csum[:, idx[:-1]]
-        total = csum[:, -1:] + 1e-300
-        return np.log10(band / total + 1e-12)
+        return _band_energies(X, float(self.sample_rate_hz), self.band_edges_hz)
 
     def get_feature_names_out(self, input_features=None):
         e = np.asarray(self.band_edges_hz) / 1e3
@@ -153,10 +189,8 @@ def _features(features: str, fs: float):
         return FeatureUnion([kpi_y, residual("modified", "kpi_r_modified")])
     if features == "rich":
         return FeatureUnion([
-            kpi_y,
+            ("raw", RawTraceFeatures(sample_rate_hz=fs)),
             residual("modified", "kpi_r_modified"),
-            ("mode2", SecondModeKpis(sample_rate_hz=fs)),
-            ("bands", BandEnergies(sample_rate_hz=fs)),
         ])
     raise ValueError(f"features must be one of {FEATURE_SETS}, got {features!r}")
 

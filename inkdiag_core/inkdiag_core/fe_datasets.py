@@ -8,8 +8,11 @@
   integrated with ``scipy.integrate.solve_ivp`` RK45 at ``rtol=1e-10``
   (``kind="ct"``), from one common initial state (as in 4.4.1) or from random
   ones, with optional white Gaussian noise at a stated SNR.
-* :func:`physics_set` -- a nonlinear physics-based set (documented below),
-  random initial states, sensor noise.
+* :func:`nonlinear_set` -- the physics-based set of 4.5 from the simulator's
+  nonlinear variant :func:`inkdiag_core.simulate_nonlinear` (dried classes, the
+  simulator's drive, spreads and default sensor noise), converted to ``y = C x``.
+* :func:`physics_set` -- the earlier stand-alone fallback (4-state model with a
+  quadratic nozzle loss), kept for comparison; superseded by :func:`nonlinear_set`.
 
 Both generators are independent of the estimators' code paths (no ``expm``
 of the faulty matrix, no UIO).
@@ -31,6 +34,7 @@ __all__ = [
     "random_x0",
     "synthetic_set",
     "physics_set",
+    "nonlinear_set",
     "add_noise",
 ]
 
@@ -257,3 +261,40 @@ def physics_set(model: InkChannelModel | None = None, *, n_per_class=30, snr_db=
     return FeDataset(y=add_noise(y, snr_db, rng), y_clean=y, fm=fm, mu_nozzle=mu,
                      level=level, x0=X0, sample_rate_hz=float(sample_rate_hz),
                      snr_db=snr_db, kind="physics")
+
+
+def nonlinear_set(n_per_class=100, *, seed=0, sample_rate_hz=10e6, n_samples=512):
+    """Physics-based dried-nozzle traces from :func:`inkdiag_core.simulate_nonlinear`.
+
+    Classes slightly / intermediately / deeply dried (``level`` 0, 1, 2), each with the
+    simulator's severity ranges, per-trace spreads (temperature, geometry, piezo,
+    drive, gain, offset), its drive waveform (so the initial state at the first sensed
+    sample is whatever the pulse left, different per trace) and its default sensor
+    noise and 12-bit ADC. The traces (V) are converted to ``y = C x`` (m^3/s) with each
+    trace's true sense gain and offset (a calibrated front end; the thesis's
+    estimators have no offset state). ``y_clean`` is the same draw without noise and
+    ADC (same seed: the noise is drawn last). Truth: ``fm`` = the simulator's linear-
+    model Appendix F fault ``-alpha (mu_nozzle - mu)``; ``x0`` = the true nonlinear
+    state at the first sample. ``snr_db`` is the median per-trace SNR.
+    """
+    from .faults import FaultClass
+    from .nonlinear import simulate_nonlinear
+    from .simulator import Spreads
+
+    classes = (FaultClass.SLIGHTLY_DRIED, FaultClass.INTERMEDIATELY_DRIED,
+               FaultClass.DEEPLY_DRIED)
+    counts = {c: int(n_per_class) for c in classes}
+    kw = dict(sample_rate_hz=sample_rate_hz, n_samples=n_samples, seed=seed)
+    r = simulate_nonlinear(counts, **kw)
+    rc = simulate_nonlinear(counts, spreads=Spreads(snr_db=np.inf, adc_bits=None), **kw)
+    if not np.array_equal(r.fm, rc.fm):  # pragma: no cover - defensive
+        raise RuntimeError("clean and noisy nonlinear draws differ")
+
+    def to_si(res):
+        return (res.traces.astype(float) - res.sensor_offset[:, None]) / res.sensor_gain[:, None]
+
+    level = np.array([classes.index(c) for c in r.labels])
+    return FeDataset(y=to_si(r), y_clean=to_si(rc), fm=np.asarray(r.fm, float),
+                     mu_nozzle=np.asarray(r.mu_nozzle, float), level=level,
+                     x0=np.asarray(r.x0, float), sample_rate_hz=float(sample_rate_hz),
+                     snr_db=float(np.median(r.snr_db)), kind="nonlinear")

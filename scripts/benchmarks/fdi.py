@@ -1,0 +1,68 @@
+"""FDI pipeline throughput against the floors of its stages, measured in one run.
+
+    scripts/bench fdi [--n 20000] [--seed 0]
+
+Times, on the same batch of simulated traces (all 12 classes): a bare
+``scipy.fft.rfft`` pass (floor of any spectral feature), ``extract_kpis``, a
+Random Forest's ``predict_proba`` on 7 ready-made features (floor of the
+classifier), and whole fitted pipelines (raw traces -> label probabilities)
+for KPI_Y and the rich feature set. Prints traces/s and ratios; run it on one
+core (``scripts/bench`` sets the thread variables).
+"""
+
+import argparse
+import time
+
+import numpy as np
+import scipy.fft
+
+from inkdiag_core import FaultClass, extract_kpis, make_fdi_pipeline, simulate
+
+
+def best_of(fn, repeats=3):
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=20000, help="traces in the timed batch")
+    ap.add_argument("--seed", type=int, default=0)
+    ns = ap.parse_args()
+    per = max(ns.n // 12, 1)
+    batch = simulate({c: per for c in FaultClass}, seed=ns.seed)
+    X = batch.traces
+    train = simulate({c: 200 for c in FaultClass}, seed=ns.seed + 1)
+    n = X.shape[0]
+    print(f"batch: {n} traces x {X.shape[1]} samples (float32, 12 classes); training set "
+          f"{len(train)} traces; best of 3")
+    rows = {}
+    rows["scipy.fft.rfft (floor)"] = best_of(lambda: scipy.fft.rfft(X, axis=1))
+    rows["extract_kpis"] = best_of(lambda: extract_kpis(X, 10e6))
+    kpi_pipe = make_fdi_pipeline("rf", "kpi_y").fit(train.traces, train.label_values())
+    feats = kpi_pipe.named_steps["features"].transform(X)
+    clf = kpi_pipe.named_steps["classifier"]
+    rows["RF predict_proba on 7 features (floor)"] = best_of(lambda: clf.predict_proba(feats))
+    rows["pipeline rf/kpi_y (traces -> proba)"] = best_of(lambda: kpi_pipe.predict_proba(X))
+    rich = make_fdi_pipeline("rf", "rich").fit(train.traces, train.label_values())
+    rows["pipeline rf/rich (traces -> proba)"] = best_of(lambda: rich.predict_proba(X))
+    knn = make_fdi_pipeline("knn", "kpi_y").fit(train.traces, train.label_values())
+    rows["pipeline knn/kpi_y (traces -> proba)"] = best_of(lambda: knn.predict_proba(X))
+    width = max(len(k) for k in rows)
+    for name, t in rows.items():
+        print(f"{name:<{width}} : {n / t:>12,.0f} traces/s  ({1e3 * t:8.1f} ms)")
+    fft = rows["scipy.fft.rfft (floor)"]
+    for name in ("extract_kpis", "pipeline rf/kpi_y (traces -> proba)", "pipeline rf/rich (traces -> proba)"):
+        print(f"ratio {name} / rfft: {fft / rows[name]:.3f}")
+    print(f"ratio pipeline rf/kpi_y / RF-on-features floor: "
+          f"{rows['RF predict_proba on 7 features (floor)'] / rows['pipeline rf/kpi_y (traces -> proba)']:.3f}")
+    acc = np.mean(rich.predict(X) == batch.label_values())
+    print(f"accuracy of rf/rich on the timed batch: {100 * acc:.1f}% (trained on {len(train)} traces)")
+
+
+if __name__ == "__main__":
+    main()
