@@ -76,13 +76,17 @@ def make_frames(n_nozzles, n_frames, seed):
                              seed=seed + i).traces for i in range(n_frames)]
 
 
-def replay(node, executor, pub, msgs, answered, seconds, window, lost_after_s=2.0):
-    """Closed-loop replay; returns (published, answered ids, latencies s, lost ids, elapsed s)."""
+def replay(node, executor, pub, msgs, answered, seconds, window, lost_after_s=2.0, first_id=0):
+    """Closed-loop replay; returns (published, latencies s, lost ids, elapsed s).
+
+    Frame ids start at ``first_id``: never reuse the ids of an earlier replay,
+    or its late answers would be taken for this one's.
+    """
     from msg_defs import restamp_traces
 
     in_flight = {}  # frame_id -> publish time
     lat, lost = [], []
-    fid = 0
+    fid = first_id
     t0 = time.perf_counter()
     end = time.monotonic() + seconds
     while time.monotonic() < end or in_flight:
@@ -104,7 +108,7 @@ def replay(node, executor, pub, msgs, answered, seconds, window, lost_after_s=2.
             lost.append(in_flight.pop(k))
         if time.monotonic() > end + 10:
             break
-    return fid, np.array(lat), lost, time.perf_counter() - t0
+    return fid - first_id, np.array(lat), lost, time.perf_counter() - t0
 
 
 def wait_for_match(executor, pub, sub_topic_count, timeout=30.0):
@@ -170,6 +174,7 @@ def main() -> int:
                              lambda m: diag.update(diagnostics_values(m)), DIAGNOSTICS_QOS)
     env = dict(os.environ)
     results = {}
+    next_id = 0
     phases = [
         ("ceiling: plain subscriber", [sys.executable, __file__, "--role", "sink"],
          lambda: node.count_publishers(ACK) > 0),
@@ -186,14 +191,17 @@ def main() -> int:
                     print(f"{name}: the second process never matched", file=sys.stderr)
                     return 1
                 # warm-up: one frame through, unmeasured
-                replay(node, ex, pub, msgs, answered, 0.5, 1)
+                warm, *_ = replay(node, ex, pub, msgs, answered, 0.5, 1, first_id=next_id)
+                next_id += warm
                 answered.clear()
-                sent, lat, lost, el = replay(node, ex, pub, msgs, answered, ns.seconds, ns.window)
+                sent, lat, lost, el = replay(node, ex, pub, msgs, answered, ns.seconds, ns.window,
+                                             first_id=next_id)
+                next_id += sent
                 ex.spin_once(timeout_sec=0.6)
                 t_end = time.monotonic() + 1.5
                 while time.monotonic() < t_end:
                     ex.spin_once(timeout_sec=0.05)
-                results[name] = (sent, lat, lost, el, dict(next(iter(diag.values()), {})))
+                results[name] = (sent, lat, lost, el, dict(next(iter(diag.values()), {})), warm)
             finally:
                 proc.send_signal(2)
                 try:
@@ -206,7 +214,7 @@ def main() -> int:
         rclpy.try_shutdown()
 
     rates = {}
-    for name, (sent, lat, lost, el, d) in results.items():
+    for name, (sent, lat, lost, el, d, warm) in results.items():
         done = lat.size
         if not done:
             print(f"{name:<26} nothing answered: published {sent}, lost {len(lost)}")
@@ -219,7 +227,7 @@ def main() -> int:
         if d:
             print(f"{'':<26} fdi's own counters: received {d.get('frames_received')}, labelled "
                   f"{d.get('frames_labelled')}, malformed {d.get('frames_malformed')}, "
-                  f"failed {d.get('frames_failed')} (includes the warm-up frames)")
+                  f"failed {d.get('frames_failed')} (of which {warm} warm-up frames)")
     c, f = rates.get("ceiling: plain subscriber"), rates.get("fdi node")
     if c and f and results["fdi node"][1].size:
         print(f"fdi / ceiling = {f / c:.2f}x (aim >= 0.3x); fdi p99 {'<=' if np.percentile(results['fdi node'][1], 99) <= 0.1 else '>'} 100 ms")
