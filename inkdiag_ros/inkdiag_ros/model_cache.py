@@ -38,6 +38,6 @@ def ensure_default_model(path=DEFAULT_MODEL, *, progress=True, log=print):
         except ModelFileError as exc:
             log(f"inkdiag: cached model unusable ({exc}); retraining")
     else:
-        log(f"inkdiag: no FDI model at {path}; training the default one (once, about a minute)")
+        log(f"inkdiag: no FDI model at {path}; training the default one (once, a few seconds)")
     train_default_model(path, progress=progress)
     return path
