@@ -644,7 +644,7 @@ def _default_bounds(A, B_f):
 
 def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, exact_T=True,
                       prefilter_hz=None, window=None, steady_frac=0.2, fm_bounds=None,
-                      n_grid=160, n_iter=3, sensitivity=True, vp_trace_points=12):
+                      n_grid=160, n_iter=3, sensitivity=True, vp_trace_points=0):
     """Estimate f_m for many traces at once.
 
     Parameters
@@ -679,8 +679,9 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, exact
         False gives the bare ``C D x_hat`` regressor (slower, linear convergence).
     vp_trace_points : int
         "vp" ``.trace``: growing-window fits on samples [0, k] at this many window
-        ends, interpolated (default 12; costs about that many extra fits). 0 or 1:
-        ``.trace`` is ``.fm`` repeated (the cheap path when only ``.fm`` is used).
+        ends, interpolated (costs about that many extra fits). 0 or 1 (the
+        default of this batch path, which nodes call at printer scale): ``.trace``
+        is ``.fm`` repeated. :func:`estimate_fm` defaults to 12.
 
     Returns
     -------
@@ -774,4 +775,5 @@ def estimate_fm(y, model, sample_rate_hz, *, method="auto", x0=None, **kwargs) -
         x0 = np.asarray(x0, dtype=float)
         if x0.shape != (3,):
             raise ValueError(f"x0 must have shape (3,), got {x0.shape}")
+    kwargs.setdefault("vp_trace_points", 12)  # one trace: a per-sample estimate is affordable
     return estimate_fm_batch(Y, model, sample_rate_hz, method=method, x0=x0, **kwargs)[0]
