@@ -88,3 +88,11 @@ def test_screening_flags_each_kind_of_bad_row():
 def test_screening_rejects_wrong_shape():
     with pytest.raises(ValueError, match="2-D"):
         screen_traces(np.zeros(5))
+
+
+def test_quantised_simulated_traces_are_not_flagged_clipped():
+    from inkdiag_core import FaultClass, simulate
+
+    sim = simulate({c: 300 for c in FaultClass}, seed=0)  # 12-bit ADC, peaks repeat codes
+    valid, reasons = screen_traces(sim.traces)
+    assert valid.all(), sorted(set(reasons[~valid]))

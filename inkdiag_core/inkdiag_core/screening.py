@@ -16,7 +16,7 @@ __all__ = ["INVALID_REASONS", "screen_traces"]
 INVALID_REASONS = ("non_finite", "flat", "clipped")
 
 
-def screen_traces(traces, *, flat_tol: float = 1e-6, clip_run: int = 3):
+def screen_traces(traces, *, flat_tol: float = 1e-6, clip_run: int = 5):
     """Find the rows of a frame that cannot be classified, and why.
 
     Parameters
@@ -28,7 +28,9 @@ def screen_traces(traces, *, flat_tol: float = 1e-6, clip_run: int = 3):
     clip_run : int
         A row with ``clip_run`` or more consecutive samples exactly at its
         maximum (or minimum) value, sitting on a plateau, is *clipped*: an ADC
-        saturates there, a damped oscillation does not.
+        saturates there, a damped oscillation does not. 5 samples (0.5 us at
+        10 MHz): with 3, 12-bit quantisation flagged 0.2 % of simulated
+        healthy and faulty traces whose flat peak repeats one ADC code.
 
     Returns
     -------

@@ -128,7 +128,12 @@ def run(duration_s: float, *, namespace: str, model_path: str | None, args=None,
         next_print = t0 + 1.0
         ctx = executor.context
         while ctx.ok() and (duration_s <= 0 or time.monotonic() - t0 < duration_s):
-            executor.spin_once(timeout_sec=0.05)
+            try:
+                executor.spin_once(timeout_sec=0.05)
+            except Exception:
+                if ctx.ok():
+                    raise
+                break  # SIGINT/SIGTERM shut the context down between the check and the wait
             if time.monotonic() >= next_print:
                 out(monitor.summary(time.monotonic() - t0))
                 next_print += 1.0
