@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import sys
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+
+from ._spin import spin_node
 
 from inkdiag_core import ModelFileError, label_traces, load_model
 from msg_defs import (
@@ -130,18 +130,7 @@ class FdiNode(Node):
 
 
 def main(args=None) -> int:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = FdiNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return spin_node(FdiNode, args)
 
 
 if __name__ == "__main__":

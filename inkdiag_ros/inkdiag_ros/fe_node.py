@@ -16,9 +16,9 @@ from __future__ import annotations
 
 import sys
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+
+from ._spin import spin_node
 
 from inkdiag_core import FmTrendBank, InkChannelModel, estimate_fm_batch, screen_traces
 from msg_defs import (
@@ -111,18 +111,7 @@ class FeNode(Node):
 
 
 def main(args=None) -> int:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = FeNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return spin_node(FeNode, args)
 
 
 if __name__ == "__main__":

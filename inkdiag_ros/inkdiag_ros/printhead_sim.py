@@ -14,9 +14,9 @@ from __future__ import annotations
 import sys
 
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+
+from ._spin import spin_node
 
 from msg_defs import (
     RELIABLE_QOS,
@@ -104,18 +104,7 @@ class PrintheadSim(Node):
 
 
 def main(args=None) -> int:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = PrintheadSim()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return spin_node(PrintheadSim, args)
 
 
 if __name__ == "__main__":

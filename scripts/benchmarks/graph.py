@@ -23,7 +23,6 @@ and p50/p99 latency.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import subprocess
 import sys
