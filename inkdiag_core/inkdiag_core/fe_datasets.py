@@ -11,8 +11,6 @@
 * :func:`nonlinear_set` -- the physics-based set of 4.5 from the simulator's
   nonlinear variant :func:`inkdiag_core.simulate_nonlinear` (dried classes, the
   simulator's drive, spreads and default sensor noise), converted to ``y = C x``.
-* :func:`physics_set` -- the earlier stand-alone fallback (4-state model with a
-  quadratic nozzle loss), kept for comparison; superseded by :func:`nonlinear_set`.
 
 Both generators are independent of the estimators' code paths (no ``expm``
 of the faulty matrix, no UIO).
@@ -33,7 +31,6 @@ __all__ = [
     "fault_levels",
     "random_x0",
     "synthetic_set",
-    "physics_set",
     "nonlinear_set",
     "add_noise",
 ]
@@ -204,63 +201,6 @@ def synthetic_set(model: InkChannelModel | None = None, *, kind="ct", x0="common
     return FeDataset(y=add_noise(y, snr_db, rng), y_clean=y, fm=fm, mu_nozzle=mu,
                      level=level, x0=X0, sample_rate_hz=float(sample_rate_hz),
                      snr_db=snr_db, kind=kind)
-
-
-def physics_set(model: InkChannelModel | None = None, *, n_per_class=30, snr_db=40.0,
-                sample_rate_hz=10e6, n_samples=512, seed=0, loss_coeff=0.5):
-    """Nonlinear physics-based dried-nozzle traces (fallback for section 4.5).
-
-    The 4-state model of eq. (2) with two documented nonlinear terms, integrated
-    by solve_ivp RK45 (rtol 1e-8) from random initial states:
-
-    * nozzle entrance/exit (Borda-Carnot) loss: the nozzle pressure drop gets a
-      quadratic term ``K rho / (2 A_n^2) |V_n'| V_n'`` with ``K = loss_coeff``;
-    * the rest as eq. (2) with ``R_n`` from the faulty nozzle viscosity.
-
-    Classes slightly / intermediately / deeply dried draw the nozzle viscosity
-    uniformly in x(1.5-2.5), x(2.5-4.5), x(4.5-8) of the healthy one.
-
-    Returns
-    -------
-    FeDataset with ``kind="physics"`` and ``level`` = class index (0, 1, 2).
-    """
-    model = InkChannelModel() if model is None else model
-    rng = np.random.default_rng(seed)
-    p = model.params
-    ranges = [(1.5, 2.5), (2.5, 4.5), (4.5, 8.0)]
-    mus, cls = [], []
-    for c, (a, b) in enumerate(ranges):
-        mus.append(p.mu_n * rng.uniform(a, b, n_per_class))
-        cls.append(np.full(n_per_class, c))
-    mu = np.concatenate(mus)
-    level = np.concatenate(cls)
-    n = mu.size
-    X0 = random_x0(model, n, rng)
-    T0 = 1e-6
-    t = np.arange(n_samples) / (sample_rate_hz * T0)
-    A_n = np.pi * p.r_n**2
-    kq = loss_coeff * p.rho / (2 * A_n**2)
-    y = np.empty((n, n_samples))
-    v = p.b * PULSE_V
-    scale = np.array([v, v / T0, v / T0])  # x = scale * xs: SI volumes and flows
-    for i in range(n):
-        pi = p.replace(mu_nozzle=float(mu[i]))
-        R_n, R_r, I_n, I_r, B_t = pi.R_n, pi.R_r, pi.I_n, pi.I_r, pi.B_t
-
-        def rhs(_t, xs, R_n=R_n, R_r=R_r, I_n=I_n, I_r=I_r, B_t=B_t):
-            V, qr, qn = xs * scale
-            pch = -V / B_t  # chamber pressure (eq. 12's first state is V_r + V_n)
-            dqr = (pch - R_r * qr) / I_r
-            dqn = (pch - R_n * qn - kq * abs(qn) * qn) / I_n
-            return T0 * np.array([qr + qn, dqr, dqn]) / scale
-
-        sol = solve_ivp(rhs, (0.0, t[-1]), X0[i] / scale, method="RK45", t_eval=t,
-                        rtol=1e-9, atol=1e-12)
-        y[i] = (sol.y[1] + sol.y[2]) * scale[1]
-    fm = viscosity_to_fm(p, mu)
-    return FeDataset(y=add_noise(y, snr_db, rng), y_clean=y, fm=fm, mu_nozzle=mu,
-                     level=level, x0=X0, sample_rate_hz=float(sample_rate_hz),
-                     snr_db=snr_db, kind="physics")
 
 
 def nonlinear_set(n_per_class=100, *, seed=0, sample_rate_hz=10e6, n_samples=512):

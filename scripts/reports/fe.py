@@ -340,8 +340,6 @@ def main(argv=None):
       "given nothing, is limited by the model mismatch alone (noise-free "
       f"{np.nanmedian(results[PH_CLEAN, 'vp'][2]):.1f} %, noisy "
       f"{np.nanmedian(results[PH_COMMON, 'vp'][2]):.1f} % median).")
-    P("* `fe_datasets.physics_set` (the earlier stand-alone fallback: 4-state model with a "
-      "quadratic nozzle loss) is kept in the code but no longer in this report.")
     P("")
     P("## Figures")
     P("")
