@@ -67,8 +67,9 @@ from .simulator import (
     _check_positive_float,
     _check_positive_int,
     _check_severity,
-    _class_max_frequency,
     _draw_channels,
+    _empty_result,
+    _prepare,
     _dominant,
     _modal_solution,
     _nominal_rms,
@@ -228,33 +229,13 @@ def simulate_nonlinear(
     n_samples = _check_positive_int("n_samples", n_samples)
     batch_size = _check_positive_int("batch_size", batch_size)
     rtol = _check_positive_float("rtol", rtol)
-    spreads = Spreads() if spreads is None else spreads
-    drive = DriveWaveform() if drive is None else drive
-    base = InkChannelParams(b=DEFAULT_COUPLING_M3_PER_V) if base_params is None else base_params
     terms = NonlinearTerms() if terms is None else terms
-    for name, obj, typ in (("spreads", spreads, Spreads), ("drive", drive, DriveWaveform),
-                           ("base_params", base, InkChannelParams),
-                           ("terms", terms, NonlinearTerms)):
-        if not isinstance(obj, typ):
-            raise ValueError(f"{name} must be a {typ.__name__}, got {type(obj).__name__}")
-    for cls, _ in classes:
-        f_max = _class_max_frequency(cls, base)
-        if fs < 2.0 * f_max:
-            raise ValueError(
-                f"sample_rate_hz={fs:g} is below twice the highest mode of class "
-                f"{cls.value!r} ({f_max:.4g} Hz): need at least {2 * f_max:.4g} Hz"
-            )
-    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-    n = sum(k for _, k in classes)
-    labels = np.empty(n, dtype=object)
-    i = 0
-    for cls, k in classes:
-        labels[i:i + k] = cls
-        i += k
+    base = InkChannelParams(b=DEFAULT_COUPLING_M3_PER_V) if base_params is None else base_params
+    spreads, drive, base, rng, labels = _prepare(classes, fs, spreads, drive, base, seed,
+                                                 extra=(("terms", terms, NonlinearTerms),))
+    n = labels.size
     if n == 0:
-        e = np.empty(0)
-        return SimulationResult(np.empty((0, n_samples), np.float32), labels, fs, e, e, e, e, e,
-                                np.empty((0, 3)), np.empty((0, 3, 3)), e, e, e, {}, 0.0)
+        return _empty_result(labels, fs, n_samples)
 
     # identical draws to simulate(): channels, then gain and offset, then noise
     ch = _draw_channels(classes, base, spreads, rng, _check_severity(severity, classes))

@@ -728,6 +728,43 @@ def _with_severity(cls, severity, base):
 # public entry point
 
 
+
+def _prepare(classes, fs, spreads, drive, base, seed, extra=()):
+    """Defaults, type checks, the Nyquist check, the generator and the labels.
+
+    Shared by :func:`simulate` and :func:`inkdiag_core.simulate_nonlinear`, so
+    both validate alike and draw identically. ``extra`` holds further
+    ``(name, object, type)`` triples to type-check.
+    """
+    spreads = Spreads() if spreads is None else spreads
+    drive = DriveWaveform() if drive is None else drive
+    base = InkChannelParams() if base is None else base
+    for name, obj, typ in (("spreads", spreads, Spreads), ("drive", drive, DriveWaveform),
+                           ("base_params", base, InkChannelParams), *extra):
+        if not isinstance(obj, typ):
+            raise ValueError(f"{name} must be a {typ.__name__}, got {type(obj).__name__}")
+    for cls, _ in classes:
+        f_max = _class_max_frequency(cls, base)
+        if fs < 2.0 * f_max:
+            raise ValueError(
+                f"sample_rate_hz={fs:g} is below twice the highest mode of class "
+                f"{cls.value!r} ({f_max:.4g} Hz): need at least {2 * f_max:.4g} Hz"
+            )
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    labels = np.empty(sum(k for _, k in classes), dtype=object)
+    i = 0
+    for cls, k in classes:
+        labels[i:i + k] = cls
+        i += k
+    return spreads, drive, base, rng, labels
+
+
+def _empty_result(labels, fs, n_samples):
+    """A SimulationResult with no traces."""
+    e = np.empty(0)
+    return SimulationResult(np.empty((0, n_samples), np.float32), labels, fs, e, e, e, e, e,
+                            np.empty((0, 3)), np.empty((0, 3, 3)), e, e, e, {}, 0.0)
+
 def simulate(
     counts,
     *,
@@ -787,35 +824,10 @@ def simulate(
     fs = _check_positive_float("sample_rate_hz", sample_rate_hz)
     n_samples = _check_positive_int("n_samples", n_samples)
     chunk_size = _check_positive_int("chunk_size", chunk_size)
-    spreads = Spreads() if spreads is None else spreads
-    drive = DriveWaveform() if drive is None else drive
-    base = InkChannelParams() if base_params is None else base_params
-    if not isinstance(spreads, Spreads):
-        raise ValueError(f"spreads must be a Spreads, got {type(spreads).__name__}")
-    if not isinstance(drive, DriveWaveform):
-        raise ValueError(f"drive must be a DriveWaveform, got {type(drive).__name__}")
-    if not isinstance(base, InkChannelParams):
-        raise ValueError(f"base_params must be an InkChannelParams, got {type(base).__name__}")
-    for cls, _ in classes:
-        f_max = _class_max_frequency(cls, base)
-        if fs < 2.0 * f_max:
-            raise ValueError(
-                f"sample_rate_hz={fs:g} is below twice the highest mode of class "
-                f"{cls.value!r} ({f_max:.4g} Hz): need at least {2 * f_max:.4g} Hz"
-            )
-    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-
-    n = sum(k for _, k in classes)
-    labels = np.empty(n, dtype=object)
-    i = 0
-    for cls, k in classes:
-        labels[i:i + k] = cls
-        i += k
+    spreads, drive, base, rng, labels = _prepare(classes, fs, spreads, drive, base_params, seed)
+    n = labels.size
     if n == 0:
-        empty = np.empty(0)
-        return SimulationResult(
-            np.empty((0, n_samples), np.float32), labels, fs, empty, empty, empty, empty,
-            empty, np.empty((0, 3)), np.empty((0, 3, 3)), empty, empty, empty, {}, 0.0)
+        return _empty_result(labels, fs, n_samples)
 
     ch = _draw_channels(classes, base, spreads, rng, _check_severity(severity, classes))
     amplitude = drive.amplitude_v * ch["drive"]
