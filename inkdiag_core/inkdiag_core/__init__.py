@@ -65,6 +65,6 @@ from .trend import FmTrend, FmTrendBank, deeply_dried_fm  # noqa: E402
 
 __all__ += ["FmTrend", "FmTrendBank", "deeply_dried_fm"]
 
-from .labelling import FrameLabels, label_traces  # noqa: E402
+from .labelling import FrameLabels, label_frames, label_traces  # noqa: E402
 
-__all__ += ["FrameLabels", "label_traces"]
+__all__ += ["FrameLabels", "label_frames", "label_traces"]

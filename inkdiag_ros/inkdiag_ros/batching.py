@@ -1,0 +1,114 @@
+"""A worker thread that processes queued items in adaptive batches (no ROS in here).
+
+The fdi node's subscription callback only decodes and validates a frame and
+hands it to a :class:`BatchWorker`; the worker thread takes *everything* that
+queued up while it was busy and labels it in one classifier pass. At a light
+load every batch is one frame (lowest latency); under load the batches grow,
+which amortises the classifier's fixed per-call cost, while the executor
+thread keeps receiving (numpy, scipy.fft and the forest release the GIL, so
+receiving and labelling overlap on two cores).
+
+The queue is bounded: when it holds ``max_queued`` items the oldest one is
+dropped and reported to ``on_drop``, so an overloaded node sheds load it
+accounts for instead of growing without bound.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from typing import Callable
+
+
+class BatchWorker:
+    """Run ``handle(items)`` on one thread for every batch of queued items.
+
+    Parameters
+    ----------
+    handle : callable(list) -> None
+        Processes one batch, oldest item first. Exceptions it raises are passed
+        to ``on_error`` and the worker goes on.
+    max_queued : int
+        Items waiting at most; submitting to a full queue drops the oldest.
+    max_batch_rows : int
+        Rows per batch at most (a single larger item is still taken alone).
+    on_drop : callable(item) -> None
+        Called (on the submitting thread) with each item dropped from a full queue.
+    on_error : callable(BaseException) -> None
+        Called on the worker thread when ``handle`` raises.
+    name : str
+        Thread name.
+    """
+
+    def __init__(self, handle: Callable, *, max_queued: int = 64, max_batch_rows: int = 16384,
+                 on_drop: Callable = lambda item: None, on_error: Callable = lambda exc: None,
+                 name: str = "batch-worker"):
+        if max_queued < 1 or max_batch_rows < 1:
+            raise ValueError(f"max_queued and max_batch_rows must be >= 1, got {max_queued}, {max_batch_rows}")
+        self._handle, self._on_drop, self._on_error = handle, on_drop, on_error
+        self._max_queued, self._max_rows = int(max_queued), int(max_batch_rows)
+        self._queue: deque = deque()  # (item, rows)
+        self._cv = threading.Condition()
+        self._stopping = False
+        self._busy = False
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def submit(self, item, rows: int = 1) -> None:
+        """Queue ``item`` (of ``rows`` rows) for the next batch."""
+        dropped = None
+        with self._cv:
+            if self._stopping:
+                raise RuntimeError("BatchWorker is stopped")
+            if len(self._queue) >= self._max_queued:
+                dropped = self._queue.popleft()[0]
+            self._queue.append((item, int(rows)))
+            self._cv.notify()
+        if dropped is not None:
+            self._on_drop(dropped)
+
+    def pending(self) -> int:
+        """Items queued or being processed."""
+        with self._cv:
+            return len(self._queue) + int(self._busy)
+
+    def wait_idle(self, timeout: float | None = None) -> bool:
+        """Block until nothing is queued or being processed; False on timeout."""
+        with self._cv:
+            return self._cv.wait_for(lambda: not self._queue and not self._busy, timeout)
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Finish the batch in hand, drop the rest (unprocessed), join the thread."""
+        with self._cv:
+            self._stopping = True
+            self._queue.clear()
+            self._cv.notify_all()
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout)
+
+    def _take(self) -> list:
+        batch, rows = [], 0
+        while self._queue and (not batch or rows + self._queue[0][1] <= self._max_rows):
+            item, n = self._queue.popleft()
+            batch.append(item)
+            rows += n
+        return batch
+
+    def _run(self) -> None:
+        while True:
+            with self._cv:
+                self._cv.wait_for(lambda: self._queue or self._stopping)
+                if self._stopping:
+                    self._busy = False
+                    self._cv.notify_all()
+                    return
+                batch = self._take()
+                self._busy = True
+            try:
+                self._handle(batch)
+            except BaseException as exc:  # noqa: BLE001 - reported, the worker goes on
+                self._on_error(exc)
+            finally:
+                with self._cv:
+                    self._busy = False
+                    self._cv.notify_all()

@@ -1,0 +1,97 @@
+"""Batched labelling: label_frames (core) and the fdi node's BatchWorker (no ROS)."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from inkdiag_core import FaultClass, label_frames, label_traces, load_model, simulate
+from inkdiag_ros.batching import BatchWorker
+
+
+def _frames(seed=0):
+    r = simulate({FaultClass.HEALTHY_NOZZLE: 10, FaultClass.FULLY_BLOCKED: 5,
+                  FaultClass.DEEPLY_DRIED: 5, FaultClass.EMPTY_CHANNEL_1: 4}, seed=seed)
+    x = r.traces.astype(np.float32)
+    x[3, 10] = np.nan  # an invalid row inside the second frame
+    return [x[:3], x[3:11], x[11:12], x[12:]]
+
+
+def test_label_frames_equals_each_frame_labelled_alone(fdi_model):
+    model, manifest = load_model(fdi_model)
+    frames = _frames()
+    together = label_frames(model, frames, fd_threshold=0.3)
+    assert [len(r.classes) for r in together] == [f.shape[0] for f in frames]
+    for f, got in zip(frames, together):
+        alone = label_traces(model, f, fd_threshold=0.3)
+        assert list(got.classes) == list(alone.classes)
+        np.testing.assert_allclose(got.confidence, alone.confidence, rtol=1e-12)
+        assert list(got.valid) == list(alone.valid) and list(got.reasons) == list(alone.reasons)
+    assert together[1].reasons[0] == "non_finite" and not together[1].valid[0]
+    assert label_frames(model, []) == []
+
+
+def test_label_frames_rejects_mixed_widths_and_bad_ndim(fdi_model):
+    model, _ = load_model(fdi_model)
+    a = np.zeros((2, 512), np.float32)
+    with pytest.raises(ValueError, match="one sample count"):
+        label_frames(model, [a, np.zeros((2, 256), np.float32)])
+    with pytest.raises(ValueError, match="frame 1 has shape"):
+        label_frames(model, [a, np.zeros(512, np.float32)])
+
+
+def test_batch_worker_batches_what_queued_while_busy_and_keeps_order():
+    gate, batches = threading.Event(), []
+
+    def handle(items):
+        batches.append(list(items))
+        gate.wait(5)
+
+    w = BatchWorker(handle, max_queued=100, max_batch_rows=1000)
+    try:
+        w.submit(0, rows=10)
+        deadline = time.monotonic() + 5
+        while not batches and time.monotonic() < deadline:
+            time.sleep(0.001)
+        for i in range(1, 6):  # queue while the worker is busy with item 0
+            w.submit(i, rows=10)
+        assert w.pending() == 6
+        gate.set()
+        assert w.wait_idle(5)
+    finally:
+        w.stop()
+    assert batches == [[0], [1, 2, 3, 4, 5]]
+
+
+def test_batch_worker_caps_rows_drops_oldest_and_survives_errors():
+    gate, batches, dropped, errors = threading.Event(), [], [], []
+
+    def handle(items):
+        batches.append(list(items))
+        gate.wait(5)
+        if "boom" in items:
+            raise RuntimeError("boom")
+
+    w = BatchWorker(handle, max_queued=3, max_batch_rows=25, on_drop=dropped.append,
+                    on_error=errors.append)
+    try:
+        w.submit("first", rows=1)
+        deadline = time.monotonic() + 5
+        while not batches and time.monotonic() < deadline:
+            time.sleep(0.001)
+        for item in ("a", "b", "boom", "c"):  # queue of 3: "a" is dropped when "c" arrives
+            w.submit(item, rows=10)
+        gate.set()
+        assert w.wait_idle(5)
+        w.submit("after", rows=1)
+        assert w.wait_idle(5)
+    finally:
+        w.stop()
+    assert dropped == ["a"]
+    assert batches == [["first"], ["b", "boom"], ["c"], ["after"]]  # <= 25 rows per batch
+    assert len(errors) == 1 and str(errors[0]) == "boom"
+    with pytest.raises(RuntimeError, match="stopped"):
+        w.submit("late")
+    with pytest.raises(ValueError, match="max_queued"):
+        BatchWorker(lambda items: None, max_queued=0)
