@@ -140,3 +140,27 @@ def test_raw_trace_features_are_the_three_parts_side_by_side():
     np.testing.assert_allclose(both, parts)
     assert len(RawTraceFeatures().fit(X).get_feature_names_out()) == both.shape[1]
     assert np.median(both[:, 7]) == pytest.approx(1.2e6, rel=0.02)  # the second mode is found
+
+
+def test_forest_predict_proba_is_bit_identical_to_sklearn_and_checks_input():
+    from sklearn.ensemble import RandomForestClassifier
+
+    from inkdiag_core.fdi import fault_probability, forest_predict_proba
+
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(300, 7))
+    y = np.array(["a", "b", "c"])[(X[:, 0] > 0).astype(int) + (X[:, 1] > 1)]
+    rf = RandomForestClassifier(n_estimators=17, random_state=0).fit(X, y)
+    Xt = rng.normal(size=(50, 7))
+    np.testing.assert_array_equal(forest_predict_proba(rf, Xt), rf.predict_proba(Xt))
+    with pytest.raises(ValueError, match=r"\(n, 7\)"):
+        forest_predict_proba(rf, Xt[:, :5])
+    with pytest.raises(ValueError, match="finite"):
+        forest_predict_proba(rf, np.full((1, 7), np.nan))
+    # through a whole FDI pipeline, as the nodes call it
+    from inkdiag_core import FaultClass, simulate
+
+    sim = simulate({FaultClass.HEALTHY_NOZZLE: 20, FaultClass.FULLY_BLOCKED: 20}, seed=1)
+    pipe = make_fdi_pipeline("rf", "kpi_y", n_estimators=10).fit(sim.traces, sim.label_values())
+    proba, _ = fault_probability(pipe, sim.traces[:9])
+    np.testing.assert_array_equal(proba, pipe.predict_proba(sim.traces[:9]))
