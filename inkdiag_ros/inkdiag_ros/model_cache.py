@@ -6,12 +6,21 @@ module only decides when (missing or unverifiable file) and shows progress.
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
 
 from inkdiag_core import ModelFileError, load_model
 from inkdiag_core.fdi import train_default_model as _core_train
 
 DEFAULT_MODEL = Path("models") / "fdi_default.joblib"
+#: Training settings that define the default model; a cached file trained otherwise is stale.
+DEFAULT_SETTINGS = ("kind", "features", "n_per_class", "seed", "fnr_target")
+
+
+def default_config() -> dict:
+    """The training settings :func:`inkdiag_core.fdi.train_default_model` uses by default."""
+    params = inspect.signature(_core_train).parameters
+    return {k: params[k].default for k in DEFAULT_SETTINGS}
 
 
 def train_default_model(path, *, progress=True, **kwargs):
@@ -29,12 +38,24 @@ def train_default_model(path, *, progress=True, **kwargs):
 
 
 def ensure_default_model(path=DEFAULT_MODEL, *, progress=True, log=print):
-    """Return ``path`` after making sure it holds a model that verifies; train one if not."""
+    """Return ``path`` after making sure it holds a model that verifies; train one if not.
+
+    A file named like the default (``fdi_default.joblib``) that verifies but was
+    trained with other settings than the current defaults (:func:`default_config`,
+    e.g. after an upgrade changed the default feature set) is retrained too; any
+    other model file is the user's own and is only verified.
+    """
     path = Path(path)
     if path.exists():
         try:
-            load_model(path)
-            return path
+            _, manifest = load_model(path)
+            cfg = manifest.get("config", {})
+            stale = {k: (cfg.get(k), v) for k, v in default_config().items()
+                     if path.name == DEFAULT_MODEL.name and cfg.get(k) != v}
+            if not stale:
+                return path
+            log(f"inkdiag: cached model trained with other settings than the default "
+                f"({', '.join(f'{k}={a!r}, now {b!r}' for k, (a, b) in stale.items())}); retraining")
         except ModelFileError as exc:
             log(f"inkdiag: cached model unusable ({exc}); retraining")
     else:

@@ -1,0 +1,34 @@
+"""The default-model cache: train once, verify after, retrain a stale or tampered default."""
+
+import json
+
+from inkdiag_core.fdi import train_default_model
+from inkdiag_ros.model_cache import default_config, ensure_default_model
+
+
+def _config(path):
+    return json.loads(open(str(path) + ".manifest.json").read())["config"]
+
+
+def test_stale_default_is_retrained_a_users_model_is_not(tmp_path):
+    logs = []
+    default = tmp_path / "fdi_default.joblib"
+    train_default_model(default, n_per_class=30)  # a default trained with other settings
+    assert ensure_default_model(default, progress=False, log=logs.append) == default
+    assert "n_per_class=30, now 400" in logs[-1] and "retraining" in logs[-1]
+    cfg = _config(default)
+    assert {k: cfg[k] for k in default_config()} == default_config()
+    mtime = default.stat().st_mtime_ns
+    ensure_default_model(default, progress=False, log=logs.append)  # up to date: kept
+    assert default.stat().st_mtime_ns == mtime and len(logs) == 1
+
+    mine = tmp_path / "mine.joblib"
+    train_default_model(mine, n_per_class=30, features="rich")
+    ensure_default_model(mine, progress=False, log=logs.append)
+    assert _config(mine)["n_per_class"] == 30 and len(logs) == 1
+
+    with open(default, "ab") as f:  # tampered: refused by its manifest, retrained
+        f.write(b"\0")
+    ensure_default_model(default, progress=False, log=logs.append)
+    assert "unusable" in logs[-1] and "tampered" in logs[-1]
+    assert ensure_default_model(default, progress=False, log=logs.append) == default  # verifies again
