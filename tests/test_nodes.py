@@ -179,6 +179,23 @@ def test_fdi_survives_bad_frames_and_the_counts_add_up(ros, fdi_model):
                    == str(len(bad)), 5, "diagnostics with the malformed count")
 
 
+def test_fdi_under_a_burst_labels_every_frame_in_order_or_counts_it_dropped(ros, fdi_model):
+    traces, _ = _frames_of({FaultClass.HEALTHY_NOZZLE: 24, FaultClass.FULLY_BLOCKED: 8}, seed=4)
+    rig = _Rig(ros, fdi_model, max_queued_frames=2)
+    msgs = [encode_traces(traces, frame_id=100 + i) for i in range(4)]
+    for m in msgs:  # four frames at once: the worker batches what queued while it was busy
+        rig.pub.publish(m)
+    s = rig.fdi.stats
+    ros.spin_until(lambda: s.frames_received >= 2 and rig.fdi.wait_idle(0.01)
+                   and len(rig.labels) == s.frames_labelled, 10, "the burst labelled")
+    ros.spin_for(0.3)
+    assert s.frames_received == s.frames_labelled + s.frames_dropped
+    ids = [r.frame_id for r in rig.labels]
+    assert ids == sorted(ids) and set(ids) <= {100, 101, 102, 103} and len(ids) == s.frames_labelled
+    assert all(sum(r.counts.values()) == 32 and r.counts.get("fully_blocked", 0) >= 6
+               for r in rig.labels)
+
+
 def test_fdi_refuses_a_tampered_model(ros, fdi_model, tmp_path):
     bad = tmp_path / "m.joblib"
     shutil.copy(fdi_model, bad)

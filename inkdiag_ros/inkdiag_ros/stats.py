@@ -14,11 +14,14 @@ class FdiStats:
         self.frames_labelled = 0
         self.frames_malformed = 0
         self.frames_failed = 0
+        self.frames_dropped = 0
+        self.batches = 0
+        self.busy_s = 0.0
         self.rows_invalid = 0
         self.traces_labelled = 0
         self.counts = Counter()
         self.last_error = ""
-        self._mark = (time.monotonic(), 0, 0, 0, 0)
+        self._mark = (time.monotonic(), 0, 0, 0, 0, 0, 0, 0.0)
 
     def malformed(self, reason: str) -> None:
         self.frames_malformed += 1
@@ -27,6 +30,15 @@ class FdiStats:
     def failed(self, reason: str) -> None:
         self.frames_failed += 1
         self.last_error = reason
+
+    def dropped(self, reason: str) -> None:
+        self.frames_dropped += 1
+        self.last_error = reason
+
+    def batch(self, n_frames: int, seconds: float) -> None:
+        """One labelling pass over ``n_frames`` frames took ``seconds`` (wall clock)."""
+        self.batches += 1
+        self.busy_s += seconds
 
     def labelled(self, counts: dict, n_rows: int) -> None:
         self.frames_labelled += 1
@@ -37,25 +49,28 @@ class FdiStats:
     def period(self, model_loaded: bool):
         """``(level, message, values)`` over the time since the last call."""
         now = time.monotonic()
-        t0, f0, n0, m0, i0 = self._mark
+        t0, f0, n0, m0, i0, b0, lf0, busy0 = self._mark
         dt = max(now - t0, 1e-9)
         d_frames = self.frames_labelled - f0
-        d_bad = self.frames_malformed + self.frames_failed - m0
+        d_bad = self.frames_malformed + self.frames_failed + self.frames_dropped - m0
         d_invalid = self.rows_invalid - i0
         values = {
             "frames_received": self.frames_received,
             "frames_labelled": self.frames_labelled,
             "frames_malformed": self.frames_malformed,
             "frames_failed": self.frames_failed,
+            "frames_dropped": self.frames_dropped,
             "rows_invalid": self.rows_invalid,
             "frames_per_s": d_frames / dt,
             "traces_per_s": (self.traces_labelled - n0) / dt,
+            "frames_per_batch": (self.frames_labelled - lf0) / max(self.batches - b0, 1),
+            "labeller_busy": (self.busy_s - busy0) / dt,
             "last_error": self.last_error,
         }
         if not model_loaded:
             level, message = "error", "no FDI model loaded: frames are not labelled"
         elif d_bad:
-            level, message = "warn", f"{d_bad} malformed or failed frame(s) in the last {dt:.1f} s"
+            level, message = "warn", f"{d_bad} malformed, failed or dropped frame(s) in the last {dt:.1f} s"
         elif d_invalid:
             level, message = "warn", f"{d_invalid} invalid row(s) in the last {dt:.1f} s"
         elif self.frames_received == 0:
@@ -65,5 +80,6 @@ class FdiStats:
         else:
             level, message = "ok", f"{d_frames} frame(s) labelled in the last {dt:.1f} s"
         self._mark = (now, self.frames_labelled, self.traces_labelled,
-                      self.frames_malformed + self.frames_failed, self.rows_invalid)
+                      self.frames_malformed + self.frames_failed + self.frames_dropped, self.rows_invalid,
+                      self.batches, self.frames_labelled, self.busy_s)
         return level, message, values

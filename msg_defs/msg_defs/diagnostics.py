@@ -5,13 +5,17 @@ Each FDI node publishes, every ``diagnostics_period_s``, an array with one
 
 - ``name``: ``"inkdiag fdi: <namespace>"`` (e.g. ``inkdiag fdi: /head_07``);
 - ``hardware_id``: the printhead's namespace;
-- ``level``: ``OK``; ``WARN`` when malformed frames or invalid rows arrived in the
-  last period; ``ERROR`` when no model is loaded; ``STALE`` when no frame arrived
+- ``level``: ``OK``; ``WARN`` when malformed, failed or dropped frames or invalid
+  rows arrived in the last period; ``ERROR`` when no model is loaded; ``STALE`` when no frame arrived
   in the last period;
 - ``message``: one line saying why;
 - ``values`` (all strings, as the message type wants), keys :data:`KEYS`:
   ``model_id``, ``frames_received``, ``frames_labelled``, ``frames_malformed``,
-  ``frames_failed`` (the model raised), ``rows_invalid``, ``frames_per_s``, ``traces_per_s`` (over the last period),
+  ``frames_failed`` (the model raised), ``frames_dropped`` (shed by a full labelling
+  queue: the node was overloaded), ``rows_invalid``; over the last period:
+  ``frames_per_s``, ``traces_per_s``, ``frames_per_batch`` (frames labelled per
+  classifier pass) and ``labeller_busy`` (fraction of the time the labelling
+  thread was busy: near 1, the node is at its capacity); then
   ``last_error`` (the last malformed frame's reason) and then ``count.<class>``
   for each class value and ``count.invalid`` (cumulative rows per label).
 """
@@ -31,7 +35,8 @@ LEVELS = {
     "stale": DiagnosticStatus.STALE,
 }
 KEYS = ("model_id", "frames_received", "frames_labelled", "frames_malformed", "frames_failed",
-        "rows_invalid", "frames_per_s", "traces_per_s", "last_error")
+        "frames_dropped", "rows_invalid", "frames_per_s", "traces_per_s", "frames_per_batch",
+        "labeller_busy", "last_error")
 COUNT_PREFIX = "count."
 
 

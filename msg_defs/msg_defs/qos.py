@@ -3,10 +3,13 @@
 Reliability and durability mismatches deliver nothing, silently, so every
 publisher and subscriber takes its profile from here.
 
-- ``TRACES_QOS``: sensor data (BEST_EFFORT, KEEP_LAST 5, VOLATILE), as
+- ``TRACES_QOS``: sensor data (BEST_EFFORT, VOLATILE, as
   ``rclpy.qos.qos_profile_sensor_data``: a late trace frame is worth less than
-  the next one, and a best-effort subscriber also matches a reliable publisher
-  (a printer controller may publish either way).
+  the next one, and a best-effort subscriber also matches a reliable publisher,
+  so a printer controller may publish either way), but KEEP_LAST 32 instead of
+  5: a head scan arrives as a burst of nozzle-range messages (2,656 nozzles in
+  200-nozzle messages are 14), and a depth of 5 would drop most of a burst
+  whenever the subscriber's executor is a few milliseconds late.
 - ``RELIABLE_QOS``: labels, drying nozzles, estimates, ground truth
   (RELIABLE, KEEP_LAST 50, VOLATILE): operators and the FE node must not lose
   a verdict.
@@ -26,7 +29,7 @@ __all__ = ["TRACES_QOS", "RELIABLE_QOS", "DIAGNOSTICS_QOS"]
 TRACES_QOS = QoSProfile(
     reliability=qos_profile_sensor_data.reliability,
     history=qos_profile_sensor_data.history,
-    depth=qos_profile_sensor_data.depth,
+    depth=32,
     durability=qos_profile_sensor_data.durability,
 )
 

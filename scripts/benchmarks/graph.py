@@ -12,10 +12,13 @@ process, twice:
    whose ``labels`` messages are the answers.
 
 Both use the same closed loop: at most ``--window`` frames in flight
-(published, not yet answered), so the consumer sets the pace and nothing is
-dropped by the best-effort QoS on purpose. A frame unanswered for 2 s is
-counted lost (and the fdi node's own counters from /diagnostics say where it
-went). Latency is from the frame's source timestamp (set at publish) to its
+(published, not yet answered), so the consumer sets the pace. A frame
+unanswered for 0.25 s (more than 5x the worst p99 seen) is counted lost and
+its slot reused: the traces topic is best effort, and with 400 kB messages
+Fast DDS drops a fraction of a percent of them between the processes, in the
+ceiling run as much as in the fdi run; the fdi node's own counters (from
+/diagnostics) say how many it received, so what is lost in transport and
+what in the node are told apart. Latency is from the frame's source timestamp (set at publish) to its
 answer arriving here (one clock). Prints traces/s of both, the ratio, loss,
 and p50/p99 latency.
 """
@@ -75,7 +78,7 @@ def make_frames(n_nozzles, n_frames, seed):
                              seed=seed + i).traces for i in range(n_frames)]
 
 
-def replay(node, executor, pub, msgs, answered, seconds, window, lost_after_s=2.0, first_id=0):
+def replay(node, executor, pub, msgs, answered, seconds, window, lost_after_s=0.25, first_id=0):
     """Closed-loop replay; returns (published, latencies s, lost ids, elapsed s).
 
     Frame ids start at ``first_id``: never reuse the ids of an earlier replay,
@@ -104,7 +107,8 @@ def replay(node, executor, pub, msgs, answered, seconds, window, lost_after_s=2.
                 lat.append(t_recv - in_flight.pop(a_id))
         t = time.time()
         for k in [k for k, v in in_flight.items() if t - v > lost_after_s]:
-            lost.append(in_flight.pop(k))
+            in_flight.pop(k)
+            lost.append(k)
         if time.monotonic() > end + 10:
             break
     return fid - first_id, np.array(lat), lost, time.perf_counter() - t0
@@ -126,7 +130,7 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=8, help="distinct frames to pre-generate and cycle")
     ap.add_argument("--seconds", type=float, default=8.0, help="replay time of each phase")
     ap.add_argument("--window", type=int, default=4,
-                    help="messages in flight at most (<= the traces QoS depth 5, or the subscriber drops by design)")
+                    help="messages in flight at most (closed loop: a new one is published when one is answered)")
     ap.add_argument("--chunk", type=int, default=200,
                     help="nozzles per message: a head scan travels as contiguous nozzle ranges")
     ap.add_argument("--model", default=str(ROOT / "models" / "fdi_default.joblib"))
@@ -196,11 +200,15 @@ def main() -> int:
                 sent, lat, lost, el = replay(node, ex, pub, msgs, answered, ns.seconds, ns.window,
                                              first_id=next_id)
                 next_id += sent
+                during = dict(next(iter(diag.values()), {}))  # the last period under load
                 ex.spin_once(timeout_sec=0.6)
                 t_end = time.monotonic() + 1.5
                 while time.monotonic() < t_end:
                     ex.spin_once(timeout_sec=0.05)
-                results[name] = (sent, lat, lost, el, dict(next(iter(diag.values()), {})), warm)
+                final = dict(next(iter(diag.values()), {}))
+                if final:
+                    final.update({k: during.get(k) for k in ("frames_per_batch", "labeller_busy")})
+                results[name] = (sent, lat, lost, el, final, warm)
             finally:
                 proc.send_signal(2)
                 try:
@@ -224,9 +232,12 @@ def main() -> int:
                 f"latency p50 {1e3 * np.percentile(lat, 50):6.1f} ms  p99 {1e3 * np.percentile(lat, 99):6.1f} ms")
         print(line)
         if d:
-            print(f"{'':<26} fdi's own counters: received {d.get('frames_received')}, labelled "
+            print(f"{'':<26} fdi's own counters: received {d.get('frames_received')} "
+                  f"(published {sent + warm}: {sent + warm - int(d.get('frames_received', 0))} lost in transport), labelled "
                   f"{d.get('frames_labelled')}, malformed {d.get('frames_malformed')}, "
-                  f"failed {d.get('frames_failed')} (of which {warm} warm-up frames)")
+                  f"failed {d.get('frames_failed')}, dropped {d.get('frames_dropped')} "
+                  f"(of which {warm} warm-up frames); under load: {d.get('frames_per_batch')} frames per "
+                  f"classifier pass, labelling thread busy {d.get('labeller_busy')} of the time")
     c, f = rates.get("ceiling: plain subscriber"), rates.get("fdi node")
     if c and f and results["fdi node"][1].size:
         print(f"fdi / ceiling = {f / c:.2f}x (aim >= 0.3x); fdi p99 {'<=' if np.percentile(results['fdi node'][1], 99) <= 0.1 else '>'} 100 ms")
