@@ -198,7 +198,8 @@ def _features(features: str, fs: float):
 
 def make_fdi_pipeline(kind: str = "rf", features: str = "kpi_y", *, sample_rate_hz: float = 10e6,
                       random_state: int | None = 0, n_estimators: int = 100,
-                      n_neighbors: int = 5, n_jobs: int | None = None) -> Pipeline:
+                      min_samples_leaf: int = 1, n_neighbors: int = 5,
+                      n_jobs: int | None = None) -> Pipeline:
     """Build an unfitted FDI pipeline: features -> (scaling) -> classifier.
 
     Parameters
@@ -212,7 +213,7 @@ def make_fdi_pipeline(kind: str = "rf", features: str = "kpi_y", *, sample_rate_
         Sample rate of the traces the pipeline will see, Hz.
     random_state : int or None
         Seed of the Random Forest.
-    n_estimators, n_neighbors : int
+    n_estimators, min_samples_leaf, n_neighbors : int
         Classifier sizes (the thesis does not state them; scikit-learn's defaults).
     n_jobs : int or None
         Parallel trees for the Random Forest.
@@ -226,7 +227,8 @@ def make_fdi_pipeline(kind: str = "rf", features: str = "kpi_y", *, sample_rate_
         raise ValueError(f"kind must be 'rf' or 'knn', got {kind!r}")
     feats = _features(features, float(sample_rate_hz))
     if kind == "rf":
-        clf = RandomForestClassifier(n_estimators=n_estimators, random_state=random_state, n_jobs=n_jobs)
+        clf = RandomForestClassifier(n_estimators=n_estimators, min_samples_leaf=min_samples_leaf,
+                                     random_state=random_state, n_jobs=n_jobs)
         return Pipeline([("features", feats), ("classifier", clf)])
     clf = KNeighborsClassifier(n_neighbors=n_neighbors)
     return Pipeline([("features", feats), ("scale", StandardScaler()), ("classifier", clf)])
@@ -334,13 +336,17 @@ def fnr_threshold(p_faulty_of_faults, fnr_target: float = 0.005) -> float:
 
 
 def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: str = "rf",
-                        features: str = "kpi_y", fnr_target: float = 0.005, progress=None):
+                        features: str = "kpi_y", n_estimators: int = 50, min_samples_leaf: int = 3,
+                        fnr_target: float = 0.005, progress=None):
     """Train the FDI model the nodes load by default, and save it with its manifest.
 
     The default is a Random Forest on KPI_Y: on its validation split it isolates
     faults as well as the rich feature set (96.4% vs 96.3% FI accuracy, seed 0,
     400 traces per class; ``reports/fdi.md`` finds the same within one standard
     deviation over 5 seeds) at about 6x its throughput (``scripts/bench fdi``).
+    50 trees with at least 3 traces per leaf classify as well as scikit-learn's
+    100 fully grown trees (validation FI 96.17 +- 0.41% vs 96.11 +- 0.27%, seeds
+    0-2) in half the time; the forest is about half of the node's labelling time.
 
     Simulates ``n_per_class`` traces of each of the 12 classes, fits the
     pipeline on 75% of them, picks the false-negative-averse fault-detection
@@ -372,7 +378,8 @@ def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: st
     report(1, total, f"simulated {len(sim)} traces")
     y = sim.label_values()
     Xtr, Xval, ytr, yval = train_test_split(sim.traces, y, test_size=0.25, random_state=seed, stratify=y)
-    pipe = make_fdi_pipeline(kind, features, random_state=seed).fit(Xtr, ytr)
+    pipe = make_fdi_pipeline(kind, features, random_state=seed, n_estimators=n_estimators,
+                             min_samples_leaf=min_samples_leaf).fit(Xtr, ytr)
     report(2, total, f"fitted {kind} on {features} features")
     labels0, _, p_faulty = classify(pipe, Xval, fd_threshold=0.5)
     is_fault = fd_labels(yval) == 1
@@ -388,6 +395,7 @@ def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: st
     }
     report(3, total, f"validation FI accuracy {100 * scores['validation_fi_accuracy']:.1f}%")
     config = {"kind": kind, "features": features, "n_per_class": int(n_per_class), "seed": int(seed),
+              "n_estimators": int(n_estimators), "min_samples_leaf": int(min_samples_leaf),
               "sample_rate_hz": float(sim.sample_rate_hz), "n_samples": int(sim.traces.shape[1]),
               "fd_threshold": threshold, "fnr_target": float(fnr_target),
               "classes": [str(c) for c in pipe.classes_]}

@@ -14,7 +14,7 @@ from inkdiag_core.fdi import train_default_model as _core_train
 
 DEFAULT_MODEL = Path("models") / "fdi_default.joblib"
 #: Training settings that define the default model; a cached file trained otherwise is stale.
-DEFAULT_SETTINGS = ("kind", "features", "n_per_class", "seed", "fnr_target")
+DEFAULT_SETTINGS = ("kind", "features", "n_per_class", "seed", "n_estimators", "min_samples_leaf", "fnr_target")
 
 
 def default_config() -> dict:
