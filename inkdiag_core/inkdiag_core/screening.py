@@ -48,11 +48,15 @@ def screen_traces(traces, *, flat_tol: float = 1e-6, clip_run: int = 5):
     if n == 0 or x.shape[1] == 0:
         return np.ones(n, bool), reasons
     finite = np.isfinite(x).all(axis=1)
-    xf = np.where(finite[:, None], x, 0.0)
+    xf = x if finite.all() else np.where(finite[:, None], x, 0.0)
     hi = xf.max(axis=1, keepdims=True)
     lo = xf.min(axis=1, keepdims=True)
     flat = (hi - lo)[:, 0] <= flat_tol
-    clipped = _has_run(xf == hi, clip_run) | _has_run(xf == lo, clip_run)
+    at_hi, at_lo = xf == hi, xf == lo
+    # Only rows with clip_run samples at an extreme can hold such a run (few do).
+    cand = np.flatnonzero((at_hi.sum(axis=1) >= clip_run) | (at_lo.sum(axis=1) >= clip_run))
+    clipped = np.zeros(n, bool)
+    clipped[cand] = _has_run(at_hi[cand], clip_run) | _has_run(at_lo[cand], clip_run)
     reasons[clipped] = "clipped"
     reasons[flat] = "flat"
     reasons[~finite] = "non_finite"
