@@ -193,3 +193,42 @@ def test_bad_inputs(model):
         estimate_fm(y, model, FS, method="kalman")
     with pytest.raises(ValueError, match="sample_rate_hz"):
         estimate_fm(y, model, -1.0)
+
+
+def test_vp_per_nozzle_baseline_removes_the_nozzles_own_mismatch(model):
+    """A nozzle 2 % narrower than nominal (geometry tolerance): vp on the nominal model reads
+    its higher R_n / I_n as a fault; its own healthy reading, subtracted, removes that offset."""
+    import dataclasses
+
+    nozzle = InkChannelModel(dataclasses.replace(model.params, r_n=model.params.r_n * 0.98))
+    rng = np.random.default_rng(11)
+    fm = float(viscosity_to_fm(nozzle.params, nozzle.params.mu * 2.0))
+    x0s = random_x0(nozzle, 4, rng)
+    healthy = np.stack([_ct_reference(nozzle, 0.0, x) for x in x0s[:3]])
+    dried = _ct_reference(nozzle, fm, x0s[3])
+    base = estimate_fm_batch(healthy, model, FS, method="vp").fm.mean()
+    raw = estimate_fm(dried, model, FS, method="vp")
+    cal = estimate_fm(dried, model, FS, method="vp", baseline_fm=base)
+    assert abs(raw.fm / fm - 1) > 0.08  # the mismatch alone costs more than 8 %
+    assert abs(cal.fm / fm - 1) < 0.35 * abs(raw.fm / fm - 1)
+    assert cal.fm == pytest.approx(raw.fm - base) and cal.std == raw.std
+    np.testing.assert_allclose(cal.ci, raw.ci - base)
+    batch = estimate_fm_batch(np.stack([dried, dried]), model, FS, baseline_fm=[base, 0.0])
+    assert batch.fm[0] == pytest.approx(cal.fm) and batch.fm[1] == pytest.approx(raw.fm)
+    with pytest.raises(ValueError, match=r"baseline_fm must be a finite scalar or have shape \(2,\)"):
+        estimate_fm_batch(np.stack([dried, dried]), model, FS, baseline_fm=[base])
+    with pytest.raises(ValueError, match="baseline_fm must be a finite"):
+        estimate_fm(dried, model, FS, baseline_fm=np.nan)
+
+
+def test_nonlinear_set_healthy_frames_are_the_same_nozzles_with_own_noise():
+    from inkdiag_core.fe_datasets import nonlinear_set
+
+    ds = nonlinear_set(4, seed=3, healthy_frames=3)
+    assert ds.y_healthy.shape == (12, 3, ds.y.shape[1])
+    scale = np.abs(ds.y_healthy).max()
+    assert np.abs(ds.y_healthy[:, 0] - ds.y_healthy[:, 1]).max() > 1e-3 * scale  # own noise
+    assert nonlinear_set(4, seed=3).y_healthy is None
+    # the healthy nozzles read as healthy: |f_hat| far below the dried ones' |f_m|
+    f0 = estimate_fm_batch(ds.y_healthy[:, 0], InkChannelModel(), FS, method="vp").fm
+    assert np.median(np.abs(f0)) < 0.2 * np.median(np.abs(ds.fm))

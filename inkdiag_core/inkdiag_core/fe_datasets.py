@@ -59,6 +59,10 @@ class FeDataset:
     sample_rate_hz : float
     snr_db : float or None
     kind : str
+    y_healthy : ndarray, shape (n, n_frames, n_samples), optional
+        Physics-based set only: the same nozzles (same geometry and piezo draws),
+        healthy, at the nominal ink temperature, each in ``n_frames`` frames with
+        independent sensor noise: what a monitor sees of a nozzle before it dries.
     """
 
     y: np.ndarray
@@ -70,6 +74,7 @@ class FeDataset:
     sample_rate_hz: float
     snr_db: float | None
     kind: str
+    y_healthy: np.ndarray | None = None
 
 
 def fault_levels(model: InkChannelModel, n_levels: int = 49, rel_increase=(0.2, 10.0)):
@@ -203,7 +208,8 @@ def synthetic_set(model: InkChannelModel | None = None, *, kind="ct", x0="common
                      snr_db=snr_db, kind=kind)
 
 
-def nonlinear_set(n_per_class=100, *, seed=0, sample_rate_hz=10e6, n_samples=512):
+def nonlinear_set(n_per_class=100, *, seed=0, sample_rate_hz=10e6, n_samples=512,
+                  healthy_frames=0):
     """Physics-based dried-nozzle traces from :func:`inkdiag_core.simulate_nonlinear`.
 
     Classes slightly / intermediately / deeply dried (``level`` 0, 1, 2), each with the
@@ -216,6 +222,15 @@ def nonlinear_set(n_per_class=100, *, seed=0, sample_rate_hz=10e6, n_samples=512
     ADC (same seed: the noise is drawn last). Truth: ``fm`` = the simulator's linear-
     model Appendix F fault ``-alpha (mu_nozzle - mu)``; ``x0`` = the true nonlinear
     state at the first sample. ``snr_db`` is the median per-trace SNR.
+
+    ``healthy_frames > 0`` adds ``y_healthy``: each nozzle healthy, before it
+    dried. The simulator draws every trace's spreads in a fixed order whatever
+    its class, so the same seed and row count give the same nozzles (geometry,
+    piezo, drive, gain); the ink is at the nominal temperature (the head
+    heater's set point; the dried traces' temperatures are random), and each
+    frame gets its own sensor noise (the simulator's noise level, drawn from an
+    independent stream), so neither the temperature nor the noise is shared with
+    the dried trace.
     """
     from .faults import FaultClass
     from .nonlinear import simulate_nonlinear
@@ -234,7 +249,17 @@ def nonlinear_set(n_per_class=100, *, seed=0, sample_rate_hz=10e6, n_samples=512
         return (res.traces.astype(float) - res.sensor_offset[:, None]) / res.sensor_gain[:, None]
 
     level = np.array([classes.index(c) for c in r.labels])
+    y_healthy = None
+    if healthy_frames > 0:
+        h = simulate_nonlinear({FaultClass.HEALTHY_NOZZLE: len(r.fm)}, **kw, spreads=Spreads(
+            temperature_std_k=0.0, snr_db=np.inf, adc_bits=None))
+        for name in ("r_n", "L_n", "r_r", "B_act", "b"):
+            if not np.array_equal(h.params[name], r.params[name]):  # pragma: no cover - defensive
+                raise RuntimeError(f"healthy and dried draws differ in {name}")
+        noise = np.random.default_rng([seed, 7]).standard_normal((len(r.fm), int(healthy_frames), n_samples))
+        volts = h.traces.astype(float)[:, None, :] + r.noise_std_v * noise
+        y_healthy = (volts - h.sensor_offset[:, None, None]) / h.sensor_gain[:, None, None]
     return FeDataset(y=to_si(r), y_clean=to_si(rc), fm=np.asarray(r.fm, float),
                      mu_nozzle=np.asarray(r.mu_nozzle, float), level=level,
                      x0=np.asarray(r.x0, float), sample_rate_hz=float(sample_rate_hz),
-                     snr_db=float(np.median(r.snr_db)), kind="nonlinear")
+                     snr_db=float(np.median(r.snr_db)), kind="nonlinear", y_healthy=y_healthy)

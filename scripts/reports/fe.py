@@ -71,6 +71,7 @@ def fm_accuracy(est, ds):
 
 MODEL = InkChannelModel()
 N_PHYS = 100  # physics-based signals per dried class
+N_BASELINE = 8  # healthy frames per nozzle averaged into its vp baseline
 
 
 def main(argv=None):
@@ -99,7 +100,7 @@ def main(argv=None):
             MODEL, kind="ct", x0="random", snr_db=snr, seed=seed + 2 + snr)
     x0_given = {name: ("common", x0c) for name in sets}
     # physics-based (4.5): the simulator's nonlinear variant, all dried signals
-    ph = nonlinear_set(N_PHYS, seed=seed + 100, sample_rate_hz=FS)
+    ph = nonlinear_set(N_PHYS, seed=seed + 100, sample_rate_hz=FS, healthy_frames=N_BASELINE)
     x0c_nl = common_x0(InkChannelModel(InkChannelParams(b=DEFAULT_COUPLING_M3_PER_V)))
     PH_COMMON = "physics-based (simulate_nonlinear), default noise"
     PH_TRUE = "physics-based (simulate_nonlinear), default noise, true x0"
@@ -120,6 +121,34 @@ def main(argv=None):
                 continue
             est = run(ds, m, x0_given[name][1])
             results[name, m] = (est, accuracy(est, ds), fm_accuracy(est, ds))
+    # ours: the nozzle's own healthy reading as a baseline (what a monitor has seen of it
+    # before it dried): the mean vp estimate over N_BASELINE healthy frames, subtracted
+    n_ph, _, n_s = ph.y_healthy.shape
+    base = run(dataclasses.replace(ph, y=ph.y_healthy.reshape(-1, n_s)), "vp", None,
+               vp_trace_points=0).fm.reshape(n_ph, N_BASELINE).mean(axis=1)
+    est_b = run(ph, "vp", None, baseline_fm=base)
+    PH_BASE = (f"physics-based (simulate_nonlinear), default noise, per-nozzle healthy "
+               f"baseline ({N_BASELINE} frames)")
+    results[PH_BASE, "vp"] = (est_b, accuracy(est_b, ph), fm_accuracy(est_b, ph))
+    cover_b = np.mean((est_b.ci[:, 0] <= ph.fm) & (ph.fm <= est_b.ci[:, 1])) * 100
+    # why vp alone stops near 95 %: the same nozzles with one kind of spread switched off
+    from inkdiag_core import FaultClass
+    from inkdiag_core.nonlinear import simulate_nonlinear
+    from inkdiag_core.simulator import Spreads
+    ablation = {}
+    for label, sp in (("all spreads (default)", Spreads()),
+                      ("no temperature spread", Spreads(temperature_std_k=0.0)),
+                      ("no geometry spread", Spreads(nozzle_radius_rel=0.0, nozzle_length_rel=0.0,
+                                                     restrictor_radius_rel=0.0)),
+                      ("no piezo spread", Spreads(actuator_compliance_rel=0.0, coupling_rel=0.0)),
+                      ("no noise, no ADC", Spreads(snr_db=np.inf, adc_bits=None))):
+        r = simulate_nonlinear({c: N_PHYS for c in (FaultClass.SLIGHTLY_DRIED, FaultClass.INTERMEDIATELY_DRIED,
+                                                   FaultClass.DEEPLY_DRIED)},
+                               seed=seed + 100, sample_rate_hz=FS, spreads=sp)
+        y_si = (r.traces.astype(float) - r.sensor_offset[:, None]) / r.sensor_gain[:, None]
+        f_hat = estimate_fm_batch(y_si, MODEL, FS, method="vp").fm
+        a = 100 * (1 - np.abs(f_hat - r.fm) / np.abs(r.fm))
+        ablation[label] = (np.median(a), np.percentile(a, 10))
     name_ct = "synthetic CT exact (eq. 26, RK45), common x0"
     bare = {it: accuracy(run(sets[name_ct], "dt_exact", x0c, sensitivity=False, n_iter=it),
                          sets[name_ct]) for it in (0, 2, 3)}
@@ -257,6 +286,9 @@ def main(argv=None):
             xg = "none" if m == "vp" else x0_given[name][0]
             P(f"| {name} | {m} | {xg} | {np.nanmedian(a):.2f} | {lo:.2f} | "
               f"{np.nanmedian(afm):.2f} | {th} |")
+    est_b, a_b, afm_b = results[PH_BASE, "vp"]
+    P(f"| {PH_BASE} | vp (ours) | none | {np.nanmedian(a_b):.2f} | {np.nanpercentile(a_b, 10):.2f} | "
+      f"{np.nanmedian(afm_b):.2f} | n/a |")
     P("")
     P("x0 given: `common` is the common initial state of 4.4.1 (`fe_datasets.common_x0`: "
       "`[-b u, 0, 0]` right after a 20 V stroke; for the physics-based set with the nonlinear "
@@ -340,6 +372,21 @@ def main(argv=None):
       "given nothing, is limited by the model mismatch alone (noise-free "
       f"{np.nanmedian(results[PH_CLEAN, 'vp'][2]):.1f} %, noisy "
       f"{np.nanmedian(results[PH_COMMON, 'vp'][2]):.1f} % median).")
+    P(f"* Why vp alone stops near 95 % on the physics-based set, and what does better. The same "
+      f"{ph.fm.size} nozzles re-simulated with one kind of spread switched off (`.fm` median / P10 %): "
+      + "; ".join(f"{k} {v[0]:.2f} / {v[1]:.2f}" for k, v in ablation.items())
+      + ". Noise costs little; the nozzle's own piezo and geometry tolerances cost most: the "
+      "nominal model cannot know them, and vp reads them as a fault. They are properties of the "
+      "nozzle, not of the moment, so a monitor that has seen the nozzle healthy can remove them: "
+      f"**vp with a per-nozzle healthy baseline** (the mean vp estimate over {N_BASELINE} healthy "
+      "frames of the same nozzle, at the nominal ink temperature and with their own sensor "
+      "noise; `estimate_fm_batch(..., baseline_fm=...)`) reaches a median of "
+      f"{np.nanmedian(a_b):.2f} % (P10 {np.nanpercentile(a_b, 10):.2f} %, `.fm` median "
+      f"{np.nanmedian(afm_b):.2f} %) over all {ph.fm.size} signals: the >= 95 % target, without "
+      "x0. The temperature is not shared between baseline and dried trace, so what remains is "
+      "the temperature spread, the nonlinearity and noise. Its 95 % CI is the fit's (noise) "
+      f"interval only and covers the truth for {cover_b:.0f} % of these signals: the model "
+      "mismatch left is not in it.")
     P("")
     P("## Figures")
     P("")
