@@ -22,7 +22,7 @@ from .observer import UIODesign, design_uio
 from .persistence import ModelFileError, load_model, save_model
 from .residual import ResidualFilter, design_residual_filter
 from .screening import INVALID_REASONS, screen_traces
-from .simulator import SimulationResult, simulate, simulate_nozzles
+from .simulator import SimulationResult, healthy_twin_frames, simulate, simulate_nozzles
 
 __version__ = "0.1.0"
 
@@ -58,6 +58,7 @@ __all__ = [
     "simulate",
     "simulate_nonlinear",
     "simulate_nozzles",
+    "healthy_twin_frames",
     "viscosity_to_fm",
 ]
 
@@ -68,3 +69,7 @@ __all__ += ["FmTrend", "FmTrendBank", "deeply_dried_fm"]
 from .labelling import FrameLabels, label_frames, label_traces  # noqa: E402
 
 __all__ += ["FrameLabels", "label_frames", "label_traces"]
+
+from .baseline import BaselineKpis, baseline_kpis, with_baseline  # noqa: E402
+
+__all__ += ["BaselineKpis", "baseline_kpis", "with_baseline"]

@@ -18,6 +18,10 @@ Feature sets (``features=``):
 ``"rich"``
     KPI_Y + KPI_R_Modified + the KPIs of the second spectral mode + relative
     band energies of the raw trace: richer features where they earn their place.
+``"kpi_y+baseline"``
+    KPI_Y + the KPIs relative to the nozzle's own healthy baseline
+    (:mod:`inkdiag_core.baseline`); its input rows are ``[trace, baseline KPIs]``
+    (:func:`inkdiag_core.baseline.with_baseline`), not bare traces.
 
 Tasks: ``"fi"`` classifies into the 12 classes of :class:`FaultClass` (both
 healthy classes included, Table 2/9); ``"fd"`` is healthy (0) vs faulty (1),
@@ -52,7 +56,7 @@ __all__ = [
     "make_fdi_pipeline",
 ]
 
-FEATURE_SETS = ("kpi_y", "kpi_r", "kpi_r_modified", "kpi_y+r_modified", "rich")
+FEATURE_SETS = ("kpi_y", "kpi_r", "kpi_r_modified", "kpi_y+r_modified", "rich", "kpi_y+baseline")
 HEALTHY_VALUES = ("ok_signal", "healthy_nozzle")
 
 #: Band edges of :class:`BandEnergies`, Hz: around the classes' modes (Table 3).
@@ -193,6 +197,10 @@ def _features(features: str, fs: float):
             ("raw", RawTraceFeatures(sample_rate_hz=fs)),
             residual("modified", "kpi_r_modified"),
         ])
+    if features == "kpi_y+baseline":
+        from .baseline import BaselineKpis
+
+        return BaselineKpis(sample_rate_hz=fs)
     raise ValueError(f"features must be one of {FEATURE_SETS}, got {features!r}")
 
 

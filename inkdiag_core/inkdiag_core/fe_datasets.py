@@ -234,7 +234,7 @@ def nonlinear_set(n_per_class=100, *, seed=0, sample_rate_hz=10e6, n_samples=512
     """
     from .faults import FaultClass
     from .nonlinear import simulate_nonlinear
-    from .simulator import Spreads
+    from .simulator import Spreads, healthy_twin_frames
 
     classes = (FaultClass.SLIGHTLY_DRIED, FaultClass.INTERMEDIATELY_DRIED,
                FaultClass.DEEPLY_DRIED)
@@ -251,14 +251,13 @@ def nonlinear_set(n_per_class=100, *, seed=0, sample_rate_hz=10e6, n_samples=512
     level = np.array([classes.index(c) for c in r.labels])
     y_healthy = None
     if healthy_frames > 0:
-        h = simulate_nonlinear({FaultClass.HEALTHY_NOZZLE: len(r.fm)}, **kw, spreads=Spreads(
-            temperature_std_k=0.0, snr_db=np.inf, adc_bits=None))
+        h, volts = healthy_twin_frames(len(r.fm), seed=seed, n_frames=int(healthy_frames),
+                                       noise_std_v=r.noise_std_v, simulate_fn=simulate_nonlinear,
+                                       sample_rate_hz=sample_rate_hz, n_samples=n_samples)
         for name in ("r_n", "L_n", "r_r", "B_act", "b"):
             if not np.array_equal(h.params[name], r.params[name]):  # pragma: no cover - defensive
                 raise RuntimeError(f"healthy and dried draws differ in {name}")
-        noise = np.random.default_rng([seed, 7]).standard_normal((len(r.fm), int(healthy_frames), n_samples))
-        volts = h.traces.astype(float)[:, None, :] + r.noise_std_v * noise
-        y_healthy = (volts - h.sensor_offset[:, None, None]) / h.sensor_gain[:, None, None]
+        y_healthy = (volts.astype(float) - h.sensor_offset[:, None, None]) / h.sensor_gain[:, None, None]
     return FeDataset(y=to_si(r), y_clean=to_si(rc), fm=np.asarray(r.fm, float),
                      mu_nozzle=np.asarray(r.mu_nozzle, float), level=level,
                      x0=np.asarray(r.x0, float), sample_rate_hz=float(sample_rate_hz),
