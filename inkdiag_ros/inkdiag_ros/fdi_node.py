@@ -93,15 +93,17 @@ class FdiNode(Node):
         self._labels_pub = self.create_publisher(LABELS_MSG_TYPE, topics.LABELS, RELIABLE_QOS)
         self._drying_pub = self.create_publisher(DRYING_MSG_TYPE, topics.DRYING_NOZZLES, RELIABLE_QOS)
         self._diag_pub = self.create_publisher(DIAGNOSTICS_MSG_TYPE, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
-        self._sub = self.create_subscription(TRACE_MSG_TYPE, topics.TRACES, self._on_traces, TRACES_QOS)
-        self._diag_timer = self.create_timer(self.config["diagnostics_period_s"], self._on_diagnostics)
         self._worker = BatchWorker(self._label_batch, max_queued=self.config["max_queued_frames"],
                                    max_batch_rows=self.config["max_batch_traces"],
                                    on_drop=self._on_dropped, on_error=self._on_worker_error,
                                    name="fdi-labeller")
+        self._sub = self.create_subscription(TRACE_MSG_TYPE, topics.TRACES, self._on_traces, TRACES_QOS)
+        self._diag_timer = self.create_timer(self.config["diagnostics_period_s"], self._on_diagnostics)
 
     def destroy_node(self):
-        self._worker.stop()
+        worker = getattr(self, "_worker", None)  # absent if __init__ failed part-way
+        if worker is not None:
+            worker.stop()
         return super().destroy_node()
 
     def wait_idle(self, timeout: float | None = None) -> bool:
@@ -123,7 +125,7 @@ class FdiNode(Node):
                                f"(fault-detection threshold {self.fd_threshold:.3g})")
 
     def _on_traces(self, msg) -> None:
-        self.stats.frames_received += 1
+        self.stats.received()
         try:
             frame = decode_traces(msg, max_nozzle_id=self._max_id, n_samples=self.config["n_samples"],
                                   sample_rate_hz=self.config["sample_rate_hz"])
@@ -171,17 +173,20 @@ class FdiNode(Node):
             classes=rows.classes, confidence=rows.confidence, valid=rows.valid,
             reasons=rows.reasons, model_id=self.model_id)
         self.stats.labelled(report.counts, report.n_nozzles)
-        if not self.context.ok():
-            return  # shutting down: nothing to publish to
-        self._labels_pub.publish(encode_labels(report))
-        self._drying_pub.publish(encode_drying(DryingNozzles.from_labels(report)))
+        try:
+            self._labels_pub.publish(encode_labels(report))
+            self._drying_pub.publish(encode_drying(DryingNozzles.from_labels(report)))
+        except Exception:
+            if self.context.ok():
+                raise  # a real failure: the worker counts and logs it
+            # shutting down (SIGINT/SIGTERM): nothing left to publish to
 
     def _on_diagnostics(self) -> None:
-        level, message, values = self.stats.period(self.model is not None)
+        level, message, values, counts = self.stats.period(self.model is not None)
         values = {"model_id": self.model_id, **values}
         self._diag_pub.publish(build_diagnostics(
             namespace=self.get_namespace(), level=level, message=message, values=values,
-            counts=dict(self.stats.counts), stamp=self.get_clock().now().to_msg()))
+            counts=counts, stamp=self.get_clock().now().to_msg()))
 
 
 def main(args=None) -> int:

@@ -2,14 +2,20 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from collections import Counter
 
 
 class FdiStats:
-    """What the FDI node has seen; :meth:`period` turns it into a diagnostics snapshot."""
+    """What the FDI node has seen; :meth:`period` turns it into a diagnostics snapshot.
+
+    The node's executor thread and its labelling thread both update it; every
+    method holds one lock, so a snapshot never sees half an update.
+    """
 
     def __init__(self):
+        self._lock = threading.Lock()
         self.frames_received = 0
         self.frames_labelled = 0
         self.frames_malformed = 0
@@ -24,30 +30,46 @@ class FdiStats:
         self._mark = (time.monotonic(), 0, 0, 0, 0, 0, 0, 0.0)
 
     def malformed(self, reason: str) -> None:
-        self.frames_malformed += 1
-        self.last_error = reason
+        with self._lock:
+            self.frames_malformed += 1
+            self.last_error = reason
 
     def failed(self, reason: str) -> None:
-        self.frames_failed += 1
-        self.last_error = reason
+        with self._lock:
+            self.frames_failed += 1
+            self.last_error = reason
 
     def dropped(self, reason: str) -> None:
-        self.frames_dropped += 1
-        self.last_error = reason
+        with self._lock:
+            self.frames_dropped += 1
+            self.last_error = reason
 
     def batch(self, n_frames: int, seconds: float) -> None:
         """One labelling pass over ``n_frames`` frames took ``seconds`` (wall clock)."""
-        self.batches += 1
-        self.busy_s += seconds
+        with self._lock:
+            self.batches += 1
+            self.busy_s += seconds
+
+    def received(self) -> None:
+        with self._lock:
+            self.frames_received += 1
 
     def labelled(self, counts: dict, n_rows: int) -> None:
-        self.frames_labelled += 1
-        self.traces_labelled += n_rows
-        self.counts.update(counts)
-        self.rows_invalid += counts.get("invalid", 0)
+        with self._lock:
+            self.frames_labelled += 1
+            self.traces_labelled += n_rows
+            self.counts.update(counts)
+            self.rows_invalid += counts.get("invalid", 0)
 
     def period(self, model_loaded: bool):
-        """``(level, message, values)`` over the time since the last call."""
+        """``(level, message, values, counts)`` over the time since the last call.
+
+        ``counts`` is a copy of the cumulative rows per label.
+        """
+        with self._lock:
+            return self._period(model_loaded) + (dict(self.counts),)
+
+    def _period(self, model_loaded: bool):
         now = time.monotonic()
         t0, f0, n0, m0, i0, b0, lf0, busy0 = self._mark
         dt = max(now - t0, 1e-9)
