@@ -47,7 +47,8 @@ def label_traces(pipeline, traces, *, fd_threshold: float = 0.5) -> FrameLabels:
     classes = np.full(n, "", dtype=object)
     confidence = np.full(n, np.nan)
     if valid.any():
-        labels, conf, _ = classify(pipeline, x[valid], fd_threshold=fd_threshold)
+        rows = x if valid.all() else x[valid]  # no copy of a frame that is all valid
+        labels, conf, _ = classify(pipeline, rows, fd_threshold=fd_threshold)
         classes[valid] = labels.astype(object)
         confidence[valid] = conf
     return FrameLabels(classes, confidence, valid, reasons)
