@@ -11,9 +11,10 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
-        ("share/" + package_name + "/config", glob(package_name + "/config/*.yaml")),
+        ("share/" + package_name + "/config", glob(package_name + "/config/*.yaml")
+         + glob(package_name + "/config/*.xml")),
     ],
-    package_data={package_name: ["config/*.yaml"]},
+    package_data={package_name: ["config/*.yaml", "config/*.xml"]},
     python_requires=">=3.10",
     # rclpy and the message packages come from ROS 2 (sourced Jazzy or the
     # PyPI wheels of requirements/ros.txt), never from install_requires.

@@ -7,8 +7,8 @@
 #     setup.cfg / package.xml, or the Python version changed (a sha256 stamp);
 #   - a clear message and a non-zero exit when Python is too old or an install fails.
 # Then export the ROS environment every inkdiag process runs with: discovery
-# stays on this machine's loopback interface, and a domain id of its own
-# unless the caller chose one.
+# stays on this machine's loopback interface, a domain id of its own unless the
+# caller chose one, and the Fast DDS profile for large messages.
 
 INKDIAG_ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 INKDIAG_VENV="$INKDIAG_ROOT/.venv"
@@ -64,3 +64,6 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST
 # Fast DDS on Linux: domain ids 0..101 stay clear of the ephemeral port range.
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( ($$ % 100) + 1 ))}"
 export PYTHONUNBUFFERED=1
+# Fast DDS 2.x (Jazzy): a 16 MB shared-memory segment for large trace messages (the
+# default 512 kB holds one 400 kB message; see the profile's comment).
+export FASTRTPS_DEFAULT_PROFILES_FILE="${FASTRTPS_DEFAULT_PROFILES_FILE:-$INKDIAG_ROOT/inkdiag_ros/inkdiag_ros/config/fastdds_profile.xml}"

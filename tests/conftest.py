@@ -24,6 +24,10 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 if os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] != "LOCALHOST":  # never let tests leave loopback
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("ROS_DOMAIN_ID", str(os.getpid() % 100 + 1))
+# the shipped Fast DDS profile (large shared-memory segment), as scripts/_bootstrap.sh sets it
+os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", os.path.join(
+    os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+    "inkdiag_ros", "inkdiag_ros", "config", "fastdds_profile.xml"))
 
 _BASE_DOMAIN = int(os.environ["ROS_DOMAIN_ID"])
 _domain_counter = itertools.count()

@@ -32,3 +32,4 @@ def test_stale_default_is_retrained_a_users_model_is_not(tmp_path):
     ensure_default_model(default, progress=False, log=logs.append)
     assert "unusable" in logs[-1] and "tampered" in logs[-1]
     assert ensure_default_model(default, progress=False, log=logs.append) == default  # verifies again
+
