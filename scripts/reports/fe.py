@@ -131,7 +131,7 @@ def main(argv=None):
                f"baseline ({N_BASELINE} frames)")
     results[PH_BASE, "vp"] = (est_b, accuracy(est_b, ph), fm_accuracy(est_b, ph))
     cover_b = np.mean((est_b.ci[:, 0] <= ph.fm) & (ph.fm <= est_b.ci[:, 1])) * 100
-    # why vp alone stops near 95 %: the same nozzles with one kind of spread switched off
+    # why vp alone stops near 95 %: the set re-drawn with one kind of spread switched off
     from inkdiag_core import FaultClass
     from inkdiag_core.nonlinear import simulate_nonlinear
     from inkdiag_core.simulator import Spreads
@@ -372,8 +372,10 @@ def main(argv=None):
       "given nothing, is limited by the model mismatch alone (noise-free "
       f"{np.nanmedian(results[PH_CLEAN, 'vp'][2]):.1f} %, noisy "
       f"{np.nanmedian(results[PH_COMMON, 'vp'][2]):.1f} % median).")
-    P(f"* Why vp alone stops near 95 % on the physics-based set, and what does better. The same "
-      f"{ph.fm.size} nozzles re-simulated with one kind of spread switched off (`.fm` median / P10 %): "
+    P(f"* Why vp alone stops near 95 % on the physics-based set, and what does better. "
+      f"{ph.fm.size} signals from the same seed with one kind of spread switched off (switching "
+      "a geometry or piezo spread off also shifts the later random draws, so these are "
+      "comparable sets, not the same nozzles; `.fm` median / P10 %): "
       + "; ".join(f"{k} {v[0]:.2f} / {v[1]:.2f}" for k, v in ablation.items())
       + ". Noise costs little; the nozzle's own piezo and geometry tolerances cost most: the "
       "nominal model cannot know them, and vp reads them as a fault. They are properties of the "
