@@ -112,8 +112,8 @@ def test_vp_recovers_fm_without_x0(model, rel):
     fm = float(viscosity_to_fm(model.params, model.params.mu * (1 + rel)))
     x0 = random_x0(model, 1, rng)[0]
     y = _ct_reference(model, fm, x0) + 3e-12  # plus a DC offset
-    est = estimate_fm(y, model, FS)  # auto -> vp
-    assert est.method == "vp"
+    est = estimate_fm(y, model, FS)  # auto, no x0 -> vp_cal
+    assert est.method == "vp_cal"
     assert abs(est.fm / fm - 1) < 1e-4
     np.testing.assert_allclose(est.x0, x0, rtol=1e-3, atol=1e-6 * np.abs(x0).max())
     np.testing.assert_allclose(est.offset, 3e-12, rtol=1e-3)
@@ -189,7 +189,7 @@ def test_bad_inputs(model):
         estimate_fm(y, model, FS, method="ct")
     with pytest.raises(ValueError, match=r"x0 must have shape \(3,\)"):
         estimate_fm(y, model, FS, method="dt", x0=np.zeros(4))
-    with pytest.raises(ValueError, match="valid methods are auto, dt, dt_exact, ct, vp"):
+    with pytest.raises(ValueError, match="valid methods are auto, dt, dt_exact, ct, vp, vp_cal"):
         estimate_fm(y, model, FS, method="kalman")
     with pytest.raises(ValueError, match="sample_rate_hz"):
         estimate_fm(y, model, -1.0)
@@ -213,7 +213,8 @@ def test_vp_per_nozzle_baseline_removes_the_nozzles_own_mismatch(model):
     assert abs(cal.fm / fm - 1) < 0.35 * abs(raw.fm / fm - 1)
     assert cal.fm == pytest.approx(raw.fm - base) and cal.std == raw.std
     np.testing.assert_allclose(cal.ci, raw.ci - base)
-    batch = estimate_fm_batch(np.stack([dried, dried]), model, FS, baseline_fm=[base, 0.0])
+    batch = estimate_fm_batch(np.stack([dried, dried]), model, FS, method="vp",
+                              baseline_fm=[base, 0.0])
     assert batch.fm[0] == pytest.approx(cal.fm) and batch.fm[1] == pytest.approx(raw.fm)
     with pytest.raises(ValueError, match=r"baseline_fm must be a finite scalar or have shape \(2,\)"):
         estimate_fm_batch(np.stack([dried, dried]), model, FS, baseline_fm=[base])
@@ -232,3 +233,54 @@ def test_nonlinear_set_healthy_frames_are_the_same_nozzles_with_own_noise():
     # the healthy nozzles read as healthy: |f_hat| far below the dried ones' |f_m|
     f0 = estimate_fm_batch(ds.y_healthy[:, 0], InkChannelModel(), FS, method="vp").fm
     assert np.median(np.abs(f0)) < 0.2 * np.median(np.abs(ds.fm))
+
+
+# -- vp_cal: vp with the learned mismatch correction ----------------------------
+def test_auto_picks_vp_cal_without_x0_and_vp_with_it(model):
+    y = _ct_reference(model, -4e5, common_x0(model))
+    assert estimate_fm(y, model, FS).method == "vp_cal"
+    assert estimate_fm(y, model, FS, x0=common_x0(model)).method == "vp"
+
+
+@pytest.mark.parametrize("rel", [0.2, 1.0, 4.0, 10.0])
+def test_vp_cal_noise_free_recovery(model, rel):
+    """On data the nominal linear model explains, the correction vanishes: exact f_m."""
+    rng = np.random.default_rng(11)
+    fm = float(viscosity_to_fm(model.params, model.params.mu * (1 + rel)))
+    x0 = random_x0(model, 1, rng)[0]
+    y = _ct_reference(model, fm, x0) - 2e-12
+    est = estimate_fm(y, model, FS, method="vp_cal")
+    assert est.method == "vp_cal"
+    assert abs(est.fm / fm - 1) < 1e-4
+    ok = np.isfinite(est.trace)
+    assert ok[N // 4:].all() and np.all(np.abs(est.trace[ok] / fm - 1) < 1e-3)
+    assert est.trace[-1] == pytest.approx(est.fm, rel=1e-12)
+
+
+def test_vp_cal_healthy_trace_zero_within_its_uncertainty(model):
+    rng = np.random.default_rng(13)
+    Y = np.stack([_ct_reference(model, 0.0, x) for x in random_x0(model, 40, rng)])
+    Y += np.sqrt(np.mean(Y**2, axis=1, keepdims=True) / 1e3) * rng.standard_normal(Y.shape)
+    est = estimate_fm_batch(Y, model, FS, method="vp_cal")
+    assert np.all(np.isfinite(est.std)) and np.all(est.std > 0)
+    z = est.fm / est.std
+    assert np.mean(np.abs(z) < 1.96) >= 0.85  # the 95 % CI covers 0 (30 dB)
+    assert 0.5 < np.std(z) < 1.6
+    one = estimate_fm(Y[0], model, FS, method="vp_cal")
+    assert one.ci[0] < one.fm < one.ci[1]
+
+
+def test_vp_cal_on_independent_physics_based_data(model):
+    """Nonlinear simulations with a seed outside the calibration's (11-19) and the report's
+    (100): the correction must carry over, better than vp and >= 95 % median (.fm)."""
+    from inkdiag_core.fe_datasets import nonlinear_set
+
+    ds = nonlinear_set(100, seed=7, sample_rate_hz=FS)
+    acc = {}
+    for m in ("vp", "vp_cal"):
+        est = estimate_fm_batch(ds.y, model, FS, method=m)
+        acc[m] = 100 * (1 - np.abs(est.fm - ds.fm) / np.abs(ds.fm))
+        assert np.all(est.fm < 0)  # drying: f_m < 0
+    assert np.median(acc["vp_cal"]) > np.median(acc["vp"])
+    assert np.percentile(acc["vp_cal"], 10) > np.percentile(acc["vp"], 10)
+    assert np.median(acc["vp_cal"]) >= 95.0
