@@ -137,6 +137,53 @@ def test_non_sinusoidal_traces_give_finite_kpis():
     assert (kpis[:, COL["damping_ratio"]] >= 0).all() and (kpis[:, COL["damping_ratio"]] < 1).all()
 
 
+@pytest.mark.parametrize(
+    ("dtype", "scales"),
+    [
+        (np.float32, [1e-11, 1e-6, 1e6, 1e17, 1e20, 1e36]),
+        (np.float64, [1e-250, 1e-150, 1e-60, 1e60, 1e160, 1e250]),
+    ],
+)
+def test_kpis_scale_with_the_trace_over_the_whole_dtype_range(dtype, scales):
+    # The power spectrum of a float32 trace overflows above ~1e16 and underflows below
+    # ~1e-12, that of a float64 trace above ~1e150: the KPIs must not notice.
+    unit, _ = damped_sinusoids(30, np.random.default_rng(11), snr_db=30.0)
+    unit = unit.astype(dtype)
+    ref = extract_kpis(unit, FS)
+    for scale in scales:
+        with np.errstate(all="raise"):
+            kpis = extract_kpis(unit * dtype(scale), FS)
+        assert np.isfinite(kpis).all(), scale
+        # frequency, damping ratio, phase unchanged; dc, amplitude, magnitude ~ scale;
+        # energy ~ scale**2.
+        np.testing.assert_allclose(kpis[:, [1, 2, 4]], ref[:, [1, 2, 4]], rtol=1e-4, atol=1e-6)
+        rel = (kpis[:, [0, 3, 6]] / scale - ref[:, [0, 3, 6]]) / ref[:, [3]]
+        assert np.abs(rel).max() <= 1e-4, scale
+        with np.errstate(all="ignore"):
+            expected = ref[:, 5] * scale * scale
+        normal = (expected > 1e-290) & (expected < 1e300)
+        np.testing.assert_allclose(kpis[normal, 5], expected[normal], rtol=1e-4)
+        # where sum y**2 itself leaves float64, the energy saturates or underflows
+        assert (kpis[expected >= 1e300, 5] == np.finfo(np.float64).max).all()
+        assert (kpis[expected <= 1e-290, 5] <= 1e-289).all()
+
+
+@pytest.mark.parametrize(
+    "trace",
+    [
+        np.full(N, 3e38, dtype=np.float32) * np.where(np.arange(N) % 2, 1, -1).astype(np.float32),
+        np.float32(3e38) * np.cos(2 * np.pi * 3e5 * np.arange(N) / FS).astype(np.float32),
+        1.7e308 * np.cos(2 * np.pi * 3e5 * np.arange(N) / FS),
+        np.full(N, 1e-45, dtype=np.float32) * (np.arange(N) % 3),
+        5e-324 * (np.arange(N) % 4),
+    ],
+    ids=["f32-max-nyquist", "f32-max-sine", "f64-max-sine", "f32-denormal", "f64-denormal"],
+)
+def test_extreme_finite_traces_give_finite_kpis(trace):
+    kpis = extract_kpis(trace, FS)
+    assert np.isfinite(kpis).all()
+
+
 @pytest.mark.parametrize("n_samples", range(MIN_SAMPLES, 17))
 def test_short_traces_give_finite_kpis(n_samples):
     y = np.random.default_rng(n_samples).standard_normal((30, n_samples))

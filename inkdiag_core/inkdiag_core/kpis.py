@@ -88,6 +88,11 @@ _SIGMA_MIN = 1e-9
 _SIGMA_MAX = 5.0
 # A trace whose AC power is at most this fraction of its total power counts as flat.
 _FLAT_RTOL = 1e-12
+# A trace whose AC power sum (Parseval) exceeds _POWER_MAX or whose peak magnitude is below
+# _MAGNITUDE_MIN for its precision is refitted scaled to a unit peak (see _extract_chunk):
+# the limits keep |Y|**2 and the fit's Gram matrices well inside the floating-point range.
+_POWER_MAX = 1e300
+_MAGNITUDE_MIN = {np.float32: 1e-12, np.float64: 1e-140}
 
 
 class InvalidTraceError(ValueError):
@@ -430,7 +435,10 @@ def extract_kpis(traces, sample_rate_hz):
     - Flat traces (AC power at most ``1e-12`` of the total power, e.g. a constant or an
       all-zero trace) give ``dc_offset = mean``, and ``0`` for frequency, damping ratio,
       amplitude, phase, energy and magnitude: finite values, so classifiers never see NaN.
-    - Every output is finite for every accepted input. A trace that is not a damped
+    - Every output is finite for every accepted input, at any amplitude the input dtype
+      can hold: the KPIs scale with the trace (frequency, damping ratio and phase not at
+      all), and ``energy`` saturates at the largest float64 where ``sum y**2`` exceeds
+      it (or underflows to 0 below its smallest). A trace that is not a damped
       sinusoid (noise, a step, an overdamped decay) still gets the least-squares best single
       damped sinusoid near its FFT peak, which may be meaningless.
     - Very heavy damping (the envelope falling by ``1/e`` within a few samples) leaves
@@ -458,11 +466,27 @@ def extract_kpis(traces, sample_rate_hz):
     return out
 
 
-def _extract_chunk(y, fs, out):
-    """KPIs of the validated traces ``y`` (n, N), written into ``out`` (n, 7)."""
-    n_traces, n_samples = y.shape
+def _peak_spectrum(y):
+    """The spectrum pass shared by every FFT-peak method: rfft, power, peak bin, Parseval.
+
+    Parameters
+    ----------
+    y : ndarray, shape (n, N)
+        Validated traces (float32 or float64).
+
+    Returns
+    -------
+    spec : ndarray of complex, shape (n, N // 2 + 1)
+        ``rfft(y)`` in the input precision.
+    m_peak : ndarray of int, shape (n,)
+        Index of the largest ``|Y[m]|``, ``m >= 1``.
+    peak_power : ndarray of float64, shape (n,)
+        ``|Y[m_peak]|**2``.
+    ac_sumsq : ndarray of float64, shape (n,)
+        ``sum_k (y[k] - mean(y))**2`` by Parseval.
+    """
+    n_samples = y.shape[1]
     spec = scipy.fft.rfft(y, axis=-1)
-    half = n_samples // 2
     # |Y[m]|^2 for m = 1 .. N/2 (the mean only enters bin 0).
     ac = spec[:, 1:]
     power = ac.real**2 + ac.imag**2
@@ -472,11 +496,45 @@ def _extract_chunk(y, fs, out):
     )
     # Parseval: sum_k (y_k - mean)^2 = (2 sum_{m=1}^{N/2} |Y_m|^2 - [N even] |Y_{N/2}|^2) / N.
     ac_sumsq = 2.0 * power.sum(axis=1, dtype=np.float64)
-    nyq_scale = np.full(n_traces, 2.0)
     if n_samples % 2 == 0:
         ac_sumsq -= power[:, -1]
-        nyq_scale[m_peak == half] = 1.0
     ac_sumsq /= n_samples
+    return spec, m_peak, peak_power, ac_sumsq
+
+
+def _extract_chunk(y, fs, out):
+    """KPIs of the validated traces ``y`` (n, N), written into ``out`` (n, 7)."""
+    with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
+        _fit_chunk(y, fs, out, *_peak_spectrum(y))
+    # Traces whose power spectrum leaves the floating-point range (float32 amplitudes
+    # above ~1e16 overflow |Y|^2 and below ~1e-12 lose it to underflow; float64 amplitudes
+    # above ~1e150 overflow it) are fitted again in float64, scaled to a unit peak. The
+    # KPIs are scale-equivariant: frequency, damping ratio and phase do not change; dc,
+    # amplitude and magnitude scale with the trace and the energy with its square, all
+    # saturating at the largest float64.
+    rescale = ~(out[:, 5] * fs <= _POWER_MAX) | (out[:, 6] < _MAGNITUDE_MIN[y.dtype.type])
+    if rescale.any():
+        rows = np.flatnonzero(rescale)
+        y_big = y[rows].astype(np.float64)
+        scale = np.abs(y_big).max(axis=1)
+        scale[scale == 0.0] = 1.0  # an all-zero trace: flat, nothing to rescale
+        y_big /= scale[:, None]
+        sub = np.empty((rows.size, out.shape[1]))
+        _fit_chunk(y_big, fs, sub, *_peak_spectrum(y_big))
+        big = np.finfo(np.float64).max
+        with np.errstate(over="ignore", under="ignore"):
+            sub[:, [0, 3, 6]] = np.clip(sub[:, [0, 3, 6]] * scale[:, None], -big, big)
+            sub[:, 5] = np.minimum(sub[:, 5] * scale**2, big)
+        out[rows] = sub
+
+
+def _fit_chunk(y, fs, out, spec, m_peak, peak_power, ac_sumsq):
+    """Fit the traces ``y`` (n, N) from their spectrum pass; KPIs into ``out`` (n, 7)."""
+    n_traces, n_samples = y.shape
+    half = n_samples // 2
+    nyq_scale = np.full(n_traces, 2.0)
+    if n_samples % 2 == 0:
+        nyq_scale[m_peak == half] = 1.0
     mean = spec[:, 0].real.astype(np.float64) / n_samples
 
     # Window of K consecutive bins around the peak, inside 1 .. N/2.
@@ -484,7 +542,13 @@ def _extract_chunk(y, fs, out):
     start = np.clip(m_peak - n_bins // 2, 1, half - n_bins + 1)
     idx = start[:, None] + np.arange(n_bins)
     Yw = np.take_along_axis(spec, idx, axis=1).astype(np.complex128)
+    # Fit a window scaled by a power of two near its peak (exact, so the KPIs do not
+    # change) to keep the fit's products inside the float64 range at any amplitude.
+    _, exponent = np.frexp(np.sqrt(peak_power))
+    exponent = exponent[:, None]
+    Yw = np.ldexp(Yw.view(np.float64), -exponent).view(np.complex128)
     omega, sigma, C = _fit_windows(Yw, start, m_peak, n_samples)
+    C = np.ldexp(np.stack([C.real, C.imag], axis=1), exponent).view(np.complex128)[:, 0]
 
     # DC from bin 0: Y_0 = N dc + Re(C G_0), G_0 = (1 - z^N) / (1 - z).
     lam = -sigma + 1j * omega

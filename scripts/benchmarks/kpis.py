@@ -7,6 +7,10 @@
 - a per-trace ``scipy.optimize.curve_fit`` of the same damped-sinusoid model on a subset,
   initialised from the FFT peak, timed and extrapolated per trace.
 
+It also times the extractor's own spectrum pass alone (rfft, power spectrum, peak bin and
+Parseval sum, in the extractor's chunks, no fit): the floor of any FFT-peak method built
+from numpy calls, whose ratio bounds what the fit can reach.
+
 Prints traces/s of each, the ratios, and the accuracy reached on the batch, so that speed
 is not bought with accuracy. Single-threaded numpy/scipy defaults; best of ``--repeats``.
 """
@@ -21,10 +25,12 @@ import scipy.fft
 import scipy.optimize
 
 try:
-    from inkdiag_core.kpis import extract_kpis
+    from inkdiag_core import kpis as kpis_module
 except ImportError:  # running from a checkout without an install
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "inkdiag_core"))
-    from inkdiag_core.kpis import extract_kpis
+    from inkdiag_core import kpis as kpis_module
+
+extract_kpis = kpis_module.extract_kpis
 
 FS = 10e6
 N_SAMPLES = 512
@@ -94,6 +100,12 @@ def main(argv=None):
     extract_kpis(traces[:100], FS)  # warm-up
     t_ours = best_time(lambda: extract_kpis(traces, FS), args.repeats)
     t_fft = best_time(lambda: scipy.fft.rfft(traces, axis=-1), args.repeats)
+
+    def spectrum_pass():
+        for i in range(0, len(traces), kpis_module._CHUNK):
+            kpis_module._peak_spectrum(traces[i : i + kpis_module._CHUNK])
+
+    t_floor = best_time(spectrum_pass, args.repeats)
     subset = traces[: args.n_curve_fit]
     t_cf = best_time(lambda: curve_fit_batch(subset, FS), max(1, min(args.repeats, 2)))
 
@@ -102,9 +114,14 @@ def main(argv=None):
     rate_cf = len(subset) / t_cf
     print(f"extract_kpis      : {rate_ours:12,.0f} traces/s  ({t_ours * 1e3:8.1f} ms)")
     print(f"scipy.fft.rfft    : {rate_fft:12,.0f} traces/s  ({t_fft * 1e3:8.1f} ms)")
+    print(f"spectrum pass only: {args.n / t_floor:12,.0f} traces/s  ({t_floor * 1e3:8.1f} ms;"
+          " rfft + |Y|^2 + peak + Parseval, no fit)")
     print(f"curve_fit/trace   : {rate_cf:12,.0f} traces/s  ({t_cf * 1e3:8.1f} ms for "
           f"{len(subset)} traces)")
     print(f"ratio ours / rfft      : {rate_ours / rate_fft:8.2f}")
+    print(f"ratio spectrum pass / rfft: {t_fft / t_floor:5.2f}  (the ceiling of the ratio above "
+          "with a zero-cost fit)")
+    print(f"fit share of our time  : {1 - t_floor / t_ours:8.0%}")
     print(f"ratio ours / curve_fit : {rate_ours / rate_cf:8.0f}")
 
     kpis = extract_kpis(traces, FS)
