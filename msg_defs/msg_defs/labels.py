@@ -24,6 +24,7 @@ could not be judged and why (``non_finite``, ``flat``, ``clipped``).
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -102,15 +103,20 @@ class LabelsReport:
                 f"labels: classes, confidence, valid and reasons must all have shape ({n},), got "
                 f"{classes.shape}, {np.shape(confidence)}, {valid.shape}, {np.shape(reasons)}"
             )
+        # Object-array comparisons and Counter instead of np.unique / np.isin on strings,
+        # which sort and convert: this runs for every published frame.
         ids = np.arange(first_nozzle, first_nozzle + n)
-        values, k = np.unique(classes[valid].astype(str), return_counts=True)
-        counts = {str(v): int(c) for v, c in zip(values, k)}
-        counts[INVALID_KEY] = int(n - valid.sum())
-        faulty = valid & ~np.isin(classes.astype(str), HEALTHY_CLASSES)
-        conf = np.round(np.asarray(confidence, dtype=float)[faulty], 3)
-        faults = tuple(zip(ids[faulty].tolist(), classes[faulty].astype(str).tolist(), conf.tolist()))
+        by_class = Counter(classes[valid].tolist())
+        counts = {str(c): by_class[c] for c in sorted(by_class)}
+        counts[INVALID_KEY] = int(n - np.count_nonzero(valid))
+        healthy = np.zeros(n, dtype=bool)
+        for value in HEALTHY_CLASSES:
+            healthy |= classes == value
+        faulty = valid & ~healthy
+        conf = np.rint(np.asarray(confidence, dtype=float)[faulty] * 1e3) / 1e3  # np.round(., 3)
+        faults = tuple(zip(ids[faulty].tolist(), map(str, classes[faulty].tolist()), conf.tolist()))
         bad = ~valid
-        invalid = tuple(zip(ids[bad].tolist(), np.asarray(reasons, dtype=object)[bad].astype(str).tolist()))
+        invalid = tuple(zip(ids[bad].tolist(), map(str, np.asarray(reasons, dtype=object)[bad].tolist())))
         return cls(int(frame_id), float(stamp), int(first_nozzle), int(n), str(model_id), counts,
                    faults, invalid)
 
