@@ -3,9 +3,12 @@
 import rclpy
 from rclpy.executors import ExternalShutdownException
 
+from .allocator import keep_freed_memory
+
 
 def spin_node(node_cls, args=None) -> int:
     """Init rclpy, spin one ``node_cls()`` until Ctrl-C / SIGTERM / shutdown, clean up."""
+    keep_freed_memory()
     rclpy.init(args=args)
     node = None
     try:

@@ -38,6 +38,7 @@ from msg_defs import (
     topics,
 )
 
+from .allocator import keep_freed_memory
 from .fdi_node import FdiNode
 from .fe_node import FeNode
 from .printhead_sim import PrintheadSim
@@ -158,6 +159,7 @@ def main(args=None) -> int:
     parser.add_argument("--train-if-missing", action="store_true",
                         help="train and cache the default model first if the file is missing or stale")
     ns = parser.parse_args(remove_ros_args(argv)[1:])
+    keep_freed_memory()
     # the packaged params first, the user's --ros-args after it (later wins)
     ros_args = ["--ros-args", "--params-file", default_params_file()]
     if "--ros-args" in argv:

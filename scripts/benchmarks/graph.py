@@ -7,7 +7,8 @@ a seeded mix of classes), then replays them from this process into a second
 process, twice:
 
 1. ceiling: a plain subscriber in the second process that decodes each frame
-   (zero-copy header + view) and answers with a tiny ack carrying the frame id;
+   (zero-copy header + view) and answers with a tiny ack carrying the frame id
+   (with the allocator set as in every inkdiag node process, ``inkdiag_ros.allocator``);
 2. fdi: the real fdi node (``python -m inkdiag_ros.fdi_node``) with the model,
    whose ``labels`` messages are the answers.
 
@@ -51,8 +52,10 @@ def sink_main() -> int:
     from rclpy.node import Node
     from std_msgs.msg import String
 
+    from inkdiag_ros.allocator import keep_freed_memory
     from msg_defs import RELIABLE_QOS, TRACE_MSG_TYPE, TRACES_QOS, decode_traces, topics
 
+    keep_freed_memory()  # as every inkdiag node process: the same footing as the fdi node
     rclpy.init()
     node = Node("bench_sink")
     pub = node.create_publisher(String, ACK, RELIABLE_QOS)
