@@ -58,6 +58,13 @@ def test_printhead_sim_publishes_frames_and_truth(ros):
     f = frames[-1]
     assert f.traces.shape == (16, 512) and f.first_nozzle == 100 and f.sample_rate_hz == 10e6
     assert np.isfinite(f.traces).all() and np.ptp(f.traces, axis=1).min() > 0
+    # the head's nozzles keep their tolerances: a healthy nozzle's trace changes from frame
+    # to frame by the noise and the ink temperature, far less than from nozzle to nozzle
+    healthy = [i for i in range(16) if i + 100 not in (102, 105)]
+    a, b = frames[-2].traces[healthy], frames[-1].traces[healthy]
+    same = np.sqrt(((a - b) ** 2).mean(axis=1)).mean()
+    other = np.sqrt(((a - np.roll(b, 1, axis=0)) ** 2).mean(axis=1)).mean()
+    assert same < 0.5 * other
     classes = [t.class_of() for t in truth]
     assert all(c[102] == "fully_blocked" for c in classes)
     assert classes[0][105] == "slightly_dried" and classes[-1][105] == "deeply_dried"

@@ -293,6 +293,49 @@ def test_simulate_nozzles_keeps_nozzle_order_and_given_viscosities():
     assert np.array_equal(again.traces, res.traces)
 
 
+NOZZLE_OWN = ("r_n", "L_n", "r_r", "B_act", "b")  # geometry, piezo, coupling
+
+
+def test_simulate_nozzles_frames_of_one_head_keep_each_nozzles_tolerances():
+    from inkdiag_core.simulator import simulate_nozzles
+
+    before = ["healthy_nozzle", "slightly_dried", "healthy_nozzle", "partially_blocked", "ok_signal"]
+    after = ["healthy_nozzle", "deeply_dried", "fully_blocked", "partially_blocked", "ok_signal"]
+    f1 = simulate_nozzles(before, seed=11, frame_seed=1)
+    f2 = simulate_nozzles(after, seed=11, frame_seed=2)
+    # every nozzle keeps its tolerances, sensor and drive while two change condition
+    for key in NOZZLE_OWN:
+        np.testing.assert_array_equal(f1.params[key], f2.params[key], err_msg=key)
+    np.testing.assert_array_equal(f1.sensor_gain, f2.sensor_gain)
+    np.testing.assert_array_equal(f1.sensor_offset, f2.sensor_offset)
+    # a partly blocked nozzle keeps its blockage; the unchanged nozzles differ only by the frame
+    assert f1.params["severity"][3] == f2.params["severity"][3]
+    assert f2.params["severity"][1] > f1.params["severity"][1]  # dried deeper
+    # ...which draws its own ink temperature and sensor noise
+    assert not np.array_equal(f1.params["temperature_k"], f2.params["temperature_k"])
+    assert not np.array_equal(f1.traces[0], f2.traces[0])
+    same_frame = simulate_nozzles(after, seed=11, frame_seed=2)
+    np.testing.assert_array_equal(same_frame.traces, f2.traces)
+    # another head: other nozzles
+    other = simulate_nozzles(after, seed=12, frame_seed=2)
+    assert not np.array_equal(other.params["r_n"], f2.params["r_n"])
+
+
+def test_simulate_frame_seed_changes_only_temperature_and_noise():
+    counts = {FaultClass.HEALTHY_NOZZLE: 4, FaultClass.MATURE_AIR_BUBBLE: 3}
+    a = simulate(counts, seed=4, frame_seed=1)
+    b = simulate(counts, seed=4, frame_seed=2)
+    for key in NOZZLE_OWN + ("severity",):
+        np.testing.assert_array_equal(a.params[key], b.params[key], err_msg=key)
+    assert not np.array_equal(a.params["temperature_k"], b.params["temperature_k"])
+    # without frame_seed everything comes from seed, as before
+    np.testing.assert_array_equal(simulate(counts, seed=4).traces, simulate(counts, seed=4).traces)
+    with pytest.raises(ValueError, match="draw_order must be a permutation"):
+        simulate(counts, seed=4, draw_order=[0, 1, 2, 3, 4, 5, 5])
+    with pytest.raises(ValueError, match="draw_order must be a permutation"):
+        simulate(counts, seed=4, draw_order=np.arange(6))
+
+
 def test_simulate_nozzles_rejects_bad_arguments():
     from inkdiag_core.simulator import simulate_nozzles
 

@@ -392,27 +392,38 @@ def _bubble_compliance(r_b):
     return V / (c["kappa_gas"] * p_g - 2.0 * c["sigma_n_per_m"] / (3.0 * r_b))
 
 
-def _draw_channels(classes, base: InkChannelParams, spreads: Spreads, rng, severity_override=None):
+def _draw_channels(classes, base: InkChannelParams, spreads: Spreads, rng, severity_override=None,
+                   frame_rng=None, perm=None):
     """Draw every trace's physical parameters and build its model coefficients.
 
     ``classes`` is a list of (FaultClass, count). Returns a dict of (n,) arrays.
+    ``frame_rng`` (default ``rng``) draws the ink temperature; ``perm`` (default
+    identity) maps rows to the positions of ``rng``'s draws: row ``r`` gets draw
+    ``perm[r]`` of every per-trace quantity.
     """
     n = sum(k for _, k in classes)
     kind_idx = np.concatenate([np.full(k, i) for i, (_, k) in enumerate(classes)])
     mech = [MECHANISMS[c] for c, _ in classes]
 
+    def per_row(a):
+        return a if perm is None else a[perm]
+
     def lognormal(rel):
-        return np.exp(rel * rng.standard_normal(n)) if rel > 0 else np.ones(n)
+        return per_row(np.exp(rel * rng.standard_normal(n))) if rel > 0 else np.ones(n)
 
     # one fixed order of draws, independent of the classes
     temperature = PHYSICAL_CONSTANTS["T_ref_k"] + spreads.temperature_std_k * rng.standard_normal(n)
+    if frame_rng is not None and frame_rng is not rng:
+        temperature = PHYSICAL_CONSTANTS["T_ref_k"] + spreads.temperature_std_k * frame_rng.standard_normal(n)
+    else:
+        temperature = per_row(temperature)
     r_n = base.r_n * lognormal(spreads.nozzle_radius_rel)
     L_n = base.L_n * lognormal(spreads.nozzle_length_rel)
     r_r = base.r_r * lognormal(spreads.restrictor_radius_rel)
     B_act = base.B_act * lognormal(spreads.actuator_compliance_rel)
     b = base.b * lognormal(spreads.coupling_rel)
     drive = lognormal(spreads.drive_rel)
-    u01 = rng.random(n)
+    u01 = per_row(rng.random(n))
 
     lo = np.array([m.low for m in mech])[kind_idx]
     hi = np.array([m.high for m in mech])[kind_idx]
@@ -777,6 +788,8 @@ def simulate(
     base_params: InkChannelParams | None = None,
     severity=None,
     chunk_size: int = 4000,
+    frame_seed=None,
+    draw_order=None,
 ) -> SimulationResult:
     """Simulate self-sensing traces of the requested fault classes.
 
@@ -808,6 +821,19 @@ def simulate(
     chunk_size : int
         Traces synthesised per block (memory/speed only; the results do not
         depend on it when ``n_samples`` is a multiple of 4).
+    frame_seed : int or numpy.random.Generator, optional
+        Stream of what changes from one measurement of the same nozzles to the
+        next: the ink temperature and the sensor noise. ``None`` (default) draws
+        them from ``seed``'s stream with everything else; given, ``seed`` alone
+        fixes the nozzles (geometry, piezo, drive, sensor gain and offset, fault
+        severity), so calls with one ``seed`` and different ``frame_seed`` are
+        successive frames of the same head.
+    draw_order : array_like of int, shape (n,), optional
+        A permutation of the rows: row ``r`` takes the per-trace draws at
+        position ``draw_order[r]`` of ``seed``'s stream (default: its own).
+        :func:`simulate_nozzles` passes its nozzle order, so that a nozzle's
+        tolerances follow the nozzle rather than its place among its class's
+        rows.
 
     Returns
     -------
@@ -819,7 +845,8 @@ def simulate(
     ValueError
         Bad ``counts`` (not a mapping, unknown class, negative or non-integer
         count), non-positive ``n_samples`` or ``sample_rate_hz``, a sample rate
-        below twice the highest mode, or non-positive physical parameters.
+        below twice the highest mode, non-positive physical parameters, or a
+        ``draw_order`` that is not a permutation of the rows.
     """
     classes = _check_counts(counts)
     fs = _check_positive_float("sample_rate_hz", sample_rate_hz)
@@ -830,12 +857,24 @@ def simulate(
     if n == 0:
         return _empty_result(labels, fs, n_samples)
 
-    ch = _draw_channels(classes, base, spreads, rng, _check_severity(severity, classes))
+    if frame_seed is None:
+        frame_rng = rng
+    else:
+        frame_rng = frame_seed if isinstance(frame_seed, np.random.Generator) else np.random.default_rng(frame_seed)
+    perm = None
+    if draw_order is not None:
+        perm = np.asarray(draw_order)
+        if perm.shape != (n,) or perm.dtype.kind not in "iu" or not np.array_equal(np.sort(perm), np.arange(n)):
+            raise ValueError(f"draw_order must be a permutation of range({n}), got shape {perm.shape}")
+    ch = _draw_channels(classes, base, spreads, rng, _check_severity(severity, classes),
+                        frame_rng=frame_rng, perm=perm)
     amplitude = drive.amplitude_v * ch["drive"]
     gain = PHYSICAL_CONSTANTS["sensor_gain_v_per_m3s"] * (
         np.exp(spreads.gain_rel * rng.standard_normal(n)) if spreads.gain_rel > 0 else 1.0
     ) * np.ones(n)
     offset = spreads.offset_std_v * rng.standard_normal(n) if spreads.offset_std_v > 0 else np.zeros(n)
+    if perm is not None:
+        gain, offset = gain[perm], offset[perm]
 
     lam, coef, x0 = _modal_solution(ch, drive, amplitude)
     freq, zeta = _dominant(lam)
@@ -857,7 +896,7 @@ def simulate(
         sl = slice(start, min(n, start + chunk_size))
         sig_rms[sl] = _synthesize(
             lam[sl], coef[sl], gain[sl] / lsb, offset[sl] / lsb, n_samples, fs, traces[sl],
-            noise_std / lsb, rng, quant,
+            noise_std / lsb, frame_rng, quant,
         )
     if quant is not None:
         traces *= np.float32(lsb)
@@ -879,8 +918,16 @@ def simulate(
 
 def simulate_nozzles(classes, *, mu_nozzle=None, sample_rate_hz: float = 10e6, n_samples: int = 512,
                      seed=0, spreads: Spreads | None = None, drive: DriveWaveform | None = None,
-                     base_params: InkChannelParams | None = None) -> SimulationResult:
+                     base_params: InkChannelParams | None = None, frame_seed=None) -> SimulationResult:
     """One trace per nozzle, in the nozzles' order: a frame of a printhead.
+
+    Nozzle ``i``'s own draws (geometry, piezo, drive, sensor gain and offset,
+    and where its fault's severity falls in the class's range) depend only on
+    ``seed`` and ``i``, not on the other nozzles' classes: with one ``seed``
+    and a new ``frame_seed`` per call, successive calls are successive frames
+    of one head whose nozzles keep their tolerances while their conditions
+    change (a nozzle drying from slightly to deeply dried stays the same
+    nozzle).
 
     Parameters
     ----------
@@ -893,8 +940,9 @@ def simulate_nozzles(classes, *, mu_nozzle=None, sample_rate_hz: float = 10e6, n
         temperature then scales like the channel's ink. ``NaN`` (or no array)
         draws it from the class's range as :func:`simulate` does. Ignored for
         the other classes.
-    sample_rate_hz, n_samples, seed, spreads, drive, base_params
-        As in :func:`simulate`.
+    sample_rate_hz, n_samples, seed, spreads, drive, base_params, frame_seed
+        As in :func:`simulate` (``seed``: the head; ``frame_seed``: the
+        measurement's ink temperature and sensor noise).
 
     Returns
     -------
@@ -913,6 +961,8 @@ def simulate_nozzles(classes, *, mu_nozzle=None, sample_rate_hz: float = 10e6, n
         raise ValueError("mu_nozzle must be positive (Pa s) where given")
     labels = np.array([c.value for c in classes])
     rng = np.random.default_rng(seed)
+    # one quantile per nozzle for a dried class's drawn viscosity, whatever the classes
+    u_dried = np.random.default_rng(rng.integers(2**63)).random(n)
     order, counts, severity = [], {}, {}
     for c in FaultClass:  # simulate() returns rows grouped in declaration order
         rows = np.flatnonzero(labels == c.value)
@@ -923,11 +973,13 @@ def simulate_nozzles(classes, *, mu_nozzle=None, sample_rate_hz: float = 10e6, n
         if c in DRIED_CLASSES and np.isfinite(mu[rows]).any():
             m = MECHANISMS[c]
             k = mu[rows] / base.mu
-            drawn = rng.uniform(m.low, m.high, rows.size)
+            drawn = m.low + (m.high - m.low) * u_dried[rows]
             severity[c] = np.where(np.isfinite(k), k, drawn)
-    res = simulate(counts, sample_rate_hz=sample_rate_hz, n_samples=n_samples, seed=rng,
-                   spreads=spreads, drive=drive, base_params=base, severity=severity or None)
     perm = np.concatenate(order)
+    # grouped row r is nozzle perm[r]: it takes the nozzle's own position in the draws
+    res = simulate(counts, sample_rate_hz=sample_rate_hz, n_samples=n_samples, seed=rng,
+                   spreads=spreads, drive=drive, base_params=base, severity=severity or None,
+                   frame_seed=frame_seed, draw_order=perm)
     inverse = np.empty(n, dtype=np.intp)
     inverse[perm] = np.arange(n)
     return res.take(inverse)

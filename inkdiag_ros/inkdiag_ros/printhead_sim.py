@@ -39,7 +39,7 @@ PARAMS = (
     ("frame_rate_hz", 5.0, "frames published per second", float, (0.01, 1000.0)),
     ("sample_rate_hz", 10e6, "ADC sample rate of the traces, Hz", float, (1e6, 100e6)),
     ("n_samples", 512, "samples per trace", int, (16, 65536)),
-    ("seed", 0, "seed of the scenario and of the simulator's noise", int, (0, 2**31 - 1)),
+    ("seed", 0, "seed of the scenario, of the head's nozzles (their tolerances persist across frames) and of the frames' noise", int, (0, 2**31 - 1)),
     ("fault_nozzles", [3, 11, 19, 27], "nozzle ids with a fixed fault", "int[]", None),
     ("fault_classes", ["fully_blocked", "mature_air_bubble", "small_air_bubble", "empty_channel_1"],
      "fault class value of each fault_nozzles entry", "str[]", None),
@@ -93,7 +93,7 @@ class PrintheadSim(Node):
         classes, mu_nozzle = self._scenario.at(now - self._t0)
         traces, labels, fm, mu_true = simulate_head(
             classes, mu_nozzle, sample_rate_hz=p["sample_rate_hz"], n_samples=p["n_samples"],
-            rng=self._rng)
+            head_seed=[p["seed"], 1], rng=self._rng)
         fid = self.frames_published
         self._pub.publish(encode_traces(traces, first_nozzle=p["first_nozzle"], frame_id=fid,
                                         sample_rate_hz=p["sample_rate_hz"], stamp=now))

@@ -99,10 +99,15 @@ class HeadScenario:
         return classes, mu
 
 
-def simulate_head(classes, mu_nozzle, *, sample_rate_hz, n_samples, rng):
-    """The one physics call of the simulated head.
+def simulate_head(classes, mu_nozzle, *, sample_rate_hz, n_samples, head_seed, rng):
+    """The one physics call of the simulated head: one frame.
+
+    ``head_seed`` fixes the head's nozzles (each keeps its tolerances, sensor and
+    fault severity from frame to frame); ``rng`` draws the frame's ink temperature
+    and sensor noise.
 
     Returns ``(traces float32 (n, n_samples) V, labels, fm 1/s, mu_nozzle Pa s)``.
     """
-    r = simulate_nozzles(classes, mu_nozzle=mu_nozzle, sample_rate_hz=sample_rate_hz, n_samples=n_samples, seed=rng)
+    r = simulate_nozzles(classes, mu_nozzle=mu_nozzle, sample_rate_hz=sample_rate_hz, n_samples=n_samples,
+                         seed=head_seed, frame_seed=rng)
     return r.traces, r.labels, r.fm, r.mu_nozzle
