@@ -106,3 +106,107 @@ def test_baseline_pipeline_separates_the_dried_classes():
     tr, te = idx[:100], idx[100:]
     pipe = make_fdi_pipeline("rf", "kpi_y+baseline").fit(X[tr], y[tr])
     assert (pipe.predict(X[te]) == y[te]).mean() > 0.8
+
+
+# --- recording baselines from a head's frames, and their file -------------------------------
+
+from inkdiag_core import BaselineFileError, BaselineRecorder, NozzleBaselines, simulate_nozzles  # noqa: E402
+
+
+def _head_frames(n_nozzles, n_frames, head_seed=3):
+    """Frames of one healthy simulated head (its nozzles persist across frames)."""
+    return [simulate_nozzles(["healthy_nozzle"] * n_nozzles, seed=head_seed, frame_seed=f).traces
+            for f in range(n_frames)]
+
+
+def test_recorder_gives_each_nozzle_the_median_of_its_first_frames():
+    frames = _head_frames(50, 10)
+    rec = BaselineRecorder(n_frames=8)
+    for f in frames:  # messages of 20, 20 and 10 nozzles; later frames are ignored
+        for first in (40, 0, 20):
+            rec.add(first, f[first:first + 20])
+    assert rec.n_complete == 50
+    b = rec.baselines()
+    np.testing.assert_array_equal(b.nozzle_ids, np.arange(50))
+    np.testing.assert_array_equal(b.kpis, baseline_kpis(np.stack(frames[:8], axis=1), FS))
+    assert (b.sample_rate_hz, b.n_samples, b.n_frames) == (FS, 512, 8)
+
+
+def test_recorder_skips_invalid_and_excluded_rows_and_waits_for_enough_frames():
+    frames = _head_frames(6, 4)
+    rec = BaselineRecorder(n_frames=3)
+    for i, f in enumerate(frames):
+        f = f.copy()
+        f[1] = np.nan  # nozzle 101: never valid
+        keep = np.ones(6, bool)
+        keep[2] = i != 0  # nozzle 102: excluded once (e.g. not labelled healthy)
+        rec.add(100, f, keep=keep)
+    full = rec.baselines()
+    np.testing.assert_array_equal(full.nozzle_ids, [100, 102, 103, 104, 105])
+    # nozzle 102's baseline comes from frames 1-3
+    np.testing.assert_array_equal(full.lookup([102])[1][0],
+                                  baseline_kpis(np.stack([f[2] for f in frames[1:]])[None], FS)[0])
+    rec2 = BaselineRecorder(n_frames=3)
+    rec2.add(0, frames[0])
+    assert len(rec2.baselines()) == 0 and len(rec2.baselines(min_frames=1)) == 6
+    with pytest.raises(ValueError, match="min_frames"):
+        rec2.baselines(min_frames=4)
+
+
+@pytest.mark.parametrize(("call", "match"), [
+    (lambda r: r.add(-1, np.zeros((2, 512))), "first_nozzle"),
+    (lambda r: r.add(0, np.zeros((2, 100))), "shape"),
+    (lambda r: r.add(0, np.zeros(512)), "shape"),
+    (lambda r: r.add(0, np.zeros((2, 512)), keep=[True]), "keep"),
+])
+def test_recorder_rejects_bad_input(call, match):
+    with pytest.raises(ValueError, match=match):
+        call(BaselineRecorder())
+
+
+def test_lookup_finds_the_nozzles_that_have_a_baseline():
+    kpis = np.arange(21, dtype=float).reshape(3, 7)
+    b = NozzleBaselines(np.array([5, 9, 200]), kpis, FS, 512, 8)
+    has, got = b.lookup([9, 6, 200, 0, 5, 1000])
+    np.testing.assert_array_equal(has, [True, False, True, False, True, False])
+    np.testing.assert_array_equal(got[has], kpis[[1, 2, 0]])
+    assert np.isnan(got[~has]).all()
+    assert not NozzleBaselines(np.empty(0, int), np.empty((0, 7)), FS, 512, 8).lookup([1])[0].any()
+
+
+@pytest.mark.parametrize(("ids", "kpis", "match"), [
+    ([2, 1], np.zeros((2, 7)), "increasing"),
+    ([1, 2], np.zeros((2, 6)), "shape"),
+    ([1, 2], np.full((2, 7), np.nan), "finite"),
+    ([1.5, 2], np.zeros((2, 7)), "integer"),
+])
+def test_baselines_reject_inconsistent_arrays(ids, kpis, match):
+    with pytest.raises(ValueError, match=match):
+        NozzleBaselines(np.array(ids), kpis, FS, 512, 8)
+
+
+def test_baselines_file_round_trip_and_refusals(tmp_path):
+    b = NozzleBaselines(np.array([3, 7]), np.random.default_rng(0).normal(size=(2, 7)), FS, 512, 8)
+    path = b.save(tmp_path / "head.npz")
+    again = NozzleBaselines.load(path)
+    np.testing.assert_array_equal(again.nozzle_ids, b.nozzle_ids)
+    np.testing.assert_array_equal(again.kpis, b.kpis)
+    assert (again.sample_rate_hz, again.n_samples, again.n_frames) == (FS, 512, 8)
+
+    with pytest.raises(BaselineFileError, match="no baselines file"):
+        NozzleBaselines.load(tmp_path / "missing.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(BaselineFileError, match="not an inkdiag baselines file"):
+        NozzleBaselines.load(tmp_path / "junk.npz")
+    # an edited value (the file rewritten with the old checksum) is refused
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["kpis"] = arrays["kpis"].copy()
+    arrays["kpis"][0, 1] *= 1.01
+    np.savez(tmp_path / "edited.npz", **arrays)
+    with pytest.raises(BaselineFileError, match="does not match its sha256"):
+        NozzleBaselines.load(tmp_path / "edited.npz")
+    np.savez(tmp_path / "other.npz", nozzle_ids=arrays["nozzle_ids"], kpis=arrays["kpis"],
+             meta=np.array('{"format": "something-else"}'))
+    with pytest.raises(BaselineFileError, match="not an inkdiag baselines file"):
+        NozzleBaselines.load(tmp_path / "other.npz")

@@ -70,6 +70,14 @@ from .labelling import FrameLabels, label_frames, label_traces  # noqa: E402
 
 __all__ += ["FrameLabels", "label_frames", "label_traces"]
 
-from .baseline import BaselineKpis, baseline_kpis, with_baseline  # noqa: E402
+from .baseline import (  # noqa: E402
+    BaselineFileError,
+    BaselineKpis,
+    BaselineRecorder,
+    NozzleBaselines,
+    baseline_kpis,
+    with_baseline,
+)
 
-__all__ += ["BaselineKpis", "baseline_kpis", "with_baseline"]
+__all__ += ["BaselineFileError", "BaselineKpis", "BaselineRecorder", "NozzleBaselines", "baseline_kpis",
+            "with_baseline"]

@@ -11,18 +11,31 @@ relative to the nozzle's own healthy KPIs.
 
 - :func:`baseline_kpis`: a nozzle's baseline, the median KPIs over a few healthy frames;
 - :func:`with_baseline`: the input rows of a baseline pipeline, ``[trace, baseline]``;
-- :class:`BaselineKpis`: transformer from those rows to KPI_Y plus the relative features.
+- :class:`BaselineKpis`: transformer from those rows to KPI_Y plus the relative features;
+- :class:`BaselineRecorder`: a head's baselines from its frames as they arrive (nozzle
+  ranges of any size, in any order), as a printer records them after a purge;
+- :class:`NozzleBaselines`: the recorded baselines by nozzle id, saved to and loaded
+  from a checked ``.npz`` file (:class:`BaselineFileError` says what is wrong).
 """
 
 from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from sklearn.base import BaseEstimator, TransformerMixin
 from sklearn.utils.validation import check_is_fitted, validate_data
 
-from .kpis import KPI_NAMES, MIN_SAMPLES, extract_kpis
+from .kpis import KPI_NAMES, MIN_SAMPLES, _check_sample_rate, _check_traces, extract_kpis
+from .screening import screen_traces
 
-__all__ = ["RELATIVE_NAMES", "BaselineKpis", "baseline_kpis", "with_baseline"]
+__all__ = ["RELATIVE_NAMES", "BaselineFileError", "BaselineKpis", "BaselineRecorder",
+           "NozzleBaselines", "baseline_kpis", "with_baseline"]
 
 N_KPIS = len(KPI_NAMES)
 
@@ -112,3 +125,276 @@ class BaselineKpis(TransformerMixin, BaseEstimator):
 
     def get_feature_names_out(self, input_features=None):
         return np.array(KPI_NAMES + RELATIVE_NAMES, dtype=object)
+
+
+BASELINE_FORMAT = "inkdiag-nozzle-baselines"
+BASELINE_FORMAT_VERSION = 1
+
+
+class BaselineFileError(ValueError):
+    """A baselines file that is missing, not one, modified, or inconsistent (a ``ValueError``)."""
+
+
+def _content_sha256(ids: np.ndarray, kpis: np.ndarray, meta: dict) -> str:
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(ids, dtype="<i8").tobytes())
+    h.update(np.ascontiguousarray(kpis, dtype="<f8").tobytes())
+    h.update(json.dumps(meta, sort_keys=True).encode())
+    return h.hexdigest()
+
+
+@dataclass(frozen=True, eq=False)
+class NozzleBaselines:
+    """Healthy KPI baselines of a set of nozzles, one row per nozzle id.
+
+    Parameters
+    ----------
+    nozzle_ids : array_like of int, shape (m,)
+        Strictly increasing, non-negative.
+    kpis : array_like of float, shape (m, 7)
+        Finite; columns of :data:`inkdiag_core.KPI_NAMES` (SI units, as
+        :func:`inkdiag_core.extract_kpis`).
+    sample_rate_hz : float
+        Sample rate of the traces behind them, Hz.
+    n_samples : int
+        Samples per trace behind them.
+    n_frames : int
+        Healthy frames per nozzle the median was taken over (at most).
+
+    Raises
+    ------
+    ValueError
+        Shapes, order, finiteness or the scalars are wrong.
+    """
+
+    nozzle_ids: np.ndarray
+    kpis: np.ndarray
+    sample_rate_hz: float
+    n_samples: int
+    n_frames: int
+
+    def __post_init__(self):
+        ids = np.asarray(self.nozzle_ids)
+        kpis = np.asarray(self.kpis, dtype=np.float64)
+        if ids.ndim != 1 or (ids.size and ids.dtype.kind not in "iu"):
+            raise ValueError(f"nozzle_ids must be a 1-D integer array, got dtype {ids.dtype} shape {ids.shape}")
+        ids = ids.astype(np.int64)
+        if kpis.shape != (ids.size, N_KPIS):
+            raise ValueError(f"kpis must have shape ({ids.size}, {N_KPIS}), got {kpis.shape}")
+        if ids.size and (ids[0] < 0 or np.any(np.diff(ids) <= 0)):
+            raise ValueError("nozzle_ids must be non-negative and strictly increasing")
+        if not np.isfinite(kpis).all():
+            raise ValueError("kpis must be finite")
+        fs = _check_sample_rate(self.sample_rate_hz)
+        for name in ("n_samples", "n_frames"):
+            v = getattr(self, name)
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 1:
+                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        for arr in (ids, kpis):
+            arr.flags.writeable = False
+        object.__setattr__(self, "nozzle_ids", ids)
+        object.__setattr__(self, "kpis", kpis)
+        object.__setattr__(self, "sample_rate_hz", fs)
+        object.__setattr__(self, "n_samples", int(self.n_samples))
+        object.__setattr__(self, "n_frames", int(self.n_frames))
+
+    def __len__(self) -> int:
+        return int(self.nozzle_ids.size)
+
+    def lookup(self, nozzle_ids):
+        """The baselines of the given nozzles.
+
+        Parameters
+        ----------
+        nozzle_ids : array_like of int, shape (n,)
+
+        Returns
+        -------
+        has : ndarray of bool, shape (n,)
+            Whether each nozzle has a baseline.
+        kpis : ndarray of float64, shape (n, 7)
+            Its baseline, NaN where it has none.
+        """
+        q = np.asarray(nozzle_ids, dtype=np.int64).reshape(-1)
+        pos = np.searchsorted(self.nozzle_ids, q)
+        pos_c = np.minimum(pos, max(len(self) - 1, 0))
+        has = (pos < len(self)) & (self.nozzle_ids[pos_c] == q) if len(self) else np.zeros(q.size, bool)
+        out = np.full((q.size, N_KPIS), np.nan)
+        out[has] = self.kpis[pos_c[has]]
+        return has, out
+
+    def _meta(self) -> dict:
+        return {"format": BASELINE_FORMAT, "format_version": BASELINE_FORMAT_VERSION,
+                "kpi_names": list(KPI_NAMES), "sample_rate_hz": self.sample_rate_hz,
+                "n_samples": self.n_samples, "n_frames": self.n_frames}
+
+    def save(self, path) -> Path:
+        """Write an ``.npz`` (no pickle) with the arrays, the settings and their sha256.
+
+        Written to a temporary file and renamed, so a reader never sees half a file.
+        Returns the path written.
+        """
+        path = Path(path)
+        meta = self._meta()
+        meta["sha256"] = _content_sha256(self.nozzle_ids, self.kpis, self._meta())
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+        try:
+            with os.fdopen(fd, "wb") as f:
+                np.savez(f, nozzle_ids=self.nozzle_ids, kpis=self.kpis,
+                         meta=np.array(json.dumps(meta, sort_keys=True)))
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return path
+
+    @classmethod
+    def load(cls, path) -> "NozzleBaselines":
+        """Read a file written by :meth:`save`, checking it before use.
+
+        Raises
+        ------
+        BaselineFileError
+            The file is missing, not a baselines file (or another format version),
+            its arrays do not match the checksum it carries (modified or corrupted),
+            or they are inconsistent.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise BaselineFileError(f"no baselines file at {path}")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in ("nozzle_ids", "kpis", "meta")}
+            meta = json.loads(str(arrays["meta"]))
+        except (OSError, ValueError, KeyError, EOFError, TypeError) as exc:
+            raise BaselineFileError(f"{path} is not an inkdiag baselines file ({type(exc).__name__}: "
+                                    f"{exc})") from None
+        if not isinstance(meta, dict) or meta.get("format") != BASELINE_FORMAT:
+            raise BaselineFileError(f"{path} is not an inkdiag baselines file (format "
+                                    f"{meta.get('format') if isinstance(meta, dict) else meta!r})")
+        if meta.get("format_version") != BASELINE_FORMAT_VERSION:
+            raise BaselineFileError(f"{path}: baselines format version {meta.get('format_version')!r}, "
+                                    f"this inkdiag reads {BASELINE_FORMAT_VERSION}")
+        if meta.get("kpi_names") != list(KPI_NAMES):
+            raise BaselineFileError(f"{path}: KPI columns {meta.get('kpi_names')!r} are not {list(KPI_NAMES)}")
+        stored = meta.pop("sha256", None)
+        ids, kpis = arrays["nozzle_ids"], arrays["kpis"]
+        try:
+            actual = _content_sha256(ids, kpis, meta)
+        except (TypeError, ValueError) as exc:
+            raise BaselineFileError(f"{path}: unreadable arrays ({exc})") from None
+        if stored != actual:
+            raise BaselineFileError(f"{path}: its content does not match its sha256 (modified or "
+                                    "corrupted); record the baselines again")
+        try:
+            return cls(ids, kpis, meta["sample_rate_hz"], meta["n_samples"], meta["n_frames"])
+        except (KeyError, ValueError) as exc:
+            raise BaselineFileError(f"{path}: inconsistent baselines ({exc})") from None
+
+
+class BaselineRecorder:
+    """Record each nozzle's healthy baseline from the frames of a head, as they arrive.
+
+    Each :meth:`add` takes one message's rows (a contiguous nozzle range, any size,
+    any order, repeated ranges welcome); rows that :func:`inkdiag_core.screen_traces`
+    finds invalid, or that ``keep`` excludes, are not used. A nozzle's baseline is the
+    median of its first ``n_frames`` valid rows' KPIs (:func:`baseline_kpis` on
+    the same traces gives the same numbers); rows beyond that are ignored, so memory
+    stays at ``n_frames`` KPI rows per nozzle. Record while the head is healthy
+    (after a purge, at commissioning).
+
+    Parameters
+    ----------
+    n_frames : int
+        Frames per nozzle in its baseline, >= 1.
+    sample_rate_hz : float
+        Sample rate of the traces, Hz.
+    n_samples : int
+        Samples per trace; every frame must have it.
+    """
+
+    def __init__(self, *, n_frames: int = 8, sample_rate_hz: float = 10e6, n_samples: int = 512):
+        if isinstance(n_frames, bool) or not isinstance(n_frames, (int, np.integer)) or n_frames < 1:
+            raise ValueError(f"n_frames must be a positive integer, got {n_frames!r}")
+        if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < MIN_SAMPLES:
+            raise ValueError(f"n_samples must be an integer >= {MIN_SAMPLES}, got {n_samples!r}")
+        self.n_frames = int(n_frames)
+        self.sample_rate_hz = _check_sample_rate(sample_rate_hz)
+        self.n_samples = int(n_samples)
+        self._ids = []  # chunks of the rows kept so far, in arrival order
+        self._kpis = []
+        self._known = np.empty(0, np.int64)  # sorted ids with rows, and their row counts
+        self._counts = np.empty(0, np.int64)
+
+    def add(self, first_nozzle: int, traces, keep=None) -> int:
+        """Use one message's rows: nozzles ``first_nozzle .. first_nozzle + n - 1``.
+
+        Parameters
+        ----------
+        first_nozzle : int
+            Id of row 0's nozzle, >= 0.
+        traces : array_like, shape (n, n_samples)
+            V.
+        keep : array_like of bool, shape (n,), optional
+            Rows to use (for instance those a classifier calls healthy).
+
+        Returns
+        -------
+        int
+            Rows used.
+        """
+        if isinstance(first_nozzle, bool) or not isinstance(first_nozzle, (int, np.integer)) or first_nozzle < 0:
+            raise ValueError(f"first_nozzle must be a non-negative integer, got {first_nozzle!r}")
+        x = np.asarray(traces)
+        if x.ndim != 2 or x.shape[1] != self.n_samples:
+            raise ValueError(f"traces must have shape (n, {self.n_samples}), got {x.shape}")
+        use, _ = screen_traces(x)
+        if keep is not None:
+            k = np.asarray(keep, dtype=bool)
+            if k.shape != (x.shape[0],):
+                raise ValueError(f"keep must have shape ({x.shape[0]},), got {k.shape}")
+            use &= k
+        ids = first_nozzle + np.flatnonzero(use)
+        # only nozzles still short of n_frames rows (at most their shortfall; the ids of
+        # one message are distinct)
+        pos = np.searchsorted(self._known, ids)
+        pos_c = np.minimum(pos, max(self._known.size - 1, 0))
+        seen = (pos < self._known.size) & (self._known[pos_c] == ids) if self._known.size else np.zeros(ids.size, bool)
+        have = np.where(seen, self._counts[pos_c] if self._known.size else 0, 0)
+        need = have < self.n_frames
+        if not need.any():
+            return 0
+        rows = np.flatnonzero(use)[need]
+        ids = ids[need]
+        self._kpis.append(extract_kpis(_check_traces(x[rows]), self.sample_rate_hz))
+        self._ids.append(ids.astype(np.int64))
+        known, inv = np.unique(np.concatenate([self._known, ids]), return_inverse=True)
+        counts = np.concatenate([self._counts, np.ones(ids.size, np.int64)])
+        self._known, self._counts = known, np.bincount(inv, weights=counts).astype(np.int64)
+        return int(ids.size)
+
+    @property
+    def n_complete(self) -> int:
+        """Nozzles with ``n_frames`` rows recorded."""
+        return int(np.count_nonzero(self._counts >= self.n_frames))
+
+    def baselines(self, min_frames: int | None = None) -> NozzleBaselines:
+        """The baselines of the nozzles with at least ``min_frames`` rows (default ``n_frames``).
+
+        Each is the median over the nozzle's rows (up to ``n_frames``), KPI by KPI.
+        """
+        need = self.n_frames if min_frames is None else int(min_frames)
+        if not 1 <= need <= self.n_frames:
+            raise ValueError(f"min_frames must be in 1..{self.n_frames}, got {min_frames!r}")
+        all_ids = np.concatenate(self._ids) if self._ids else np.empty(0, np.int64)
+        all_kpis = np.concatenate(self._kpis) if self._kpis else np.empty((0, N_KPIS))
+        order = np.argsort(all_ids, kind="stable")  # grouped by nozzle, arrival order within
+        ids, counts = self._known, self._counts
+        ok = counts >= need
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+        k = np.arange(self.n_frames)
+        idx = starts[ok][:, None] + k  # (m, n_frames) rows of each nozzle, in arrival order
+        valid = k < np.minimum(counts[ok], self.n_frames)[:, None]
+        stack = np.where(valid[..., None], all_kpis[order][np.where(valid, idx, 0)], np.nan)
+        med = np.nanmedian(stack, axis=1) if ok.any() else np.empty((0, N_KPIS))
+        return NozzleBaselines(ids[ok], med, self.sample_rate_hz, self.n_samples, self.n_frames)
