@@ -210,3 +210,44 @@ def test_baselines_file_round_trip_and_refusals(tmp_path):
              meta=np.array('{"format": "something-else"}'))
     with pytest.raises(BaselineFileError, match="not an inkdiag baselines file"):
         NozzleBaselines.load(tmp_path / "other.npz")
+
+
+# --- labelling against recorded baselines ---------------------------------------------------
+
+def test_label_frames_uses_each_nozzles_baseline_where_it_has_one(tmp_path):
+    from inkdiag_core import BaselineModel, label_frames, load_model
+    from inkdiag_core.fdi import classify, train_default_model
+
+    train_default_model(tmp_path / "plain.joblib", n_per_class=60)
+    train_default_model(tmp_path / "base.joblib", n_per_class=60, features="kpi_y+baseline")
+    plain, _ = load_model(tmp_path / "plain.joblib")
+    based, manifest = load_model(tmp_path / "base.joblib")
+    assert manifest["config"]["features"] == "kpi_y+baseline"
+
+    n, head = 60, 21
+    rec = BaselineRecorder(n_frames=4)
+    for f in _head_frames(n, 4, head_seed=head):
+        rec.add(500, f)
+    baselines = rec.baselines()
+    # drop nozzles 510-519's baselines: they are labelled without one
+    keep = (baselines.nozzle_ids < 510) | (baselines.nozzle_ids >= 520)
+    baselines = NozzleBaselines(baselines.nozzle_ids[keep], baselines.kpis[keep], FS, 512, 4)
+    classes = np.array(list(FaultClass), dtype=object)[np.arange(n) % 12]
+    frame = simulate_nozzles(classes, seed=head, frame_seed=99).traces
+    frame[3] = np.nan
+    model = BaselineModel(based, baselines, fd_threshold=0.5)
+    a, b = label_frames(plain, [frame[:30], frame[30:]], first_nozzles=[500, 530], baseline=model)
+    got = np.concatenate([a.classes, b.classes])
+    used = np.concatenate([a.baseline, b.baseline])
+    expect_used = np.ones(n, bool)
+    expect_used[10:20] = False
+    expect_used[3] = False  # invalid row
+    np.testing.assert_array_equal(used, expect_used)
+    assert got[3] == "" and a.reasons[3] == "non_finite"
+    has, kpis = baselines.lookup(500 + np.arange(n))
+    ref_b, _, _ = classify(based, with_baseline(frame[used], kpis[used]))
+    ref_p, _, _ = classify(plain, frame[10:20])
+    np.testing.assert_array_equal(got[used], ref_b)
+    np.testing.assert_array_equal(got[10:20], ref_p)
+    with pytest.raises(ValueError, match="first_nozzles"):
+        label_frames(plain, [frame], baseline=model)

@@ -66,9 +66,9 @@ from .trend import FmTrend, FmTrendBank, deeply_dried_fm  # noqa: E402
 
 __all__ += ["FmTrend", "FmTrendBank", "deeply_dried_fm"]
 
-from .labelling import FrameLabels, label_frames, label_traces  # noqa: E402
+from .labelling import BaselineModel, FrameLabels, label_frames, label_traces  # noqa: E402
 
-__all__ += ["FrameLabels", "label_frames", "label_traces"]
+__all__ += ["BaselineModel", "FrameLabels", "label_frames", "label_traces"]
 
 from .baseline import (  # noqa: E402
     BaselineFileError,
@@ -76,8 +76,9 @@ from .baseline import (  # noqa: E402
     BaselineRecorder,
     NozzleBaselines,
     baseline_kpis,
+    baseline_training_rows,
     with_baseline,
 )
 
 __all__ += ["BaselineFileError", "BaselineKpis", "BaselineRecorder", "NozzleBaselines", "baseline_kpis",
-            "with_baseline"]
+            "baseline_training_rows", "with_baseline"]

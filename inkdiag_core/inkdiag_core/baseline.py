@@ -35,7 +35,7 @@ from .kpis import KPI_NAMES, MIN_SAMPLES, _check_sample_rate, _check_traces, ext
 from .screening import screen_traces
 
 __all__ = ["RELATIVE_NAMES", "BaselineFileError", "BaselineKpis", "BaselineRecorder",
-           "NozzleBaselines", "baseline_kpis", "with_baseline"]
+           "NozzleBaselines", "baseline_kpis", "baseline_training_rows", "with_baseline"]
 
 N_KPIS = len(KPI_NAMES)
 
@@ -88,6 +88,26 @@ def with_baseline(traces, baseline) -> np.ndarray:
         raise ValueError(f"traces must be (n, n_samples) and baseline (n, {N_KPIS}); got shapes "
                          f"{x.shape} and {b.shape}")
     return np.hstack([x, b.astype(np.result_type(x.dtype, b.dtype), copy=False)])
+
+
+def baseline_training_rows(sim, seed, *, n_frames: int = 8) -> np.ndarray:
+    """Training rows of a ``"kpi_y+baseline"`` pipeline from a simulation.
+
+    Each trace of ``sim`` (a :func:`inkdiag_core.simulate` result drawn with ``seed``)
+    gets its own nozzle's baseline: the median KPIs of ``n_frames`` healthy frames of
+    the same simulated nozzle (:func:`inkdiag_core.healthy_twin_frames`: nominal ink
+    temperature, its own sensor noise), as a printer records them after a purge.
+
+    Returns
+    -------
+    ndarray, shape (n, n_samples + 7)
+        :func:`with_baseline` rows.
+    """
+    from .simulator import healthy_twin_frames
+
+    _, frames = healthy_twin_frames(len(sim), seed=seed, n_frames=n_frames, noise_std_v=sim.noise_std_v,
+                                    sample_rate_hz=sim.sample_rate_hz, n_samples=sim.traces.shape[1])
+    return with_baseline(sim.traces, baseline_kpis(frames, sim.sample_rate_hz))
 
 
 class BaselineKpis(TransformerMixin, BaseEstimator):

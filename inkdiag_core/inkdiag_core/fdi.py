@@ -357,7 +357,9 @@ def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: st
     0-2) in half the time; the forest is about half of the node's labelling time.
 
     Simulates ``n_per_class`` traces of each of the 12 classes, fits the
-    pipeline on 75% of them, picks the false-negative-averse fault-detection
+    pipeline on 75% of them (with ``features="kpi_y+baseline"``, on
+    :func:`inkdiag_core.baseline.baseline_training_rows`: each trace with its
+    nozzle's healthy baseline, for the nodes' per-nozzle baselines), picks the false-negative-averse fault-detection
     threshold on the other 25% (FNR <= ``fnr_target``), scores that split, and
     saves the model (:func:`inkdiag_core.save_model`) with the threshold in
     the manifest's ``config['fd_threshold']``.
@@ -385,7 +387,12 @@ def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: st
     sim = simulate({c: int(n_per_class) for c in FaultClass}, seed=seed)
     report(1, total, f"simulated {len(sim)} traces")
     y = sim.label_values()
-    Xtr, Xval, ytr, yval = train_test_split(sim.traces, y, test_size=0.25, random_state=seed, stratify=y)
+    X = sim.traces
+    if features == "kpi_y+baseline":
+        from .baseline import baseline_training_rows
+
+        X = baseline_training_rows(sim, seed)
+    Xtr, Xval, ytr, yval = train_test_split(X, y, test_size=0.25, random_state=seed, stratify=y)
     pipe = make_fdi_pipeline(kind, features, random_state=seed, n_estimators=n_estimators,
                              min_samples_leaf=min_samples_leaf).fit(Xtr, ytr)
     report(2, total, f"fitted {kind} on {features} features")

@@ -6,10 +6,25 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .baseline import NozzleBaselines, with_baseline
 from .fdi import classify
 from .screening import screen_traces
 
-__all__ = ["FrameLabels", "label_frames", "label_traces"]
+__all__ = ["BaselineModel", "FrameLabels", "label_frames", "label_traces"]
+
+
+@dataclass(frozen=True)
+class BaselineModel:
+    """A ``"kpi_y+baseline"`` pipeline with the head's recorded baselines.
+
+    pipeline : fitted pipeline taking ``[trace, baseline KPIs]`` rows (:func:`with_baseline`)
+    baselines : :class:`inkdiag_core.NozzleBaselines` of the head's nozzles
+    fd_threshold : float -- its fault-detection threshold (in its manifest)
+    """
+
+    pipeline: object
+    baselines: NozzleBaselines
+    fd_threshold: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -20,16 +35,23 @@ class FrameLabels:
     confidence : ndarray of float, (n,) -- probability of that class, NaN for invalid rows
     valid : ndarray of bool, (n,)
     reasons : ndarray of str (object), (n,) -- why a row is invalid, ``""`` otherwise
+    baseline : ndarray of bool, (n,) -- classified against its nozzle's baseline
     """
 
     classes: np.ndarray
     confidence: np.ndarray
     valid: np.ndarray
     reasons: np.ndarray
+    baseline: np.ndarray | None = None
 
 
-def label_traces(pipeline, traces, *, fd_threshold: float = 0.5) -> FrameLabels:
+def label_traces(pipeline, traces, *, fd_threshold: float = 0.5, nozzle_ids=None,
+                 baseline: BaselineModel | None = None) -> FrameLabels:
     """Screen a frame (:func:`screen_traces`) and classify its valid rows in one batch.
+
+    With ``baseline`` and ``nozzle_ids``, the valid rows whose nozzle has a recorded
+    baseline are classified by ``baseline.pipeline`` against it, the others by
+    ``pipeline``.
 
     Parameters
     ----------
@@ -40,21 +62,37 @@ def label_traces(pipeline, traces, *, fd_threshold: float = 0.5) -> FrameLabels:
     fd_threshold : float
         Fault-detection threshold on P(faulty) (:func:`inkdiag_core.fdi.classify`;
         the default model stores its false-negative-averse one in its manifest).
+    nozzle_ids : array_like of int, shape (n,), optional
+        Each row's nozzle (needed with ``baseline``).
+    baseline : BaselineModel, optional
     """
     x = np.asarray(traces)
     valid, reasons = screen_traces(x)
     n = x.shape[0]
     classes = np.full(n, "", dtype=object)
     confidence = np.full(n, np.nan)
-    if valid.any():
-        rows = x if valid.all() else x[valid]  # no copy of a frame that is all valid
+    with_base = np.zeros(n, dtype=bool)
+    if baseline is not None:
+        if nozzle_ids is None or np.shape(nozzle_ids) != (n,):
+            raise ValueError(f"nozzle_ids must give each of the {n} rows its nozzle to use baselines")
+        has, base_kpis = baseline.baselines.lookup(nozzle_ids)
+        with_base = valid & has
+        if with_base.any():
+            labels, conf, _ = classify(baseline.pipeline, with_baseline(x[with_base], base_kpis[with_base]),
+                                       fd_threshold=baseline.fd_threshold)
+            classes[with_base] = labels.astype(object)
+            confidence[with_base] = conf
+    plain = valid & ~with_base
+    if plain.any():
+        rows = x if plain.all() else x[plain]  # no copy of a frame that is all valid
         labels, conf, _ = classify(pipeline, rows, fd_threshold=fd_threshold)
-        classes[valid] = labels.astype(object)
-        confidence[valid] = conf
-    return FrameLabels(classes, confidence, valid, reasons)
+        classes[plain] = labels.astype(object)
+        confidence[plain] = conf
+    return FrameLabels(classes, confidence, valid, reasons, with_base)
 
 
-def label_frames(pipeline, frames, *, fd_threshold: float = 0.5) -> list:
+def label_frames(pipeline, frames, *, fd_threshold: float = 0.5, first_nozzles=None,
+                 baseline: BaselineModel | None = None) -> list:
     """Label several frames in one batch: one screening, feature and classifier pass.
 
     A classifier call has a fixed cost (feature pipeline set-up, one call per
@@ -68,6 +106,11 @@ def label_frames(pipeline, frames, *, fd_threshold: float = 0.5) -> list:
     frames : sequence of array_like, each of shape (n_i, n_samples)
         The frames' traces, V; every frame must have the same ``n_samples``.
     fd_threshold : float
+        As for :func:`label_traces`.
+    first_nozzles : sequence of int, optional
+        Each frame's first nozzle id (its rows are a contiguous nozzle range);
+        needed with ``baseline``.
+    baseline : BaselineModel, optional
         As for :func:`label_traces`.
 
     Returns
@@ -85,8 +128,13 @@ def label_frames(pipeline, frames, *, fd_threshold: float = 0.5) -> list:
     widths = {a.shape[1] for a in arrays}
     if len(widths) != 1:
         raise ValueError(f"frames labelled together must have one sample count, got {sorted(widths)}")
+    ids = None
+    if baseline is not None:
+        if first_nozzles is None or len(first_nozzles) != len(arrays):
+            raise ValueError("first_nozzles must give each frame's first nozzle id to use baselines")
+        ids = np.concatenate([int(f) + np.arange(a.shape[0]) for f, a in zip(first_nozzles, arrays)])
     rows = label_traces(pipeline, np.concatenate(arrays) if len(arrays) > 1 else arrays[0],
-                        fd_threshold=fd_threshold)
+                        fd_threshold=fd_threshold, nozzle_ids=ids, baseline=baseline)
     cuts = np.cumsum([a.shape[0] for a in arrays])[:-1]
-    parts = zip(*(np.split(col, cuts) for col in (rows.classes, rows.confidence, rows.valid, rows.reasons)))
-    return [FrameLabels(*p) for p in parts]
+    cols = (rows.classes, rows.confidence, rows.valid, rows.reasons, rows.baseline)
+    return [FrameLabels(*p) for p in zip(*(np.split(col, cuts) for col in cols))]

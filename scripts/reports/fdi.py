@@ -26,15 +26,13 @@ from _common import matplotlib_pyplot, md_table, out_path, pm
 from inkdiag_core import (
     FaultClass,
     ResidualFilter,
-    baseline_kpis,
     design_residual_filter,
     extract_kpis,
     fd_labels,
-    healthy_twin_frames,
     make_fdi_pipeline,
     simulate,
-    with_baseline,
 )
+from inkdiag_core.baseline import baseline_training_rows
 from inkdiag_core.residual import MODIFIED_BANDS_HZ
 
 FS = 10e6
@@ -110,9 +108,7 @@ BASELINE_NOTE = (
 def baseline_rows(sim, sim_seed):
     """``[trace, baseline KPIs]`` rows: each trace with its own nozzle's healthy baseline, the
     median KPIs of N_BASELINE healthy frames (nominal ink temperature, own sensor noise)."""
-    _, frames = healthy_twin_frames(len(sim), seed=sim_seed, n_frames=N_BASELINE,
-                                    noise_std_v=sim.noise_std_v)
-    return with_baseline(sim.traces, baseline_kpis(frames, FS))
+    return baseline_training_rows(sim, sim_seed, n_frames=N_BASELINE)
 
 
 def per_class_metrics(cm):
