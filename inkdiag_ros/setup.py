@@ -30,6 +30,7 @@ setup(
             "printhead_sim = inkdiag_ros.printhead_sim:main",
             "fdi = inkdiag_ros.fdi_node:main",
             "fe = inkdiag_ros.fe_node:main",
+            "record_baseline = inkdiag_ros.baseline_node:main",
             "graph = inkdiag_ros.graph:main",
             "echo = inkdiag_ros.echo:main",
         ],

@@ -13,6 +13,13 @@ labelled invalid with their reason. Publishes ``/diagnostics`` every
 ``diagnostics_period_s``. The model file is verified against its manifest
 (sha256, library versions) before it is loaded.
 
+With ``baseline_path`` (the head's recorded per-nozzle baselines, ``record_baseline``)
+and ``baseline_model_path`` (a ``kpi_y+baseline`` model), the rows of nozzles that
+have a baseline are classified against it, the others with ``model_path``'s model
+(``rows_with_baseline`` in ``/diagnostics``). A baseline or model that does not
+load or does not fit the node's settings is logged and reported, and the node
+labels without baselines.
+
     fdi --ros-args -r __ns:=/head_00 -p model_path:=models/fdi_default.joblib
 """
 
@@ -21,11 +28,20 @@ from __future__ import annotations
 import sys
 import time
 
+import numpy as np
 from rclpy.node import Node
 
 from ._spin import spin_node
 
-from inkdiag_core import ModelFileError, label_frames, label_traces, load_model
+from inkdiag_core import (
+    BaselineFileError,
+    BaselineModel,
+    ModelFileError,
+    NozzleBaselines,
+    label_frames,
+    label_traces,
+    load_model,
+)
 from msg_defs import (
     DIAGNOSTICS_MSG_TYPE,
     DIAGNOSTICS_QOS,
@@ -60,6 +76,9 @@ PARAMS = (
     ("max_queued_frames", 64, "frames waiting for the classifier at most; a full queue drops its oldest",
      int, (1, 100000)),
     ("max_batch_traces", 16384, "traces classified in one pass at most", int, (1, 2**24)),
+    ("baseline_path", "", "the head's per-nozzle healthy baselines (.npz from record_baseline); "
+     "empty: none", str, None),
+    ("baseline_model_path", "", "kpi_y+baseline FDI model for the nozzles that have a baseline", str, None),
 )
 
 
@@ -87,7 +106,9 @@ class FdiNode(Node):
         self.model = None
         self.model_id = "none"
         self.fd_threshold = 0.5
+        self.baseline = None
         self._load(self.config["model_path"])
+        self._load_baseline(self.config["baseline_path"], self.config["baseline_model_path"])
         n = self.config["n_nozzles"]
         self._max_id = n - 1 if n > 0 else None
         self._labels_pub = self.create_publisher(LABELS_MSG_TYPE, topics.LABELS, RELIABLE_QOS)
@@ -124,6 +145,31 @@ class FdiNode(Node):
         self.get_logger().info(f"FDI model {self.model_id} loaded from {path} "
                                f"(fault-detection threshold {self.fd_threshold:.3g})")
 
+    def _load_baseline(self, path: str, model_path: str) -> None:
+        if not path and not model_path:
+            return
+        try:
+            if not (path and model_path):
+                raise ValueError("baseline_path and baseline_model_path go together; got only "
+                                 + ("baseline_path" if path else "baseline_model_path"))
+            baselines = NozzleBaselines.load(path)
+            pipe, manifest = load_model(model_path)
+            cfg = manifest.get("config", {})
+            if cfg.get("features") != "kpi_y+baseline":
+                raise ValueError(f"{model_path} is a {cfg.get('features')!r} model, not kpi_y+baseline")
+            want = (self.config["sample_rate_hz"], self.config["n_samples"])
+            if (baselines.sample_rate_hz, baselines.n_samples) != want:
+                raise ValueError(f"{path} was recorded at {baselines.sample_rate_hz:g} Hz x {baselines.n_samples} "
+                                 f"samples, this node takes {want[0]:g} Hz x {want[1]}")
+        except (BaselineFileError, ModelFileError, ValueError) as exc:
+            self.stats.misconfigured(f"per-nozzle baselines not used: {exc}")
+            self.get_logger().error(f"per-nozzle baselines not used: {exc}")
+            return
+        self.baseline = BaselineModel(pipe, baselines, float(cfg.get("fd_threshold", 0.5)))
+        self.model_id = f"{self.model_id}+{model_id(manifest)}"
+        self.get_logger().info(f"per-nozzle baselines of {len(baselines)} nozzles from {path}, "
+                               f"model {model_id(manifest)}")
+
     def _on_traces(self, msg) -> None:
         self.stats.received()
         try:
@@ -150,7 +196,8 @@ class FdiNode(Node):
         """Worker thread: label the frames together (each alone if that fails), publish each."""
         t0 = time.perf_counter()
         try:
-            results = label_frames(self.model, [f.traces for f in frames], fd_threshold=self.fd_threshold)
+            results = label_frames(self.model, [f.traces for f in frames], fd_threshold=self.fd_threshold,
+                                   first_nozzles=[f.first_nozzle for f in frames], baseline=self.baseline)
         except Exception:  # one bad frame must not cost the others their labels
             results = [self._label_one(f) for f in frames]
         for frame, rows in zip(frames, results):
@@ -160,7 +207,9 @@ class FdiNode(Node):
 
     def _label_one(self, frame):
         try:
-            return label_traces(self.model, frame.traces, fd_threshold=self.fd_threshold)
+            n = frame.traces.shape[0]
+            return label_traces(self.model, frame.traces, fd_threshold=self.fd_threshold,
+                                nozzle_ids=frame.first_nozzle + np.arange(n), baseline=self.baseline)
         except Exception as exc:  # the node never dies of input: count, log, go on
             self.stats.failed(f"frame {frame.frame_id}: {type(exc).__name__}: {exc}")
             self.get_logger().error(f"labelling frame {frame.frame_id} failed: {exc!r}",
@@ -172,7 +221,7 @@ class FdiNode(Node):
             frame_id=frame.frame_id, stamp=frame.stamp, first_nozzle=frame.first_nozzle,
             classes=rows.classes, confidence=rows.confidence, valid=rows.valid,
             reasons=rows.reasons, model_id=self.model_id)
-        self.stats.labelled(report.counts, report.n_nozzles)
+        self.stats.labelled(report.counts, report.n_nozzles, int(np.count_nonzero(rows.baseline)))
         try:
             self._labels_pub.publish(encode_labels(report))
             self._drying_pub.publish(encode_drying(DryingNozzles.from_labels(report)))

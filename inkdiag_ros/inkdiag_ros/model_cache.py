@@ -1,26 +1,38 @@
-"""The default FDI model on disk: verify it, or train and save it with a progress bar.
+"""The default FDI models on disk: verify them, or train and save them with a progress bar.
 
 Training is the core's :func:`inkdiag_core.fdi.train_default_model`; this
 module only decides when (missing or unverifiable file) and shows progress.
+Two defaults: ``models/fdi_default.joblib`` (KPI_Y, every nozzle) and
+``models/fdi_default_baseline.joblib`` (KPI_Y + the nozzle's recorded healthy
+baseline, for the fdi node's ``baseline_model_path``).
+
+    python -m inkdiag_ros.model_cache [models/fdi_default_baseline.joblib]
 """
 
 from __future__ import annotations
 
+import argparse
 import inspect
+import sys
 from pathlib import Path
 
 from inkdiag_core import ModelFileError, load_model
 from inkdiag_core.fdi import train_default_model as _core_train
 
 DEFAULT_MODEL = Path("models") / "fdi_default.joblib"
+DEFAULT_BASELINE_MODEL = Path("models") / "fdi_default_baseline.joblib"
+#: Feature set of each default file name.
+DEFAULT_FEATURES = {DEFAULT_MODEL.name: "kpi_y", DEFAULT_BASELINE_MODEL.name: "kpi_y+baseline"}
 #: Training settings that define the default model; a cached file trained otherwise is stale.
 DEFAULT_SETTINGS = ("kind", "features", "n_per_class", "seed", "n_estimators", "min_samples_leaf", "fnr_target")
 
 
-def default_config() -> dict:
-    """The training settings :func:`inkdiag_core.fdi.train_default_model` uses by default."""
+def default_config(name: str = DEFAULT_MODEL.name) -> dict:
+    """The training settings of the default model file ``name`` (:data:`DEFAULT_FEATURES`)."""
     params = inspect.signature(_core_train).parameters
-    return {k: params[k].default for k in DEFAULT_SETTINGS}
+    cfg = {k: params[k].default for k in DEFAULT_SETTINGS}
+    cfg["features"] = DEFAULT_FEATURES.get(name, cfg["features"])
+    return cfg
 
 
 def train_default_model(path, *, progress=True, **kwargs):
@@ -29,7 +41,8 @@ def train_default_model(path, *, progress=True, **kwargs):
         return _core_train(path, **kwargs)
     from tqdm import tqdm
 
-    with tqdm(total=4, desc="training the default FDI model", unit="step") as bar:
+    with tqdm(total=4, desc=f"training the default FDI model ({kwargs.get('features', 'kpi_y')})",
+              unit="step") as bar:
         def report(step, total, message):
             bar.set_postfix_str(message)
             bar.update(step - bar.n)
@@ -40,18 +53,21 @@ def train_default_model(path, *, progress=True, **kwargs):
 def ensure_default_model(path=DEFAULT_MODEL, *, progress=True, log=print):
     """Return ``path`` after making sure it holds a model that verifies; train one if not.
 
-    A file named like the default (``fdi_default.joblib``) that verifies but was
-    trained with other settings than the current defaults (:func:`default_config`,
-    e.g. after an upgrade changed the default feature set) is retrained too; any
-    other model file is the user's own and is only verified.
+    A file named like a default (:data:`DEFAULT_FEATURES`: ``fdi_default.joblib``,
+    ``fdi_default_baseline.joblib``) is trained with that default's settings, and
+    one that verifies but was trained with other settings than the current
+    defaults (:func:`default_config`, e.g. after an upgrade changed them) is
+    retrained too; any other model file is the user's own and is only verified
+    (a missing one gets the KPI_Y default).
     """
     path = Path(path)
+    want = default_config(path.name)
     if path.exists():
         try:
             _, manifest = load_model(path)
             cfg = manifest.get("config", {})
-            stale = {k: (cfg.get(k), v) for k, v in default_config().items()
-                     if path.name == DEFAULT_MODEL.name and cfg.get(k) != v}
+            stale = {k: (cfg.get(k), v) for k, v in want.items()
+                     if path.name in DEFAULT_FEATURES and cfg.get(k) != v}
             if not stale:
                 return path
             log(f"inkdiag: cached model trained with other settings than the default "
@@ -60,5 +76,19 @@ def ensure_default_model(path=DEFAULT_MODEL, *, progress=True, log=print):
             log(f"inkdiag: cached model unusable ({exc}); retraining")
     else:
         log(f"inkdiag: no FDI model at {path}; training the default one (once, a few seconds)")
-    train_default_model(path, progress=progress)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    train_default_model(path, progress=progress, features=want["features"])
     return path
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m inkdiag_ros.model_cache", description=__doc__.splitlines()[0])
+    ap.add_argument("paths", nargs="*", default=[str(DEFAULT_MODEL), str(DEFAULT_BASELINE_MODEL)],
+                    help="model files to verify or train (default: both defaults)")
+    for p in ap.parse_args(argv).paths:
+        print(f"{ensure_default_model(p)}: verified")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

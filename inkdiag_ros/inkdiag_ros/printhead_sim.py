@@ -50,6 +50,8 @@ PARAMS = (
      float, (1.0, 20.0)),
     ("drying_end_factor", 9.0, "nozzle viscosity factor reached after drying_duration_s", float, (1.0, 20.0)),
     ("drying_duration_s", 20.0, "time of the linear rise from start to end factor, s", float, (0.1, 1e6)),
+    ("faults_start_s", 0.0, "every nozzle is healthy before this time (to record baselines); the faults "
+     "appear and the drying starts then, s", float, (0.0, 1e6)),
     ("max_frames", 0, "stop publishing after this many frames (0: never)", int, (0, 2**31 - 1)),
 )
 
@@ -68,7 +70,7 @@ class PrintheadSim(Node):
             fault_nozzles=p["fault_nozzles"], fault_classes=p["fault_classes"],
             random_fault_fraction=p["random_fault_fraction"], drying_nozzles=p["drying_nozzles"],
             drying_start_factor=p["drying_start_factor"], drying_end_factor=p["drying_end_factor"],
-            drying_duration_s=p["drying_duration_s"], seed=p["seed"])
+            drying_duration_s=p["drying_duration_s"], faults_start_s=p["faults_start_s"], seed=p["seed"])
         self.add_on_set_parameters_callback(lambda params: _params.fixed_at_start(params))
         self._rng = np.random.default_rng(p["seed"] + 1)
         self._pub = self.create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)

@@ -48,12 +48,15 @@ class HeadScenario:
     drying_nozzles : sequence of int
         Nozzles that dry: their nozzle viscosity factor goes linearly from
         ``drying_start_factor`` to ``drying_end_factor`` over ``drying_duration_s``, then holds.
+    faults_start_s : float
+        Every nozzle is healthy before this time (a purged head, whose baselines
+        can be recorded); the faults appear and the drying starts then.
     seed : int
     """
 
     def __init__(self, *, n_nozzles, first_nozzle=0, fault_nozzles=(), fault_classes=(),
                  random_fault_fraction=0.0, drying_nozzles=(), drying_start_factor=2.4,
-                 drying_end_factor=9.0, drying_duration_s=20.0, seed=0):
+                 drying_end_factor=9.0, drying_duration_s=20.0, faults_start_s=0.0, seed=0):
         ids = np.arange(first_nozzle, first_nozzle + n_nozzles)
         fault_nozzles = [int(x) for x in fault_nozzles]
         drying_nozzles = [int(x) for x in drying_nozzles]
@@ -67,6 +70,8 @@ class HeadScenario:
                                  f"{first_nozzle}..{first_nozzle + n_nozzles - 1}")
         if set(fault_nozzles) & set(drying_nozzles):
             raise ValueError(f"nozzles both faulty and drying: {sorted(set(fault_nozzles) & set(drying_nozzles))}")
+        if not (math.isfinite(faults_start_s) and faults_start_s >= 0.0):
+            raise ValueError(f"faults_start_s must be finite and >= 0, got {faults_start_s}")
         if not 0.0 <= random_fault_fraction <= 1.0:
             raise ValueError(f"random_fault_fraction must be in [0, 1], got {random_fault_fraction}")
         if not (1.0 <= drying_start_factor <= drying_end_factor and drying_duration_s > 0):
@@ -84,15 +89,18 @@ class HeadScenario:
             rng.integers(len(RANDOM_FAULT_CLASSES), size=k)]
         self.drying_rows = np.asarray(drying_nozzles, dtype=np.int64) - first_nozzle
         self.k0, self.k1, self.duration_s = float(drying_start_factor), float(drying_end_factor), float(drying_duration_s)
+        self.faults_start_s = float(faults_start_s)
 
     def viscosity_factor(self, t_s: float) -> float:
-        """Nozzle viscosity factor of the drying nozzles at ``t_s``."""
-        return self.k0 + (self.k1 - self.k0) * min(max(t_s, 0.0) / self.duration_s, 1.0)
+        """Nozzle viscosity factor of the drying nozzles at ``t_s`` (drying from ``faults_start_s``)."""
+        return self.k0 + (self.k1 - self.k0) * min(max(t_s - self.faults_start_s, 0.0) / self.duration_s, 1.0)
 
     def at(self, t_s: float):
         """``(classes, mu_nozzle)`` at ``t_s``: FaultClass per row and (n,) Pa s (NaN = class spread)."""
-        classes = self.classes.copy()
         mu = np.full(self.n_nozzles, math.nan)
+        if t_s < self.faults_start_s:
+            return np.full(self.n_nozzles, FaultClass.HEALTHY_NOZZLE, dtype=object), mu
+        classes = self.classes.copy()
         k = self.viscosity_factor(t_s)
         classes[self.drying_rows] = dried_class_of(np.full(self.drying_rows.size, k))
         mu[self.drying_rows] = k * InkChannelParams().mu

@@ -25,8 +25,10 @@ class FdiStats:
         self.busy_s = 0.0
         self.rows_invalid = 0
         self.traces_labelled = 0
+        self.rows_with_baseline = 0
         self.counts = Counter()
         self.last_error = ""
+        self.config_error = ""  # a setting the node could not honour (it runs without it)
         self._mark = (time.monotonic(), 0, 0, 0, 0, 0, 0, 0.0)
 
     def malformed(self, reason: str) -> None:
@@ -37,6 +39,12 @@ class FdiStats:
     def failed(self, reason: str) -> None:
         with self._lock:
             self.frames_failed += 1
+            self.last_error = reason
+
+    def misconfigured(self, reason: str) -> None:
+        """A setting the node runs without (e.g. baselines that did not load): WARN until fixed."""
+        with self._lock:
+            self.config_error = reason
             self.last_error = reason
 
     def dropped(self, reason: str) -> None:
@@ -54,10 +62,11 @@ class FdiStats:
         with self._lock:
             self.frames_received += 1
 
-    def labelled(self, counts: dict, n_rows: int) -> None:
+    def labelled(self, counts: dict, n_rows: int, n_baseline: int = 0) -> None:
         with self._lock:
             self.frames_labelled += 1
             self.traces_labelled += n_rows
+            self.rows_with_baseline += n_baseline
             self.counts.update(counts)
             self.rows_invalid += counts.get("invalid", 0)
 
@@ -83,14 +92,18 @@ class FdiStats:
             "frames_failed": self.frames_failed,
             "frames_dropped": self.frames_dropped,
             "rows_invalid": self.rows_invalid,
+            "rows_with_baseline": self.rows_with_baseline,
             "frames_per_s": d_frames / dt,
             "traces_per_s": (self.traces_labelled - n0) / dt,
             "frames_per_batch": (self.frames_labelled - lf0) / max(self.batches - b0, 1),
             "labeller_busy": (self.busy_s - busy0) / dt,
             "last_error": self.last_error,
+            "config_error": self.config_error,
         }
         if not model_loaded:
             level, message = "error", "no FDI model loaded: frames are not labelled"
+        elif self.config_error:
+            level, message = "warn", self.config_error
         elif d_bad:
             level, message = "warn", f"{d_bad} malformed, failed or dropped frame(s) in the last {dt:.1f} s"
         elif d_invalid:

@@ -5,18 +5,21 @@ Each FDI node publishes, every ``diagnostics_period_s``, an array with one
 
 - ``name``: ``"inkdiag fdi: <namespace>"`` (e.g. ``inkdiag fdi: /head_07``);
 - ``hardware_id``: the printhead's namespace;
-- ``level``: ``OK``; ``WARN`` when malformed, failed or dropped frames or invalid
-  rows arrived in the last period; ``ERROR`` when no model is loaded; ``STALE`` when no frame arrived
+- ``level``: ``OK``; ``WARN`` when a setting could not be honoured (``config_error``:
+  e.g. per-nozzle baselines that did not load) or malformed, failed or dropped
+  frames or invalid rows arrived in the last period; ``ERROR`` when no model is loaded; ``STALE`` when no frame arrived
   in the last period;
 - ``message``: one line saying why;
 - ``values`` (all strings, as the message type wants), keys :data:`KEYS`:
   ``model_id``, ``frames_received``, ``frames_labelled``, ``frames_malformed``,
   ``frames_failed`` (the model raised), ``frames_dropped`` (shed by a full labelling
-  queue: the node was overloaded), ``rows_invalid``; over the last period:
+  queue: the node was overloaded), ``rows_invalid``, ``rows_with_baseline`` (rows
+  classified against their nozzle's recorded baseline); over the last period:
   ``frames_per_s``, ``traces_per_s``, ``frames_per_batch`` (frames labelled per
   classifier pass) and ``labeller_busy`` (fraction of the time the labelling
   thread was busy: near 1, the node is at its capacity); then
-  ``last_error`` (the last malformed frame's reason) and then ``count.<class>``
+  ``last_error`` (the last malformed frame's reason), ``config_error`` (empty, or
+  the setting the node runs without, and why) and then ``count.<class>``
   for each class value and ``count.invalid`` (cumulative rows per label).
 """
 
@@ -35,8 +38,8 @@ LEVELS = {
     "stale": DiagnosticStatus.STALE,
 }
 KEYS = ("model_id", "frames_received", "frames_labelled", "frames_malformed", "frames_failed",
-        "frames_dropped", "rows_invalid", "frames_per_s", "traces_per_s", "frames_per_batch",
-        "labeller_busy", "last_error")
+        "frames_dropped", "rows_invalid", "rows_with_baseline", "frames_per_s", "traces_per_s",
+        "frames_per_batch", "labeller_busy", "last_error", "config_error")
 COUNT_PREFIX = "count."
 
 

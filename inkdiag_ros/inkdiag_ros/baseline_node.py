@@ -1,0 +1,132 @@
+"""record_baseline: record a printhead's per-nozzle healthy baselines from its trace frames.
+
+Run it while the head is known to jet (after a purge, at commissioning): it
+subscribes to ``traces`` (sensor-data QoS) in the head's namespace, keeps each
+nozzle's first ``n_frames`` valid rows (:class:`inkdiag_core.BaselineRecorder`:
+any nozzle ranges, in any order; invalid rows are skipped) and, once
+``n_nozzles`` nozzles are complete, writes their baselines (median KPIs) to
+``output_path`` (:class:`inkdiag_core.NozzleBaselines`, a checked ``.npz``) and
+exits. At ``timeout_s`` it writes the nozzles that are complete, says which are
+not, and exits with status 1 if none is. The fdi node uses the file
+(``baseline_path``, with a ``kpi_y+baseline`` model in ``baseline_model_path``).
+
+    record_baseline --ros-args -r __ns:=/head_07 -p output_path:=baselines/head_07.npz -p n_nozzles:=2656
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+
+from inkdiag_core import BaselineRecorder
+from msg_defs import TRACE_MSG_TYPE, TRACES_QOS, FrameError, decode_traces, topics
+
+from . import _params
+from .allocator import keep_freed_memory
+
+PARAMS = (
+    ("output_path", "", "where to write the baselines (.npz)", str, None),
+    ("n_frames", 8, "healthy frames per nozzle in its baseline (median)", int, (1, 1000)),
+    ("n_nozzles", 0, "nozzles to wait for (0: until timeout_s)", int, (0, 2**24)),
+    ("timeout_s", 60.0, "give up waiting after this long, s; writes the complete nozzles", float, (0.1, 86400.0)),
+    ("n_samples", 512, "samples per trace; other frames are rejected", int, (16, 65536)),
+    ("sample_rate_hz", 10e6, "sample rate of the traces, Hz; other frames are rejected", float, (1e3, 1e9)),
+)
+
+
+class BaselineRecorderNode(Node):
+    """Collects baselines from ``traces``; :attr:`done` once the file is written (or abandoned)."""
+
+    def __init__(self, **kwargs):
+        super().__init__("record_baseline", **kwargs)
+        for name, default, desc, kind, rng in PARAMS:
+            _params.declare(self, name, default, desc, kind=kind, range_=rng)
+        self.config = _params.values(self, [q[0] for q in PARAMS])
+        self.add_on_set_parameters_callback(lambda params: _params.fixed_at_start(params))
+        if not self.config["output_path"]:
+            raise ValueError("output_path is required (-p output_path:=baselines/head.npz)")
+        self.recorder = BaselineRecorder(n_frames=self.config["n_frames"],
+                                         sample_rate_hz=self.config["sample_rate_hz"],
+                                         n_samples=self.config["n_samples"])
+        self.frames = 0
+        self.malformed = 0
+        self.done = False
+        self.written = None  # path, once written
+        self._t0 = time.monotonic()
+        self._sub = self.create_subscription(TRACE_MSG_TYPE, topics.TRACES, self._on_traces, TRACES_QOS)
+        self._timer = self.create_timer(1.0, self._on_tick)
+        self.get_logger().info(
+            f"recording {self.config['n_frames']} healthy frames per nozzle"
+            + (f" of {self.config['n_nozzles']} nozzles" if self.config["n_nozzles"] else "")
+            + f" into {self.config['output_path']} (timeout {self.config['timeout_s']:g} s)")
+
+    def _on_traces(self, msg) -> None:
+        if self.done:
+            return
+        try:
+            frame = decode_traces(msg, n_samples=self.config["n_samples"],
+                                  sample_rate_hz=self.config["sample_rate_hz"])
+        except FrameError as exc:
+            self.malformed += 1
+            self.get_logger().warning(f"dropped a malformed trace frame: {exc}", throttle_duration_sec=1.0)
+            return
+        self.recorder.add(frame.first_nozzle, frame.traces)
+        self.frames += 1
+        want = self.config["n_nozzles"]
+        if want and self.recorder.n_complete >= want:
+            self._finish()
+
+    def _on_tick(self) -> None:
+        if self.done:
+            return
+        if time.monotonic() - self._t0 >= self.config["timeout_s"]:
+            self._finish(timed_out=True)
+            return
+        self.get_logger().info(f"{self.frames} frames, {self.recorder.n_complete} nozzles complete",
+                               throttle_duration_sec=5.0)
+
+    def _finish(self, timed_out: bool = False) -> None:
+        self.done = True
+        baselines = self.recorder.baselines()
+        if timed_out:
+            self.get_logger().warning(
+                f"timed out after {self.config['timeout_s']:g} s with {self.frames} frames: "
+                f"{len(baselines)} nozzles complete" + (f" of {self.config['n_nozzles']}" if self.config["n_nozzles"] else ""))
+        if len(baselines) == 0:
+            self.get_logger().error("no nozzle has enough valid frames: nothing written")
+            return
+        path = Path(self.config["output_path"])
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.written = baselines.save(path)
+        ids = baselines.nozzle_ids
+        self.get_logger().info(f"wrote the baselines of {len(baselines)} nozzles ({ids[0]}..{ids[-1]}) "
+                               f"to {path}")
+
+
+def main(args=None) -> int:
+    keep_freed_memory()
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = BaselineRecorderNode()
+        while rclpy.ok() and not node.done:
+            rclpy.spin_once(node, timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as exc:  # a bad parameter: say so, no traceback
+        print(f"record_baseline: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0 if node is not None and node.written else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,168 @@
+"""Per-nozzle baselines in the node graph: record_baseline writes them, fdi uses them.
+
+Real rclpy on a per-test Context; a test publisher plays a printer controller that
+sends a healthy head's frames (after a purge), then frames with faults.
+"""
+
+import numpy as np
+import pytest
+from rclpy.parameter import Parameter
+
+from inkdiag_core import FaultClass, NozzleBaselines, simulate_nozzles
+from msg_defs import (
+    DIAGNOSTICS_MSG_TYPE,
+    DIAGNOSTICS_QOS,
+    LABELS_MSG_TYPE,
+    RELIABLE_QOS,
+    TRACE_MSG_TYPE,
+    TRACES_QOS,
+    decode_labels,
+    diagnostics_values,
+    encode_traces,
+    topics,
+)
+
+P = Parameter
+HEAD = 17  # the simulated head: its nozzles keep their tolerances from frame to frame
+N = 40
+
+
+@pytest.fixture(scope="module")
+def baseline_model(tmp_path_factory):
+    from inkdiag_core.fdi import train_default_model
+
+    path = tmp_path_factory.mktemp("model") / "fdi_baseline_small.joblib"
+    train_default_model(path, n_per_class=80, features="kpi_y+baseline", seed=0)
+    return path
+
+
+def _publish_until(ros, pub, msg, cond, what):
+    for _ in range(40):  # best effort: resend until the node has it
+        pub.publish(msg)
+        try:
+            ros.spin_until(cond, 0.25, what)
+            return
+        except pytest.fail.Exception:
+            continue
+    pytest.fail(f"never got {what}")
+
+
+def _record(ros, path, n_frames=3):
+    from inkdiag_ros.baseline_node import BaselineRecorderNode
+
+    rec = ros.add(BaselineRecorderNode(context=ros.context, namespace="/h", parameter_overrides=[
+        P("output_path", value=str(path)), P("n_frames", value=n_frames), P("n_nozzles", value=N),
+        P("timeout_s", value=30.0)]))
+    pub = ros.node("controller", namespace="/h").create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
+    ros.spin_until(lambda: pub.get_subscription_count() > 0, 10, "the recorder's subscription")
+    frames = [simulate_nozzles(["healthy_nozzle"] * N, seed=HEAD, frame_seed=f).traces for f in range(n_frames)]
+    for f in frames:  # each frame as two nozzle ranges, 100..119 and 120..139
+        for first in (0, 20):
+            msg = encode_traces(f[first:first + 20], first_nozzle=100 + first)
+            before = rec.frames
+            _publish_until(ros, pub, msg, lambda: rec.frames > before or rec.done, "a frame recorded")
+    ros.spin_until(lambda: rec.done, 5, "the recorder to finish")
+    return rec, frames
+
+
+def test_record_baseline_writes_every_nozzles_median_and_finishes(ros, tmp_path):
+    from inkdiag_core import baseline_kpis
+
+    rec, frames = _record(ros, tmp_path / "head.npz")
+    assert rec.written == tmp_path / "head.npz"
+    b = NozzleBaselines.load(rec.written)
+    np.testing.assert_array_equal(b.nozzle_ids, 100 + np.arange(N))
+    np.testing.assert_allclose(b.kpis, baseline_kpis(np.stack(frames, axis=1), 10e6))
+
+
+def test_record_baseline_times_out_without_frames_and_writes_nothing(ros, tmp_path):
+    from inkdiag_ros.baseline_node import BaselineRecorderNode
+
+    rec = ros.add(BaselineRecorderNode(context=ros.context, namespace="/quiet", parameter_overrides=[
+        P("output_path", value=str(tmp_path / "none.npz")), P("timeout_s", value=0.3)]))
+    ros.spin_until(lambda: rec.done, 5, "the timeout")
+    assert rec.written is None and not (tmp_path / "none.npz").exists()
+
+
+def test_record_baseline_needs_an_output_path(ros):
+    from inkdiag_ros.baseline_node import BaselineRecorderNode
+
+    with pytest.raises(ValueError, match="output_path"):
+        BaselineRecorderNode(context=ros.context)
+
+
+def _fdi(ros, fdi_model, **params):
+    from inkdiag_ros.fdi_node import FdiNode
+
+    params = {"model_path": str(fdi_model), "diagnostics_period_s": 0.2, **params}
+    fdi = ros.add(FdiNode(context=ros.context, namespace="/h",
+                          parameter_overrides=[P(k, value=v) for k, v in params.items()]))
+    probe = ros.node("probe", namespace="/h")
+    labels, diag = [], []
+    probe.create_subscription(LABELS_MSG_TYPE, topics.LABELS, lambda m: labels.append(decode_labels(m)),
+                              RELIABLE_QOS)
+    probe.create_subscription(DIAGNOSTICS_MSG_TYPE, topics.DIAGNOSTICS,
+                              lambda m: diag.append(diagnostics_values(m)["inkdiag fdi: /h"]), DIAGNOSTICS_QOS)
+    return fdi, labels, diag
+
+
+def test_fdi_classifies_nozzles_with_a_baseline_against_it(ros, tmp_path, fdi_model, baseline_model):
+    _record(ros, tmp_path / "head.npz")
+    fdi, labels, diag = _fdi(ros, fdi_model, baseline_path=str(tmp_path / "head.npz"),
+                             baseline_model_path=str(baseline_model))
+    assert fdi.baseline is not None and "+fdi-rf-kpi_y+baseline-" in fdi.model_id
+    classes = np.array(list(FaultClass), dtype=object)[np.arange(N) % 12]
+    frame = simulate_nozzles(classes, seed=HEAD, frame_seed=50).traces
+    pub = ros.node("controller2", namespace="/h").create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
+    ros.spin_until(lambda: pub.get_subscription_count() > 0, 10, "fdi's subscription")
+    # nozzles 100..139 have baselines, 140..149 (a range never recorded) do not
+    extra = simulate_nozzles(["healthy_nozzle"] * 10, seed=HEAD + 1, frame_seed=50).traces
+    msg = encode_traces(np.vstack([frame, extra]), first_nozzle=100, frame_id=7)
+    _publish_until(ros, pub, msg, lambda: labels, "labels")
+    rep = labels[-1]
+    assert rep.frame_id == 7 and rep.n_nozzles == N + 10
+    got = dict((nz, c) for nz, c, _ in rep.faults)
+    truth = {100 + i: c.value for i, c in enumerate(classes) if c.value not in ("healthy_nozzle", "ok_signal")}
+    assert sum(got.get(nz) == c for nz, c in truth.items()) >= 0.8 * len(truth), (got, truth)
+    ros.spin_until(lambda: diag and diag[-1]["rows_with_baseline"] == str(N), 5, "rows_with_baseline")
+    assert diag[-1]["config_error"] == "" and diag[-1]["model_id"] == fdi.model_id
+
+
+@pytest.mark.parametrize("case", ["missing file", "only the file", "plain model", "tampered file"])
+def test_fdi_without_usable_baselines_labels_without_them_and_says_why(ros, tmp_path, fdi_model,
+                                                                       baseline_model, case):
+    good = NozzleBaselines(np.arange(5), np.ones((5, 7)), 10e6, 512, 8).save(tmp_path / "b.npz")
+    if case == "tampered file":
+        with np.load(good) as z:
+            arrays = {k: z[k] for k in z.files}
+        arrays["kpis"] = arrays["kpis"] * 2
+        np.savez(tmp_path / "b.npz", **arrays)
+    params = {
+        "missing file": {"baseline_path": str(tmp_path / "nope.npz"), "baseline_model_path": str(baseline_model)},
+        "only the file": {"baseline_path": str(good)},
+        "plain model": {"baseline_path": str(good), "baseline_model_path": str(fdi_model)},
+        "tampered file": {"baseline_path": str(good), "baseline_model_path": str(baseline_model)},
+    }[case]
+    fdi, labels, diag = _fdi(ros, fdi_model, **params)
+    assert fdi.baseline is None and fdi.model is not None
+    ros.spin_until(lambda: diag, 5, "diagnostics")
+    assert diag[-1]["level"] == "warn" and "per-nozzle baselines not used" in diag[-1]["config_error"]
+    pub = ros.node("controller", namespace="/h").create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
+    ros.spin_until(lambda: pub.get_subscription_count() > 0, 10, "fdi's subscription")
+    frame = simulate_nozzles(["healthy_nozzle"] * 5, seed=HEAD, frame_seed=1).traces
+    _publish_until(ros, pub, encode_traces(frame, first_nozzle=0), lambda: labels, "labels")
+    assert labels[-1].n_nozzles == 5
+
+
+def test_scenario_keeps_the_head_healthy_until_the_faults_start():
+    from inkdiag_ros.scenario import HeadScenario
+
+    sc = HeadScenario(n_nozzles=8, fault_nozzles=[2], fault_classes=["fully_blocked"], drying_nozzles=[5],
+                      drying_start_factor=2.0, drying_end_factor=8.0, drying_duration_s=10.0, faults_start_s=4.0)
+    classes, mu = sc.at(3.9)
+    assert all(c == FaultClass.HEALTHY_NOZZLE for c in classes) and np.isnan(mu).all()
+    classes, mu = sc.at(4.0)
+    assert classes[2] == FaultClass.FULLY_BLOCKED and classes[5] == FaultClass.SLIGHTLY_DRIED
+    assert sc.viscosity_factor(4.0) == 2.0 and sc.viscosity_factor(9.0) == 5.0
+    with pytest.raises(ValueError, match="faults_start_s"):
+        HeadScenario(n_nozzles=8, faults_start_s=-1.0)
