@@ -125,3 +125,22 @@ def test_graph_runner_stops_cleanly_on_signal(ros, fdi_model, sig):
     out = "".join(lines) + rest
     assert pr.returncode == 0, out[-2000:]
     assert "scorecard against the simulator's ground truth" in out and "Traceback" not in out
+
+
+def test_graph_records_baselines_then_labels_against_them(ros, fdi_model, tmp_path):
+    from inkdiag_core import NozzleBaselines
+    from inkdiag_core.fdi import train_default_model
+    from inkdiag_ros.graph import run
+
+    base_model = tmp_path / "fdi_base.joblib"
+    train_default_model(base_model, n_per_class=80, features="kpi_y+baseline")
+    lines = []
+    score = run(7.0, namespace="/head_05", model_path=str(fdi_model), context=ros.context, out=lines.append,
+                baseline={"path": tmp_path / "b" / "head_05.npz", "model_path": str(base_model),
+                          "commissioning_s": 2.5})
+    assert any("baselines of 64 nozzles recorded" in line for line in lines), lines[:5]
+    assert len(NozzleBaselines.load(tmp_path / "b" / "head_05.npz")) == 64
+    assert lines[0].startswith("t=") and "commissioning" in lines[0]
+    assert "rows vs their baseline" in lines[-1]  # fdi classified against the recorded baselines
+    assert score.label_scores()["accuracy"] > 0.95
+    assert any("faults [3:fully_blocked" in line for line in lines)

@@ -1,13 +1,19 @@
 """graph: the simulated printhead, fdi and fe in one process on one executor, with a live summary.
 
     graph [--duration 20] [--model models/fdi_default.joblib] [--namespace /head_00]
-          [--train-if-missing] [--ros-args -p printhead_sim.n_nozzles:=128 --params-file my.yaml]
+          [--train-if-missing] [--baseline [--baseline-path baselines/head_00.npz]]
+          [--ros-args -p printhead_sim.n_nozzles:=128 --params-file my.yaml]
 
 Parameters come from the packaged ``config/inkdiag.yaml``, then any
 ``--ros-args`` given (``-p name:=value`` applies to every node that declares
 it; ``--params-file`` with ``/**/fdi:`` style keys targets one node). Prints
 once a second what the operator topics say, and at the end (after
 ``--duration`` s, Ctrl-C or SIGTERM) a scorecard against the ground truth.
+
+With ``--baseline`` the run starts as a printer after a purge: the simulated head
+is healthy for its first ``--commissioning`` seconds (``faults_start_s``) while
+``record_baseline`` records every nozzle's healthy baseline; then fdi starts with
+those baselines and the ``kpi_y+baseline`` model, and fe with it.
 """
 
 from __future__ import annotations
@@ -39,6 +45,7 @@ from msg_defs import (
 )
 
 from .allocator import keep_freed_memory
+from .baseline_node import BaselineRecorderNode
 from .fdi_node import FdiNode
 from .fe_node import FeNode
 from .printhead_sim import PrintheadSim
@@ -103,13 +110,20 @@ class OperatorMonitor(Node):
             parts.append(f"f_m[{int(r['nozzle'])}] {r['fm']:.3g}/s trend {r['fm_trend']:.3g} "
                          f"mu {1e3 * r['viscosity']:.1f} mPa.s ETA deep {eta_s}")
         for name, d in self.last_diag.items():
-            parts.append(f"diag {d['level'].upper()} {d.get('traces_per_s', '?')} traces/s")
+            base = d.get("rows_with_baseline", "0")
+            parts.append(f"diag {d['level'].upper()} {d.get('traces_per_s', '?')} traces/s"
+                         + (f", {base} rows vs their baseline" if base not in ("", "0") else ""))
         return " | ".join(parts)
 
 
 def run(duration_s: float, *, namespace: str, model_path: str | None, args=None, out=print,
-        context=None) -> Scorecard:
-    """Run the graph for ``duration_s`` (0: until shutdown) and return the scorecard."""
+        context=None, baseline: dict | None = None) -> Scorecard:
+    """Run the graph for ``duration_s`` (0: until shutdown) and return the scorecard.
+
+    ``baseline``: ``{"path": .npz to write, "model_path": kpi_y+baseline model,
+    "commissioning_s": healthy time, "n_frames": frames per nozzle}`` records the
+    head's baselines first (see the module docstring).
+    """
     own = context is None
     if own:
         rclpy.init(args=args)
@@ -117,14 +131,37 @@ def run(duration_s: float, *, namespace: str, model_path: str | None, args=None,
     if context is not None:
         kw["context"] = context
     nodes = []
+    monitor = None
     executor = SingleThreadedExecutor(**({"context": context} if context is not None else {}))
     try:
         fdi_over = [Parameter("model_path", value=str(model_path))] if model_path else []
-        nodes = [PrintheadSim(**kw), FdiNode(parameter_overrides=fdi_over, **kw), FeNode(**kw),
-                 OperatorMonitor(**kw)]
+        if baseline:
+            sim = PrintheadSim(parameter_overrides=[
+                Parameter("faults_start_s", value=float(baseline["commissioning_s"]))], **kw)
+            recorder = BaselineRecorderNode(parameter_overrides=[
+                Parameter("output_path", value=str(baseline["path"])),
+                Parameter("n_frames", value=int(baseline.get("n_frames", 8))),
+                Parameter("n_nozzles", value=sim.config["n_nozzles"]),
+                Parameter("timeout_s", value=float(baseline["commissioning_s"]))], **kw)
+            nodes = [sim, recorder]
+        else:
+            nodes = [PrintheadSim(**kw)]
         for n in nodes:
             executor.add_node(n)
-        monitor = nodes[-1]
+
+        def start_labelling():
+            extra = []
+            if baseline and nodes[1].written:
+                extra = [Parameter("baseline_path", value=str(nodes[1].written)),
+                         Parameter("baseline_model_path", value=str(baseline["model_path"]))]
+            started = [FdiNode(parameter_overrides=fdi_over + extra, **kw), FeNode(**kw), OperatorMonitor(**kw)]
+            for n in started:
+                executor.add_node(n)
+                nodes.append(n)
+            return started[-1]
+
+        if not baseline:
+            monitor = start_labelling()
         t0 = time.monotonic()
         next_print = t0 + 1.0
         ctx = executor.context
@@ -135,14 +172,22 @@ def run(duration_s: float, *, namespace: str, model_path: str | None, args=None,
                 if ctx.ok():
                     raise
                 break  # SIGINT/SIGTERM shut the context down between the check and the wait
+            if monitor is None and nodes[1].done:
+                rec = nodes[1]
+                out(f"t={time.monotonic() - t0:5.1f}s baselines of {len(rec.recorder.baselines())} nozzles "
+                    f"recorded ({rec.frames} frames){f' -> {rec.written}' if rec.written else ''}; "
+                    "starting fdi and fe")
+                monitor = start_labelling()
             if time.monotonic() >= next_print:
-                out(monitor.summary(time.monotonic() - t0))
+                out(monitor.summary(time.monotonic() - t0) if monitor is not None else
+                    f"t={time.monotonic() - t0:5.1f}s commissioning: head healthy, recording baselines "
+                    f"({nodes[1].recorder.n_complete} nozzles complete)")
                 next_print += 1.0
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
         executor.shutdown()
-        score = nodes[-1].score if len(nodes) == 4 else Scorecard()
+        score = monitor.score if monitor is not None else Scorecard()
         for n in nodes:
             n.destroy_node()
         if own:
@@ -158,6 +203,14 @@ def main(args=None) -> int:
     parser.add_argument("--model", default=None, help="FDI model file (default: the params file's)")
     parser.add_argument("--train-if-missing", action="store_true",
                         help="train and cache the default model first if the file is missing or stale")
+    parser.add_argument("--baseline", action="store_true",
+                        help="record every nozzle's healthy baseline first and label against it")
+    parser.add_argument("--baseline-path", default=None,
+                        help="where --baseline writes the baselines (default baselines/<namespace>.npz)")
+    parser.add_argument("--baseline-model", default="models/fdi_default_baseline.joblib",
+                        help="kpi_y+baseline model for --baseline")
+    parser.add_argument("--commissioning", type=float, default=3.0,
+                        help="seconds the head is healthy at the start with --baseline")
     ns = parser.parse_args(remove_ros_args(argv)[1:])
     keep_freed_memory()
     # the packaged params first, the user's --ros-args after it (later wins)
@@ -170,9 +223,17 @@ def main(args=None) -> int:
         from .model_cache import DEFAULT_MODEL, ensure_default_model
 
         ns.model = str(ensure_default_model(ns.model or DEFAULT_MODEL))
+        if ns.baseline:
+            ns.baseline_model = str(ensure_default_model(ns.baseline_model))
+    baseline = None
+    if ns.baseline:
+        path = ns.baseline_path or f"baselines/{ns.namespace.strip('/').replace('/', '_') or 'head'}.npz"
+        baseline = {"path": path, "model_path": ns.baseline_model, "commissioning_s": ns.commissioning}
     print(f"inkdiag graph: printhead_sim -> fdi -> fe in {ns.namespace}, "
-          f"{'until Ctrl-C' if ns.duration <= 0 else f'{ns.duration:g} s'} (Ctrl-C stops early)")
-    score = run(ns.duration, namespace=ns.namespace, model_path=ns.model, args=argv[:1] + ros_args)
+          f"{'until Ctrl-C' if ns.duration <= 0 else f'{ns.duration:g} s'} (Ctrl-C stops early)"
+          + (f"; per-nozzle baselines recorded in the first {ns.commissioning:g} s" if baseline else ""))
+    score = run(ns.duration, namespace=ns.namespace, model_path=ns.model, args=argv[:1] + ros_args,
+                baseline=baseline)
     print(score.format())
     return 0
 
