@@ -343,8 +343,7 @@ class BaselineRecorder:
         self.n_samples = int(n_samples)
         self._ids = []  # chunks of the rows kept so far, in arrival order
         self._kpis = []
-        self._known = np.empty(0, np.int64)  # sorted ids with rows, and their row counts
-        self._counts = np.empty(0, np.int64)
+        self._count_of = np.zeros(0, np.int32)  # rows kept per nozzle id (dense, grown on demand)
 
     def add(self, first_nozzle: int, traces, keep=None) -> int:
         """Use one message's rows: nozzles ``first_nozzle .. first_nozzle + n - 1``.
@@ -377,26 +376,24 @@ class BaselineRecorder:
         ids = first_nozzle + np.flatnonzero(use)
         # only nozzles still short of n_frames rows (at most their shortfall; the ids of
         # one message are distinct)
-        pos = np.searchsorted(self._known, ids)
-        pos_c = np.minimum(pos, max(self._known.size - 1, 0))
-        seen = (pos < self._known.size) & (self._known[pos_c] == ids) if self._known.size else np.zeros(ids.size, bool)
-        have = np.where(seen, self._counts[pos_c] if self._known.size else 0, 0)
-        need = have < self.n_frames
+        if ids.size and ids[-1] >= self._count_of.size:
+            grown = np.zeros(max(int(ids[-1]) + 1, 2 * self._count_of.size), np.int32)
+            grown[: self._count_of.size] = self._count_of
+            self._count_of = grown
+        need = self._count_of[ids] < self.n_frames
         if not need.any():
             return 0
         rows = np.flatnonzero(use)[need]
         ids = ids[need]
         self._kpis.append(extract_kpis(_check_traces(x[rows]), self.sample_rate_hz))
         self._ids.append(ids.astype(np.int64))
-        known, inv = np.unique(np.concatenate([self._known, ids]), return_inverse=True)
-        counts = np.concatenate([self._counts, np.ones(ids.size, np.int64)])
-        self._known, self._counts = known, np.bincount(inv, weights=counts).astype(np.int64)
+        self._count_of[ids] += 1  # the ids of one message are distinct
         return int(ids.size)
 
     @property
     def n_complete(self) -> int:
         """Nozzles with ``n_frames`` rows recorded."""
-        return int(np.count_nonzero(self._counts >= self.n_frames))
+        return int(np.count_nonzero(self._count_of >= self.n_frames))
 
     def baselines(self, min_frames: int | None = None) -> NozzleBaselines:
         """The baselines of the nozzles with at least ``min_frames`` rows (default ``n_frames``).
@@ -409,7 +406,8 @@ class BaselineRecorder:
         all_ids = np.concatenate(self._ids) if self._ids else np.empty(0, np.int64)
         all_kpis = np.concatenate(self._kpis) if self._kpis else np.empty((0, N_KPIS))
         order = np.argsort(all_ids, kind="stable")  # grouped by nozzle, arrival order within
-        ids, counts = self._known, self._counts
+        ids = np.flatnonzero(self._count_of).astype(np.int64)
+        counts = self._count_of[ids].astype(np.int64)
         ok = counts >= need
         starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
         k = np.arange(self.n_frames)
