@@ -128,7 +128,8 @@ def test_fdi_classifies_nozzles_with_a_baseline_against_it(ros, tmp_path, fdi_mo
     assert diag[-1]["config_error"] == "" and diag[-1]["model_id"] == fdi.model_id
 
 
-@pytest.mark.parametrize("case", ["missing file", "only the file", "plain model", "tampered file"])
+@pytest.mark.parametrize("case", ["missing file", "only the file", "plain model", "tampered file",
+                                  "other sample count"])
 def test_fdi_without_usable_baselines_labels_without_them_and_says_why(ros, tmp_path, fdi_model,
                                                                        baseline_model, case):
     good = NozzleBaselines(np.arange(5), np.ones((5, 7)), 10e6, 512, 8).save(tmp_path / "b.npz")
@@ -142,6 +143,9 @@ def test_fdi_without_usable_baselines_labels_without_them_and_says_why(ros, tmp_
         "only the file": {"baseline_path": str(good)},
         "plain model": {"baseline_path": str(good), "baseline_model_path": str(fdi_model)},
         "tampered file": {"baseline_path": str(good), "baseline_model_path": str(baseline_model)},
+        "other sample count": {"baseline_path": str(NozzleBaselines(np.arange(5), np.ones((5, 7)), 10e6, 256, 8)
+                                                    .save(tmp_path / "b256.npz")),
+                               "baseline_model_path": str(baseline_model)},
     }[case]
     fdi, labels, diag = _fdi(ros, fdi_model, **params)
     assert fdi.baseline is None and fdi.model is not None

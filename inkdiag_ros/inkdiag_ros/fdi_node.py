@@ -158,9 +158,11 @@ class FdiNode(Node):
             if cfg.get("features") != "kpi_y+baseline":
                 raise ValueError(f"{model_path} is a {cfg.get('features')!r} model, not kpi_y+baseline")
             want = (self.config["sample_rate_hz"], self.config["n_samples"])
-            if (baselines.sample_rate_hz, baselines.n_samples) != want:
-                raise ValueError(f"{path} was recorded at {baselines.sample_rate_hz:g} Hz x {baselines.n_samples} "
-                                 f"samples, this node takes {want[0]:g} Hz x {want[1]}")
+            for name, got in ((path, (baselines.sample_rate_hz, baselines.n_samples)),
+                              (model_path, (cfg.get("sample_rate_hz", want[0]), cfg.get("n_samples", want[1])))):
+                if tuple(got) != want:
+                    raise ValueError(f"{name} is for {got[0]:g} Hz x {got[1]} samples, this node takes "
+                                     f"{want[0]:g} Hz x {want[1]}")
         except (BaselineFileError, ModelFileError, ValueError) as exc:
             self.stats.misconfigured(f"per-nozzle baselines not used: {exc}")
             self.get_logger().error(f"per-nozzle baselines not used: {exc}")
