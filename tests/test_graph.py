@@ -102,11 +102,22 @@ def test_three_processes_on_localhost(ros, fdi_model):
         assert "Traceback" not in out, out[-2000:]
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM])
-def test_graph_runner_stops_cleanly_on_signal(ros, fdi_model, sig):
+@pytest.fixture(scope="module")
+def baseline_model(tmp_path_factory):
+    from inkdiag_core.fdi import train_default_model
+
+    path = tmp_path_factory.mktemp("model") / "fdi_baseline_small.joblib"
+    train_default_model(path, n_per_class=80, features="kpi_y+baseline")
+    return path
+
+
+@pytest.mark.parametrize(("sig", "baseline"), [(signal.SIGTERM, False), (signal.SIGTERM, True)])
+def test_graph_runner_stops_cleanly_on_signal(ros, fdi_model, baseline_model, tmp_path, sig, baseline):
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    extra = (["--baseline", "--baseline-model", str(baseline_model), "--baseline-path", str(tmp_path / "b.npz"),
+              "--commissioning", "2.5"] if baseline else ["--no-baseline"])
     pr = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.graph", "--duration", "0", "--model",
-                           str(fdi_model), "--ros-args", "-p", "n_nozzles:=16", "-p", "fault_nozzles:=[3]",
+                           str(fdi_model), *extra, "--ros-args", "-p", "n_nozzles:=16", "-p", "fault_nozzles:=[3]",
                            "-p", "fault_classes:=['fully_blocked']", "-p", "drying_nozzles:=[9]"],
                           env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines = []
@@ -114,7 +125,7 @@ def test_graph_runner_stops_cleanly_on_signal(ros, fdi_model, sig):
     while time.monotonic() < deadline:
         line = pr.stdout.readline()
         lines.append(line)
-        if "labelled" in line and "faults [" in line:
+        if "faults [3:" in line and (not baseline or "rows vs their baseline" in line):
             break
     pr.send_signal(sig)
     try:
@@ -125,6 +136,7 @@ def test_graph_runner_stops_cleanly_on_signal(ros, fdi_model, sig):
     out = "".join(lines) + rest
     assert pr.returncode == 0, out[-2000:]
     assert "scorecard against the simulator's ground truth" in out and "Traceback" not in out
+    assert ("rows vs their baseline" in out) == baseline, out[-2000:]
 
 
 def test_graph_records_baselines_then_labels_against_them(ros, fdi_model, tmp_path):

@@ -203,7 +203,7 @@ def main(args=None) -> int:
     parser.add_argument("--model", default=None, help="FDI model file (default: the params file's)")
     parser.add_argument("--train-if-missing", action="store_true",
                         help="train and cache the default model first if the file is missing or stale")
-    parser.add_argument("--baseline", action="store_true",
+    parser.add_argument("--baseline", action=argparse.BooleanOptionalAction, default=False,
                         help="record every nozzle's healthy baseline first and label against it")
     parser.add_argument("--baseline-path", default=None,
                         help="where --baseline writes the baselines (default baselines/<namespace>.npz)")
