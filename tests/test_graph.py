@@ -156,3 +156,18 @@ def test_graph_records_baselines_then_labels_against_them(ros, fdi_model, tmp_pa
     assert "rows vs their baseline" in lines[-1]  # fdi classified against the recorded baselines
     assert score.label_scores()["accuracy"] > 0.95
     assert any("faults [3:fully_blocked" in line for line in lines)
+
+
+def test_shutting_down_waits_a_moment_for_the_context_to_go_down():
+    from inkdiag_ros._spin import shutting_down
+
+    class Ctx:
+        def __init__(self, down_after_s):
+            self.t_down = time.monotonic() + down_after_s
+
+        def ok(self):
+            return time.monotonic() < self.t_down
+
+    assert shutting_down(Ctx(0.0))
+    assert shutting_down(Ctx(0.05), grace_s=0.5)  # an error a moment before the shutdown shows
+    assert not shutting_down(Ctx(10.0), grace_s=0.05)  # a real error: the context stays up

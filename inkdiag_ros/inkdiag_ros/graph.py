@@ -44,6 +44,7 @@ from msg_defs import (
     topics,
 )
 
+from ._spin import shutting_down
 from .allocator import keep_freed_memory
 from .baseline_node import BaselineRecorderNode
 from .fdi_node import FdiNode
@@ -169,9 +170,9 @@ def run(duration_s: float, *, namespace: str, model_path: str | None, args=None,
             try:
                 executor.spin_once(timeout_sec=0.05)
             except Exception:
-                if ctx.ok():
+                if not shutting_down(ctx):
                     raise
-                break  # SIGINT/SIGTERM shut the context down between the check and the wait
+                break  # SIGINT/SIGTERM shut the context down while a callback ran
             if monitor is None and nodes[1].done:
                 rec = nodes[1]
                 out(f"t={time.monotonic() - t0:5.1f}s baselines of {len(rec.recorder.baselines())} nozzles "
