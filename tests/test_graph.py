@@ -111,7 +111,7 @@ def baseline_model(tmp_path_factory):
     return path
 
 
-@pytest.mark.parametrize(("sig", "baseline"), [(signal.SIGTERM, False), (signal.SIGTERM, True)])
+@pytest.mark.parametrize(("sig", "baseline"), [(signal.SIGTERM, False), (signal.SIGINT, True)])
 def test_graph_runner_stops_cleanly_on_signal(ros, fdi_model, baseline_model, tmp_path, sig, baseline):
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     extra = (["--baseline", "--baseline-model", str(baseline_model), "--baseline-path", str(tmp_path / "b.npz"),
