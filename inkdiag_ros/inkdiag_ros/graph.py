@@ -175,9 +175,11 @@ def run(duration_s: float, *, namespace: str, model_path: str | None, args=None,
                 break  # SIGINT/SIGTERM shut the context down while a callback ran
             if monitor is None and nodes[1].done:
                 rec = nodes[1]
-                out(f"t={time.monotonic() - t0:5.1f}s baselines of {len(rec.recorder.baselines())} nozzles "
-                    f"recorded ({rec.frames} frames){f' -> {rec.written}' if rec.written else ''}; "
-                    "starting fdi and fe")
+                out(f"t={time.monotonic() - t0:5.1f}s "
+                    + (f"baselines of {len(rec.recorder.baselines())} nozzles recorded ({rec.frames} frames) "
+                       f"-> {rec.written}; starting fdi and fe" if rec.written else
+                       f"no baselines recorded ({rec.frames} frames, {rec.recorder.n_frames} needed per "
+                       "nozzle); starting fdi and fe without them"))
                 monitor = start_labelling()
             if time.monotonic() >= next_print:
                 out(monitor.summary(time.monotonic() - t0) if monitor is not None else
