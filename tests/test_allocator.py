@@ -27,7 +27,8 @@ print(ok, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - r0)
 
 
 def _probe(tuning):
-    env = dict(os.environ, INKDIAG_MALLOC_TUNING=tuning)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_") and k != "LD_PRELOAD"}
+    env["INKDIAG_MALLOC_TUNING"] = tuning  # glibc's own defaults otherwise
     out = subprocess.run([sys.executable, "-c", _PROBE], env=env, capture_output=True, text=True,
                          check=True, timeout=60).stdout.split()
     return out[0] == "True", int(out[1])

@@ -158,6 +158,7 @@ def test_recorder_skips_invalid_and_excluded_rows_and_waits_for_enough_frames():
     (lambda r: r.add(0, np.zeros((2, 100))), "shape"),
     (lambda r: r.add(0, np.zeros(512)), "shape"),
     (lambda r: r.add(0, np.zeros((2, 512)), keep=[True]), "keep"),
+    (lambda r: r.add(2**24 - 1, np.zeros((2, 512))), "below"),
 ])
 def test_recorder_rejects_bad_input(call, match):
     with pytest.raises(ValueError, match=match):
@@ -206,6 +207,15 @@ def test_baselines_file_round_trip_and_refusals(tmp_path):
     np.savez(tmp_path / "edited.npz", **arrays)
     with pytest.raises(BaselineFileError, match="does not match its sha256"):
         NozzleBaselines.load(tmp_path / "edited.npz")
+    # a damaged file (one byte flipped inside the kpis array, or cut short)
+    raw = bytearray(path.read_bytes())
+    at = raw.find(b"kpis.npy") + 200
+    raw[at] ^= 0xFF
+    (tmp_path / "flipped.npz").write_bytes(bytes(raw))
+    (tmp_path / "cut.npz").write_bytes(path.read_bytes()[:100])
+    for name in ("flipped.npz", "cut.npz"):
+        with pytest.raises(BaselineFileError, match="damaged|sha256"):
+            NozzleBaselines.load(tmp_path / name)
     np.savez(tmp_path / "other.npz", nozzle_ids=arrays["nozzle_ids"], kpis=arrays["kpis"],
              meta=np.array('{"format": "something-else"}'))
     with pytest.raises(BaselineFileError, match="not an inkdiag baselines file"):

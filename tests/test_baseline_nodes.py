@@ -129,10 +129,12 @@ def test_fdi_classifies_nozzles_with_a_baseline_against_it(ros, tmp_path, fdi_mo
 
 
 @pytest.mark.parametrize("case", ["missing file", "only the file", "plain model", "tampered file",
-                                  "other sample count"])
+                                  "damaged file", "other sample count"])
 def test_fdi_without_usable_baselines_labels_without_them_and_says_why(ros, tmp_path, fdi_model,
                                                                        baseline_model, case):
     good = NozzleBaselines(np.arange(5), np.ones((5, 7)), 10e6, 512, 8).save(tmp_path / "b.npz")
+    if case == "damaged file":
+        good.write_bytes(good.read_bytes()[:-40])
     if case == "tampered file":
         with np.load(good) as z:
             arrays = {k: z[k] for k in z.files}
@@ -143,6 +145,7 @@ def test_fdi_without_usable_baselines_labels_without_them_and_says_why(ros, tmp_
         "only the file": {"baseline_path": str(good)},
         "plain model": {"baseline_path": str(good), "baseline_model_path": str(fdi_model)},
         "tampered file": {"baseline_path": str(good), "baseline_model_path": str(baseline_model)},
+        "damaged file": {"baseline_path": str(good), "baseline_model_path": str(baseline_model)},
         "other sample count": {"baseline_path": str(NozzleBaselines(np.arange(5), np.ones((5, 7)), 10e6, 256, 8)
                                                     .save(tmp_path / "b256.npz")),
                                "baseline_model_path": str(baseline_model)},
@@ -170,3 +173,40 @@ def test_scenario_keeps_the_head_healthy_until_the_faults_start():
     assert sc.viscosity_factor(4.0) == 2.0 and sc.viscosity_factor(9.0) == 5.0
     with pytest.raises(ValueError, match="faults_start_s"):
         HeadScenario(n_nozzles=8, faults_start_s=-1.0)
+
+
+def test_record_baseline_survives_bad_frames_and_an_unwritable_path(ros, tmp_path):
+    from inkdiag_ros.baseline_node import BaselineRecorderNode
+
+    blocker = tmp_path / "not_a_dir"
+    blocker.write_text("a file where the output folder should be")
+    rec = ros.add(BaselineRecorderNode(context=ros.context, namespace="/h", parameter_overrides=[
+        P("output_path", value=str(blocker / "head.npz")), P("n_frames", value=1), P("n_nozzles", value=4),
+        P("timeout_s", value=30.0)]))
+    pub = ros.node("controller", namespace="/h").create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
+    ros.spin_until(lambda: pub.get_subscription_count() > 0, 10, "the recorder's subscription")
+    frame = simulate_nozzles(["healthy_nozzle"] * 4, seed=HEAD, frame_seed=0).traces
+    bad = encode_traces(frame, first_nozzle=0)
+    data = list(bad.data)
+    data[1] = 1e30  # a header claiming nozzle ids far beyond the format
+    bad.data = data
+    _publish_until(ros, pub, bad, lambda: rec.malformed > 0, "the bad frame counted")
+    assert not rec.done and "2**24" in rec.last_error
+    _publish_until(ros, pub, encode_traces(frame, first_nozzle=0), lambda: rec.done, "the recorder to finish")
+    assert rec.written is None  # could not write: logged, nothing claimed
+
+
+@pytest.mark.parametrize(("args", "match"), [
+    (["--ros-args", "-p", "output_path:=/tmp/never_written.npz", "-p", "n_frames:=0"], "n_frames"),
+    ([], "output_path is required"),
+])
+def test_record_baseline_refuses_bad_parameters_without_a_traceback(ros, args, match):
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    out = subprocess.run([sys.executable, "-m", "inkdiag_ros.baseline_node", *args],
+                         env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2, out.stderr[-2000:]
+    assert match in out.stderr and "Traceback" not in out.stderr, out.stderr[-2000:]

@@ -100,6 +100,14 @@ def test_nozzle_range_is_checked_against_the_head():
     assert decode_traces(msg, max_nozzle_id=2659).first_nozzle == 2650
     with pytest.raises(FrameError, match=r"nozzle range 2650..2659 out of bounds.*0..2655"):
         decode_traces(msg, max_nozzle_id=2655)
+    # a hand-made header claiming ids beyond the format's 2**24 is refused without a bound too
+    bad = encode_traces(np.zeros((10, 4), np.float32), first_nozzle=0)
+    for first in (2**24 - 5, 1e30):
+        data = list(bad.data)
+        data[1] = first
+        bad.data = data
+        with pytest.raises(FrameError, match=r"below 2\*\*24"):
+            decode_traces(bad)
 
 
 @pytest.mark.parametrize(

@@ -176,11 +176,15 @@ def test_kpis_scale_with_the_trace_over_the_whole_dtype_range(dtype, scales):
         1.7e308 * np.cos(2 * np.pi * 3e5 * np.arange(N) / FS),
         np.full(N, 1e-45, dtype=np.float32) * (np.arange(N) % 3),
         5e-324 * (np.arange(N) % 4),
+        np.full(N, 1e160),
+        1e200 + np.cos(2 * np.pi * 3e5 * np.arange(N) / FS),
     ],
-    ids=["f32-max-nyquist", "f32-max-sine", "f64-max-sine", "f32-denormal", "f64-denormal"],
+    ids=["f32-max-nyquist", "f32-max-sine", "f64-max-sine", "f32-denormal", "f64-denormal",
+         "f64-flat-1e160", "f64-1e200-dc"],
 )
 def test_extreme_finite_traces_give_finite_kpis(trace):
-    kpis = extract_kpis(trace, FS)
+    with np.errstate(all="raise"):
+        kpis = extract_kpis(trace, FS)
     assert np.isfinite(kpis).all()
 
 

@@ -24,6 +24,8 @@ import hashlib
 import json
 import os
 import tempfile
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -148,6 +150,8 @@ class BaselineKpis(TransformerMixin, BaseEstimator):
 
 
 BASELINE_FORMAT = "inkdiag-nozzle-baselines"
+#: Nozzle ids a recorder accepts are below this (the trace wire format's limit, 2**24).
+MAX_NOZZLES = 1 << 24
 BASELINE_FORMAT_VERSION = 1
 
 
@@ -286,9 +290,9 @@ class NozzleBaselines:
             with np.load(path, allow_pickle=False) as z:
                 arrays = {k: z[k] for k in ("nozzle_ids", "kpis", "meta")}
             meta = json.loads(str(arrays["meta"]))
-        except (OSError, ValueError, KeyError, EOFError, TypeError) as exc:
-            raise BaselineFileError(f"{path} is not an inkdiag baselines file ({type(exc).__name__}: "
-                                    f"{exc})") from None
+        except (OSError, ValueError, KeyError, EOFError, TypeError, zipfile.BadZipFile, zlib.error) as exc:
+            raise BaselineFileError(f"{path} is not an inkdiag baselines file, or is damaged "
+                                    f"({type(exc).__name__}: {exc})") from None
         if not isinstance(meta, dict) or meta.get("format") != BASELINE_FORMAT:
             raise BaselineFileError(f"{path} is not an inkdiag baselines file (format "
                                     f"{meta.get('format') if isinstance(meta, dict) else meta!r})")
@@ -367,6 +371,9 @@ class BaselineRecorder:
         x = np.asarray(traces)
         if x.ndim != 2 or x.shape[1] != self.n_samples:
             raise ValueError(f"traces must have shape (n, {self.n_samples}), got {x.shape}")
+        if first_nozzle + x.shape[0] > MAX_NOZZLES:
+            raise ValueError(f"nozzle ids must stay below {MAX_NOZZLES} (2**24, the wire format's limit), "
+                             f"got {first_nozzle}..{first_nozzle + x.shape[0] - 1}")
         use, _ = screen_traces(x)
         if keep is not None:
             k = np.asarray(keep, dtype=bool)

@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 import rclpy
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
@@ -27,6 +28,7 @@ from inkdiag_core import BaselineRecorder
 from msg_defs import TRACE_MSG_TYPE, TRACES_QOS, FrameError, decode_traces, topics
 
 from . import _params
+from ._spin import shutting_down
 from .allocator import keep_freed_memory
 
 PARAMS = (
@@ -55,6 +57,7 @@ class BaselineRecorderNode(Node):
                                          n_samples=self.config["n_samples"])
         self.frames = 0
         self.malformed = 0
+        self.last_error = ""
         self.done = False
         self.written = None  # path, once written
         self._t0 = time.monotonic()
@@ -71,11 +74,12 @@ class BaselineRecorderNode(Node):
         try:
             frame = decode_traces(msg, n_samples=self.config["n_samples"],
                                   sample_rate_hz=self.config["sample_rate_hz"])
-        except FrameError as exc:
+            self.recorder.add(frame.first_nozzle, frame.traces)
+        except (FrameError, ValueError) as exc:  # the recorder never dies of input
             self.malformed += 1
+            self.last_error = str(exc)
             self.get_logger().warning(f"dropped a malformed trace frame: {exc}", throttle_duration_sec=1.0)
             return
-        self.recorder.add(frame.first_nozzle, frame.traces)
         self.frames += 1
         want = self.config["n_nozzles"]
         if want and self.recorder.n_complete >= want:
@@ -101,8 +105,12 @@ class BaselineRecorderNode(Node):
             self.get_logger().error("no nozzle has enough valid frames: nothing written")
             return
         path = Path(self.config["output_path"])
-        path.parent.mkdir(parents=True, exist_ok=True)
-        self.written = baselines.save(path)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self.written = baselines.save(path)
+        except OSError as exc:
+            self.get_logger().error(f"could not write {path}: {exc}")
+            return
         ids = baselines.nozzle_ids
         self.get_logger().info(f"wrote the baselines of {len(baselines)} nozzles ({ids[0]}..{ids[-1]}) "
                                f"to {path}")
@@ -113,14 +121,18 @@ def main(args=None) -> int:
     rclpy.init(args=args)
     node = None
     try:
-        node = BaselineRecorderNode()
+        try:
+            node = BaselineRecorderNode()
+        except (ValueError, ParameterException) as exc:  # a bad parameter: say so, no traceback
+            print(f"record_baseline: {exc}", file=sys.stderr)
+            return 2
         while rclpy.ok() and not node.done:
             rclpy.spin_once(node, timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except ValueError as exc:  # a bad parameter: say so, no traceback
-        print(f"record_baseline: {exc}", file=sys.stderr)
-        return 2
+    except Exception:
+        if node is None or not shutting_down(node.context):
+            raise
     finally:
         if node is not None:
             node.destroy_node()

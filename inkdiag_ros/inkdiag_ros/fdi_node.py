@@ -163,11 +163,12 @@ class FdiNode(Node):
                 if tuple(got) != want:
                     raise ValueError(f"{name} is for {got[0]:g} Hz x {got[1]} samples, this node takes "
                                      f"{want[0]:g} Hz x {want[1]}")
-        except (BaselineFileError, ModelFileError, ValueError) as exc:
+            threshold = float(cfg.get("fd_threshold", 0.5))
+        except (BaselineFileError, ModelFileError, ValueError, TypeError) as exc:
             self.stats.misconfigured(f"per-nozzle baselines not used: {exc}")
             self.get_logger().error(f"per-nozzle baselines not used: {exc}")
             return
-        self.baseline = BaselineModel(pipe, baselines, float(cfg.get("fd_threshold", 0.5)))
+        self.baseline = BaselineModel(pipe, baselines, threshold)
         self.model_id = f"{self.model_id}+{model_id(manifest)}"
         self.get_logger().info(f"per-nozzle baselines of {len(baselines)} nozzles from {path}, "
                                f"model {model_id(manifest)}")

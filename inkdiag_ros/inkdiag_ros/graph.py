@@ -198,6 +198,13 @@ def run(duration_s: float, *, namespace: str, model_path: str | None, args=None,
     return score
 
 
+def _commissioning_s(text: str) -> float:
+    value = float(text)
+    if not 0.1 <= value <= 86400.0:
+        raise argparse.ArgumentTypeError(f"must be between 0.1 and 86400 s, got {text}")
+    return value
+
+
 def main(args=None) -> int:
     argv = list(sys.argv if args is None else args)
     parser = argparse.ArgumentParser(prog="graph", description=__doc__.splitlines()[0])
@@ -212,8 +219,8 @@ def main(args=None) -> int:
                         help="where --baseline writes the baselines (default baselines/<namespace>.npz)")
     parser.add_argument("--baseline-model", default="models/fdi_default_baseline.joblib",
                         help="kpi_y+baseline model for --baseline")
-    parser.add_argument("--commissioning", type=float, default=3.0,
-                        help="seconds the head is healthy at the start with --baseline")
+    parser.add_argument("--commissioning", type=_commissioning_s, default=3.0,
+                        help="seconds the head is healthy at the start with --baseline (0.1 .. 86400)")
     ns = parser.parse_args(remove_ros_args(argv)[1:])
     keep_freed_memory()
     # the packaged params first, the user's --ros-args after it (later wins)

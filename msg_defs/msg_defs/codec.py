@@ -265,6 +265,8 @@ def decode_traces(msg, *, max_nozzle_id: int | None = None, n_samples: int | Non
     if head[7] > 999_999:
         raise FrameError(f"stamp microseconds must be < 1e6, got {head[7]:g}")
     first = int(head[1])
+    if first + n > _EXACT:
+        raise FrameError(f"nozzle ids must stay below 2**24, got first_nozzle={first:g} with {n} rows")
     if max_nozzle_id is not None and first + n - 1 > max_nozzle_id:
         raise FrameError(
             f"nozzle range {first}..{first + n - 1} out of bounds: this head's nozzles are "
