@@ -171,3 +171,14 @@ def test_shutting_down_waits_a_moment_for_the_context_to_go_down():
     assert shutting_down(Ctx(0.0))
     assert shutting_down(Ctx(0.05), grace_s=0.5)  # an error a moment before the shutdown shows
     assert not shutting_down(Ctx(10.0), grace_s=0.05)  # a real error: the context stays up
+
+
+def test_sigint_as_shutdown_replaces_keyboard_interrupt_and_restores_the_handler():
+    from inkdiag_ros._spin import sigint_as_shutdown
+
+    before = signal.getsignal(signal.SIGINT)
+    with sigint_as_shutdown():
+        assert signal.getsignal(signal.SIGINT) is not before
+        os.kill(os.getpid(), signal.SIGINT)  # no KeyboardInterrupt: rclpy's handler (if any) does the work
+        time.sleep(0.05)
+    assert signal.getsignal(signal.SIGINT) is before

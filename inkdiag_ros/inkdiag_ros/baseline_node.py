@@ -28,7 +28,7 @@ from inkdiag_core import BaselineRecorder
 from msg_defs import TRACE_MSG_TYPE, TRACES_QOS, FrameError, decode_traces, topics
 
 from . import _params
-from ._spin import shutting_down
+from ._spin import shutting_down, sigint_as_shutdown
 from .allocator import keep_freed_memory
 
 PARAMS = (
@@ -118,7 +118,12 @@ class BaselineRecorderNode(Node):
 
 def main(args=None) -> int:
     keep_freed_memory()
-    rclpy.init(args=args)
+    with sigint_as_shutdown():
+        rclpy.init(args=args)
+        return _main_body()
+
+
+def _main_body() -> int:
     node = None
     try:
         try:

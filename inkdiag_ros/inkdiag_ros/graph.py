@@ -44,7 +44,7 @@ from msg_defs import (
     topics,
 )
 
-from ._spin import shutting_down
+from ._spin import shutting_down, sigint_as_shutdown
 from .allocator import keep_freed_memory
 from .baseline_node import BaselineRecorderNode
 from .fdi_node import FdiNode
@@ -127,7 +127,16 @@ def run(duration_s: float, *, namespace: str, model_path: str | None, args=None,
     """
     own = context is None
     if own:
-        rclpy.init(args=args)
+        with sigint_as_shutdown():
+            rclpy.init(args=args)
+            return _run(duration_s, namespace=namespace, model_path=model_path, out=out, context=None,
+                        baseline=baseline, own=True)
+    return _run(duration_s, namespace=namespace, model_path=model_path, out=out, context=context,
+                baseline=baseline, own=False)
+
+
+def _run(duration_s, *, namespace, model_path, out, context, baseline, own) -> Scorecard:
+    """:func:`run` on an initialised context (``own``: shut it down at the end)."""
     kw = {"namespace": namespace}
     if context is not None:
         kw["context"] = context
