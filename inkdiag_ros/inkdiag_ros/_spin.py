@@ -1,11 +1,14 @@
 """The one console-entry body every inkdiag node shares."""
 
 import contextlib
+import os
 import signal
+import sys
 import threading
 import time
 
 import rclpy
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 
 from .allocator import keep_freed_memory
@@ -53,15 +56,30 @@ def sigint_as_shutdown():
         signal.signal(signal.SIGINT, old)
 
 
-def spin_node(node_cls, args=None) -> int:
-    """Init rclpy, spin one ``node_cls()`` until Ctrl-C / SIGTERM / shutdown, clean up."""
+def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None) -> int:
+    """Init rclpy, spin one ``node_cls()`` until Ctrl-C / SIGTERM / shutdown, clean up.
+
+    ``until(node)``: stop spinning once it is true (default: never). ``exit_code(node)``:
+    the process's exit status after a normal stop (default 0). A node that refuses its
+    parameters (``ValueError`` or rclpy's ``ParameterException`` while it is built) is
+    reported in one line on stderr, exit status 2, no traceback.
+    """
     keep_freed_memory()
+    prog = prog or os.path.basename(sys.argv[0] or "node")
     with sigint_as_shutdown():
         rclpy.init(args=args)
         node = None
         try:
-            node = node_cls()
-            rclpy.spin(node)
+            try:
+                node = node_cls()
+            except (ValueError, ParameterException) as exc:
+                print(f"{prog}: {exc}", file=sys.stderr)
+                return 2
+            if until is None:
+                rclpy.spin(node)
+            else:
+                while rclpy.ok() and not until(node):
+                    rclpy.spin_once(node, timeout_sec=0.1)
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         except Exception:
@@ -71,4 +89,4 @@ def spin_node(node_cls, args=None) -> int:
             if node is not None:
                 node.destroy_node()
             rclpy.try_shutdown()
-    return 0
+    return 0 if exit_code is None else exit_code(node)

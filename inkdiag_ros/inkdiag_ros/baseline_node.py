@@ -19,17 +19,13 @@ import sys
 import time
 from pathlib import Path
 
-import rclpy
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
 from inkdiag_core import BaselineRecorder
 from msg_defs import TRACE_MSG_TYPE, TRACES_QOS, FrameError, decode_traces, topics
 
 from . import _params
-from ._spin import shutting_down, sigint_as_shutdown
-from .allocator import keep_freed_memory
+from ._spin import spin_node
 
 PARAMS = (
     ("output_path", "", "where to write the baselines (.npz)", str, None),
@@ -117,32 +113,9 @@ class BaselineRecorderNode(Node):
 
 
 def main(args=None) -> int:
-    keep_freed_memory()
-    with sigint_as_shutdown():
-        rclpy.init(args=args)
-        return _main_body()
-
-
-def _main_body() -> int:
-    node = None
-    try:
-        try:
-            node = BaselineRecorderNode()
-        except (ValueError, ParameterException) as exc:  # a bad parameter: say so, no traceback
-            print(f"record_baseline: {exc}", file=sys.stderr)
-            return 2
-        while rclpy.ok() and not node.done:
-            rclpy.spin_once(node, timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception:
-        if node is None or not shutting_down(node.context):
-            raise
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0 if node is not None and node.written else 1
+    """Exit status 0 once the file is written, 1 if nothing could be, 2 for bad parameters."""
+    return spin_node(BaselineRecorderNode, args, until=lambda node: node.done,
+                     exit_code=lambda node: 0 if node.written else 1, prog="record_baseline")
 
 
 if __name__ == "__main__":
