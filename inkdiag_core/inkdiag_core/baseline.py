@@ -150,9 +150,9 @@ class BaselineKpis(TransformerMixin, BaseEstimator):
 
 
 BASELINE_FORMAT = "inkdiag-nozzle-baselines"
+BASELINE_FORMAT_VERSION = 1
 #: Nozzle ids a recorder accepts are below this (the trace wire format's limit, 2**24).
 MAX_NOZZLES = 1 << 24
-BASELINE_FORMAT_VERSION = 1
 
 
 class BaselineFileError(ValueError):

@@ -33,6 +33,13 @@ def declare(node, name, default, description, *, kind=None, range_=None, read_on
     node.declare_parameter(name, default, d)
 
 
+def declare_all(node, params) -> dict:
+    """Declare every ``(name, default, description, kind, range)`` of ``params``; their values."""
+    for name, default, desc, kind, rng in params:
+        declare(node, name, default, desc, kind=kind, range_=rng)
+    return values(node, [p[0] for p in params])
+
+
 def values(node, names) -> dict:
     return {n: node.get_parameter(n).value for n in names}
 

@@ -42,9 +42,7 @@ class BaselineRecorderNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__("record_baseline", **kwargs)
-        for name, default, desc, kind, rng in PARAMS:
-            _params.declare(self, name, default, desc, kind=kind, range_=rng)
-        self.config = _params.values(self, [q[0] for q in PARAMS])
+        self.config = _params.declare_all(self, PARAMS)
         self.add_on_set_parameters_callback(lambda params: _params.fixed_at_start(params))
         if not self.config["output_path"]:
             raise ValueError("output_path is required (-p output_path:=baselines/head.npz)")

@@ -98,9 +98,7 @@ class FdiNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__("fdi", **kwargs)
-        for name, default, desc, kind, rng in PARAMS:
-            _params.declare(self, name, default, desc, kind=kind, range_=rng)
-        self.config = _params.values(self, [q[0] for q in PARAMS])
+        self.config = _params.declare_all(self, PARAMS)
         self.add_on_set_parameters_callback(lambda params: _params.fixed_at_start(params))
         self.stats = FdiStats()
         self.model = None

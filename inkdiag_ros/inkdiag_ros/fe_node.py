@@ -52,9 +52,7 @@ class FeNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__("fe", **kwargs)
-        for name, default, desc, kind, rng in PARAMS:
-            _params.declare(self, name, default, desc, kind=kind, range_=rng)
-        self.config = _params.values(self, [q[0] for q in PARAMS])
+        self.config = _params.declare_all(self, PARAMS)
         self.add_on_set_parameters_callback(self._on_set)
         self.model = InkChannelModel()
         self.trends = FmTrendBank(accel_std=self.config["trend_accel_std"],

@@ -185,7 +185,7 @@ def _run(duration_s, *, namespace, model_path, out, context, baseline, own) -> S
             if monitor is None and nodes[1].done:
                 rec = nodes[1]
                 out(f"t={time.monotonic() - t0:5.1f}s "
-                    + (f"baselines of {len(rec.recorder.baselines())} nozzles recorded ({rec.frames} frames) "
+                    + (f"baselines of {rec.recorder.n_complete} nozzles recorded ({rec.frames} frames) "
                        f"-> {rec.written}; starting fdi and fe" if rec.written else
                        f"no baselines recorded ({rec.frames} frames, {rec.recorder.n_frames} needed per "
                        "nozzle); starting fdi and fe without them"))

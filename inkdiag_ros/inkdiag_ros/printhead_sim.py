@@ -61,9 +61,7 @@ class PrintheadSim(Node):
 
     def __init__(self, **kwargs):
         super().__init__("printhead_sim", **kwargs)
-        for name, default, desc, kind, rng in PARAMS:
-            _params.declare(self, name, default, desc, kind=kind, range_=rng)
-        p = _params.values(self, [q[0] for q in PARAMS])
+        p = _params.declare_all(self, PARAMS)
         self.config = p
         self._scenario = HeadScenario(
             n_nozzles=p["n_nozzles"], first_nozzle=p["first_nozzle"],
