@@ -47,14 +47,21 @@ def screen_traces(traces, *, flat_tol: float = 1e-6, clip_run: int = 5):
     reasons = np.full(n, "", dtype=object)
     if n == 0 or x.shape[1] == 0:
         return np.ones(n, bool), reasons
-    finite = np.isfinite(x).all(axis=1)
-    xf = x if finite.all() else np.where(finite[:, None], x, 0.0)
-    hi = xf.max(axis=1, keepdims=True)
-    lo = xf.min(axis=1, keepdims=True)
-    flat = (hi - lo)[:, 0] <= flat_tol
-    at_hi, at_lo = xf == hi, xf == lo
-    # Only rows with clip_run samples at an extreme can hold such a run (few do).
-    cand = np.flatnonzero((at_hi.sum(axis=1) >= clip_run) | (at_lo.sum(axis=1) >= clip_run))
+    # One max and one min pass find the non-finite rows too: NaN propagates through both,
+    # +Inf is a row's max and -Inf its min.
+    hi = x.max(axis=1)
+    lo = x.min(axis=1)
+    finite = np.isfinite(hi) & np.isfinite(lo)
+    with np.errstate(invalid="ignore"):  # inf - inf in non-finite rows
+        flat = finite & ((hi - lo) <= flat_tol)
+    if not finite.all():
+        hi, lo = np.where(finite, hi, np.nan), np.where(finite, lo, np.nan)  # matches no sample
+    at_hi, at_lo = x == hi[:, None], x == lo[:, None]
+    # Only rows with clip_run samples at an extreme can hold such a run (few do); bytes
+    # summed into uint16 count them fastest where a row is too short to overflow it.
+    count = np.uint16 if x.shape[1] < 2**16 else np.intp
+    cand = np.flatnonzero((np.add.reduce(at_hi.view(np.uint8), axis=1, dtype=count) >= clip_run)
+                          | (np.add.reduce(at_lo.view(np.uint8), axis=1, dtype=count) >= clip_run))
     clipped = np.zeros(n, bool)
     clipped[cand] = _has_run(at_hi[cand], clip_run) | _has_run(at_lo[cand], clip_run)
     reasons[clipped] = "clipped"

@@ -3,7 +3,9 @@
     scripts/bench fdi [--n 20000] [--seed 0]
 
 Times, on the same batch of simulated traces (all 12 classes): a bare
-``scipy.fft.rfft`` pass (floor of any spectral feature), ``extract_kpis``, a
+``scipy.fft.rfft`` pass (floor of any spectral feature), ``extract_kpis``,
+``screen_traces`` (the labelling's invalid-row screening) against one
+``max`` pass over the batch (the floor of reading every sample once), a
 Random Forest's ``predict_proba`` on 7 ready-made features (floor of the
 classifier), and whole fitted pipelines (raw traces -> label probabilities)
 for KPI_Y, the rich feature set and KPI_Y + the nozzle's healthy baseline
@@ -22,6 +24,7 @@ import scipy.fft
 from inkdiag_core import (FaultClass, baseline_kpis, extract_kpis, healthy_twin_frames, make_fdi_pipeline,
                           simulate, with_baseline)
 from inkdiag_core.fdi import forest_predict_proba
+from inkdiag_core.screening import screen_traces
 
 
 def best_of(fn, repeats=3):
@@ -48,6 +51,8 @@ def main():
     rows = {}
     rows["scipy.fft.rfft (floor)"] = best_of(lambda: scipy.fft.rfft(X, axis=1))
     rows["extract_kpis"] = best_of(lambda: extract_kpis(X, 10e6))
+    rows["X.max(axis=1) (floor: one read of each sample)"] = best_of(lambda: X.max(axis=1))
+    rows["screen_traces (invalid-row screening)"] = best_of(lambda: screen_traces(X))
     kpi_pipe = make_fdi_pipeline("rf", "kpi_y").fit(train.traces, train.label_values())
     feats = kpi_pipe.named_steps["features"].transform(X)
     clf = kpi_pipe.named_steps["classifier"]
@@ -73,6 +78,8 @@ def main():
     fft = rows["scipy.fft.rfft (floor)"]
     for name in ("extract_kpis", "pipeline rf/kpi_y (traces -> proba)", "pipeline rf/rich (traces -> proba)"):
         print(f"ratio {name} / rfft: {fft / rows[name]:.3f}")
+    print(f"ratio screen_traces / one max pass: "
+          f"{rows['X.max(axis=1) (floor: one read of each sample)'] / rows['screen_traces (invalid-row screening)']:.3f}")
     print(f"ratio pipeline rf/kpi_y / RF-on-features floor: "
           f"{rows['RF predict_proba on 7 features (floor)'] / rows['pipeline rf/kpi_y (traces -> proba)']:.3f}")
     print(f"ratio forest_predict_proba / sklearn predict_proba, kpi_y pipeline: "
