@@ -96,3 +96,39 @@ def test_quantised_simulated_traces_are_not_flagged_clipped():
     sim = simulate({c: 300 for c in FaultClass}, seed=0)  # 12-bit ADC, peaks repeat codes
     valid, reasons = screen_traces(sim.traces)
     assert valid.all(), sorted(set(reasons[~valid]))
+
+
+def _screen_row(row, flat_tol, clip_run):
+    """Reference: one row, read plainly."""
+    if not np.all(np.isfinite(row)):
+        return "non_finite"
+    hi, lo = row.max(), row.min()
+    if hi - lo <= flat_tol:
+        return "flat"
+    for extreme in (hi, lo):
+        run = 0
+        for v in row:
+            run = run + 1 if v == extreme else 0
+            if run >= clip_run:
+                return "clipped"
+    return ""
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.int16])
+def test_screening_matches_a_row_by_row_reading_on_random_frames(dtype):
+    rng = np.random.default_rng(7)
+    for _ in range(60):
+        n, m = int(rng.integers(1, 25)), int(rng.integers(2, 40))
+        x = (rng.integers(-3, 4, (n, m)) if dtype is np.int16 else rng.standard_normal((n, m)) * 3).astype(dtype)
+        for _ in range(int(rng.integers(0, 6))):
+            i, a, k = int(rng.integers(n)), int(rng.integers(m)), int(rng.integers(5))
+            if k == 0 and dtype is not np.int16:
+                x[i, a] = rng.choice([np.nan, np.inf, -np.inf])
+            elif k == 1:
+                x[i] = x[i, 0]
+            else:  # a plateau at the row's max or min
+                x[i, a:a + int(rng.integers(1, 8))] = x[i].max() if k == 2 else x[i].min()
+        for flat_tol, clip_run in ((1e-6, 5), (0.5, 2), (0.0, 3)):
+            valid, reasons = screen_traces(x, flat_tol=flat_tol, clip_run=clip_run)
+            want = [_screen_row(r, flat_tol, clip_run) for r in x]
+            assert list(reasons) == want and list(valid) == [w == "" for w in want]
