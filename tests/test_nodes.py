@@ -125,10 +125,15 @@ class _Rig:
             self.ros.spin_until(lambda: len(self.labels) > n_labels, 5, "labels")
 
 
-def test_fdi_labels_injected_faults_and_publishes_drying_and_diagnostics(ros, fdi_model):
+IN_CHILD = pytest.mark.parametrize("in_child", [False, True], ids=["thread", "labelling_process"])
+
+
+@IN_CHILD
+def test_fdi_labels_injected_faults_and_publishes_drying_and_diagnostics(ros, fdi_model, in_child):
     traces, truth = _frames_of({FaultClass.HEALTHY_NOZZLE: 20, FaultClass.FULLY_BLOCKED: 4,
                                 FaultClass.EMPTY_CHANNEL_1: 4, FaultClass.DEEPLY_DRIED: 4})
-    rig = _Rig(ros, fdi_model)
+    rig = _Rig(ros, fdi_model, labelling_process=in_child)
+    assert (rig.fdi._labeller is not None) == in_child
     rig.send(encode_traces(traces, first_nozzle=10, frame_id=5, stamp=100.25), expect_labels=True)
     rep = rig.labels[-1]
     assert (rep.frame_id, rep.stamp, rep.first_nozzle, rep.n_nozzles) == (5, 100.25, 10, 32)
@@ -160,9 +165,10 @@ def _malformed(traces):
             "nozzle range out of bounds": out_of_range, "data length": wrong_data}
 
 
-def test_fdi_survives_bad_frames_and_the_counts_add_up(ros, fdi_model):
+@IN_CHILD
+def test_fdi_survives_bad_frames_and_the_counts_add_up(ros, fdi_model, in_child):
     traces, _ = _frames_of({FaultClass.HEALTHY_NOZZLE: 32}, seed=3)
-    rig = _Rig(ros, fdi_model)
+    rig = _Rig(ros, fdi_model, labelling_process=in_child)
     bad = _malformed(traces)
     for name, msg in bad.items():
         rig.send(msg, expect_labels=False)
@@ -186,9 +192,10 @@ def test_fdi_survives_bad_frames_and_the_counts_add_up(ros, fdi_model):
                    == str(len(bad)), 5, "diagnostics with the malformed count")
 
 
-def test_fdi_under_a_burst_labels_every_frame_in_order_or_counts_it_dropped(ros, fdi_model):
+@IN_CHILD
+def test_fdi_under_a_burst_labels_every_frame_in_order_or_counts_it_dropped(ros, fdi_model, in_child):
     traces, _ = _frames_of({FaultClass.HEALTHY_NOZZLE: 24, FaultClass.FULLY_BLOCKED: 8}, seed=4)
-    rig = _Rig(ros, fdi_model, max_queued_frames=2)
+    rig = _Rig(ros, fdi_model, max_queued_frames=2, labelling_process=in_child)
     msgs = [encode_traces(traces, frame_id=100 + i) for i in range(4)]
     for m in msgs:  # four frames at once: the worker batches what queued while it was busy
         rig.pub.publish(m)
@@ -201,6 +208,26 @@ def test_fdi_under_a_burst_labels_every_frame_in_order_or_counts_it_dropped(ros,
     assert ids == sorted(ids) and set(ids) <= {100, 101, 102, 103} and len(ids) == s.frames_labelled
     assert all(sum(r.counts.values()) == 32 and r.counts.get("fully_blocked", 0) >= 6
                for r in rig.labels)
+
+
+def test_fdi_counts_the_frames_its_killed_labelling_process_had_and_labels_on(ros, fdi_model):
+    import os
+    import signal
+
+    traces, _ = _frames_of({FaultClass.HEALTHY_NOZZLE: 24, FaultClass.FULLY_BLOCKED: 8}, seed=5)
+    rig = _Rig(ros, fdi_model, labelling_process=True)
+    rig.send(encode_traces(traces, frame_id=1), expect_labels=True)
+    first = rig.fdi._labeller.pid
+    os.kill(first, signal.SIGKILL)
+    s = rig.fdi.stats
+    rig.send(encode_traces(traces, frame_id=2), expect_labels=False)
+    ros.spin_until(lambda: rig.fdi.wait_idle(0.01) and s.frames_failed + s.frames_labelled == 2,
+                   15, "frame 2 failed or labelled")
+    rig.send(encode_traces(traces, frame_id=3), expect_labels=True)
+    ros.spin_until(lambda: rig.fdi.wait_idle(0.01), 15, "idle")
+    assert s.frames_failed == 1 and "labelling process exited" in s.last_error
+    assert [r.frame_id for r in rig.labels] == [1, 3] and rig.fdi._labeller.pid not in (None, first)
+    assert s.frames_received == s.frames_labelled + s.frames_failed == 3
 
 
 def test_fdi_refuses_a_tampered_model(ros, fdi_model, tmp_path):

@@ -11,6 +11,12 @@ receiving and labelling overlap on two cores).
 The queue is bounded: when it holds ``max_queued`` items the oldest one is
 dropped and reported to ``on_drop``, so an overloaded node sheds load it
 accounts for instead of growing without bound.
+
+With ``max_in_flight``, ``handle`` only hands a batch on (to a labelling
+process) and whoever finishes it calls :meth:`BatchWorker.finished`; the
+worker takes the next batch as soon as fewer than ``max_in_flight`` are out,
+so handing on, labelling and publishing overlap while batches still grow
+under load.
 """
 
 from __future__ import annotations
@@ -38,19 +44,28 @@ class BatchWorker:
         Called on the worker thread when ``handle`` raises.
     name : str
         Thread name.
+    max_in_flight : int, optional
+        None: a batch is done when ``handle`` returns. An int: ``handle`` hands
+        the batch on and returns, and the batch is done when :meth:`finished` is
+        called for it (from any thread; not if ``handle`` raised); at most this
+        many batches are out at a time.
     """
 
     def __init__(self, handle: Callable, *, max_queued: int = 64, max_batch_rows: int = 16384,
                  on_drop: Callable = lambda item: None, on_error: Callable = lambda exc: None,
-                 name: str = "batch-worker"):
+                 name: str = "batch-worker", max_in_flight: int | None = None):
         if max_queued < 1 or max_batch_rows < 1:
             raise ValueError(f"max_queued and max_batch_rows must be >= 1, got {max_queued}, {max_batch_rows}")
+        if max_in_flight is not None and max_in_flight < 1:
+            raise ValueError(f"max_in_flight must be >= 1 or None, got {max_in_flight}")
         self._handle, self._on_drop, self._on_error = handle, on_drop, on_error
         self._max_queued, self._max_rows = int(max_queued), int(max_batch_rows)
+        self._async = max_in_flight is not None
+        self._max_in_flight = int(max_in_flight) if self._async else 1
         self._queue: deque = deque()  # (item, rows)
         self._cv = threading.Condition()
         self._stopping = False
-        self._busy = False
+        self._in_flight = 0  # batches taken and not yet done
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
@@ -68,14 +83,24 @@ class BatchWorker:
             self._on_drop(dropped)
 
     def pending(self) -> int:
-        """Items queued or being processed."""
+        """Items queued plus batches being processed."""
         with self._cv:
-            return len(self._queue) + int(self._busy)
+            return len(self._queue) + self._in_flight
 
     def wait_idle(self, timeout: float | None = None) -> bool:
         """Block until nothing is queued or being processed; False on timeout."""
         with self._cv:
-            return self._cv.wait_for(lambda: not self._queue and not self._busy, timeout)
+            return self._cv.wait_for(lambda: not self._queue and not self._in_flight, timeout)
+
+    def finished(self) -> None:
+        """One batch handed on by ``handle`` is done (``max_in_flight`` workers only)."""
+        if not self._async:
+            raise RuntimeError("finished() is for a BatchWorker with max_in_flight")
+        with self._cv:
+            if self._in_flight < 1:
+                raise RuntimeError("finished() called more often than batches were handed on")
+            self._in_flight -= 1
+            self._cv.notify_all()
 
     def stop(self, timeout: float = 10.0) -> None:
         """Finish the batch in hand, drop the rest (unprocessed), join the thread."""
@@ -97,18 +122,21 @@ class BatchWorker:
     def _run(self) -> None:
         while True:
             with self._cv:
-                self._cv.wait_for(lambda: self._queue or self._stopping)
+                self._cv.wait_for(lambda: (self._queue and self._in_flight < self._max_in_flight)
+                                  or self._stopping)
                 if self._stopping:
-                    self._busy = False
                     self._cv.notify_all()
                     return
                 batch = self._take()
-                self._busy = True
+                self._in_flight += 1
+            done = not self._async
             try:
                 self._handle(batch)
             except BaseException as exc:  # noqa: BLE001 - reported, the worker goes on
+                done = True  # not handed on: nobody will call finished() for it
                 self._on_error(exc)
             finally:
-                with self._cv:
-                    self._busy = False
-                    self._cv.notify_all()
+                if done:
+                    with self._cv:
+                        self._in_flight -= 1
+                        self._cv.notify_all()

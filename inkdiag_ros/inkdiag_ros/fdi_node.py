@@ -13,6 +13,12 @@ labelled invalid with their reason. Publishes ``/diagnostics`` every
 ``diagnostics_period_s``. The model file is verified against its manifest
 (sha256, library versions) before it is loaded.
 
+With ``labelling_process`` the classifier runs in a child process instead
+(:mod:`.labelling_process`): the worker thread hands each batch to it and a
+collector thread publishes the labels, so receiving, labelling and
+publishing overlap on two cores instead of sharing one GIL. A child that
+dies costs the frames it had (``frames_failed``); the next batch starts a new one.
+
 With ``baseline_path`` (the head's recorded per-nozzle baselines, ``record_baseline``)
 and ``baseline_model_path`` (a ``kpi_y+baseline`` model), the rows of nozzles that
 have a baseline are classified against it, the others with ``model_path``'s model
@@ -25,7 +31,9 @@ labels without baselines.
 
 from __future__ import annotations
 
+import queue
 import sys
+import threading
 import time
 
 import numpy as np
@@ -62,6 +70,7 @@ from msg_defs import (
 
 from . import _params
 from .batching import BatchWorker
+from .labelling_process import LabellingProcess, LabellingProcessError
 from .stats import FdiStats
 
 PARAMS = (
@@ -79,6 +88,8 @@ PARAMS = (
     ("baseline_path", "", "the head's per-nozzle healthy baselines (.npz from record_baseline); "
      "empty: none", str, None),
     ("baseline_model_path", "", "kpi_y+baseline FDI model for the nozzles that have a baseline", str, None),
+    ("labelling_process", False, "label in a child process (a core of its own: no GIL shared with "
+     "receiving and publishing) instead of a thread of this one", bool, None),
 )
 
 
@@ -107,15 +118,24 @@ class FdiNode(Node):
         self.baseline = None
         self._load(self.config["model_path"])
         self._load_baseline(self.config["baseline_path"], self.config["baseline_model_path"])
+        self._labeller = None
+        if self.model is not None and self.config["labelling_process"]:
+            self._start_labelling_process()
         n = self.config["n_nozzles"]
         self._max_id = n - 1 if n > 0 else None
         self._labels_pub = self.create_publisher(LABELS_MSG_TYPE, topics.LABELS, RELIABLE_QOS)
         self._drying_pub = self.create_publisher(DRYING_MSG_TYPE, topics.DRYING_NOZZLES, RELIABLE_QOS)
         self._diag_pub = self.create_publisher(DIAGNOSTICS_MSG_TYPE, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
-        self._worker = BatchWorker(self._label_batch, max_queued=self.config["max_queued_frames"],
+        in_child = self._labeller is not None
+        self._worker = BatchWorker(self._submit_batch if in_child else self._label_batch,
+                                   max_queued=self.config["max_queued_frames"],
                                    max_batch_rows=self.config["max_batch_traces"],
                                    on_drop=self._on_dropped, on_error=self._on_worker_error,
-                                   name="fdi-labeller")
+                                   name="fdi-labeller", max_in_flight=self._labeller.depth if in_child else None)
+        if in_child:
+            self._handed_on = queue.SimpleQueue()  # batches out in the labelling process, in order
+            self._collector = threading.Thread(target=self._collect, name="fdi-collector", daemon=True)
+            self._collector.start()
         self._sub = self.create_subscription(TRACE_MSG_TYPE, topics.TRACES, self._on_traces, TRACES_QOS)
         self._diag_timer = self.create_timer(self.config["diagnostics_period_s"], self._on_diagnostics)
 
@@ -123,6 +143,13 @@ class FdiNode(Node):
         worker = getattr(self, "_worker", None)  # absent if __init__ failed part-way
         if worker is not None:
             worker.stop()
+        collector = getattr(self, "_collector", None)
+        if collector is not None:
+            self._handed_on.put(None)  # after the batches out: they are published first
+            collector.join(10.0)
+        labeller = getattr(self, "_labeller", None)
+        if labeller is not None:
+            labeller.close()
         return super().destroy_node()
 
     def wait_idle(self, timeout: float | None = None) -> bool:
@@ -171,7 +198,27 @@ class FdiNode(Node):
         self.get_logger().info(f"per-nozzle baselines of {len(baselines)} nozzles from {path}, "
                                f"model {model_id(manifest)}")
 
+    def _start_labelling_process(self) -> None:
+        try:
+            self._labeller = LabellingProcess(self.model, fd_threshold=self.fd_threshold, baseline=self.baseline)
+        except LabellingProcessError as exc:
+            self.stats.misconfigured(f"labelling in this process: {exc}")
+            self.get_logger().error(f"labelling in this process: {exc}")
+            return
+        self.get_logger().info(f"labelling in child process {self._labeller.pid}")
+
     def _on_traces(self, msg) -> None:
+        self._on_trace_msg(msg)
+        # Take what else is queued now, as the executor would (rclpy's Executor._take_subscription):
+        # one executor wake-up and wait-set rebuild per burst instead of per message.
+        for _ in range(64):
+            with self._sub.handle:
+                taken = self._sub.handle.take_message(self._sub.msg_type, self._sub.raw)
+            if taken is None:
+                break
+            self._on_trace_msg(taken[0])
+
+    def _on_trace_msg(self, msg) -> None:
         self.stats.received()
         try:
             frame = decode_traces(msg, max_nozzle_id=self._max_id, n_samples=self.config["n_samples"],
@@ -206,15 +253,48 @@ class FdiNode(Node):
                 self._publish(frame, rows)
         self.stats.batch(len(frames), time.perf_counter() - t0)
 
+    def _submit_batch(self, frames) -> None:
+        """Labelling thread, with a labelling process: hand the batch to it (the collector publishes)."""
+        try:
+            self._labeller.submit([f.traces for f in frames], [f.first_nozzle for f in frames])
+        except LabellingProcessError as exc:
+            for frame in frames:
+                self._failed(frame, str(exc))
+            self._worker.finished()  # not handed on: done
+            return
+        self._handed_on.put(frames)
+
+    def _collect(self) -> None:
+        """Collector thread: publish each batch's labels from the labelling process, in order."""
+        while (frames := self._handed_on.get()) is not None:
+            busy0 = self._labeller.busy_s
+            try:
+                try:
+                    results = self._labeller.collect()
+                except LabellingProcessError as exc:
+                    results = [str(exc)] * len(frames)
+                for frame, rows in zip(frames, results):
+                    if isinstance(rows, str):
+                        self._failed(frame, rows)
+                    else:
+                        self._publish(frame, rows)
+                self.stats.batch(len(frames), self._labeller.busy_s - busy0)
+            except Exception as exc:  # noqa: BLE001 - counted and logged; the collector goes on
+                self._on_worker_error(exc)
+            finally:
+                self._worker.finished()
+
+    def _failed(self, frame, why: str) -> None:
+        self.stats.failed(f"frame {frame.frame_id}: {why}")
+        self.get_logger().error(f"labelling frame {frame.frame_id} failed: {why}", throttle_duration_sec=1.0)
+
     def _label_one(self, frame):
         try:
             n = frame.traces.shape[0]
             return label_traces(self.model, frame.traces, fd_threshold=self.fd_threshold,
                                 nozzle_ids=frame.first_nozzle + np.arange(n), baseline=self.baseline)
         except Exception as exc:  # the node never dies of input: count, log, go on
-            self.stats.failed(f"frame {frame.frame_id}: {type(exc).__name__}: {exc}")
-            self.get_logger().error(f"labelling frame {frame.frame_id} failed: {exc!r}",
-                                    throttle_duration_sec=1.0)
+            self._failed(frame, f"{type(exc).__name__}: {exc}")
             return None
 
     def _publish(self, frame, rows) -> None:

@@ -1,0 +1,343 @@
+"""Labelling in a child process, so the fdi node's receiving and its classifier use two cores.
+
+In one Python process the executor thread (taking, decoding and publishing
+messages) and the labelling thread share one GIL, and the labelling runs many
+short numpy calls that hold it: the two threads together use about one core
+(``scripts/bench graph``). A :class:`LabellingProcess` keeps the FDI model in
+a child process and labels each batch there with
+:func:`inkdiag_core.label_frames`: the parent copies the batch's traces into
+shared memory (one memcpy; the child labels them in place) and gets the
+:class:`inkdiag_core.FrameLabels` back over a pipe. The child is started with
+``spawn``: it inherits no rclpy or DDS state, imports only the core, and is
+given the model the parent has already verified. No ROS in here.
+
+A child that dies (killed, out of memory) costs the batch it was labelling:
+:meth:`LabellingProcess.label` raises :class:`LabellingProcessError`, and the
+next call starts a new child.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import signal
+import threading
+import time
+from collections import deque
+from multiprocessing import shared_memory
+
+import numpy as np
+
+__all__ = ["LabellingProcess", "LabellingProcessError"]
+
+_ALIGN = 64  # bytes: each frame starts on a cache line
+
+
+class LabellingProcessError(RuntimeError):
+    """The labelling process exited or failed to start; the batch in hand is lost."""
+
+
+class LabellingProcess:
+    """A child process holding an FDI model that labels batches of frames.
+
+    Batches are labelled in the order they are submitted. Up to ``depth`` may
+    be out at a time: the caller submits the next batch while the child labels
+    the previous one, and collects the results in order (a second thread may
+    collect while one submits).
+
+    Parameters
+    ----------
+    pipeline : fitted scikit-learn classifier, as for :func:`inkdiag_core.label_frames`
+        Pickled into the child once, at its start.
+    fd_threshold : float
+        Fault-detection threshold (:func:`inkdiag_core.label_frames`).
+    baseline : inkdiag_core.BaselineModel, optional
+        Per-nozzle baselines and their model (:func:`inkdiag_core.label_frames`).
+    depth : int
+        Batches submitted and not yet collected, at most; each has its own
+        shared trace buffer.
+    capacity_bytes : int
+        Initial size of each shared trace buffer, bytes; a larger batch replaces
+        its buffer with one twice as large (or as large as the batch).
+    poll_s : float
+        How often a waiting :meth:`collect` checks that the child is still alive, s.
+
+    Notes
+    -----
+    The child ignores SIGINT (Ctrl-C reaches the whole process group; the
+    parent decides when it ends) and exits when the parent closes its request
+    pipe, including when the parent dies.
+    """
+
+    def __init__(self, pipeline, *, fd_threshold: float = 0.5, baseline=None, depth: int = 2,
+                 capacity_bytes: int = 8 << 20, poll_s: float = 0.5):
+        if depth < 1:
+            raise ValueError(f"depth must be >= 1, got {depth}")
+        self._args = (pipeline, float(fd_threshold), baseline)
+        self._poll_s = float(poll_s)
+        self._ctx = multiprocessing.get_context("spawn")
+        self._lock = threading.Lock()  # the child, its pipes, the buffers and the queue of batches out
+        self._proc = self._requests = self._results = None
+        self._generation = 0  # of the child: batches sent to a dead child fail
+        self._out: deque = deque()  # generation of each batch submitted and not yet collected
+        self._shm = []
+        self._sent_names = [None] * depth  # the buffer name the child has for each slot
+        self._next_slot = 0
+        self._closed = False
+        self.starts = 0  # children started so far (1 + restarts after a crash)
+        self.busy_s = 0.0  # seconds the child spent labelling, summed over the batches collected
+        try:
+            for _ in range(depth):
+                self._shm.append(shared_memory.SharedMemory(create=True, size=max(int(capacity_bytes), _ALIGN)))
+            self._start()
+        except BaseException:
+            self._release_shm()
+            raise
+
+    @property
+    def pid(self):
+        """The child's process id (None between a crash and the next start)."""
+        return None if self._proc is None else self._proc.pid
+
+    @property
+    def depth(self) -> int:
+        """Batches that may be out at a time."""
+        return len(self._shm)
+
+    @property
+    def in_flight(self) -> int:
+        """Batches submitted and not yet collected."""
+        return len(self._out)
+
+    def _start(self) -> None:
+        req_r, req_w = self._ctx.Pipe(duplex=False)
+        res_r, res_w = self._ctx.Pipe(duplex=False)
+        proc = self._ctx.Process(target=_child_main, args=(req_r, res_w, *self._args),
+                                 name="fdi-labelling", daemon=True)
+        try:
+            proc.start()
+        except Exception as exc:  # pickling the model or spawning failed
+            req_w.close()
+            res_r.close()
+            raise LabellingProcessError(f"the labelling process did not start: {exc!r}") from exc
+        finally:
+            req_r.close()
+            res_w.close()
+        self._proc, self._requests, self._results = proc, req_w, res_r
+        self._generation += 1
+        self._sent_names = [None] * len(self._shm)
+        self.starts += 1
+
+    def submit(self, frames, first_nozzles) -> None:
+        """Hand a batch of frames to the child (returns at once).
+
+        Parameters
+        ----------
+        frames : sequence of ndarray, each of shape (n_i, n_samples)
+            Traces, V, one array per frame (one sample count); copied.
+        first_nozzles : sequence of int
+            Each frame's first nozzle id.
+
+        Raises
+        ------
+        RuntimeError
+            ``depth`` batches are already out (collect one first).
+        LabellingProcessError
+            The child could not be started or reached (nothing is out for this
+            batch; the next call starts a new child), or this object is closed.
+        """
+        arrays = [np.asarray(f) for f in frames]
+        firsts = [int(f) for f in first_nozzles]
+        with self._lock:
+            if self._closed:
+                raise LabellingProcessError("the labelling process is closed")
+            if len(self._out) >= len(self._shm):
+                raise RuntimeError(f"{len(self._out)} batches are out already: collect one first")
+            if self._proc is None:
+                self._start()
+            slot = self._next_slot
+            shm = self._buffer(slot, sum(-(-a.nbytes // _ALIGN) * _ALIGN for a in arrays))
+            specs, off = [], 0
+            for a in arrays:
+                np.copyto(np.ndarray(a.shape, a.dtype, buffer=shm.buf, offset=off), a)
+                specs.append((off, a.shape, a.dtype.str))
+                off += -(-a.nbytes // _ALIGN) * _ALIGN
+            name = None if self._sent_names[slot] == shm.name else shm.name
+            try:
+                self._requests.send((slot, name, specs, firsts))
+            except OSError as exc:
+                code = self._reap()
+                raise LabellingProcessError(f"the labelling process exited (code {code}): {exc}; "
+                                            "a new one starts with the next frames") from exc
+            self._sent_names[slot] = shm.name
+            self._next_slot = (slot + 1) % len(self._shm)
+            self._out.append(self._generation)
+
+    def _buffer(self, slot: int, nbytes: int):
+        """The shared buffer of ``slot``, replaced by a larger one if it holds fewer than ``nbytes``."""
+        shm = self._shm[slot]
+        if nbytes > shm.size:
+            grown = shared_memory.SharedMemory(create=True, size=max(nbytes, 2 * shm.size))
+            _unlink(shm)
+            self._shm[slot] = shm = grown
+        return shm
+
+    def collect(self) -> list:
+        """The labels of the oldest batch submitted and not yet collected (waits for them).
+
+        Returns
+        -------
+        list
+            Per frame of that batch, its :class:`inkdiag_core.FrameLabels`, or a
+            ``str`` saying why labelling it failed (the exception labelling it
+            alone raised).
+
+        Raises
+        ------
+        RuntimeError
+            Nothing is out.
+        LabellingProcessError
+            The child exited before answering: this batch and every other one
+            out are lost (each of their collects raises); the next submit starts
+            a new child.
+        """
+        with self._lock:
+            if not self._out:
+                raise RuntimeError("no batch is out")
+            generation, results, proc = self._out[0], self._results, self._proc
+        try:
+            if generation != self._generation or results is None:
+                raise EOFError("it had this batch")
+            while True:
+                while not results.poll(self._poll_s):
+                    if self._closed or not proc.is_alive():
+                        raise EOFError
+                kind, value = results.recv()
+                if kind == "ready":
+                    continue
+                if kind == "fatal":
+                    raise EOFError(value)
+                self.busy_s += value[1]
+                return value[0]
+        except (EOFError, OSError) as exc:
+            with self._lock:
+                code = self._reap() if generation == self._generation else None
+            why = f": {exc}" if str(exc) else ""
+            raise LabellingProcessError(
+                f"the labelling process exited (code {code}){why}; a new one starts with the next frames"
+            ) from exc
+        finally:
+            with self._lock:
+                self._out.popleft()
+
+    def label(self, frames, first_nozzles) -> list:
+        """:meth:`submit` a batch and :meth:`collect` its labels (nothing else may be out)."""
+        self.submit(frames, first_nozzles)
+        return self.collect()
+
+    def _reap(self):
+        """End the current child (lock held); its exit code."""
+        proc, requests, results = self._proc, self._requests, self._results
+        self._proc = self._requests = self._results = None
+        self._generation += 1  # batches it had fail
+        for conn in (requests, results):
+            if conn is not None:
+                conn.close()
+        if proc is None:
+            return None
+        proc.join(1.0)
+        if proc.is_alive():
+            proc.kill()
+            proc.join(1.0)
+        return proc.exitcode
+
+    def _release_shm(self) -> None:
+        for shm in self._shm:
+            _unlink(shm)
+        self._shm = []
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Ask the child to exit, wait ``timeout`` s for it, kill it if it has not, free the buffers.
+
+        A :meth:`collect` waiting in another thread raises :class:`LabellingProcessError`.
+        """
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            proc, requests = self._proc, self._requests
+            if requests is not None:
+                try:
+                    requests.send(None)
+                except OSError:
+                    pass
+        if proc is not None:
+            proc.join(timeout)
+        with self._lock:
+            self._reap()
+            self._release_shm()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def _unlink(shm) -> None:
+    shm.close()
+    try:
+        shm.unlink()
+    except FileNotFoundError:
+        pass
+
+
+def _child_main(requests, results, pipeline, fd_threshold, baseline) -> None:
+    """The child: take batches from shared memory, label them, send the labels, until told to stop."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        import inkdiag_core  # noqa: F401 - imported before "ready": a broken install is fatal here
+
+        from .allocator import keep_freed_memory
+
+        keep_freed_memory()
+        results.send(("ready", None))
+    except Exception as exc:  # noqa: BLE001 - reported to the parent, which raises it
+        results.send(("fatal", f"{type(exc).__name__}: {exc}"))
+        return
+    buffers = {}  # slot -> SharedMemory
+    while True:
+        try:
+            request = requests.recv()
+        except (EOFError, OSError):  # the parent is gone
+            break
+        if request is None:
+            break
+        slot, name, specs, first_nozzles = request
+        if name is not None:  # a new (or first) buffer for this slot
+            if slot in buffers:
+                buffers[slot].close()
+            buffers[slot] = shared_memory.SharedMemory(name=name)
+        t0 = time.perf_counter()
+        out = _label_views(buffers[slot], specs, first_nozzles, pipeline, fd_threshold, baseline)
+        results.send(("labels", (out, time.perf_counter() - t0)))
+    for shm in buffers.values():
+        shm.close()
+
+
+def _label_views(shm, specs, first_nozzles, pipeline, fd_threshold, baseline) -> list:
+    """Label the frames at ``specs`` in ``shm``; no view into the buffer outlives the call."""
+    from inkdiag_core import label_frames, label_traces
+
+    arrays = [np.ndarray(shape, dtype, buffer=shm.buf, offset=off) for off, shape, dtype in specs]
+    try:
+        return label_frames(pipeline, arrays, fd_threshold=fd_threshold,
+                            first_nozzles=first_nozzles, baseline=baseline)
+    except Exception:  # noqa: BLE001 - one bad frame must not cost the others their labels
+        out = []
+        for a, first in zip(arrays, first_nozzles):
+            try:
+                out.append(label_traces(pipeline, a, fd_threshold=fd_threshold,
+                                        nozzle_ids=first + np.arange(a.shape[0]), baseline=baseline))
+            except Exception as exc:  # noqa: BLE001
+                out.append(f"{type(exc).__name__}: {exc}")
+        return out
