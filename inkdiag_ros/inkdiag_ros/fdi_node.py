@@ -273,6 +273,8 @@ class FdiNode(Node):
                     results = self._labeller.collect()
                 except LabellingProcessError as exc:
                     results = [str(exc)] * len(frames)
+                except Exception as exc:  # noqa: BLE001 - e.g. labels that did not unpickle: each frame failed
+                    results = [f"{type(exc).__name__}: {exc}"] * len(frames)
                 for frame, rows in zip(frames, results):
                     if isinstance(rows, str):
                         self._failed(frame, rows)

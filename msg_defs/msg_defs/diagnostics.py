@@ -16,8 +16,9 @@ Each FDI node publishes, every ``diagnostics_period_s``, an array with one
   queue: the node was overloaded), ``rows_invalid``, ``rows_with_baseline`` (rows
   classified against their nozzle's recorded baseline); over the last period:
   ``frames_per_s``, ``traces_per_s``, ``frames_per_batch`` (frames labelled per
-  classifier pass) and ``labeller_busy`` (fraction of the time the labelling
-  thread was busy: near 1, the node is at its capacity); then
+  classifier pass) and ``labeller_busy`` (fraction of the time the classifier
+  was busy, on the labelling thread or in the labelling process: near 1, the
+  node is at its capacity); then
   ``last_error`` (the last malformed frame's reason), ``config_error`` (empty, or
   the setting the node runs without, and why) and then ``count.<class>``
   for each class value and ``count.invalid`` (cumulative rows per label).

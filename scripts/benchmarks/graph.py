@@ -4,19 +4,22 @@
 
 Pre-generates frames of a 2,656-nozzle head (512 samples, simulate_nozzles with
 a seeded mix of classes), then replays them from this process into a second
-process, twice:
+process, three times:
 
 1. ceiling: a plain subscriber in the second process that decodes each frame
    (zero-copy header + view) and answers with a tiny ack carrying the frame id
    (with the allocator set as in every inkdiag node process, ``inkdiag_ros.allocator``);
 2. fdi: the real fdi node (``python -m inkdiag_ros.fdi_node``) with the model,
-   whose ``labels`` messages are the answers.
+   whose ``labels`` messages are the answers, labelling on its worker thread;
+3. the same node with ``labelling_process:=true`` (the classifier in a child
+   process: a third process on the same 2 cores).
 
-Before both, the fdi node's compute alone is timed in this process
+Before all three, the fdi node's compute alone is timed in this process
 (``label_frames`` on the same messages, one per call, and one head scan per
-call): what the node could reach if it had a core to itself and no transport.
+call): what the node could reach if it had a core to itself and no transport;
+its ratio to the ceiling bounds the node's on this machine.
 
-Both use the same closed loop: at most ``--window`` messages in flight
+All use the same closed loop: at most ``--window`` messages in flight
 (published, not yet answered), so the consumer sets the pace. The default
 window is one head scan (``ceil(nozzles / chunk)`` messages, 14): a printer
 controller publishes a scan's nozzle ranges together, once per measurement. A frame
@@ -26,7 +29,7 @@ Fast DDS drops a fraction of a percent of them between the processes, in the
 ceiling run as much as in the fdi run; the fdi node's own counters (from
 /diagnostics) say how many it received, so what is lost in transport and
 what in the node are told apart. Latency is from the frame's source timestamp (set at publish) to its
-answer arriving here (one clock). Prints traces/s of both, the ratio, loss,
+answer arriving here (one clock). Prints traces/s of each, the ratios, loss,
 and p50/p99 latency.
 """
 
@@ -282,8 +285,11 @@ def main() -> int:
                   f"{d.get('frames_labelled')}, malformed {d.get('frames_malformed')}, "
                   f"failed {d.get('frames_failed')}, dropped {d.get('frames_dropped')} "
                   f"(of which {warm} warm-up frames); under load: {d.get('frames_per_batch')} frames per "
-                  f"classifier pass, labelling thread busy {d.get('labeller_busy')} of the time")
+                  f"classifier pass, classifier busy {d.get('labeller_busy')} of the time")
     c = rates.get("ceiling: plain subscriber")
+    if c:
+        print(f"{'labelling alone:':<26} / ceiling = {alone_scan / c:.2f}x at one head scan per call: what a node "
+              "could reach with a core to itself and no ROS cost at all")
     for name in (FDI_THREAD, FDI_PROCESS):
         f = rates.get(name)
         if c and f:
