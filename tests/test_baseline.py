@@ -222,6 +222,73 @@ def test_baselines_file_round_trip_and_refusals(tmp_path):
         NozzleBaselines.load(tmp_path / "other.npz")
 
 
+def test_recorder_takes_each_nozzles_healthy_fm_from_its_first_fm_frames():
+    from inkdiag_core import InkChannelModel, estimate_fm_batch
+
+    frames = _head_frames(12, 5, head_seed=4)
+    rec = BaselineRecorder(n_frames=4, fm_frames=2)
+    for i, f in enumerate(frames):
+        f = f.copy()
+        if i == 0:
+            f[3] = np.nan  # nozzle 3: invalid in frame 0 only
+        rec.add(0, f[:7])
+        rec.add(7, f[7:])
+    b = rec.baselines()
+    assert b.fm is not None and b.fm.shape == (12,)
+    fm = np.stack([estimate_fm_batch(f, InkChannelModel(), FS).fm for f in frames])  # (frame, nozzle)
+    want = np.median(fm[:2], axis=0)
+    want[3] = np.median(fm[1:3, 3])  # its first two valid rows
+    # estimate_fm_batch of rows in batches of 7 and 5 vs 12 agrees to ~1e-6 relative, not bit for bit
+    np.testing.assert_allclose(b.fm, want, rtol=1e-5)
+    has, got = b.lookup_fm([3, 99, 0])
+    np.testing.assert_array_equal(has, [True, False, True])
+    np.testing.assert_array_equal(got, [b.fm[3], 0.0, b.fm[0]])
+    assert BaselineRecorder(n_frames=2).fm_frames == 0
+    plain = BaselineRecorder(n_frames=1)
+    plain.add(0, frames[0])
+    assert plain.baselines().fm is None and not plain.baselines().lookup_fm([0])[0].any()
+
+
+@pytest.mark.parametrize("fm_frames", [-1, 5, True, 1.5])
+def test_recorder_rejects_bad_fm_frames(fm_frames):
+    with pytest.raises(ValueError, match="fm_frames"):
+        BaselineRecorder(n_frames=4, fm_frames=fm_frames)
+
+
+def test_fm_baselines_round_trip_are_checked_and_version_1_files_still_load(tmp_path):
+    import json
+
+    from inkdiag_core.baseline import _content_sha256
+
+    kpis = np.random.default_rng(1).normal(size=(3, 7))
+    b = NozzleBaselines(np.array([1, 4, 9]), kpis, FS, 512, 8, fm=np.array([1e3, np.nan, -2e4]))
+    again = NozzleBaselines.load(b.save(tmp_path / "fm.npz"))
+    np.testing.assert_array_equal(again.fm, b.fm)
+    np.testing.assert_array_equal(again.lookup_fm([4, 9])[0], [False, True])
+    with np.load(tmp_path / "fm.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    edited = dict(arrays, fm=arrays["fm"] * 1.01)
+    np.savez(tmp_path / "edited.npz", **edited)
+    dropped = {k: v for k, v in arrays.items() if k != "fm"}
+    np.savez(tmp_path / "dropped.npz", **dropped)
+    for name, match in (("edited.npz", "sha256"), ("dropped.npz", "f_m column")):
+        with pytest.raises(BaselineFileError, match=match):
+            NozzleBaselines.load(tmp_path / name)
+    # a file of format 1 (KPIs only, as the previous version wrote it)
+    meta = {"format": "inkdiag-nozzle-baselines", "format_version": 1, "kpi_names": list(KPI_NAMES),
+            "sample_rate_hz": FS, "n_samples": 512, "n_frames": 8}
+    ids = np.array([1, 4, 9])
+    meta["sha256"] = _content_sha256(ids, kpis, dict(meta))
+    np.savez(tmp_path / "v1.npz", nozzle_ids=ids, kpis=kpis, meta=np.array(json.dumps(meta)))
+    v1 = NozzleBaselines.load(tmp_path / "v1.npz")
+    assert v1.fm is None
+    np.testing.assert_array_equal(v1.kpis, kpis)
+    with pytest.raises(ValueError, match="fm must have shape"):
+        NozzleBaselines(ids, kpis, FS, 512, 8, fm=np.zeros(2))
+    with pytest.raises(ValueError, match="fm must be finite"):
+        NozzleBaselines(ids, kpis, FS, 512, 8, fm=np.array([0.0, np.inf, 0.0]))
+
+
 # --- labelling against recorded baselines ---------------------------------------------------
 
 def test_label_frames_uses_each_nozzles_baseline_where_it_has_one(tmp_path):

@@ -73,6 +73,44 @@ def test_record_baseline_writes_every_nozzles_median_and_finishes(ros, tmp_path)
     b = NozzleBaselines.load(rec.written)
     np.testing.assert_array_equal(b.nozzle_ids, 100 + np.arange(N))
     np.testing.assert_allclose(b.kpis, baseline_kpis(np.stack(frames, axis=1), 10e6))
+    # and each nozzle's healthy f_m, the median over its first fm_frames (3) rows, for the fe node
+    from inkdiag_core import InkChannelModel, estimate_fm_batch
+
+    fm = np.stack([estimate_fm_batch(f, InkChannelModel(), 10e6).fm for f in frames])
+    np.testing.assert_allclose(b.fm, np.median(fm, axis=0), rtol=1e-5)
+
+
+def test_fe_takes_each_estimate_relative_to_its_nozzles_healthy_fm(ros, tmp_path):
+    from inkdiag_core import FaultClass, InkChannelModel, estimate_fm_batch
+    from inkdiag_ros.fe_node import FeNode
+    from msg_defs import (DRYING_MSG_TYPE, ESTIMATES_MSG_TYPE, RELIABLE_QOS, DryingNozzles, decode_estimates,
+                          encode_drying)
+
+    rec, _ = _record(ros, tmp_path / "head.npz")
+    (tmp_path / "junk.npz").write_bytes(b"junk")
+    fe = ros.add(FeNode(context=ros.context, namespace="/h",
+                        parameter_overrides=[P("baseline_path", value=str(rec.written))]))
+    bare = ros.add(FeNode(context=ros.context, namespace="/other",
+                          parameter_overrides=[P("baseline_path", value=str(tmp_path / "junk.npz"))]))
+    assert fe.baselines is not None and bare.baselines is None  # a bad file: runs without, says why
+    probe = ros.node("probe", namespace="/h")
+    tpub = probe.create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
+    dpub = probe.create_publisher(DRYING_MSG_TYPE, topics.DRYING_NOZZLES, RELIABLE_QOS)
+    est = []
+    probe.create_subscription(ESTIMATES_MSG_TYPE, topics.FM_ESTIMATES, lambda m: est.append(decode_estimates(m)),
+                              RELIABLE_QOS)
+    ros.spin_until(lambda: tpub.get_subscription_count() and dpub.get_subscription_count(), 10, "fe")
+    classes = np.array(["healthy_nozzle"] * N, dtype=object)
+    classes[[3, 4]] = FaultClass.DEEPLY_DRIED.value
+    frame = simulate_nozzles(classes, seed=HEAD, frame_seed=50).traces
+    ids = [103, 104, 500]  # 500 is not in this frame
+    dpub.publish(encode_drying(DryingNozzles(0, 1.0, tuple(ids), ("deeply_dried",) * 3)))
+    ros.spin_until(lambda: fe.drying, 5, "drying set")
+    _publish_until(ros, tpub, encode_traces(frame[:20], first_nozzle=100, frame_id=7), lambda: est, "estimates")
+    b = NozzleBaselines.load(rec.written)
+    plain = estimate_fm_batch(frame[3:5], InkChannelModel(), 10e6).fm
+    np.testing.assert_allclose(est[0].column("fm"), plain - b.fm[3:5], rtol=1e-6)
+    assert est[0].nozzles.tolist() == [103, 104] and fe.estimates_with_baseline == 2
 
 
 def test_record_baseline_times_out_without_frames_and_writes_nothing(ros, tmp_path):

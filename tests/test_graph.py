@@ -156,6 +156,18 @@ def test_graph_records_baselines_then_labels_against_them(ros, fdi_model, tmp_pa
     assert "rows vs their baseline" in lines[-1]  # fdi classified against the recorded baselines
     assert score.label_scores()["accuracy"] > 0.95
     assert any("faults [3:fully_blocked" in line for line in lines)
+    b = NozzleBaselines.load(tmp_path / "b" / "head_05.npz")
+    assert b.fm is not None and np.isfinite(b.fm).all()  # and each nozzle's healthy f_m for fe
+    assert score.fm_scores()["estimates"] > 0
+
+
+def test_graph_runner_refuses_a_bad_scenario_in_one_line(ros):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    pr = subprocess.run([sys.executable, "-m", "inkdiag_ros.graph", "--duration", "5", "--ros-args",
+                         "-p", "fault_nozzles:=[3]", "-p", "fault_classes:=['fully_blocked']",
+                         "-p", "drying_nozzles:=[3]"], env=env, capture_output=True, text=True, timeout=60)
+    assert pr.returncode == 2, pr.stdout + pr.stderr
+    assert pr.stderr.strip() == "graph: PrintheadSim: nozzles both faulty and drying: [3]", pr.stderr
 
 
 def test_shutting_down_waits_a_moment_for_the_context_to_go_down():

@@ -24,6 +24,7 @@ import hashlib
 import json
 import os
 import tempfile
+import warnings
 import zipfile
 import zlib
 from dataclasses import dataclass
@@ -33,7 +34,9 @@ import numpy as np
 from sklearn.base import BaseEstimator, TransformerMixin
 from sklearn.utils.validation import check_is_fitted, validate_data
 
+from .estimation import estimate_fm_batch
 from .kpis import KPI_NAMES, MIN_SAMPLES, _check_sample_rate, _check_traces, extract_kpis
+from .model import InkChannelModel
 from .screening import screen_traces
 
 __all__ = ["RELATIVE_NAMES", "BaselineFileError", "BaselineKpis", "BaselineRecorder",
@@ -150,7 +153,8 @@ class BaselineKpis(TransformerMixin, BaseEstimator):
 
 
 BASELINE_FORMAT = "inkdiag-nozzle-baselines"
-BASELINE_FORMAT_VERSION = 1
+BASELINE_FORMAT_VERSION = 2  # 2: optional healthy f_m per nozzle ("fm"); 1 (KPIs only) is still read
+_READABLE_VERSIONS = (1, 2)
 #: Nozzle ids a recorder accepts are below this (the trace wire format's limit, 2**24).
 MAX_NOZZLES = 1 << 24
 
@@ -159,10 +163,12 @@ class BaselineFileError(ValueError):
     """A baselines file that is missing, not one, modified, or inconsistent (a ``ValueError``)."""
 
 
-def _content_sha256(ids: np.ndarray, kpis: np.ndarray, meta: dict) -> str:
+def _content_sha256(ids: np.ndarray, kpis: np.ndarray, meta: dict, fm=None) -> str:
     h = hashlib.sha256()
     h.update(np.ascontiguousarray(ids, dtype="<i8").tobytes())
     h.update(np.ascontiguousarray(kpis, dtype="<f8").tobytes())
+    if fm is not None:
+        h.update(np.ascontiguousarray(fm, dtype="<f8").tobytes())
     h.update(json.dumps(meta, sort_keys=True).encode())
     return h.hexdigest()
 
@@ -184,6 +190,12 @@ class NozzleBaselines:
         Samples per trace behind them.
     n_frames : int
         Healthy frames per nozzle the median was taken over (at most).
+    fm : array_like of float, shape (m,), optional
+        Each nozzle's healthy f_m reading, 1/s: the median of
+        ``estimate_fm_batch(rows, InkChannelModel(), sample_rate_hz).fm`` over
+        its first healthy rows (:class:`BaselineRecorder` ``fm_frames``), for
+        ``estimate_fm_batch(..., baseline_fm=...)``; NaN where a nozzle has
+        none. None: no f_m baselines at all.
 
     Raises
     ------
@@ -196,6 +208,7 @@ class NozzleBaselines:
     sample_rate_hz: float
     n_samples: int
     n_frames: int
+    fm: np.ndarray | None = None
 
     def __post_init__(self):
         ids = np.asarray(self.nozzle_ids)
@@ -209,6 +222,14 @@ class NozzleBaselines:
             raise ValueError("nozzle_ids must be non-negative and strictly increasing")
         if not np.isfinite(kpis).all():
             raise ValueError("kpis must be finite")
+        fm = None
+        if self.fm is not None:
+            fm = np.asarray(self.fm, dtype=np.float64)
+            if fm.shape != (ids.size,):
+                raise ValueError(f"fm must have shape ({ids.size},), got {fm.shape}")
+            if np.isinf(fm).any():
+                raise ValueError("fm must be finite, or NaN where a nozzle has no f_m baseline")
+            fm.flags.writeable = False
         fs = _check_sample_rate(self.sample_rate_hz)
         for name in ("n_samples", "n_frames"):
             v = getattr(self, name)
@@ -218,6 +239,7 @@ class NozzleBaselines:
             arr.flags.writeable = False
         object.__setattr__(self, "nozzle_ids", ids)
         object.__setattr__(self, "kpis", kpis)
+        object.__setattr__(self, "fm", fm)
         object.__setattr__(self, "sample_rate_hz", fs)
         object.__setattr__(self, "n_samples", int(self.n_samples))
         object.__setattr__(self, "n_frames", int(self.n_frames))
@@ -239,18 +261,43 @@ class NozzleBaselines:
         kpis : ndarray of float64, shape (n, 7)
             Its baseline, NaN where it has none.
         """
-        q = np.asarray(nozzle_ids, dtype=np.int64).reshape(-1)
-        pos = np.searchsorted(self.nozzle_ids, q)
-        pos_c = np.minimum(pos, max(len(self) - 1, 0))
-        has = (pos < len(self)) & (self.nozzle_ids[pos_c] == q) if len(self) else np.zeros(q.size, bool)
-        out = np.full((q.size, N_KPIS), np.nan)
-        out[has] = self.kpis[pos_c[has]]
+        has, pos = self._rows(nozzle_ids)
+        out = np.full((has.size, N_KPIS), np.nan)
+        out[has] = self.kpis[pos[has]]
         return has, out
+
+    def _rows(self, nozzle_ids):
+        """Whether each nozzle id has a row, and its row (clipped where it has none)."""
+        q = np.asarray(nozzle_ids, dtype=np.int64).reshape(-1)
+        pos = np.minimum(np.searchsorted(self.nozzle_ids, q), max(len(self) - 1, 0))
+        has = self.nozzle_ids[pos] == q if len(self) else np.zeros(q.size, bool)
+        return has, pos
+
+    def lookup_fm(self, nozzle_ids):
+        """The healthy f_m baselines of the given nozzles.
+
+        Parameters
+        ----------
+        nozzle_ids : array_like of int, shape (n,)
+
+        Returns
+        -------
+        has : ndarray of bool, shape (n,)
+            Whether each nozzle has an f_m baseline.
+        fm : ndarray of float64, shape (n,)
+            Its healthy f_m, 1/s; 0 where it has none (``baseline_fm``'s "none").
+        """
+        has, pos = self._rows(nozzle_ids)
+        if self.fm is None:
+            return np.zeros(has.size, bool), np.zeros(has.size)
+        fm = np.where(has, self.fm[pos] if len(self) else 0.0, np.nan)
+        has = ~np.isnan(fm)
+        return has, np.where(has, fm, 0.0)
 
     def _meta(self) -> dict:
         return {"format": BASELINE_FORMAT, "format_version": BASELINE_FORMAT_VERSION,
                 "kpi_names": list(KPI_NAMES), "sample_rate_hz": self.sample_rate_hz,
-                "n_samples": self.n_samples, "n_frames": self.n_frames}
+                "n_samples": self.n_samples, "n_frames": self.n_frames, "has_fm": self.fm is not None}
 
     def save(self, path) -> Path:
         """Write an ``.npz`` (no pickle) with the arrays, the settings and their sha256.
@@ -260,12 +307,14 @@ class NozzleBaselines:
         """
         path = Path(path)
         meta = self._meta()
-        meta["sha256"] = _content_sha256(self.nozzle_ids, self.kpis, self._meta())
+        meta["sha256"] = _content_sha256(self.nozzle_ids, self.kpis, self._meta(), self.fm)
+        arrays = {"nozzle_ids": self.nozzle_ids, "kpis": self.kpis}
+        if self.fm is not None:
+            arrays["fm"] = self.fm
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
         try:
             with os.fdopen(fd, "wb") as f:
-                np.savez(f, nozzle_ids=self.nozzle_ids, kpis=self.kpis,
-                         meta=np.array(json.dumps(meta, sort_keys=True)))
+                np.savez(f, **arrays, meta=np.array(json.dumps(meta, sort_keys=True)))
             os.replace(tmp, path)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
@@ -289,6 +338,7 @@ class NozzleBaselines:
         try:
             with np.load(path, allow_pickle=False) as z:
                 arrays = {k: z[k] for k in ("nozzle_ids", "kpis", "meta")}
+                fm = z["fm"] if "fm" in z.files else None
             meta = json.loads(str(arrays["meta"]))
         except (OSError, ValueError, KeyError, EOFError, TypeError, zipfile.BadZipFile, zlib.error) as exc:
             raise BaselineFileError(f"{path} is not an inkdiag baselines file, or is damaged "
@@ -296,22 +346,25 @@ class NozzleBaselines:
         if not isinstance(meta, dict) or meta.get("format") != BASELINE_FORMAT:
             raise BaselineFileError(f"{path} is not an inkdiag baselines file (format "
                                     f"{meta.get('format') if isinstance(meta, dict) else meta!r})")
-        if meta.get("format_version") != BASELINE_FORMAT_VERSION:
+        if meta.get("format_version") not in _READABLE_VERSIONS:
             raise BaselineFileError(f"{path}: baselines format version {meta.get('format_version')!r}, "
-                                    f"this inkdiag reads {BASELINE_FORMAT_VERSION}")
+                                    f"this inkdiag reads {', '.join(map(str, _READABLE_VERSIONS))}")
+        if (fm is not None) != bool(meta.get("has_fm", False)):
+            raise BaselineFileError(f"{path}: its f_m column does not match its header (modified or "
+                                    "corrupted); record the baselines again")
         if meta.get("kpi_names") != list(KPI_NAMES):
             raise BaselineFileError(f"{path}: KPI columns {meta.get('kpi_names')!r} are not {list(KPI_NAMES)}")
         stored = meta.pop("sha256", None)
         ids, kpis = arrays["nozzle_ids"], arrays["kpis"]
         try:
-            actual = _content_sha256(ids, kpis, meta)
+            actual = _content_sha256(ids, kpis, meta, fm)
         except (TypeError, ValueError) as exc:
             raise BaselineFileError(f"{path}: unreadable arrays ({exc})") from None
         if stored != actual:
             raise BaselineFileError(f"{path}: its content does not match its sha256 (modified or "
                                     "corrupted); record the baselines again")
         try:
-            return cls(ids, kpis, meta["sample_rate_hz"], meta["n_samples"], meta["n_frames"])
+            return cls(ids, kpis, meta["sample_rate_hz"], meta["n_samples"], meta["n_frames"], fm)
         except (KeyError, ValueError) as exc:
             raise BaselineFileError(f"{path}: inconsistent baselines ({exc})") from None
 
@@ -335,11 +388,21 @@ class BaselineRecorder:
         Sample rate of the traces, Hz.
     n_samples : int
         Samples per trace; every frame must have it.
+    fm_frames : int
+        Also record each nozzle's healthy f_m reading (:attr:`NozzleBaselines.fm`),
+        the median of ``estimate_fm_batch(rows, InkChannelModel(), sample_rate_hz).fm``
+        over its first ``fm_frames`` rows (at most ``n_frames``); 0: none. It costs
+        about a millisecond per row, so it is taken on fewer rows than the KPIs.
     """
 
-    def __init__(self, *, n_frames: int = 8, sample_rate_hz: float = 10e6, n_samples: int = 512):
+    def __init__(self, *, n_frames: int = 8, sample_rate_hz: float = 10e6, n_samples: int = 512,
+                 fm_frames: int = 0):
         if isinstance(n_frames, bool) or not isinstance(n_frames, (int, np.integer)) or n_frames < 1:
             raise ValueError(f"n_frames must be a positive integer, got {n_frames!r}")
+        if isinstance(fm_frames, bool) or not isinstance(fm_frames, (int, np.integer)) \
+                or not 0 <= fm_frames <= n_frames:
+            raise ValueError(f"fm_frames must be an integer in 0..n_frames ({n_frames}), got {fm_frames!r}")
+        self.fm_frames = int(fm_frames)
         if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < MIN_SAMPLES:
             raise ValueError(f"n_samples must be an integer >= {MIN_SAMPLES}, got {n_samples!r}")
         self.n_frames = int(n_frames)
@@ -392,7 +455,14 @@ class BaselineRecorder:
             return 0
         rows = np.flatnonzero(use)[need]
         ids = ids[need]
-        self._kpis.append(extract_kpis(_check_traces(x[rows]), self.sample_rate_hz))
+        y = _check_traces(x[rows])
+        kpis = np.full((ids.size, N_KPIS + 1), np.nan)  # the last column: f_m, NaN where not taken
+        kpis[:, :N_KPIS] = extract_kpis(y, self.sample_rate_hz)
+        if self.fm_frames:
+            fm_rows = np.flatnonzero(self._count_of[ids] < self.fm_frames)
+            if fm_rows.size:
+                kpis[fm_rows, N_KPIS] = estimate_fm_batch(y[fm_rows], InkChannelModel(), self.sample_rate_hz).fm
+        self._kpis.append(kpis)
         self._ids.append(ids.astype(np.int64))
         self._count_of[ids] += 1  # the ids of one message are distinct
         return int(ids.size)
@@ -411,7 +481,7 @@ class BaselineRecorder:
         if not 1 <= need <= self.n_frames:
             raise ValueError(f"min_frames must be in 1..{self.n_frames}, got {min_frames!r}")
         all_ids = np.concatenate(self._ids) if self._ids else np.empty(0, np.int64)
-        all_kpis = np.concatenate(self._kpis) if self._kpis else np.empty((0, N_KPIS))
+        all_kpis = np.concatenate(self._kpis) if self._kpis else np.empty((0, N_KPIS + 1))
         order = np.argsort(all_ids, kind="stable")  # grouped by nozzle, arrival order within
         ids = np.flatnonzero(self._count_of).astype(np.int64)
         counts = self._count_of[ids].astype(np.int64)
@@ -421,5 +491,11 @@ class BaselineRecorder:
         idx = starts[ok][:, None] + k  # (m, n_frames) rows of each nozzle, in arrival order
         valid = k < np.minimum(counts[ok], self.n_frames)[:, None]
         stack = np.where(valid[..., None], all_kpis[order][np.where(valid, idx, 0)], np.nan)
-        med = np.nanmedian(stack, axis=1) if ok.any() else np.empty((0, N_KPIS))
-        return NozzleBaselines(ids[ok], med, self.sample_rate_hz, self.n_samples, self.n_frames)
+        if ok.any():
+            with warnings.catch_warnings():  # a nozzle whose f_m rows were all non-finite: NaN
+                warnings.simplefilter("ignore", RuntimeWarning)
+                med = np.nanmedian(stack, axis=1)
+        else:
+            med = np.empty((0, N_KPIS + 1))
+        return NozzleBaselines(ids[ok], med[:, :N_KPIS], self.sample_rate_hz, self.n_samples, self.n_frames,
+                               fm=med[:, N_KPIS] if self.fm_frames else None)

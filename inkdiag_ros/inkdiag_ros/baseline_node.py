@@ -6,9 +6,13 @@ nozzle's first ``n_frames`` valid rows (:class:`inkdiag_core.BaselineRecorder`:
 any nozzle ranges, in any order; invalid rows are skipped) and, once
 ``n_nozzles`` nozzles are complete, writes their baselines (median KPIs) to
 ``output_path`` (:class:`inkdiag_core.NozzleBaselines`, a checked ``.npz``) and
-exits. At ``timeout_s`` it writes the nozzles that are complete, says which are
+exits. With ``fm_frames`` > 0 (the default) the file also holds each nozzle's
+healthy f_m reading, the median over its first ``fm_frames`` valid rows, which
+the fe node subtracts (its ``baseline_path``); it costs about 1 ms of CPU per
+row (a 2,656-nozzle head: about 10 s for 3 frames). At ``timeout_s`` it writes the nozzles that are complete, says which are
 not, and exits with status 1 if none is. The fdi node uses the file
-(``baseline_path``, with a ``kpi_y+baseline`` model in ``baseline_model_path``).
+(``baseline_path``, with a ``kpi_y+baseline`` model in ``baseline_model_path``),
+and so does the fe node (``baseline_path``).
 
     record_baseline --ros-args -r __ns:=/head_07 -p output_path:=baselines/head_07.npz -p n_nozzles:=2656
 """
@@ -30,6 +34,8 @@ from ._spin import spin_node
 PARAMS = (
     ("output_path", "", "where to write the baselines (.npz)", str, None),
     ("n_frames", 8, "healthy frames per nozzle in its baseline (median)", int, (1, 1000)),
+    ("fm_frames", 3, "also record each nozzle's healthy f_m (for fe): the median over its first "
+     "fm_frames valid rows, at most n_frames; 0: none (about 1 ms of CPU per row)", int, (0, 1000)),
     ("n_nozzles", 0, "nozzles to wait for (0: until timeout_s)", int, (0, 2**24)),
     ("timeout_s", 60.0, "give up waiting after this long, s; writes the complete nozzles", float, (0.1, 86400.0)),
     ("n_samples", 512, "samples per trace; other frames are rejected", int, (16, 65536)),
@@ -48,7 +54,8 @@ class BaselineRecorderNode(Node):
             raise ValueError("output_path is required (-p output_path:=baselines/head.npz)")
         self.recorder = BaselineRecorder(n_frames=self.config["n_frames"],
                                          sample_rate_hz=self.config["sample_rate_hz"],
-                                         n_samples=self.config["n_samples"])
+                                         n_samples=self.config["n_samples"],
+                                         fm_frames=min(self.config["fm_frames"], self.config["n_frames"]))
         self.frames = 0
         self.malformed = 0
         self.last_error = ""
@@ -59,6 +66,7 @@ class BaselineRecorderNode(Node):
         self._timer = self.create_timer(1.0, self._on_tick)
         self.get_logger().info(
             f"recording {self.config['n_frames']} healthy frames per nozzle"
+            + (f" (f_m from the first {self.recorder.fm_frames})" if self.recorder.fm_frames else "")
             + (f" of {self.config['n_nozzles']} nozzles" if self.config["n_nozzles"] else "")
             + f" into {self.config['output_path']} (timeout {self.config['timeout_s']:g} s)")
 

@@ -9,6 +9,14 @@ and offset drop out); each nozzle's history feeds a Kalman trend
 the time until the deeply-dried level. Publishes ``fm_estimates`` (JSON) and
 ``fm_estimates/array`` (Float64MultiArray), reliable.
 
+With ``baseline_path`` (the head's baselines from ``record_baseline``, with
+healthy f_m per nozzle), each nozzle's estimate is taken relative to its own
+healthy reading (``estimate_fm_batch(..., baseline_fm=...)``): a real nozzle
+differs from the nominal model within its tolerances and the estimator reads
+that as a fault; its healthy reading removes the part that acts as an offset
+(``reports/fe.md``). Nozzles without one are estimated as before. A file that
+does not load or has no f_m is logged and the node runs without it.
+
     fe --ros-args -r __ns:=/head_00
 """
 
@@ -16,11 +24,19 @@ from __future__ import annotations
 
 import sys
 
+import numpy as np
 from rclpy.node import Node
 
 from ._spin import spin_node
 
-from inkdiag_core import FmTrendBank, InkChannelModel, estimate_fm_batch, screen_traces
+from inkdiag_core import (
+    BaselineFileError,
+    FmTrendBank,
+    InkChannelModel,
+    NozzleBaselines,
+    estimate_fm_batch,
+    screen_traces,
+)
 from msg_defs import (
     DRYING_MSG_TYPE,
     ESTIMATES_ARRAY_MSG_TYPE,
@@ -44,6 +60,8 @@ PARAMS = (
      "(lowest ids first); bounds the cost per frame", int, (1, 100_000)),
     ("trend_accel_std", 5e3, "white acceleration noise of the f_m trend, 1/s^3", float, (1.0, 1e9)),
     ("trend_rel_floor", 0.05, "relative floor of one estimate's standard deviation", float, (0.0, 1.0)),
+    ("baseline_path", "", "the head's per-nozzle baselines with healthy f_m (.npz from record_baseline): "
+     "each estimate is relative to its nozzle's healthy reading; empty: none", str, None),
 )
 
 
@@ -60,6 +78,8 @@ class FeNode(Node):
         self.drying = ()
         self.frames_malformed = 0
         self.estimates_published = 0
+        self.estimates_with_baseline = 0  # nozzle estimates taken relative to the nozzle's healthy f_m
+        self.baselines = self._load_baselines(self.config["baseline_path"])
         self._pub = self.create_publisher(ESTIMATES_MSG_TYPE, topics.FM_ESTIMATES, RELIABLE_QOS)
         self._array_pub = self.create_publisher(ESTIMATES_ARRAY_MSG_TYPE, topics.FM_ESTIMATES_ARRAY,
                                                 RELIABLE_QOS)
@@ -67,6 +87,37 @@ class FeNode(Node):
                                                     self._on_drying, RELIABLE_QOS)
         self._traces_sub = self.create_subscription(TRACE_MSG_TYPE, topics.TRACES, self._on_traces,
                                                     TRACES_QOS)
+
+    def _load_baselines(self, path: str):
+        if not path:
+            return None
+        try:
+            baselines = NozzleBaselines.load(path)
+        except BaselineFileError as exc:
+            self.get_logger().error(f"f_m baselines not used: {exc}")
+            return None
+        n_fm = 0 if baselines.fm is None else int((~np.isnan(baselines.fm)).sum())
+        if not n_fm:
+            self.get_logger().error(f"f_m baselines not used: {path} holds no healthy f_m "
+                                    "(recorded with fm_frames:=0?)")
+            return None
+        self.get_logger().info(f"healthy f_m baselines of {n_fm} nozzles from {path}")
+        return baselines
+
+    def _baseline_fm(self, ids, frame, n_samples):
+        """Healthy f_m of the nozzles ``ids`` (0: none), or None without usable baselines."""
+        b = self.baselines
+        if b is None:
+            return None
+        if (frame.sample_rate_hz, n_samples) != (b.sample_rate_hz, b.n_samples):
+            self.get_logger().warning(
+                f"frame {frame.frame_id} is {frame.sample_rate_hz:g} Hz x {n_samples} samples, the f_m "
+                f"baselines {b.sample_rate_hz:g} Hz x {b.n_samples}: estimated without them",
+                throttle_duration_sec=5.0)
+            return None
+        has, fm = b.lookup_fm(ids)
+        self.estimates_with_baseline += int(has.sum())
+        return fm
 
     def _on_set(self, params):
         for p in params:
@@ -98,7 +149,8 @@ class FeNode(Node):
         ids, rows = ids[valid], rows[valid]
         if ids.size == 0:
             return
-        est = estimate_fm_batch(rows, self.model, frame.sample_rate_hz)
+        est = estimate_fm_batch(rows, self.model, frame.sample_rate_hz,
+                                baseline_fm=self._baseline_fm(ids, frame, rows.shape[1]))
         trend, rate, eta = self.trends.update(frame.stamp, ids, est.fm, est.std)
         out = FmEstimates.from_columns(
             frame.frame_id, frame.stamp, nozzle=ids, fm=est.fm, fm_std=est.std, d_mu=est.d_mu,

@@ -13,7 +13,8 @@ once a second what the operator topics say, and at the end (after
 With ``--baseline`` the run starts as a printer after a purge: the simulated head
 is healthy for its first ``--commissioning`` seconds (``faults_start_s``) while
 ``record_baseline`` records every nozzle's healthy baseline; then fdi starts with
-those baselines and the ``kpi_y+baseline`` model, and fe with it.
+those baselines and the ``kpi_y+baseline`` model, and fe with the nozzles'
+healthy f_m readings from the same file.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import sys
 import time
 
 import rclpy
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -135,6 +137,17 @@ def run(duration_s: float, *, namespace: str, model_path: str | None, args=None,
                 baseline=baseline, own=False)
 
 
+class BadParameters(ValueError):
+    """A node of the graph refused its parameters (the message says which and why)."""
+
+
+def _make(node_cls, **kwargs):
+    try:
+        return node_cls(**kwargs)
+    except (ValueError, ParameterException) as exc:
+        raise BadParameters(f"{node_cls.__name__}: {exc}") from exc
+
+
 def _run(duration_s, *, namespace, model_path, out, context, baseline, own) -> Scorecard:
     """:func:`run` on an initialised context (``own``: shut it down at the end)."""
     kw = {"namespace": namespace}
@@ -146,25 +159,27 @@ def _run(duration_s, *, namespace, model_path, out, context, baseline, own) -> S
     try:
         fdi_over = [Parameter("model_path", value=str(model_path))] if model_path else []
         if baseline:
-            sim = PrintheadSim(parameter_overrides=[
+            sim = _make(PrintheadSim, parameter_overrides=[
                 Parameter("faults_start_s", value=float(baseline["commissioning_s"]))], **kw)
-            recorder = BaselineRecorderNode(parameter_overrides=[
+            recorder = _make(BaselineRecorderNode, parameter_overrides=[
                 Parameter("output_path", value=str(baseline["path"])),
                 Parameter("n_frames", value=int(baseline.get("n_frames", 8))),
                 Parameter("n_nozzles", value=sim.config["n_nozzles"]),
                 Parameter("timeout_s", value=float(baseline["commissioning_s"]))], **kw)
             nodes = [sim, recorder]
         else:
-            nodes = [PrintheadSim(**kw)]
+            nodes = [_make(PrintheadSim, **kw)]
         for n in nodes:
             executor.add_node(n)
 
         def start_labelling():
-            extra = []
+            extra, fe_over = [], []
             if baseline and nodes[1].written:
                 extra = [Parameter("baseline_path", value=str(nodes[1].written)),
                          Parameter("baseline_model_path", value=str(baseline["model_path"]))]
-            started = [FdiNode(parameter_overrides=fdi_over + extra, **kw), FeNode(**kw), OperatorMonitor(**kw)]
+                fe_over = [Parameter("baseline_path", value=str(nodes[1].written))]
+            started = [_make(FdiNode, parameter_overrides=fdi_over + extra, **kw),
+                       _make(FeNode, parameter_overrides=fe_over, **kw), OperatorMonitor(**kw)]
             for n in started:
                 executor.add_node(n)
                 nodes.append(n)
@@ -251,8 +266,12 @@ def main(args=None) -> int:
     print(f"inkdiag graph: printhead_sim -> fdi -> fe in {ns.namespace}, "
           f"{'until Ctrl-C' if ns.duration <= 0 else f'{ns.duration:g} s'} (Ctrl-C stops early)"
           + (f"; per-nozzle baselines recorded in the first {ns.commissioning:g} s" if baseline else ""))
-    score = run(ns.duration, namespace=ns.namespace, model_path=ns.model, args=argv[:1] + ros_args,
-                baseline=baseline)
+    try:
+        score = run(ns.duration, namespace=ns.namespace, model_path=ns.model, args=argv[:1] + ros_args,
+                    baseline=baseline)
+    except BadParameters as exc:
+        print(f"graph: {exc}", file=sys.stderr)
+        return 2
     print(score.format())
     return 0
 
