@@ -126,3 +126,58 @@ def test_refuses_a_bad_depth(fdi_model):
     model, _ = load_model(fdi_model)
     with pytest.raises(ValueError, match="depth must be >= 1"):
         LabellingProcess(model, depth=0)
+
+
+def test_two_large_batches_out_do_not_deadlock_the_pipes(labeller):
+    """Thousands of frames per batch: their layout goes through shared memory, not the request pipe."""
+    import threading
+
+    model, lp = labeller
+    x = np.concatenate(_frames(5))
+    frames = [x[i % len(x)][None] for i in range(3000)]  # 3000 one-row frames per batch
+    got = {}
+
+    def run():
+        lp.submit(frames, range(3000))
+        lp.submit(frames[::-1], range(3000))
+        got["a"], got["b"] = lp.collect(), lp.collect()
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    t.join(120)
+    assert not t.is_alive(), "submit/collect of two large batches hung"
+    want = label_frames(model, frames, fd_threshold=0.3)
+    _same(got["a"], want)
+    _same(got["b"], want[::-1])
+
+
+class _FailsToUnpickle:
+    """Pickles in the parent; unpickling it in the child raises."""
+
+    def __reduce__(self):
+        import operator
+
+        return operator.truediv, (1, 0)
+
+
+def test_a_child_that_cannot_start_is_not_restarted_for_every_batch():
+    lp = LabellingProcess(_FailsToUnpickle())
+    try:
+        with pytest.raises(LabellingProcessError, match="exited"):
+            lp.label(_frames(6), [0, 3, 11, 12])
+        assert lp.broken and lp.starts == 1
+        with pytest.raises(LabellingProcessError, match="cannot start"):
+            lp.submit(_frames(6), [0, 3, 11, 12])
+        assert lp.starts == 1 and lp.in_flight == 0
+    finally:
+        lp.close()
+
+
+def test_no_room_for_the_shared_buffers_is_an_error_not_a_crash(fdi_model):
+    import glob
+
+    model, _ = load_model(fdi_model)
+    before = set(glob.glob("/dev/shm/psm_*"))
+    with pytest.raises(LabellingProcessError, match="shared memory|/dev/shm"):
+        LabellingProcess(model, capacity_bytes=1 << 46)  # 64 TiB: more than any /dev/shm holds
+    assert set(glob.glob("/dev/shm/psm_*")) <= before

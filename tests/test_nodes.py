@@ -230,6 +230,17 @@ def test_fdi_counts_the_frames_its_killed_labelling_process_had_and_labels_on(ro
     assert s.frames_received == s.frames_labelled + s.frames_failed == 3
 
 
+def test_fdi_labels_on_a_thread_when_no_labelling_process_can_start(ros, fdi_model):
+    traces, _ = _frames_of({FaultClass.HEALTHY_NOZZLE: 24, FaultClass.FULLY_BLOCKED: 8}, seed=6)
+    rig = _Rig(ros, fdi_model, labelling_process=True)
+    rig.fdi._labeller._fatal = "its imports failed"  # as after a child that died before it was ready
+    rig.send(encode_traces(traces, frame_id=1), expect_labels=True)
+    rig.send(encode_traces(traces, frame_id=2), expect_labels=True)
+    s = rig.fdi.stats
+    assert s.frames_labelled == 2 and s.frames_failed == 0 and "cannot start" in s.config_error
+    assert rig.labels[-1].counts.get("fully_blocked", 0) >= 6
+
+
 def test_fdi_refuses_a_tampered_model(ros, fdi_model, tmp_path):
     bad = tmp_path / "m.joblib"
     shutil.copy(fdi_model, bad)

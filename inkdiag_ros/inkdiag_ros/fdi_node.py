@@ -254,15 +254,31 @@ class FdiNode(Node):
         self.stats.batch(len(frames), time.perf_counter() - t0)
 
     def _submit_batch(self, frames) -> None:
-        """Labelling thread, with a labelling process: hand the batch to it (the collector publishes)."""
+        """Labelling thread, with a labelling process: hand the batch to it (the collector publishes).
+
+        If no child can start at all (it fails to import the core), label here instead.
+        """
+        if self._labeller.broken is None:
+            try:
+                self._labeller.submit([f.traces for f in frames], [f.first_nozzle for f in frames])
+            except Exception as exc:  # noqa: BLE001 - the batch is lost, counted; the node goes on
+                if self._labeller.broken is None:
+                    why = str(exc) if isinstance(exc, LabellingProcessError) else f"{type(exc).__name__}: {exc}"
+                    for frame in frames:
+                        self._failed(frame, why)
+                    self._worker.finished()  # not handed on: done
+                    return
+            else:
+                self._handed_on.put(frames)
+                return
+        why = f"the labelling process cannot start ({self._labeller.broken}): labelling on a thread"
+        if self.stats.config_error != why:
+            self.stats.misconfigured(why)
+            self.get_logger().error(why)
         try:
-            self._labeller.submit([f.traces for f in frames], [f.first_nozzle for f in frames])
-        except LabellingProcessError as exc:
-            for frame in frames:
-                self._failed(frame, str(exc))
-            self._worker.finished()  # not handed on: done
-            return
-        self._handed_on.put(frames)
+            self._label_batch(frames)
+        finally:
+            self._worker.finished()
 
     def _collect(self) -> None:
         """Collector thread: publish each batch's labels from the labelling process, in order."""
@@ -304,14 +320,14 @@ class FdiNode(Node):
             frame_id=frame.frame_id, stamp=frame.stamp, first_nozzle=frame.first_nozzle,
             classes=rows.classes, confidence=rows.confidence, valid=rows.valid,
             reasons=rows.reasons, model_id=self.model_id)
-        self.stats.labelled(report.counts, report.n_nozzles, int(np.count_nonzero(rows.baseline)))
         try:
             self._labels_pub.publish(encode_labels(report))
             self._drying_pub.publish(encode_drying(DryingNozzles.from_labels(report)))
-        except Exception:
+        except Exception as exc:  # noqa: BLE001 - this frame failed; the batch's others go on
             if self.context.ok():
-                raise  # a real failure: the worker counts and logs it
-            # shutting down (SIGINT/SIGTERM): nothing left to publish to
+                self._failed(frame, f"publishing its labels: {type(exc).__name__}: {exc}")
+            return  # else shutting down (SIGINT/SIGTERM): nothing left to publish to
+        self.stats.labelled(report.counts, report.n_nozzles, int(np.count_nonzero(rows.baseline)))
 
     def _on_diagnostics(self) -> None:
         level, message, values, counts = self.stats.period(self.model is not None)

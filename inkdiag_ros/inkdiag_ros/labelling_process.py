@@ -19,6 +19,8 @@ next call starts a new child.
 from __future__ import annotations
 
 import multiprocessing
+import os
+import pickle
 import signal
 import threading
 import time
@@ -85,9 +87,10 @@ class LabellingProcess:
         self._closed = False
         self.starts = 0  # children started so far (1 + restarts after a crash)
         self.busy_s = 0.0  # seconds the child spent labelling, summed over the batches collected
+        self._fatal = None  # why no child can start (it died before it was ready): none is tried again
         try:
             for _ in range(depth):
-                self._shm.append(shared_memory.SharedMemory(create=True, size=max(int(capacity_bytes), _ALIGN)))
+                self._shm.append(_new_shm(max(int(capacity_bytes), _ALIGN)))
             self._start()
         except BaseException:
             self._release_shm()
@@ -97,6 +100,11 @@ class LabellingProcess:
     def pid(self):
         """The child's process id (None between a crash and the next start)."""
         return None if self._proc is None else self._proc.pid
+
+    @property
+    def broken(self):
+        """Why no child can start (one died before it was ready: its imports or the model failed), or None."""
+        return self._fatal
 
     @property
     def depth(self) -> int:
@@ -113,6 +121,9 @@ class LabellingProcess:
         res_r, res_w = self._ctx.Pipe(duplex=False)
         proc = self._ctx.Process(target=_child_main, args=(req_r, res_w, *self._args),
                                  name="fdi-labelling", daemon=True)
+        # SIGINT blocked while the child starts: the mask is inherited through spawn's exec,
+        # so a Ctrl-C while it imports does not kill it (it ignores SIGINT once running).
+        mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         try:
             proc.start()
         except Exception as exc:  # pickling the model or spawning failed
@@ -120,9 +131,11 @@ class LabellingProcess:
             res_r.close()
             raise LabellingProcessError(f"the labelling process did not start: {exc!r}") from exc
         finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
             req_r.close()
             res_w.close()
         self._proc, self._requests, self._results = proc, req_w, res_r
+        self._ready = False  # until the child says it has imported the core and unpickled the model
         self._generation += 1
         self._sent_names = [None] * len(self._shm)
         self.starts += 1
@@ -147,23 +160,31 @@ class LabellingProcess:
         """
         arrays = [np.asarray(f) for f in frames]
         firsts = [int(f) for f in first_nozzles]
+        offsets, end = [], 0
+        for a in arrays:
+            offsets.append(end)
+            end += -(-a.nbytes // _ALIGN) * _ALIGN
+        meta = pickle.dumps(([(off, a.shape, a.dtype.str) for off, a in zip(offsets, arrays)], firsts),
+                            protocol=pickle.HIGHEST_PROTOCOL)
         with self._lock:
             if self._closed:
                 raise LabellingProcessError("the labelling process is closed")
+            if self._fatal is not None:
+                raise LabellingProcessError(f"the labelling process cannot start: {self._fatal}")
             if len(self._out) >= len(self._shm):
                 raise RuntimeError(f"{len(self._out)} batches are out already: collect one first")
             if self._proc is None:
                 self._start()
             slot = self._next_slot
-            shm = self._buffer(slot, sum(-(-a.nbytes // _ALIGN) * _ALIGN for a in arrays))
-            specs, off = [], 0
-            for a in arrays:
+            shm = self._buffer(slot, end + len(meta))
+            for a, off in zip(arrays, offsets):
                 np.copyto(np.ndarray(a.shape, a.dtype, buffer=shm.buf, offset=off), a)
-                specs.append((off, a.shape, a.dtype.str))
-                off += -(-a.nbytes // _ALIGN) * _ALIGN
+            shm.buf[end:end + len(meta)] = meta
             name = None if self._sent_names[slot] == shm.name else shm.name
             try:
-                self._requests.send((slot, name, specs, firsts))
+                # A few dozen bytes (the batch's layout is in the buffer): the pipe always has
+                # room, so this never waits on the child, whatever it is doing.
+                self._requests.send((slot, name, end, len(meta)))
             except OSError as exc:
                 code = self._reap()
                 raise LabellingProcessError(f"the labelling process exited (code {code}): {exc}; "
@@ -176,7 +197,7 @@ class LabellingProcess:
         """The shared buffer of ``slot``, replaced by a larger one if it holds fewer than ``nbytes``."""
         shm = self._shm[slot]
         if nbytes > shm.size:
-            grown = shared_memory.SharedMemory(create=True, size=max(nbytes, 2 * shm.size))
+            grown = _new_shm(max(nbytes, 2 * shm.size))
             _unlink(shm)
             self._shm[slot] = shm = grown
         return shm
@@ -213,14 +234,22 @@ class LabellingProcess:
                         raise EOFError
                 kind, value = results.recv()
                 if kind == "ready":
+                    self._ready = True
                     continue
                 if kind == "fatal":
+                    self._fatal = value
                     raise EOFError(value)
                 self.busy_s += value[1]
                 return value[0]
         except (EOFError, OSError) as exc:
             with self._lock:
-                code = self._reap() if generation == self._generation else None
+                current = generation == self._generation
+                ready = self._ready
+                code = self._reap() if current else None
+                if current and not ready and self._fatal is None:
+                    # it died before it could label anything (its model did not unpickle, its
+                    # imports failed): another would too, so none is started again
+                    self._fatal = str(exc) or f"it exited with code {code} before it was ready"
             why = f": {exc}" if str(exc) else ""
             raise LabellingProcessError(
                 f"the labelling process exited (code {code}){why}; a new one starts with the next frames"
@@ -283,6 +312,25 @@ class LabellingProcess:
         self.close()
 
 
+def _new_shm(size: int):
+    """A new shared buffer of ``size`` bytes with its pages reserved.
+
+    A tmpfs segment is created sparse; were ``/dev/shm`` full, the first write to
+    an unbacked page would kill the process with SIGBUS. Reserving the pages at
+    once turns that into this error.
+    """
+    try:
+        shm = shared_memory.SharedMemory(create=True, size=size)
+    except OSError as exc:
+        raise LabellingProcessError(f"no shared memory for the traces ({size} bytes): {exc}") from exc
+    try:
+        os.posix_fallocate(shm._fd, 0, size)  # SharedMemory keeps its descriptor in _fd
+    except OSError as exc:
+        _unlink(shm)
+        raise LabellingProcessError(f"no room in /dev/shm for the traces ({size} bytes): {exc}") from exc
+    return shm
+
+
 def _unlink(shm) -> None:
     shm.close()
     try:
@@ -312,12 +360,13 @@ def _child_main(requests, results, pipeline, fd_threshold, baseline) -> None:
             break
         if request is None:
             break
-        slot, name, specs, first_nozzles = request
+        slot, name, meta_at, meta_len = request
         if name is not None:  # a new (or first) buffer for this slot
             if slot in buffers:
                 buffers[slot].close()
             buffers[slot] = shared_memory.SharedMemory(name=name)
         t0 = time.perf_counter()
+        specs, first_nozzles = pickle.loads(buffers[slot].buf[meta_at:meta_at + meta_len])
         out = _label_views(buffers[slot], specs, first_nozzles, pipeline, fd_threshold, baseline)
         results.send(("labels", (out, time.perf_counter() - t0)))
     for shm in buffers.values():
