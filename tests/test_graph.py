@@ -170,6 +170,16 @@ def test_graph_runner_refuses_a_bad_scenario_in_one_line(ros):
     assert pr.stderr.strip() == "graph: PrintheadSim: nozzles both faulty and drying: [3]", pr.stderr
 
 
+def test_graph_runner_cleans_up_the_nodes_it_built_when_a_later_one_refuses(ros, fdi_model):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    pr = subprocess.run([sys.executable, "-m", "inkdiag_ros.graph", "--duration", "3", "--no-baseline",
+                         "--model", str(fdi_model), "--ros-args", "-p", "labelling_process:=true",
+                         "-p", "trend_accel_std:=0.5"], env=env, capture_output=True, text=True, timeout=60)
+    assert pr.returncode == 2, pr.stdout + pr.stderr
+    assert pr.stderr.strip().splitlines()[-1].startswith("graph: FeNode:"), pr.stderr
+    assert "leaked" not in pr.stderr and "Traceback" not in pr.stderr  # fdi, its child and buffers released
+
+
 def test_shutting_down_waits_a_moment_for_the_context_to_go_down():
     from inkdiag_ros._spin import shutting_down
 

@@ -173,6 +173,34 @@ def test_a_child_that_cannot_start_is_not_restarted_for_every_batch():
         lp.close()
 
 
+def test_a_child_found_dead_at_submit_before_it_was_ready_is_not_restarted_either():
+    lp = LabellingProcess(_FailsToUnpickle())
+    try:
+        deadline = time.monotonic() + 30
+        while lp._proc.is_alive() and time.monotonic() < deadline:  # dies unpickling the model
+            time.sleep(0.05)
+        with pytest.raises(LabellingProcessError):
+            for _ in range(3):  # the pipe may take a request or two before it reports the death
+                lp.label(_frames(6), [0, 3, 11, 12])
+        assert lp.broken and lp.starts == 1
+    finally:
+        lp.close()
+
+
+def test_a_child_killed_by_a_signal_while_starting_is_restarted(fdi_model):
+    model, _ = load_model(fdi_model)
+    lp = LabellingProcess(model)
+    try:
+        os.kill(lp.pid, signal.SIGKILL)  # still importing: not ready yet
+        with pytest.raises(LabellingProcessError, match=r"code -9"):
+            lp.label(_frames(7), [0, 3, 11, 12])
+        assert lp.broken is None
+        _same(lp.label(_frames(7), [0, 3, 11, 12]), label_frames(model, _frames(7)))
+        assert lp.starts == 2
+    finally:
+        lp.close()
+
+
 def test_no_room_for_the_shared_buffers_is_an_error_not_a_crash(fdi_model):
     import glob
 

@@ -275,10 +275,8 @@ class FdiNode(Node):
         if self.stats.config_error != why:
             self.stats.misconfigured(why)
             self.get_logger().error(why)
-        try:
-            self._label_batch(frames)
-        finally:
-            self._worker.finished()
+        self._label_batch(frames)  # if it raises, the worker counts the batch done itself
+        self._worker.finished()
 
     def _collect(self) -> None:
         """Collector thread: publish each batch's labels from the labelling process, in order."""
@@ -316,16 +314,16 @@ class FdiNode(Node):
             return None
 
     def _publish(self, frame, rows) -> None:
-        report = LabelsReport.from_arrays(
-            frame_id=frame.frame_id, stamp=frame.stamp, first_nozzle=frame.first_nozzle,
-            classes=rows.classes, confidence=rows.confidence, valid=rows.valid,
-            reasons=rows.reasons, model_id=self.model_id)
         try:
+            report = LabelsReport.from_arrays(
+                frame_id=frame.frame_id, stamp=frame.stamp, first_nozzle=frame.first_nozzle,
+                classes=rows.classes, confidence=rows.confidence, valid=rows.valid,
+                reasons=rows.reasons, model_id=self.model_id)
             self._labels_pub.publish(encode_labels(report))
             self._drying_pub.publish(encode_drying(DryingNozzles.from_labels(report)))
         except Exception as exc:  # noqa: BLE001 - this frame failed; the batch's others go on
             if self.context.ok():
-                self._failed(frame, f"publishing its labels: {type(exc).__name__}: {exc}")
+                self._failed(frame, f"reporting its labels: {type(exc).__name__}: {exc}")
             return  # else shutting down (SIGINT/SIGTERM): nothing left to publish to
         self.stats.labelled(report.counts, report.n_nozzles, int(np.count_nonzero(rows.baseline)))
 

@@ -178,12 +178,11 @@ def _run(duration_s, *, namespace, model_path, out, context, baseline, own) -> S
                 extra = [Parameter("baseline_path", value=str(nodes[1].written)),
                          Parameter("baseline_model_path", value=str(baseline["model_path"]))]
                 fe_over = [Parameter("baseline_path", value=str(nodes[1].written))]
-            started = [_make(FdiNode, parameter_overrides=fdi_over + extra, **kw),
-                       _make(FeNode, parameter_overrides=fe_over, **kw), OperatorMonitor(**kw)]
-            for n in started:
-                executor.add_node(n)
-                nodes.append(n)
-            return started[-1]
+            for make in (lambda: _make(FdiNode, parameter_overrides=fdi_over + extra, **kw),
+                         lambda: _make(FeNode, parameter_overrides=fe_over, **kw), lambda: OperatorMonitor(**kw)):
+                nodes.append(make())  # at once: if a later one fails, the finally destroys this one
+                executor.add_node(nodes[-1])
+            return nodes[-1]
 
         if not baseline:
             monitor = start_labelling()

@@ -186,9 +186,15 @@ class LabellingProcess:
                 # room, so this never waits on the child, whatever it is doing.
                 self._requests.send((slot, name, end, len(meta)))
             except OSError as exc:
+                fatal = None
+                if not self._out:  # nobody collecting: read what it said before it died
+                    fatal = self._last_words()
+                ready = self._ready
                 code = self._reap()
-                raise LabellingProcessError(f"the labelling process exited (code {code}): {exc}; "
-                                            "a new one starts with the next frames") from exc
+                self._note_death(ready, code, fatal)
+                raise LabellingProcessError(f"the labelling process exited (code {code}): {fatal or exc}; "
+                                            + ("a new one starts with the next frames" if self._fatal is None
+                                               else "none is started again")) from exc
             self._sent_names[slot] = shm.name
             self._next_slot = (slot + 1) % len(self._shm)
             self._out.append(self._generation)
@@ -237,7 +243,8 @@ class LabellingProcess:
                     self._ready = True
                     continue
                 if kind == "fatal":
-                    self._fatal = value
+                    with self._lock:
+                        self._fatal = value
                     raise EOFError(value)
                 self.busy_s += value[1]
                 return value[0]
@@ -246,10 +253,8 @@ class LabellingProcess:
                 current = generation == self._generation
                 ready = self._ready
                 code = self._reap() if current else None
-                if current and not ready and self._fatal is None:
-                    # it died before it could label anything (its model did not unpickle, its
-                    # imports failed): another would too, so none is started again
-                    self._fatal = str(exc) or f"it exited with code {code} before it was ready"
+                if current:
+                    self._note_death(ready, code, str(exc) or None)
             why = f": {exc}" if str(exc) else ""
             raise LabellingProcessError(
                 f"the labelling process exited (code {code}){why}; a new one starts with the next frames"
@@ -257,6 +262,26 @@ class LabellingProcess:
         finally:
             with self._lock:
                 self._out.popleft()
+
+    def _last_words(self):
+        """(Lock held, nothing out.) Read the dead child's messages; its "fatal" reason, if any."""
+        try:
+            while self._results.poll(0):
+                kind, value = self._results.recv()
+                if kind == "ready":
+                    self._ready = True
+                elif kind == "fatal":
+                    return value
+        except (EOFError, OSError):
+            pass
+        return None
+
+    def _note_death(self, ready: bool, code, fatal) -> None:
+        """(Lock held.) A child that failed before it was ready, by its own hand (a "fatal"
+        message, or an error exit: its model did not unpickle, its imports failed), means
+        another would too: none is started again. One killed by a signal may be restarted."""
+        if self._fatal is None and not ready and (fatal or (code is not None and code > 0)):
+            self._fatal = fatal or f"it exited with code {code} before it was ready"
 
     def label(self, frames, first_nozzles) -> list:
         """:meth:`submit` a batch and :meth:`collect` its labels (nothing else may be out)."""
