@@ -32,6 +32,19 @@ def test_label_frames_equals_each_frame_labelled_alone(fdi_model):
     assert label_frames(model, []) == []
 
 
+def test_label_frames_isolated_costs_a_bad_frame_only_itself(fdi_model):
+    from inkdiag_core import label_frames_isolated
+
+    model, _ = load_model(fdi_model)
+    frames = _frames()
+    good = label_frames_isolated(model, frames, fd_threshold=0.3, first_nozzles=[0, 3, 11, 12])
+    assert [list(g.classes) for g in good] == [list(w.classes) for w in label_frames(model, frames, fd_threshold=0.3)]
+    mixed = label_frames_isolated(model, [frames[1], np.zeros(512, np.float32)], fd_threshold=0.3,
+                                  first_nozzles=[3, 11])
+    assert list(mixed[0].classes) == list(good[1].classes)
+    assert isinstance(mixed[1], str) and mixed[1].startswith("ValueError")
+
+
 def test_label_frames_rejects_mixed_widths_and_bad_ndim(fdi_model):
     model, _ = load_model(fdi_model)
     a = np.zeros((2, 512), np.float32)

@@ -66,9 +66,9 @@ from .trend import FmTrend, FmTrendBank, deeply_dried_fm  # noqa: E402
 
 __all__ += ["FmTrend", "FmTrendBank", "deeply_dried_fm"]
 
-from .labelling import BaselineModel, FrameLabels, label_frames, label_traces  # noqa: E402
+from .labelling import BaselineModel, FrameLabels, label_frames, label_frames_isolated, label_traces  # noqa: E402
 
-__all__ += ["BaselineModel", "FrameLabels", "label_frames", "label_traces"]
+__all__ += ["BaselineModel", "FrameLabels", "label_frames", "label_frames_isolated", "label_traces"]
 
 from .baseline import (  # noqa: E402
     BaselineFileError,

@@ -10,7 +10,7 @@ from .baseline import NozzleBaselines, with_baseline
 from .fdi import classify
 from .screening import screen_traces
 
-__all__ = ["BaselineModel", "FrameLabels", "label_frames", "label_traces"]
+__all__ = ["BaselineModel", "FrameLabels", "label_frames", "label_frames_isolated", "label_traces"]
 
 
 @dataclass(frozen=True)
@@ -138,3 +138,30 @@ def label_frames(pipeline, frames, *, fd_threshold: float = 0.5, first_nozzles=N
     cuts = np.cumsum([a.shape[0] for a in arrays])[:-1]
     cols = (rows.classes, rows.confidence, rows.valid, rows.reasons, rows.baseline)
     return [FrameLabels(*p) for p in zip(*(np.split(col, cuts) for col in cols))]
+
+
+def label_frames_isolated(pipeline, frames, *, fd_threshold: float = 0.5, first_nozzles,
+                          baseline: BaselineModel | None = None) -> list:
+    """:func:`label_frames`, and where that raises, each frame alone: one bad frame costs only itself.
+
+    Parameters are those of :func:`label_frames` (``first_nozzles`` required).
+
+    Returns
+    -------
+    list
+        Per frame, its :class:`FrameLabels`, or a ``str`` naming the exception
+        that labelling it alone raised.
+    """
+    try:
+        return label_frames(pipeline, frames, fd_threshold=fd_threshold, first_nozzles=first_nozzles,
+                            baseline=baseline)
+    except Exception:  # noqa: BLE001 - find the frame(s) at fault
+        out = []
+        for a, first in zip(frames, first_nozzles):
+            try:
+                a = np.asarray(a)
+                out.append(label_traces(pipeline, a, fd_threshold=fd_threshold,
+                                        nozzle_ids=int(first) + np.arange(a.shape[0]), baseline=baseline))
+            except Exception as exc:  # noqa: BLE001 - the caller counts and reports it
+                out.append(f"{type(exc).__name__}: {exc}")
+        return out

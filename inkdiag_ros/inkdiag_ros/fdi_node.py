@@ -46,8 +46,7 @@ from inkdiag_core import (
     BaselineModel,
     ModelFileError,
     NozzleBaselines,
-    label_frames,
-    label_traces,
+    label_frames_isolated,
     load_model,
 )
 from msg_defs import (
@@ -243,14 +242,9 @@ class FdiNode(Node):
     def _label_batch(self, frames) -> None:
         """Worker thread: label the frames together (each alone if that fails), publish each."""
         t0 = time.perf_counter()
-        try:
-            results = label_frames(self.model, [f.traces for f in frames], fd_threshold=self.fd_threshold,
-                                   first_nozzles=[f.first_nozzle for f in frames], baseline=self.baseline)
-        except Exception:  # one bad frame must not cost the others their labels
-            results = [self._label_one(f) for f in frames]
-        for frame, rows in zip(frames, results):
-            if rows is not None:
-                self._publish(frame, rows)
+        self._publish_all(frames, label_frames_isolated(
+            self.model, [f.traces for f in frames], fd_threshold=self.fd_threshold,
+            first_nozzles=[f.first_nozzle for f in frames], baseline=self.baseline))
         self.stats.batch(len(frames), time.perf_counter() - t0)
 
     def _submit_batch(self, frames) -> None:
@@ -263,9 +257,7 @@ class FdiNode(Node):
                 self._labeller.submit([f.traces for f in frames], [f.first_nozzle for f in frames])
             except Exception as exc:  # noqa: BLE001 - the batch is lost, counted; the node goes on
                 if self._labeller.broken is None:
-                    why = str(exc) if isinstance(exc, LabellingProcessError) else f"{type(exc).__name__}: {exc}"
-                    for frame in frames:
-                        self._failed(frame, why)
+                    self._publish_all(frames, [_why(exc)] * len(frames))
                     self._worker.finished()  # not handed on: done
                     return
             else:
@@ -285,15 +277,9 @@ class FdiNode(Node):
             try:
                 try:
                     results = self._labeller.collect()
-                except LabellingProcessError as exc:
-                    results = [str(exc)] * len(frames)
-                except Exception as exc:  # noqa: BLE001 - e.g. labels that did not unpickle: each frame failed
-                    results = [f"{type(exc).__name__}: {exc}"] * len(frames)
-                for frame, rows in zip(frames, results):
-                    if isinstance(rows, str):
-                        self._failed(frame, rows)
-                    else:
-                        self._publish(frame, rows)
+                except Exception as exc:  # noqa: BLE001 - the child died, or labels did not unpickle
+                    results = [_why(exc)] * len(frames)
+                self._publish_all(frames, results)
                 self.stats.batch(len(frames), self._labeller.busy_s - busy0)
             except Exception as exc:  # noqa: BLE001 - counted and logged; the collector goes on
                 self._on_worker_error(exc)
@@ -304,14 +290,13 @@ class FdiNode(Node):
         self.stats.failed(f"frame {frame.frame_id}: {why}")
         self.get_logger().error(f"labelling frame {frame.frame_id} failed: {why}", throttle_duration_sec=1.0)
 
-    def _label_one(self, frame):
-        try:
-            n = frame.traces.shape[0]
-            return label_traces(self.model, frame.traces, fd_threshold=self.fd_threshold,
-                                nozzle_ids=frame.first_nozzle + np.arange(n), baseline=self.baseline)
-        except Exception as exc:  # the node never dies of input: count, log, go on
-            self._failed(frame, f"{type(exc).__name__}: {exc}")
-            return None
+    def _publish_all(self, frames, results) -> None:
+        """Publish each frame's labels; count a frame whose result is a ``str`` (why) failed."""
+        for frame, rows in zip(frames, results):
+            if isinstance(rows, str):
+                self._failed(frame, rows)
+            else:
+                self._publish(frame, rows)
 
     def _publish(self, frame, rows) -> None:
         try:
@@ -333,6 +318,10 @@ class FdiNode(Node):
         self._diag_pub.publish(build_diagnostics(
             namespace=self.get_namespace(), level=level, message=message, values=values,
             counts=counts, stamp=self.get_clock().now().to_msg()))
+
+
+def _why(exc: BaseException) -> str:
+    return str(exc) if isinstance(exc, LabellingProcessError) else f"{type(exc).__name__}: {exc}"
 
 
 def main(args=None) -> int:

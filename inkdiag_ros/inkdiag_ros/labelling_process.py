@@ -400,18 +400,8 @@ def _child_main(requests, results, pipeline, fd_threshold, baseline) -> None:
 
 def _label_views(shm, specs, first_nozzles, pipeline, fd_threshold, baseline) -> list:
     """Label the frames at ``specs`` in ``shm``; no view into the buffer outlives the call."""
-    from inkdiag_core import label_frames, label_traces
+    from inkdiag_core import label_frames_isolated
 
     arrays = [np.ndarray(shape, dtype, buffer=shm.buf, offset=off) for off, shape, dtype in specs]
-    try:
-        return label_frames(pipeline, arrays, fd_threshold=fd_threshold,
-                            first_nozzles=first_nozzles, baseline=baseline)
-    except Exception:  # noqa: BLE001 - one bad frame must not cost the others their labels
-        out = []
-        for a, first in zip(arrays, first_nozzles):
-            try:
-                out.append(label_traces(pipeline, a, fd_threshold=fd_threshold,
-                                        nozzle_ids=first + np.arange(a.shape[0]), baseline=baseline))
-            except Exception as exc:  # noqa: BLE001
-                out.append(f"{type(exc).__name__}: {exc}")
-        return out
+    return label_frames_isolated(pipeline, arrays, fd_threshold=fd_threshold, first_nozzles=first_nozzles,
+                                 baseline=baseline)
