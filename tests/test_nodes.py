@@ -122,7 +122,9 @@ class _Rig:
             except pytest.fail.Exception:
                 continue
         if expect_labels:
-            self.ros.spin_until(lambda: len(self.labels) > n_labels, 5, "labels")
+            # A generous bound: a labelling process that must start anew (spawn, imports,
+            # the model) takes seconds on a contended 2-core machine.
+            self.ros.spin_until(lambda: len(self.labels) > n_labels, 30, "labels")
 
 
 IN_CHILD = pytest.mark.parametrize("in_child", [False, True], ids=["thread", "labelling_process"])
