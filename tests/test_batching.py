@@ -6,7 +6,7 @@ import time
 import numpy as np
 import pytest
 
-from inkdiag_core import FaultClass, label_frames, label_traces, load_model, simulate
+from inkdiag_core import FaultClass, label_frames, label_frames_isolated, label_traces, load_model, simulate
 from inkdiag_ros.batching import BatchWorker
 
 
@@ -43,6 +43,37 @@ def test_label_frames_isolated_costs_a_bad_frame_only_itself(fdi_model):
                                   first_nozzles=[3, 11])
     assert list(mixed[0].classes) == list(good[1].classes)
     assert isinstance(mixed[1], str) and mixed[1].startswith("ValueError")
+
+
+@pytest.mark.parametrize("max_abs_v, reason", [(10.0, "out_of_range"), (None, "non_finite_features")])
+def test_an_extreme_row_costs_only_itself(fdi_model, max_abs_v, reason):
+    """Rows with finite samples no sensor produces are invalid; every other row of the batch is labelled."""
+    import warnings
+
+    model, _ = load_model(fdi_model)
+    frames = _frames()
+    want = label_frames(model, frames, fd_threshold=0.3)
+    bad = [np.array(f) for f in frames]
+    big = np.finfo(np.float32).max
+    bad[1][2, 100] = 1e30  # one spike
+    bad[1][5, ::2], bad[1][5, 1::2] = big, -big  # alternating extremes
+    bad[3][0, 7] = -big
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no numpy RuntimeWarning on this path
+        got = label_frames(model, bad, fd_threshold=0.3, max_abs_v=max_abs_v)
+        isolated = label_frames_isolated(model, bad, fd_threshold=0.3, first_nozzles=[0, 3, 11, 12],
+                                         max_abs_v=max_abs_v)
+    hit = {(1, 2), (1, 5), (3, 0)}
+    for k, (g, w, iso) in enumerate(zip(got, want, isolated)):
+        assert not isinstance(iso, str) and list(iso.classes) == list(g.classes)
+        for i in range(len(g.classes)):
+            if (k, i) in hit:
+                assert (g.valid[i], g.reasons[i], g.classes[i]) == (False, reason, "")
+                assert np.isnan(g.confidence[i])
+            else:  # every other row as it was labelled without the extreme rows
+                assert (g.valid[i], g.reasons[i], g.classes[i]) == (w.valid[i], w.reasons[i], w.classes[i])
+                np.testing.assert_allclose(g.confidence[i], w.confidence[i], rtol=1e-12)
+    assert got[1].reasons[0] == "non_finite"  # the NaN row keeps its reason
 
 
 def test_label_frames_rejects_mixed_widths_and_bad_ndim(fdi_model):

@@ -1,6 +1,7 @@
 """Trace-frame codec: round trips, validation, and real DDS transport."""
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -108,6 +109,34 @@ def test_nozzle_range_is_checked_against_the_head():
         bad.data = data
         with pytest.raises(FrameError, match=r"below 2\*\*24"):
             decode_traces(bad)
+
+
+@pytest.mark.parametrize("field, index", [("frame_lo", 2), ("frame_hi", 3), ("stamp_s_lo", 5),
+                                          ("stamp_s_hi", 6)])
+@pytest.mark.parametrize("value", [2**24, 2**25, 3.4e38])
+def test_header_fields_beyond_2_24_are_refused(field, index, value):
+    """Each of frame_lo/hi, stamp_s_lo/hi < 2**24: else two frames collide on one id, and ids or
+    stamps of 39+ digits overflow an int64 or a double downstream."""
+    msg = encode_traces(np.zeros((2, 4), np.float32), frame_id=7, stamp=12.5)
+    data = list(msg.data)
+    data[index] = value
+    msg.data = data
+    want = rf"header {field} must be < 2\*\*24 \(16777216\), got " + re.escape(f"{value:g}")
+    with pytest.raises(FrameError, match=want):
+        decode_traces(msg)
+    data[index] = 2**24 - 1  # the largest value allowed
+    msg.data = data
+    decode_traces(msg)
+
+
+def test_stamp_microseconds_bound_is_enforced():
+    msg = encode_traces(np.zeros((2, 4), np.float32), stamp=3.999999)
+    assert decode_traces(msg).stamp == pytest.approx(3.999999, abs=1e-9)
+    data = list(msg.data)
+    data[7] = 1e6
+    msg.data = data
+    with pytest.raises(FrameError, match=r"stamp_us \(microseconds\) must be < 1e6, got 1e\+06"):
+        decode_traces(msg)
 
 
 @pytest.mark.parametrize(

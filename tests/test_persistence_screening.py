@@ -132,3 +132,36 @@ def test_screening_matches_a_row_by_row_reading_on_random_frames(dtype):
             valid, reasons = screen_traces(x, flat_tol=flat_tol, clip_run=clip_run)
             want = [_screen_row(r, flat_tol, clip_run) for r in x]
             assert list(reasons) == want and list(valid) == [w == "" for w in want]
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.int16])
+def test_screening_flags_rows_beyond_the_sensor_range_without_warnings(dtype):
+    import warnings
+
+    t = np.arange(512) / 10e6
+    scale, limit = (500.0, 1000.0) if dtype == np.int16 else (1.5, 10.0)  # int16: ADC codes
+    good = (scale * np.exp(-1e4 * t) * np.cos(2 * np.pi * 237e3 * t)).astype(dtype)
+    big = np.iinfo(dtype).max if dtype == np.int16 else np.finfo(dtype).max
+    rows = np.tile(good, (6, 1))
+    rows[1, 50] = big  # one spike to the dtype's largest value
+    rows[2, 50] = -big
+    rows[3, ::2], rows[3, 1::2] = big, -big  # alternating extremes
+    rows[4, 70] = 2000 if dtype == np.int16 else 1e30  # finite, far beyond any ADC
+    rows[5, 60] = limit  # at the limit: still valid
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no RuntimeWarning may reach stderr
+        valid, reasons = screen_traces(rows, max_abs_v=limit)
+        _, unchecked = screen_traces(rows)
+    assert reasons.tolist() == ["", "out_of_range", "out_of_range", "out_of_range", "out_of_range", ""]
+    assert valid.tolist() == [True, False, False, False, False, True]
+    # without a limit no row is out of range, and alternating extremes are not "flat"
+    # (an int16 range 32767 - -32768 wraps to -1)
+    assert "out_of_range" not in unchecked.tolist() and unchecked[3] != "flat"
+
+
+def test_screening_non_finite_takes_precedence_and_limit_is_checked():
+    rows = np.zeros((1, 16))
+    rows[0, :2] = np.nan, 1e30
+    assert screen_traces(rows, max_abs_v=10.0)[1].tolist() == ["non_finite"]
+    with pytest.raises(ValueError, match="max_abs_v must be > 0"):
+        screen_traces(rows, max_abs_v=0.0)

@@ -279,7 +279,9 @@ def forest_predict_proba(forest, X) -> np.ndarray:
 
 
 def _predict_proba(pipeline, traces):
-    """``pipeline.predict_proba``, with :func:`forest_predict_proba` for a final forest step."""
+    """``pipeline.predict_proba``, with :func:`forest_predict_proba` for a forest or a final forest step."""
+    if type(pipeline) is RandomForestClassifier and pipeline.n_outputs_ == 1:  # a bare forest on features
+        return forest_predict_proba(pipeline, traces)
     clf = pipeline[-1] if isinstance(pipeline, Pipeline) else None
     if type(clf) is RandomForestClassifier and len(pipeline) > 1 and clf.n_outputs_ == 1:
         return forest_predict_proba(clf, pipeline[:-1].transform(traces))

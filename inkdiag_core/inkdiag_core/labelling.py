@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from sklearn.pipeline import Pipeline
 
 from .baseline import NozzleBaselines, with_baseline
 from .fdi import classify
@@ -45,13 +46,45 @@ class FrameLabels:
     baseline: np.ndarray | None = None
 
 
+def _classify_finite(pipeline, x, fd_threshold: float):
+    """:func:`classify` of the rows whose features are finite; the others are not classified.
+
+    For a ``Pipeline`` of several steps the feature steps run once on every row
+    and the final estimator sees only the rows whose features are finite in
+    float32 (what scikit-learn's trees take); a row whose features overflow
+    (a sample of ~1e30 V squares beyond any float) is left out, not the frame.
+    Overflow there is expected and harmless (it is detected), so numpy's
+    floating-point warnings are silenced on this path.
+
+    Returns
+    -------
+    labels : ndarray of str (object), (n,) -- ``""`` where not classified
+    confidence : ndarray of float, (n,) -- NaN where not classified
+    ok : ndarray of bool, (n,) -- the rows classified
+    """
+    n = x.shape[0]
+    labels, conf = np.full(n, "", dtype=object), np.full(n, np.nan)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
+        if isinstance(pipeline, Pipeline) and len(pipeline) > 1:
+            feats = pipeline[:-1].transform(x)
+            ok = np.isfinite(np.asarray(feats, dtype=np.float32)).all(axis=1)
+            model, rows = pipeline[-1], feats if ok.all() else feats[ok]
+        else:
+            ok, model, rows = np.ones(n, bool), pipeline, x
+        if ok.any():
+            got, c, _ = classify(model, rows, fd_threshold=fd_threshold)
+            labels[ok], conf[ok] = got.astype(object), c
+    return labels, conf, ok
+
+
 def label_traces(pipeline, traces, *, fd_threshold: float = 0.5, nozzle_ids=None,
-                 baseline: BaselineModel | None = None) -> FrameLabels:
+                 baseline: BaselineModel | None = None, max_abs_v: float | None = None) -> FrameLabels:
     """Screen a frame (:func:`screen_traces`) and classify its valid rows in one batch.
 
     With ``baseline`` and ``nozzle_ids``, the valid rows whose nozzle has a recorded
     baseline are classified by ``baseline.pipeline`` against it, the others by
-    ``pipeline``.
+    ``pipeline``. A row that passes screening but whose features come out NaN or
+    Inf is invalid (``"non_finite_features"``); the other rows are labelled.
 
     Parameters
     ----------
@@ -65,9 +98,12 @@ def label_traces(pipeline, traces, *, fd_threshold: float = 0.5, nozzle_ids=None
     nozzle_ids : array_like of int, shape (n,), optional
         Each row's nozzle (needed with ``baseline``).
     baseline : BaselineModel, optional
+    max_abs_v : float, optional
+        Largest sample magnitude a sensor can produce, V: rows beyond it are
+        invalid, ``"out_of_range"`` (:func:`screen_traces`). None: no such check.
     """
     x = np.asarray(traces)
-    valid, reasons = screen_traces(x)
+    valid, reasons = screen_traces(x, max_abs_v=max_abs_v)
     n = x.shape[0]
     classes = np.full(n, "", dtype=object)
     confidence = np.full(n, np.nan)
@@ -78,21 +114,22 @@ def label_traces(pipeline, traces, *, fd_threshold: float = 0.5, nozzle_ids=None
         has, base_kpis = baseline.baselines.lookup(nozzle_ids)
         with_base = valid & has
         if with_base.any():
-            labels, conf, _ = classify(baseline.pipeline, with_baseline(x[with_base], base_kpis[with_base]),
-                                       fd_threshold=baseline.fd_threshold)
-            classes[with_base] = labels.astype(object)
-            confidence[with_base] = conf
+            labels, conf, ok = _classify_finite(
+                baseline.pipeline, with_baseline(x[with_base], base_kpis[with_base]), baseline.fd_threshold)
+            classes[with_base], confidence[with_base] = labels, conf
+            reasons[np.flatnonzero(with_base)[~ok]] = "non_finite_features"
     plain = valid & ~with_base
     if plain.any():
         rows = x if plain.all() else x[plain]  # no copy of a frame that is all valid
-        labels, conf, _ = classify(pipeline, rows, fd_threshold=fd_threshold)
-        classes[plain] = labels.astype(object)
-        confidence[plain] = conf
-    return FrameLabels(classes, confidence, valid, reasons, with_base)
+        labels, conf, ok = _classify_finite(pipeline, rows, fd_threshold)
+        classes[plain], confidence[plain] = labels, conf
+        reasons[np.flatnonzero(plain)[~ok]] = "non_finite_features"
+    valid = reasons == ""
+    return FrameLabels(classes, confidence, valid, reasons, with_base & valid)
 
 
 def label_frames(pipeline, frames, *, fd_threshold: float = 0.5, first_nozzles=None,
-                 baseline: BaselineModel | None = None) -> list:
+                 baseline: BaselineModel | None = None, max_abs_v: float | None = None) -> list:
     """Label several frames in one batch: one screening, feature and classifier pass.
 
     A classifier call has a fixed cost (feature pipeline set-up, one call per
@@ -111,6 +148,8 @@ def label_frames(pipeline, frames, *, fd_threshold: float = 0.5, first_nozzles=N
         Each frame's first nozzle id (its rows are a contiguous nozzle range);
         needed with ``baseline``.
     baseline : BaselineModel, optional
+        As for :func:`label_traces`.
+    max_abs_v : float, optional
         As for :func:`label_traces`.
 
     Returns
@@ -134,14 +173,14 @@ def label_frames(pipeline, frames, *, fd_threshold: float = 0.5, first_nozzles=N
             raise ValueError("first_nozzles must give each frame's first nozzle id to use baselines")
         ids = np.concatenate([int(f) + np.arange(a.shape[0]) for f, a in zip(first_nozzles, arrays)])
     rows = label_traces(pipeline, np.concatenate(arrays) if len(arrays) > 1 else arrays[0],
-                        fd_threshold=fd_threshold, nozzle_ids=ids, baseline=baseline)
+                        fd_threshold=fd_threshold, nozzle_ids=ids, baseline=baseline, max_abs_v=max_abs_v)
     cuts = np.cumsum([a.shape[0] for a in arrays])[:-1]
     cols = (rows.classes, rows.confidence, rows.valid, rows.reasons, rows.baseline)
     return [FrameLabels(*p) for p in zip(*(np.split(col, cuts) for col in cols))]
 
 
 def label_frames_isolated(pipeline, frames, *, fd_threshold: float = 0.5, first_nozzles,
-                          baseline: BaselineModel | None = None) -> list:
+                          baseline: BaselineModel | None = None, max_abs_v: float | None = None) -> list:
     """:func:`label_frames`, and where that raises, each frame alone: one bad frame costs only itself.
 
     Parameters are those of :func:`label_frames` (``first_nozzles`` required).
@@ -154,14 +193,15 @@ def label_frames_isolated(pipeline, frames, *, fd_threshold: float = 0.5, first_
     """
     try:
         return label_frames(pipeline, frames, fd_threshold=fd_threshold, first_nozzles=first_nozzles,
-                            baseline=baseline)
+                            baseline=baseline, max_abs_v=max_abs_v)
     except Exception:  # noqa: BLE001 - find the frame(s) at fault
         out = []
         for a, first in zip(frames, first_nozzles):
             try:
                 a = np.asarray(a)
                 out.append(label_traces(pipeline, a, fd_threshold=fd_threshold,
-                                        nozzle_ids=int(first) + np.arange(a.shape[0]), baseline=baseline))
+                                        nozzle_ids=int(first) + np.arange(a.shape[0]), baseline=baseline,
+                                        max_abs_v=max_abs_v))
             except Exception as exc:  # noqa: BLE001 - the caller counts and reports it
                 out.append(f"{type(exc).__name__}: {exc}")
         return out

@@ -2,7 +2,8 @@
 
 A printer controller's frame can hold rows that carry no information about the
 nozzle: a dead sensing channel (flat), an overdriven one (clipped at the ADC
-rails), or a transfer fault (NaN / Inf). Such rows are labelled *invalid* with
+rails), a transfer fault (NaN / Inf), or a corrupted one (a finite sample far
+beyond what the sensor's ADC can produce, e.g. 1e30 V). Such rows are labelled *invalid* with
 a reason instead of being classified; the rest of the frame is unaffected.
 """
 
@@ -12,11 +13,13 @@ import numpy as np
 
 __all__ = ["INVALID_REASONS", "screen_traces"]
 
-#: Reason codes, in the order of precedence used when several apply.
-INVALID_REASONS = ("non_finite", "flat", "clipped")
+#: Reason codes of invalid rows. The first four are :func:`screen_traces`'s, in the order
+#: of precedence used when several apply; ``"non_finite_features"`` is a row that passed
+#: screening but whose features came out NaN or Inf (:func:`inkdiag_core.label_traces`).
+INVALID_REASONS = ("non_finite", "out_of_range", "flat", "clipped", "non_finite_features")
 
 
-def screen_traces(traces, *, flat_tol: float = 1e-6, clip_run: int = 5):
+def screen_traces(traces, *, flat_tol: float = 1e-6, clip_run: int = 5, max_abs_v: float | None = None):
     """Find the rows of a frame that cannot be classified, and why.
 
     Parameters
@@ -31,6 +34,11 @@ def screen_traces(traces, *, flat_tol: float = 1e-6, clip_run: int = 5):
         saturates there, a damped oscillation does not. 5 samples (0.5 us at
         10 MHz): with 3, 12-bit quantisation flagged 0.2 % of simulated
         healthy and faulty traces whose flat peak repeats one ADC code.
+    max_abs_v : float, optional
+        The largest sample magnitude a sensor can produce, V (above its ADC's
+        range). A finite row with any ``|sample| > max_abs_v`` is
+        *out_of_range*: no sensor produced it, and its features could overflow.
+        None: no such check.
 
     Returns
     -------
@@ -43,6 +51,8 @@ def screen_traces(traces, *, flat_tol: float = 1e-6, clip_run: int = 5):
         raise ValueError(f"traces must be 2-D (n, n_samples), got shape {x.shape}")
     if clip_run < 2:
         raise ValueError(f"clip_run must be >= 2, got {clip_run}")
+    if max_abs_v is not None and not max_abs_v > 0:
+        raise ValueError(f"max_abs_v must be > 0 V or None, got {max_abs_v!r}")
     n = x.shape[0]
     reasons = np.full(n, "", dtype=object)
     if n == 0 or x.shape[1] == 0:
@@ -52,8 +62,14 @@ def screen_traces(traces, *, flat_tol: float = 1e-6, clip_run: int = 5):
     hi = x.max(axis=1)
     lo = x.min(axis=1)
     finite = np.isfinite(hi) & np.isfinite(lo)
-    with np.errstate(invalid="ignore"):  # inf - inf in non-finite rows
-        flat = finite & ((hi - lo) <= flat_tol)
+    # The range in float64: an integer dtype wraps (int16 32767 - -32768 is -1, "flat") and
+    # float32 overflows (3.4e38 - -3.4e38); inf - inf in non-finite rows is NaN, not flat.
+    hi64, lo64 = hi.astype(np.float64), lo.astype(np.float64)
+    with np.errstate(invalid="ignore", over="ignore"):
+        flat = finite & ((hi64 - lo64) <= flat_tol)
+    out = np.zeros(n, bool)
+    if max_abs_v is not None:
+        out = finite & ((hi64 > max_abs_v) | (lo64 < -max_abs_v))
     if not finite.all():
         hi, lo = np.where(finite, hi, np.nan), np.where(finite, lo, np.nan)  # matches no sample
     at_hi, at_lo = x == hi[:, None], x == lo[:, None]
@@ -66,6 +82,7 @@ def screen_traces(traces, *, flat_tol: float = 1e-6, clip_run: int = 5):
     clipped[cand] = _has_run(at_hi[cand], clip_run) | _has_run(at_lo[cand], clip_run)
     reasons[clipped] = "clipped"
     reasons[flat] = "flat"
+    reasons[out] = "out_of_range"
     reasons[~finite] = "non_finite"
     return reasons == "", reasons
 

@@ -9,7 +9,9 @@ frame queued while it was busy and classifies them in one pass
 batches under load. A full queue (``max_queued_frames``) drops its oldest
 frame and counts it (``frames_dropped`` in ``/diagnostics``). A malformed frame is logged (throttled)
 with what was wrong and counted; invalid rows (NaN/Inf, flat, clipped) are
-labelled invalid with their reason. Publishes ``/diagnostics`` every
+labelled invalid with their reason, as are rows with a sample beyond
+``max_abs_sample_v`` (``out_of_range``: no sensor produces it) and rows whose
+features come out non-finite (``non_finite_features``). Publishes ``/diagnostics`` every
 ``diagnostics_period_s``. The model file is verified against its manifest
 (sha256, library versions) before it is loaded.
 
@@ -87,6 +89,9 @@ PARAMS = (
     ("baseline_path", "", "the head's per-nozzle healthy baselines (.npz from record_baseline); "
      "empty: none", str, None),
     ("baseline_model_path", "", "kpi_y+baseline FDI model for the nozzles that have a baseline", str, None),
+    ("max_abs_sample_v", 10.0, "largest sample magnitude a sensor can produce, V; a row with a sample "
+     "beyond it is invalid ('out_of_range'). Default: 5x the default head's +-2 V ADC range",
+     float, (1e-6, 1e30)),
     ("labelling_process", False, "label in a child process (a core of its own: no GIL shared with "
      "receiving and publishing) instead of a thread of this one", bool, None),
 )
@@ -199,7 +204,8 @@ class FdiNode(Node):
 
     def _start_labelling_process(self) -> None:
         try:
-            self._labeller = LabellingProcess(self.model, fd_threshold=self.fd_threshold, baseline=self.baseline)
+            self._labeller = LabellingProcess(self.model, fd_threshold=self.fd_threshold, baseline=self.baseline,
+                                              max_abs_v=self.config["max_abs_sample_v"])
         except LabellingProcessError as exc:
             self.stats.misconfigured(f"labelling in this process: {exc}")
             self.get_logger().error(f"labelling in this process: {exc}")
@@ -244,7 +250,8 @@ class FdiNode(Node):
         t0 = time.perf_counter()
         self._publish_all(frames, label_frames_isolated(
             self.model, [f.traces for f in frames], fd_threshold=self.fd_threshold,
-            first_nozzles=[f.first_nozzle for f in frames], baseline=self.baseline))
+            first_nozzles=[f.first_nozzle for f in frames], baseline=self.baseline,
+            max_abs_v=self.config["max_abs_sample_v"]))
         self.stats.batch(len(frames), time.perf_counter() - t0)
 
     def _submit_batch(self, frames) -> None:

@@ -54,6 +54,9 @@ class LabellingProcess:
         Fault-detection threshold (:func:`inkdiag_core.label_frames`).
     baseline : inkdiag_core.BaselineModel, optional
         Per-nozzle baselines and their model (:func:`inkdiag_core.label_frames`).
+    max_abs_v : float, optional
+        Largest sample magnitude a sensor can produce, V; rows beyond it are
+        invalid, ``"out_of_range"`` (:func:`inkdiag_core.label_frames`).
     depth : int
         Batches submitted and not yet collected, at most; each has its own
         shared trace buffer.
@@ -70,11 +73,11 @@ class LabellingProcess:
     pipe, including when the parent dies.
     """
 
-    def __init__(self, pipeline, *, fd_threshold: float = 0.5, baseline=None, depth: int = 2,
+    def __init__(self, pipeline, *, fd_threshold: float = 0.5, baseline=None, max_abs_v=None, depth: int = 2,
                  capacity_bytes: int = 8 << 20, poll_s: float = 0.5):
         if depth < 1:
             raise ValueError(f"depth must be >= 1, got {depth}")
-        self._args = (pipeline, float(fd_threshold), baseline)
+        self._args = (pipeline, float(fd_threshold), baseline, None if max_abs_v is None else float(max_abs_v))
         self._poll_s = float(poll_s)
         self._ctx = multiprocessing.get_context("spawn")
         self._lock = threading.Lock()  # the child, its pipes, the buffers and the queue of batches out
@@ -364,7 +367,7 @@ def _unlink(shm) -> None:
         pass
 
 
-def _child_main(requests, results, pipeline, fd_threshold, baseline) -> None:
+def _child_main(requests, results, pipeline, fd_threshold, baseline, max_abs_v) -> None:
     """The child: take batches from shared memory, label them, send the labels, until told to stop."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
@@ -392,16 +395,16 @@ def _child_main(requests, results, pipeline, fd_threshold, baseline) -> None:
             buffers[slot] = shared_memory.SharedMemory(name=name)
         t0 = time.perf_counter()
         specs, first_nozzles = pickle.loads(buffers[slot].buf[meta_at:meta_at + meta_len])
-        out = _label_views(buffers[slot], specs, first_nozzles, pipeline, fd_threshold, baseline)
+        out = _label_views(buffers[slot], specs, first_nozzles, pipeline, fd_threshold, baseline, max_abs_v)
         results.send(("labels", (out, time.perf_counter() - t0)))
     for shm in buffers.values():
         shm.close()
 
 
-def _label_views(shm, specs, first_nozzles, pipeline, fd_threshold, baseline) -> list:
+def _label_views(shm, specs, first_nozzles, pipeline, fd_threshold, baseline, max_abs_v) -> list:
     """Label the frames at ``specs`` in ``shm``; no view into the buffer outlives the call."""
     from inkdiag_core import label_frames_isolated
 
     arrays = [np.ndarray(shape, dtype, buffer=shm.buf, offset=off) for off, shape, dtype in specs]
     return label_frames_isolated(pipeline, arrays, fd_threshold=fd_threshold, first_nozzles=first_nozzles,
-                                 baseline=baseline)
+                                 baseline=baseline, max_abs_v=max_abs_v)

@@ -13,14 +13,18 @@ field                      value
 ``layout.data_offset``     ``HEADER_LEN`` (8)
 ``data[0:8]``              header, float32 holding exact integers (< 2**24):
                            ``[schema_version, first_nozzle, frame_lo, frame_hi,
-                           sample_rate_hz, stamp_s_lo, stamp_s_hi, stamp_us]``
+                           sample_rate_hz, stamp_s_lo, stamp_s_hi, stamp_us]``;
+                           ``first_nozzle + n_nozzles <= 2**24``, each of
+                           ``frame_lo, frame_hi, stamp_s_lo, stamp_s_hi``
+                           ``< 2**24``, ``stamp_us < 10**6``
 ``data[8:]``               traces, row-major: ``data[8 + i*n_samples + k]`` is
                            sample ``k`` of nozzle ``first_nozzle + i``
 =========================  ==================================================
 
 ``frame_id = frame_hi * 2**24 + frame_lo``; ``stamp`` (the measurement time,
 s since the epoch) ``= (stamp_s_hi * 2**24 + stamp_s_lo) + stamp_us * 1e-6``.
-The rows are the nozzles ``first_nozzle .. first_nozzle + n_nozzles - 1``.
+A decoded ``frame_id`` and the stamp's seconds are thus below ``2**48``
+(exact in an int64 and in a double). The rows are the nozzles ``first_nozzle .. first_nozzle + n_nozzles - 1``.
 Trace samples are in the sensor's unit (V); ``sample_rate_hz`` says how they
 were sampled (float32-exact values only, e.g. 10e6).
 
@@ -262,8 +266,11 @@ def decode_traces(msg, *, max_nozzle_id: int | None = None, n_samples: int | Non
         raise FrameError(f"header values must be non-negative integers, got {head.tolist()}")
     if not head[4] > 0:
         raise FrameError(f"expected a positive sample_rate_hz in the header, got {head[4]:g}")
+    for k, name in ((2, "frame_lo"), (3, "frame_hi"), (5, "stamp_s_lo"), (6, "stamp_s_hi")):
+        if head[k] >= _EXACT:
+            raise FrameError(f"header {name} must be < 2**24 ({_EXACT}), got {head[k]:g}")
     if head[7] > 999_999:
-        raise FrameError(f"stamp microseconds must be < 1e6, got {head[7]:g}")
+        raise FrameError(f"header stamp_us (microseconds) must be < 1e6, got {head[7]:g}")
     first = int(head[1])
     if first + n > _EXACT:
         raise FrameError(f"nozzle ids must stay below 2**24, got first_nozzle={first:g} with {n} rows")

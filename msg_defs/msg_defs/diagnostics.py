@@ -22,6 +22,21 @@ Each FDI node publishes, every ``diagnostics_period_s``, an array with one
   ``last_error`` (the last malformed frame's reason), ``config_error`` (empty, or
   the setting the node runs without, and why) and then ``count.<class>``
   for each class value and ``count.invalid`` (cumulative rows per label).
+
+The ``frames_*``, ``rows_*`` and ``count.*`` values are cumulative since the node
+started (never reset). Each frame taken from ``traces`` is counted in
+``frames_received`` and, once done, in exactly one of ``frames_malformed`` (refused
+by the codec, at once), ``frames_labelled`` (its labels and drying message
+published), ``frames_failed`` or ``frames_dropped``. So with a model loaded,
+``frames_received = frames_labelled + frames_malformed + frames_failed +
+frames_dropped + frames in flight`` (queued or being labelled at the snapshot: 0
+once the node is idle). Not covered by that identity: frames received while no model
+is loaded (level ERROR; counted only as received), the frames a stopping node
+leaves unlabelled, and an unexpected error of the labelling thread itself, which
+counts one ``frames_failed`` however many frames its batch held. ``rows_invalid``
+(= ``count.invalid``) counts rows of labelled frames that were invalid, whatever
+the reason (``non_finite``, ``out_of_range``, ``flat``, ``clipped``,
+``non_finite_features``).
 """
 
 from __future__ import annotations
