@@ -104,13 +104,13 @@ def test_fe_takes_each_estimate_relative_to_its_nozzles_healthy_fm(ros, tmp_path
     classes[[3, 4]] = FaultClass.DEEPLY_DRIED.value
     frame = simulate_nozzles(classes, seed=HEAD, frame_seed=50).traces
     ids = [103, 104, 500]  # 500 is not in this frame
-    dpub.publish(encode_drying(DryingNozzles(0, 1.0, tuple(ids), ("deeply_dried",) * 3)))
-    ros.spin_until(lambda: fe.drying, 5, "drying set")
+    dpub.publish(encode_drying(DryingNozzles(7, 1.0, tuple(ids), ("deeply_dried",) * 3)))  # range unknown
+    ros.spin_until(lambda: fe.tracker.drying_received, 5, "the drying list")
     _publish_until(ros, tpub, encode_traces(frame[:20], first_nozzle=100, frame_id=7), lambda: est, "estimates")
     b = NozzleBaselines.load(rec.written)
     plain = estimate_fm_batch(frame[3:5], InkChannelModel(), 10e6).fm
     np.testing.assert_allclose(est[0].column("fm"), plain - b.fm[3:5], rtol=1e-6)
-    assert est[0].nozzles.tolist() == [103, 104] and fe.estimates_with_baseline == 2
+    assert est[0].nozzles.tolist() == [103, 104] and fe.tracker.estimates_with_baseline == 2
 
 
 def test_record_baseline_times_out_without_frames_and_writes_nothing(ros, tmp_path):

@@ -138,3 +138,30 @@ def test_diagnostics_levels_and_values():
     v = diagnostics_values(arr)["inkdiag fdi: /head_07"]
     assert v["level"] == "warn" and v["traces_per_s"] == "1234.57" and v["count.invalid"] == "2"
     assert [kv.key for kv in st.values][:3] == ["model_id", "frames_received", "traces_per_s"]
+
+
+def test_drying_says_its_range_and_a_message_without_one_still_decodes():
+    rep = _report()
+    d = DryingNozzles.from_labels(rep)
+    assert (d.first_nozzle, d.n_nozzles) == (rep.first_nozzle, rep.n_nozzles)
+    doc = json.loads(encode_drying(d).data)
+    assert (doc["first_nozzle"], doc["n_nozzles"]) == (rep.first_nozzle, rep.n_nozzles)
+    assert decode_drying(encode_drying(d)) == d
+    del doc["first_nozzle"], doc["n_nozzles"]  # as written before the range existed: range unknown
+    old = decode_drying(String(data=json.dumps(doc)))
+    assert old.nozzles == d.nozzles and old.first_nozzle is None and old.n_nozzles is None
+    half = dict(doc, first_nozzle=100)
+    with pytest.raises(MessageError, match="missing field 'n_nozzles'"):
+        decode_drying(String(data=json.dumps(half)))
+    outside = dict(doc, first_nozzle=102, n_nozzles=2)  # 101 and 105 are not in 102..103
+    with pytest.raises(MessageError, match="outside the labelled range"):
+        decode_drying(String(data=json.dumps(outside)))
+
+
+def test_estimates_json_says_its_first_nozzle():
+    e = _estimates()
+    ranged = FmEstimates(e.frame_id, e.stamp, e.table, first_nozzle=400)
+    assert json.loads(encode_estimates(ranged).data)["first_nozzle"] == 400
+    assert decode_estimates(encode_estimates(ranged)).first_nozzle == 400
+    assert decode_estimates(encode_estimates(e)).first_nozzle is None
+    assert "first_nozzle" not in json.loads(encode_estimates(e).data)

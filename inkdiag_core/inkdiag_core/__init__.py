@@ -82,3 +82,7 @@ from .baseline import (  # noqa: E402
 
 __all__ += ["BaselineFileError", "BaselineKpis", "BaselineRecorder", "NozzleBaselines", "baseline_kpis",
             "baseline_training_rows", "with_baseline"]
+
+from .drying_tracker import ESTIMATE_COLUMNS, DryingTracker, RangeEstimates  # noqa: E402
+
+__all__ += ["ESTIMATE_COLUMNS", "DryingTracker", "RangeEstimates"]

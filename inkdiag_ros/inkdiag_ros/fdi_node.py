@@ -2,7 +2,9 @@
 
 Subscribes to ``traces`` (sensor-data QoS); per frame: decode and validate ->
 screen and classify the whole batch with the FDI model -> publish ``labels``
-and ``drying_nozzles`` (reliable), one of each per frame. Decoding runs in
+and ``drying_nozzles`` (reliable), one of each per trace message (a frame, or
+one nozzle range of it: both say the range, ``first_nozzle`` and
+``n_nozzles``, so fe joins each list with its own traces). Decoding runs in
 the subscription callback; labelling runs on a worker thread that takes every
 frame queued while it was busy and classifies them in one pass
 (:mod:`.batching`): one frame at a time when the load is light, larger

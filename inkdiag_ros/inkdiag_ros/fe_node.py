@@ -1,13 +1,25 @@
 """fe: fault estimation (f_m) of the drying nozzles of one printhead.
 
 Subscribes to ``traces`` (sensor-data QoS) and ``drying_nozzles`` (reliable,
-from the fdi node). For each trace frame, the rows of the nozzles currently
-labelled dried are screened and their f_m estimated in one batch (x0-free
-variable projection on the nominal channel model: the traces' unknown gain
-and offset drop out); each nozzle's history feeds a Kalman trend
-(:class:`inkdiag_core.FmTrendBank`) that gives the smoothed f_m, its rate and
-the time until the deeply-dried level. Publishes ``fm_estimates`` (JSON) and
-``fm_estimates/array`` (Float64MultiArray), reliable.
+from the fdi node). A frame may come as several trace messages, one per
+nozzle range (``first_nozzle`` in the trace header), and fdi answers each
+with the drying list of that range (``first_nozzle``/``n_nozzles`` in the
+message). The node hands both streams to :class:`inkdiag_core.DryingTracker`,
+which joins them on ``(frame_id, first_nozzle)`` in whichever order they
+arrive: every range of a frame is estimated with that same frame's list for
+that range (a nozzle is estimated in the first frame it is labelled dried,
+and no longer once it recovered). What waits for its partner is held in two
+bounded buffers (``max_pending``; the oldest is dropped and counted). An
+empty list releases its range's traces; a list without a range (an older
+fdi) applies to every range of its frame.
+
+For each joined pair the listed rows are screened and their f_m estimated in
+one batch (x0-free variable projection on the nominal channel model: the
+traces' unknown gain and offset drop out); each nozzle's history feeds a
+Kalman trend (:class:`inkdiag_core.FmTrendBank`) that gives the smoothed f_m,
+its rate and the time until the deeply-dried level. Publishes, per frame and
+range with estimates, ``fm_estimates`` (JSON, with ``frame_id`` and
+``first_nozzle``) and ``fm_estimates/array`` (Float64MultiArray), reliable.
 
 With ``baseline_path`` (the head's baselines from ``record_baseline``, with
 healthy f_m per nozzle), each nozzle's estimate is taken relative to its own
@@ -29,14 +41,7 @@ from rclpy.node import Node
 
 from ._spin import spin_node
 
-from inkdiag_core import (
-    BaselineFileError,
-    FmTrendBank,
-    InkChannelModel,
-    NozzleBaselines,
-    estimate_fm_batch,
-    screen_traces,
-)
+from inkdiag_core import BaselineFileError, DryingTracker, NozzleBaselines
 from msg_defs import (
     DRYING_MSG_TYPE,
     ESTIMATES_ARRAY_MSG_TYPE,
@@ -56,8 +61,11 @@ from msg_defs import (
 from . import _params
 
 PARAMS = (
-    ("max_estimates_per_frame", 64, "at most this many drying nozzles are estimated per frame "
-     "(lowest ids first); bounds the cost per frame", int, (1, 100_000)),
+    ("max_estimates_per_frame", 64, "at most this many drying nozzles are estimated per frame and "
+     "nozzle range (lowest ids first); bounds the cost per trace message", int, (1, 100_000)),
+    ("max_pending", 32, "trace messages (one frame's nozzle range), and drying lists, each held at most "
+     "while waiting for their partner; the oldest is dropped beyond this. Held traces keep their "
+     "message's memory", int, (1, 10_000)),
     ("trend_accel_std", 5e3, "white acceleration noise of the f_m trend, 1/s^3", float, (1.0, 1e9)),
     ("trend_rel_floor", 0.05, "relative floor of one estimate's standard deviation", float, (0.0, 1.0)),
     ("baseline_path", "", "the head's per-nozzle baselines with healthy f_m (.npz from record_baseline): "
@@ -66,20 +74,19 @@ PARAMS = (
 
 
 class FeNode(Node):
-    """Decode -> rows of the drying nozzles -> estimate_fm_batch -> trend -> encode -> publish."""
+    """Decode -> DryingTracker (join per frame and range, estimate, trend) -> encode -> publish."""
 
     def __init__(self, **kwargs):
         super().__init__("fe", **kwargs)
-        self.config = _params.declare_all(self, PARAMS)
+        self.config = c = _params.declare_all(self, PARAMS)
         self.add_on_set_parameters_callback(self._on_set)
-        self.model = InkChannelModel()
-        self.trends = FmTrendBank(accel_std=self.config["trend_accel_std"],
-                                  rel_floor=self.config["trend_rel_floor"])
-        self.drying = ()
+        self.add_post_set_parameters_callback(self._after_set)
+        self.baselines = self._load_baselines(c["baseline_path"])
+        self.tracker = DryingTracker(
+            max_estimates=c["max_estimates_per_frame"], max_pending=c["max_pending"], baselines=self.baselines,
+            trend_accel_std=c["trend_accel_std"], trend_rel_floor=c["trend_rel_floor"])
         self.frames_malformed = 0
         self.estimates_published = 0
-        self.estimates_with_baseline = 0  # nozzle estimates taken relative to the nozzle's healthy f_m
-        self.baselines = self._load_baselines(self.config["baseline_path"])
         self._pub = self.create_publisher(ESTIMATES_MSG_TYPE, topics.FM_ESTIMATES, RELIABLE_QOS)
         self._array_pub = self.create_publisher(ESTIMATES_ARRAY_MSG_TYPE, topics.FM_ESTIMATES_ARRAY,
                                                 RELIABLE_QOS)
@@ -104,60 +111,42 @@ class FeNode(Node):
         self.get_logger().info(f"healthy f_m baselines of {n_fm} nozzles from {path}")
         return baselines
 
-    def _baseline_fm(self, ids, frame, n_samples):
-        """Healthy f_m of the nozzles ``ids`` (0: none), or None without usable baselines."""
-        b = self.baselines
-        if b is None:
-            return None
-        if (frame.sample_rate_hz, n_samples) != (b.sample_rate_hz, b.n_samples):
-            self.get_logger().warning(
-                f"frame {frame.frame_id} is {frame.sample_rate_hz:g} Hz x {n_samples} samples, the f_m "
-                f"baselines {b.sample_rate_hz:g} Hz x {b.n_samples}: estimated without them",
-                throttle_duration_sec=5.0)
-            return None
-        has, fm = b.lookup_fm(ids)
-        self.estimates_with_baseline += int(has.sum())
-        return fm
-
     def _on_set(self, params):
-        for p in params:
-            if p.name == "max_estimates_per_frame":
-                continue  # read at each frame
-            return _params.fixed_at_start([p])
-        return _params.result(True)
+        return _params.fixed_at_start(params, dynamic=("max_estimates_per_frame",))
+
+    def _after_set(self, params) -> None:
+        self.tracker.max_estimates = self.get_parameter("max_estimates_per_frame").value
 
     def _on_drying(self, msg) -> None:
         try:
-            self.drying = decode_drying(msg).nozzles
+            d = decode_drying(msg)
         except MessageError as exc:
-            self.frames_malformed += 1
-            self.get_logger().warning(f"dropped a malformed drying_nozzles message: {exc}",
-                                      throttle_duration_sec=1.0)
+            self._malformed("drying_nozzles message", exc)
+            return
+        self._publish(self.tracker.add_drying(d.frame_id, d.nozzles, first_nozzle=d.first_nozzle,
+                                              n_nozzles=d.n_nozzles))
 
     def _on_traces(self, msg) -> None:
-        if not self.drying:
-            return
         try:
-            frame = decode_traces(msg)
+            f = decode_traces(msg)
         except MessageError as exc:
-            self.frames_malformed += 1
-            self.get_logger().warning(f"dropped a malformed trace frame: {exc}", throttle_duration_sec=1.0)
+            self._malformed("trace frame", exc)
             return
-        cap = self.get_parameter("max_estimates_per_frame").value
-        ids, rows = frame.rows_of(self.drying[:cap])
-        valid, _ = screen_traces(rows)
-        ids, rows = ids[valid], rows[valid]
-        if ids.size == 0:
-            return
-        est = estimate_fm_batch(rows, self.model, frame.sample_rate_hz,
-                                baseline_fm=self._baseline_fm(ids, frame, rows.shape[1]))
-        trend, rate, eta = self.trends.update(frame.stamp, ids, est.fm, est.std)
-        out = FmEstimates.from_columns(
-            frame.frame_id, frame.stamp, nozzle=ids, fm=est.fm, fm_std=est.std, d_mu=est.d_mu,
-            viscosity=est.viscosity, fm_trend=trend, fm_rate=rate, eta_deeply_dried_s=eta)
-        self._pub.publish(encode_estimates(out))
-        self._array_pub.publish(encode_estimates_array(out))
-        self.estimates_published += 1
+        self._publish(self.tracker.add_traces(f.traces, first_nozzle=f.first_nozzle, frame_id=f.frame_id,
+                                              stamp=f.stamp, sample_rate_hz=f.sample_rate_hz))
+
+    def _malformed(self, what, exc) -> None:
+        self.frames_malformed += 1
+        self.get_logger().warning(f"dropped a malformed {what}: {exc}", throttle_duration_sec=1.0)
+
+    def _publish(self, results) -> None:
+        for r in results:
+            if r.note:
+                self.get_logger().warning(f"frame {r.frame_id}: {r.note}", throttle_duration_sec=5.0)
+            out = FmEstimates.from_columns(r.frame_id, r.stamp, first_nozzle=r.first_nozzle, **r.columns)
+            self._pub.publish(encode_estimates(out))
+            self._array_pub.publish(encode_estimates_array(out))
+            self.estimates_published += 1
 
 
 def main(args=None) -> int:

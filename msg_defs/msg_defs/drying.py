@@ -1,14 +1,20 @@
-"""Drying nozzles: one ``std_msgs/String`` JSON object per labelled frame, topic ``drying_nozzles``.
+"""Drying nozzles: one ``std_msgs/String`` JSON object per labelled trace message, topic ``drying_nozzles``.
 
 What the FE node subscribes to: the nozzles that the FDI node labelled as
-one of the dried classes in this frame (an empty list is published too, so
-a subscriber knows that a nozzle recovered)::
+one of the dried classes in one trace message, i.e. one nozzle range of one
+frame (an empty list is published too, so a subscriber knows that the range
+has no dried nozzle, e.g. that a nozzle recovered)::
 
     {"schema": "inkdiag.drying_nozzles", "schema_version": 1,
      "frame_id": 42, "stamp": 1763798400.125,
-     "nozzles": [7, 19], "classes": ["deeply_dried", "slightly_dried"]}
+     "first_nozzle": 200, "n_nozzles": 200,
+     "nozzles": [207, 219], "classes": ["deeply_dried", "slightly_dried"]}
 
 ``nozzles`` are sorted ids; ``classes[i]`` is the class of ``nozzles[i]``.
+``first_nozzle`` and ``n_nozzles`` are the labelled range (the trace
+message's); every listed nozzle lies in it. Both are optional, together: a
+message without them (written before they existed) covers an unknown range
+of its frame, and a subscriber matches it on ``frame_id`` alone.
 """
 
 from __future__ import annotations
@@ -33,19 +39,28 @@ class DryingNozzles:
     stamp: float
     nozzles: tuple = ()
     classes: tuple = ()
+    first_nozzle: int | None = None  # the labelled range; None: unknown
+    n_nozzles: int | None = None
+
+    def __post_init__(self):
+        if (self.first_nozzle is None) != (self.n_nozzles is None):
+            raise MessageError(f"{DRYING_SCHEMA}: first_nozzle and n_nozzles go together, got "
+                               f"{self.first_nozzle!r}, {self.n_nozzles!r}")
 
     @classmethod
     def from_labels(cls, report: LabelsReport) -> "DryingNozzles":
-        """The dried nozzles of a labels report."""
+        """The dried nozzles of a labels report, with its range."""
         pairs = [(nz, c) for nz, c, _ in report.faults if c in DRIED_CLASSES]
-        return cls(report.frame_id, report.stamp, tuple(p[0] for p in pairs), tuple(p[1] for p in pairs))
+        return cls(report.frame_id, report.stamp, tuple(p[0] for p in pairs), tuple(p[1] for p in pairs),
+                   report.first_nozzle, report.n_nozzles)
 
 
 def encode_drying(d: DryingNozzles) -> String:
-    return _json.dump(DRYING_SCHEMA, {
-        "frame_id": int(d.frame_id), "stamp": round(float(d.stamp), 6),
-        "nozzles": [int(x) for x in d.nozzles], "classes": [str(c) for c in d.classes],
-    })
+    body = {"frame_id": int(d.frame_id), "stamp": round(float(d.stamp), 6)}
+    if d.first_nozzle is not None:
+        body.update(first_nozzle=int(d.first_nozzle), n_nozzles=int(d.n_nozzles))
+    body.update(nozzles=[int(x) for x in d.nozzles], classes=[str(c) for c in d.classes])
+    return _json.dump(DRYING_SCHEMA, body)
 
 
 def decode_drying(msg) -> DryingNozzles:
@@ -63,4 +78,12 @@ def decode_drying(msg) -> DryingNozzles:
             f"{s}: classes must be one dried class per nozzle ({', '.join(DRIED_CLASSES)}), "
             f"got {len(classes)} for {len(nozzles)} nozzles: {classes!r:.80}"
         )
-    return DryingNozzles(frame_id, stamp, tuple(nozzles), tuple(classes))
+    first = n = None
+    if "first_nozzle" in doc or "n_nozzles" in doc:  # the range: both or neither
+        first = _json.field(doc, s, "first_nozzle", int, nonneg=True)
+        n = _json.field(doc, s, "n_nozzles", int, nonneg=True)
+        outside = [x for x in nozzles if not first <= x < first + n]
+        if outside:
+            raise MessageError(f"{s}: nozzles {outside!r:.60} are outside the labelled range "
+                               f"first_nozzle {first}, n_nozzles {n}")
+    return DryingNozzles(frame_id, stamp, tuple(nozzles), tuple(classes), first, n)

@@ -1,10 +1,11 @@
 """f_m estimates of drying nozzles, in two forms published side by side.
 
-``fm_estimates`` (``std_msgs/String``, operator-readable JSON), one per frame
-in which the FE node estimated anything::
+``fm_estimates`` (``std_msgs/String``, operator-readable JSON), one per trace
+message (a frame, or one nozzle range of a frame) in which the FE node
+estimated anything::
 
     {"schema": "inkdiag.fm_estimates", "schema_version": 1,
-     "frame_id": 42, "stamp": 1763798400.125,
+     "frame_id": 42, "stamp": 1763798400.125, "first_nozzle": 0,
      "estimates": [{"nozzle": 7, "fm": -612000.0, "fm_std": 6700.0,
                     "d_mu": 0.0205, "viscosity": 0.0290,
                     "fm_trend": -598000.0, "fm_rate": -21000.0,
@@ -16,6 +17,9 @@ programs: ``layout.dim[0] = ("estimate", n, n * F)``,
 header ``data[0:3] = [schema_version, frame_id, stamp]`` and then row-major
 ``data[3 + i * F + j]`` = field ``FIELDS[j]`` of estimate ``i``. Unknown
 values (no trend yet, no ETA) are NaN in the array and ``null`` in the JSON.
+``first_nozzle`` (optional, JSON only) is the first nozzle of the trace
+message the estimates come from: a frame sent as several nozzle ranges gets
+one message per range, all with the frame's ``frame_id``.
 
 Fields (:data:`FIELDS`, SI units):
 
@@ -67,11 +71,13 @@ FIELD_LABEL = "field"
 
 @dataclass(frozen=True)
 class FmEstimates:
-    """One frame's estimates: ``table`` is float64 (n, len(FIELDS)), columns in FIELDS order."""
+    """One frame's (or frame range's) estimates: ``table`` is float64 (n, len(FIELDS)), columns in
+    FIELDS order; ``first_nozzle`` the trace message's first nozzle (None: not said, e.g. the array form)."""
 
     frame_id: int
     stamp: float
     table: np.ndarray
+    first_nozzle: int | None = None
 
     def column(self, name: str) -> np.ndarray:
         return self.table[:, FIELDS.index(name)]
@@ -81,14 +87,15 @@ class FmEstimates:
         return self.column("nozzle").astype(np.int64)
 
     @classmethod
-    def from_columns(cls, frame_id, stamp, **columns) -> "FmEstimates":
+    def from_columns(cls, frame_id, stamp, *, first_nozzle=None, **columns) -> "FmEstimates":
         """Build from one (n,) array per field name (every field of FIELDS required)."""
         missing = [f for f in FIELDS if f not in columns]
         extra = [k for k in columns if k not in FIELDS]
         if missing or extra:
             raise MessageError(f"fm_estimates: missing fields {missing}, unknown fields {extra}")
         table = np.column_stack([np.asarray(columns[f], dtype=np.float64).reshape(-1) for f in FIELDS])
-        return cls(int(frame_id), float(stamp), table.reshape(-1, len(FIELDS)))
+        return cls(int(frame_id), float(stamp), table.reshape(-1, len(FIELDS)),
+                   None if first_nozzle is None else int(first_nozzle))
 
 
 def encode_estimates(e: FmEstimates) -> String:
@@ -98,8 +105,11 @@ def encode_estimates(e: FmEstimates) -> String:
         d = {f: _json.finite_or_none(v) for f, v in zip(FIELDS, r)}
         d["nozzle"] = int(r[0])
         rows.append(d)
-    return _json.dump(ESTIMATES_SCHEMA, {"frame_id": e.frame_id, "stamp": round(e.stamp, 6),
-                                         "estimates": rows})
+    body = {"frame_id": e.frame_id, "stamp": round(e.stamp, 6)}
+    if e.first_nozzle is not None:
+        body["first_nozzle"] = int(e.first_nozzle)
+    body["estimates"] = rows
+    return _json.dump(ESTIMATES_SCHEMA, body)
 
 
 def decode_estimates(msg) -> FmEstimates:
@@ -108,6 +118,7 @@ def decode_estimates(msg) -> FmEstimates:
     doc = _json.load(msg, s)
     frame_id = _json.field(doc, s, "frame_id", int, nonneg=True)
     stamp = _json.field(doc, s, "stamp", float, nonneg=True)
+    first = _json.field(doc, s, "first_nozzle", int, nonneg=True) if "first_nozzle" in doc else None
     rows = _json.field(doc, s, "estimates", list)
     table = np.empty((len(rows), len(FIELDS)))
     for i, row in enumerate(rows):
@@ -121,7 +132,7 @@ def decode_estimates(msg) -> FmEstimates:
                 table[i, j] = v
             else:
                 raise MessageError(f"{s}: estimate {i} field {f!r} must be a number, got {v!r}")
-    return FmEstimates(frame_id, stamp, table)
+    return FmEstimates(frame_id, stamp, table, first)
 
 
 def encode_estimates_array(e: FmEstimates) -> Float64MultiArray:

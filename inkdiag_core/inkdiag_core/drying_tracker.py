@@ -1,0 +1,294 @@
+"""Online f_m estimation of the drying nozzles, frame by frame and nozzle range by range.
+
+A printer controller may send one frame of a head as several trace messages,
+one per contiguous *nozzle range* (``first_nozzle``, ``n_nozzles``), and the
+FDI stage answers each of them with its own list of drying nozzles. The two
+streams arrive in either order and on different paths (the traces best effort,
+the lists reliable, after the labelling). :class:`DryingTracker` joins them
+on ``(frame_id, first_nozzle)``: each range of each frame is estimated with
+*that* frame's list for *that* range, never with an earlier frame's or
+another range's. What waits for its partner is held in two bounded buffers
+(oldest dropped first, and counted).
+
+For each joined pair the rows of the listed nozzles are screened
+(:func:`~inkdiag_core.screen_traces`), f_m is estimated in one batch
+(:func:`~inkdiag_core.estimate_fm_batch`, relative to each nozzle's healthy
+reading when :class:`~inkdiag_core.NozzleBaselines` with f_m are given) and
+each nozzle's trend is updated (:class:`~inkdiag_core.FmTrendBank`). Pure
+numpy; no ROS.
+
+A list whose range is unknown (``first_nozzle=None``: an FDI stage that does
+not say which range it labelled) applies to every range of its frame: each
+held range with a listed nozzle is estimated; lists of one frame without a
+range are merged; they stay until evicted, since more ranges of that frame
+may still come, and a range none of them names waits until it is evicted.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .estimation import estimate_fm_batch
+from .model import InkChannelModel
+from .screening import screen_traces
+from .trend import FmTrendBank
+
+__all__ = ["ESTIMATE_COLUMNS", "DryingTracker", "RangeEstimates"]
+
+#: Columns of :attr:`RangeEstimates.columns`, in this order (the fields of ``fm_estimates``).
+ESTIMATE_COLUMNS = ("nozzle", "fm", "fm_std", "d_mu", "viscosity", "fm_trend", "fm_rate",
+                    "eta_deeply_dried_s")
+
+
+@dataclass(frozen=True)
+class RangeEstimates:
+    """The estimates of one nozzle range of one frame.
+
+    Attributes
+    ----------
+    frame_id : int
+    stamp : float
+        Measurement time of the trace frame, s.
+    first_nozzle, n_nozzles : int
+        The range of the trace message: nozzles ``first_nozzle .. first_nozzle + n_nozzles - 1``.
+    columns : dict of str -> ndarray, shape (n,)
+        One array per name of :data:`ESTIMATE_COLUMNS`, rows by increasing nozzle id:
+        ``nozzle`` (int64), ``fm`` and ``fm_std`` (1/s), ``d_mu`` and ``viscosity``
+        (Pa s), ``fm_trend`` (1/s), ``fm_rate`` (1/s^2), ``eta_deeply_dried_s`` (s; NaN
+        when unknown).
+    note : str
+        Why the f_m baselines were not used for this range ("" when they were, or
+        when there are none).
+    """
+
+    frame_id: int
+    stamp: float
+    first_nozzle: int
+    n_nozzles: int
+    columns: dict = field(default_factory=dict)
+    note: str = ""
+
+    @property
+    def nozzles(self) -> np.ndarray:
+        """Nozzle ids, int64 (n,)."""
+        return self.columns["nozzle"]
+
+
+@dataclass
+class _Traces:
+    traces: np.ndarray
+    stamp: float
+    sample_rate_hz: float
+
+
+@dataclass
+class _Drying:
+    nozzles: np.ndarray  # sorted unique int64
+    matched: bool = False
+
+
+def _index(name, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+        raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
+    return int(value)
+
+
+class DryingTracker:
+    """Join trace frames and drying lists per (frame, range); estimate f_m of each joined pair.
+
+    Parameters
+    ----------
+    model : InkChannelModel, optional
+        The nominal channel model of the estimator (default ``InkChannelModel()``).
+    max_estimates : int
+        At most this many listed nozzles are estimated per frame and range, lowest
+        ids first (bounds the cost of one pair). An attribute: may change between calls.
+    max_pending : int
+        Trace messages, and drying lists, each held at most while waiting for their
+        partner; beyond that the oldest is dropped (``traces_unmatched``,
+        ``drying_unmatched``). Held traces are views of the caller's arrays.
+    baselines : NozzleBaselines, optional
+        The head's baselines with healthy f_m (``baselines.fm``): each estimate is
+        taken relative to its nozzle's reading (``estimate_fm_batch(baseline_fm=)``)
+        when the frame's sample rate and trace length are the baselines'.
+    trend_accel_std, trend_rel_floor : float
+        :class:`~inkdiag_core.FmTrend`'s ``accel_std`` (1/s^3) and ``rel_floor``.
+
+    Attributes
+    ----------
+    trends : FmTrendBank
+    traces_received, drying_received : int
+        Calls of :meth:`add_traces` and :meth:`add_drying`.
+    ranges_joined : int
+        (frame, range) pairs that met their partner; ``ranges_estimated`` of them
+        gave estimates (the others listed no valid row of the range).
+    traces_unmatched, drying_unmatched : int
+        Dropped from a full buffer before a partner came (a drying list without a
+        range counts only if it matched no range at all).
+    rows_invalid : int
+        Listed rows that screening rejected (not estimated).
+    estimates, estimates_with_baseline : int
+        Nozzle estimates made; those relative to a healthy f_m.
+    """
+
+    def __init__(self, model=None, *, max_estimates: int = 64, max_pending: int = 32, baselines=None,
+                 trend_accel_std: float = 5e3, trend_rel_floor: float = 0.05):
+        if int(max_estimates) < 1 or int(max_pending) < 1:
+            raise ValueError(f"max_estimates and max_pending must be >= 1, got {max_estimates}, {max_pending}")
+        self.model = InkChannelModel() if model is None else model
+        self.max_estimates = int(max_estimates)
+        self.max_pending = int(max_pending)
+        self.baselines = baselines
+        self.trends = FmTrendBank(accel_std=trend_accel_std, rel_floor=trend_rel_floor)
+        self._traces = OrderedDict()  # (frame_id, first_nozzle) -> _Traces
+        self._drying = OrderedDict()  # (frame_id, first_nozzle or None) -> _Drying
+        self.traces_received = self.drying_received = 0
+        self.ranges_joined = self.ranges_estimated = 0
+        self.traces_unmatched = self.drying_unmatched = 0
+        self.rows_invalid = self.estimates = self.estimates_with_baseline = 0
+
+    @property
+    def pending(self) -> tuple:
+        """``(trace messages, drying lists)`` held now."""
+        return len(self._traces), len(self._drying)
+
+    def add_traces(self, traces, *, first_nozzle: int, frame_id: int, stamp: float,
+                   sample_rate_hz: float) -> list:
+        """One trace message: the traces of nozzles ``first_nozzle ..`` of frame ``frame_id``.
+
+        Parameters
+        ----------
+        traces : array_like, shape (n_nozzles, n_samples)
+            Row ``i`` is nozzle ``first_nozzle + i``, sensor units (V). Held without a copy
+            until its drying list comes.
+        first_nozzle, frame_id : int
+        stamp : float
+            Measurement time, s.
+        sample_rate_hz : float
+
+        Returns
+        -------
+        list of RangeEstimates
+            This range's estimates if its drying list was already here (at most one).
+        """
+        x = np.asarray(traces)
+        if x.ndim != 2 or x.shape[1] == 0:
+            raise ValueError(f"traces must be 2-D (n_nozzles, n_samples), got shape {x.shape}")
+        first, frame_id = _index("first_nozzle", first_nozzle), _index("frame_id", frame_id)
+        if not (math.isfinite(sample_rate_hz) and sample_rate_hz > 0 and math.isfinite(stamp)):
+            raise ValueError(f"sample_rate_hz must be > 0 and stamp finite, got {sample_rate_hz!r}, {stamp!r}")
+        self.traces_received += 1
+        t = _Traces(x, float(stamp), float(sample_rate_hz))
+        d = self._drying.pop((frame_id, first), None)
+        if d is not None:
+            return self._join(frame_id, first, t, d.nozzles)
+        d = self._drying.get((frame_id, None))
+        if d is not None and self._in_range(d.nozzles, first, x.shape[0]).size:
+            d.matched = True
+            return self._join(frame_id, first, t, d.nozzles)
+        self._traces[(frame_id, first)] = t
+        self._traces.move_to_end((frame_id, first))
+        while len(self._traces) > self.max_pending:
+            self._traces.popitem(last=False)
+            self.traces_unmatched += 1
+        return []
+
+    def add_drying(self, frame_id: int, nozzles, *, first_nozzle: int | None = None,
+                   n_nozzles: int | None = None) -> list:
+        """One drying list: the nozzles labelled dried in one range of frame ``frame_id``.
+
+        Parameters
+        ----------
+        frame_id : int
+        nozzles : array_like of int, shape (m,)
+            Nozzle ids (any order); empty: the range has no dried nozzle, and its
+            traces are released.
+        first_nozzle : int, optional
+            First nozzle of the labelled range (the trace message's). None: unknown,
+            the list applies to every range of the frame.
+        n_nozzles : int, optional
+            Nozzles in the labelled range (checked: ids must lie in it).
+
+        Returns
+        -------
+        list of RangeEstimates
+            The estimates of the ranges this list completes (one for a known range).
+        """
+        frame_id = _index("frame_id", frame_id)
+        ids = np.unique(np.asarray(nozzles, dtype=np.int64).reshape(-1))
+        if ids.size and ids[0] < 0:
+            raise ValueError(f"nozzle ids must be >= 0, got {ids[0]}")
+        if first_nozzle is None:
+            self.drying_received += 1
+            return self._add_unranged(frame_id, ids)
+        first = _index("first_nozzle", first_nozzle)
+        if n_nozzles is not None and ids.size and not first <= ids[0] <= ids[-1] < first + _index(
+                "n_nozzles", n_nozzles):
+            raise ValueError(f"drying nozzles {ids[0]}..{ids[-1]} are outside the range "
+                             f"{first}..{first + n_nozzles - 1}")
+        self.drying_received += 1
+        t = self._traces.pop((frame_id, first), None)
+        if t is not None:
+            return self._join(frame_id, first, t, ids)
+        self._hold_drying((frame_id, first), _Drying(ids))
+        return []
+
+    def _add_unranged(self, frame_id, ids) -> list:
+        d = self._drying.get((frame_id, None))
+        if d is None:
+            d = _Drying(ids)
+            self._hold_drying((frame_id, None), d)
+        else:
+            d.nozzles = np.union1d(d.nozzles, ids)
+        out = []
+        for key in [k for k, t in self._traces.items() if k[0] == frame_id
+                    and self._in_range(ids, k[1], t.traces.shape[0]).size]:
+            d.matched = True
+            out += self._join(frame_id, key[1], self._traces.pop(key), d.nozzles)
+        return out
+
+    def _hold_drying(self, key, d) -> None:
+        self._drying[key] = d
+        self._drying.move_to_end(key)
+        while len(self._drying) > self.max_pending:
+            _, old = self._drying.popitem(last=False)
+            self.drying_unmatched += not old.matched
+
+    @staticmethod
+    def _in_range(ids, first, n):
+        return ids[(ids >= first) & (ids < first + n)]
+
+    def _join(self, frame_id, first, t: _Traces, nozzles) -> list:
+        """Estimate the listed nozzles of one trace message; [] when none is valid there."""
+        self.ranges_joined += 1
+        x = t.traces
+        ids = self._in_range(nozzles, first, x.shape[0])[: self.max_estimates]
+        rows = np.array(x[ids - first])
+        valid, _ = screen_traces(rows)
+        self.rows_invalid += int(ids.size - np.count_nonzero(valid))
+        ids, rows = ids[valid], rows[valid]
+        if ids.size == 0:
+            return []
+        baseline_fm, note = self._baseline_fm(ids, t.sample_rate_hz, x.shape[1])
+        est = estimate_fm_batch(rows, self.model, t.sample_rate_hz, baseline_fm=baseline_fm)
+        trend, rate, eta = self.trends.update(t.stamp, ids, est.fm, est.std)
+        self.ranges_estimated += 1
+        self.estimates += int(ids.size)
+        cols = dict(zip(ESTIMATE_COLUMNS, (ids, est.fm, est.std, est.d_mu, est.viscosity, trend, rate, eta)))
+        return [RangeEstimates(frame_id, t.stamp, first, int(x.shape[0]), cols, note)]
+
+    def _baseline_fm(self, ids, sample_rate_hz, n_samples):
+        """``(healthy f_m of ids or None, why not used)``."""
+        b = self.baselines
+        if b is None or b.fm is None:
+            return None, ""
+        if (sample_rate_hz, n_samples) != (b.sample_rate_hz, b.n_samples):
+            return None, (f"traces of {sample_rate_hz:g} Hz x {n_samples} samples, the f_m baselines "
+                          f"{b.sample_rate_hz:g} Hz x {b.n_samples}: estimated without them")
+        has, fm = b.lookup_fm(ids)
+        self.estimates_with_baseline += int(has.sum())
+        return fm, ""

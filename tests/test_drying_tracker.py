@@ -1,0 +1,133 @@
+"""DryingTracker: trace messages and drying lists joined per (frame, nozzle range), either order."""
+
+import numpy as np
+import pytest
+
+from inkdiag_core import (
+    ESTIMATE_COLUMNS,
+    DryingTracker,
+    FaultClass,
+    InkChannelModel,
+    estimate_fm_batch,
+    simulate_nozzles,
+)
+
+RANGE = 8  # nozzles per trace message
+N_RANGES = 3
+DRIED = {0: [2, 5], 1: [8, 9, 14], 2: [20]}  # per range: the head's dried nozzles
+
+
+def _frame(frame_seed, dried=DRIED):
+    """One frame of a 24-nozzle head, (24, 512) float32; the listed nozzles deeply dried."""
+    classes = np.array([FaultClass.HEALTHY_NOZZLE.value] * RANGE * N_RANGES, dtype=object)
+    classes[[nz for ids in dried.values() for nz in ids]] = FaultClass.DEEPLY_DRIED.value
+    return simulate_nozzles(classes, seed=7, frame_seed=frame_seed).traces
+
+
+def _traces(tr, x, frame_id, r, stamp=None):
+    first = r * RANGE
+    return tr.add_traces(x[first:first + RANGE], first_nozzle=first, frame_id=frame_id,
+                         stamp=float(frame_id) if stamp is None else stamp, sample_rate_hz=10e6)
+
+
+def _drying(tr, frame_id, r, ids):
+    return tr.add_drying(frame_id, ids, first_nozzle=r * RANGE, n_nozzles=RANGE)
+
+
+@pytest.mark.parametrize("traces_first", [True, False], ids=["traces_first", "drying_first"])
+def test_each_range_is_estimated_with_its_own_frames_list_in_either_order(traces_first):
+    x = _frame(1)
+    tr = DryingTracker()
+    out = []
+    for r in range(N_RANGES):
+        if traces_first:
+            assert _traces(tr, x, 5, r) == []
+            out += _drying(tr, 5, r, DRIED[r])
+        else:
+            assert _drying(tr, 5, r, DRIED[r]) == []
+            out += _traces(tr, x, 5, r)
+    assert [(e.frame_id, e.first_nozzle, e.n_nozzles) for e in out] == [(5, 0, 8), (5, 8, 8), (5, 16, 8)]
+    for e, r in zip(out, range(N_RANGES)):
+        assert list(e.columns) == list(ESTIMATE_COLUMNS) and e.nozzles.tolist() == DRIED[r]
+        direct = estimate_fm_batch(x[DRIED[r]], InkChannelModel(), 10e6)
+        np.testing.assert_array_equal(e.columns["fm"], direct.fm)
+        np.testing.assert_array_equal(e.columns["fm_std"], direct.std)
+        assert (e.columns["fm"] < 0).all() and e.stamp == 5.0 and e.note == ""
+    assert tr.pending == (0, 0) and tr.ranges_joined == tr.ranges_estimated == 3
+    assert tr.estimates == 6 and tr.traces_unmatched == tr.drying_unmatched == 0
+
+
+def test_a_nozzle_is_estimated_in_its_first_dried_frame_and_not_after_it_recovered():
+    tr = DryingTracker()
+    lists = {1: [2], 2: [2, 5], 3: [5]}  # range 0: 5 dries in frame 2, 2 recovers in frame 3
+    got = {}
+    for f, ids in lists.items():
+        x = _frame(f, {0: ids})
+        # the controller's traces come first, fdi's list after it labelled that frame
+        assert _traces(tr, x, f, 0) == []
+        (e,) = _drying(tr, f, 0, ids)
+        got[f] = e.nozzles.tolist()
+    assert got == lists
+    assert tr.trends.trends[5].n_updates == 2 and tr.trends.trends[2].n_updates == 2
+
+
+def test_an_empty_list_releases_its_range_and_a_list_without_traces_is_counted_not_estimated():
+    x = _frame(2)
+    tr = DryingTracker(max_pending=2)
+    assert _traces(tr, x, 1, 1) == [] and tr.pending == (1, 0)
+    assert _drying(tr, 1, 1, []) == [] and tr.pending == (0, 0)  # nothing dried: traces released
+    assert tr.ranges_joined == 1 and tr.ranges_estimated == 0
+    # lists of frames whose traces never came (lost on the best-effort topic): held, then dropped
+    for f in (10, 11, 12):
+        assert _drying(tr, f, 0, DRIED[0]) == []
+    assert tr.pending == (0, 2) and tr.drying_unmatched == 1
+    assert _traces(tr, x, 10, 0) == []  # frame 10's list was the one dropped
+    assert tr.estimates == 0 and tr.pending == (1, 2)
+    # traces whose lists never come: the oldest dropped
+    for f in (20, 21):
+        _traces(tr, x, f, 2)
+    assert tr.traces_unmatched == 1 and tr.pending == (2, 2)
+    (e,) = _traces(tr, x, 11, 0)  # a held list still finds its traces
+    assert e.frame_id == 11 and e.nozzles.tolist() == DRIED[0] and tr.estimates == 2
+
+
+def test_a_list_without_a_range_applies_to_every_range_of_its_frame():
+    x = _frame(3)
+    tr = DryingTracker()
+    _traces(tr, x, 4, 0)
+    _traces(tr, x, 4, 1)
+    _traces(tr, x, 3, 2)  # another frame: not touched
+    out = tr.add_drying(4, DRIED[0] + DRIED[1])  # first_nozzle unknown
+    assert [(e.first_nozzle, e.nozzles.tolist()) for e in out] == [(0, DRIED[0]), (8, DRIED[1])]
+    assert tr.pending == (1, 1)
+    # an older fdi sends one such list per range: they add up, and later ranges of the frame match
+    assert tr.add_drying(4, DRIED[2]) == []
+    (e,) = _traces(tr, x, 4, 2)
+    assert e.first_nozzle == 16 and e.nozzles.tolist() == DRIED[2] and e.frame_id == 4
+
+
+def test_invalid_rows_and_the_cap_cost_only_themselves():
+    x = np.array(_frame(4))
+    x[DRIED[1][0]] = np.nan
+    tr = DryingTracker(max_estimates=2)
+    _traces(tr, x, 1, 1)
+    (e,) = _drying(tr, 1, 1, DRIED[1])  # 8, 9, 14: the cap keeps 8, 9; 8 is NaN
+    assert e.nozzles.tolist() == [9] and tr.rows_invalid == 1
+    tr.max_estimates = 64
+    _traces(tr, x, 2, 1)
+    (e,) = _drying(tr, 2, 1, DRIED[1])
+    assert e.nozzles.tolist() == [9, 14]
+
+
+def test_bad_input_is_refused_and_changes_nothing():
+    x = _frame(5)
+    tr = DryingTracker()
+    with pytest.raises(ValueError, match="2-D"):
+        tr.add_traces(x[0], first_nozzle=0, frame_id=1, stamp=1.0, sample_rate_hz=10e6)
+    with pytest.raises(ValueError, match="first_nozzle"):
+        tr.add_traces(x[:8], first_nozzle=-8, frame_id=1, stamp=1.0, sample_rate_hz=10e6)
+    with pytest.raises(ValueError, match="outside the range"):
+        tr.add_drying(1, [3, 30], first_nozzle=0, n_nozzles=8)
+    with pytest.raises(ValueError, match=">= 1"):
+        DryingTracker(max_pending=0)
+    assert tr.pending == (0, 0) and tr.traces_received == tr.drying_received == 0
