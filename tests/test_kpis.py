@@ -7,7 +7,7 @@ from sklearn.utils.estimator_checks import parametrize_with_checks
 
 from inkdiag_core.kpis import (
     KPI_NAMES,
-    MIN_SAMPLES,
+    MIN_KPI_SAMPLES,
     InvalidTraceError,
     KpiExtractor,
     extract_kpis,
@@ -188,7 +188,7 @@ def test_extreme_finite_traces_give_finite_kpis(trace):
     assert np.isfinite(kpis).all()
 
 
-@pytest.mark.parametrize("n_samples", range(MIN_SAMPLES, 17))
+@pytest.mark.parametrize("n_samples", range(MIN_KPI_SAMPLES, 17))
 def test_short_traces_give_finite_kpis(n_samples):
     y = np.random.default_rng(n_samples).standard_normal((30, n_samples))
     kpis = extract_kpis(y, FS)
@@ -270,7 +270,7 @@ def test_reconstruct_validation():
     [
         (np.zeros((2, 3, N)), r"shape \(n_traces, n_samples\).*found ndim=3"),
         (np.zeros(()), r"found ndim=0"),
-        (np.zeros((4, MIN_SAMPLES - 1)), r"at least 2 samples per trace, found 1"),
+        (np.zeros((4, MIN_KPI_SAMPLES - 1)), r"at least 2 samples per trace, found 1"),
         (np.zeros((2, N), dtype=complex), "must be real, found complex"),
         (np.array([["a"] * N]), "real numeric array"),
     ],
@@ -308,7 +308,7 @@ def test_extractor_matches_function_and_names():
         KpiExtractor(sample_rate_hz=-1.0).fit(traces)
 
 
-# All checks run: MIN_SAMPLES is low enough for the checks' 2- to 10-column data.
+# All checks run: MIN_KPI_SAMPLES is low enough for the checks' 2- to 10-column data.
 @parametrize_with_checks([KpiExtractor()])
 def test_sklearn_contract(estimator, check):
     check(estimator)

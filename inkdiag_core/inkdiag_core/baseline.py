@@ -35,7 +35,7 @@ from sklearn.base import BaseEstimator, TransformerMixin
 from sklearn.utils.validation import check_is_fitted, validate_data
 
 from .estimation import estimate_fm_batch
-from .kpis import KPI_NAMES, MIN_SAMPLES, _check_sample_rate, _check_traces, extract_kpis
+from .kpis import KPI_NAMES, MIN_KPI_SAMPLES, _check_sample_rate, _check_traces, extract_kpis
 from .model import InkChannelModel
 from .screening import screen_traces
 
@@ -133,7 +133,7 @@ class BaselineKpis(TransformerMixin, BaseEstimator):
         self.sample_rate_hz = sample_rate_hz
 
     def fit(self, X, y=None):
-        validate_data(self, X, dtype=[np.float64, np.float32], ensure_min_features=MIN_SAMPLES + N_KPIS)
+        validate_data(self, X, dtype=[np.float64, np.float32], ensure_min_features=MIN_KPI_SAMPLES + N_KPIS)
         return self
 
     def transform(self, X):
@@ -403,8 +403,8 @@ class BaselineRecorder:
                 or not 0 <= fm_frames <= n_frames:
             raise ValueError(f"fm_frames must be an integer in 0..n_frames ({n_frames}), got {fm_frames!r}")
         self.fm_frames = int(fm_frames)
-        if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < MIN_SAMPLES:
-            raise ValueError(f"n_samples must be an integer >= {MIN_SAMPLES}, got {n_samples!r}")
+        if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < MIN_KPI_SAMPLES:
+            raise ValueError(f"n_samples must be an integer >= {MIN_KPI_SAMPLES}, got {n_samples!r}")
         self.n_frames = int(n_frames)
         self.sample_rate_hz = _check_sample_rate(sample_rate_hz)
         self.n_samples = int(n_samples)

@@ -81,15 +81,25 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
+import numpy as np
+
 __all__ = [
     "FaultClass",
     "Mechanism",
     "MECHANISMS",
     "HEALTHY_CLASSES",
+    "HEALTHY_VALUES",
     "DRIED_CLASSES",
+    "DRIED_VALUES",
+    "FAULT_CLASSES",
+    "FAULT_VALUES",
     "OK_SIGNAL_DRIVE_FACTOR",
     "PARTICLE_LENGTH_FRACTION",
     "is_healthy",
+    "is_dried",
+    "class_values",
+    "healthy_mask",
+    "dried_mask",
     "as_fault_class",
 ]
 
@@ -114,8 +124,15 @@ class FaultClass(enum.Enum):
         return self.value
 
 
+# Class groups: defined here once. The rest of the core, inkdiag_ros and scripts/ use these;
+# msg_defs (which must not import the core) keeps a wire copy of the value tuples
+# (msg_defs.HEALTHY_CLASSES, msg_defs.DRIED_CLASSES), pinned to these by tests/test_vocabulary.py.
+
 HEALTHY_CLASSES = frozenset({FaultClass.OK_SIGNAL, FaultClass.HEALTHY_NOZZLE})
 """The two healthy operating conditions (negative class of fault detection)."""
+
+HEALTHY_VALUES = tuple(c.value for c in FaultClass if c in HEALTHY_CLASSES)
+"""``HEALTHY_CLASSES`` as value strings, in :class:`FaultClass` order: ``("ok_signal", "healthy_nozzle")``."""
 
 DRIED_CLASSES = (
     FaultClass.SLIGHTLY_DRIED,
@@ -123,6 +140,15 @@ DRIED_CLASSES = (
     FaultClass.DEEPLY_DRIED,
 )
 """Drying classes, in increasing severity (the fault-estimation classes)."""
+
+DRIED_VALUES = tuple(c.value for c in DRIED_CLASSES)
+"""``DRIED_CLASSES`` as value strings, in increasing severity."""
+
+FAULT_CLASSES = tuple(c for c in FaultClass if c not in HEALTHY_CLASSES)
+"""The 10 fault classes (every class but the healthy ones), in :class:`FaultClass` order."""
+
+FAULT_VALUES = tuple(c.value for c in FAULT_CLASSES)
+"""``FAULT_CLASSES`` as value strings."""
 
 PARTICLE_LENGTH_FRACTION = 0.3
 """Length of the bore occupied by a partially blocking particle, fraction of L_n."""
@@ -134,6 +160,43 @@ OK_SIGNAL_DRIVE_FACTOR = 0.8
 def is_healthy(cls) -> bool:
     """True for ``ok_signal`` and ``healthy_nozzle`` (accepts a FaultClass or its value)."""
     return as_fault_class(cls) in HEALTHY_CLASSES
+
+
+def is_dried(cls) -> bool:
+    """True for the three drying classes (accepts a FaultClass or its value)."""
+    return as_fault_class(cls) in DRIED_CLASSES
+
+
+def class_values(labels) -> np.ndarray:
+    """Labels as value strings: FaultClass members become ``.value``, anything else is kept.
+
+    Parameters
+    ----------
+    labels : array_like, shape (n,)
+        FaultClass members and/or strings (or any other objects).
+
+    Returns
+    -------
+    ndarray of object, shape (n,)
+    """
+    arr = np.asarray(labels)
+    if arr.dtype.kind in "US":  # already strings: no per-label Python step
+        return arr.astype(object).reshape(-1)
+    arr = arr.astype(object).reshape(-1)
+    return np.array([getattr(c, "value", c) for c in arr.tolist()], dtype=object)
+
+
+def healthy_mask(labels) -> np.ndarray:
+    """Boolean mask (n,) of the labels in :data:`HEALTHY_CLASSES` (members or value strings).
+
+    Anything else (fault classes, unknown strings, ``""``, numbers) is False.
+    """
+    return np.isin(class_values(labels), HEALTHY_VALUES)
+
+
+def dried_mask(labels) -> np.ndarray:
+    """Boolean mask (n,) of the labels in :data:`DRIED_CLASSES` (members or value strings)."""
+    return np.isin(class_values(labels), DRIED_VALUES)
 
 
 def as_fault_class(cls, name: str = "fault class") -> FaultClass:

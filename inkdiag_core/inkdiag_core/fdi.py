@@ -39,7 +39,8 @@ from sklearn.pipeline import FeatureUnion, Pipeline
 from sklearn.preprocessing import StandardScaler
 from sklearn.utils.validation import check_is_fitted, validate_data
 
-from .kpis import KPI_NAMES, MIN_SAMPLES, KpiExtractor, extract_kpis, reconstruct
+from .faults import HEALTHY_VALUES, healthy_mask  # noqa: F401  (HEALTHY_VALUES: kept as fdi.HEALTHY_VALUES)
+from .kpis import KPI_NAMES, MIN_KPI_SAMPLES, KpiExtractor, extract_kpis, reconstruct
 from .residual import ResidualFilter
 
 __all__ = [
@@ -57,7 +58,6 @@ __all__ = [
 ]
 
 FEATURE_SETS = ("kpi_y", "kpi_r", "kpi_r_modified", "kpi_y+r_modified", "rich", "kpi_y+baseline")
-HEALTHY_VALUES = ("ok_signal", "healthy_nozzle")
 
 #: Band edges of :class:`BandEnergies`, Hz: around the classes' modes (Table 3).
 BAND_EDGES_HZ = (50e3, 150e3, 180e3, 195e3, 207e3, 219e3, 231e3, 245e3, 280e3, 320e3,
@@ -66,8 +66,7 @@ BAND_EDGES_HZ = (50e3, 150e3, 180e3, 195e3, 207e3, 219e3, 231e3, 245e3, 280e3, 3
 
 def fd_labels(labels) -> np.ndarray:
     """Fault-detection targets: 0 for the healthy classes, 1 for every fault (int, (n,))."""
-    values = np.array([getattr(c, "value", c) for c in np.asarray(labels, dtype=object)], dtype=object)
-    return (~np.isin(values, HEALTHY_VALUES)).astype(int)
+    return (~healthy_mask(labels)).astype(int)
 
 
 def _second_mode(X, k1, fs):
@@ -102,7 +101,7 @@ class RawTraceFeatures(TransformerMixin, BaseEstimator):
         self.band_edges_hz = band_edges_hz
 
     def fit(self, X, y=None):
-        validate_data(self, X, dtype=[np.float64, np.float32], ensure_min_features=MIN_SAMPLES)
+        validate_data(self, X, dtype=[np.float64, np.float32], ensure_min_features=MIN_KPI_SAMPLES)
         BandEnergies(self.sample_rate_hz, self.band_edges_hz).fit(X)  # validates the edges
         return self
 
@@ -135,7 +134,7 @@ class SecondModeKpis(TransformerMixin, BaseEstimator):
         self.sample_rate_hz = sample_rate_hz
 
     def fit(self, X, y=None):
-        validate_data(self, X, dtype=[np.float64, np.float32], ensure_min_features=MIN_SAMPLES)
+        validate_data(self, X, dtype=[np.float64, np.float32], ensure_min_features=MIN_KPI_SAMPLES)
         return self
 
     def transform(self, X):
@@ -161,7 +160,7 @@ class BandEnergies(TransformerMixin, BaseEstimator):
         self.band_edges_hz = band_edges_hz
 
     def fit(self, X, y=None):
-        validate_data(self, X, dtype=[np.float64, np.float32], ensure_min_features=MIN_SAMPLES)
+        validate_data(self, X, dtype=[np.float64, np.float32], ensure_min_features=MIN_KPI_SAMPLES)
         edges = np.asarray(self.band_edges_hz, float)
         if edges.ndim != 1 or edges.size < 2 or np.any(np.diff(edges) <= 0):
             raise ValueError(f"band_edges_hz must be increasing with >= 2 edges, got {self.band_edges_hz!r}")
@@ -300,7 +299,7 @@ def fault_probability(pipeline, traces) -> tuple:
         1 minus the probability of the two healthy classes.
     """
     proba = _predict_proba(pipeline, traces)
-    healthy = np.isin(np.asarray(pipeline.classes_, dtype=object), HEALTHY_VALUES)
+    healthy = healthy_mask(pipeline.classes_)
     return proba, 1.0 - proba[:, healthy].sum(axis=1)
 
 
@@ -328,7 +327,7 @@ def classify(pipeline, traces, *, fd_threshold: float = 0.5):
     if not 0.0 < fd_threshold <= 1.0:
         raise ValueError(f"fd_threshold must be in (0, 1], got {fd_threshold!r}")
     classes = np.asarray(pipeline.classes_, dtype=object)
-    healthy = np.isin(classes, HEALTHY_VALUES)
+    healthy = healthy_mask(classes)
     proba, p_faulty = fault_probability(pipeline, traces)
     faulty = p_faulty >= fd_threshold
     masked = np.where(healthy[None, :] == faulty[:, None], -1.0, proba)  # keep the allowed group
@@ -402,7 +401,7 @@ def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: st
     is_fault = fd_labels(yval) == 1
     threshold = fnr_threshold(p_faulty[is_fault], fnr_target)
     labels, _, _ = classify(pipe, Xval, fd_threshold=threshold)
-    flagged = ~np.isin(labels, HEALTHY_VALUES)
+    flagged = ~healthy_mask(labels)
     scores = {
         "validation_fi_accuracy": float(np.mean(labels0 == yval)),
         "validation_fi_accuracy_at_threshold": float(np.mean(labels == yval)),

@@ -44,6 +44,7 @@ from sklearn.utils.validation import check_is_fitted, validate_data
 
 __all__ = [
     "KPI_NAMES",
+    "MIN_KPI_SAMPLES",
     "MIN_SAMPLES",
     "InvalidTraceError",
     "KpiExtractor",
@@ -62,8 +63,12 @@ KPI_NAMES = (
 )
 """Names of the columns returned by :func:`extract_kpis`, in order."""
 
-MIN_SAMPLES = 2
+MIN_KPI_SAMPLES = 2
 """Fewest samples per trace that :func:`extract_kpis` accepts.
+
+Not to be confused with ``inkdiag_core.estimation.MIN_SAMPLES`` (16), the fewest samples
+the f_m estimators (``estimate_fm``, ``estimate_fm_batch``) accept: a separate limit of a
+different computation, not a second spelling of this one.
 
 Two samples are the least that have a non-DC FFT bin. This is a floor for robustness, not a
 recommendation: the model has 5 parameters, fewer than 5 samples leave the fit
@@ -72,6 +77,9 @@ bin window around the peak is too narrow for a reliable damping estimate. It is 
 so that :class:`KpiExtractor` passes scikit-learn's estimator checks, which use 2 to 10
 columns.
 """
+
+MIN_SAMPLES = MIN_KPI_SAMPLES
+"""Former name of :data:`MIN_KPI_SAMPLES`, kept for existing imports."""
 
 # Number of FFT bins around the dominant peak used by the fit.
 _WINDOW_BINS = 16
@@ -132,7 +140,7 @@ def _check_traces(traces, name="traces"):
     Raises
     ------
     InvalidTraceError
-        Wrong number of dimensions, fewer than :data:`MIN_SAMPLES` samples, a complex or
+        Wrong number of dimensions, fewer than :data:`MIN_KPI_SAMPLES` samples, a complex or
         non-numeric dtype, or NaN / Inf values. The message says what was expected and
         what was found.
     """
@@ -153,9 +161,9 @@ def _check_traces(traces, name="traces"):
             f"{name} must have shape (n_traces, n_samples) or (n_samples,), "
             f"found ndim={y.ndim} with shape {y.shape}"
         )
-    if y.shape[1] < MIN_SAMPLES:
+    if y.shape[1] < MIN_KPI_SAMPLES:
         raise InvalidTraceError(
-            f"{name} must have at least {MIN_SAMPLES} samples per trace, "
+            f"{name} must have at least {MIN_KPI_SAMPLES} samples per trace, "
             f"found {y.shape[1]} (shape {y.shape})"
         )
     y = np.ascontiguousarray(y, dtype=np.float32 if y.dtype == np.float32 else np.float64)
@@ -395,7 +403,7 @@ def extract_kpis(traces, sample_rate_hz):
     ----------
     traces : array_like, shape (n_traces, n_samples) or (n_samples,)
         Self-sensing traces in signal units (V, or whatever the sensor reports), at least
-        :data:`MIN_SAMPLES` samples each. A 1-D array is one trace: a batch of one.
+        :data:`MIN_KPI_SAMPLES` samples each. A 1-D array is one trace: a batch of one.
         float32 input is transformed in single precision (as it is sent); other real
         dtypes in double precision. An empty batch gives an empty (0, 7) result.
     sample_rate_hz : float
@@ -423,7 +431,7 @@ def extract_kpis(traces, sample_rate_hz):
     Raises
     ------
     InvalidTraceError
-        (a ``ValueError``) for ndim other than 1 or 2, fewer than :data:`MIN_SAMPLES`
+        (a ``ValueError``) for ndim other than 1 or 2, fewer than :data:`MIN_KPI_SAMPLES`
         samples, complex or non-numeric data, NaN / Inf values, or a non-positive or
         non-finite ``sample_rate_hz``.
 
@@ -665,10 +673,10 @@ class KpiExtractor(TransformerMixin, BaseEstimator):
 
     def _validate(self, X, reset):
         X = validate_data(self, X, reset=reset, dtype=[np.float64, np.float32])
-        if X.shape[1] < MIN_SAMPLES:
+        if X.shape[1] < MIN_KPI_SAMPLES:
             raise InvalidTraceError(
                 f"X has {X.shape[1]} feature(s) (samples per trace), but "
-                f"{type(self).__name__} needs at least {MIN_SAMPLES}"
+                f"{type(self).__name__} needs at least {MIN_KPI_SAMPLES}"
             )
         return X
 

@@ -49,7 +49,8 @@ import scipy.signal
 from sklearn.base import BaseEstimator, TransformerMixin
 from sklearn.utils.validation import check_is_fitted, validate_data
 
-from .kpis import MIN_SAMPLES, extract_kpis, reconstruct
+from .faults import HEALTHY_VALUES
+from .kpis import MIN_KPI_SAMPLES, extract_kpis, reconstruct
 from .model import InkChannelModel, InkChannelParams
 
 __all__ = [
@@ -65,7 +66,6 @@ MODIFIED_BANDS_HZ = (
     (357.45e3 + 330.78e3) / 2.0,
     (200.48e3 + 225.13e3 + 212.73e3) / 3.0,
 )
-_HEALTHY_LABELS = ("ok_signal", "healthy_nozzle")
 
 
 @dataclass(frozen=True)
@@ -326,7 +326,7 @@ class ResidualFilter(TransformerMixin, BaseEstimator):
     """
 
     def __init__(self, kind="original", sample_rate_hz=10e6, params=None,
-                 healthy_labels=(*_HEALTHY_LABELS, 0)):
+                 healthy_labels=(*HEALTHY_VALUES, 0)):
         self.kind = kind
         self.sample_rate_hz = sample_rate_hz
         self.params = params
@@ -334,7 +334,7 @@ class ResidualFilter(TransformerMixin, BaseEstimator):
 
     def fit(self, X, y=None):
         X = validate_data(self, X, dtype=[np.float64, np.float32], ensure_min_samples=1,
-                          ensure_min_features=MIN_SAMPLES)
+                          ensure_min_features=MIN_KPI_SAMPLES)
         self.design_ = design_residual_filter(self.kind, params=self.params,
                                               sample_rate_hz=self.sample_rate_hz)
         rows = X

@@ -1,10 +1,17 @@
-"""Smoothed f_m trend of one drying nozzle and its time to the deeply-dried level.
+"""Smoothed f_m trend of drying nozzles and their time to the deeply-dried level.
 
 A drying nozzle's f_m drifts slowly (seconds to minutes) while each frame's
-estimate is noisy. :class:`FmTrend` is a two-state Kalman filter (level and
-rate, a constant-velocity model with white acceleration noise) fed with each
-frame's estimate and its standard deviation, filterpy-style: ``update()`` per
-measurement, results as attributes. Pure numpy; no ROS.
+estimate is noisy. The trend is a two-state Kalman filter per nozzle (level
+and rate, a constant-velocity model with white acceleration noise) fed with
+each frame's estimate and its standard deviation.
+
+Built the filterpy way (``filterpy.kalman.KalmanFilter``): :func:`predict` and
+:func:`update` are separate pure functions, the update returns its gain,
+residual and residual variance for inspection, and both work on a *batch* of
+independent nozzles at once (state ``x`` (n, 2), covariance ``P`` (n, 2, 2),
+vectorised numpy, no per-nozzle Python loop). :class:`FmTrendBank` keeps
+those arrays per nozzle id and calls them once per frame; :class:`FmTrend` is
+the same filter for one nozzle (a batch of one). Pure numpy; no ROS.
 
 The deeply-dried level is the simulator's class definition: the lower edge
 of the ``deeply_dried`` nozzle viscosity factor (``MECHANISMS``) times the
@@ -14,13 +21,26 @@ channel viscosity, converted with Appendix F (:func:`deeply_dried_fm`).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
 from .faults import MECHANISMS, FaultClass
 from .model import InkChannelParams, viscosity_to_fm
 
-__all__ = ["FmTrend", "FmTrendBank", "deeply_dried_fm"]
+__all__ = [
+    "FmTrend",
+    "FmTrendBank",
+    "KalmanUpdate",
+    "deeply_dried_fm",
+    "eta_deep",
+    "measurement_variance",
+    "predict",
+    "update",
+]
+
+#: Floor of a measurement variance, (1/s)^2: keeps the update finite for fm = 0, fm_std = 0.
+R_FLOOR = 1e-12
 
 
 def deeply_dried_fm(params: InkChannelParams | None = None) -> float:
@@ -34,8 +54,211 @@ def deeply_dried_fm(params: InkChannelParams | None = None) -> float:
     return float(viscosity_to_fm(p, k_low * p.mu))
 
 
+# --------------------------------------------------------------------------- pure batch functions
+
+
+def predict(x, P, dt, accel_std):
+    """Kalman prediction of a batch of constant-velocity states over ``dt``.
+
+    ``x' = F x``, ``P' = F P F^T + Q`` with ``F = [[1, dt], [0, 1]]`` and the
+    white-acceleration process noise
+    ``Q = accel_std^2 [[dt^3/3, dt^2/2], [dt^2/2, dt]]``. ``dt = 0`` leaves
+    ``x`` and ``P`` unchanged.
+
+    Parameters
+    ----------
+    x : array_like, shape (n, 2)
+        States ``[fm, rate]``, 1/s and 1/s^2.
+    P : array_like, shape (n, 2, 2)
+        Their covariances.
+    dt : float or array_like, shape (n,)
+        Time steps, s (>= 0).
+    accel_std : float or array_like, shape (n,)
+        Standard deviation of the white acceleration noise, 1/s^3.
+
+    Returns
+    -------
+    x : ndarray, shape (n, 2)
+    P : ndarray, shape (n, 2, 2)
+        New arrays; the inputs are not modified.
+    """
+    x = np.asarray(x, dtype=float)
+    P = np.asarray(P, dtype=float)
+    n = x.shape[0]
+    dt = np.broadcast_to(np.asarray(dt, dtype=float), (n,))
+    q = np.broadcast_to(np.asarray(accel_std, dtype=float) ** 2, (n,))
+    F = np.zeros((n, 2, 2))
+    F[:, 0, 0] = F[:, 1, 1] = 1.0
+    F[:, 0, 1] = dt
+    Q = np.empty((n, 2, 2))
+    Q[:, 0, 0] = q * (dt**3 / 3)
+    Q[:, 0, 1] = Q[:, 1, 0] = q * (dt**2 / 2)
+    Q[:, 1, 1] = q * dt
+    x_new = np.matmul(F, x[:, :, None])[:, :, 0]
+    P_new = np.matmul(np.matmul(F, P), F.transpose(0, 2, 1)) + Q
+    return x_new, P_new
+
+
+class KalmanUpdate(NamedTuple):
+    """Result of :func:`update` for a batch of n nozzles.
+
+    Attributes
+    ----------
+    x : ndarray, shape (n, 2)
+        Posterior states ``[fm, rate]``.
+    P : ndarray, shape (n, 2, 2)
+        Posterior covariances.
+    K : ndarray, shape (n, 2)
+        Kalman gains.
+    y : ndarray, shape (n,)
+        Residuals (innovations) ``z - fm_prior``, 1/s.
+    S : ndarray, shape (n,)
+        Residual variances ``P_prior[0, 0] + r``, (1/s)^2.
+    """
+
+    x: np.ndarray
+    P: np.ndarray
+    K: np.ndarray
+    y: np.ndarray
+    S: np.ndarray
+
+
+def update(x, P, z, r) -> KalmanUpdate:
+    """Kalman measurement update of a batch of states with a level measurement.
+
+    The measurement matrix is ``H = [1, 0]`` (the level ``fm`` is measured):
+    ``y = z - x[0]``, ``S = P[0, 0] + r``, ``K = P[:, 0] / S``,
+    ``x' = x + K y``, ``P' = P - K P[0, :]`` (outer product).
+
+    Parameters
+    ----------
+    x : array_like, shape (n, 2)
+        Prior states ``[fm, rate]``, 1/s and 1/s^2.
+    P : array_like, shape (n, 2, 2)
+        Prior covariances.
+    z : array_like, shape (n,)
+        Measured f_m, 1/s (finite).
+    r : array_like, shape (n,)
+        Measurement variances, (1/s)^2 (> 0).
+
+    Returns
+    -------
+    KalmanUpdate
+        ``(x, P, K, y, S)``; new arrays, the inputs are not modified.
+    """
+    x = np.asarray(x, dtype=float)
+    P = np.asarray(P, dtype=float)
+    n = x.shape[0]
+    z = np.broadcast_to(np.asarray(z, dtype=float), (n,))
+    r = np.broadcast_to(np.asarray(r, dtype=float), (n,))
+    S = P[:, 0, 0] + r
+    K = P[:, :, 0] / S[:, None]
+    y = z - x[:, 0]
+    x_new = x + K * y[:, None]
+    P_new = P - K[:, :, None] * P[:, None, 0, :]
+    return KalmanUpdate(x_new, P_new, K, y, S)
+
+
+def measurement_variance(fm, fm_std, rel_floor):
+    """Variance of each estimate, (1/s)^2, shape (n,).
+
+    ``fm_std**2 + (rel_floor * fm)**2`` (a non-finite ``fm_std`` counts as 0),
+    floored at :data:`R_FLOOR`: a single-trace estimate's own ``fm_std`` leaves
+    out model error, hence the relative floor.
+    """
+    fm = np.asarray(fm, dtype=float)
+    fm_std = np.asarray(fm_std, dtype=float)
+    s = np.where(np.isfinite(fm_std), fm_std, 0.0)
+    return np.maximum(s**2 + (rel_floor * fm) ** 2, R_FLOOR)
+
+
+def _prior(fm, r):
+    """First-update state and covariance: level measured, rate unknown (wide prior)."""
+    n = fm.shape[0]
+    x = np.zeros((n, 2))
+    x[:, 0] = fm
+    P = np.zeros((n, 2, 2))
+    P[:, 0, 0] = r
+    P[:, 1, 1] = (np.abs(fm) + np.sqrt(r)) ** 2
+    return x, P
+
+
+def eta_deep(x, n_updates, fm_deep):
+    """Time from the last update until the trend reaches ``fm_deep``, s, shape (n,).
+
+    0 where the level is already at or below ``fm_deep``; NaN where unknown (no
+    update yet; fewer than two updates and not there yet) or where the trend is
+    not heading there (rate >= 0). Otherwise ``(fm_deep - fm) / rate``.
+
+    Parameters
+    ----------
+    x : array_like, shape (n, 2)
+    n_updates : array_like of int, shape (n,)
+    fm_deep : float
+        Deeply-dried level, 1/s.
+    """
+    x = np.asarray(x, dtype=float)
+    n_updates = np.asarray(n_updates)
+    fm, rate = x[:, 0], x[:, 1]
+    there = (n_updates >= 1) & (fm <= fm_deep)
+    heading = (n_updates >= 2) & (rate < 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        eta = np.where(heading, (fm_deep - fm) / np.where(heading, rate, 1.0), np.nan)
+    return np.where(there, 0.0, eta)
+
+
+def _fold(x, P, t_last, n_updates, t, fm, fm_std, accel_std, rel_floor):
+    """One measurement per row folded into per-row filter arrays; returns new arrays.
+
+    Rows with a non-finite ``fm`` are left as they are. A row's first update
+    sets the prior (:func:`_prior`); later ones run :func:`predict` over
+    ``t - t_last`` (0 when ``t`` is not after ``t_last``: only the level is
+    updated) and :func:`update`. The last time becomes ``t`` unless ``t_last``
+    is later.
+
+    Returns
+    -------
+    x (n, 2), P (n, 2, 2), t_last (n,), n_updates (n,), K (n, 2), y (n,)
+        ``K`` and ``y`` are the update's gain and residual (NaN for rows not updated
+        and for first updates, which have none).
+    """
+    fm = np.asarray(fm, dtype=float)
+    t = np.broadcast_to(np.asarray(t, dtype=float), fm.shape)
+    x, P, t_last, n_updates = x.copy(), P.copy(), t_last.copy(), n_updates.copy()
+    K = np.full((fm.size, 2), np.nan)
+    y = np.full(fm.size, np.nan)
+    ok = np.isfinite(fm)
+    r = measurement_variance(fm[ok], np.asarray(fm_std, dtype=float)[ok], rel_floor)
+    rows = np.flatnonzero(ok)
+    first = n_updates[rows] == 0
+    if first.any():
+        f = rows[first]
+        x[f], P[f] = _prior(fm[f], r[first])
+    later = ~first
+    if later.any():
+        g = rows[later]
+        dt = np.where(t[g] > t_last[g], t[g] - t_last[g], 0.0)
+        xp, Pp = predict(x[g], P[g], dt, accel_std)
+        u = update(xp, Pp, fm[g], r[later])
+        x[g], P[g], K[g], y[g] = u.x, u.P, u.K, u.y
+    t_last[rows] = np.where(t_last[rows] > t[rows], t_last[rows], t[rows])
+    n_updates[rows] += 1
+    return x, P, t_last, n_updates, K, y
+
+
+def _check_params(accel_std, rel_floor):
+    if not (accel_std > 0 and rel_floor >= 0):
+        raise ValueError(f"accel_std must be > 0 and rel_floor >= 0, got {accel_std}, {rel_floor}")
+
+
+# --------------------------------------------------------------------------- stateful wrappers
+
+
 class FmTrend:
     """Kalman filter of one nozzle's f_m: state ``[fm, rate]`` (1/s, 1/s^2).
+
+    The batch functions on a batch of one (:class:`FmTrendBank` runs the same
+    code on many nozzles).
 
     Parameters
     ----------
@@ -58,11 +281,14 @@ class FmTrend:
     t : float
         Time of the last update, s (NaN before the first).
     n_updates : int
+    K : ndarray (2,)
+        Gain of the last update (NaN before the second update).
+    y : float
+        Residual of the last update, 1/s (NaN before the second update).
     """
 
     def __init__(self, accel_std: float = 5e3, rel_floor: float = 0.05, fm_deep: float | None = None):
-        if not (accel_std > 0 and rel_floor >= 0):
-            raise ValueError(f"accel_std must be > 0 and rel_floor >= 0, got {accel_std}, {rel_floor}")
+        _check_params(accel_std, rel_floor)
         self.accel_std = float(accel_std)
         self.rel_floor = float(rel_floor)
         self.fm_deep = deeply_dried_fm() if fm_deep is None else float(fm_deep)
@@ -70,6 +296,8 @@ class FmTrend:
         self.P = np.diag([np.inf, np.inf])
         self.t = math.nan
         self.n_updates = 0
+        self.K = np.full(2, np.nan)
+        self.y = math.nan
 
     def update(self, t: float, fm: float, fm_std: float = 0.0) -> "FmTrend":
         """Fold in the estimate ``fm`` +- ``fm_std`` (1/s) measured at time ``t`` (s).
@@ -77,27 +305,14 @@ class FmTrend:
         A non-finite ``fm`` is ignored; a time not after the last one only
         updates the level (no prediction step).
         """
-        t, fm = float(t), float(fm)
+        fm = float(fm)
         if not math.isfinite(fm):
             return self
-        r = (fm_std if math.isfinite(fm_std) else 0.0) ** 2 + (self.rel_floor * fm) ** 2
-        r = max(r, 1e-12)
-        if self.n_updates == 0:
-            self.x = np.array([fm, 0.0])
-            self.P = np.diag([r, (abs(fm) + math.sqrt(r)) ** 2])  # rate unknown: wide prior
-        else:
-            dt = t - self.t if t > self.t else 0.0
-            F = np.array([[1.0, dt], [0.0, 1.0]])
-            q = self.accel_std**2
-            Q = q * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
-            self.x = F @ self.x
-            self.P = F @ self.P @ F.T + Q
-            S = self.P[0, 0] + r
-            K = self.P[:, 0] / S
-            self.x = self.x + K * (fm - self.x[0])
-            self.P = self.P - np.outer(K, self.P[0, :])
-        self.t = max(t, self.t) if self.n_updates else t
-        self.n_updates += 1
+        x, P, tl, n, K, y = _fold(self.x[None], self.P[None], np.array([self.t]),
+                                  np.array([self.n_updates]), float(t), np.array([fm]),
+                                  np.array([float(fm_std)]), self.accel_std, self.rel_floor)
+        self.x, self.P, self.t, self.n_updates = x[0], P[0], float(tl[0]), int(n[0])
+        self.K, self.y = K[0], float(y[0])
         return self
 
     @property
@@ -112,6 +327,7 @@ class FmTrend:
 
     @property
     def fm_std(self) -> float:
+        """Standard deviation of the smoothed f_m, 1/s (NaN before the first update)."""
         return float(math.sqrt(self.P[0, 0])) if self.n_updates else math.nan
 
     @property
@@ -121,41 +337,141 @@ class FmTrend:
         0 when already there; NaN when unknown (fewer than two updates) or when
         the trend is not heading there (rate >= 0, i.e. not drying further).
         """
-        if self.n_updates == 0:
-            return math.nan
-        if self.x[0] <= self.fm_deep:
-            return 0.0
-        if self.n_updates < 2 or not self.x[1] < 0:
-            return math.nan
-        return float((self.fm_deep - self.x[0]) / self.x[1])
+        return float(eta_deep(self.x[None], np.array([self.n_updates]), self.fm_deep)[0])
 
 
 class FmTrendBank:
-    """One :class:`FmTrend` per nozzle id, created on first sight and kept.
+    """The f_m trends of many nozzles, as arrays indexed by nozzle id.
 
-    Parameters are passed to each new :class:`FmTrend`. A loop over the
-    given nozzles: meant for the few drying nozzles of a frame, not a head.
+    A nozzle gets a row on first sight and keeps it. :meth:`update` folds one
+    frame's estimates in with one :func:`predict` and one :func:`update` call
+    over all its nozzles (vectorised; a nozzle id repeated within one call is
+    folded in once per occurrence, in order).
+
+    Parameters
+    ----------
+    accel_std, rel_floor, fm_deep
+        As for :class:`FmTrend`, shared by all nozzles.
 
     Attributes
     ----------
-    trends : dict of int -> FmTrend
+    ids : ndarray of int64, shape (m,)
+        Nozzle ids seen so far, sorted.
+    x : ndarray, shape (m, 2)
+        Per nozzle ``[fm, rate]``, 1/s and 1/s^2 (zeros before its first update).
+    P : ndarray, shape (m, 2, 2)
+        Their covariances (infinite before the first update).
+    t : ndarray, shape (m,)
+        Time of each nozzle's last update, s (NaN before the first).
+    n_updates : ndarray of int64, shape (m,)
+    K : ndarray, shape (m, 2)
+        Gain of each nozzle's last update (NaN if the last call did not update it
+        or it was its first update).
+    y : ndarray, shape (m,)
+        Residual of each nozzle's last update, 1/s (NaN likewise).
     """
 
-    def __init__(self, **trend_kwargs):
-        FmTrend(**trend_kwargs)  # validate once, now
-        self.trend_kwargs = trend_kwargs
-        self.trends = {}
+    def __init__(self, accel_std: float = 5e3, rel_floor: float = 0.05, fm_deep: float | None = None):
+        _check_params(accel_std, rel_floor)
+        self.accel_std = float(accel_std)
+        self.rel_floor = float(rel_floor)
+        self.fm_deep = deeply_dried_fm() if fm_deep is None else float(fm_deep)
+        self.trend_kwargs = {"accel_std": accel_std, "rel_floor": rel_floor, "fm_deep": fm_deep}
+        self.ids = np.empty(0, dtype=np.int64)
+        self.x = np.zeros((0, 2))
+        self.P = np.zeros((0, 2, 2))
+        self.t = np.empty(0)
+        self.n_updates = np.empty(0, dtype=np.int64)
+        self.K = np.empty((0, 2))
+        self.y = np.empty(0)
+
+    def __len__(self) -> int:
+        return int(self.ids.size)
+
+    def _rows(self, nozzles: np.ndarray) -> np.ndarray:
+        """Rows of ``nozzles`` (adding new ids, sorted)."""
+        rows = np.searchsorted(self.ids, nozzles)
+        if rows.size == 0 or (rows.max() < self.ids.size and np.array_equal(self.ids[rows], nozzles)):
+            return rows
+        new = np.setdiff1d(nozzles, self.ids)
+        if new.size:
+            ids = np.union1d(self.ids, new)
+            old = np.searchsorted(ids, self.ids)
+            m = ids.size
+
+            def grow(a, fill):
+                out = np.full((m,) + a.shape[1:], fill, dtype=a.dtype)
+                out[old] = a
+                return out
+
+            self.x, self.P = grow(self.x, 0.0), grow(self.P, 0.0)
+            self.P[np.searchsorted(ids, new), 0, 0] = np.inf
+            self.P[np.searchsorted(ids, new), 1, 1] = np.inf
+            self.t, self.n_updates = grow(self.t, np.nan), grow(self.n_updates, 0)
+            self.K, self.y = grow(self.K, np.nan), grow(self.y, np.nan)
+            self.ids = ids
+        return np.searchsorted(self.ids, nozzles)
 
     def update(self, t: float, nozzles, fm, fm_std):
-        """Fold one frame's estimates in; return ``(fm_trend, rate, eta_deep_s)`` arrays (n,)."""
-        nozzles = np.asarray(nozzles, dtype=np.int64)
-        fm = np.asarray(fm, dtype=float)
-        fm_std = np.asarray(fm_std, dtype=float)
-        out = np.full((3, nozzles.size), np.nan)
-        for i, nz in enumerate(nozzles.tolist()):
-            tr = self.trends.get(nz)
-            if tr is None:
-                tr = self.trends[nz] = FmTrend(**self.trend_kwargs)
-            tr.update(t, fm[i], fm_std[i])
-            out[:, i] = tr.fm, tr.rate, tr.eta_deep_s
+        """Fold one frame's estimates in.
+
+        Parameters
+        ----------
+        t : float
+            Frame time, s.
+        nozzles : array_like of int, shape (n,)
+        fm, fm_std : array_like, shape (n,)
+            Estimates and their standard deviations, 1/s. A non-finite ``fm`` is
+            ignored (the nozzle's trend is returned as it was).
+
+        Returns
+        -------
+        fm_trend, rate, eta_deep_s : ndarray, shape (n,)
+            Smoothed f_m (1/s), its rate (1/s^2, NaN until two updates) and the
+            time to the deeply-dried level (s, see :func:`eta_deep`).
+        """
+        nozzles = np.asarray(nozzles, dtype=np.int64).reshape(-1)
+        fm = np.asarray(fm, dtype=float).reshape(-1)
+        fm_std = np.asarray(fm_std, dtype=float).reshape(-1)
+        if not (fm.size == fm_std.size == nozzles.size):
+            raise ValueError(f"nozzles, fm and fm_std must have one entry each per nozzle, "
+                             f"got sizes {nozzles.size}, {fm.size}, {fm_std.size}")
+        rows = self._rows(nozzles)
+        self.K[rows], self.y[rows] = np.nan, np.nan
+        out = np.full((3, rows.size), np.nan)
+        # occurrence rank of each entry among equal ids: rank r is folded in at pass r
+        order = np.argsort(rows, kind="stable")
+        sr = rows[order]
+        repeated = sr[1:] == sr[:-1]
+        passes = [np.arange(rows.size)]
+        if repeated.any():
+            start = np.r_[0, np.flatnonzero(~repeated) + 1]
+            rank = np.empty(rows.size, dtype=np.int64)
+            rank[order] = np.arange(rows.size) - np.repeat(start, np.diff(np.r_[start, rows.size]))
+            passes = [np.flatnonzero(rank == r) for r in range(int(rank.max()) + 1)]
+        for sel in passes:  # one pass unless ids repeat
+            g = rows[sel]
+            x, P, tl, n, K, y = _fold(self.x[g], self.P[g], self.t[g], self.n_updates[g], t,
+                                      fm[sel], fm_std[sel], self.accel_std, self.rel_floor)
+            self.x[g], self.P[g], self.t[g], self.n_updates[g] = x, P, tl, n
+            upd = np.isfinite(fm[sel])
+            self.K[g[upd]], self.y[g[upd]] = K[upd], y[upd]
+            out[0, sel] = np.where(n >= 1, x[:, 0], np.nan)
+            out[1, sel] = np.where(n >= 2, x[:, 1], np.nan)
+            out[2, sel] = eta_deep(x, n, self.fm_deep)
         return out[0], out[1], out[2]
+
+    def trend(self, nozzle: int) -> FmTrend:
+        """A copy of one nozzle's filter as an :class:`FmTrend` (KeyError if never seen)."""
+        i = int(np.searchsorted(self.ids, nozzle))
+        if i >= self.ids.size or self.ids[i] != nozzle:
+            raise KeyError(nozzle)
+        tr = FmTrend(self.accel_std, self.rel_floor, self.fm_deep)
+        tr.x, tr.P, tr.t, tr.n_updates = self.x[i].copy(), self.P[i].copy(), float(self.t[i]), int(self.n_updates[i])
+        tr.K, tr.y = self.K[i].copy(), float(self.y[i])
+        return tr
+
+    @property
+    def trends(self) -> dict:
+        """``{nozzle id: FmTrend}`` copies of every nozzle's filter (read-only snapshot)."""
+        return {int(nz): self.trend(int(nz)) for nz in self.ids}

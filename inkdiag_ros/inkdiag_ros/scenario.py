@@ -14,13 +14,12 @@ import numpy as np
 
 import inkdiag_core
 from inkdiag_core import FaultClass, InkChannelParams, simulate_nozzles
-from inkdiag_core.faults import DRIED_CLASSES, HEALTHY_CLASSES, MECHANISMS
+from inkdiag_core.faults import DRIED_CLASSES, FAULT_CLASSES, MECHANISMS
 
 __all__ = ["HeadScenario", "simulate_head", "dried_class_of"]
 
 #: Classes a random fault is drawn from (drying is the progression's job).
-RANDOM_FAULT_CLASSES = tuple(c for c in FaultClass
-                             if c not in HEALTHY_CLASSES and c not in DRIED_CLASSES)
+RANDOM_FAULT_CLASSES = tuple(c for c in FAULT_CLASSES if c not in DRIED_CLASSES)
 
 
 def dried_class_of(k: np.ndarray) -> np.ndarray:

@@ -14,11 +14,13 @@ from collections import Counter, OrderedDict
 
 import numpy as np
 
-HEALTHY = ("ok_signal", "healthy_nozzle")
+from inkdiag_core.faults import HEALTHY_VALUES, FaultClass
+
+HEALTHY = HEALTHY_VALUES  # former local spelling, kept for imports
 
 
 def _norm(c: str) -> str:
-    return "healthy" if c in HEALTHY else c
+    return "healthy" if c in HEALTHY_VALUES else c
 
 
 class Scorecard:
@@ -70,8 +72,8 @@ class Scorecard:
             for nz in range(rep.first_nozzle, rep.first_nozzle + rep.n_nozzles):
                 if nz in invalid:
                     continue
-                tc = _norm(true.get(nz, "healthy_nozzle"))
-                gc = _norm(got.get(nz, "healthy_nozzle"))
+                tc = _norm(true.get(nz, FaultClass.HEALTHY_NOZZLE.value))
+                gc = _norm(got.get(nz, FaultClass.HEALTHY_NOZZLE.value))
                 total += 1
                 per_class[tc] += 1
                 if tc == gc:

@@ -20,6 +20,7 @@ from std_msgs.msg import String
 
 from . import _json
 from .errors import MessageError
+from .labels import HEALTHY_CLASSES
 
 __all__ = ["TRUTH_SCHEMA", "TRUTH_MSG_TYPE", "GroundTruth", "encode_truth", "decode_truth", "truth_from_arrays"]
 
@@ -65,7 +66,7 @@ def decode_truth(msg) -> GroundTruth:
 
 
 def truth_from_arrays(*, frame_id, stamp, first_nozzle, classes, fm, mu_nozzle,
-                      healthy=("ok_signal", "healthy_nozzle")) -> GroundTruth:
+                      healthy=HEALTHY_CLASSES) -> GroundTruth:
     """A :class:`GroundTruth` listing the non-healthy rows of per-row arrays."""
     import numpy as np
 

@@ -83,11 +83,12 @@ def sink_main() -> int:
 
 def make_frames(n_nozzles, n_frames, seed):
     from inkdiag_core import FaultClass, simulate_nozzles
+    from inkdiag_core.faults import HEALTHY_CLASSES
 
     rng = np.random.default_rng(seed)
     classes = list(FaultClass)
-    p = np.full(len(classes), 0.1 / (len(classes) - 2))
-    p[[classes.index(FaultClass.OK_SIGNAL), classes.index(FaultClass.HEALTHY_NOZZLE)]] = 0.45
+    p = np.full(len(classes), 0.1 / (len(classes) - len(HEALTHY_CLASSES)))
+    p[[classes.index(c) for c in HEALTHY_CLASSES]] = 0.45
     return [simulate_nozzles(rng.choice(np.array(classes, dtype=object), size=n_nozzles, p=p),
                              seed=seed + i).traces for i in range(n_frames)]
 

@@ -33,11 +33,12 @@ from inkdiag_core import (
     simulate,
 )
 from inkdiag_core.baseline import baseline_training_rows
+from inkdiag_core.faults import FAULT_CLASSES, healthy_mask
 from inkdiag_core.residual import MODIFIED_BANDS_HZ
 
 FS = 10e6
 CLASSES = [c.value for c in FaultClass]
-FAULTS = [c for c in FaultClass if c.value not in ("ok_signal", "healthy_nozzle")]
+FAULTS = list(FAULT_CLASSES)
 PRETTY = {
     "ok_signal": "OK signals", "healthy_nozzle": "Healthy Nozzle",
     "empty_channel_1": "Empty Channel 1", "empty_channel_2": "Empty Channel 2",
@@ -158,7 +159,7 @@ def run_seed(seed: int, scale: float, bar):
     k = extract_kpis(fi.traces, FS)
     vals = fi.label_values()
     out["freq"] = {c: float(np.mean(k[vals == c, 1])) / 1e3 for c in CLASSES}
-    healthy = np.isin(vals, ["ok_signal", "healthy_nozzle"])
+    healthy = healthy_mask(vals)
     e1 = vals == "empty_channel_1"
     for kind in ("original", "modified"):
         rf = ResidualFilter(kind).fit(fi.traces[healthy])
