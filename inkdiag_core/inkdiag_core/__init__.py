@@ -24,7 +24,7 @@ from .residual import ResidualFilter, design_residual_filter
 from .screening import INVALID_REASONS, screen_traces
 from .simulator import SimulationResult, healthy_twin_frames, simulate, simulate_nozzles
 
-__version__ = "0.1.0"
+from ._version import __version__
 
 __all__ = [
     "FEATURE_SETS",

@@ -35,6 +35,8 @@ import numpy
 import scipy
 import sklearn
 
+from ._version import __version__
+
 __all__ = ["ModelFileError", "save_model", "load_model", "read_manifest", "library_versions"]
 
 FORMAT = "inkdiag-model"
@@ -49,8 +51,6 @@ class ModelFileError(ValueError):
 
 def library_versions() -> dict:
     """Versions of the running interpreter and libraries, as written to manifests."""
-    from . import __version__
-
     return {
         "python": platform.python_version(),
         "numpy": numpy.__version__,
