@@ -175,3 +175,19 @@ def test_train_default_model_saves_a_detector_as_the_previous_route_trained_it(t
     assert det.baseline_pipeline_ is not None
     cfg = json.loads((tmp_path / "fdi.joblib.manifest.json").read_text())["config"]
     assert (cfg["n_per_class"], cfg["seed"], cfg["random_state"]) == (N_PER_CLASS, SEED, SEED)
+
+
+def test_a_row_whose_features_overflow_costs_only_itself(new, fitted):
+    X = new.traces.copy()
+    X[[2, 9]] *= 1e30  # finite samples whose energy overflows float32 features
+    base = baseline_training_kpis(new, SEED + 100)
+    base[1::2] = np.nan  # row 9 plain, row 2 through the baseline branch
+    out = fitted.label(X, baseline_kpis=base)
+    assert list(np.flatnonzero(~out.valid)) == [2, 9]
+    assert out.classes[2] is None and np.isnan(out.confidence[[2, 9]]).all() and np.isnan(out.p_faulty[[2, 9]]).all()
+    keep = out.valid
+    ref = fitted.label(new.traces[keep], baseline_kpis=base[keep])
+    for a, b in zip(out, ref):
+        np.testing.assert_array_equal(a[keep], b)
+    with pytest.raises(ValueError, match="2 of 72 rows have non-finite features"):
+        fitted.predict(X)

@@ -29,16 +29,17 @@ from typing import NamedTuple
 import numpy as np
 from sklearn.base import BaseEstimator, ClassifierMixin
 from sklearn.model_selection import train_test_split
+from sklearn.pipeline import Pipeline
 from sklearn.utils.multiclass import check_classification_targets
 from sklearn.utils.validation import check_is_fitted, validate_data
 
 from .baseline import N_KPIS, with_baseline
 from .fdi import (
     FEATURE_SETS,
+    HEALTHY_VALUES,
     _decide,
     _predict_proba,
     _threshold_and_scores,
-    fault_probability,
     make_fdi_pipeline,
 )
 from .kpis import MIN_SAMPLES
@@ -53,16 +54,47 @@ _DTYPES = [np.float64, np.float32]
 class DetectorLabels(NamedTuple):
     """Per-row result of :meth:`FaultDetector.label` (n = rows).
 
-    classes : ndarray, (n,) -- class of each row, from ``classes_`` (same dtype)
-    confidence : ndarray of float64, (n,) -- probability of that class
-    p_faulty : ndarray of float64, (n,) -- 1 minus the probability of the healthy classes
-    baseline : ndarray of bool, (n,) -- the row was labelled by the baseline branch
+    classes : ndarray of object, (n,) -- class of each row (a value of ``classes_``),
+        None where the row is not ``valid``
+    confidence : ndarray of float64, (n,) -- probability of that class, NaN where not valid
+    p_faulty : ndarray of float64, (n,) -- 1 minus the probability of the healthy classes,
+        NaN where not valid
+    baseline : ndarray of bool, (n,) -- the row went to the baseline branch
+    valid : ndarray of bool, (n,) -- False where the row's features came out NaN or Inf
+        in float32 (e.g. a finite sample so large that its energy overflows): that row
+        is not classified, the others are
     """
 
     classes: np.ndarray
     confidence: np.ndarray
     p_faulty: np.ndarray
     baseline: np.ndarray
+    valid: np.ndarray
+
+
+def _finite_proba(pipeline, X):
+    """Class probabilities of the rows of ``X`` whose features are finite in float32.
+
+    The feature steps run on every row; the final estimator (what scikit-learn's
+    trees take as float32) sees only the rows whose features are finite, so an
+    overflowing row costs itself alone. Overflow is expected here and detected, so
+    numpy's floating-point warnings are silenced. Per row, the probabilities are
+    bit-identical to ``pipeline.predict_proba``.
+
+    Returns
+    -------
+    ok : ndarray of bool, shape (n,)
+    proba : ndarray of float64, shape (ok.sum(), n_classes)
+    """
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
+        if isinstance(pipeline, Pipeline) and len(pipeline) > 1:
+            feats = pipeline[:-1].transform(X)
+            ok = np.isfinite(np.asarray(feats, dtype=np.float32)).all(axis=1)
+            final, rows = pipeline[-1], feats if ok.all() else feats[ok]
+        else:
+            ok, final, rows = np.ones(X.shape[0], dtype=bool), pipeline, X
+        proba = _predict_proba(final, rows) if ok.any() else np.empty((0, len(final.classes_)))
+    return ok, proba
 
 
 class FaultDetector(ClassifierMixin, BaseEstimator):
@@ -248,16 +280,26 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         Returns
         -------
         ndarray, shape (n,)
-            Values of ``classes_``.
+            Values of ``classes_`` (its dtype).
+
+        Raises
+        ------
+        ValueError
+            Some rows' features are not finite (:meth:`label` leaves them out instead).
         """
-        return self.label(X).classes
+        out = self.label(X)
+        if not out.valid.all():
+            raise ValueError(f"{int((~out.valid).sum())} of {len(out.valid)} rows have non-finite features "
+                             "(label() classifies the others)")
+        return out.classes.astype(self.classes_.dtype)
 
     def label(self, X, *, baseline_kpis=None) -> DetectorLabels:
         """Classes, confidences and P(faulty) of traces, each row by its branch.
 
         Rows whose ``baseline_kpis`` row is all finite are labelled by the baseline
         branch at ``baseline_fd_threshold_`` when the detector has one; every other row
-        by the plain branch at ``fd_threshold_``. One batch per branch.
+        by the plain branch at ``fd_threshold_``. One batch per branch. A row whose
+        features are not finite is not classified (``valid`` False) and costs no other row.
 
         Parameters
         ----------
@@ -281,9 +323,11 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
             if base.shape != (n, N_KPIS):
                 raise ValueError(f"baseline_kpis must be ({n}, {N_KPIS}), one row per trace; got shape {base.shape}")
             use = np.isfinite(base).all(axis=1)
-        classes = np.empty(n, dtype=self.classes_.dtype)
-        confidence = np.empty(n)
-        p_faulty = np.empty(n)
+        classes = np.full(n, None, dtype=object)
+        confidence = np.full(n, np.nan)
+        p_faulty = np.full(n, np.nan)
+        valid = np.ones(n, dtype=bool)
+        healthy = np.isin(np.asarray(self.classes_, dtype=object), HEALTHY_VALUES)
         for rows, pipeline, threshold in ((use, self.baseline_pipeline_, self.baseline_fd_threshold_),
                                           (~use, self.pipeline_, self.fd_threshold_)):
             if not rows.any():
@@ -292,12 +336,17 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
                 Xr = with_baseline(X[rows], base[rows])
             else:
                 Xr = X if rows.all() else X[rows]  # no copy when every row is plain
-            proba, pf = fault_probability(pipeline, Xr)
-            idx, conf = _decide(self.classes_, proba, pf, threshold)
-            classes[rows] = self.classes_[idx]
-            confidence[rows] = conf
-            p_faulty[rows] = pf
-        return DetectorLabels(classes, confidence, p_faulty, use)
+            ok, proba = _finite_proba(pipeline, Xr)
+            at = np.flatnonzero(rows)
+            valid[at[~ok]] = False
+            if proba.shape[0]:
+                pf = 1.0 - proba[:, healthy].sum(axis=1)  # as fault_probability computes it
+                idx, conf = _decide(self.classes_, proba, pf, threshold)
+                at = at[ok]
+                classes[at] = self.classes_[idx]
+                confidence[at] = conf
+                p_faulty[at] = pf
+        return DetectorLabels(classes, confidence, p_faulty, use, valid)
 
     # -- identity -------------------------------------------------------------------------
 
