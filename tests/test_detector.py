@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from sklearn.base import clone
 from sklearn.model_selection import train_test_split
+from sklearn.pipeline import Pipeline
 from sklearn.utils.estimator_checks import parametrize_with_checks
 
 from inkdiag_core import (
@@ -15,6 +16,7 @@ from inkdiag_core import (
     ModelFileError,
     baseline_training_kpis,
     baseline_training_rows,
+    label_frames,
     load_detector,
     load_model,
     make_fdi_pipeline,
@@ -143,10 +145,17 @@ def test_save_load_roundtrip_gives_the_same_detector_and_its_id(tmp_path, new, f
     assert "file_sha256_" not in pickle.loads(pickle.dumps(loaded)).__dict__  # not inside a file
     assert clone(loaded).fit(new.traces, new.label_values()).model_id.endswith("-unsaved")
 
-    # A detector file is still a model for the previous loaders (its plain branch).
+    # A detector file is still a model for the previous loaders: its plain branch's pipeline, which
+    # label_frames screens per row, with its threshold in the manifest.
     model, m = load_model(path)
+    assert isinstance(model, Pipeline)
     labels, _, _ = classify(model, new.traces, fd_threshold=m["config"]["fd_threshold"])
     np.testing.assert_array_equal(labels, fitted.predict(new.traces))
+    X = new.traces.copy()
+    X[4] *= 1e30
+    frame = label_frames(model, [X], fd_threshold=m["config"]["fd_threshold"])[0]
+    assert frame.reasons[4] == "non_finite_features" and frame.valid.sum() == len(X) - 1
+    assert isinstance(load_model(path, as_pipeline=False)[0], FaultDetector)
 
 
 def test_tampered_or_foreign_files_are_refused(tmp_path, fitted, sim):

@@ -44,6 +44,8 @@ FORMAT = "inkdiag-model"
 FORMAT_VERSION = 1
 #: Libraries whose versions must match for a model to load.
 PINNED_LIBRARIES = ("numpy", "scipy", "scikit-learn", "joblib")
+#: ``config['estimator']`` of a :func:`save_detector` file.
+DETECTOR_ESTIMATOR = "FaultDetector"
 
 
 class ModelFileError(ValueError):
@@ -151,16 +153,22 @@ def read_manifest(path) -> dict:
     return manifest
 
 
-def load_model(path, *, check_versions: bool = True):
+def load_model(path, *, check_versions: bool = True, as_pipeline: bool = True):
     """Verify ``path`` against its manifest, then unpickle it.
 
     Parameters
     ----------
     path : str or Path
-        The ``.joblib`` file written by :func:`save_model`.
+        The ``.joblib`` file written by :func:`save_model` or :func:`save_detector`.
     check_versions : bool
         Refuse files written with other numpy/scipy/scikit-learn/joblib
         versions (default). Turn off only for files you trust and have checked.
+    as_pipeline : bool
+        A :class:`inkdiag_core.FaultDetector` file gives its plain branch's
+        ``pipeline_`` (default: what this function's callers, the nodes and
+        :func:`inkdiag_core.label_frames`, take until they load detectors; its
+        threshold is the manifest's ``config['fd_threshold']``). False returns the
+        object as unpickled; :func:`load_detector` returns the whole detector.
 
     Returns
     -------
@@ -200,11 +208,13 @@ def load_model(path, *, check_versions: bool = True):
                 f"model file {path} was written with other library versions: {detail}; "
                 "retrain it (scripts/run does) instead of loading it"
             )
-    return joblib.load(path), manifest
+    model = joblib.load(path)
+    if as_pipeline and manifest.get("config", {}).get("estimator") == DETECTOR_ESTIMATOR:
+        from .detector import FaultDetector
 
-
-#: ``config['estimator']`` of a :func:`save_detector` file.
-DETECTOR_ESTIMATOR = "FaultDetector"
+        if isinstance(model, FaultDetector):
+            model = model.pipeline_
+    return model, manifest
 
 
 def save_detector(detector, path, *, config: dict | None = None) -> Path:
@@ -294,7 +304,7 @@ def load_detector(path, *, check_versions: bool = True):
     if manifest.get("config", {}).get("estimator") != DETECTOR_ESTIMATOR:
         raise ModelFileError(f"model file {path} is not a FaultDetector file (its manifest's config has no "
                              f"estimator={DETECTOR_ESTIMATOR!r}; a plain pipeline is read by load_model)")
-    detector, manifest = load_model(path, check_versions=check_versions)
+    detector, manifest = load_model(path, check_versions=check_versions, as_pipeline=False)
     if not isinstance(detector, FaultDetector):
         raise ModelFileError(f"model file {path} holds a {type(detector).__name__}, not a FaultDetector")
     detector.file_sha256_ = manifest["sha256"]
