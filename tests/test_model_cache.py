@@ -2,6 +2,7 @@
 
 import json
 
+from inkdiag_core import load_detector
 from inkdiag_core.fdi import train_default_model
 from inkdiag_ros.model_cache import default_config, ensure_default_model
 
@@ -18,6 +19,9 @@ def test_stale_default_is_retrained_a_users_model_is_not(tmp_path):
     assert "n_per_class=30, now 400" in logs[-1] and "retraining" in logs[-1]
     cfg = _config(default)
     assert {k: cfg[k] for k in default_config()} == default_config()
+    detector = load_detector(default)  # one file, both branches, thresholds inside
+    assert detector.baseline_pipeline_ is not None and cfg["baseline"] is True
+    assert detector.model_id == f"fdi-rf-kpi_y+baseline-{json.loads(open(str(default) + '.manifest.json').read())['sha256'][:12]}"
     mtime = default.stat().st_mtime_ns
     ensure_default_model(default, progress=False, log=logs.append)  # up to date: kept
     assert default.stat().st_mtime_ns == mtime and len(logs) == 1

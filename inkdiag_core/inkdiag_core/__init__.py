@@ -19,12 +19,12 @@ from .model import (
 )
 from .nonlinear import simulate_nonlinear
 from .observer import UIODesign, design_uio
-from .persistence import ModelFileError, load_model, save_model
+from .persistence import ModelFileError, load_detector, load_model, save_detector, save_model
 from .residual import ResidualFilter, design_residual_filter
 from .screening import INVALID_REASONS, screen_traces
 from .simulator import SimulationResult, healthy_twin_frames, simulate, simulate_nozzles
 
-__version__ = "0.1.0"
+from ._version import __version__
 
 __all__ = [
     "FEATURE_SETS",
@@ -50,9 +50,11 @@ __all__ = [
     "fault_fm",
     "fd_labels",
     "fm_to_viscosity",
+    "load_detector",
     "load_model",
     "make_fdi_pipeline",
     "reconstruct",
+    "save_detector",
     "save_model",
     "screen_traces",
     "simulate",
@@ -76,13 +78,18 @@ from .baseline import (  # noqa: E402
     BaselineRecorder,
     NozzleBaselines,
     baseline_kpis,
+    baseline_training_kpis,
     baseline_training_rows,
     with_baseline,
 )
 
 __all__ += ["BaselineFileError", "BaselineKpis", "BaselineRecorder", "NozzleBaselines", "baseline_kpis",
-            "baseline_training_rows", "with_baseline"]
+            "baseline_training_kpis", "baseline_training_rows", "with_baseline"]
 
 from .drying_tracker import ESTIMATE_COLUMNS, DryingTracker, RangeEstimates  # noqa: E402
 
 __all__ += ["ESTIMATE_COLUMNS", "DryingTracker", "RangeEstimates"]
+
+from .detector import DetectorLabels, FaultDetector  # noqa: E402
+
+__all__ += ["DetectorLabels", "FaultDetector"]

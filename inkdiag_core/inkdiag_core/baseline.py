@@ -40,7 +40,8 @@ from .model import InkChannelModel
 from .screening import screen_traces
 
 __all__ = ["RELATIVE_NAMES", "BaselineFileError", "BaselineKpis", "BaselineRecorder",
-           "NozzleBaselines", "baseline_kpis", "baseline_training_rows", "with_baseline"]
+           "NozzleBaselines", "baseline_kpis", "baseline_training_kpis", "baseline_training_rows",
+           "with_baseline"]
 
 N_KPIS = len(KPI_NAMES)
 
@@ -95,8 +96,8 @@ def with_baseline(traces, baseline) -> np.ndarray:
     return np.hstack([x, b.astype(np.result_type(x.dtype, b.dtype), copy=False)])
 
 
-def baseline_training_rows(sim, seed, *, n_frames: int = 8) -> np.ndarray:
-    """Training rows of a ``"kpi_y+baseline"`` pipeline from a simulation.
+def baseline_training_kpis(sim, seed, *, n_frames: int = 8) -> np.ndarray:
+    """Each simulated trace's nozzle baseline, for training a baseline branch.
 
     Each trace of ``sim`` (a :func:`inkdiag_core.simulate` result drawn with ``seed``)
     gets its own nozzle's baseline: the median KPIs of ``n_frames`` healthy frames of
@@ -105,14 +106,29 @@ def baseline_training_rows(sim, seed, *, n_frames: int = 8) -> np.ndarray:
 
     Returns
     -------
-    ndarray, shape (n, n_samples + 7)
-        :func:`with_baseline` rows.
+    ndarray of float64, shape (n, 7)
+        :func:`baseline_kpis` of each trace's nozzle (the ``baseline_kpis`` of
+        :meth:`inkdiag_core.FaultDetector.fit`).
     """
     from .simulator import healthy_twin_frames
 
     _, frames = healthy_twin_frames(len(sim), seed=seed, n_frames=n_frames, noise_std_v=sim.noise_std_v,
                                     sample_rate_hz=sim.sample_rate_hz, n_samples=sim.traces.shape[1])
-    return with_baseline(sim.traces, baseline_kpis(frames, sim.sample_rate_hz))
+    return baseline_kpis(frames, sim.sample_rate_hz)
+
+
+def baseline_training_rows(sim, seed, *, n_frames: int = 8) -> np.ndarray:
+    """Training rows of a ``"kpi_y+baseline"`` pipeline from a simulation.
+
+    ``with_baseline(sim.traces, baseline_training_kpis(sim, seed, n_frames=n_frames))``
+    (:func:`baseline_training_kpis`).
+
+    Returns
+    -------
+    ndarray, shape (n, n_samples + 7)
+        :func:`with_baseline` rows.
+    """
+    return with_baseline(sim.traces, baseline_training_kpis(sim, seed, n_frames=n_frames))
 
 
 class BaselineKpis(TransformerMixin, BaseEstimator):

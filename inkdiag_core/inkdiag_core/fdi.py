@@ -324,15 +324,65 @@ def classify(pipeline, traces, *, fd_threshold: float = 0.5):
         Probability of the returned class.
     p_faulty : ndarray, shape (n,)
     """
+    _check_threshold(fd_threshold)
+    classes = np.asarray(pipeline.classes_, dtype=object)
+    proba, p_faulty = fault_probability(pipeline, traces)
+    idx, confidence = _decide(classes, proba, p_faulty, fd_threshold)
+    return classes[idx].astype(str), confidence, p_faulty
+
+
+def _check_threshold(fd_threshold) -> float:
+    """``fd_threshold`` as a float after checking it is in (0, 1]."""
     if not 0.0 < fd_threshold <= 1.0:
         raise ValueError(f"fd_threshold must be in (0, 1], got {fd_threshold!r}")
-    classes = np.asarray(pipeline.classes_, dtype=object)
-    healthy = healthy_mask(classes)
-    proba, p_faulty = fault_probability(pipeline, traces)
+    return float(fd_threshold)
+
+
+def _decide(classes, proba, p_faulty, fd_threshold):
+    """Column index (n,) and probability (n,) of each row's class at ``fd_threshold`` (checked before).
+
+    A row is faulty when ``p_faulty >= fd_threshold`` and then gets its most probable
+    fault class, else its more probable healthy class (:func:`classify`).
+    """
+    healthy = healthy_mask(np.asarray(classes, dtype=object))
     faulty = p_faulty >= fd_threshold
     masked = np.where(healthy[None, :] == faulty[:, None], -1.0, proba)  # keep the allowed group
     idx = np.argmax(masked, axis=1)
-    return classes[idx].astype(str), proba[np.arange(len(idx)), idx], p_faulty
+    return idx, proba[np.arange(len(idx)), idx]
+
+
+def _threshold_and_scores(pipeline, Xval, yval, fnr_target):
+    """Fault-detection threshold for ``fnr_target`` on a validation split, and that split's scores.
+
+    Returns
+    -------
+    threshold : float
+        :func:`fnr_threshold` of the validation faults' P(faulty).
+    scores : dict
+        ``validation_fi_accuracy`` (at threshold 0.5), ``validation_fi_accuracy_at_threshold``,
+        ``validation_fd_fnr``, ``validation_fd_fpr`` (fractions; NaN where the split has no
+        faults resp. no healthy rows) and ``n_validation``.
+    """
+    yval = np.asarray(yval)
+    classes = np.asarray(pipeline.classes_, dtype=object)
+    proba, p_faulty = fault_probability(pipeline, Xval)
+    is_fault = fd_labels(yval) == 1
+    threshold = fnr_threshold(p_faulty[is_fault], fnr_target)
+    idx0, _ = _decide(classes, proba, p_faulty, 0.5)
+    idx, _ = _decide(classes, proba, p_faulty, threshold)
+    flagged = ~healthy_mask(classes[idx])
+
+    def mean(a):
+        return float(np.mean(a)) if a.size else float("nan")
+
+    scores = {
+        "validation_fi_accuracy": mean(classes[idx0] == yval),
+        "validation_fi_accuracy_at_threshold": mean(classes[idx] == yval),
+        "validation_fd_fnr": mean(~flagged[is_fault]),
+        "validation_fd_fpr": mean(flagged[~is_fault]),
+        "n_validation": int(len(yval)),
+    }
+    return threshold, scores
 
 
 def fnr_threshold(p_faulty_of_faults, fnr_target: float = 0.005) -> float:
@@ -346,7 +396,7 @@ def fnr_threshold(p_faulty_of_faults, fnr_target: float = 0.005) -> float:
 
 def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: str = "rf",
                         features: str = "kpi_y", n_estimators: int = 50, min_samples_leaf: int = 3,
-                        fnr_target: float = 0.005, progress=None):
+                        fnr_target: float = 0.005, baseline: bool = False, progress=None):
     """Train the FDI model the nodes load by default, and save it with its manifest.
 
     The default is a Random Forest on KPI_Y: on its validation split it isolates
@@ -357,18 +407,27 @@ def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: st
     100 fully grown trees (validation FI 96.17 +- 0.41% vs 96.11 +- 0.27%, seeds
     0-2) in half the time; the forest is about half of the node's labelling time.
 
-    Simulates ``n_per_class`` traces of each of the 12 classes, fits the
-    pipeline on 75% of them (with ``features="kpi_y+baseline"``, on
-    :func:`inkdiag_core.baseline.baseline_training_rows`: each trace with its
-    nozzle's healthy baseline, for the nodes' per-nozzle baselines), picks the false-negative-averse fault-detection
-    threshold on the other 25% (FNR <= ``fnr_target``), scores that split, and
-    saves the model (:func:`inkdiag_core.save_model`) with the threshold in
-    the manifest's ``config['fd_threshold']``.
+    Simulates ``n_per_class`` traces of each of the 12 classes and fits a
+    :class:`inkdiag_core.FaultDetector` (``random_state=seed``: 75% fit the
+    pipeline, the other 25% give the false-negative-averse fault-detection
+    threshold, FNR <= ``fnr_target``, and the scores); with ``baseline=True``
+    also its per-nozzle baseline branch, each trace with its nozzle's healthy
+    baseline (:func:`inkdiag_core.baseline.baseline_training_kpis`). Saves it with
+    :func:`inkdiag_core.save_detector` (the manifest's ``config`` adds
+    ``n_per_class`` and ``seed``).
+
+    ``features="kpi_y+baseline"`` is the previous route, kept until the fdi node
+    loads detectors: a plain ``"kpi_y+baseline"`` pipeline on
+    :func:`inkdiag_core.baseline.baseline_training_rows`, saved with
+    :func:`inkdiag_core.save_model` and its threshold in ``config['fd_threshold']``
+    (the same forest and threshold as a detector's baseline branch of the same seed).
 
     Parameters
     ----------
     path : str or Path
         Destination ``.joblib``.
+    baseline : bool
+        Fit the baseline branch too.
     progress : callable(step: int, total: int, message: str), optional
         Called after each stage (for a progress bar).
 
@@ -377,10 +436,8 @@ def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: st
     pathlib.Path
         The manifest written beside the model.
     """
-    from sklearn.model_selection import train_test_split
-
     from .faults import FaultClass
-    from .persistence import save_model
+    from .persistence import save_detector, save_model
     from .simulator import simulate
 
     report = progress or (lambda step, total, message: None)
@@ -388,33 +445,44 @@ def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: st
     sim = simulate({c: int(n_per_class) for c in FaultClass}, seed=seed)
     report(1, total, f"simulated {len(sim)} traces")
     y = sim.label_values()
-    X = sim.traces
+    data = {"n_per_class": int(n_per_class), "seed": int(seed)}
     if features == "kpi_y+baseline":
-        from .baseline import baseline_training_rows
+        return _train_baseline_pipeline(path, sim, y, data, kind=kind, n_estimators=n_estimators,
+                                        min_samples_leaf=min_samples_leaf, fnr_target=fnr_target, report=report)
+    from .baseline import baseline_training_kpis
+    from .detector import FaultDetector
 
-        X = baseline_training_rows(sim, seed)
+    det = FaultDetector(kind=kind, features=features, sample_rate_hz=float(sim.sample_rate_hz),
+                        n_estimators=int(n_estimators), min_samples_leaf=int(min_samples_leaf),
+                        fnr_target=float(fnr_target), random_state=int(seed))
+    det.fit(sim.traces, y, baseline_kpis=baseline_training_kpis(sim, seed) if baseline else None)
+    report(2, total, f"fitted {kind} on {features} features" + (" and baselines" if baseline else ""))
+    report(3, total, f"validation FI accuracy {100 * det.scores_['validation_fi_accuracy']:.1f}%")
+    manifest = save_detector(det, path, config=data)
+    report(4, total, f"saved {path}")
+    return manifest
+
+
+def _train_baseline_pipeline(path, sim, y, data, *, kind, n_estimators, min_samples_leaf, fnr_target, report):
+    """The previous ``"kpi_y+baseline"`` route of :func:`train_default_model` (a plain pipeline file)."""
+    from sklearn.model_selection import train_test_split
+
+    from .baseline import baseline_training_rows
+    from .persistence import save_model
+
+    seed = data["seed"]
+    X = baseline_training_rows(sim, seed)
     Xtr, Xval, ytr, yval = train_test_split(X, y, test_size=0.25, random_state=seed, stratify=y)
-    pipe = make_fdi_pipeline(kind, features, random_state=seed, n_estimators=n_estimators,
+    pipe = make_fdi_pipeline(kind, "kpi_y+baseline", random_state=seed, n_estimators=n_estimators,
                              min_samples_leaf=min_samples_leaf).fit(Xtr, ytr)
-    report(2, total, f"fitted {kind} on {features} features")
-    labels0, _, p_faulty = classify(pipe, Xval, fd_threshold=0.5)
-    is_fault = fd_labels(yval) == 1
-    threshold = fnr_threshold(p_faulty[is_fault], fnr_target)
-    labels, _, _ = classify(pipe, Xval, fd_threshold=threshold)
-    flagged = ~healthy_mask(labels)
-    scores = {
-        "validation_fi_accuracy": float(np.mean(labels0 == yval)),
-        "validation_fi_accuracy_at_threshold": float(np.mean(labels == yval)),
-        "validation_fd_fnr": float(np.mean(~flagged[is_fault])),
-        "validation_fd_fpr": float(np.mean(flagged[~is_fault])),
-        "n_validation": int(len(yval)),
-    }
-    report(3, total, f"validation FI accuracy {100 * scores['validation_fi_accuracy']:.1f}%")
-    config = {"kind": kind, "features": features, "n_per_class": int(n_per_class), "seed": int(seed),
+    report(2, 4, f"fitted {kind} on kpi_y+baseline features")
+    threshold, scores = _threshold_and_scores(pipe, Xval, yval, fnr_target)
+    report(3, 4, f"validation FI accuracy {100 * scores['validation_fi_accuracy']:.1f}%")
+    config = {"kind": kind, "features": "kpi_y+baseline", **data,
               "n_estimators": int(n_estimators), "min_samples_leaf": int(min_samples_leaf),
               "sample_rate_hz": float(sim.sample_rate_hz), "n_samples": int(sim.traces.shape[1]),
               "fd_threshold": threshold, "fnr_target": float(fnr_target),
               "classes": [str(c) for c in pipe.classes_]}
     manifest = save_model(pipe, path, config=config, scores=scores)
-    report(4, total, f"saved {path}")
+    report(4, 4, f"saved {path}")
     return manifest

@@ -35,12 +35,17 @@ import numpy
 import scipy
 import sklearn
 
-__all__ = ["ModelFileError", "save_model", "load_model", "read_manifest", "library_versions"]
+from ._version import __version__
+
+__all__ = ["ModelFileError", "save_model", "load_model", "save_detector", "load_detector", "read_manifest",
+           "library_versions"]
 
 FORMAT = "inkdiag-model"
 FORMAT_VERSION = 1
 #: Libraries whose versions must match for a model to load.
 PINNED_LIBRARIES = ("numpy", "scipy", "scikit-learn", "joblib")
+#: ``config['estimator']`` of a :func:`save_detector` file.
+DETECTOR_ESTIMATOR = "FaultDetector"
 
 
 class ModelFileError(ValueError):
@@ -49,8 +54,6 @@ class ModelFileError(ValueError):
 
 def library_versions() -> dict:
     """Versions of the running interpreter and libraries, as written to manifests."""
-    from . import __version__
-
     return {
         "python": platform.python_version(),
         "numpy": numpy.__version__,
@@ -88,6 +91,11 @@ def save_model(model, path, *, config: dict | None = None, scores: dict | None =
     Both files are written to temporary names and renamed, so a crash never
     leaves a model without a matching manifest.
     """
+    return _save(model, path, config=config, scores=scores)[0]
+
+
+def _save(model, path, *, config, scores):
+    """:func:`save_model`; returns the manifest path and the manifest written."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     manifest = {
@@ -115,7 +123,7 @@ def save_model(model, path, *, config: dict | None = None, scores: dict | None =
     finally:
         if os.path.exists(tmp):
             os.remove(tmp)
-    return mpath
+    return mpath, manifest
 
 
 def read_manifest(path) -> dict:
@@ -145,16 +153,22 @@ def read_manifest(path) -> dict:
     return manifest
 
 
-def load_model(path, *, check_versions: bool = True):
+def load_model(path, *, check_versions: bool = True, as_pipeline: bool = True):
     """Verify ``path`` against its manifest, then unpickle it.
 
     Parameters
     ----------
     path : str or Path
-        The ``.joblib`` file written by :func:`save_model`.
+        The ``.joblib`` file written by :func:`save_model` or :func:`save_detector`.
     check_versions : bool
         Refuse files written with other numpy/scipy/scikit-learn/joblib
         versions (default). Turn off only for files you trust and have checked.
+    as_pipeline : bool
+        A :class:`inkdiag_core.FaultDetector` file gives its plain branch's
+        ``pipeline_`` (default: what this function's callers, the nodes and
+        :func:`inkdiag_core.label_frames`, take until they load detectors; its
+        threshold is the manifest's ``config['fd_threshold']``). False returns the
+        object as unpickled; :func:`load_detector` returns the whole detector.
 
     Returns
     -------
@@ -194,4 +208,104 @@ def load_model(path, *, check_versions: bool = True):
                 f"model file {path} was written with other library versions: {detail}; "
                 "retrain it (scripts/run does) instead of loading it"
             )
-    return joblib.load(path), manifest
+    model = joblib.load(path)
+    if as_pipeline and manifest.get("config", {}).get("estimator") == DETECTOR_ESTIMATOR:
+        from .detector import FaultDetector
+
+        if isinstance(model, FaultDetector):
+            model = model.pipeline_
+    return model, manifest
+
+
+def save_detector(detector, path, *, config: dict | None = None) -> Path:
+    """Write a fitted :class:`inkdiag_core.FaultDetector` and its manifest; return the manifest path.
+
+    One ``.joblib`` file holds the whole detector (both branches and thresholds);
+    the manifest beside it (the format of :func:`save_model`) has
+
+    - ``config``: ``detector.get_params()``, then ``estimator`` (``"FaultDetector"``),
+      ``baseline`` (bool: has the baseline branch), ``fd_threshold``,
+      ``baseline_fd_threshold`` (float or null), ``sample_rate_hz`` (Hz) and
+      ``n_samples`` (trace length) it was built for, ``classes`` (list of str),
+      and ``config``'s entries (e.g. how the training data was made);
+    - ``scores``: ``scores_``, and ``baseline_scores_`` with each key prefixed ``baseline_``.
+
+    ``config['fd_threshold']``, ``kind`` and ``features`` are where loaders of plain
+    pipelines look, so :func:`load_model` + :func:`inkdiag_core.fdi.classify` still use
+    such a file as its plain branch. Sets ``detector.file_sha256_`` (its
+    :attr:`~inkdiag_core.FaultDetector.model_id`).
+
+    Parameters
+    ----------
+    detector : fitted FaultDetector
+    path : str or Path
+        Destination ``.joblib`` file; its directory is created if needed.
+    config : dict, optional
+        More JSON-serialisable entries for the manifest's ``config``; they may not
+        replace the detector's own.
+    """
+    from sklearn.utils.validation import check_is_fitted
+
+    from .detector import FaultDetector
+
+    if not isinstance(detector, FaultDetector):
+        raise TypeError(f"save_detector takes a FaultDetector, got {type(detector).__name__}")
+    check_is_fitted(detector)
+    own = {**detector.get_params(), "estimator": DETECTOR_ESTIMATOR,
+           "baseline": detector.baseline_pipeline_ is not None,
+           "fd_threshold": float(detector.fd_threshold_),
+           "baseline_fd_threshold": (None if detector.baseline_fd_threshold_ is None
+                                     else float(detector.baseline_fd_threshold_)),
+           "sample_rate_hz": float(detector.sample_rate_hz), "n_samples": int(detector.n_features_in_),
+           "classes": [str(c) for c in detector.classes_]}
+    clash = sorted(set(own) & set(config or {}))
+    if clash:
+        raise ValueError(f"config may not replace the detector's own entries {clash}")
+    scores = dict(detector.scores_)
+    scores.update({f"baseline_{k}": v for k, v in (detector.baseline_scores_ or {}).items()})
+    config = {**own, **(config or {})}
+    try:
+        json.dumps(config)
+    except (TypeError, ValueError) as exc:  # e.g. a RandomState as random_state
+        raise ValueError(f"the detector's parameters or config are not JSON-serialisable: {exc}") from None
+    mpath, manifest = _save(detector, path, config=config, scores=scores)
+    detector.file_sha256_ = manifest["sha256"]
+    return mpath
+
+
+def load_detector(path, *, check_versions: bool = True):
+    """Verify a :func:`save_detector` file against its manifest, unpickle it, and return the detector.
+
+    The checks are :func:`load_model`'s (missing file or manifest, size, sha256,
+    library versions), all before unpickling; then the file must hold a
+    :class:`inkdiag_core.FaultDetector` whose manifest says so.
+
+    Parameters
+    ----------
+    path : str or Path
+    check_versions : bool
+        As for :func:`load_model`.
+
+    Returns
+    -------
+    FaultDetector
+        Fitted, with ``file_sha256_`` (and so ``model_id``) of this file.
+
+    Raises
+    ------
+    ModelFileError
+        As :func:`load_model`, or the file holds something else (e.g. a plain
+        pipeline written by :func:`save_model`).
+    """
+    from .detector import FaultDetector
+
+    path = Path(path)
+    manifest = read_manifest(path)
+    if manifest.get("config", {}).get("estimator") != DETECTOR_ESTIMATOR:
+        raise ModelFileError(f"model file {path} is not a FaultDetector file (its manifest's config has no "
+                             f"estimator={DETECTOR_ESTIMATOR!r}; a plain pipeline is read by load_model)")
+    detector, manifest = load_model(path, check_versions=check_versions, as_pipeline=False)
+    if not isinstance(detector, FaultDetector):
+        raise ModelFileError(f"model file {path} holds a {type(detector).__name__}, not a FaultDetector")
+    detector.file_sha256_ = manifest["sha256"]
+    return detector

@@ -2,9 +2,15 @@
 
 Training is the core's :func:`inkdiag_core.fdi.train_default_model`; this
 module only decides when (missing or unverifiable file) and shows progress.
-Two defaults: ``models/fdi_default.joblib`` (KPI_Y, every nozzle) and
-``models/fdi_default_baseline.joblib`` (KPI_Y + the nozzle's recorded healthy
-baseline, for the fdi node's ``baseline_model_path``).
+Two defaults for now:
+
+- ``models/fdi_default.joblib``: one :class:`inkdiag_core.FaultDetector` with both
+  branches (KPI_Y for every nozzle, and KPI_Y + the nozzle's recorded healthy
+  baseline), its thresholds inside (:func:`inkdiag_core.load_detector` reads it;
+  :func:`inkdiag_core.load_model` still reads it as the plain KPI_Y model);
+- ``models/fdi_default_baseline.joblib``: the previous ``"kpi_y+baseline"`` pipeline
+  file, for the fdi node's ``baseline_model_path`` until the node loads detectors
+  (its forest and threshold are the detector's baseline branch's).
 
     python -m inkdiag_ros.model_cache [models/fdi_default_baseline.joblib]
 """
@@ -24,14 +30,23 @@ DEFAULT_BASELINE_MODEL = Path("models") / "fdi_default_baseline.joblib"
 #: Feature set of each default file name.
 DEFAULT_FEATURES = {DEFAULT_MODEL.name: "kpi_y", DEFAULT_BASELINE_MODEL.name: "kpi_y+baseline"}
 #: Training settings that define the default model; a cached file trained otherwise is stale.
-DEFAULT_SETTINGS = ("kind", "features", "n_per_class", "seed", "n_estimators", "min_samples_leaf", "fnr_target")
+DEFAULT_SETTINGS = ("kind", "features", "n_per_class", "seed", "n_estimators", "min_samples_leaf", "fnr_target",
+                    "baseline")
 
 
 def default_config(name: str = DEFAULT_MODEL.name) -> dict:
-    """The training settings of the default model file ``name`` (:data:`DEFAULT_FEATURES`)."""
+    """The training settings of the default model file ``name`` (:data:`DEFAULT_FEATURES`).
+
+    ``fdi_default.joblib`` is a detector with its baseline branch (``baseline=True``);
+    the ``"kpi_y+baseline"`` pipeline file has no ``baseline`` setting.
+    """
     params = inspect.signature(_core_train).parameters
     cfg = {k: params[k].default for k in DEFAULT_SETTINGS}
     cfg["features"] = DEFAULT_FEATURES.get(name, cfg["features"])
+    if cfg["features"] == "kpi_y+baseline":
+        del cfg["baseline"]
+    else:
+        cfg["baseline"] = name == DEFAULT_MODEL.name
     return cfg
 
 
@@ -41,7 +56,8 @@ def train_default_model(path, *, progress=True, **kwargs):
         return _core_train(path, **kwargs)
     from tqdm import tqdm
 
-    with tqdm(total=4, desc=f"training the default FDI model ({kwargs.get('features', 'kpi_y')})",
+    what = kwargs.get("features", "kpi_y") + (" + baseline branch" if kwargs.get("baseline") else "")
+    with tqdm(total=4, desc=f"training the default FDI model ({what})",
               unit="step") as bar:
         def report(step, total, message):
             bar.set_postfix_str(message)
@@ -77,7 +93,7 @@ def ensure_default_model(path=DEFAULT_MODEL, *, progress=True, log=print):
     else:
         log(f"inkdiag: no FDI model at {path}; training the default one (once, a few seconds)")
     path.parent.mkdir(parents=True, exist_ok=True)
-    train_default_model(path, progress=progress, features=want["features"])
+    train_default_model(path, progress=progress, features=want["features"], baseline=want.get("baseline", False))
     return path
 
 

@@ -1,0 +1,374 @@
+"""The whole FDI model as one scikit-learn estimator: :class:`FaultDetector`.
+
+Until now an FDI model travelled as loose pieces: a fitted pipeline
+(:func:`inkdiag_core.make_fdi_pipeline`), its fault-detection threshold in the
+manifest, a second pipeline for the per-nozzle baselines with its own
+threshold, and a model id derived by the node. A :class:`FaultDetector` holds
+them all, as scikit-learn's ``FixedThresholdClassifier`` holds its decision
+rule:
+
+- ``pipeline_`` and ``fd_threshold_``: raw traces (n, n_samples) -> classes;
+- optionally ``baseline_pipeline_`` and ``baseline_fd_threshold_``: the same
+  traces with each nozzle's healthy baseline KPIs (n, 7)
+  (:mod:`inkdiag_core.baseline`);
+- :meth:`FaultDetector.label`: one call that routes each row to its branch;
+- :attr:`FaultDetector.model_id`, from the sha256 of the file it was saved to
+  or loaded from (:func:`inkdiag_core.save_detector`,
+  :func:`inkdiag_core.load_detector`).
+
+Training is :func:`inkdiag_core.fdi.train_default_model`'s procedure: a
+stratified split, the pipeline fitted on one part, the false-negative-averse
+threshold (:func:`inkdiag_core.fdi.fnr_threshold`) and the scores from the other.
+"""
+
+from __future__ import annotations
+
+import numbers
+from typing import NamedTuple
+
+import numpy as np
+from sklearn.base import BaseEstimator, ClassifierMixin
+from sklearn.model_selection import train_test_split
+from sklearn.pipeline import Pipeline
+from sklearn.utils.multiclass import check_classification_targets
+from sklearn.utils.validation import check_is_fitted, validate_data
+
+from .baseline import N_KPIS, with_baseline
+from .fdi import (
+    FEATURE_SETS,
+    HEALTHY_VALUES,
+    _decide,
+    _predict_proba,
+    _threshold_and_scores,
+    make_fdi_pipeline,
+)
+from .kpis import MIN_SAMPLES
+
+__all__ = ["DetectorLabels", "FaultDetector"]
+
+#: Feature set of the baseline branch (its rows are ``with_baseline(traces, baseline_kpis)``).
+BASELINE_FEATURES = "kpi_y+baseline"
+_DTYPES = [np.float64, np.float32]
+
+
+class DetectorLabels(NamedTuple):
+    """Per-row result of :meth:`FaultDetector.label` (n = rows).
+
+    classes : ndarray of object, (n,) -- class of each row (a value of ``classes_``),
+        None where the row is not ``valid``
+    confidence : ndarray of float64, (n,) -- probability of that class, NaN where not valid
+    p_faulty : ndarray of float64, (n,) -- 1 minus the probability of the healthy classes,
+        NaN where not valid
+    baseline : ndarray of bool, (n,) -- the row went to the baseline branch
+    valid : ndarray of bool, (n,) -- False where the row's features came out NaN or Inf
+        in float32 (e.g. a finite sample so large that its energy overflows): that row
+        is not classified, the others are
+    """
+
+    classes: np.ndarray
+    confidence: np.ndarray
+    p_faulty: np.ndarray
+    baseline: np.ndarray
+    valid: np.ndarray
+
+
+def _finite_proba(pipeline, X):
+    """Class probabilities of the rows of ``X`` whose features are finite in float32.
+
+    The feature steps run on every row; the final estimator (what scikit-learn's
+    trees take as float32) sees only the rows whose features are finite, so an
+    overflowing row costs itself alone. Overflow is expected here and detected, so
+    numpy's floating-point warnings are silenced. Per row, the probabilities are
+    bit-identical to ``pipeline.predict_proba``.
+
+    Returns
+    -------
+    ok : ndarray of bool, shape (n,)
+    proba : ndarray of float64, shape (ok.sum(), n_classes)
+    """
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
+        if isinstance(pipeline, Pipeline) and len(pipeline) > 1:
+            feats = pipeline[:-1].transform(X)
+            ok = np.isfinite(np.asarray(feats, dtype=np.float32)).all(axis=1)
+            final, rows = pipeline[-1], feats if ok.all() else feats[ok]
+        else:
+            ok, final, rows = np.ones(X.shape[0], dtype=bool), pipeline, X
+        proba = _predict_proba(final, rows) if ok.any() else np.empty((0, len(final.classes_)))
+    return ok, proba
+
+
+class FaultDetector(ClassifierMixin, BaseEstimator):
+    """Fault detection and isolation of piezo inkjet traces, with its decision threshold.
+
+    A trace is faulty when its P(faulty) (1 minus the probability of the two healthy
+    classes) reaches the learned ``fd_threshold_``; a faulty trace gets its most
+    probable fault class, a healthy one its more probable healthy class
+    (:func:`inkdiag_core.fdi.classify`). ``fit`` learns the threshold that misses at
+    most ``fnr_target`` of the faults of a held-out split.
+
+    Parameters
+    ----------
+    kind : {"rf", "knn"}
+        Random Forest or k-nearest neighbours (:func:`inkdiag_core.make_fdi_pipeline`).
+    features : str
+        Feature set of the plain branch: one of :data:`inkdiag_core.FEATURE_SETS`
+        except ``"kpi_y+baseline"`` (baselines are given to ``fit`` and ``label``
+        as ``baseline_kpis`` instead; the baseline branch always uses that set).
+    sample_rate_hz : float
+        Sample rate of the traces, Hz.
+    n_estimators, min_samples_leaf : int
+        Random Forest size (``kind="rf"``).
+    n_neighbors : int
+        Neighbours (``kind="knn"``).
+    fnr_target : float in [0, 1)
+        Largest fraction of validation faults the threshold may miss.
+    validation_fraction : float in (0, 1)
+        Fraction of the training rows held out (stratified) to learn the threshold
+        and the scores; the rest fit the pipelines.
+    random_state : int or None
+        Seed of the split and of the forests (one seed for both, as
+        :func:`inkdiag_core.fdi.train_default_model` has always used).
+    n_jobs : int or None
+        Parallel trees when fitting a forest.
+
+    Attributes
+    ----------
+    pipeline_ : sklearn.pipeline.Pipeline
+        Plain branch: raw traces (n, n_samples) -> classes.
+    fd_threshold_ : float in (0, 1]
+        Its fault-detection threshold on P(faulty).
+    scores_ : dict
+        Its validation scores (``validation_fi_accuracy``,
+        ``validation_fi_accuracy_at_threshold``, ``validation_fd_fnr``,
+        ``validation_fd_fpr``: fractions; ``n_validation``).
+    baseline_pipeline_ : sklearn.pipeline.Pipeline or None
+        Baseline branch (``"kpi_y+baseline"``), taking
+        ``with_baseline(traces, baseline_kpis)`` rows (n, n_samples + 7); None when
+        ``fit`` was given no ``baseline_kpis``.
+    baseline_fd_threshold_ : float or None
+        Its threshold.
+    baseline_scores_ : dict or None
+        Its validation scores (same keys as ``scores_``, same split).
+    classes_ : ndarray, shape (n_classes,)
+        Class labels (``FaultClass`` values for the project's models).
+    n_features_in_ : int
+        Samples per trace the detector was fitted on.
+    file_sha256_ : str
+        Set by :func:`inkdiag_core.save_detector` / :func:`inkdiag_core.load_detector`:
+        sha256 of the file; never pickled, cleared by ``fit``.
+    """
+
+    def __init__(self, *, kind="rf", features="kpi_y", sample_rate_hz=10e6, n_estimators=50,
+                 min_samples_leaf=3, n_neighbors=5, fnr_target=0.005, validation_fraction=0.25,
+                 random_state=0, n_jobs=None):
+        self.kind = kind
+        self.features = features
+        self.sample_rate_hz = sample_rate_hz
+        self.n_estimators = n_estimators
+        self.min_samples_leaf = min_samples_leaf
+        self.n_neighbors = n_neighbors
+        self.fnr_target = fnr_target
+        self.validation_fraction = validation_fraction
+        self.random_state = random_state
+        self.n_jobs = n_jobs
+
+    # -- fitting ---------------------------------------------------------------------------
+
+    def _make_pipeline(self, features):
+        return make_fdi_pipeline(self.kind, features, sample_rate_hz=self.sample_rate_hz,
+                                 random_state=self.random_state, n_estimators=self.n_estimators,
+                                 min_samples_leaf=self.min_samples_leaf, n_neighbors=self.n_neighbors,
+                                 n_jobs=self.n_jobs)
+
+    def _check_params(self):
+        if self.features not in FEATURE_SETS or self.features == BASELINE_FEATURES:
+            raise ValueError(f"features must be one of {tuple(f for f in FEATURE_SETS if f != BASELINE_FEATURES)} "
+                             f"(give baselines to fit/label as baseline_kpis), got {self.features!r}")
+        if self.kind not in ("rf", "knn"):
+            raise ValueError(f"kind must be 'rf' or 'knn', got {self.kind!r}")
+        for name, lo_open, hi_open, lo, hi in (("fnr_target", False, True, 0.0, 1.0),
+                                               ("validation_fraction", True, True, 0.0, 1.0)):
+            v = getattr(self, name)
+            ok = isinstance(v, numbers.Real) and not isinstance(v, bool) and np.isfinite(v) and (
+                (lo < v if lo_open else lo <= v) and (v < hi if hi_open else v <= hi))
+            if not ok:
+                raise ValueError(f"{name} must be a real number in {'(' if lo_open else '['}{lo:g}, {hi:g}"
+                                 f"{')' if hi_open else ']'}, got {v!r}")
+
+    def _fitted_threshold(self, pipeline, Xval, yval, branch):
+        threshold, scores = _threshold_and_scores(pipeline, Xval, yval, self.fnr_target)
+        if not 0.0 < threshold <= 1.0:
+            raise ValueError(
+                f"the {branch} branch's fault-detection threshold for fnr_target={self.fnr_target!r} is "
+                f"{threshold!r}: more than that fraction of the validation faults have P(faulty) = 0; "
+                "lower fnr_target or train on more rows")
+        return threshold, scores
+
+    def fit(self, X, y, *, baseline_kpis=None):
+        """Fit the plain branch (and the baseline branch with ``baseline_kpis``) and their thresholds.
+
+        Parameters
+        ----------
+        X : array_like, shape (n, n_samples)
+            Raw traces, V (float64 or float32).
+        y : array_like, shape (n,)
+            Class of each trace (``FaultClass`` values for the project's models).
+        baseline_kpis : array_like, shape (n, 7), optional
+            Healthy baseline KPIs of each trace's nozzle (:func:`inkdiag_core.baseline_kpis`;
+            for simulated training data :func:`inkdiag_core.baseline.baseline_training_kpis`),
+            all finite. Fits the baseline branch on ``with_baseline(X, baseline_kpis)``
+            with the same split.
+
+        Returns
+        -------
+        self
+        """
+        self.__dict__.pop("file_sha256_", None)
+        self._check_params()
+        X, y = validate_data(self, X, y, dtype=_DTYPES, ensure_min_features=MIN_SAMPLES)
+        check_classification_targets(y)
+        base = None
+        if baseline_kpis is not None:
+            base = np.asarray(baseline_kpis)
+            if base.shape != (X.shape[0], N_KPIS):
+                raise ValueError(f"baseline_kpis must be ({X.shape[0]}, {N_KPIS}), one row per trace; got "
+                                 f"shape {base.shape}")
+            if not np.isfinite(base).all():
+                raise ValueError(f"baseline_kpis must be finite to fit on; {int((~np.isfinite(base).all(1)).sum())} "
+                                 "rows are not")
+        # The same split as train_test_split(X, y, ...) gives: it depends on y and n only.
+        train, val = train_test_split(np.arange(X.shape[0]), test_size=self.validation_fraction,
+                                      random_state=self.random_state, stratify=y)
+        self.pipeline_ = self._make_pipeline(self.features).fit(X[train], y[train])
+        self.classes_ = self.pipeline_.classes_
+        self.fd_threshold_, self.scores_ = self._fitted_threshold(self.pipeline_, X[val], y[val], "plain")
+        self.baseline_pipeline_ = self.baseline_fd_threshold_ = self.baseline_scores_ = None
+        if base is not None:
+            rows = with_baseline(X, base)
+            self.baseline_pipeline_ = self._make_pipeline(BASELINE_FEATURES).fit(rows[train], y[train])
+            self.baseline_fd_threshold_, self.baseline_scores_ = self._fitted_threshold(
+                self.baseline_pipeline_, rows[val], y[val], "baseline")
+        return self
+
+    # -- inference ------------------------------------------------------------------------
+
+    def predict_proba(self, X):
+        """Class probabilities of the plain branch.
+
+        Parameters
+        ----------
+        X : array_like, shape (n, n_features_in_)
+            Raw traces, V.
+
+        Returns
+        -------
+        ndarray of float64, shape (n, n_classes)
+            Columns in ``classes_`` order (bit-identical to ``pipeline_.predict_proba``).
+        """
+        check_is_fitted(self)
+        X = validate_data(self, X, dtype=_DTYPES, reset=False)
+        return _predict_proba(self.pipeline_, X)
+
+    def predict(self, X):
+        """Class of each trace at ``fd_threshold_`` (plain branch).
+
+        Parameters
+        ----------
+        X : array_like, shape (n, n_features_in_)
+            Raw traces, V.
+
+        Returns
+        -------
+        ndarray, shape (n,)
+            Values of ``classes_`` (its dtype).
+
+        Raises
+        ------
+        ValueError
+            Some rows' features are not finite (:meth:`label` leaves them out instead).
+        """
+        out = self.label(X)
+        if not out.valid.all():
+            raise ValueError(f"{int((~out.valid).sum())} of {len(out.valid)} rows have non-finite features "
+                             "(label() classifies the others)")
+        return out.classes.astype(self.classes_.dtype)
+
+    def label(self, X, *, baseline_kpis=None) -> DetectorLabels:
+        """Classes, confidences and P(faulty) of traces, each row by its branch.
+
+        Rows whose ``baseline_kpis`` row is all finite are labelled by the baseline
+        branch at ``baseline_fd_threshold_`` when the detector has one; every other row
+        by the plain branch at ``fd_threshold_``. One batch per branch. A row whose
+        features are not finite is not classified (``valid`` False) and costs no other row.
+
+        Parameters
+        ----------
+        X : array_like, shape (n, n_features_in_)
+            Raw traces, V; finite (screen them first: :func:`inkdiag_core.screen_traces`).
+        baseline_kpis : array_like, shape (n, 7), optional
+            Each row's nozzle baseline KPIs, NaN where the nozzle has none (as
+            :meth:`inkdiag_core.NozzleBaselines.lookup` returns them). Ignored by a
+            detector without a baseline branch (then ``baseline`` is all False).
+
+        Returns
+        -------
+        DetectorLabels
+        """
+        check_is_fitted(self)
+        X = validate_data(self, X, dtype=_DTYPES, reset=False)
+        n = X.shape[0]
+        use = np.zeros(n, dtype=bool)
+        if baseline_kpis is not None and self.baseline_pipeline_ is not None:
+            base = np.asarray(baseline_kpis)
+            if base.shape != (n, N_KPIS):
+                raise ValueError(f"baseline_kpis must be ({n}, {N_KPIS}), one row per trace; got shape {base.shape}")
+            use = np.isfinite(base).all(axis=1)
+        classes = np.full(n, None, dtype=object)
+        confidence = np.full(n, np.nan)
+        p_faulty = np.full(n, np.nan)
+        valid = np.ones(n, dtype=bool)
+        healthy = np.isin(np.asarray(self.classes_, dtype=object), HEALTHY_VALUES)
+        for rows, pipeline, threshold in ((use, self.baseline_pipeline_, self.baseline_fd_threshold_),
+                                          (~use, self.pipeline_, self.fd_threshold_)):
+            if not rows.any():
+                continue
+            if pipeline is self.baseline_pipeline_:
+                Xr = with_baseline(X[rows], base[rows])
+            else:
+                Xr = X if rows.all() else X[rows]  # no copy when every row is plain
+            ok, proba = _finite_proba(pipeline, Xr)
+            at = np.flatnonzero(rows)
+            valid[at[~ok]] = False
+            if proba.shape[0]:
+                pf = 1.0 - proba[:, healthy].sum(axis=1)  # as fault_probability computes it
+                idx, conf = _decide(self.classes_, proba, pf, threshold)
+                at = at[ok]
+                classes[at] = self.classes_[idx]
+                confidence[at] = conf
+                p_faulty[at] = pf
+        return DetectorLabels(classes, confidence, p_faulty, use, valid)
+
+    # -- identity -------------------------------------------------------------------------
+
+    @property
+    def model_id(self) -> str:
+        """``fdi-<kind>-<features>[+baseline]-<first 12 hex of the file's sha256>``.
+
+        The sha256 is the file's (:func:`inkdiag_core.save_detector` /
+        :func:`inkdiag_core.load_detector` set it); ``...-unsaved`` before either.
+        """
+        check_is_fitted(self)
+        sha = self.__dict__.get("file_sha256_")
+        tail = sha[:12] if sha else "unsaved"
+        branch = "+baseline" if self.baseline_pipeline_ is not None else ""
+        return f"fdi-{self.kind}-{self.features}{branch}-{tail}"
+
+    def __getstate__(self):
+        state = super().__getstate__()
+        state.pop("file_sha256_", None)  # a file's hash cannot be inside the file
+        return state
+
+    def __sklearn_tags__(self):
+        tags = super().__sklearn_tags__()
+        tags.input_tags.allow_nan = False
+        return tags
