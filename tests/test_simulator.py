@@ -162,6 +162,34 @@ def test_table_3_means_within_3_percent_on_a_small_sample():
         assert abs(mean / f_khz - 1) < 0.03, (name, mean, f_khz)
 
 
+def _zero_padded_fft_peak_hz(traces, fs, n_fft=2**16):
+    """The thesis's Table 3 measure: peak bin of |FFT| of the mean-removed, zero-padded trace."""
+    out = []
+    for blk in np.array_split(np.asarray(traces, dtype=np.float64), max(1, len(traces) // 128)):
+        spec = np.abs(np.fft.rfft(blk - blk.mean(axis=1, keepdims=True), n=n_fft, axis=1))
+        out.append((np.argmax(spec[:, 1:], axis=1) + 1) * fs / n_fft)
+    return np.concatenate(out)
+
+
+def test_table_3_means_within_3_percent_under_both_measures():
+    # issue 12 item 8: the independent check's setup (200 traces per class, seed 123);
+    # the thesis measured Table 3 as the zero-padded FFT peak, we as the fitted damped
+    # frequency: every class mean must be within 3 % of Table 3 under both
+    from inkdiag_core.kpis import extract_kpis
+
+    r = simulate({c: 200 for c in FaultClass}, seed=123)
+    labels = np.array([c.value for c in r.labels])
+    measures = {"extract_kpis": extract_kpis(r.traces, r.sample_rate_hz)[:, 1],
+                "zero-padded FFT peak": _zero_padded_fft_peak_hz(r.traces, r.sample_rate_hz)}
+    bad = []
+    for how, f in measures.items():
+        for name, f_khz in TABLE3_KHZ.items():
+            dev = f[labels == name].mean() / 1e3 / f_khz - 1
+            if abs(dev) >= 0.03:
+                bad.append((how, name, round(100 * dev, 2)))
+    assert not bad, bad
+
+
 def test_classes_are_not_separated_by_frequency_alone():
     # spreads are physical and wide: neighbouring drying classes overlap
     r = simulate({c: 100 for c in DRIED_CLASSES}, seed=12)
@@ -287,7 +315,8 @@ def test_simulate_nozzles_keeps_nozzle_order_and_given_viscosities():
     assert res.traces.shape == (6, 512)
     # the given viscosity factor is used as it is (the channel's own ink viscosity scales it)
     assert res.params["severity"][2] == pytest.approx(3.5)
-    assert 1.6 <= res.params["severity"][5] <= 4.0
+    slight = MECHANISMS[FaultClass.SLIGHTLY_DRIED]
+    assert slight.low <= res.params["severity"][5] <= slight.high
     assert res.fm[0] == 0 and res.fm[1] < res.fm[2] < 0  # deeper drying, larger |f_m|
     again = simulate_nozzles(classes, mu_nozzle=mu, seed=3)
     assert np.array_equal(again.traces, res.traces)

@@ -62,8 +62,9 @@ ADC                             12 bit over +-2 V         quantisation, clipping
 Severity within each class's range (:data:`inkdiag_core.faults.MECHANISMS`) is drawn
 uniformly. What makes the 12 classes hard to separate, as in the thesis (RF on the 7 KPIs
 about 94 %, Table 2), is physics: (i) the severity ranges are wide and neighbouring drying
-classes touch, without overlapping (drying is continuous; slight drying starts close to
-a healthy nozzle, so fault detection is not trivial either), (ii) a particle in the bore adds resistance much
+classes touch or nearly touch, without overlapping (drying is continuous; slight drying
+starts at a nozzle viscosity 2.4 times the ink's, where Table 3's slightly dried frequency
+puts it), (ii) a particle in the bore adds resistance much
 like dried ink (partially blocked overlaps the drying classes), (iii) a nozzle bubble's
 position is continuous (mature and intermediate bubbles touch), (iv) ok_signal and
 healthy_nozzle differ only by the drive amplitude, which the per-channel coupling, gain
