@@ -57,3 +57,43 @@ def test_spin_node_exits_when_the_context_goes_down_after_the_wake_up(ros):
         pytest.fail("the node went on waiting after its context was shut down:\n" + "".join(lines))
     assert pr.returncode == 0, "".join(lines) + rest
     assert time.monotonic() - t0 < 3.0
+
+
+_BLAS_CHILD = """
+import json
+from rclpy.node import Node
+from threadpoolctl import threadpool_info
+import inkdiag_ros.fe_node  # numpy and scipy (their OpenBLAS) loaded, as in the fe process
+from inkdiag_ros._spin import spin_node
+
+seen = []
+
+class Probe(Node):
+    def __init__(self):
+        super().__init__("blas_probe")
+        seen.extend(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+
+spin_node(Probe, ["blas_probe"], until=lambda node: True)
+print(json.dumps(seen))
+"""
+
+
+def test_node_processes_run_one_blas_thread_unless_the_environment_says(ros):
+    """An OpenBLAS worker per core busy-waits between the fe estimator's tiny calls (issue 12)."""
+    import json
+    import subprocess
+
+    from inkdiag_ros.blas import BLAS_ENV
+
+    env = {k: v for k, v in os.environ.items() if k not in BLAS_ENV}
+    env.update(ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+
+    def threads(**extra):
+        out = subprocess.run([sys.executable, "-c", _BLAS_CHILD], env=dict(env, **extra), capture_output=True,
+                             text=True, timeout=60)
+        assert out.returncode == 0, out.stdout + out.stderr
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    got = threads()
+    assert got and all(n == 1 for n in got), got
+    assert all(n == 2 for n in threads(OPENBLAS_NUM_THREADS="2")), "the user's choice wins"

@@ -12,6 +12,7 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
 from .allocator import keep_freed_memory
+from .blas import limit_blas_threads
 
 
 def shutting_down(context, grace_s: float = 0.2) -> bool:
@@ -123,10 +124,12 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None) -> 
     parameters (``ValueError`` or rclpy's ``ParameterException`` while it is built) is
     reported in one line on stderr, exit status 2, no traceback.
 
-    A SIGINT or SIGTERM stops the spin loop through :func:`stop_on_signals`; the loop also re-checks the
+    BLAS libraries run one thread each (:func:`limit_blas_threads`). A SIGINT or SIGTERM
+    stops the spin loop through :func:`stop_on_signals`; the loop also re-checks the
     context at least once a second (``until``: every 0.1 s).
     """
     keep_freed_memory()
+    limit_blas_threads()
     prog = prog or os.path.basename(sys.argv[0] or "node")
     with stop_on_signals() as stop:
         rclpy.init(args=args)
