@@ -1,21 +1,25 @@
-"""Stop every node process repeatedly, under CPU contention, and count the stops that hang.
+"""Stop every node process repeatedly, under CPU contention; count hangs and slow stops.
 
     scripts/stop_cycles.py [--cycles 20] [--nodes printhead_sim fdi fe record_baseline graph]
-                           [--hang-s 2.0] [--busy N] [--seed 0]
+                           [--hang-s 2.0] [--busy N] [--unfed] [--dump] [--seed 0]
 
 For each node: its upstream processes start (fe: printhead_sim and fdi, so that fe
 estimates drying nozzles; fdi and record_baseline: printhead_sim), then ``--cycles``
 times: start the node as its own process, wait until it works (its first output
-message, or its summary line for the graph runner, or its name in the ROS graph for
-record_baseline), wait a random 0-0.5 s more, send it SIGINT or SIGTERM (alternately)
-and time its exit. A stop that exits later than ``--hang-s`` s after the signal is slow; one that has
-not exited 5 s after that is a hang (it then gets the signal again, SIGKILL 5 s later). One busy-loop process per
-core runs throughout (``--busy``). Prints per node and signal: stops, hangs, slow stops, non-zero
-exits, and exit-time percentiles (ms).
+message; the graph runner's first summary line; record_baseline's name in the ROS
+graph and DDS threads in its process), wait a random 0-0.5 s more, send it SIGINT or
+SIGTERM (alternately) and time its exit. A stop that exits later than ``--hang-s`` s
+after the signal is slow; one still running 5 s after that is a hang (it gets the
+signal again, SIGKILL 5 s later; ``--dump``: py-spy dumps it first, if installed).
+``--unfed`` also cycles fdi, fe and record_baseline without their upstream nodes
+(nothing arrives to wake them). One busy-loop process per core runs throughout
+(``--busy``). Prints per node and signal: stops, hangs, slow stops, non-zero exits,
+and exit-time percentiles (ms) of the stops that exited by themselves.
 
 Runs on the ``ROS_DOMAIN_ID`` of its environment (scripts/_bootstrap.sh sets one) with
 discovery on localhost; a small FDI model is trained into a temporary directory first.
-The test suite runs the same cycles, fewer of them (tests/test_node_stops.py).
+The test suite runs the same cycles, three per signal and node (tests/test_node_stops.py).
+Run it as ``source scripts/_bootstrap.sh && python scripts/stop_cycles.py``.
 """
 
 from __future__ import annotations
@@ -269,7 +273,7 @@ class StopCycles:
 
 
 def summary(stops: list[Stop]) -> str:
-    """One line per node and signal: stops, hangs, bad exits, exit-time percentiles."""
+    """One line per node and signal: stops, hangs, slow stops, bad exits, exit-time percentiles."""
     lines = [f"{'node':16s} {'signal':7s} {'stops':>5s} {'hangs':>5s} {'slow':>5s} {'rc!=0':>5s} "
              f"{'p50 ms':>7s} {'p90 ms':>7s} {'max ms':>7s}"]
     keys = sorted({(s.node, s.sig) for s in stops}, key=lambda k: (NODES.index(k[0].split("-")[0]), k[0], k[1]))
@@ -286,7 +290,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cycles", type=int, default=20, help="stop cycles per node (signals alternate)")
     ap.add_argument("--nodes", nargs="+", choices=NODES, default=list(NODES))
-    ap.add_argument("--hang-s", type=float, default=2.0, help="a stop slower than this is a hang, s")
+    ap.add_argument("--hang-s", type=float, default=2.0, help="a stop slower than this is slow, s (5 s more: a hang)")
     ap.add_argument("--busy", type=int, default=None, help="busy-loop processes (default: one per core)")
     ap.add_argument("--unfed", action="store_true",
                     help="also stop each node that has inputs without its upstream nodes (nothing wakes it)")
