@@ -2,7 +2,8 @@
 
 The cycles of scripts/stop_cycles.py, three per signal and node: start the node as a
 process (with its upstream nodes running), wait until it works, signal it, and
-require exit status 0 within 2 s, no traceback. One busy-loop process per core runs
+require exit status 0 within 2 s (record_baseline: 0 or its documented 1, stopped
+before it wrote anything), no traceback. One busy-loop process per core runs
 throughout (the fe node missed about one stop in three that way).
 """
 
@@ -30,7 +31,8 @@ def test_node_process_stops_on_every_signal_under_contention(ros, fdi_model, nam
     report = stop_cycles.summary(stops)
     for s in stops:
         assert not s.hung, f"{name} ignored {s.sig}:\n{report}\n{s.output[-3000:]}"
-        assert s.returncode == 0 and not s.slow, f"{name} {s.sig}: exit {s.returncode} after {s.exit_s:.2f} s\n" \
+        ok = (0, 1) if name == "record_baseline" else (0,)  # record_baseline: 1 = stopped, nothing written
+        assert s.returncode in ok and not s.slow, f"{name} {s.sig}: exit {s.returncode} after {s.exit_s:.2f} s\n" \
                                                  f"{report}\n{s.output[-3000:]}"
         assert "Traceback" not in s.output, s.output[-3000:]
 

@@ -122,7 +122,8 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None) -> 
     ``until(node)``: stop spinning once it is true (default: never). ``exit_code(node)``:
     the process's exit status after a normal stop (default 0). A node that refuses its
     parameters (``ValueError`` or rclpy's ``ParameterException`` while it is built) is
-    reported in one line on stderr, exit status 2, no traceback.
+    reported in one line on stderr, exit status 2, no traceback. A signal while the node
+    is being built stops it there (exit 0, or 1 with ``exit_code``: it did nothing).
 
     BLAS libraries run one thread each (:func:`limit_blas_threads`). A SIGINT or SIGTERM
     stops the spin loop through :func:`stop_on_signals`; the loop also re-checks the
@@ -140,6 +141,10 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None) -> 
             except (ValueError, ParameterException) as exc:
                 print(f"{prog}: {exc}", file=sys.stderr)
                 return 2
+            except Exception:  # a signal while it was built: rclpy invalidated its publishers
+                if not (stop.requested or shutting_down(rclpy.utilities.get_default_context())):
+                    raise
+                return 0 if exit_code is None else 1
             stop.attach(node)
             executor = SingleThreadedExecutor(context=node.context)
             executor.add_node(node)
