@@ -18,7 +18,9 @@ setup(
     python_requires=">=3.10",
     # rclpy and the message packages come from ROS 2 (sourced Jazzy or the
     # PyPI wheels of requirements/ros.txt), never from install_requires.
-    install_requires=["numpy>=1.26"],
+    # threadpoolctl: every node process limits its BLAS threads (inkdiag_ros.blas);
+    # threadpool_limits(limits=, user_api="blas") as used there is in 3.x.
+    install_requires=["numpy>=1.26", "threadpoolctl>=3.1"],
     zip_safe=True,
     maintainer="inkdiag developers",
     maintainer_email="inkdiag@example.com",

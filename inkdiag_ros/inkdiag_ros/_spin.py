@@ -9,9 +9,10 @@ import time
 
 import rclpy
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
 from .allocator import keep_freed_memory
+from .blas import limit_blas_threads
 
 
 def shutting_down(context, grace_s: float = 0.2) -> bool:
@@ -56,36 +57,108 @@ def sigint_as_shutdown():
         signal.signal(signal.SIGINT, old)
 
 
+class StopRequest:
+    """What :func:`stop_on_signals` hands back: whether a SIGINT/SIGTERM arrived.
+
+    ``requested`` is set by a Python-level handler (it runs in the main thread), which
+    also triggers the guard condition :meth:`attach` put on a node: the executor then
+    has work (that guard condition's no-op callback), ``spin_once`` returns and the
+    spin loop sees ``requested``.
+    """
+
+    def __init__(self):
+        self.requested = False
+        self._gc = None
+
+    def attach(self, node):
+        """Give ``node`` the guard condition a signal triggers (destroyed with the node)."""
+        self._gc = node.create_guard_condition(_no_op)
+        if self.requested:  # a signal while the node was being built
+            self._gc.trigger()
+
+    def _on_signal(self, signum, frame):
+        self.requested = True
+        gc = self._gc
+        if gc is not None:
+            try:
+                gc.trigger()
+            except Exception:  # destroyed with its node: nothing left to wake
+                pass
+
+
+def _no_op():
+    pass
+
+
+@contextlib.contextmanager
+def stop_on_signals():
+    """Record SIGINT and SIGTERM in a :class:`StopRequest`, for a spin loop that cannot miss them.
+
+    Enter it just before ``rclpy.init`` (rclpy's own handlers then chain to these):
+    Ctrl-C raises no ``KeyboardInterrupt`` (see :func:`sigint_as_shutdown`), and the
+    spin loop learns of the signal from ``requested`` and a guard condition of its
+    node, not only from the context going down. rclpy's signal thread triggers the
+    executors' wake-up guard condition *before* it shuts the contexts down: an
+    executor woken by it, finding no work and the context still ok, went back to
+    waiting without a timeout: nothing wakes it again but traffic or a timer (issue 12:
+    fe, which has no timer, ignored its first signal now and then). Handlers restored
+    on exit.
+    """
+    stop = StopRequest()
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+    old = {sig: signal.signal(sig, stop._on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
 def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None) -> int:
     """Init rclpy, spin one ``node_cls()`` until Ctrl-C / SIGTERM / shutdown, clean up.
 
     ``until(node)``: stop spinning once it is true (default: never). ``exit_code(node)``:
     the process's exit status after a normal stop (default 0). A node that refuses its
     parameters (``ValueError`` or rclpy's ``ParameterException`` while it is built) is
-    reported in one line on stderr, exit status 2, no traceback.
+    reported in one line on stderr, exit status 2, no traceback. A signal while the node
+    is being built stops it there (exit 0, or 1 with ``exit_code``: it did nothing).
+
+    BLAS libraries run one thread each (:func:`limit_blas_threads`). A SIGINT or SIGTERM
+    stops the spin loop through :func:`stop_on_signals`; the loop also re-checks the
+    context at least once a second (``until``: every 0.1 s).
     """
     keep_freed_memory()
+    limit_blas_threads()
     prog = prog or os.path.basename(sys.argv[0] or "node")
-    with sigint_as_shutdown():
+    with stop_on_signals() as stop:
         rclpy.init(args=args)
-        node = None
+        node = executor = None
         try:
             try:
                 node = node_cls()
             except (ValueError, ParameterException) as exc:
                 print(f"{prog}: {exc}", file=sys.stderr)
                 return 2
-            if until is None:
-                rclpy.spin(node)
-            else:
-                while rclpy.ok() and not until(node):
-                    rclpy.spin_once(node, timeout_sec=0.1)
+            except Exception:  # a signal while it was built: rclpy invalidated its publishers
+                if not (stop.requested or shutting_down(rclpy.utilities.get_default_context())):
+                    raise
+                return 0 if exit_code is None else 1
+            stop.attach(node)
+            executor = SingleThreadedExecutor(context=node.context)
+            executor.add_node(node)
+            period = 1.0 if until is None else 0.1
+            while not stop.requested and node.context.ok() and not (until is not None and until(node)):
+                executor.spin_once(timeout_sec=period)
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         except Exception:
-            if node is None or not shutting_down(node.context):
+            if node is None or not (stop.requested or shutting_down(node.context)):
                 raise
         finally:
+            if executor is not None:
+                executor.shutdown()
             if node is not None:
                 node.destroy_node()
             rclpy.try_shutdown()

@@ -48,6 +48,7 @@ from msg_defs import (
 
 from ._spin import shutting_down, sigint_as_shutdown
 from .allocator import keep_freed_memory
+from .blas import limit_blas_threads
 from .baseline_node import BaselineRecorderNode
 from .fdi_node import FdiNode
 from .fe_node import FeNode
@@ -246,6 +247,7 @@ def main(args=None) -> int:
                         help="seconds the head is healthy at the start with --baseline (0.1 .. 86400)")
     ns = parser.parse_args(remove_ros_args(argv)[1:])
     keep_freed_memory()
+    limit_blas_threads()
     # the packaged params first, the user's --ros-args after it (later wins)
     ros_args = ["--ros-args", "--params-file", default_params_file()]
     if "--ros-args" in argv:
