@@ -281,7 +281,19 @@ def forest_predict_proba(forest, X) -> np.ndarray:
 
 
 def pipeline_predict_proba(pipeline, traces):
-    """``pipeline.predict_proba``, with :func:`forest_predict_proba` for a forest or a final forest step."""
+    """``pipeline.predict_proba``, with :func:`forest_predict_proba` for a forest or a final forest step.
+
+    Parameters
+    ----------
+    pipeline : fitted classifier or Pipeline with ``predict_proba``
+    traces : ndarray, shape (n, n_features)
+        Raw traces, V (or feature rows for a bare classifier).
+
+    Returns
+    -------
+    ndarray of float64, shape (n, n_classes)
+        Bit-identical to ``pipeline.predict_proba(traces)``.
+    """
     if type(pipeline) is RandomForestClassifier and pipeline.n_outputs_ == 1:  # a bare forest on features
         return forest_predict_proba(pipeline, traces)
     clf = pipeline[-1] if isinstance(pipeline, Pipeline) else None
@@ -342,10 +354,23 @@ def _check_threshold(fd_threshold) -> float:
 
 
 def decide_classes(classes, proba, p_faulty, fd_threshold):
-    """Column index (n,) and probability (n,) of each row's class at ``fd_threshold`` (checked before).
+    """Each row's class at ``fd_threshold`` (checked before), as a column index and its probability.
 
     A row is faulty when ``p_faulty >= fd_threshold`` and then gets its most probable
     fault class, else its more probable healthy class (:func:`classify`).
+
+    Parameters
+    ----------
+    classes : array_like, shape (n_classes,)
+        Class values (``FaultClass`` values) in the columns' order.
+    proba : ndarray of float, shape (n, n_classes)
+    p_faulty : ndarray of float, shape (n,)
+    fd_threshold : float in (0, 1]
+
+    Returns
+    -------
+    idx : ndarray of int, shape (n,)
+    confidence : ndarray of float, shape (n,)
     """
     healthy = healthy_mask(np.asarray(classes, dtype=object))
     faulty = p_faulty >= fd_threshold
