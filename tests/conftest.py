@@ -104,3 +104,13 @@ def fdi_model(tmp_path_factory):
     path = tmp_path_factory.mktemp("model") / "fdi_small.joblib"
     train_default_model(path, n_per_class=80, features="kpi_y", seed=0)
     return path
+
+
+@pytest.fixture(scope="session")
+def fdi_baseline_model(tmp_path_factory):
+    """A small FaultDetector file with both branches (plain KPI_Y and KPI_Y + the nozzle's baseline)."""
+    from inkdiag_core.fdi import train_default_model
+
+    path = tmp_path_factory.mktemp("model") / "fdi_small_baseline.joblib"
+    train_default_model(path, n_per_class=80, baseline=True, seed=0)
+    return path

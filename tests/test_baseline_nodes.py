@@ -32,7 +32,7 @@ def baseline_model(tmp_path_factory):
     from inkdiag_core.fdi import train_default_model
 
     path = tmp_path_factory.mktemp("model") / "fdi_baseline_small.joblib"
-    train_default_model(path, n_per_class=80, features="kpi_y+baseline", seed=0)
+    train_default_model(path, n_per_class=80, baseline=True, seed=0)  # a detector with its baseline branch
     return path
 
 
@@ -146,9 +146,8 @@ def _fdi(ros, fdi_model, **params):
 
 def test_fdi_classifies_nozzles_with_a_baseline_against_it(ros, tmp_path, fdi_model, baseline_model):
     _record(ros, tmp_path / "head.npz")
-    fdi, labels, diag = _fdi(ros, fdi_model, baseline_path=str(tmp_path / "head.npz"),
-                             baseline_model_path=str(baseline_model))
-    assert fdi.baseline is not None and "+fdi-rf-kpi_y+baseline-" in fdi.model_id
+    fdi, labels, diag = _fdi(ros, baseline_model, baseline_path=str(tmp_path / "head.npz"))
+    assert fdi.labeller.uses_baselines and fdi.model_id.startswith("fdi-rf-kpi_y+baseline-")
     classes = np.array(list(FaultClass), dtype=object)[np.arange(N) % 12]
     frame = simulate_nozzles(classes, seed=HEAD, frame_seed=50).traces
     pub = ros.node("controller2", namespace="/h").create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
@@ -179,17 +178,17 @@ def test_fdi_without_usable_baselines_labels_without_them_and_says_why(ros, tmp_
         arrays["kpis"] = arrays["kpis"] * 2
         np.savez(tmp_path / "b.npz", **arrays)
     params = {
-        "missing file": {"baseline_path": str(tmp_path / "nope.npz"), "baseline_model_path": str(baseline_model)},
-        "only the file": {"baseline_path": str(good)},
-        "plain model": {"baseline_path": str(good), "baseline_model_path": str(fdi_model)},
-        "tampered file": {"baseline_path": str(good), "baseline_model_path": str(baseline_model)},
-        "damaged file": {"baseline_path": str(good), "baseline_model_path": str(baseline_model)},
+        "missing file": {"baseline_path": str(tmp_path / "nope.npz")},
+        "only the file": {"baseline_path": str(good)},  # a model without a baseline branch
+        "plain model": {"baseline_path": str(good)},
+        "tampered file": {"baseline_path": str(good)},
+        "damaged file": {"baseline_path": str(good)},
         "other sample count": {"baseline_path": str(NozzleBaselines(np.arange(5), np.ones((5, 7)), 10e6, 256, 8)
-                                                    .save(tmp_path / "b256.npz")),
-                               "baseline_model_path": str(baseline_model)},
+                                                    .save(tmp_path / "b256.npz"))},
     }[case]
-    fdi, labels, diag = _fdi(ros, fdi_model, **params)
-    assert fdi.baseline is None and fdi.model is not None
+    model = fdi_model if case in ("only the file", "plain model") else baseline_model
+    fdi, labels, diag = _fdi(ros, model, **params)
+    assert fdi.labeller is not None and not fdi.labeller.uses_baselines
     ros.spin_until(lambda: diag, 5, "diagnostics")
     assert diag[-1]["level"] == "warn" and "per-nozzle baselines not used" in diag[-1]["config_error"]
     pub = ros.node("controller", namespace="/h").create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)

@@ -107,17 +107,17 @@ def baseline_model(tmp_path_factory):
     from inkdiag_core.fdi import train_default_model
 
     path = tmp_path_factory.mktemp("model") / "fdi_baseline_small.joblib"
-    train_default_model(path, n_per_class=80, features="kpi_y+baseline")
+    train_default_model(path, n_per_class=80, baseline=True)  # a detector with its baseline branch
     return path
 
 
 @pytest.mark.parametrize(("sig", "baseline"), [(signal.SIGTERM, False), (signal.SIGINT, True)])
 def test_graph_runner_stops_cleanly_on_signal(ros, fdi_model, baseline_model, tmp_path, sig, baseline):
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    extra = (["--baseline", "--baseline-model", str(baseline_model), "--baseline-path", str(tmp_path / "b.npz"),
+    extra = (["--baseline", "--baseline-path", str(tmp_path / "b.npz"),
               "--commissioning", "2.5"] if baseline else ["--no-baseline"])
     pr = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.graph", "--duration", "0", "--model",
-                           str(fdi_model), *extra, "--ros-args", "-p", "n_nozzles:=16", "-p", "fault_nozzles:=[3]",
+                           str(baseline_model if baseline else fdi_model), *extra, "--ros-args", "-p", "n_nozzles:=16", "-p", "fault_nozzles:=[3]",
                            "-p", "fault_classes:=['fully_blocked']", "-p", "drying_nozzles:=[9]"],
                           env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines = []
@@ -139,17 +139,13 @@ def test_graph_runner_stops_cleanly_on_signal(ros, fdi_model, baseline_model, tm
     assert ("rows vs their baseline" in out) == baseline, out[-2000:]
 
 
-def test_graph_records_baselines_then_labels_against_them(ros, fdi_model, tmp_path):
+def test_graph_records_baselines_then_labels_against_them(ros, baseline_model, tmp_path):
     from inkdiag_core import NozzleBaselines
-    from inkdiag_core.fdi import train_default_model
     from inkdiag_ros.graph import run
 
-    base_model = tmp_path / "fdi_base.joblib"
-    train_default_model(base_model, n_per_class=80, features="kpi_y+baseline")
     lines = []
-    score = run(7.0, namespace="/head_05", model_path=str(fdi_model), context=ros.context, out=lines.append,
-                baseline={"path": tmp_path / "b" / "head_05.npz", "model_path": str(base_model),
-                          "commissioning_s": 2.5})
+    score = run(7.0, namespace="/head_05", model_path=str(baseline_model), context=ros.context, out=lines.append,
+                baseline={"path": tmp_path / "b" / "head_05.npz", "commissioning_s": 2.5})
     assert any("baselines of 64 nozzles recorded" in line for line in lines), lines[:5]
     assert len(NozzleBaselines.load(tmp_path / "b" / "head_05.npz")) == 64
     assert lines[0].startswith("t=") and "commissioning" in lines[0]

@@ -36,16 +36,3 @@ def test_stale_default_is_retrained_a_users_model_is_not(tmp_path):
     ensure_default_model(default, progress=False, log=logs.append)
     assert "unusable" in logs[-1] and "tampered" in logs[-1]
     assert ensure_default_model(default, progress=False, log=logs.append) == default  # verifies again
-
-
-
-def test_the_baseline_default_is_trained_on_baseline_features(tmp_path):
-    logs = []
-    path = tmp_path / "sub" / "fdi_default_baseline.joblib"  # missing, in a missing folder
-    assert ensure_default_model(path, progress=False, log=logs.append) == path
-    cfg = _config(path)
-    assert cfg["features"] == "kpi_y+baseline" == default_config(path.name)["features"]
-    assert {k: cfg[k] for k in default_config(path.name)} == default_config(path.name)
-    mtime = path.stat().st_mtime_ns
-    ensure_default_model(path, progress=False, log=logs.append)  # up to date: kept
-    assert path.stat().st_mtime_ns == mtime and len(logs) == 1

@@ -93,3 +93,7 @@ __all__ += ["ESTIMATE_COLUMNS", "DryingTracker", "RangeEstimates"]
 from .detector import DetectorLabels, FaultDetector  # noqa: E402
 
 __all__ += ["DetectorLabels", "FaultDetector"]
+
+from .frame_labeller import FrameFailure, FrameInputError, FrameLabeller, LabellerConfigError  # noqa: E402
+
+__all__ += ["FrameFailure", "FrameInputError", "FrameLabeller", "LabellerConfigError"]

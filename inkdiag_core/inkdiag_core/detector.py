@@ -34,15 +34,15 @@ from sklearn.utils.multiclass import check_classification_targets
 from sklearn.utils.validation import check_is_fitted, validate_data
 
 from .baseline import N_KPIS, with_baseline
+from .faults import healthy_mask
 from .fdi import (
     FEATURE_SETS,
-    HEALTHY_VALUES,
-    _decide,
-    _predict_proba,
-    _threshold_and_scores,
+    decide_classes,
     make_fdi_pipeline,
+    pipeline_predict_proba,
+    threshold_and_scores,
 )
-from .kpis import MIN_SAMPLES
+from .kpis import MIN_KPI_SAMPLES
 
 __all__ = ["DetectorLabels", "FaultDetector"]
 
@@ -93,7 +93,7 @@ def _finite_proba(pipeline, X):
             final, rows = pipeline[-1], feats if ok.all() else feats[ok]
         else:
             ok, final, rows = np.ones(X.shape[0], dtype=bool), pipeline, X
-        proba = _predict_proba(final, rows) if ok.any() else np.empty((0, len(final.classes_)))
+        proba = pipeline_predict_proba(final, rows) if ok.any() else np.empty((0, len(final.classes_)))
     return ok, proba
 
 
@@ -196,7 +196,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
                                  f"{')' if hi_open else ']'}, got {v!r}")
 
     def _fitted_threshold(self, pipeline, Xval, yval, branch):
-        threshold, scores = _threshold_and_scores(pipeline, Xval, yval, self.fnr_target)
+        threshold, scores = threshold_and_scores(pipeline, Xval, yval, self.fnr_target)
         if not 0.0 < threshold <= 1.0:
             raise ValueError(
                 f"the {branch} branch's fault-detection threshold for fnr_target={self.fnr_target!r} is "
@@ -225,7 +225,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         """
         self.__dict__.pop("file_sha256_", None)
         self._check_params()
-        X, y = validate_data(self, X, y, dtype=_DTYPES, ensure_min_features=MIN_SAMPLES)
+        X, y = validate_data(self, X, y, dtype=_DTYPES, ensure_min_features=MIN_KPI_SAMPLES)
         check_classification_targets(y)
         base = None
         if baseline_kpis is not None:
@@ -267,7 +267,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         """
         check_is_fitted(self)
         X = validate_data(self, X, dtype=_DTYPES, reset=False)
-        return _predict_proba(self.pipeline_, X)
+        return pipeline_predict_proba(self.pipeline_, X)
 
     def predict(self, X):
         """Class of each trace at ``fd_threshold_`` (plain branch).
@@ -327,7 +327,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         confidence = np.full(n, np.nan)
         p_faulty = np.full(n, np.nan)
         valid = np.ones(n, dtype=bool)
-        healthy = np.isin(np.asarray(self.classes_, dtype=object), HEALTHY_VALUES)
+        healthy = healthy_mask(self.classes_)
         for rows, pipeline, threshold in ((use, self.baseline_pipeline_, self.baseline_fd_threshold_),
                                           (~use, self.pipeline_, self.fd_threshold_)):
             if not rows.any():
@@ -341,7 +341,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
             valid[at[~ok]] = False
             if proba.shape[0]:
                 pf = 1.0 - proba[:, healthy].sum(axis=1)  # as fault_probability computes it
-                idx, conf = _decide(self.classes_, proba, pf, threshold)
+                idx, conf = decide_classes(self.classes_, proba, pf, threshold)
                 at = at[ok]
                 classes[at] = self.classes_[idx]
                 confidence[at] = conf

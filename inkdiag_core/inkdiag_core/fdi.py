@@ -46,9 +46,12 @@ from .residual import ResidualFilter
 __all__ = [
     "FEATURE_SETS",
     "classify",
+    "decide_classes",
     "fault_probability",
     "fnr_threshold",
     "forest_predict_proba",
+    "pipeline_predict_proba",
+    "threshold_and_scores",
     "train_default_model",
     "BandEnergies",
     "RawTraceFeatures",
@@ -277,8 +280,20 @@ def forest_predict_proba(forest, X) -> np.ndarray:
     return proba
 
 
-def _predict_proba(pipeline, traces):
-    """``pipeline.predict_proba``, with :func:`forest_predict_proba` for a forest or a final forest step."""
+def pipeline_predict_proba(pipeline, traces):
+    """``pipeline.predict_proba``, with :func:`forest_predict_proba` for a forest or a final forest step.
+
+    Parameters
+    ----------
+    pipeline : fitted classifier or Pipeline with ``predict_proba``
+    traces : ndarray, shape (n, n_features)
+        Raw traces, V (or feature rows for a bare classifier).
+
+    Returns
+    -------
+    ndarray of float64, shape (n, n_classes)
+        Bit-identical to ``pipeline.predict_proba(traces)``.
+    """
     if type(pipeline) is RandomForestClassifier and pipeline.n_outputs_ == 1:  # a bare forest on features
         return forest_predict_proba(pipeline, traces)
     clf = pipeline[-1] if isinstance(pipeline, Pipeline) else None
@@ -298,7 +313,7 @@ def fault_probability(pipeline, traces) -> tuple:
     p_faulty : ndarray, shape (n,)
         1 minus the probability of the two healthy classes.
     """
-    proba = _predict_proba(pipeline, traces)
+    proba = pipeline_predict_proba(pipeline, traces)
     healthy = healthy_mask(pipeline.classes_)
     return proba, 1.0 - proba[:, healthy].sum(axis=1)
 
@@ -327,7 +342,7 @@ def classify(pipeline, traces, *, fd_threshold: float = 0.5):
     _check_threshold(fd_threshold)
     classes = np.asarray(pipeline.classes_, dtype=object)
     proba, p_faulty = fault_probability(pipeline, traces)
-    idx, confidence = _decide(classes, proba, p_faulty, fd_threshold)
+    idx, confidence = decide_classes(classes, proba, p_faulty, fd_threshold)
     return classes[idx].astype(str), confidence, p_faulty
 
 
@@ -338,11 +353,24 @@ def _check_threshold(fd_threshold) -> float:
     return float(fd_threshold)
 
 
-def _decide(classes, proba, p_faulty, fd_threshold):
-    """Column index (n,) and probability (n,) of each row's class at ``fd_threshold`` (checked before).
+def decide_classes(classes, proba, p_faulty, fd_threshold):
+    """Each row's class at ``fd_threshold`` (checked before), as a column index and its probability.
 
     A row is faulty when ``p_faulty >= fd_threshold`` and then gets its most probable
     fault class, else its more probable healthy class (:func:`classify`).
+
+    Parameters
+    ----------
+    classes : array_like, shape (n_classes,)
+        Class values (``FaultClass`` values) in the columns' order.
+    proba : ndarray of float, shape (n, n_classes)
+    p_faulty : ndarray of float, shape (n,)
+    fd_threshold : float in (0, 1]
+
+    Returns
+    -------
+    idx : ndarray of int, shape (n,)
+    confidence : ndarray of float, shape (n,)
     """
     healthy = healthy_mask(np.asarray(classes, dtype=object))
     faulty = p_faulty >= fd_threshold
@@ -351,7 +379,7 @@ def _decide(classes, proba, p_faulty, fd_threshold):
     return idx, proba[np.arange(len(idx)), idx]
 
 
-def _threshold_and_scores(pipeline, Xval, yval, fnr_target):
+def threshold_and_scores(pipeline, Xval, yval, fnr_target):
     """Fault-detection threshold for ``fnr_target`` on a validation split, and that split's scores.
 
     Returns
@@ -368,8 +396,8 @@ def _threshold_and_scores(pipeline, Xval, yval, fnr_target):
     proba, p_faulty = fault_probability(pipeline, Xval)
     is_fault = fd_labels(yval) == 1
     threshold = fnr_threshold(p_faulty[is_fault], fnr_target)
-    idx0, _ = _decide(classes, proba, p_faulty, 0.5)
-    idx, _ = _decide(classes, proba, p_faulty, threshold)
+    idx0, _ = decide_classes(classes, proba, p_faulty, 0.5)
+    idx, _ = decide_classes(classes, proba, p_faulty, threshold)
     flagged = ~healthy_mask(classes[idx])
 
     def mean(a):
@@ -476,7 +504,7 @@ def _train_baseline_pipeline(path, sim, y, data, *, kind, n_estimators, min_samp
     pipe = make_fdi_pipeline(kind, "kpi_y+baseline", random_state=seed, n_estimators=n_estimators,
                              min_samples_leaf=min_samples_leaf).fit(Xtr, ytr)
     report(2, 4, f"fitted {kind} on kpi_y+baseline features")
-    threshold, scores = _threshold_and_scores(pipe, Xval, yval, fnr_target)
+    threshold, scores = threshold_and_scores(pipe, Xval, yval, fnr_target)
     report(3, 4, f"validation FI accuracy {100 * scores['validation_fi_accuracy']:.1f}%")
     config = {"kind": kind, "features": "kpi_y+baseline", **data,
               "n_estimators": int(n_estimators), "min_samples_leaf": int(min_samples_leaf),

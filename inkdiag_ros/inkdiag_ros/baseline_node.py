@@ -11,7 +11,7 @@ healthy f_m reading, the median over its first ``fm_frames`` valid rows, which
 the fe node subtracts (its ``baseline_path``); it costs about 1 ms of CPU per
 row (a 2,656-nozzle head: about 10 s for 3 frames). At ``timeout_s`` it writes the nozzles that are complete, says which are
 not, and exits with status 1 if none is. The fdi node uses the file
-(``baseline_path``, with a ``kpi_y+baseline`` model in ``baseline_model_path``),
+(``baseline_path``, classified by its model's baseline branch),
 and so does the fe node (``baseline_path``).
 
     record_baseline --ros-args -r __ns:=/head_07 -p output_path:=baselines/head_07.npz -p n_nozzles:=2656

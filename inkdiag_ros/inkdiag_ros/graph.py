@@ -13,7 +13,8 @@ once a second what the operator topics say, and at the end (after
 With ``--baseline`` the run starts as a printer after a purge: the simulated head
 is healthy for its first ``--commissioning`` seconds (``faults_start_s``) while
 ``record_baseline`` records every nozzle's healthy baseline; then fdi starts with
-those baselines and the ``kpi_y+baseline`` model, and fe with the nozzles'
+those baselines (classified by the model's baseline branch: ``--model`` must be a
+detector trained with one, as the default is), and fe with the nozzles'
 healthy f_m readings from the same file.
 """
 
@@ -124,8 +125,8 @@ def run(duration_s: float, *, namespace: str, model_path: str | None, args=None,
         context=None, baseline: dict | None = None) -> Scorecard:
     """Run the graph for ``duration_s`` (0: until shutdown) and return the scorecard.
 
-    ``baseline``: ``{"path": .npz to write, "model_path": kpi_y+baseline model,
-    "commissioning_s": healthy time, "n_frames": frames per nozzle}`` records the
+    ``baseline``: ``{"path": .npz to write, "commissioning_s": healthy time,
+    "n_frames": frames per nozzle}`` records the
     head's baselines first (see the module docstring).
     """
     own = context is None
@@ -176,8 +177,7 @@ def _run(duration_s, *, namespace, model_path, out, context, baseline, own) -> S
         def start_labelling():
             extra, fe_over = [], []
             if baseline and nodes[1].written:
-                extra = [Parameter("baseline_path", value=str(nodes[1].written)),
-                         Parameter("baseline_model_path", value=str(baseline["model_path"]))]
+                extra = [Parameter("baseline_path", value=str(nodes[1].written))]
                 fe_over = [Parameter("baseline_path", value=str(nodes[1].written))]
             for make in (lambda: _make(FdiNode, parameter_overrides=fdi_over + extra, **kw),
                          lambda: _make(FeNode, parameter_overrides=fe_over, **kw), lambda: OperatorMonitor(**kw)):
@@ -241,8 +241,6 @@ def main(args=None) -> int:
                         help="record every nozzle's healthy baseline first and label against it")
     parser.add_argument("--baseline-path", default=None,
                         help="where --baseline writes the baselines (default baselines/<namespace>.npz)")
-    parser.add_argument("--baseline-model", default="models/fdi_default_baseline.joblib",
-                        help="kpi_y+baseline model for --baseline")
     parser.add_argument("--commissioning", type=_commissioning_s, default=3.0,
                         help="seconds the head is healthy at the start with --baseline (0.1 .. 86400)")
     ns = parser.parse_args(remove_ros_args(argv)[1:])
@@ -258,12 +256,10 @@ def main(args=None) -> int:
         from .model_cache import DEFAULT_MODEL, ensure_default_model
 
         ns.model = str(ensure_default_model(ns.model or DEFAULT_MODEL))
-        if ns.baseline:
-            ns.baseline_model = str(ensure_default_model(ns.baseline_model))
     baseline = None
     if ns.baseline:
         path = ns.baseline_path or f"baselines/{ns.namespace.strip('/').replace('/', '_') or 'head'}.npz"
-        baseline = {"path": path, "model_path": ns.baseline_model, "commissioning_s": ns.commissioning}
+        baseline = {"path": path, "commissioning_s": ns.commissioning}
     print(f"inkdiag graph: printhead_sim -> fdi -> fe in {ns.namespace}, "
           f"{'until Ctrl-C' if ns.duration <= 0 else f'{ns.duration:g} s'} (Ctrl-C stops early)"
           + (f"; per-nozzle baselines recorded in the first {ns.commissioning:g} s" if baseline else ""))

@@ -5,7 +5,7 @@ messages) and the labelling thread share one GIL, and the labelling runs many
 short numpy calls that hold it: the two threads together use about one core
 (``scripts/bench graph``). A :class:`LabellingProcess` keeps the FDI model in
 a child process and labels each batch there with
-:func:`inkdiag_core.label_frames`: the parent copies the batch's traces into
+:meth:`inkdiag_core.FrameLabeller.label`: the parent copies the batch's traces into
 shared memory (one memcpy; the child labels them in place) and gets the
 :class:`inkdiag_core.FrameLabels` back over a pipe. The child is started with
 ``spawn``: it inherits no rclpy or DDS state, imports only the core, and is
@@ -48,15 +48,17 @@ class LabellingProcess:
 
     Parameters
     ----------
-    pipeline : fitted scikit-learn classifier, as for :func:`inkdiag_core.label_frames`
-        Pickled into the child once, at its start.
+    labeller : inkdiag_core.FrameLabeller, or a fitted scikit-learn classifier
+        Pickled into the child once, at its start; the child labels each batch
+        with its :meth:`~inkdiag_core.FrameLabeller.label`. A bare classifier (the
+        previous interface) is labelled with :func:`inkdiag_core.label_frames_isolated`
+        and ``fd_threshold``, ``baseline``, ``max_abs_v`` (ignored with a FrameLabeller).
     fd_threshold : float
-        Fault-detection threshold (:func:`inkdiag_core.label_frames`).
+        Fault-detection threshold of a bare classifier.
     baseline : inkdiag_core.BaselineModel, optional
-        Per-nozzle baselines and their model (:func:`inkdiag_core.label_frames`).
+        Per-nozzle baselines and their model, with a bare classifier.
     max_abs_v : float, optional
-        Largest sample magnitude a sensor can produce, V; rows beyond it are
-        invalid, ``"out_of_range"`` (:func:`inkdiag_core.label_frames`).
+        Largest sample magnitude a sensor can produce, V, with a bare classifier.
     depth : int
         Batches submitted and not yet collected, at most; each has its own
         shared trace buffer.
@@ -73,11 +75,16 @@ class LabellingProcess:
     pipe, including when the parent dies.
     """
 
-    def __init__(self, pipeline, *, fd_threshold: float = 0.5, baseline=None, max_abs_v=None, depth: int = 2,
+    def __init__(self, labeller, *, fd_threshold: float = 0.5, baseline=None, max_abs_v=None, depth: int = 2,
                  capacity_bytes: int = 8 << 20, poll_s: float = 0.5):
         if depth < 1:
             raise ValueError(f"depth must be >= 1, got {depth}")
-        self._args = (pipeline, float(fd_threshold), baseline, None if max_abs_v is None else float(max_abs_v))
+        from inkdiag_core import FrameLabeller
+
+        if not isinstance(labeller, FrameLabeller):  # a bare pipeline (the previous interface)
+            labeller = _PipelineLabeller(labeller, float(fd_threshold), baseline,
+                                         None if max_abs_v is None else float(max_abs_v))
+        self._args = (labeller,)
         self._poll_s = float(poll_s)
         self._ctx = multiprocessing.get_context("spawn")
         self._lock = threading.Lock()  # the child, its pipes, the buffers and the queue of batches out
@@ -217,9 +224,9 @@ class LabellingProcess:
         Returns
         -------
         list
-            Per frame of that batch, its :class:`inkdiag_core.FrameLabels`, or a
-            ``str`` saying why labelling it failed (the exception labelling it
-            alone raised).
+            Per frame of that batch, what the labeller's ``label`` gave: its
+            :class:`inkdiag_core.FrameLabels`, or an :class:`inkdiag_core.FrameFailure`
+            (a ``str`` with a bare classifier).
 
         Raises
         ------
@@ -367,7 +374,7 @@ def _unlink(shm) -> None:
         pass
 
 
-def _child_main(requests, results, pipeline, fd_threshold, baseline, max_abs_v) -> None:
+def _child_main(requests, results, labeller) -> None:
     """The child: take batches from shared memory, label them, send the labels, until told to stop."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
@@ -395,16 +402,27 @@ def _child_main(requests, results, pipeline, fd_threshold, baseline, max_abs_v) 
             buffers[slot] = shared_memory.SharedMemory(name=name)
         t0 = time.perf_counter()
         specs, first_nozzles = pickle.loads(buffers[slot].buf[meta_at:meta_at + meta_len])
-        out = _label_views(buffers[slot], specs, first_nozzles, pipeline, fd_threshold, baseline, max_abs_v)
+        out = _label_views(buffers[slot], specs, first_nozzles, labeller)
         results.send(("labels", (out, time.perf_counter() - t0)))
     for shm in buffers.values():
         shm.close()
 
 
-def _label_views(shm, specs, first_nozzles, pipeline, fd_threshold, baseline, max_abs_v) -> list:
+def _label_views(shm, specs, first_nozzles, labeller) -> list:
     """Label the frames at ``specs`` in ``shm``; no view into the buffer outlives the call."""
-    from inkdiag_core import label_frames_isolated
-
     arrays = [np.ndarray(shape, dtype, buffer=shm.buf, offset=off) for off, shape, dtype in specs]
-    return label_frames_isolated(pipeline, arrays, fd_threshold=fd_threshold, first_nozzles=first_nozzles,
-                                 baseline=baseline, max_abs_v=max_abs_v)
+    return labeller.label(arrays, first_nozzles)
+
+
+class _PipelineLabeller:
+    """A bare classifier with its threshold, baselines and range check: the previous interface."""
+
+    def __init__(self, pipeline, fd_threshold, baseline, max_abs_v):
+        self.args = (pipeline, fd_threshold, baseline, max_abs_v)
+
+    def label(self, frames, first_nozzles) -> list:
+        from inkdiag_core import label_frames_isolated
+
+        pipeline, fd_threshold, baseline, max_abs_v = self.args
+        return label_frames_isolated(pipeline, frames, fd_threshold=fd_threshold, first_nozzles=first_nozzles,
+                                     baseline=baseline, max_abs_v=max_abs_v)

@@ -1,18 +1,14 @@
-"""The default FDI models on disk: verify them, or train and save them with a progress bar.
+"""The default FDI model on disk: verify it, or train and save it with a progress bar.
 
 Training is the core's :func:`inkdiag_core.fdi.train_default_model`; this
 module only decides when (missing or unverifiable file) and shows progress.
-Two defaults for now:
+The default, ``models/fdi_default.joblib``, is one :class:`inkdiag_core.FaultDetector`
+with both branches (KPI_Y for every nozzle, and KPI_Y + the nozzle's recorded
+healthy baseline) and its thresholds inside (:func:`inkdiag_core.load_detector`
+reads it; the fdi node takes it as ``model_path``, and its ``baseline_path``
+alone turns the baseline branch on).
 
-- ``models/fdi_default.joblib``: one :class:`inkdiag_core.FaultDetector` with both
-  branches (KPI_Y for every nozzle, and KPI_Y + the nozzle's recorded healthy
-  baseline), its thresholds inside (:func:`inkdiag_core.load_detector` reads it;
-  :func:`inkdiag_core.load_model` still reads it as the plain KPI_Y model);
-- ``models/fdi_default_baseline.joblib``: the previous ``"kpi_y+baseline"`` pipeline
-  file, for the fdi node's ``baseline_model_path`` until the node loads detectors
-  (its forest and threshold are the detector's baseline branch's).
-
-    python -m inkdiag_ros.model_cache [models/fdi_default_baseline.joblib]
+    python -m inkdiag_ros.model_cache [models/fdi_default.joblib]
 """
 
 from __future__ import annotations
@@ -26,9 +22,8 @@ from inkdiag_core import ModelFileError, load_model
 from inkdiag_core.fdi import train_default_model as _core_train
 
 DEFAULT_MODEL = Path("models") / "fdi_default.joblib"
-DEFAULT_BASELINE_MODEL = Path("models") / "fdi_default_baseline.joblib"
 #: Feature set of each default file name.
-DEFAULT_FEATURES = {DEFAULT_MODEL.name: "kpi_y", DEFAULT_BASELINE_MODEL.name: "kpi_y+baseline"}
+DEFAULT_FEATURES = {DEFAULT_MODEL.name: "kpi_y"}
 #: Training settings that define the default model; a cached file trained otherwise is stale.
 DEFAULT_SETTINGS = ("kind", "features", "n_per_class", "seed", "n_estimators", "min_samples_leaf", "fnr_target",
                     "baseline")
@@ -37,8 +32,7 @@ DEFAULT_SETTINGS = ("kind", "features", "n_per_class", "seed", "n_estimators", "
 def default_config(name: str = DEFAULT_MODEL.name) -> dict:
     """The training settings of the default model file ``name`` (:data:`DEFAULT_FEATURES`).
 
-    ``fdi_default.joblib`` is a detector with its baseline branch (``baseline=True``);
-    the ``"kpi_y+baseline"`` pipeline file has no ``baseline`` setting.
+    ``fdi_default.joblib`` is a detector with its baseline branch (``baseline=True``).
     """
     params = inspect.signature(_core_train).parameters
     cfg = {k: params[k].default for k in DEFAULT_SETTINGS}
@@ -69,8 +63,7 @@ def train_default_model(path, *, progress=True, **kwargs):
 def ensure_default_model(path=DEFAULT_MODEL, *, progress=True, log=print):
     """Return ``path`` after making sure it holds a model that verifies; train one if not.
 
-    A file named like a default (:data:`DEFAULT_FEATURES`: ``fdi_default.joblib``,
-    ``fdi_default_baseline.joblib``) is trained with that default's settings, and
+    A file named like the default (:data:`DEFAULT_FEATURES`: ``fdi_default.joblib``) is trained with that default's settings, and
     one that verifies but was trained with other settings than the current
     defaults (:func:`default_config`, e.g. after an upgrade changed them) is
     retrained too; any other model file is the user's own and is only verified
@@ -99,8 +92,8 @@ def ensure_default_model(path=DEFAULT_MODEL, *, progress=True, log=print):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m inkdiag_ros.model_cache", description=__doc__.splitlines()[0])
-    ap.add_argument("paths", nargs="*", default=[str(DEFAULT_MODEL), str(DEFAULT_BASELINE_MODEL)],
-                    help="model files to verify or train (default: both defaults)")
+    ap.add_argument("paths", nargs="*", default=[str(DEFAULT_MODEL)],
+                    help="model files to verify or train (default: the default model)")
     for p in ap.parse_args(argv).paths:
         print(f"{ensure_default_model(p)}: verified")
     return 0

@@ -1,0 +1,191 @@
+"""Label frames of traces with one :class:`inkdiag_core.FaultDetector`: :class:`FrameLabeller`.
+
+A :class:`FrameLabeller` is what the fdi node labels with: the detector, the
+head's recorded per-nozzle baselines (optional) and the node's input checks
+(sample rate, samples per trace, largest plausible sample). It holds the rules
+that say whether a detector and a baselines file go together, so a node only
+reports :class:`LabellerConfigError`, and it validates each frame once:
+
+1. each frame's shape (per frame: a bad one is a :class:`FrameFailure`, the others go on);
+2. one screening of every row (:func:`inkdiag_core.screen_traces`, ``max_abs_v``);
+3. one :meth:`inkdiag_core.FaultDetector.label` call for all valid rows of the batch,
+   each row routed to the baseline branch when its nozzle has a baseline;
+4. if that call raises, each frame alone, so one bad frame costs only itself.
+
+No ROS in here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .baseline import NozzleBaselines
+from .detector import FaultDetector
+from .labelling import FrameLabels
+from .screening import screen_traces
+
+__all__ = ["FrameFailure", "FrameInputError", "FrameLabeller", "LabellerConfigError"]
+
+
+class LabellerConfigError(ValueError):
+    """A detector, a baselines file and the node's settings that do not go together."""
+
+
+class FrameInputError(ValueError):
+    """A frame that cannot be labelled as given (wrong shape or sample count)."""
+
+
+@dataclass(frozen=True)
+class FrameFailure:
+    """One frame of a batch that was not labelled.
+
+    frame_index : int -- its position in the batch
+    error : BaseException -- why (:class:`FrameInputError` for a bad frame; any other
+        exception is an error of the labelling itself)
+    """
+
+    frame_index: int
+    error: BaseException
+
+    @property
+    def why(self) -> str:
+        """``"<ExceptionType>: <message>"``."""
+        return f"{type(self.error).__name__}: {self.error}"
+
+
+class FrameLabeller:
+    """Screen and classify frames of traces with a :class:`FaultDetector`, each frame isolated.
+
+    Parameters
+    ----------
+    detector : FaultDetector
+        Fitted (:func:`inkdiag_core.load_detector`).
+    baselines : NozzleBaselines, optional
+        The head's recorded healthy baselines. Used only when the detector has a
+        baseline branch (else :class:`LabellerConfigError` if any nozzle has one).
+    sample_rate_hz : float, optional
+        Sample rate of the frames, Hz; must be the detector's (and the baselines').
+    n_samples : int, optional
+        Samples per trace; must be the detector's ``n_features_in_`` (and the
+        baselines'). None: the detector's.
+    max_abs_v : float, optional
+        Largest sample magnitude a sensor can produce, V: rows beyond it are
+        invalid, ``"out_of_range"``. None: no such check.
+
+    Raises
+    ------
+    LabellerConfigError
+        Not a fitted FaultDetector; its sample rate or trace length differ from
+        ``sample_rate_hz`` / ``n_samples``; the baselines' differ; or baselines with
+        nozzles were given to a detector without a baseline branch.
+    """
+
+    def __init__(self, detector, baselines: NozzleBaselines | None = None, *, sample_rate_hz: float | None = None,
+                 n_samples: int | None = None, max_abs_v: float | None = None):
+        if not isinstance(detector, FaultDetector) or not hasattr(detector, "pipeline_"):
+            raise LabellerConfigError(f"a fitted FaultDetector is needed, got {type(detector).__name__}; "
+                                      "retrain the model: python -m inkdiag_ros.model_cache")
+        want_fs = float(detector.sample_rate_hz)
+        want_n = int(detector.n_features_in_)
+        if sample_rate_hz is not None and float(sample_rate_hz) != want_fs:
+            raise LabellerConfigError(f"the model is for {want_fs:g} Hz, the frames are {float(sample_rate_hz):g} Hz")
+        if n_samples is not None and int(n_samples) != want_n:
+            raise LabellerConfigError(f"the model is for {want_n} samples per trace, the frames have {int(n_samples)}")
+        if baselines is not None:
+            got = (float(baselines.sample_rate_hz), int(baselines.n_samples))
+            if got != (want_fs, want_n):
+                raise LabellerConfigError(f"the baselines are for {got[0]:g} Hz x {got[1]} samples, the model "
+                                          f"for {want_fs:g} Hz x {want_n}")
+            if len(baselines) and detector.baseline_pipeline_ is None:
+                raise LabellerConfigError(f"{detector.model_id} has no baseline branch: per-nozzle baselines "
+                                          "need a detector trained with baseline=True")
+        self.detector = detector
+        self.baselines = baselines if baselines is not None and len(baselines) else None
+        self.n_samples = want_n
+        self.max_abs_v = None if max_abs_v is None else float(max_abs_v)
+
+    @property
+    def model_id(self) -> str:
+        """The detector's :attr:`FaultDetector.model_id` (``+baseline`` when it has that branch)."""
+        return self.detector.model_id
+
+    @property
+    def uses_baselines(self) -> bool:
+        """Rows of nozzles with a recorded baseline are classified against it."""
+        return self.baselines is not None
+
+    def label(self, frames, first_nozzles) -> list:
+        """Label a batch of frames: one screening and one detector call, each frame isolated.
+
+        Parameters
+        ----------
+        frames : sequence of array_like, each of shape (n_i, n_samples)
+            Traces, V.
+        first_nozzles : sequence of int
+            Each frame's first nozzle id (row ``j`` of frame ``i`` is nozzle
+            ``first_nozzles[i] + j``).
+
+        Returns
+        -------
+        list
+            Per frame, in order: its :class:`FrameLabels` (n_i rows; invalid rows
+            with their reason: screening's, or ``"non_finite_features"``), or a
+            :class:`FrameFailure` (a :class:`FrameInputError` for a frame of the
+            wrong shape; the exception labelling it alone raised otherwise).
+        """
+        if len(frames) != len(first_nozzles):
+            raise ValueError(f"{len(frames)} frames but {len(first_nozzles)} first nozzle ids")
+        out: list = [None] * len(frames)
+        good, arrays = [], []
+        for i, f in enumerate(frames):
+            a = np.asarray(f)
+            if a.ndim != 2 or a.shape[1] != self.n_samples:
+                out[i] = FrameFailure(i, FrameInputError(
+                    f"frame {i} has shape {a.shape}, the model takes (n, {self.n_samples})"))
+            else:
+                good.append(i)
+                arrays.append(a)
+        if not good:
+            return out
+        firsts = [int(first_nozzles[i]) for i in good]
+        try:
+            rows = self._label_rows(arrays, firsts)
+        except Exception:  # noqa: BLE001 - find the frame(s) at fault: each alone
+            for i, a, first in zip(good, arrays, firsts):
+                try:
+                    out[i] = self._label_rows([a], [first])[0]
+                except Exception as exc:  # noqa: BLE001 - this frame's failure, reported by the caller
+                    out[i] = FrameFailure(i, exc)
+            return out
+        for i, r in zip(good, rows):
+            out[i] = r
+        return out
+
+    def _label_rows(self, arrays, firsts) -> list:
+        """Screen and classify frames of the right width together; a list of FrameLabels."""
+        x = np.concatenate(arrays) if len(arrays) > 1 else arrays[0]
+        n = x.shape[0]
+        valid, reasons = screen_traces(x, max_abs_v=self.max_abs_v)
+        classes = np.full(n, "", dtype=object)
+        confidence = np.full(n, np.nan)
+        with_base = np.zeros(n, dtype=bool)
+        at = np.flatnonzero(valid)
+        if at.size:
+            kpis = None
+            if self.baselines is not None:
+                ids = np.concatenate([f + np.arange(a.shape[0]) for f, a in zip(firsts, arrays)])
+                has, kpis = self.baselines.lookup(ids[at])
+                kpis[~has] = np.nan  # routed to the plain branch
+            got = self.detector.label(x if at.size == n else x[at], baseline_kpis=kpis)
+            ok = at[got.valid]
+            classes[ok] = got.classes[got.valid].astype(str).astype(object)
+            confidence[ok] = got.confidence[got.valid]
+            reasons[at[~got.valid]] = "non_finite_features"
+            with_base[at] = got.baseline
+        valid = reasons == ""
+        with_base &= valid
+        cuts = np.cumsum([a.shape[0] for a in arrays])[:-1]
+        cols = (classes, confidence, valid, reasons, with_base)
+        return [FrameLabels(*p) for p in zip(*(np.split(col, cuts) for col in cols))]

@@ -1,0 +1,145 @@
+"""inkdiag_core.frame_labeller: FrameLabeller labels as the previous label_frames path, each frame isolated."""
+
+import numpy as np
+import pytest
+
+from inkdiag_core import (
+    BaselineModel,
+    BaselineRecorder,
+    FaultClass,
+    FrameFailure,
+    FrameInputError,
+    FrameLabeller,
+    FrameLabels,
+    LabellerConfigError,
+    NozzleBaselines,
+    label_frames_isolated,
+    load_detector,
+    simulate_nozzles,
+)
+
+HEAD, N, FIRST = 31, 96, 200
+
+
+@pytest.fixture(scope="module")
+def detector(fdi_baseline_model):
+    return load_detector(fdi_baseline_model)
+
+
+@pytest.fixture(scope="module")
+def baselines():
+    """Baselines of nozzles FIRST .. FIRST+N-1 of a seeded head, without FIRST+40 .. FIRST+59."""
+    rec = BaselineRecorder(n_frames=4)
+    for k in range(4):
+        rec.add(FIRST, simulate_nozzles(["healthy_nozzle"] * N, seed=HEAD, frame_seed=k).traces)
+    b = rec.baselines()
+    keep = (b.nozzle_ids < FIRST + 40) | (b.nozzle_ids >= FIRST + 60)
+    return NozzleBaselines(b.nozzle_ids[keep], b.kpis[keep], b.sample_rate_hz, b.n_samples, b.n_frames)
+
+
+def _head_frames():
+    """A seeded head's frame of every class, in 4 nozzle ranges, with invalid and hostile rows."""
+    classes = np.array(list(FaultClass), dtype=object)[np.arange(N) % 12]
+    x = simulate_nozzles(classes, seed=HEAD, frame_seed=77).traces.astype(np.float32)
+    x[3, 10] = np.nan  # non_finite
+    x[20, :] = 0.25  # flat
+    x[50, 7] = 50.0  # beyond max_abs_v: out_of_range
+    cuts = [0, 30, 41, 70, N]
+    return [x[a:b] for a, b in zip(cuts, cuts[1:])], [FIRST + a for a in cuts[:-1]]
+
+
+def _previous(detector, frames, firsts, baselines=None, max_abs_v=10.0):
+    """The labels of the previous fdi path: label_frames_isolated with the detector's loose pieces."""
+    base = None if baselines is None else BaselineModel(detector.baseline_pipeline_, baselines,
+                                                        detector.baseline_fd_threshold_)
+    return label_frames_isolated(detector.pipeline_, frames, fd_threshold=detector.fd_threshold_,
+                                 first_nozzles=firsts, baseline=base, max_abs_v=max_abs_v)
+
+
+def _same(got, want):
+    assert len(got) == len(want)
+    for g, w in zip(got, want):
+        assert isinstance(g, FrameLabels)
+        assert list(g.classes) == list(w.classes) and list(g.reasons) == list(w.reasons)
+        np.testing.assert_array_equal(g.confidence, w.confidence)  # bit-identical, NaN where invalid
+        np.testing.assert_array_equal(g.valid, w.valid)
+        np.testing.assert_array_equal(g.baseline, w.baseline)
+
+
+@pytest.mark.parametrize("with_baselines", [False, True])
+def test_labels_are_bit_identical_to_the_previous_path(detector, baselines, with_baselines):
+    frames, firsts = _head_frames()
+    b = baselines if with_baselines else None
+    got = FrameLabeller(detector, b, sample_rate_hz=10e6, n_samples=512, max_abs_v=10.0).label(frames, firsts)
+    _same(got, _previous(detector, frames, firsts, b))
+    reasons = np.concatenate([g.reasons for g in got])
+    assert reasons[3] == "non_finite" and reasons[20] == "flat" and reasons[50] == "out_of_range"
+    used = np.concatenate([g.baseline for g in got])
+    assert used.sum() == (N - 20 - 2 if with_baselines else 0)  # 20 nozzles without a baseline, 2 invalid
+    assert not used[40:60].any()
+
+
+def test_a_bad_frame_costs_only_itself(detector, baselines):
+    frames, firsts = _head_frames()
+    lab = FrameLabeller(detector, baselines, max_abs_v=10.0)
+    bad = [frames[0], np.zeros(512, np.float32), frames[1][:, :256], frames[2]]
+    got = lab.label(bad, [firsts[0], 0, firsts[1], firsts[2]])
+    assert [type(g).__name__ for g in got] == ["FrameLabels", "FrameFailure", "FrameFailure", "FrameLabels"]
+    assert got[1].frame_index == 1 and isinstance(got[1].error, FrameInputError)
+    assert isinstance(got[2].error, ValueError) and "(n, 512)" in got[2].why
+    _same([got[0], got[3]], _previous(detector, [frames[0], frames[2]], [firsts[0], firsts[2]], baselines))
+
+
+def test_a_frame_the_detector_refuses_fails_alone(detector, monkeypatch):
+    frames, firsts = _head_frames()
+    lab = FrameLabeller(detector, max_abs_v=10.0)
+    real = type(detector).label
+
+    def refuse_frame_two(self, X, **kw):  # the batch and frame 2 alone raise; the others label
+        if any(np.array_equal(r, frames[2][0]) for r in np.asarray(X)[:1]) or len(X) > 60:
+            raise RuntimeError("boom")
+        return real(self, X, **kw)
+
+    monkeypatch.setattr(type(detector), "label", refuse_frame_two)
+    got = lab.label(frames, firsts)
+    assert [isinstance(g, FrameFailure) for g in got] == [False, False, True, False]
+    assert isinstance(got[2].error, RuntimeError) and got[2].why == "RuntimeError: boom"
+
+
+def test_a_row_whose_features_overflow_is_invalid_not_its_frame(detector):
+    frames, firsts = _head_frames()
+    f = frames[0].astype(np.float64)
+    f[5] = 1e30 * np.sign(np.sin(np.arange(512)) + 0.1)  # finite, but its energy overflows
+    got = FrameLabeller(detector).label([f], [firsts[0]])[0]  # no max_abs_v: screening passes it
+    assert got.reasons[5] == "non_finite_features" and not got.valid[5] and got.classes[5] == ""
+    assert got.valid.sum() == f.shape[0] - 3  # and rows 3 (NaN) and 20 (flat)
+    _same([got], _previous(detector, [f], [firsts[0]], max_abs_v=None))
+
+
+def test_compatibility_rules_are_typed_errors(detector, fdi_model, baselines):
+    plain = load_detector(fdi_model)
+    with pytest.raises(LabellerConfigError, match="5e\\+06 Hz"):
+        FrameLabeller(detector, sample_rate_hz=5e6)
+    with pytest.raises(LabellerConfigError, match="256"):
+        FrameLabeller(detector, n_samples=256)
+    other = NozzleBaselines(np.arange(3), np.ones((3, 7)), 10e6, 256, 4)
+    with pytest.raises(LabellerConfigError, match="256 samples"):
+        FrameLabeller(detector, other)
+    with pytest.raises(LabellerConfigError, match="no baseline branch"):
+        FrameLabeller(plain, baselines)
+    with pytest.raises(LabellerConfigError, match="model_cache"):
+        FrameLabeller(detector.pipeline_)
+    assert issubclass(LabellerConfigError, ValueError) and issubclass(FrameInputError, ValueError)
+    assert FrameLabeller(plain).model_id == plain.model_id and not FrameLabeller(plain).uses_baselines
+    assert FrameLabeller(detector, baselines).model_id.startswith("fdi-rf-kpi_y+baseline-")
+
+
+def test_results_pickle_for_the_labelling_process(detector, baselines):
+    import pickle
+
+    frames, firsts = _head_frames()
+    lab = FrameLabeller(detector, baselines, max_abs_v=10.0)
+    got = pickle.loads(pickle.dumps(lab)).label(frames + [np.zeros(3)], firsts + [0])
+    _same(got[:-1], _previous(detector, frames, firsts, baselines))
+    back = pickle.loads(pickle.dumps(got[-1]))
+    assert isinstance(back, FrameFailure) and isinstance(back.error, FrameInputError) and back.frame_index == 4
