@@ -135,7 +135,7 @@ def test_fdi_labels_injected_faults_and_publishes_drying_and_diagnostics(ros, fd
     traces, truth = _frames_of({FaultClass.HEALTHY_NOZZLE: 20, FaultClass.FULLY_BLOCKED: 4,
                                 FaultClass.EMPTY_CHANNEL_1: 4, FaultClass.DEEPLY_DRIED: 4})
     rig = _Rig(ros, fdi_model, labelling_process=in_child)
-    assert (type(rig.fdi._backend).__name__ == "ProcessBackend") == in_child
+    assert (type(rig.fdi._pipeline.backend).__name__ == "ProcessBackend") == in_child
     rig.send(encode_traces(traces, first_nozzle=10, frame_id=5, stamp=100.25), expect_labels=True)
     rep = rig.labels[-1]
     assert (rep.frame_id, rep.stamp, rep.first_nozzle, rep.n_nozzles) == (5, 100.25, 10, 32)
@@ -219,7 +219,7 @@ def test_fdi_counts_the_frames_its_killed_labelling_process_had_and_labels_on(ro
     traces, _ = _frames_of({FaultClass.HEALTHY_NOZZLE: 24, FaultClass.FULLY_BLOCKED: 8}, seed=5)
     rig = _Rig(ros, fdi_model, labelling_process=True)
     rig.send(encode_traces(traces, frame_id=1), expect_labels=True)
-    first = rig.fdi._backend.pid
+    first = rig.fdi._pipeline.backend.pid
     os.kill(first, signal.SIGKILL)
     s = rig.fdi.stats
     rig.send(encode_traces(traces, frame_id=2), expect_labels=False)
@@ -228,14 +228,14 @@ def test_fdi_counts_the_frames_its_killed_labelling_process_had_and_labels_on(ro
     rig.send(encode_traces(traces, frame_id=3), expect_labels=True)
     ros.spin_until(lambda: rig.fdi.wait_idle(0.01), 15, "idle")
     assert s.frames_failed == 1 and "labelling process exited" in s.last_error
-    assert [r.frame_id for r in rig.labels] == [1, 3] and rig.fdi._backend.pid not in (None, first)
+    assert [r.frame_id for r in rig.labels] == [1, 3] and rig.fdi._pipeline.backend.pid not in (None, first)
     assert s.frames_received == s.frames_labelled + s.frames_failed == 3
 
 
 def test_fdi_labels_on_a_thread_when_no_labelling_process_can_start(ros, fdi_model):
     traces, _ = _frames_of({FaultClass.HEALTHY_NOZZLE: 24, FaultClass.FULLY_BLOCKED: 8}, seed=6)
     rig = _Rig(ros, fdi_model, labelling_process=True)
-    rig.fdi._backend._process._fatal = "its imports failed"  # as after a child that died before it was ready
+    rig.fdi._pipeline.backend._process._fatal = "its imports failed"  # as after a child that died before it was ready
     rig.send(encode_traces(traces, frame_id=1), expect_labels=True)
     rig.send(encode_traces(traces, frame_id=2), expect_labels=True)
     s = rig.fdi.stats

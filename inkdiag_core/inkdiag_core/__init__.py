@@ -94,6 +94,6 @@ from .detector import DetectorLabels, FaultDetector  # noqa: E402
 
 __all__ += ["DetectorLabels", "FaultDetector"]
 
-from .frame_labeller import FrameFailure, FrameInputError, FrameLabeller, LabellerConfigError  # noqa: E402
+from .frame_labeller import FrameFailure, FrameInputError, FrameLabeller, LabellerConfigError, load_labeller  # noqa: E402
 
-__all__ += ["FrameFailure", "FrameInputError", "FrameLabeller", "LabellerConfigError"]
+__all__ += ["FrameFailure", "FrameInputError", "FrameLabeller", "LabellerConfigError", "load_labeller"]

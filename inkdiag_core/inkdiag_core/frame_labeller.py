@@ -21,12 +21,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .baseline import NozzleBaselines
+from .baseline import BaselineFileError, NozzleBaselines
 from .detector import FaultDetector
+from .persistence import load_detector
 from .labelling import FrameLabels
 from .screening import screen_traces
 
-__all__ = ["FrameFailure", "FrameInputError", "FrameLabeller", "LabellerConfigError"]
+__all__ = ["FrameFailure", "FrameInputError", "FrameLabeller", "LabellerConfigError", "load_labeller"]
 
 
 class LabellerConfigError(ValueError):
@@ -189,3 +190,42 @@ class FrameLabeller:
         cuts = np.cumsum([a.shape[0] for a in arrays])[:-1]
         cols = (classes, confidence, valid, reasons, with_base)
         return [FrameLabels(*p) for p in zip(*(np.split(col, cuts) for col in cols))]
+
+
+def load_labeller(model_path, baseline_path=None, **checks):
+    """A :class:`FrameLabeller` of a model file, with the head's baselines if they load and fit.
+
+    What a node does at start: the model must load (:func:`inkdiag_core.load_detector`,
+    verified before unpickling) and fit the node's ``checks``; baselines that do not
+    load or do not fit the model are left out and the labeller labels without them.
+
+    Parameters
+    ----------
+    model_path : str or Path
+        A FaultDetector file.
+    baseline_path : str or Path, optional
+        The head's recorded baselines (:meth:`NozzleBaselines.load`); empty or None: none.
+    **checks
+        ``sample_rate_hz``, ``n_samples``, ``max_abs_v`` as for :class:`FrameLabeller`.
+
+    Returns
+    -------
+    labeller : FrameLabeller
+    baseline_error : BaselineFileError, LabellerConfigError, OSError or None
+        Why the baselines were left out (None: used, or none given).
+
+    Raises
+    ------
+    ModelFileError
+        The model file is missing, tampered with, from other library versions, or not a
+        FaultDetector (an older plain-pipeline file: retrain it).
+    LabellerConfigError
+        The model does not fit ``checks``.
+    """
+    labeller = FrameLabeller(load_detector(model_path), **checks)
+    if not baseline_path:
+        return labeller, None
+    try:
+        return FrameLabeller(labeller.detector, NozzleBaselines.load(baseline_path), **checks), None
+    except (BaselineFileError, LabellerConfigError, OSError) as exc:
+        return labeller, exc

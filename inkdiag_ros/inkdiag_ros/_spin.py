@@ -163,3 +163,18 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None) -> 
                 node.destroy_node()
             rclpy.try_shutdown()
     return 0 if exit_code is None else exit_code(node)
+
+
+def take_queued(subscription, at_most: int):
+    """Messages already queued on ``subscription``, taken as rclpy's executor takes them.
+
+    A subscription callback that drains its reader this way handles a burst (a head
+    scan's nozzle-range messages) in one executor wake-up and wait-set rebuild instead
+    of one per message. Yields at most ``at_most`` messages.
+    """
+    for _ in range(at_most):
+        with subscription.handle:
+            taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+        if taken is None:
+            return
+        yield taken[0]

@@ -20,16 +20,19 @@ No ROS in here.
 
 from __future__ import annotations
 
+import queue
 import threading
 import time
 from collections import deque
-from typing import NamedTuple, Protocol
+from typing import Callable, NamedTuple, Protocol
 
 from inkdiag_core import FrameFailure
 
+from .batching import BatchWorker
 from .labelling_process import LabellingProcess, LabellingProcessError
 
-__all__ = ["LabelledBatch", "LabellingBackend", "ProcessBackend", "ThreadBackend", "make_backend"]
+__all__ = ["LabelledBatch", "LabellingBackend", "LabellingPipeline", "ProcessBackend", "ThreadBackend",
+           "make_backend"]
 
 
 class LabelledBatch(NamedTuple):
@@ -170,3 +173,78 @@ def make_backend(labeller, *, in_process: bool):
         except LabellingProcessError as exc:
             return ThreadBackend(labeller), f"labelling in this process: {exc}"
     return ThreadBackend(labeller), None
+
+
+class LabellingPipeline:
+    """Frames in from any thread; each frame's result out, in order, on one collector thread.
+
+    A :class:`.batching.BatchWorker` takes every frame queued while the backend was
+    busy and submits them as one batch (at most ``backend.depth`` batches out); a
+    collector thread collects each batch in order and calls ``on_result(frame,
+    result)`` for every frame of it (``result``: a :class:`inkdiag_core.FrameLabels`
+    or an :class:`inkdiag_core.FrameFailure`; a batch the backend lost fails every
+    frame of it), then ``on_batch(n_frames, busy_s)``. This is the whole
+    concurrency of the fdi node; the node only decodes, submits and publishes.
+
+    Parameters
+    ----------
+    backend : ThreadBackend or ProcessBackend
+    on_result : callable(frame, result) -> None
+        Runs on the collector thread; must not raise (what it raises is lost).
+    on_batch : callable(n_frames: int, busy_s: float) -> None, optional
+    on_drop : callable(frame) -> None, optional
+        A frame dropped unlabelled from a full queue (``max_queued``).
+    max_queued, max_batch_rows : int
+        As for :class:`.batching.BatchWorker`.
+    """
+
+    def __init__(self, backend, on_result: Callable, *, on_batch: Callable | None = None,
+                 on_drop: Callable | None = None, max_queued: int = 64, max_batch_rows: int = 16384,
+                 name: str = "labeller"):
+        self.backend = backend
+        self._on_result, self._on_batch = on_result, on_batch or (lambda n, busy_s: None)
+        self._handed_on = queue.SimpleQueue()  # (frames, error or None) per batch submitted, in order
+        self._worker = BatchWorker(self._submit, max_queued=max_queued, max_batch_rows=max_batch_rows,
+                                   on_drop=on_drop or (lambda frame: None), name=name,
+                                   max_in_flight=backend.depth)
+        self._collector = threading.Thread(target=self._collect, name=f"{name}-collector", daemon=True)
+        self._collector.start()
+
+    def submit(self, frame) -> None:
+        """Queue one decoded frame (``.traces`` (n, n_samples), ``.first_nozzle``)."""
+        self._worker.submit(frame, rows=frame.traces.shape[0])
+
+    def wait_idle(self, timeout: float | None = None) -> bool:
+        """Block until every submitted frame's result was handed to ``on_result``."""
+        return self._worker.wait_idle(timeout)
+
+    def close(self) -> None:
+        """Stop taking frames, hand out the results of the batches out, close the backend."""
+        self._worker.stop()
+        self._handed_on.put(None)  # after the batches out: their results are handed out first
+        self._collector.join(10.0)
+        self.backend.close()
+
+    def _submit(self, frames) -> None:
+        try:
+            self.backend.submit([f.traces for f in frames], [f.first_nozzle for f in frames])
+        except Exception as exc:  # noqa: BLE001 - not out in the backend: every frame of it fails
+            self._handed_on.put((frames, exc))
+        else:
+            self._handed_on.put((frames, None))
+
+    def _collect(self) -> None:
+        while (item := self._handed_on.get()) is not None:
+            frames, error = item
+            try:
+                if error is not None:
+                    raise error
+                results, busy_s = self.backend.collect()
+            except Exception as exc:  # noqa: BLE001 - the batch is lost: each of its frames fails
+                results, busy_s = _all_failed(len(frames), exc), 0.0
+            try:
+                for frame, result in zip(frames, results):
+                    self._on_result(frame, result)
+                self._on_batch(len(frames), busy_s)
+            finally:
+                self._worker.finished()
