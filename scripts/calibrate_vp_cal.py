@@ -32,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "inkdiag_core"))
 import numpy as np  # noqa: E402
 
 from inkdiag_core import InkChannelModel  # noqa: E402
-from inkdiag_core import estimation as est  # noqa: E402
+from inkdiag_core.estimation import base, vp  # noqa: E402
 from inkdiag_core.fe_datasets import nonlinear_set  # noqa: E402
 
 FS = 10e6
@@ -41,13 +41,13 @@ EVAL_SEEDS = (100,)  # the report's physics-based set: never used here
 
 def features(model, y):
     """(f_vp scaled, x = f/w0, d_sigma, d_omega) per trace, exactly as the estimator."""
-    A, C, B_f, _ = est._model_matrices(model)
-    sc = est._scaled(A, C, B_f, FS)
+    A, C, B_f, _ = base.model_matrices(model)
+    sc = base.scaled(A, C, B_f, FS)
     key = (tuple(A.ravel()), tuple(C.ravel()), tuple(B_f.ravel()), float(FS))
     c = np.sqrt(np.mean(y * y, axis=1))
     ys = y / c[:, None]
-    f = est._vp_batch(sc, key, ys, fm_bounds=est._default_bounds(A, B_f))[0] * est._T0
-    dev = est._pair_refit(sc, ys, f)[0]
+    f = vp.vp_batch(sc, key, ys, fm_bounds=base.default_bounds(A, B_f))[0] * base.T0
+    dev = vp.pair_refit(sc, ys, f)[0]
     w0 = float(np.abs(np.linalg.eigvals(sc.A).imag).max())
     return f, f / w0, dev[:, 0], dev[:, 1]
 
@@ -65,7 +65,7 @@ def main(argv=None):
     for s in seeds:
         ds = nonlinear_set(args.n_per_class, seed=s, sample_rate_hz=FS)
         f, x, dsig, dom = features(model, ds.y)
-        rows.append((s, f, x, dsig, dom, ds.fm * est._T0))
+        rows.append((s, f, x, dsig, dom, ds.fm * base.T0))
         print(f"seed {s}: {ds.y.shape[0]} traces", flush=True)
 
     def design(r):
@@ -89,7 +89,7 @@ def main(argv=None):
     b = fit(rows)
     res = np.concatenate([r[1] + design(r) @ b - r[5] for r in rows])
     fts = np.concatenate([r[5] for r in rows])
-    print(f"all {len(seeds)} seeds: residual std {np.std(res) / est._T0:.4g} 1/s, "
+    print(f"all {len(seeds)} seeds: residual std {np.std(res) / base.T0:.4g} 1/s, "
           f"relative {np.std(res / np.abs(fts)):.4f}")
     print("VP_CAL = {")
     print(f'    "a_sigma": {b[0]:.6g}, "b_sigma": {b[1]:.6g},')

@@ -5,7 +5,17 @@ fault estimators. numpy, scipy, scikit-learn and joblib only: this package
 never imports rclpy or any message package (a test checks it).
 """
 
-from .estimation import FmBatchEstimate, FmEstimate, estimate_fm, estimate_fm_batch
+from .checks import InputError, OptionError
+from .estimation import (
+    CtOptions,
+    DtExactOptions,
+    DtOptions,
+    FmBatchEstimate,
+    FmEstimate,
+    VpOptions,
+    estimate_fm,
+    estimate_fm_batch,
+)
 from .faults import FaultClass
 from .fdi import FEATURE_SETS, fd_labels, make_fdi_pipeline
 from .kpis import KPI_NAMES, KpiExtractor, extract_kpis, reconstruct
@@ -27,6 +37,12 @@ from .simulator import SimulationResult, healthy_twin_frames, simulate, simulate
 from ._version import __version__
 
 __all__ = [
+    "CtOptions",
+    "DtExactOptions",
+    "DtOptions",
+    "InputError",
+    "OptionError",
+    "VpOptions",
     "FEATURE_SETS",
     "INVALID_REASONS",
     "KPI_NAMES",

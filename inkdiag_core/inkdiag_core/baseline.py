@@ -34,8 +34,9 @@ import numpy as np
 from sklearn.base import BaseEstimator, TransformerMixin
 from sklearn.utils.validation import check_is_fitted, validate_data
 
+from . import checks
 from .estimation import estimate_fm_batch
-from .kpis import KPI_NAMES, MIN_KPI_SAMPLES, _check_sample_rate, _check_traces, extract_kpis
+from .kpis import KPI_NAMES, MIN_KPI_SAMPLES, InvalidTraceError, extract_kpis
 from .model import InkChannelModel
 from .screening import screen_traces
 
@@ -246,7 +247,7 @@ class NozzleBaselines:
             if np.isinf(fm).any():
                 raise ValueError("fm must be finite, or NaN where a nozzle has no f_m baseline")
             fm.flags.writeable = False
-        fs = _check_sample_rate(self.sample_rate_hz)
+        fs = checks.sample_rate(self.sample_rate_hz, error=InvalidTraceError)
         for name in ("n_samples", "n_frames"):
             v = getattr(self, name)
             if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 1:
@@ -422,7 +423,7 @@ class BaselineRecorder:
         if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < MIN_KPI_SAMPLES:
             raise ValueError(f"n_samples must be an integer >= {MIN_KPI_SAMPLES}, got {n_samples!r}")
         self.n_frames = int(n_frames)
-        self.sample_rate_hz = _check_sample_rate(sample_rate_hz)
+        self.sample_rate_hz = checks.sample_rate(sample_rate_hz, error=InvalidTraceError)
         self.n_samples = int(n_samples)
         self._ids = []  # chunks of the rows kept so far, in arrival order
         self._kpis = []
@@ -471,7 +472,7 @@ class BaselineRecorder:
             return 0
         rows = np.flatnonzero(use)[need]
         ids = ids[need]
-        y = _check_traces(x[rows])
+        y = checks.traces_2d(x[rows], min_samples=MIN_KPI_SAMPLES, error=InvalidTraceError)
         kpis = np.full((ids.size, N_KPIS + 1), np.nan)  # the last column: f_m, NaN where not taken
         kpis[:, :N_KPIS] = extract_kpis(y, self.sample_rate_hz)
         if self.fm_frames:

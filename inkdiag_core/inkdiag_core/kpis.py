@@ -42,6 +42,9 @@ import scipy.fft
 from sklearn.base import BaseEstimator, TransformerMixin
 from sklearn.utils.validation import check_is_fitted, validate_data
 
+from . import checks
+from .checks import InputError
+
 __all__ = [
     "KPI_NAMES",
     "MIN_KPI_SAMPLES",
@@ -66,7 +69,7 @@ KPI_NAMES = (
 MIN_KPI_SAMPLES = 2
 """Fewest samples per trace that :func:`extract_kpis` accepts.
 
-Not to be confused with ``inkdiag_core.estimation.MIN_SAMPLES`` (16), the fewest samples
+Not to be confused with ``inkdiag_core.estimation.MIN_FM_SAMPLES`` (16), the fewest samples
 the f_m estimators (``estimate_fm``, ``estimate_fm_batch``) accept: a separate limit of a
 different computation, not a second spelling of this one.
 
@@ -103,78 +106,10 @@ _POWER_MAX = 1e300
 _MAGNITUDE_MIN = {np.float32: 1e-12, np.float64: 1e-140}
 
 
-class InvalidTraceError(ValueError):
-    """Traces or a sample rate that :func:`extract_kpis` cannot use (a ``ValueError``)."""
+class InvalidTraceError(InputError):
+    """Traces or a sample rate that :func:`extract_kpis` cannot use (a ``ValueError``).
 
-
-def _check_sample_rate(sample_rate_hz):
-    """Return ``sample_rate_hz`` as a float after checking it is finite and positive."""
-    if isinstance(sample_rate_hz, (bool, np.bool_)) or not isinstance(
-        sample_rate_hz, numbers.Real
-    ):
-        raise InvalidTraceError(
-            "sample_rate_hz must be a positive finite real number, "
-            f"found {sample_rate_hz!r} of type {type(sample_rate_hz).__name__}"
-        )
-    fs = float(sample_rate_hz)
-    if not (np.isfinite(fs) and fs > 0.0):
-        raise InvalidTraceError(f"sample_rate_hz must be positive and finite, found {fs!r}")
-    return fs
-
-
-def _check_traces(traces, name="traces"):
-    """Validate a batch of traces once, at the boundary.
-
-    Parameters
-    ----------
-    traces : array_like, shape (n_traces, n_samples) or (n_samples,)
-        Real traces; a 1-D array is one trace and is promoted to a batch of one.
-    name : str
-        Name used in error messages.
-
-    Returns
-    -------
-    y : ndarray of float32 or float64, shape (n_traces, n_samples)
-        C-contiguous; float32 input stays float32, any other real input becomes float64.
-
-    Raises
-    ------
-    InvalidTraceError
-        Wrong number of dimensions, fewer than :data:`MIN_KPI_SAMPLES` samples, a complex or
-        non-numeric dtype, or NaN / Inf values. The message says what was expected and
-        what was found.
-    """
-    y = np.asarray(traces)
-    if y.dtype.kind == "c":
-        raise InvalidTraceError(f"{name} must be real, found complex dtype {y.dtype}")
-    if y.dtype.kind not in "biuf":
-        try:
-            y = y.astype(np.float64)
-        except (TypeError, ValueError) as exc:
-            raise InvalidTraceError(
-                f"{name} must be a real numeric array, found dtype {y.dtype}"
-            ) from exc
-    if y.ndim == 1:
-        y = y[np.newaxis, :]
-    if y.ndim != 2:
-        raise InvalidTraceError(
-            f"{name} must have shape (n_traces, n_samples) or (n_samples,), "
-            f"found ndim={y.ndim} with shape {y.shape}"
-        )
-    if y.shape[1] < MIN_KPI_SAMPLES:
-        raise InvalidTraceError(
-            f"{name} must have at least {MIN_KPI_SAMPLES} samples per trace, "
-            f"found {y.shape[1]} (shape {y.shape})"
-        )
-    y = np.ascontiguousarray(y, dtype=np.float32 if y.dtype == np.float32 else np.float64)
-    finite = np.isfinite(y)
-    if not finite.all():
-        bad_rows = np.flatnonzero(~finite.all(axis=1))
-        raise InvalidTraceError(
-            f"{name} must be finite, found {int((~finite).sum())} NaN or Inf value(s) "
-            f"in {bad_rows.size} trace(s), first in trace {int(bad_rows[0])}"
-        )
-    return y
+    Raised by the :mod:`inkdiag_core.checks` checkers on the KPI path."""
 
 
 def _solve2(a11, a12, a22, b1, b2):
@@ -463,8 +398,8 @@ def extract_kpis(traces, sample_rate_hz):
     >>> np.round(extract_kpis(y, fs)[0, :5], 4)
     array([1.00e-01, 2.37e+05, 7.00e-02, 2.00e+00, 5.00e-01])
     """
-    fs = _check_sample_rate(sample_rate_hz)
-    y = _check_traces(traces)
+    fs = checks.sample_rate(sample_rate_hz, error=InvalidTraceError)
+    y = checks.traces_2d(traces, min_samples=MIN_KPI_SAMPLES, error=InvalidTraceError)
     n_traces = y.shape[0]
     out = np.zeros((n_traces, len(KPI_NAMES)))
     # Chunks of traces keep the spectra and the fit's temporaries in cache; every step is
@@ -613,7 +548,7 @@ def reconstruct(kpis, n_samples, sample_rate_hz):
         (a ``ValueError``) for a wrong shape, non-finite KPIs, a damping ratio outside
         ``[0, 1)``, a bad ``n_samples`` or a bad ``sample_rate_hz``.
     """
-    fs = _check_sample_rate(sample_rate_hz)
+    fs = checks.sample_rate(sample_rate_hz, error=InvalidTraceError)
     k = np.asarray(kpis, dtype=np.float64)
     if k.ndim == 1:
         k = k[np.newaxis, :]
@@ -694,7 +629,7 @@ class KpiExtractor(TransformerMixin, BaseEstimator):
         -------
         self : KpiExtractor
         """
-        _check_sample_rate(self.sample_rate_hz)
+        checks.sample_rate(self.sample_rate_hz, error=InvalidTraceError)
         self._validate(X, reset=True)
         return self
 

@@ -51,6 +51,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import expm
 
+from . import checks
+
 __all__ = [
     "InkChannelParams",
     "InkChannelModel",
@@ -59,16 +61,6 @@ __all__ = [
     "fm_to_viscosity",
     "viscosity_to_fm",
 ]
-
-
-def _check_positive(name: str, value: float) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}") from None
-    if not math.isfinite(v) or v <= 0.0:
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-    return v
 
 
 @dataclass(frozen=True)
@@ -125,11 +117,9 @@ class InkChannelParams:
             if f.name == "mu_nozzle" and value is None:
                 continue
             if f.name == "B_extra":
-                v = float(value)
-                if not math.isfinite(v) or v < 0.0:
-                    raise ValueError(f"B_extra must be a finite number >= 0, got {value!r}")
+                checks.nonnegative_float(f.name, value)
                 continue
-            _check_positive(f.name, value)
+            checks.positive_float(f.name, value)
 
     def replace(self, **changes) -> "InkChannelParams":
         """Return a copy with some fields changed (validated again)."""
@@ -186,7 +176,7 @@ def fault_fm(params: InkChannelParams, mu_faulty: float) -> float:
     in 1/s; negative for a drying nozzle. ``mu`` is the healthy nozzle
     viscosity ``params.mu_n``.
     """
-    mu_f = _check_positive("mu_faulty", mu_faulty)
+    mu_f = checks.positive_float("mu_faulty", mu_faulty)
     return -alpha(params) * (mu_f - params.mu_n)
 
 
@@ -325,13 +315,13 @@ class InkChannelModel:
 
         Returns ``A_d = expm((A + fm e3 e3^T) dt)`` (3, 3) for ``dt = 1 / sample_rate_hz`` s.
         """
-        fs = _check_positive("sample_rate_hz", sample_rate_hz)
+        fs = checks.sample_rate(sample_rate_hz)
         A, _, _ = self.observable(fm)
         return expm(A / fs)
 
     def discretize_appendix_e(self, sample_rate_hz: float, fm: float = 0.0):
         """Appendix E approximation (eq. 24): ``expm(A_H dt) + fm dt e3 e3^T``."""
-        fs = _check_positive("sample_rate_hz", sample_rate_hz)
+        fs = checks.sample_rate(sample_rate_hz)
         A, _, _ = self.observable(0.0)
         Ad = expm(A / fs)
         Ad[2, 2] += float(fm) / fs

@@ -32,6 +32,8 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.signal
 
+from . import checks
+
 __all__ = ["UIODesign", "design_uio"]
 
 
@@ -123,16 +125,13 @@ def _check_matrices(A, C, B_f):
     C = np.asarray(C, dtype=float)
     B_f = np.asarray(B_f, dtype=float)
     if A.ndim != 2 or A.shape[0] != A.shape[1]:
-        raise ValueError(f"A must be square (n, n), got shape {A.shape}")
+        raise checks.InputError(f"A must be square (n, n), got shape {A.shape}")
     n = A.shape[0]
     if C.ndim != 2 or C.shape[1] != n:
-        raise ValueError(f"C must have shape (p, {n}), got {C.shape}")
+        raise checks.InputError(f"C must have shape (p, {n}), got {C.shape}")
     if B_f.ndim != 2 or B_f.shape[0] != n:
-        raise ValueError(f"B_f must have shape ({n}, q), got {B_f.shape}")
-    for name, M in (("A", A), ("C", C), ("B_f", B_f)):
-        if not np.all(np.isfinite(M)):
-            raise ValueError(f"{name} contains non-finite entries")
-    return A, C, B_f
+        raise checks.InputError(f"B_f must have shape ({n}, q), got {B_f.shape}")
+    return tuple(checks.finite_array(name, M) for name, M in (("A", A), ("C", C), ("B_f", B_f)))
 
 
 def design_uio(A, C, B_f, *, dt: float | None = None, poles=None, rtol: float = 1e-9):

@@ -25,6 +25,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from . import checks
 from .faults import MECHANISMS, FaultClass
 from .model import InkChannelParams, viscosity_to_fm
 
@@ -247,8 +248,8 @@ def _fold(x, P, t_last, n_updates, t, fm, fm_std, accel_std, rel_floor):
 
 
 def _check_params(accel_std, rel_floor):
-    if not (accel_std > 0 and rel_floor >= 0):
-        raise ValueError(f"accel_std must be > 0 and rel_floor >= 0, got {accel_std}, {rel_floor}")
+    checks.positive_float("accel_std", accel_std)
+    checks.nonnegative_float("rel_floor", rel_floor)
 
 
 # --------------------------------------------------------------------------- stateful wrappers
@@ -434,8 +435,8 @@ class FmTrendBank:
         fm = np.asarray(fm, dtype=float).reshape(-1)
         fm_std = np.asarray(fm_std, dtype=float).reshape(-1)
         if not (fm.size == fm_std.size == nozzles.size):
-            raise ValueError(f"nozzles, fm and fm_std must have one entry each per nozzle, "
-                             f"got sizes {nozzles.size}, {fm.size}, {fm_std.size}")
+            raise checks.InputError(f"nozzles, fm and fm_std must have one entry each per nozzle, "
+                                    f"got sizes {nozzles.size}, {fm.size}, {fm_std.size}")
         rows = self._rows(nozzles)
         self.K[rows], self.y[rows] = np.nan, np.nan
         out = np.full((3, rows.size), np.nan)

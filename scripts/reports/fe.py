@@ -63,7 +63,8 @@ def accuracy(est, ds):
 
 
 def run(ds, method, x0, **kw):
-    kw.setdefault("vp_trace_points", 12)  # the report scores the per-sample trace too
+    if method in VP_METHODS:
+        kw.setdefault("vp_trace_points", 12)  # the report scores the per-sample trace too
     return estimate_fm_batch(ds.y, MODEL, FS, method=method,
                              x0=None if method in VP_METHODS else x0, **kw)
 

@@ -122,15 +122,15 @@ def ct_uio_states(Y, X0):
     """x_hat (N, n, 3) from the thesis's continuous-time UIO (section 4.3.3, eq. 14-19 with
     ``A_H^CT``: ``F = (I - HC) A``, ``T = F H``), ``z' = F z + T y`` integrated exactly with
     ``y`` held as the cubic through 4 neighbouring samples (the hold of the "ct" method,
-    ``estimation._cubic_hold``). On exact CT data its only error is that of the hold: the
+    ``estimation.uio.cubic_hold``). On exact CT data its only error is that of the hold: the
     fault enters along ``B_f`` and is decoupled exactly."""
-    from inkdiag_core.estimation import _cubic_hold
+    from inkdiag_core.estimation.uio import cubic_hold
 
     A, C, B_f = MODEL.observable()
     C = C.ravel()
     H = B_f.ravel() / float(C @ B_f.ravel())
     F = (np.eye(3) - np.outer(H, C)) @ A
-    Phi, Gam = _cubic_hold(F, F @ H, 1.0 / FS)
+    Phi, Gam = cubic_hold(F, F @ H, 1.0 / FS)
     n, N = Y.shape
     Xh = np.empty((N, n, 3))
     z = X0 - Y[:, :1] * H

@@ -1,0 +1,151 @@
+"""The estimation package after the split by method: results bit-identical to the
+single-module estimator it replaced, per-method options, and the old keywords.
+
+``tests/data/fm_reference.json`` was recorded from ``estimation.py`` as it was before
+the split (main at 85bc1fe), on the seeded batch built by :func:`_batch`: ``fm`` and
+``std`` as exact float hex strings, the other arrays as sha256 of their float64 bytes.
+"""
+
+import dataclasses
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from inkdiag_core import InkChannelModel, estimate_fm, estimate_fm_batch, estimation
+from inkdiag_core.checks import InputError, OptionError
+from inkdiag_core.estimation import (
+    OPTIONS,
+    CtOptions,
+    DtExactOptions,
+    DtOptions,
+    VpOptions,
+)
+from inkdiag_core.fe_datasets import synthetic_set
+
+FS = 10e6
+REFERENCE = json.loads((Path(__file__).parent / "data" / "fm_reference.json").read_text())
+
+# name: (method, x0 given, old keywords, the same as an options object)
+CASES = {
+    "dt": ("dt", True, {}, None),
+    "dt_opts": ("dt", True, dict(exact_T=False, prefilter_hz=2e6, window=20, steady_frac=0.3),
+                DtOptions(exact_T=False, prefilter_hz=2e6, window=20, steady_frac=0.3)),
+    "dt_exact": ("dt_exact", True, {}, None),
+    "dt_exact_opts": ("dt_exact", True,
+                      dict(n_iter=1, sensitivity=False, fm_bounds=(-2e6, 1e5), window=25),
+                      DtExactOptions(n_iter=1, sensitivity=False, fm_bounds=(-2e6, 1e5), window=25)),
+    "ct": ("ct", True, {}, None),
+    "ct_opts": ("ct", True, dict(exact_T=False, prefilter_hz=2e6, steady_frac=0.4),
+                CtOptions(exact_T=False, prefilter_hz=2e6, steady_frac=0.4)),
+    "vp": ("vp", False, {}, None),
+    "vp_opts": ("vp", False, dict(fm_bounds=(-3e6, 2e5), n_grid=80, vp_trace_points=5),
+                VpOptions(fm_bounds=(-3e6, 2e5), n_grid=80, trace_points=5)),
+    "vp_cal": ("vp_cal", False, {}, None),
+    "vp_cal_trace": ("vp_cal", False, dict(vp_trace_points=4), VpOptions(trace_points=4)),
+    "auto": ("auto", False, {}, None),
+    "auto_x0": ("auto", True, {}, None),
+}
+BASELINE = {"vp_cal_trace": 1234.5}
+
+
+@pytest.fixture(scope="module")
+def model():
+    return InkChannelModel()
+
+
+@pytest.fixture(scope="module")
+def batch(model):
+    ds = synthetic_set(model, kind="ct", x0="random", n_levels=5, snr_db=40, n_samples=200,
+                       seed=3)
+    return ds.y, ds.x0
+
+
+def _digest(a):
+    return hashlib.sha256(np.ascontiguousarray(a, dtype=np.float64).tobytes()).hexdigest()
+
+
+def _assert_reference(r, ref, fields=("trace", "ci", "d_mu", "viscosity", "x0", "offset")):
+    assert r.method == ref["method"]
+    assert [float(v).hex() for v in np.atleast_1d(r.fm)] == ref["fm"]
+    assert [float(v).hex() for v in np.atleast_1d(r.std)] == ref["std"]
+    for f in fields:
+        assert _digest(np.asarray(getattr(r, f))) == ref[f], f
+
+
+@pytest.mark.parametrize("name", list(CASES))
+@pytest.mark.parametrize("how", ["keywords", "options"])
+def test_dispatcher_bit_identical_to_pre_split(model, batch, name, how):
+    method, use_x0, kw, opts = CASES[name]
+    Y, X0 = batch
+    x0 = X0 if use_x0 else None
+    if BASELINE.get(name) is not None:
+        kw = dict(kw, baseline_fm=BASELINE[name])
+    if how == "options":
+        kw = {"baseline_fm": kw["baseline_fm"]} if "baseline_fm" in kw else {}
+        resolved = method if method != "auto" else ("vp" if use_x0 else "vp_cal")
+        kw["options"] = opts if opts is not None else OPTIONS[resolved]()
+    _assert_reference(estimate_fm_batch(Y, model, FS, method=method, x0=x0, **kw), REFERENCE[name])
+
+
+def test_single_trace_bit_identical_to_pre_split(model, batch):
+    Y, X0 = batch
+    _assert_reference(estimate_fm(Y[2], model, FS, method="vp_cal"), REFERENCE["single_vp_cal"],
+                      fields=("trace", "x0"))
+    _assert_reference(estimate_fm(Y[2], model, FS, method="dt", x0=X0[2], window=30),
+                      REFERENCE["single_dt"], fields=("trace", "x0"))
+    _assert_reference(estimate_fm(Y[2], model, FS, method="dt", x0=X0[2],
+                                  options=DtOptions(window=30)),
+                      REFERENCE["single_dt"], fields=("trace", "x0"))
+
+
+@pytest.mark.parametrize(("method", "kw", "wrong"), [
+    ("dt", {"n_grid": 80}, "n_grid"),
+    ("dt", {"vp_trace_points": 5}, "vp_trace_points"),
+    ("ct", {"n_iter": 2, "sensitivity": False}, "n_iter, sensitivity"),
+    ("vp", {"prefilter_hz": 1e6}, "prefilter_hz"),
+    ("vp_cal", {"window": 10}, "window"),
+    ("dt_exact", {"windw": 10}, "windw"),
+])
+def test_keyword_the_method_does_not_take_raises(model, batch, method, kw, wrong):
+    Y, X0 = batch
+    with pytest.raises(OptionError, match=f"method '{method}' does not take {wrong}; it takes"):
+        estimate_fm_batch(Y, model, FS, method=method, x0=X0, **kw)
+
+
+def test_option_error_is_value_and_type_error(model, batch):
+    assert issubclass(OptionError, ValueError) and issubclass(OptionError, TypeError)
+    Y, X0 = batch
+    with pytest.raises(TypeError, match="takes options of type DtOptions, got VpOptions"):
+        estimate_fm_batch(Y, model, FS, method="dt", x0=X0, options=VpOptions())
+    with pytest.raises(ValueError, match="takes options of type DtOptions, got DtExactOptions"):
+        estimate_fm_batch(Y, model, FS, method="dt", x0=X0, options=DtExactOptions())
+
+
+def test_keywords_override_options(model, batch):
+    Y, X0 = batch
+    a = estimate_fm_batch(Y, model, FS, method="vp", options=VpOptions(n_grid=80), n_grid=160)
+    b = estimate_fm_batch(Y, model, FS, method="vp")
+    np.testing.assert_array_equal(a.fm, b.fm)
+    assert {f.name for f in dataclasses.fields(DtExactOptions)} >= {
+        f.name for f in dataclasses.fields(DtOptions)}
+
+
+def test_min_fm_samples_and_typed_input_errors(model, batch):
+    assert estimation.MIN_FM_SAMPLES == 16 and estimation.MIN_SAMPLES == estimation.MIN_FM_SAMPLES
+    Y, _ = batch
+    with pytest.raises(InputError, match="at least 16 samples per trace, found 15"):
+        estimate_fm_batch(Y[:, :15], model, FS)
+    with pytest.raises(InputError, match="fm_bounds must be"):
+        estimate_fm_batch(Y, model, FS, method="vp", fm_bounds=(1.0, -1.0))
+    with pytest.raises(InputError, match="sample_rate_hz must be"):
+        estimate_fm_batch(Y, model, True)
+
+
+def test_modules_stay_small():
+    pkg = Path(estimation.__file__).parent
+    sizes = {p.name: len(p.read_text().splitlines()) for p in pkg.glob("*.py")}
+    assert {"base.py", "uio.py", "vp.py", "dispatch.py"} <= set(sizes)
+    assert max(sizes.values()) <= 600, sizes
