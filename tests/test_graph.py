@@ -144,8 +144,9 @@ def test_graph_records_baselines_then_labels_against_them(ros, baseline_model, t
     from inkdiag_ros.graph import run
 
     lines = []
-    score = run(7.0, namespace="/head_05", model_path=str(baseline_model), context=ros.context, out=lines.append,
-                baseline={"path": tmp_path / "b" / "head_05.npz", "commissioning_s": 2.5})
+    # 4 s of commissioning: 8 healthy frames at 5 Hz need 1.6 s, and a loaded 2-core machine can halve that rate
+    score = run(8.5, namespace="/head_05", model_path=str(baseline_model), context=ros.context, out=lines.append,
+                baseline={"path": tmp_path / "b" / "head_05.npz", "commissioning_s": 4.0})
     assert any("baselines of 64 nozzles recorded" in line for line in lines), lines[:5]
     assert len(NozzleBaselines.load(tmp_path / "b" / "head_05.npz")) == 64
     assert lines[0].startswith("t=") and "commissioning" in lines[0]
