@@ -199,7 +199,7 @@ def test_fdi_without_usable_baselines_labels_without_them_and_says_why(ros, tmp_
 
 
 def test_scenario_keeps_the_head_healthy_until_the_faults_start():
-    from inkdiag_ros.scenario import HeadScenario
+    from inkdiag_core.simulation.scenario import HeadScenario
 
     sc = HeadScenario(n_nozzles=8, fault_nozzles=[2], fault_classes=["fully_blocked"], drying_nozzles=[5],
                       drying_start_factor=2.0, drying_end_factor=8.0, drying_duration_s=10.0, faults_start_s=4.0)

@@ -25,7 +25,8 @@ from inkdiag_core.faults import (
     is_dried,
     is_healthy,
 )
-from inkdiag_ros import scenario, scorecard
+from inkdiag_core import scorecard
+from inkdiag_core.simulation import scenario
 from msg_defs import truth
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]

@@ -27,12 +27,11 @@ from .model import (
     fm_to_viscosity,
     viscosity_to_fm,
 )
-from .nonlinear import simulate_nonlinear
 from .observer import UIODesign, design_uio
 from .persistence import ModelFileError, load_detector, load_model, save_detector, save_model
 from .residual import ResidualFilter, design_residual_filter
 from .screening import INVALID_REASONS, screen_traces
-from .simulator import SimulationResult, healthy_twin_frames, simulate, simulate_nozzles
+from .simulation import SimulationResult, healthy_twin_frames, simulate, simulate_nonlinear, simulate_nozzles
 
 from ._version import __version__
 

@@ -111,7 +111,7 @@ def baseline_training_kpis(sim, seed, *, n_frames: int = 8) -> np.ndarray:
         :func:`baseline_kpis` of each trace's nozzle (the ``baseline_kpis`` of
         :meth:`inkdiag_core.FaultDetector.fit`).
     """
-    from .simulator import healthy_twin_frames
+    from .simulation.datasets import healthy_twin_frames
 
     _, frames = healthy_twin_frames(len(sim), seed=seed, n_frames=n_frames, noise_std_v=sim.noise_std_v,
                                     sample_rate_hz=sim.sample_rate_hz, n_samples=sim.traces.shape[1])

@@ -466,7 +466,7 @@ def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: st
     """
     from .faults import FaultClass
     from .persistence import save_detector, save_model
-    from .simulator import simulate
+    from .simulation.linear import simulate
 
     report = progress or (lambda step, total, message: None)
     total = 4

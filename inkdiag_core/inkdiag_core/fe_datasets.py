@@ -233,8 +233,8 @@ def nonlinear_set(n_per_class=100, *, seed=0, sample_rate_hz=10e6, n_samples=512
     the dried trace.
     """
     from .faults import FaultClass
-    from .nonlinear import simulate_nonlinear
-    from .simulator import Spreads, healthy_twin_frames
+    from .simulation.nonlinear import simulate_nonlinear
+    from .simulation import Spreads, healthy_twin_frames
 
     classes = (FaultClass.SLIGHTLY_DRIED, FaultClass.INTERMEDIATELY_DRIED,
                FaultClass.DEEPLY_DRIED)

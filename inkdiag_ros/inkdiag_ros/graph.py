@@ -54,7 +54,7 @@ from .baseline_node import BaselineRecorderNode
 from .fdi_node import FdiNode
 from .fe_node import FeNode
 from .printhead_sim import PrintheadSim
-from .scorecard import Scorecard
+from inkdiag_core.scorecard import Scorecard
 
 
 def default_params_file() -> str:

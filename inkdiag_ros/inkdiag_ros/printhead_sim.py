@@ -3,7 +3,7 @@
 Publishes ``traces`` (one frame of all its nozzles per timer tick, sensor-data
 QoS) and ``ground_truth`` (reliable), both relative to the node's namespace.
 The fault scenario (fixed faults, a random fault fraction, drying nozzles
-whose nozzle viscosity rises over time) is :class:`inkdiag_ros.scenario.HeadScenario`.
+whose nozzle viscosity rises over time) is :class:`inkdiag_core.simulation.scenario.HeadScenario`.
 
     printhead_sim --ros-args -r __ns:=/head_00 -p n_nozzles:=256 -p drying_nozzles:=[40]
     python -m inkdiag_ros.printhead_sim --ros-args --params-file inkdiag.yaml
@@ -30,7 +30,7 @@ from msg_defs import (
 )
 
 from . import _params
-from .scenario import HeadScenario, simulate_head
+from inkdiag_core.simulation.scenario import HeadScenario, simulate_head
 
 PARAMS = (
     # name, default, description, kind, range

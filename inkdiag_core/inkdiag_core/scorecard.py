@@ -14,7 +14,9 @@ from collections import Counter, OrderedDict
 
 import numpy as np
 
-from inkdiag_core.faults import HEALTHY_VALUES, FaultClass
+from .faults import HEALTHY_VALUES, FaultClass
+
+__all__ = ["Scorecard", "HEALTHY"]
 
 HEALTHY = HEALTHY_VALUES  # former local spelling, kept for imports
 
@@ -24,6 +26,14 @@ def _norm(c: str) -> str:
 
 
 class Scorecard:
+    """The graph's decoded outputs scored against the simulator's truth, frame by frame.
+
+    Parameters
+    ----------
+    keep_frames : int
+        Frames of truth, labels and unmatched estimates kept (oldest dropped first).
+    """
+
     def __init__(self, keep_frames: int = 10_000):
         self.truth = OrderedDict()
         self.labels = OrderedDict()

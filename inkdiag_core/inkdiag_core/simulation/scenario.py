@@ -12,11 +12,11 @@ import math
 
 import numpy as np
 
-import inkdiag_core
-from inkdiag_core import FaultClass, InkChannelParams, simulate_nozzles
-from inkdiag_core.faults import DRIED_CLASSES, FAULT_CLASSES, MECHANISMS
+from ..faults import DRIED_CLASSES, FAULT_CLASSES, MECHANISMS, FaultClass, as_fault_class
+from ..model import InkChannelParams
+from .linear import simulate_nozzles
 
-__all__ = ["HeadScenario", "simulate_head", "dried_class_of"]
+__all__ = ["HeadScenario", "simulate_head", "dried_class_of", "RANDOM_FAULT_CLASSES"]
 
 #: Classes a random fault is drawn from (drying is the progression's job).
 RANDOM_FAULT_CLASSES = tuple(c for c in FAULT_CLASSES if c not in DRIED_CLASSES)
@@ -79,7 +79,7 @@ class HeadScenario:
         self.n_nozzles = int(n_nozzles)
         self.classes = np.full(n_nozzles, FaultClass.HEALTHY_NOZZLE, dtype=object)
         for nz, c in zip(fault_nozzles, fault_classes):
-            self.classes[nz - first_nozzle] = inkdiag_core.faults.as_fault_class(c, "fault_classes")
+            self.classes[nz - first_nozzle] = as_fault_class(c, "fault_classes")
         rng = np.random.default_rng(seed)
         free = np.setdiff1d(ids, fault_nozzles + drying_nozzles) - first_nozzle
         k = int(round(random_fault_fraction * free.size))

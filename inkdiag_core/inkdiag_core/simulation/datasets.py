@@ -1,0 +1,65 @@
+"""Datasets built from the simulators: a simulation's nozzles seen healthy."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ..faults import FaultClass
+from .channels import Spreads
+from .linear import simulate
+
+__all__ = ["healthy_twin_frames"]
+
+
+def healthy_twin_frames(n_traces: int, *, seed, n_frames: int, noise_std_v: float,
+                        spreads: Spreads | None = None, simulate_fn=None, **kwargs):
+    """The same nozzles as an earlier simulation, healthy: what a monitor saw of them before.
+
+    The simulator draws every trace's physical spreads in one fixed order,
+    whatever its class, so ``simulate_fn({HEALTHY_NOZZLE: n_traces}, seed=seed)``
+    gives row ``i`` the nozzle geometry, piezo, drive and sensor of row ``i`` of
+    any ``simulate_fn(counts, seed=seed)`` with ``n_traces`` rows in all. This
+    returns those nozzles healthy, at the nominal ink temperature (the head
+    heater's set point: the temperature is not shared with the original
+    traces), in ``n_frames`` frames, each with its own white sensor noise of
+    ``noise_std_v`` drawn from a stream independent of the original traces'.
+
+    Parameters
+    ----------
+    n_traces : int
+        Rows of the original simulation.
+    seed : int
+        Its seed.
+    n_frames : int
+        Healthy frames per nozzle, >= 1.
+    noise_std_v : float
+        Sensor noise standard deviation, V (the original's ``noise_std_v``).
+    spreads : Spreads, optional
+        The original's spreads (default :class:`Spreads`); its temperature
+        spread, noise and ADC are switched off for the twins.
+    simulate_fn : callable, optional
+        :func:`simulate` (default) or :func:`inkdiag_core.simulate_nonlinear`.
+    **kwargs
+        Further options of the original call (``sample_rate_hz``, ``n_samples``, ...).
+
+    Returns
+    -------
+    twins : SimulationResult
+        The noise-free healthy twins (one row per original row).
+    frames : ndarray of float32, shape (n_traces, n_frames, n_samples)
+        Noisy healthy frames, V.
+    """
+    if n_frames < 1:
+        raise ValueError(f"n_frames must be >= 1, got {n_frames}")
+    if not np.isfinite(noise_std_v) or noise_std_v < 0:
+        raise ValueError(f"noise_std_v must be finite and >= 0, got {noise_std_v!r}")
+    fn = simulate if simulate_fn is None else simulate_fn
+    base = Spreads() if spreads is None else spreads
+    quiet = dataclasses.replace(base, temperature_std_k=0.0, snr_db=np.inf, adc_bits=None)
+    twins = fn({FaultClass.HEALTHY_NOZZLE: int(n_traces)}, seed=seed, spreads=quiet, **kwargs)
+    n_samples = twins.traces.shape[1]
+    noise = np.random.default_rng([int(seed), 7]).standard_normal((int(n_traces), int(n_frames), n_samples))
+    frames = (twins.traces[:, None, :] + noise_std_v * noise).astype(np.float32)
+    return twins, frames
