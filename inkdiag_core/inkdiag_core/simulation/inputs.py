@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import math
 import numbers
 
 import numpy as np
 
+from ..checks import positive_float, positive_int
 from ..faults import MECHANISMS, FaultClass, as_fault_class
 from ..model import InkChannelParams
 from .channels import DriveWaveform, Spreads
@@ -75,22 +75,10 @@ def check_severity(severity, classes):
     return out
 
 
-def check_positive_int(name, value):
-    """``int(value)`` if it is a positive integer (not a bool), else ValueError naming ``name``."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value <= 0:
-        raise ValueError(f"{name} must be a positive integer, got {value!r}")
-    return int(value)
-
-
-def check_positive_float(name, value):
-    """``float(value)`` if it is positive and finite, else ValueError naming ``name``."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}") from None
-    if not math.isfinite(v) or v <= 0:
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-    return v
+# The one positive-number checkers of the core (typed InputError, a ValueError), under the names
+# the simulators use.
+check_positive_int = positive_int
+check_positive_float = positive_float
 
 
 def prepare_run(classes, fs, spreads, drive, base, seed, extra=()):
