@@ -82,8 +82,8 @@ def node_command(name: str, model_path: str, tmpdir: str) -> list[str]:
 #: A busy loop that ends when the process that started it is gone (a killed test run
 #: must not leave loops spinning on the machine's cores).
 _BUSY_LOOP = (
-    "import os\n"
-    "parent = os.getppid()\n"
+    "import os, sys\n"
+    "parent = int(sys.argv[1])\n"
     "while os.getppid() == parent:\n"
     "    for _ in range(2_000_000):\n"
     "        pass\n"
@@ -218,7 +218,7 @@ class StopCycles:
         self.probe = Probe(self.context)
         self._rng = random.Random(self.seed)
         n_busy = (os.cpu_count() or 1) if self.busy is None else self.busy
-        self._busy = [subprocess.Popen([sys.executable, "-c", _BUSY_LOOP]) for _ in range(n_busy)]
+        self._busy = [subprocess.Popen([sys.executable, "-c", _BUSY_LOOP, str(os.getpid())]) for _ in range(n_busy)]
         return self
 
     def __exit__(self, *exc):
