@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .baseline import BaselineFileError, NozzleBaselines
+from .baselines import BaselineFileError, NozzleBaselines
 from .detector import FaultDetector
 from .persistence import load_detector
 from .labelling import FrameLabels
