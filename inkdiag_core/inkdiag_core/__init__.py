@@ -87,7 +87,7 @@ from .labelling import BaselineModel, FrameLabels, label_frames, label_frames_is
 
 __all__ += ["BaselineModel", "FrameLabels", "label_frames", "label_frames_isolated", "label_traces"]
 
-from .baseline import (  # noqa: E402
+from .baselines import (  # noqa: E402
     BaselineFileError,
     BaselineKpis,
     BaselineRecorder,

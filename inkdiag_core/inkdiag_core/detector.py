@@ -10,7 +10,7 @@ rule:
 - ``pipeline_`` and ``fd_threshold_``: raw traces (n, n_samples) -> classes;
 - optionally ``baseline_pipeline_`` and ``baseline_fd_threshold_``: the same
   traces with each nozzle's healthy baseline KPIs (n, 7)
-  (:mod:`inkdiag_core.baseline`);
+  (:mod:`inkdiag_core.baselines`);
 - :meth:`FaultDetector.label`: one call that routes each row to its branch;
 - :attr:`FaultDetector.model_id`, from the sha256 of the file it was saved to
   or loaded from (:func:`inkdiag_core.save_detector`,
@@ -33,7 +33,7 @@ from sklearn.pipeline import Pipeline
 from sklearn.utils.multiclass import check_classification_targets
 from sklearn.utils.validation import check_is_fitted, validate_data
 
-from .baseline import N_KPIS, with_baseline
+from .baselines import N_KPIS, with_baseline
 from .faults import healthy_mask
 from .fdi import (
     FEATURE_SETS,
@@ -215,7 +215,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
             Class of each trace (``FaultClass`` values for the project's models).
         baseline_kpis : array_like, shape (n, 7), optional
             Healthy baseline KPIs of each trace's nozzle (:func:`inkdiag_core.baseline_kpis`;
-            for simulated training data :func:`inkdiag_core.baseline.baseline_training_kpis`),
+            for simulated training data :func:`inkdiag_core.baselines.baseline_training_kpis`),
             all finite. Fits the baseline branch on ``with_baseline(X, baseline_kpis)``
             with the same split.
 

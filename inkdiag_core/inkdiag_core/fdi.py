@@ -20,8 +20,8 @@ Feature sets (``features=``):
     band energies of the raw trace: richer features where they earn their place.
 ``"kpi_y+baseline"``
     KPI_Y + the KPIs relative to the nozzle's own healthy baseline
-    (:mod:`inkdiag_core.baseline`); its input rows are ``[trace, baseline KPIs]``
-    (:func:`inkdiag_core.baseline.with_baseline`), not bare traces.
+    (:mod:`inkdiag_core.baselines`); its input rows are ``[trace, baseline KPIs]``
+    (:func:`inkdiag_core.baselines.with_baseline`), not bare traces.
 
 Tasks: ``"fi"`` classifies into the 12 classes of :class:`FaultClass` (both
 healthy classes included, Table 2/9); ``"fd"`` is healthy (0) vs faulty (1),
@@ -200,7 +200,7 @@ def _features(features: str, fs: float):
             residual("modified", "kpi_r_modified"),
         ])
     if features == "kpi_y+baseline":
-        from .baseline import BaselineKpis
+        from .baselines import BaselineKpis
 
         return BaselineKpis(sample_rate_hz=fs)
     raise ValueError(f"features must be one of {FEATURE_SETS}, got {features!r}")
@@ -440,13 +440,13 @@ def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: st
     pipeline, the other 25% give the false-negative-averse fault-detection
     threshold, FNR <= ``fnr_target``, and the scores); with ``baseline=True``
     also its per-nozzle baseline branch, each trace with its nozzle's healthy
-    baseline (:func:`inkdiag_core.baseline.baseline_training_kpis`). Saves it with
+    baseline (:func:`inkdiag_core.baselines.baseline_training_kpis`). Saves it with
     :func:`inkdiag_core.save_detector` (the manifest's ``config`` adds
     ``n_per_class`` and ``seed``).
 
     ``features="kpi_y+baseline"`` is the previous route, kept until the fdi node
     loads detectors: a plain ``"kpi_y+baseline"`` pipeline on
-    :func:`inkdiag_core.baseline.baseline_training_rows`, saved with
+    :func:`inkdiag_core.baselines.baseline_training_rows`, saved with
     :func:`inkdiag_core.save_model` and its threshold in ``config['fd_threshold']``
     (the same forest and threshold as a detector's baseline branch of the same seed).
 
@@ -477,7 +477,7 @@ def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: st
     if features == "kpi_y+baseline":
         return _train_baseline_pipeline(path, sim, y, data, kind=kind, n_estimators=n_estimators,
                                         min_samples_leaf=min_samples_leaf, fnr_target=fnr_target, report=report)
-    from .baseline import baseline_training_kpis
+    from .baselines import baseline_training_kpis
     from .detector import FaultDetector
 
     det = FaultDetector(kind=kind, features=features, sample_rate_hz=float(sim.sample_rate_hz),
@@ -495,7 +495,7 @@ def _train_baseline_pipeline(path, sim, y, data, *, kind, n_estimators, min_samp
     """The previous ``"kpi_y+baseline"`` route of :func:`train_default_model` (a plain pipeline file)."""
     from sklearn.model_selection import train_test_split
 
-    from .baseline import baseline_training_rows
+    from .baselines import baseline_training_rows
     from .persistence import save_model
 
     seed = data["seed"]

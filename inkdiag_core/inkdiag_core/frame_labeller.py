@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .baseline import BaselineFileError, NozzleBaselines
+from .baselines import BaselineFileError, NozzleBaselines
 from .detector import FaultDetector
 from .persistence import load_detector
 from .labelling import FrameLabels
@@ -87,7 +87,7 @@ class FrameLabeller:
                  n_samples: int | None = None, max_abs_v: float | None = None):
         if not isinstance(detector, FaultDetector) or not hasattr(detector, "pipeline_"):
             raise LabellerConfigError(f"a fitted FaultDetector is needed, got {type(detector).__name__}; "
-                                      "retrain the model: python -m inkdiag_ros.model_cache")
+                                      "retrain the model: python -m inkdiag_core.model_cache")
         want_fs = float(detector.sample_rate_hz)
         want_n = int(detector.n_features_in_)
         if sample_rate_hz is not None and float(sample_rate_hz) != want_fs:

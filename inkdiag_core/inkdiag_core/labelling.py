@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from sklearn.pipeline import Pipeline
 
-from .baseline import NozzleBaselines, with_baseline
+from .baselines import NozzleBaselines, with_baseline
 from .fdi import classify
 from .screening import screen_traces
 

@@ -253,7 +253,7 @@ def main(args=None) -> int:
         ros_args += argv[i + 1:]
         argv = argv[:i]
     if ns.train_if_missing:
-        from .model_cache import DEFAULT_MODEL, ensure_default_model
+        from inkdiag_core.model_cache import DEFAULT_MODEL, ensure_default_model
 
         ns.model = str(ensure_default_model(ns.model or DEFAULT_MODEL))
     baseline = None

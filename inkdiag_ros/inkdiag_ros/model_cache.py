@@ -1,102 +1,29 @@
-"""The default FDI model on disk: verify it, or train and save it with a progress bar.
+"""``python -m inkdiag_ros.model_cache``: verify the default FDI model, or train it.
 
-Training is the core's :func:`inkdiag_core.fdi.train_default_model`; this
-module only decides when (missing or unverifiable file) and shows progress.
-The default, ``models/fdi_default.joblib``, is one :class:`inkdiag_core.FaultDetector`
-with both branches (KPI_Y for every nozzle, and KPI_Y + the nozzle's recorded
-healthy baseline) and its thresholds inside (:func:`inkdiag_core.load_detector`
-reads it; the fdi node takes it as ``model_path``, and its ``baseline_path``
-alone turns the baseline branch on).
+The logic is the core's (:mod:`inkdiag_core.model_cache`); this is its command-line
+entry point in the ROS package, kept for the scripts and docs that run it.
 
     python -m inkdiag_ros.model_cache [models/fdi_default.joblib]
 """
 
 from __future__ import annotations
 
-import argparse
-import inspect
 import sys
-from pathlib import Path
 
-from inkdiag_core import ModelFileError, load_model
-from inkdiag_core.fdi import train_default_model as _core_train
-
-DEFAULT_MODEL = Path("models") / "fdi_default.joblib"
-#: Feature set of each default file name.
-DEFAULT_FEATURES = {DEFAULT_MODEL.name: "kpi_y"}
-#: Training settings that define the default model; a cached file trained otherwise is stale.
-DEFAULT_SETTINGS = ("kind", "features", "n_per_class", "seed", "n_estimators", "min_samples_leaf", "fnr_target",
-                    "baseline")
-
-
-def default_config(name: str = DEFAULT_MODEL.name) -> dict:
-    """The training settings of the default model file ``name`` (:data:`DEFAULT_FEATURES`).
-
-    ``fdi_default.joblib`` is a detector with its baseline branch (``baseline=True``).
-    """
-    params = inspect.signature(_core_train).parameters
-    cfg = {k: params[k].default for k in DEFAULT_SETTINGS}
-    cfg["features"] = DEFAULT_FEATURES.get(name, cfg["features"])
-    if cfg["features"] == "kpi_y+baseline":
-        del cfg["baseline"]
-    else:
-        cfg["baseline"] = name == DEFAULT_MODEL.name
-    return cfg
-
-
-def train_default_model(path, *, progress=True, **kwargs):
-    """Train and save the default model at ``path`` (tqdm progress bar); return the manifest path."""
-    if not progress:
-        return _core_train(path, **kwargs)
-    from tqdm import tqdm
-
-    what = kwargs.get("features", "kpi_y") + (" + baseline branch" if kwargs.get("baseline") else "")
-    with tqdm(total=4, desc=f"training the default FDI model ({what})",
-              unit="step") as bar:
-        def report(step, total, message):
-            bar.set_postfix_str(message)
-            bar.update(step - bar.n)
-
-        return _core_train(path, progress=report, **kwargs)
-
-
-def ensure_default_model(path=DEFAULT_MODEL, *, progress=True, log=print):
-    """Return ``path`` after making sure it holds a model that verifies; train one if not.
-
-    A file named like the default (:data:`DEFAULT_FEATURES`: ``fdi_default.joblib``) is trained with that default's settings, and
-    one that verifies but was trained with other settings than the current
-    defaults (:func:`default_config`, e.g. after an upgrade changed them) is
-    retrained too; any other model file is the user's own and is only verified
-    (a missing one gets the KPI_Y default).
-    """
-    path = Path(path)
-    want = default_config(path.name)
-    if path.exists():
-        try:
-            _, manifest = load_model(path)
-            cfg = manifest.get("config", {})
-            stale = {k: (cfg.get(k), v) for k, v in want.items()
-                     if path.name in DEFAULT_FEATURES and cfg.get(k) != v}
-            if not stale:
-                return path
-            log(f"inkdiag: cached model trained with other settings than the default "
-                f"({', '.join(f'{k}={a!r}, now {b!r}' for k, (a, b) in stale.items())}); retraining")
-        except ModelFileError as exc:
-            log(f"inkdiag: cached model unusable ({exc}); retraining")
-    else:
-        log(f"inkdiag: no FDI model at {path}; training the default one (once, a few seconds)")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    train_default_model(path, progress=progress, features=want["features"], baseline=want.get("baseline", False))
-    return path
+from inkdiag_core.model_cache import (  # noqa: F401
+    DEFAULT_FEATURES,
+    DEFAULT_MODEL,
+    DEFAULT_SETTINGS,
+    default_config,
+    ensure_default_model,
+    train_default_model,
+)
+from inkdiag_core.model_cache import main as _core_main
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m inkdiag_ros.model_cache", description=__doc__.splitlines()[0])
-    ap.add_argument("paths", nargs="*", default=[str(DEFAULT_MODEL)],
-                    help="model files to verify or train (default: the default model)")
-    for p in ap.parse_args(argv).paths:
-        print(f"{ensure_default_model(p)}: verified")
-    return 0
+    """Verify or train each model file in ``argv`` (default: the default model); exit status 0."""
+    return _core_main(argv, prog="python -m inkdiag_ros.model_cache")
 
 
 if __name__ == "__main__":

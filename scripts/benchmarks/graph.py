@@ -164,7 +164,7 @@ def main() -> int:
     from std_msgs.msg import String
 
     from inkdiag_core.persistence import read_manifest
-    from inkdiag_ros.model_cache import ensure_default_model
+    from inkdiag_core.model_cache import ensure_default_model
     from msg_defs import (DIAGNOSTICS_MSG_TYPE, DIAGNOSTICS_QOS, LABELS_MSG_TYPE, RELIABLE_QOS,
                           TRACE_MSG_TYPE, TRACES_QOS, decode_labels, diagnostics_values, encode_traces,
                           topics)

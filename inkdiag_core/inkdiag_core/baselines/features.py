@@ -1,0 +1,107 @@
+"""Baseline features: a trace's KPIs relative to its nozzle's own healthy KPIs.
+
+- :func:`baseline_kpis`: a nozzle's baseline, the median KPIs over a few healthy frames;
+- :func:`with_baseline`: the input rows of a baseline pipeline, ``[trace, baseline]``;
+- :class:`BaselineKpis`: transformer from those rows to KPI_Y plus the relative
+  features (:data:`RELATIVE_NAMES`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from sklearn.base import BaseEstimator, TransformerMixin
+from sklearn.utils.validation import check_is_fitted, validate_data
+
+from ..kpis import KPI_NAMES, MIN_KPI_SAMPLES, extract_kpis
+
+__all__ = ["N_KPIS", "RELATIVE_NAMES", "BaselineKpis", "baseline_kpis", "with_baseline"]
+
+#: KPIs per baseline row (the columns of :data:`inkdiag_core.KPI_NAMES`).
+N_KPIS = len(KPI_NAMES)
+
+#: Names of the relative features :class:`BaselineKpis` appends to KPI_Y.
+RELATIVE_NAMES = ("frequency_ratio", "damping_ratio_difference", "damping_ratio_ratio",
+                  "amplitude_ratio", "energy_ratio", "phase_difference_rad")
+
+_EPS = 1e-30
+
+
+def baseline_kpis(frames, sample_rate_hz: float) -> np.ndarray:
+    """A nozzle's healthy baseline: the median of its KPIs over healthy frames.
+
+    Parameters
+    ----------
+    frames : array_like, shape (n_nozzles, n_frames, n_samples)
+        Healthy traces of each nozzle, V (each row's frames from the same nozzle).
+    sample_rate_hz : float
+
+    Returns
+    -------
+    ndarray, shape (n_nozzles, 7)
+        Columns of :data:`inkdiag_core.KPI_NAMES`. The median keeps a frame with a
+        passing disturbance from moving the baseline.
+    """
+    f = np.asarray(frames)
+    if f.ndim != 3 or f.shape[1] < 1:
+        raise ValueError(f"frames must be (n_nozzles, n_frames >= 1, n_samples), got shape {f.shape}")
+    n, k, m = f.shape
+    return np.median(extract_kpis(f.reshape(n * k, m), sample_rate_hz).reshape(n, k, N_KPIS), axis=1)
+
+
+def with_baseline(traces, baseline) -> np.ndarray:
+    """Input rows of a ``"kpi_y+baseline"`` pipeline: each trace followed by its nozzle's baseline.
+
+    Parameters
+    ----------
+    traces : array_like, shape (n, n_samples)
+    baseline : array_like, shape (n, 7)
+        Row ``i``: the baseline KPIs (:func:`baseline_kpis`) of trace ``i``'s nozzle.
+
+    Returns
+    -------
+    ndarray, shape (n, n_samples + 7)
+        float64 (float32 if both inputs are float32).
+    """
+    x = np.asarray(traces)
+    b = np.asarray(baseline)
+    if x.ndim != 2 or b.shape != (x.shape[0], N_KPIS):
+        raise ValueError(f"traces must be (n, n_samples) and baseline (n, {N_KPIS}); got shapes "
+                         f"{x.shape} and {b.shape}")
+    return np.hstack([x, b.astype(np.result_type(x.dtype, b.dtype), copy=False)])
+
+
+class BaselineKpis(TransformerMixin, BaseEstimator):
+    """KPI_Y of each trace plus its KPIs relative to its nozzle's healthy baseline.
+
+    Input rows are ``[trace (n_samples), baseline KPIs (7)]`` (:func:`with_baseline`).
+    Output (n, 7 + 6): :data:`inkdiag_core.KPI_NAMES`, then :data:`RELATIVE_NAMES`:
+    frequency ratio, damping-ratio difference and ratio, amplitude ratio, energy
+    ratio (dimensionless) and phase difference (rad, wrapped to (-pi, pi]).
+
+    Parameters
+    ----------
+    sample_rate_hz : float
+        Sample rate of the traces, Hz.
+    """
+
+    def __init__(self, sample_rate_hz=10e6):
+        self.sample_rate_hz = sample_rate_hz
+
+    def fit(self, X, y=None):
+        validate_data(self, X, dtype=[np.float64, np.float32], ensure_min_features=MIN_KPI_SAMPLES + N_KPIS)
+        return self
+
+    def transform(self, X):
+        check_is_fitted(self, "n_features_in_")
+        X = validate_data(self, X, dtype=[np.float64, np.float32], reset=False)
+        k = extract_kpis(X[:, :-N_KPIS], float(self.sample_rate_hz))
+        b = X[:, -N_KPIS:].astype(np.float64)
+        dphi = np.angle(np.exp(1j * (k[:, 4] - b[:, 4])))
+        rel = np.column_stack([
+            k[:, 1] / (b[:, 1] + _EPS), k[:, 2] - b[:, 2], k[:, 2] / (b[:, 2] + _EPS),
+            k[:, 3] / (b[:, 3] + _EPS), k[:, 5] / (b[:, 5] + _EPS), dphi,
+        ])
+        return np.hstack([k, rel])
+
+    def get_feature_names_out(self, input_features=None):
+        return np.array(KPI_NAMES + RELATIVE_NAMES, dtype=object)

@@ -1,0 +1,162 @@
+"""Record a head's per-nozzle healthy baselines from its frames as they arrive (:class:`BaselineRecorder`)."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from .. import checks
+from ..estimation import estimate_fm_batch
+from ..kpis import MIN_KPI_SAMPLES, InvalidTraceError, extract_kpis
+from ..model import InkChannelModel
+from ..screening import screen_traces
+from .features import N_KPIS
+from .store import NozzleBaselines
+
+__all__ = ["DEFAULT_MAX_NOZZLES", "BaselineRecorder"]
+
+#: Default bound on the nozzle ids a :class:`BaselineRecorder` accepts (ids are below it).
+#: It bounds memory: the recorder counts rows per nozzle id in a dense int32 array,
+#: grown on demand by doubling, so ids up to this bound cost at most 4 bytes times
+#: twice the bound (128 MiB here) whatever ids a frame claims.
+DEFAULT_MAX_NOZZLES = 1 << 24
+
+class BaselineRecorder:
+    """Record each nozzle's healthy baseline from the frames of a head, as they arrive.
+
+    Each :meth:`add` takes one message's rows (a contiguous nozzle range, any size,
+    any order, repeated ranges welcome); rows that :func:`inkdiag_core.screen_traces`
+    finds invalid, or that ``keep`` excludes, are not used. A nozzle's baseline is the
+    median of its first ``n_frames`` valid rows' KPIs (:func:`baseline_kpis` on
+    the same traces gives the same numbers); rows beyond that are ignored, so memory
+    stays at ``n_frames`` KPI rows per nozzle. Record while the head is healthy
+    (after a purge, at commissioning).
+
+    Parameters
+    ----------
+    n_frames : int
+        Frames per nozzle in its baseline, >= 1.
+    sample_rate_hz : float
+        Sample rate of the traces, Hz.
+    n_samples : int
+        Samples per trace; every frame must have it.
+    fm_frames : int
+        Also record each nozzle's healthy f_m reading (:attr:`NozzleBaselines.fm`),
+        the median of ``estimate_fm_batch(rows, InkChannelModel(), sample_rate_hz).fm``
+        over its first ``fm_frames`` rows (at most ``n_frames``); 0: none. It costs
+        about a millisecond per row, so it is taken on fewer rows than the KPIs.
+    max_nozzles : int
+        Nozzle ids must be below this, >= 1 (:data:`DEFAULT_MAX_NOZZLES`): a bound on
+        the recorder's memory (a dense int32 row count per nozzle id, 4 bytes each,
+        grown by doubling), so a frame claiming huge ids is refused rather than
+        allocating for them.
+    """
+
+    def __init__(self, *, n_frames: int = 8, sample_rate_hz: float = 10e6, n_samples: int = 512,
+                 fm_frames: int = 0, max_nozzles: int = DEFAULT_MAX_NOZZLES):
+        if isinstance(n_frames, bool) or not isinstance(n_frames, (int, np.integer)) or n_frames < 1:
+            raise ValueError(f"n_frames must be a positive integer, got {n_frames!r}")
+        if isinstance(fm_frames, bool) or not isinstance(fm_frames, (int, np.integer)) \
+                or not 0 <= fm_frames <= n_frames:
+            raise ValueError(f"fm_frames must be an integer in 0..n_frames ({n_frames}), got {fm_frames!r}")
+        self.fm_frames = int(fm_frames)
+        if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < MIN_KPI_SAMPLES:
+            raise ValueError(f"n_samples must be an integer >= {MIN_KPI_SAMPLES}, got {n_samples!r}")
+        if isinstance(max_nozzles, bool) or not isinstance(max_nozzles, (int, np.integer)) or max_nozzles < 1:
+            raise ValueError(f"max_nozzles must be a positive integer, got {max_nozzles!r}")
+        self.max_nozzles = int(max_nozzles)
+        self.n_frames = int(n_frames)
+        self.sample_rate_hz = checks.sample_rate(sample_rate_hz, error=InvalidTraceError)
+        self.n_samples = int(n_samples)
+        self._ids = []  # chunks of the rows kept so far, in arrival order
+        self._kpis = []
+        self._count_of = np.zeros(0, np.int32)  # rows kept per nozzle id (dense, grown on demand)
+
+    def add(self, first_nozzle: int, traces, keep=None) -> int:
+        """Use one message's rows: nozzles ``first_nozzle .. first_nozzle + n - 1``.
+
+        Parameters
+        ----------
+        first_nozzle : int
+            Id of row 0's nozzle, >= 0.
+        traces : array_like, shape (n, n_samples)
+            V.
+        keep : array_like of bool, shape (n,), optional
+            Rows to use (for instance those a classifier calls healthy).
+
+        Returns
+        -------
+        int
+            Rows used.
+        """
+        if isinstance(first_nozzle, bool) or not isinstance(first_nozzle, (int, np.integer)) or first_nozzle < 0:
+            raise ValueError(f"first_nozzle must be a non-negative integer, got {first_nozzle!r}")
+        x = np.asarray(traces)
+        if x.ndim != 2 or x.shape[1] != self.n_samples:
+            raise ValueError(f"traces must have shape (n, {self.n_samples}), got {x.shape}")
+        if first_nozzle + x.shape[0] > self.max_nozzles:
+            raise ValueError(f"nozzle ids must stay below {self.max_nozzles} (the recorder's max_nozzles, "
+                             f"a bound on its memory), got {first_nozzle}..{first_nozzle + x.shape[0] - 1}")
+        use, _ = screen_traces(x)
+        if keep is not None:
+            k = np.asarray(keep, dtype=bool)
+            if k.shape != (x.shape[0],):
+                raise ValueError(f"keep must have shape ({x.shape[0]},), got {k.shape}")
+            use &= k
+        ids = first_nozzle + np.flatnonzero(use)
+        # only nozzles still short of n_frames rows (at most their shortfall; the ids of
+        # one message are distinct)
+        if ids.size and ids[-1] >= self._count_of.size:
+            grown = np.zeros(max(int(ids[-1]) + 1, 2 * self._count_of.size), np.int32)
+            grown[: self._count_of.size] = self._count_of
+            self._count_of = grown
+        need = self._count_of[ids] < self.n_frames
+        if not need.any():
+            return 0
+        rows = np.flatnonzero(use)[need]
+        ids = ids[need]
+        y = checks.traces_2d(x[rows], min_samples=MIN_KPI_SAMPLES, error=InvalidTraceError)
+        kpis = np.full((ids.size, N_KPIS + 1), np.nan)  # the last column: f_m, NaN where not taken
+        kpis[:, :N_KPIS] = extract_kpis(y, self.sample_rate_hz)
+        if self.fm_frames:
+            fm_rows = np.flatnonzero(self._count_of[ids] < self.fm_frames)
+            if fm_rows.size:
+                kpis[fm_rows, N_KPIS] = estimate_fm_batch(y[fm_rows], InkChannelModel(), self.sample_rate_hz).fm
+        self._kpis.append(kpis)
+        self._ids.append(ids.astype(np.int64))
+        self._count_of[ids] += 1  # the ids of one message are distinct
+        return int(ids.size)
+
+    @property
+    def n_complete(self) -> int:
+        """Nozzles with ``n_frames`` rows recorded."""
+        return int(np.count_nonzero(self._count_of >= self.n_frames))
+
+    def baselines(self, min_frames: int | None = None) -> NozzleBaselines:
+        """The baselines of the nozzles with at least ``min_frames`` rows (default ``n_frames``).
+
+        Each is the median over the nozzle's rows (up to ``n_frames``), KPI by KPI.
+        """
+        need = self.n_frames if min_frames is None else int(min_frames)
+        if not 1 <= need <= self.n_frames:
+            raise ValueError(f"min_frames must be in 1..{self.n_frames}, got {min_frames!r}")
+        all_ids = np.concatenate(self._ids) if self._ids else np.empty(0, np.int64)
+        all_kpis = np.concatenate(self._kpis) if self._kpis else np.empty((0, N_KPIS + 1))
+        order = np.argsort(all_ids, kind="stable")  # grouped by nozzle, arrival order within
+        ids = np.flatnonzero(self._count_of).astype(np.int64)
+        counts = self._count_of[ids].astype(np.int64)
+        ok = counts >= need
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+        k = np.arange(self.n_frames)
+        idx = starts[ok][:, None] + k  # (m, n_frames) rows of each nozzle, in arrival order
+        valid = k < np.minimum(counts[ok], self.n_frames)[:, None]
+        stack = np.where(valid[..., None], all_kpis[order][np.where(valid, idx, 0)], np.nan)
+        if ok.any():
+            with warnings.catch_warnings():  # a nozzle whose f_m rows were all non-finite: NaN
+                warnings.simplefilter("ignore", RuntimeWarning)
+                med = np.nanmedian(stack, axis=1)
+        else:
+            med = np.empty((0, N_KPIS + 1))
+        return NozzleBaselines(ids[ok], med[:, :N_KPIS], self.sample_rate_hz, self.n_samples, self.n_frames,
+                               fm=med[:, N_KPIS] if self.fm_frames else None)

@@ -1,0 +1,240 @@
+"""The recorded baselines by nozzle id (:class:`NozzleBaselines`) and their checked ``.npz`` file.
+
+A file holds the arrays (``nozzle_ids``, ``kpis``, optional ``fm``), no pickle, and a
+JSON header (``meta``) with :data:`BASELINE_FORMAT`, :data:`BASELINE_FORMAT_VERSION`,
+the settings and the sha256 of the content; :meth:`NozzleBaselines.load` checks them
+all and says what is wrong (:class:`BaselineFileError`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+import zipfile
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .. import checks
+from ..kpis import KPI_NAMES, InvalidTraceError
+from .features import N_KPIS
+
+__all__ = ["BASELINE_FORMAT", "BASELINE_FORMAT_VERSION", "BaselineFileError", "NozzleBaselines"]
+
+BASELINE_FORMAT = "inkdiag-nozzle-baselines"
+BASELINE_FORMAT_VERSION = 2  # 2: optional healthy f_m per nozzle ("fm"); 1 (KPIs only) is still read
+_READABLE_VERSIONS = (1, 2)
+
+
+class BaselineFileError(ValueError):
+    """A baselines file that is missing, not one, modified, or inconsistent (a ``ValueError``)."""
+
+
+def _content_sha256(ids: np.ndarray, kpis: np.ndarray, meta: dict, fm=None) -> str:
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(ids, dtype="<i8").tobytes())
+    h.update(np.ascontiguousarray(kpis, dtype="<f8").tobytes())
+    if fm is not None:
+        h.update(np.ascontiguousarray(fm, dtype="<f8").tobytes())
+    h.update(json.dumps(meta, sort_keys=True).encode())
+    return h.hexdigest()
+
+
+@dataclass(frozen=True, eq=False)
+class NozzleBaselines:
+    """Healthy KPI baselines of a set of nozzles, one row per nozzle id.
+
+    Parameters
+    ----------
+    nozzle_ids : array_like of int, shape (m,)
+        Strictly increasing, non-negative.
+    kpis : array_like of float, shape (m, 7)
+        Finite; columns of :data:`inkdiag_core.KPI_NAMES` (SI units, as
+        :func:`inkdiag_core.extract_kpis`).
+    sample_rate_hz : float
+        Sample rate of the traces behind them, Hz.
+    n_samples : int
+        Samples per trace behind them.
+    n_frames : int
+        Healthy frames per nozzle the median was taken over (at most).
+    fm : array_like of float, shape (m,), optional
+        Each nozzle's healthy f_m reading, 1/s: the median of
+        ``estimate_fm_batch(rows, InkChannelModel(), sample_rate_hz).fm`` over
+        its first healthy rows (:class:`BaselineRecorder` ``fm_frames``), for
+        ``estimate_fm_batch(..., baseline_fm=...)``; NaN where a nozzle has
+        none. None: no f_m baselines at all.
+
+    Raises
+    ------
+    ValueError
+        Shapes, order, finiteness or the scalars are wrong.
+    """
+
+    nozzle_ids: np.ndarray
+    kpis: np.ndarray
+    sample_rate_hz: float
+    n_samples: int
+    n_frames: int
+    fm: np.ndarray | None = None
+
+    def __post_init__(self):
+        ids = np.asarray(self.nozzle_ids)
+        kpis = np.asarray(self.kpis, dtype=np.float64)
+        if ids.ndim != 1 or (ids.size and ids.dtype.kind not in "iu"):
+            raise ValueError(f"nozzle_ids must be a 1-D integer array, got dtype {ids.dtype} shape {ids.shape}")
+        ids = ids.astype(np.int64)
+        if kpis.shape != (ids.size, N_KPIS):
+            raise ValueError(f"kpis must have shape ({ids.size}, {N_KPIS}), got {kpis.shape}")
+        if ids.size and (ids[0] < 0 or np.any(np.diff(ids) <= 0)):
+            raise ValueError("nozzle_ids must be non-negative and strictly increasing")
+        if not np.isfinite(kpis).all():
+            raise ValueError("kpis must be finite")
+        fm = None
+        if self.fm is not None:
+            fm = np.asarray(self.fm, dtype=np.float64)
+            if fm.shape != (ids.size,):
+                raise ValueError(f"fm must have shape ({ids.size},), got {fm.shape}")
+            if np.isinf(fm).any():
+                raise ValueError("fm must be finite, or NaN where a nozzle has no f_m baseline")
+            fm.flags.writeable = False
+        fs = checks.sample_rate(self.sample_rate_hz, error=InvalidTraceError)
+        for name in ("n_samples", "n_frames"):
+            v = getattr(self, name)
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 1:
+                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        for arr in (ids, kpis):
+            arr.flags.writeable = False
+        object.__setattr__(self, "nozzle_ids", ids)
+        object.__setattr__(self, "kpis", kpis)
+        object.__setattr__(self, "fm", fm)
+        object.__setattr__(self, "sample_rate_hz", fs)
+        object.__setattr__(self, "n_samples", int(self.n_samples))
+        object.__setattr__(self, "n_frames", int(self.n_frames))
+
+    def __len__(self) -> int:
+        return int(self.nozzle_ids.size)
+
+    def lookup(self, nozzle_ids):
+        """The baselines of the given nozzles.
+
+        Parameters
+        ----------
+        nozzle_ids : array_like of int, shape (n,)
+
+        Returns
+        -------
+        has : ndarray of bool, shape (n,)
+            Whether each nozzle has a baseline.
+        kpis : ndarray of float64, shape (n, 7)
+            Its baseline, NaN where it has none.
+        """
+        has, pos = self._rows(nozzle_ids)
+        out = np.full((has.size, N_KPIS), np.nan)
+        out[has] = self.kpis[pos[has]]
+        return has, out
+
+    def _rows(self, nozzle_ids):
+        """Whether each nozzle id has a row, and its row (clipped where it has none)."""
+        q = np.asarray(nozzle_ids, dtype=np.int64).reshape(-1)
+        pos = np.minimum(np.searchsorted(self.nozzle_ids, q), max(len(self) - 1, 0))
+        has = self.nozzle_ids[pos] == q if len(self) else np.zeros(q.size, bool)
+        return has, pos
+
+    def lookup_fm(self, nozzle_ids):
+        """The healthy f_m baselines of the given nozzles.
+
+        Parameters
+        ----------
+        nozzle_ids : array_like of int, shape (n,)
+
+        Returns
+        -------
+        has : ndarray of bool, shape (n,)
+            Whether each nozzle has an f_m baseline.
+        fm : ndarray of float64, shape (n,)
+            Its healthy f_m, 1/s; 0 where it has none (``baseline_fm``'s "none").
+        """
+        has, pos = self._rows(nozzle_ids)
+        if self.fm is None:
+            return np.zeros(has.size, bool), np.zeros(has.size)
+        fm = np.where(has, self.fm[pos] if len(self) else 0.0, np.nan)
+        has = ~np.isnan(fm)
+        return has, np.where(has, fm, 0.0)
+
+    def _meta(self) -> dict:
+        return {"format": BASELINE_FORMAT, "format_version": BASELINE_FORMAT_VERSION,
+                "kpi_names": list(KPI_NAMES), "sample_rate_hz": self.sample_rate_hz,
+                "n_samples": self.n_samples, "n_frames": self.n_frames, "has_fm": self.fm is not None}
+
+    def save(self, path) -> Path:
+        """Write an ``.npz`` (no pickle) with the arrays, the settings and their sha256.
+
+        Written to a temporary file and renamed, so a reader never sees half a file.
+        Returns the path written.
+        """
+        path = Path(path)
+        meta = self._meta()
+        meta["sha256"] = _content_sha256(self.nozzle_ids, self.kpis, self._meta(), self.fm)
+        arrays = {"nozzle_ids": self.nozzle_ids, "kpis": self.kpis}
+        if self.fm is not None:
+            arrays["fm"] = self.fm
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+        try:
+            with os.fdopen(fd, "wb") as f:
+                np.savez(f, **arrays, meta=np.array(json.dumps(meta, sort_keys=True)))
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return path
+
+    @classmethod
+    def load(cls, path) -> "NozzleBaselines":
+        """Read a file written by :meth:`save`, checking it before use.
+
+        Raises
+        ------
+        BaselineFileError
+            The file is missing, not a baselines file (or another format version),
+            its arrays do not match the checksum it carries (modified or corrupted),
+            or they are inconsistent.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise BaselineFileError(f"no baselines file at {path}")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in ("nozzle_ids", "kpis", "meta")}
+                fm = z["fm"] if "fm" in z.files else None
+            meta = json.loads(str(arrays["meta"]))
+        except (OSError, ValueError, KeyError, EOFError, TypeError, zipfile.BadZipFile, zlib.error) as exc:
+            raise BaselineFileError(f"{path} is not an inkdiag baselines file, or is damaged "
+                                    f"({type(exc).__name__}: {exc})") from None
+        if not isinstance(meta, dict) or meta.get("format") != BASELINE_FORMAT:
+            raise BaselineFileError(f"{path} is not an inkdiag baselines file (format "
+                                    f"{meta.get('format') if isinstance(meta, dict) else meta!r})")
+        if meta.get("format_version") not in _READABLE_VERSIONS:
+            raise BaselineFileError(f"{path}: baselines format version {meta.get('format_version')!r}, "
+                                    f"this inkdiag reads {', '.join(map(str, _READABLE_VERSIONS))}")
+        if (fm is not None) != bool(meta.get("has_fm", False)):
+            raise BaselineFileError(f"{path}: its f_m column does not match its header (modified or "
+                                    "corrupted); record the baselines again")
+        if meta.get("kpi_names") != list(KPI_NAMES):
+            raise BaselineFileError(f"{path}: KPI columns {meta.get('kpi_names')!r} are not {list(KPI_NAMES)}")
+        stored = meta.pop("sha256", None)
+        ids, kpis = arrays["nozzle_ids"], arrays["kpis"]
+        try:
+            actual = _content_sha256(ids, kpis, meta, fm)
+        except (TypeError, ValueError) as exc:
+            raise BaselineFileError(f"{path}: unreadable arrays ({exc})") from None
+        if stored != actual:
+            raise BaselineFileError(f"{path}: its content does not match its sha256 (modified or "
+                                    "corrupted); record the baselines again")
+        try:
+            return cls(ids, kpis, meta["sample_rate_hz"], meta["n_samples"], meta["n_frames"], fm)
+        except (KeyError, ValueError) as exc:
+            raise BaselineFileError(f"{path}: inconsistent baselines ({exc})") from None
