@@ -14,7 +14,6 @@ import collections
 import time
 
 import numpy as np
-import pytest
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float32MultiArray, MultiArrayDimension
 

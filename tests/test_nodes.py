@@ -1,12 +1,11 @@
 """Each node alone, real rclpy on a per-test Context, against test publishers/subscribers."""
 
-import json
 import shutil
 
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
-from std_msgs.msg import Float32MultiArray, String
+from std_msgs.msg import Float32MultiArray
 
 from inkdiag_core import FaultClass, simulate
 from msg_defs import (

@@ -10,7 +10,6 @@
   the former import paths keep working.
 """
 
-import ast
 import hashlib
 from pathlib import Path
 

@@ -465,7 +465,7 @@ def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: st
         The manifest written beside the model.
     """
     from .faults import FaultClass
-    from .persistence import save_detector, save_model
+    from .persistence import save_detector
     from .simulation.linear import simulate
 
     report = progress or (lambda step, total, message: None)
