@@ -30,15 +30,11 @@ from .stats import FdiStats
 
 PARAMS = (
     ("model_path", "", "FaultDetector model file (.joblib with its .manifest.json beside it)", str, None),
-    ("n_nozzles", 0, "nozzles of this head: frames with ids >= n_nozzles are rejected (0: no check)",
-     int, (0, 2**24)),
-    ("n_samples", 512, "samples per trace the model was built for; other frames are rejected",
-     int, (16, 65536)),
-    ("sample_rate_hz", 10e6, "sample rate the model was built for, Hz; other frames are rejected",
-     float, (1e3, 1e9)),
+    ("n_nozzles", 0, "nozzles of this head: frames with ids >= n_nozzles are rejected (0: no check)", int, (0, 2**24)),
+    ("n_samples", 512, "samples per trace the model was built for; other frames are rejected", int, (16, 65536)),
+    ("sample_rate_hz", 10e6, "sample rate the model was built for, Hz; other frames are rejected", float, (1e3, 1e9)),
     ("diagnostics_period_s", 1.0, "period of /diagnostics, s", float, (0.1, 60.0)),
-    ("max_queued_frames", 64, "frames waiting for the classifier at most; a full queue drops its oldest",
-     int, (1, 100000)),
+    ("max_queued_frames", 64, "frames waiting for the classifier at most; a full queue drops its oldest", int, (1, 100000)),
     ("max_batch_traces", 16384, "traces classified in one pass at most", int, (1, 2**24)),
     ("baseline_path", "", "the head's per-nozzle healthy baselines (.npz from record_baseline), classified "
      "by the model's baseline branch; empty: none", str, None),
