@@ -84,23 +84,25 @@ def _old_estimator(ref, tmp):
 
 
 def _per_call(fn, repeat):
-    """Seconds per call, best of ``repeat`` batches of calls (the first warms caches)."""
+    """CPU seconds of this process per call, best of ``repeat`` batches of 10 calls (the
+    first call warms caches). CPU time, not wall time: on a shared machine waiting for a
+    core is not the estimator's cost (one BLAS thread: this process's time is the work)."""
     fn()
     calls = 10
     best = np.inf
     for _ in range(repeat):
-        t = time.perf_counter()
+        t = time.process_time()
         for _ in range(calls):
             fn()
-        best = min(best, (time.perf_counter() - t) / calls)
+        best = min(best, (time.process_time() - t) / calls)
     return best
 
 
-def small_batches(Y, model, fs, ref, sizes=(1, 2, 8, 64), repeat=5):
+def small_batches(Y, model, fs, ref, sizes=(1, 2, 8, 64), repeat=7):
     """Per-call ms of "vp"/"vp_cal" now and at commit ``ref``, same run; same bits?"""
     with tempfile.TemporaryDirectory() as tmp:
         old, old_model = _old_estimator(ref, tmp)
-        print(f"per call, ms (best of {repeat} x 10 calls), this tree vs {ref}:")
+        print(f"CPU ms per call (best of {repeat} x 10 calls), this tree vs {ref}:")
         for method in ("vp", "vp_cal"):
             for n in sizes:
                 y = Y[:n]
