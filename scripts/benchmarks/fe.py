@@ -4,6 +4,12 @@
 
 Baseline: a per-trace scipy.optimize.least_squares fit of (f_m, x0, offset)
 started from the healthy model (what one would write without variable projection).
+
+Per-call cost of small batches (the fe node's case: a frame's few drying nozzles):
+time per call of "vp" and "vp_cal" on 1, 2, 8 and 64 traces, against the estimator
+of an older commit (``--old-ref``, extracted with ``git archive`` into a temporary
+directory and imported as its own package), measured in the same run and checked
+to give the same bits.
 """
 
 import os
@@ -12,11 +18,16 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_v] = "1"
 
 import argparse  # noqa: E402
+import importlib  # noqa: E402
+import subprocess  # noqa: E402
 import sys  # noqa: E402
+import tarfile  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "inkdiag_core"))
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "inkdiag_core"))
 
 import numpy as np  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
@@ -56,10 +67,62 @@ def _rate(fn, n, repeat=1):
     return n / best
 
 
+def _old_estimator(ref, tmp):
+    """``estimate_fm_batch`` of commit ``ref`` (imported as package ``inkdiag_core_<ref>``)
+    and that package's default ``InkChannelModel()``."""
+    tar = Path(tmp) / "old.tar"
+    with open(tar, "wb") as fh:
+        subprocess.run(["git", "-C", str(ROOT), "archive", ref, "inkdiag_core/inkdiag_core"],
+                       stdout=fh, check=True)
+    with tarfile.open(tar) as tf:
+        tf.extractall(tmp, filter="data")
+    name = f"inkdiag_core_{ref.replace('-', '_').replace('.', '_')}"
+    (Path(tmp) / "inkdiag_core" / "inkdiag_core").rename(Path(tmp) / name)
+    sys.path.insert(0, tmp)
+    pkg = importlib.import_module(name)
+    return pkg.estimate_fm_batch, pkg.InkChannelModel()
+
+
+def _per_call(fn, repeat):
+    """CPU seconds of this process per call, best of ``repeat`` batches of 10 calls (the
+    first call warms caches). CPU time, not wall time: on a shared machine waiting for a
+    core is not the estimator's cost (one BLAS thread: this process's time is the work)."""
+    fn()
+    calls = 10
+    best = np.inf
+    for _ in range(repeat):
+        t = time.process_time()
+        for _ in range(calls):
+            fn()
+        best = min(best, (time.process_time() - t) / calls)
+    return best
+
+
+def small_batches(Y, model, fs, ref, sizes=(1, 2, 8, 64), repeat=7):
+    """Per-call ms of "vp"/"vp_cal" now and at commit ``ref``, same run; same bits?"""
+    with tempfile.TemporaryDirectory() as tmp:
+        old, old_model = _old_estimator(ref, tmp)
+        print(f"CPU ms per call (best of {repeat} x 10 calls), this tree vs {ref}:")
+        for method in ("vp", "vp_cal"):
+            for n in sizes:
+                y = Y[:n]
+                a, b = estimate_fm_batch(y, model, fs, method=method), old(y, old_model, fs, method=method)
+                same = all(np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True)
+                           for f in ("fm", "std", "x0", "offset", "trace"))
+                t_new = _per_call(lambda: estimate_fm_batch(y, model, fs, method=method), repeat)
+                t_old = _per_call(lambda: old(y, old_model, fs, method=method), repeat)
+                print(f"  {method:6s} {n:3d} traces  {1e3 * t_new:7.2f} vs {1e3 * t_old:7.2f}  "
+                      f"ratio {t_old / t_new:4.2f}x  {'bit-identical' if same else 'DIFFERENT'}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--n", type=int, default=4900, help="traces per timed batch")
     ap.add_argument("--n-baseline", type=int, default=10)
+    ap.add_argument("--old-ref", default="34832dd",
+                    help="commit whose estimator the small-batch per-call times compare with "
+                    "(default: before the per-call cost cut)")
+    ap.add_argument("--small-only", action="store_true", help="only the small-batch comparison")
     args = ap.parse_args(argv)
     model = InkChannelModel()
     fs = 10e6
@@ -67,6 +130,9 @@ def main(argv=None):
     ds = synthetic_set(model, kind="ct", x0="random", n_per_level=reps, snr_db=40, seed=0)
     Y, X0, fm = ds.y, ds.x0, ds.fm
     n = Y.shape[0]
+    small_batches(Y, model, fs, args.old_ref)
+    if args.small_only:
+        return
     estimate_fm_batch(Y[:49], model, fs, method="vp")  # warm the grid cache
     r_dt = _rate(lambda: estimate_fm_batch(Y, model, fs, method="dt", x0=X0), n, 3)
     r_ct = _rate(lambda: estimate_fm_batch(Y, model, fs, method="ct", x0=X0), n, 3)

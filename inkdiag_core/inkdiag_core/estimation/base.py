@@ -167,6 +167,7 @@ class Scaled:
         self.C = (C * self.s[None, :]).ravel()  # (3,)
         self.G = (B_f.ravel() / self.s) * self.s[2]  # fault direction for fs * xs3
         self.dt = 1.0 / (sample_rate_hz * T0)
+        self.w0 = float(np.abs(np.linalg.eigvals(self.A).imag).max())  # healthy pair's omega
 
     def to_scaled_x(self, x0, c):
         return x0 / self.s[None, :] / c[:, None]

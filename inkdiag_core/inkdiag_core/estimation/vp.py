@@ -52,17 +52,30 @@ class VpOptions:
 # ---------------------------------------------------------------------------
 # variable projection (no x0)
 # ---------------------------------------------------------------------------
+_I3 = np.arange(3)
+
+
+@functools.lru_cache(maxsize=32)
+def _times(N, dt):
+    """Sample times ``k dt`` (scaled units), (N,); read-only, shared across calls."""
+    kd = np.arange(N, dtype=float) * dt
+    kd.flags.writeable = False
+    return kd
+
+
 def _modes(sc: Scaled, fs):
     """Eigen-structure of As + fs G e3^T for fs (m,): pair lam1 (Im>0), real lam3,
     their derivatives d lam / d fs, and V, Vi."""
     m = fs.shape[0]
-    A = np.broadcast_to(sc.A, (m, 3, 3)).copy()
+    A = np.empty((m, 3, 3))
+    A[...] = sc.A
     A[:, :, 2] += fs[:, None] * sc.G[None, :]
     lam, V = np.linalg.eig(A)
     # order: the eigenvalue with largest Im first, then its conjugate, then the real one
     order = np.argsort(-lam.imag, axis=1)[:, [0, 2, 1]]
-    lam = np.take_along_axis(lam, order, axis=1)
-    V = np.take_along_axis(V, order[:, None, :], axis=2)
+    rows = np.arange(m)[:, None]
+    lam = lam[rows, order]
+    V = V[rows[:, :, None], _I3[None, :, None], order[:, None, :]]
     Vi = np.linalg.inv(V)
     dlam = (Vi @ sc.G) * V[:, 2, :]  # w_j^H (G e3^T) v_j with Vi V = I
     return lam, dlam, V, Vi
@@ -72,25 +85,23 @@ def _vp_basis(sc: Scaled, fs, N, *, deriv=False):
     """Modal basis [rho^k cos, rho^k sin, nu^k, 1] (m, 4, N) and, if asked, d/dfs of
     its first three columns for unit coefficients (as a function of the coefficients)."""
     lam, dlam, V, Vi = _modes(sc, fs)
-    k = np.arange(N, dtype=float)
-    dt = sc.dt
+    kd = _times(N, sc.dt)  # k dt, (N,)
     s1, w1 = lam[:, 0].real, lam[:, 0].imag
     l3 = lam[:, 2].real
     pair = w1 > 1e-12
-    decay = np.exp(np.outer(s1, k * dt))
-    ang = np.outer(w1, k * dt)
+    decay = np.exp(s1[:, None] * kd)
+    ang = w1[:, None] * kd
     c, s = decay * np.cos(ang), decay * np.sin(ang)
     # overdamped: use the two other real eigenvalues instead of a pair
     if not pair.all():
         lr = lam[~pair].real
-        c[~pair] = np.exp(np.outer(lr[:, 0], k * dt))
-        s[~pair] = np.exp(np.outer(lr[:, 1], k * dt))
-    nu = np.exp(np.outer(l3, k * dt))
+        c[~pair] = np.exp(lr[:, 0:1] * kd)
+        s[~pair] = np.exp(lr[:, 1:2] * kd)
+    nu = np.exp(l3[:, None] * kd)
     B = np.empty((fs.shape[0], 4, N))  # (m, 4, N): basis functions along the last axis
     B[:, 0], B[:, 1], B[:, 2], B[:, 3] = c, s, nu, 1.0
     if not deriv:
         return B, lam, V, Vi
-    kd = k * dt
     ds, dw, d3 = dlam[:, 0].real, dlam[:, 0].imag, dlam[:, 2].real
     # d(e^{lam k dt})/dfs = k dt dlam e^{lam k dt}; in (cos, sin) components
     dc = kd * (ds[:, None] * c - dw[:, None] * s)
@@ -114,70 +125,85 @@ def _vp_grid(key, N, lo, hi, n_grid):
     return grid, np.ascontiguousarray(Q.transpose(1, 0, 2).reshape(N, -1))
 
 
-def _vp_solve(B, y):
-    """Least squares of y (m, N) on the rows of B (m, 4, N): theta, residual, ||residual||^2."""
+def _vp_factor(B):
+    """Column-equilibrated normal matrix of B (m, 4, N): (Gs (m, 4, 4), d (m, 4))."""
     Gm = B @ B.transpose(0, 2, 1)
-    b = (B @ y[:, :, None])[:, :, 0]
-    # column equilibration for the normal equations
     d = 1.0 / np.sqrt(np.diagonal(Gm, axis1=1, axis2=2))
-    theta = np.linalg.solve(Gm * d[:, :, None] * d[:, None, :], (b * d)[..., None])[..., 0] * d
-    res = y - (theta[:, None, :] @ B)[:, 0, :]
-    return theta, res, np.einsum("nk,nk->n", res, res)
+    return Gm * d[:, :, None] * d[:, None, :], d
+
+
+def _vp_solve(B, y, factor=None):
+    """Least squares of y (..., m, N) on the rows of B (m, 4, N): theta, residual,
+    ||residual||^2. ``factor``: :func:`_vp_factor` of B when already known (leading
+    axes of y are further right-hand sides with the same B)."""
+    Gs, d = _vp_factor(B) if factor is None else factor
+    b = (B @ y[..., None])[..., 0]
+    theta = np.linalg.solve(Gs, (b * d)[..., None])[..., 0] * d
+    res = y - (theta[..., None, :] @ B)[..., 0, :]
+    return theta, res, np.einsum("...k,...k->...", res, res)
 
 
 def vp_batch(sc: Scaled, key, Ys, *, fm_bounds, n_grid=160, max_iter=8, tol=1e-8):
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return _vp_batch(sc, key, Ys, fm_bounds, n_grid, max_iter, tol)
+
+
+def _vp_batch(sc, key, Ys, fm_bounds, n_grid, max_iter, tol):
     n, N = Ys.shape
     lo, hi = fm_bounds
     grid, Qcat = _vp_grid(key, N, float(lo), float(hi), int(n_grid))
     P = Ys @ Qcat  # (n, 4G)
     E = np.einsum("ngi,ngi->ng", P.reshape(n, -1, 4), P.reshape(n, -1, 4))
     Rg = np.einsum("nk,nk->n", Ys, Ys)[:, None] - E
-    i = np.clip(np.argmin(Rg, axis=1), 1, grid.size - 2)
+    i = np.minimum(np.maximum(np.argmin(Rg, axis=1), 1), grid.size - 2)
     h = grid[1] - grid[0]
-    r0, r1, r2 = (np.take_along_axis(Rg, (i + j)[:, None], axis=1)[:, 0] for j in (-1, 0, 1))
+    rows = np.arange(n)
+    r0, r1, r2 = Rg[rows, i - 1], Rg[rows, i], Rg[rows, i + 1]
     curv = r0 - 2 * r1 + r2
-    with np.errstate(invalid="ignore", divide="ignore"):
-        step = np.where(curv > 0, 0.5 * h * (r0 - r2) / curv, 0.0)
-    f = grid[i] + np.clip(step, -h, h)
+    step = np.where(curv > 0, 0.5 * h * (r0 - r2) / curv, 0.0)
+    f = grid[i] + np.minimum(np.maximum(step, -h), h)
     f_lo, f_hi = grid[i] - h, grid[i] + h
-    B, dB, *_ = _vp_basis(sc, f, N, deriv=True)
-    theta, res, R = _vp_solve(B, Ys)
+    B, dB, lam, V, _ = _vp_basis(sc, f, N, deriv=True)
+    fac = _vp_factor(B)
+    theta, res, R = _vp_solve(B, Ys, fac)
     for _ in range(max_iter):
         # Gauss-Newton on f with the linear parameters projected out (Kaufman)
         J = (theta[:, None, :3] @ dB)[:, 0, :]
-        tJ = _vp_solve(B, J)[1]  # (I - P) J
+        tJ = _vp_solve(B, J, fac)[1]  # (I - P) J
         JJ = np.einsum("nk,nk->n", tJ, tJ)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            d = np.where(JJ > 0, np.einsum("nk,nk->n", tJ, res) / JJ, 0.0)
-        f_new = np.clip(f + d, f_lo, f_hi)
-        B2, dB2, *_ = _vp_basis(sc, f_new, N, deriv=True)
-        th2, res2, R2 = _vp_solve(B2, Ys)
+        d = np.where(JJ > 0, np.einsum("nk,nk->n", tJ, res) / JJ, 0.0)
+        f_new = np.minimum(np.maximum(f + d, f_lo), f_hi)
+        B2, dB2, lam2, V2, _ = _vp_basis(sc, f_new, N, deriv=True)
+        fac2 = _vp_factor(B2)
+        th2, res2, R2 = _vp_solve(B2, Ys, fac2)
         acc = R2 <= R
-        f = np.where(acc, f_new, f)
-        B = np.where(acc[:, None, None], B2, B)
-        dB = np.where(acc[:, None, None], dB2, dB)
-        theta = np.where(acc[:, None], th2, theta)
-        res = np.where(acc[:, None], res2, res)
-        R = np.where(acc, R2, R)
+        if acc.all():
+            f, B, dB, lam, V, fac, theta, res, R = f_new, B2, dB2, lam2, V2, fac2, th2, res2, R2
+        elif acc.any():
+            a1, a2 = acc[:, None], acc[:, None, None]
+            f = np.where(acc, f_new, f)
+            B, dB = np.where(a2, B2, B), np.where(a2, dB2, dB)
+            lam, V = np.where(a1, lam2, lam), np.where(a2, V2, V)
+            fac = (np.where(a2, fac2[0], fac[0]), np.where(a1, fac2[1], fac[1]))
+            theta, res, R = np.where(a1, th2, theta), np.where(a1, res2, res), np.where(acc, R2, R)
         # a rejected step is halved next time through the bracket
-        f_lo = np.where(~acc & (d < 0), np.maximum(f_lo, f + 0.5 * d), f_lo)
-        f_hi = np.where(~acc & (d > 0), np.minimum(f_hi, f + 0.5 * d), f_hi)
-        if np.all(np.abs(d) < tol):  # scaled units: 1e-8 per us = 0.01 1/s
+        if not acc.all():
+            f_lo = np.where(~acc & (d < 0), np.maximum(f_lo, f + 0.5 * d), f_lo)
+            f_hi = np.where(~acc & (d > 0), np.minimum(f_hi, f + 0.5 * d), f_hi)
+        if (np.abs(d) < tol).all():  # scaled units: 1e-8 per us = 0.01 1/s
             break
     J = (theta[:, None, :3] @ dB)[:, 0, :]
-    tJ = _vp_solve(B, J)[1]
+    tJ = _vp_solve(B, J, fac)[1]
     JJ = np.einsum("nk,nk->n", tJ, tJ)
     sigma2 = R / max(N - 5, 1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        std = np.sqrt(sigma2 / JJ)
+    std = np.sqrt(sigma2 / JJ)
     # initial state from the modal coefficients: y_k = sum_j (C V)_j m_j mu_j^k
-    lam, _, V, _ = _modes(sc, f)
+    # (lam, V: the modes at f, kept from the accepted basis)
     CV = np.einsum("i,nij->nj", sc.C.astype(complex), V)
     pair = lam[:, 0].imag > 1e-12
     m1 = np.where(pair, (theta[:, 0] - 1j * theta[:, 1]) / 2, theta[:, 0])
     m2 = np.where(pair, np.conj(m1), theta[:, 1])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        modal = np.stack([m1, m2, theta[:, 2]], axis=1) / CV
+    modal = np.stack([m1, m2, theta[:, 2]], axis=1) / CV
     xs0 = np.einsum("nij,nj->ni", V, modal).real
     return f / T0, std / T0, xs0, theta[:, 3]
 
@@ -209,23 +235,30 @@ def pair_refit(sc: Scaled, Ys, fs, *, iters=3):
     (n, 2)), the pair's Gauss-Newton information ``tJ^T tJ`` (n, 2, 2), the
     residual variance (n,) and the model curve's slope ``d(sigma, omega)/d fs``
     (n, 2). Rows without an oscillatory pair (overdamped) get zero deviations."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return _pair_refit(sc, Ys, fs, iters)
+
+
+def _pair_refit(sc, Ys, fs, iters):
     n, N = Ys.shape
     lam, dlam, *_ = _modes(sc, fs)
     pair = lam[:, 0].imag > 1e-12
     sig0, w0, l3 = lam[:, 0].real, np.where(pair, lam[:, 0].imag, 1.0), lam[:, 2].real
-    t = np.arange(N, dtype=float) * sc.dt
-    nu = np.exp(np.outer(l3, t))
+    t = _times(N, sc.dt)
+    nu = np.exp(l3[:, None] * t)
 
     def fit(sig, w):
-        dec = np.exp(np.outer(sig, t))
+        dec = np.exp(sig[:, None] * t)
+        ang = w[:, None] * t
         B = np.empty((n, 4, N))
-        B[:, 0], B[:, 1] = dec * np.cos(np.outer(w, t)), dec * np.sin(np.outer(w, t))
+        B[:, 0], B[:, 1] = dec * np.cos(ang), dec * np.sin(ang)
         B[:, 2], B[:, 3] = nu, 1.0
-        th, res, R = _vp_solve(B, Ys)
+        fac = _vp_factor(B)
+        th, res, R = _vp_solve(B, Ys, fac)
         c, s = B[:, 0], B[:, 1]
         J1 = t * (th[:, :1] * c + th[:, 1:2] * s)  # d/d sigma
         J2 = t * (th[:, 1:2] * c - th[:, :1] * s)  # d/d omega
-        tJ = np.stack([_vp_solve(B, J1)[1], _vp_solve(B, J2)[1]], axis=1)  # (n, 2, N)
+        tJ = _vp_solve(B, np.stack([J1, J2]), fac)[1].transpose(1, 0, 2)  # (n, 2, N)
         return res, R, tJ
 
     sig, w = sig0.copy(), w0.copy()
@@ -236,10 +269,9 @@ def pair_refit(sc: Scaled, Ys, fs, *, iters=3):
         g = (tJ @ res[:, :, None])[..., 0]
         det = G[:, 0, 0] * G[:, 1, 1] - G[:, 0, 1] ** 2
         ok = det > 1e-300
-        with np.errstate(invalid="ignore", divide="ignore"):
-            d1 = np.where(ok, (G[:, 1, 1] * g[:, 0] - G[:, 0, 1] * g[:, 1]) / det, 0.0)
-            d2 = np.where(ok, (G[:, 0, 0] * g[:, 1] - G[:, 0, 1] * g[:, 0]) / det, 0.0)
-        d1, d2 = np.clip(d1, -cap, cap), np.clip(d2, -cap, cap)
+        d1 = np.where(ok, (G[:, 1, 1] * g[:, 0] - G[:, 0, 1] * g[:, 1]) / det, 0.0)
+        d2 = np.where(ok, (G[:, 0, 0] * g[:, 1] - G[:, 0, 1] * g[:, 0]) / det, 0.0)
+        d1, d2 = np.minimum(np.maximum(d1, -cap), cap), np.minimum(np.maximum(d2, -cap), cap)
         res2, R2, tJ2 = fit(sig + d1, w + d2)
         acc = (R2 <= R) & pair
         sig, w = np.where(acc, sig + d1, sig), np.where(acc, w + d2, w)
@@ -261,7 +293,7 @@ def vp_cal_correct(sc: Scaled, Ys, fs, *, iters=3, cal=None):
     with fs as the (information-weighted) projection of the free pair onto the model curve."""
     cal = VP_CAL if cal is None else cal
     dev, G, s2, slope, pair = pair_refit(sc, Ys, fs, iters=iters)
-    w0 = float(np.abs(np.linalg.eigvals(sc.A).imag).max())
+    w0 = sc.w0
     x = fs / w0
     g = np.stack([cal["a_sigma"] + cal["b_sigma"] * x, cal["a_omega"] + cal["b_omega"] * x], axis=1)
     gp = np.array([cal["b_sigma"], cal["b_omega"]]) / w0
