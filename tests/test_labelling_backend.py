@@ -112,3 +112,28 @@ def test_a_child_that_cannot_start_falls_back_to_the_thread_and_says_why(head):
         assert "cannot start" in backend.config_error and "its imports failed" in backend.config_error
     finally:
         backend.close()
+
+
+def test_pipeline_outlives_a_result_callback_that_raises(head):
+    """A frame whose on_result raises goes to on_error; the collector goes on with every later frame."""
+    from types import SimpleNamespace
+
+    from inkdiag_ros.labelling_backend import LabellingPipeline
+
+    det, _, frames, firsts = head
+    seen, errors = [], []
+
+    def on_result(frame, result):
+        if frame.id == 1:
+            raise RuntimeError("publishing failed")
+        seen.append(frame.id)
+
+    pipe = LabellingPipeline(ThreadBackend(FrameLabeller(det, max_abs_v=10.0)), on_result,
+                             on_error=lambda frame, exc: errors.append((frame.id, str(exc))))
+    try:
+        for i in range(6):
+            pipe.submit(SimpleNamespace(id=i, traces=frames[i % 3], first_nozzle=firsts[i % 3]))
+        assert pipe.wait_idle(30.0)
+    finally:
+        pipe.close()
+    assert seen == [0, 2, 3, 4, 5] and errors == [(1, "publishing failed")]

@@ -291,6 +291,29 @@ def test_fe_estimates_only_the_drying_nozzles(ros):
     assert fe.set_parameters([P("max_estimates_per_frame", value=1)])[0].successful
     assert fe.tracker.max_estimates == 1
     res = fe.set_parameters([P("max_pending", value=5)])[0]
-    assert not res.successful and "fixed at start" in res.reason and fe.tracker.max_pending == 32
+    assert not res.successful and "fixed at start" in res.reason and fe.tracker.max_pending == 128
     res = fe.set_parameters([P("max_estimates_per_frame", value=0)])[0]  # outside its range
     assert not res.successful and fe.tracker.max_estimates == 1
+
+
+def test_fe_counts_hostile_messages_malformed_and_stays_up(ros):
+    """A drying list with a huge nozzle id or stamp, or a trace message too short to estimate,
+    is a malformed message for fe: counted and logged, never a crash of the node."""
+    from std_msgs.msg import String
+
+    from inkdiag_ros.fe_node import FeNode
+
+    fe = ros.add(FeNode(context=ros.context, namespace="/h"))
+    bad_drying = [
+        '{"schema":"inkdiag.drying_nozzles","schema_version":1,"frame_id":1,"stamp":1.0,'
+        '"nozzles":[1180591620717411303424],"classes":["deeply_dried"]}',
+        '{"schema":"inkdiag.drying_nozzles","schema_version":1,"frame_id":1,"stamp":1' + "0" * 400 + ','
+        '"nozzles":[3],"classes":["deeply_dried"]}',
+    ]
+    for text in bad_drying:
+        fe._on_drying(String(data=text))
+    short = simulate({FaultClass.DEEPLY_DRIED: 2}, seed=1, n_samples=8).traces
+    fe._on_drying(String(data='{"schema":"inkdiag.drying_nozzles","schema_version":1,"frame_id":2,'
+                              '"stamp":1.0,"nozzles":[0],"classes":["deeply_dried"]}'))
+    fe._on_traces(encode_traces(short, first_nozzle=0, frame_id=2, stamp=2.0))
+    assert fe.frames_malformed == 3

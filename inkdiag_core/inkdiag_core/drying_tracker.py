@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .estimation import estimate_fm_batch
+from .estimation import MIN_FM_SAMPLES, estimate_fm_batch
 from .model import InkChannelModel
 from .screening import screen_traces
 from .trend import FmTrendBank
@@ -135,7 +135,7 @@ class DryingTracker:
         Nozzle estimates made; those relative to a healthy f_m.
     """
 
-    def __init__(self, model=None, *, max_estimates: int = 64, max_pending: int = 32, baselines=None,
+    def __init__(self, model=None, *, max_estimates: int = 64, max_pending: int = 128, baselines=None,
                  trend_accel_std: float = 5e3, trend_rel_floor: float = 0.05):
         if int(max_estimates) < 1 or int(max_pending) < 1:
             raise ValueError(f"max_estimates and max_pending must be >= 1, got {max_estimates}, {max_pending}")
@@ -176,8 +176,9 @@ class DryingTracker:
             This range's estimates if its drying list was already here (at most one).
         """
         x = np.asarray(traces)
-        if x.ndim != 2 or x.shape[1] == 0:
-            raise ValueError(f"traces must be 2-D (n_nozzles, n_samples), got shape {x.shape}")
+        if x.ndim != 2 or x.shape[1] < MIN_FM_SAMPLES:
+            raise ValueError(f"traces must be 2-D (n_nozzles, n_samples) with n_samples >= {MIN_FM_SAMPLES} "
+                             f"(what the f_m estimators take), got shape {x.shape}")
         first, frame_id = _index("first_nozzle", first_nozzle), _index("frame_id", frame_id)
         if not (math.isfinite(sample_rate_hz) and sample_rate_hz > 0 and math.isfinite(stamp)):
             raise ValueError(f"sample_rate_hz must be > 0 and stamp finite, got {sample_rate_hz!r}, {stamp!r}")

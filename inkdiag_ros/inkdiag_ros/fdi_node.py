@@ -64,6 +64,7 @@ class FdiNode(Node):
         if why:
             self._config_error(why)
         self._pipeline = LabellingPipeline(backend, self._publish, on_batch=self._on_batch, on_drop=self._on_dropped,
+                                           on_error=self._failed,
                                            max_queued=c["max_queued_frames"], max_batch_rows=c["max_batch_traces"],
                                            name="fdi-labeller")
         self._sub = self.create_subscription(TRACE_MSG_TYPE, topics.TRACES, self._on_traces, TRACES_QOS)
@@ -138,12 +139,15 @@ class FdiNode(Node):
             self._labels_pub.publish(encode_labels(report))
             self._drying_pub.publish(encode_drying(DryingNozzles.from_labels(report)))
         except Exception as exc:  # noqa: BLE001 - this frame failed; the batch's others go on
-            if self.context.ok():  # else shutting down: nothing left to publish to
-                why = f"{type(exc).__name__}: {exc}"
-                self.stats.failed(f"frame {frame.frame_id}: {why}")
-                self.get_logger().error(f"labelling frame {frame.frame_id} failed: {why}", throttle_duration_sec=1.0)
+            self._failed(frame, exc)
             return
         self.stats.labelled(report.counts, report.n_nozzles, int(np.count_nonzero(result.baseline)))
+
+    def _failed(self, frame, exc) -> None:
+        if self.context.ok():  # else shutting down: nothing left to publish to
+            why = f"{type(exc).__name__}: {exc}"
+            self.stats.failed(f"frame {frame.frame_id}: {why}")
+            self.get_logger().error(f"labelling frame {frame.frame_id} failed: {why}", throttle_duration_sec=1.0)
 
     def _on_diagnostics(self) -> None:
         level, message, values, counts = self.stats.period(self.labeller is not None)

@@ -50,7 +50,6 @@ from msg_defs import (
     TRACE_MSG_TYPE,
     TRACES_QOS,
     FmEstimates,
-    MessageError,
     decode_drying,
     decode_traces,
     encode_estimates,
@@ -63,9 +62,10 @@ from . import _params
 PARAMS = (
     ("max_estimates_per_frame", 64, "at most this many drying nozzles are estimated per frame and "
      "nozzle range (lowest ids first); bounds the cost per trace message", int, (1, 100_000)),
-    ("max_pending", 32, "trace messages (one frame's nozzle range), and drying lists, each held at most "
-     "while waiting for their partner; the oldest is dropped beyond this. Held traces keep their "
-     "message's memory", int, (1, 10_000)),
+    ("max_pending", 128, "trace messages (one frame's nozzle range), and drying lists, each held at most "
+     "while waiting for their partner; the oldest is dropped beyond this. Keep it above fdi's "
+     "max_queued_frames (fdi lags by up to that many messages). Held traces keep their message's memory",
+     int, (1, 10_000)),
     ("trend_accel_std", 5e3, "white acceleration noise of the f_m trend, 1/s^3", float, (1.0, 1e9)),
     ("trend_rel_floor", 0.05, "relative floor of one estimate's standard deviation", float, (0.0, 1.0)),
     ("baseline_path", "", "the head's per-nozzle baselines with healthy f_m (.npz from record_baseline): "
@@ -120,20 +120,21 @@ class FeNode(Node):
     def _on_drying(self, msg) -> None:
         try:
             d = decode_drying(msg)
-        except MessageError as exc:
+            out = self.tracker.add_drying(d.frame_id, d.nozzles, first_nozzle=d.first_nozzle, n_nozzles=d.n_nozzles)
+        except (ValueError, OverflowError) as exc:  # MessageError is a ValueError; the tracker's checks too
             self._malformed("drying_nozzles message", exc)
             return
-        self._publish(self.tracker.add_drying(d.frame_id, d.nozzles, first_nozzle=d.first_nozzle,
-                                              n_nozzles=d.n_nozzles))
+        self._publish(out)
 
     def _on_traces(self, msg) -> None:
         try:
             f = decode_traces(msg)
-        except MessageError as exc:
+            out = self.tracker.add_traces(f.traces, first_nozzle=f.first_nozzle, frame_id=f.frame_id,
+                                          stamp=f.stamp, sample_rate_hz=f.sample_rate_hz)
+        except (ValueError, OverflowError) as exc:  # a frame the codec or the estimator cannot take
             self._malformed("trace frame", exc)
             return
-        self._publish(self.tracker.add_traces(f.traces, first_nozzle=f.first_nozzle, frame_id=f.frame_id,
-                                              stamp=f.stamp, sample_rate_hz=f.sample_rate_hz))
+        self._publish(out)
 
     def _malformed(self, what, exc) -> None:
         self.frames_malformed += 1

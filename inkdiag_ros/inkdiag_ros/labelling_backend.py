@@ -190,19 +190,23 @@ class LabellingPipeline:
     ----------
     backend : ThreadBackend or ProcessBackend
     on_result : callable(frame, result) -> None
-        Runs on the collector thread; must not raise (what it raises is lost).
+        Runs on the collector thread. If it raises, ``on_error(frame, exc)`` is called
+        and the pipeline goes on with the next frame.
     on_batch : callable(n_frames: int, busy_s: float) -> None, optional
     on_drop : callable(frame) -> None, optional
         A frame dropped unlabelled from a full queue (``max_queued``).
+    on_error : callable(frame, exc) -> None, optional
+        ``on_result`` raised ``exc`` for ``frame`` (default: ignore).
     max_queued, max_batch_rows : int
         As for :class:`.batching.BatchWorker`.
     """
 
     def __init__(self, backend, on_result: Callable, *, on_batch: Callable | None = None,
-                 on_drop: Callable | None = None, max_queued: int = 64, max_batch_rows: int = 16384,
-                 name: str = "labeller"):
+                 on_drop: Callable | None = None, on_error: Callable | None = None, max_queued: int = 64,
+                 max_batch_rows: int = 16384, name: str = "labeller"):
         self.backend = backend
         self._on_result, self._on_batch = on_result, on_batch or (lambda n, busy_s: None)
+        self._on_error = on_error or (lambda frame, exc: None)
         self._handed_on = queue.SimpleQueue()  # (frames, error or None) per batch submitted, in order
         self._worker = BatchWorker(self._submit, max_queued=max_queued, max_batch_rows=max_batch_rows,
                                    on_drop=on_drop or (lambda frame: None), name=name,
@@ -242,9 +246,20 @@ class LabellingPipeline:
                 results, busy_s = self.backend.collect()
             except Exception as exc:  # noqa: BLE001 - the batch is lost: each of its frames fails
                 results, busy_s = _all_failed(len(frames), exc), 0.0
+            for frame, result in zip(frames, results):
+                self._call(self._on_result, frame, result)
             try:
-                for frame, result in zip(frames, results):
-                    self._on_result(frame, result)
                 self._on_batch(len(frames), busy_s)
-            finally:
-                self._worker.finished()
+            except Exception:  # noqa: BLE001 - statistics only; the collector goes on
+                pass
+            self._worker.finished()
+
+    def _call(self, callback, frame, arg) -> None:
+        """``callback(frame, arg)``; what it raises goes to ``on_error``, never out of the collector."""
+        try:
+            callback(frame, arg)
+        except Exception as exc:  # noqa: BLE001 - the collector must outlive any one frame
+            try:
+                self._on_error(frame, exc)
+            except Exception:  # noqa: BLE001 - nothing more to do for this frame
+                pass

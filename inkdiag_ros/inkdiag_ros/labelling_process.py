@@ -381,8 +381,10 @@ def _child_main(requests, results, labeller) -> None:
         import inkdiag_core  # noqa: F401 - imported before "ready": a broken install is fatal here
 
         from .allocator import keep_freed_memory
+        from .blas import limit_blas_threads
 
         keep_freed_memory()
+        limit_blas_threads()  # as in every node process: no BLAS worker spinning beside the classifier
         results.send(("ready", None))
     except Exception as exc:  # noqa: BLE001 - reported to the parent, which raises it
         results.send(("fatal", f"{type(exc).__name__}: {exc}"))

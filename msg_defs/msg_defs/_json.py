@@ -45,7 +45,10 @@ def field(doc: dict, schema: str, name: str, kind, *, nonneg: bool = False):
         raise MessageError(f"{schema}: missing field {name!r}")
     value = doc[name]
     if kind is float:
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        try:  # an int too large for a double (10**400) overflows here: not a number we take
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        except OverflowError:
+            ok = False
     elif kind is int:
         ok = isinstance(value, int) and not isinstance(value, bool)
     else:

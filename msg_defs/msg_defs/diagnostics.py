@@ -31,9 +31,9 @@ published), ``frames_failed`` or ``frames_dropped``. So with a model loaded,
 ``frames_received = frames_labelled + frames_malformed + frames_failed +
 frames_dropped + frames in flight`` (queued or being labelled at the snapshot: 0
 once the node is idle). Not covered by that identity: frames received while no model
-is loaded (level ERROR; counted only as received), the frames a stopping node
-leaves unlabelled, and an unexpected error of the labelling thread itself, which
-counts one ``frames_failed`` however many frames its batch held. ``rows_invalid``
+is loaded (level ERROR; counted only as received) and the frames a stopping node
+leaves unlabelled. A batch that fails as a whole counts each of its frames in
+``frames_failed``. ``rows_invalid``
 (= ``count.invalid``) counts rows of labelled frames that were invalid, whatever
 the reason (``non_finite``, ``out_of_range``, ``flat``, ``clipped``,
 ``non_finite_features``).

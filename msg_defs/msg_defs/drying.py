@@ -25,6 +25,9 @@ from std_msgs.msg import String
 
 from . import _json
 from .errors import MessageError
+
+#: Nozzle ids are below 2**24, as in the trace header (:mod:`.codec`).
+MAX_NOZZLE_ID = 1 << 24
 from .labels import DRIED_CLASSES, LabelsReport
 
 __all__ = ["DRYING_SCHEMA", "DRYING_MSG_TYPE", "DryingNozzles", "encode_drying", "decode_drying"]
@@ -71,8 +74,8 @@ def decode_drying(msg) -> DryingNozzles:
     stamp = _json.field(doc, s, "stamp", float, nonneg=True)
     nozzles = _json.field(doc, s, "nozzles", list)
     classes = _json.field(doc, s, "classes", list)
-    if not all(isinstance(x, int) and not isinstance(x, bool) and x >= 0 for x in nozzles):
-        raise MessageError(f"{s}: nozzles must be non-negative integers, got {nozzles!r:.80}")
+    if not all(isinstance(x, int) and not isinstance(x, bool) and 0 <= x < MAX_NOZZLE_ID for x in nozzles):
+        raise MessageError(f"{s}: nozzles must be integers in [0, 2**24), got {nozzles!r:.80}")
     if len(classes) != len(nozzles) or not all(c in DRIED_CLASSES for c in classes):
         raise MessageError(
             f"{s}: classes must be one dried class per nozzle ({', '.join(DRIED_CLASSES)}), "
