@@ -1,12 +1,30 @@
-"""The fdi node: one FaultDetector model file, a failed batch counts every frame."""
+"""The fdi node alone, real rclpy on a per-test Context: one FaultDetector model file, a failed batch
+counts every frame; labels, drying nozzles and diagnostics against test publishers/subscribers."""
 
+import shutil
 import time
 
 import numpy as np
+import pytest
 from rclpy.parameter import Parameter as P
+from std_msgs.msg import Float32MultiArray
 
+from _helpers import collect
 from inkdiag_core import FaultClass, simulate
-from msg_defs import encode_traces
+from msg_defs import (
+    DIAGNOSTICS_MSG_TYPE,
+    DIAGNOSTICS_QOS,
+    DRYING_MSG_TYPE,
+    LABELS_MSG_TYPE,
+    RELIABLE_QOS,
+    TRACE_MSG_TYPE,
+    TRACES_QOS,
+    decode_drying,
+    decode_labels,
+    diagnostics_values,
+    encode_traces,
+    topics,
+)
 
 
 def _fdi(ros, model_path, **over):
@@ -57,3 +75,174 @@ def test_baseline_model_path_is_gone(ros, fdi_baseline_model):
     fdi = _fdi(ros, fdi_baseline_model)
     assert not fdi.has_parameter("baseline_model_path") and fdi.has_parameter("baseline_path")
     assert fdi.model_id.startswith("fdi-rf-kpi_y+baseline-") and not fdi.labeller.uses_baselines
+
+
+def _frames_of(classes_counts, seed=0, n_samples=512):
+    r = simulate(classes_counts, seed=seed, n_samples=n_samples)
+    return r.traces, r.label_values()
+
+
+class _Rig:
+    """fdi node + a trace publisher + subscribers on labels, drying nozzles and diagnostics."""
+
+    def __init__(self, ros, model_path, **over):
+        from inkdiag_ros.fdi_node import FdiNode
+
+        params = {"model_path": str(model_path), "n_nozzles": 64, "diagnostics_period_s": 0.2, **over}
+        self.ros = ros
+        self.fdi = ros.add(FdiNode(context=ros.context, namespace="/h",
+                                   parameter_overrides=[P(k, value=v) for k, v in params.items()]))
+        probe = ros.node("probe", namespace="/h")
+        self.pub = probe.create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
+        self.labels = collect(ros, probe, LABELS_MSG_TYPE, topics.LABELS, RELIABLE_QOS, decode_labels)
+        self.drying = collect(ros, probe, DRYING_MSG_TYPE, topics.DRYING_NOZZLES, RELIABLE_QOS,
+                               decode_drying)
+        self.diag = collect(ros, probe, DIAGNOSTICS_MSG_TYPE, topics.DIAGNOSTICS, DIAGNOSTICS_QOS,
+                             diagnostics_values)
+        ros.spin_until(lambda: self.pub.get_subscription_count() > 0, 10, "fdi's subscription")
+
+    def send(self, msg, expect_labels: bool):
+        """Publish one frame and wait until the fdi node has counted it."""
+        before, n_labels = self.fdi.stats.frames_received, len(self.labels)
+        for _ in range(20):  # best effort: resend until it was received
+            self.pub.publish(msg)
+            try:
+                self.ros.spin_until(lambda: self.fdi.stats.frames_received > before, 0.5, "frame")
+                break
+            except pytest.fail.Exception:
+                continue
+        if expect_labels:
+            # A generous bound: a labelling process that must start anew (spawn, imports,
+            # the model) takes seconds on a contended 2-core machine.
+            self.ros.spin_until(lambda: len(self.labels) > n_labels, 30, "labels")
+
+
+IN_CHILD = pytest.mark.parametrize("in_child", [False, True], ids=["thread", "labelling_process"])
+
+
+@IN_CHILD
+def test_fdi_labels_injected_faults_and_publishes_drying_and_diagnostics(ros, fdi_model, in_child):
+    traces, truth = _frames_of({FaultClass.HEALTHY_NOZZLE: 20, FaultClass.FULLY_BLOCKED: 4,
+                                FaultClass.EMPTY_CHANNEL_1: 4, FaultClass.DEEPLY_DRIED: 4})
+    rig = _Rig(ros, fdi_model, labelling_process=in_child)
+    assert (type(rig.fdi._pipeline.backend).__name__ == "ProcessBackend") == in_child
+    rig.send(encode_traces(traces, first_nozzle=10, frame_id=5, stamp=100.25), expect_labels=True)
+    rep = rig.labels[-1]
+    assert (rep.frame_id, rep.stamp, rep.first_nozzle, rep.n_nozzles) == (5, 100.25, 10, 32)
+    assert rep.model_id.startswith("fdi-rf-kpi_y-") and sum(rep.counts.values()) == 32
+    got = dict((nz, c) for nz, c, _ in rep.faults)
+    true = {10 + i: c for i, c in enumerate(truth) if c not in ("healthy_nozzle", "ok_signal")}
+    agree = sum(got.get(nz) == c for nz, c in true.items())
+    assert agree >= 10, (got, true)  # 12 injected faults, a small model
+    ros.spin_until(lambda: rig.drying, 5, "drying nozzles")
+    assert set(rig.drying[-1].nozzles) == {nz for nz, c in got.items() if c.endswith("_dried")}
+    ros.spin_until(lambda: rig.diag and rig.diag[-1]["inkdiag fdi: /h"]["frames_labelled"] == "1",
+                   5, "diagnostics")
+    d = rig.diag[-1]["inkdiag fdi: /h"]
+    assert d["model_id"] == rep.model_id and d["count.fully_blocked"].isdigit()
+
+
+def _malformed(traces):
+    def mut(fn):
+        m = encode_traces(traces)
+        fn(m)
+        return m
+
+    one_dim = mut(lambda m: m.layout.dim.pop())
+    empty = Float32MultiArray()
+    short = encode_traces(traces[:, :256])
+    out_of_range = encode_traces(traces, first_nozzle=60)  # rows 60..91 on a 64-nozzle head
+    wrong_data = mut(lambda m: setattr(m, "data", m.data[:-1]))
+    return {"wrong dims": one_dim, "empty": empty, "wrong sample count": short,
+            "nozzle range out of bounds": out_of_range, "data length": wrong_data}
+
+
+@IN_CHILD
+def test_fdi_survives_bad_frames_and_the_counts_add_up(ros, fdi_model, in_child):
+    traces, _ = _frames_of({FaultClass.HEALTHY_NOZZLE: 32}, seed=3)
+    rig = _Rig(ros, fdi_model, labelling_process=in_child)
+    bad = _malformed(traces)
+    for name, msg in bad.items():
+        rig.send(msg, expect_labels=False)
+    s = rig.fdi.stats
+    assert s.frames_malformed == len(bad) and s.frames_labelled == 0
+    assert "out of bounds" in s.last_error or "expected" in s.last_error
+    # NaN rows, a flat row and a clipped row: labelled invalid with reasons, the rest classified
+    x = np.array(traces)
+    x[1, 7] = np.nan
+    x[2, :] = np.inf
+    x[3, :] = 0.25
+    x[4, 100:110] = x[4].max()
+    rig.send(encode_traces(x, frame_id=9), expect_labels=True)
+    rep = rig.labels[-1]
+    assert dict(rep.invalid) == {1: "non_finite", 2: "non_finite", 3: "flat", 4: "clipped"}
+    assert rep.counts["invalid"] == 4 and sum(rep.counts.values()) == 32
+    rig.send(encode_traces(traces, frame_id=10), expect_labels=True)  # still alive
+    assert s.frames_received == s.frames_malformed + s.frames_labelled == len(bad) + 2
+    assert s.rows_invalid == 4
+    ros.spin_until(lambda: rig.diag and rig.diag[-1]["inkdiag fdi: /h"]["frames_malformed"]
+                   == str(len(bad)), 5, "diagnostics with the malformed count")
+
+
+@IN_CHILD
+def test_fdi_under_a_burst_labels_every_frame_in_order_or_counts_it_dropped(ros, fdi_model, in_child):
+    traces, _ = _frames_of({FaultClass.HEALTHY_NOZZLE: 24, FaultClass.FULLY_BLOCKED: 8}, seed=4)
+    rig = _Rig(ros, fdi_model, max_queued_frames=2, labelling_process=in_child)
+    msgs = [encode_traces(traces, frame_id=100 + i) for i in range(4)]
+    for m in msgs:  # four frames at once: the worker batches what queued while it was busy
+        rig.pub.publish(m)
+    s = rig.fdi.stats
+    ros.spin_until(lambda: s.frames_received >= 2 and rig.fdi.wait_idle(0.01)
+                   and len(rig.labels) == s.frames_labelled, 10, "the burst labelled")
+    ros.spin_for(0.3)
+    assert s.frames_received == s.frames_labelled + s.frames_dropped
+    ids = [r.frame_id for r in rig.labels]
+    assert ids == sorted(ids) and set(ids) <= {100, 101, 102, 103} and len(ids) == s.frames_labelled
+    assert all(sum(r.counts.values()) == 32 and r.counts.get("fully_blocked", 0) >= 6
+               for r in rig.labels)
+
+
+def test_fdi_counts_the_frames_its_killed_labelling_process_had_and_labels_on(ros, fdi_model):
+    import os
+    import signal
+
+    traces, _ = _frames_of({FaultClass.HEALTHY_NOZZLE: 24, FaultClass.FULLY_BLOCKED: 8}, seed=5)
+    rig = _Rig(ros, fdi_model, labelling_process=True)
+    rig.send(encode_traces(traces, frame_id=1), expect_labels=True)
+    first = rig.fdi._pipeline.backend.pid
+    os.kill(first, signal.SIGKILL)
+    s = rig.fdi.stats
+    rig.send(encode_traces(traces, frame_id=2), expect_labels=False)
+    ros.spin_until(lambda: rig.fdi.wait_idle(0.01) and s.frames_failed + s.frames_labelled == 2,
+                   15, "frame 2 failed or labelled")
+    rig.send(encode_traces(traces, frame_id=3), expect_labels=True)
+    ros.spin_until(lambda: rig.fdi.wait_idle(0.01), 15, "idle")
+    assert s.frames_failed == 1 and "labelling process exited" in s.last_error
+    assert [r.frame_id for r in rig.labels] == [1, 3] and rig.fdi._pipeline.backend.pid not in (None, first)
+    assert s.frames_received == s.frames_labelled + s.frames_failed == 3
+
+
+def test_fdi_labels_on_a_thread_when_no_labelling_process_can_start(ros, fdi_model):
+    traces, _ = _frames_of({FaultClass.HEALTHY_NOZZLE: 24, FaultClass.FULLY_BLOCKED: 8}, seed=6)
+    rig = _Rig(ros, fdi_model, labelling_process=True)
+    rig.fdi._pipeline.backend._process._fatal = "its imports failed"  # as after a child that died before it was ready
+    rig.send(encode_traces(traces, frame_id=1), expect_labels=True)
+    rig.send(encode_traces(traces, frame_id=2), expect_labels=True)
+    s = rig.fdi.stats
+    assert s.frames_labelled == 2 and s.frames_failed == 0 and "cannot start" in s.config_error
+    assert rig.labels[-1].counts.get("fully_blocked", 0) >= 6
+
+
+def test_fdi_refuses_a_tampered_model(ros, fdi_model, tmp_path):
+    bad = tmp_path / "m.joblib"
+    shutil.copy(fdi_model, bad)
+    shutil.copy(str(fdi_model) + ".manifest.json", str(bad) + ".manifest.json")
+    with open(bad, "ab") as f:
+        f.write(b"\0")
+    traces, _ = _frames_of({FaultClass.HEALTHY_NOZZLE: 8})
+    rig = _Rig(ros, bad)
+    assert rig.fdi.labeller is None
+    rig.send(encode_traces(traces), expect_labels=False)
+    ros.spin_until(lambda: rig.diag, 5, "diagnostics")
+    d = rig.diag[-1]["inkdiag fdi: /h"]
+    assert d["level"] == "error" and d["model_id"] == "none" and not rig.labels
