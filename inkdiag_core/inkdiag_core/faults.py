@@ -141,7 +141,7 @@ class FaultClass(enum.Enum):
 
 # Class groups: defined here once. The rest of the core, inkdiag_ros and scripts/ use these;
 # msg_defs (which must not import the core) keeps a wire copy of the value tuples
-# (msg_defs.HEALTHY_CLASSES, msg_defs.DRIED_CLASSES), pinned to these by tests/test_vocabulary.py.
+# (msg_defs.HEALTHY_CLASSES, msg_defs.DRIED_CLASSES), pinned to these by tests/core/test_vocabulary.py.
 
 HEALTHY_CLASSES = frozenset({FaultClass.OK_SIGNAL, FaultClass.HEALTHY_NOZZLE})
 """The two healthy operating conditions (negative class of fault detection)."""

@@ -48,7 +48,7 @@ LABELS_SCHEMA = "inkdiag.labels"
 LABELS_MSG_TYPE = String
 #: Classes that are not listed under ``faults`` (only counted). The wire copy of
 #: ``inkdiag_core.faults.HEALTHY_VALUES`` (msg_defs does not import the core);
-#: tests/test_vocabulary.py pins the two together, as for DRIED_CLASSES.
+#: tests/core/test_vocabulary.py pins the two together, as for DRIED_CLASSES.
 HEALTHY_CLASSES = ("ok_signal", "healthy_nozzle")
 #: The drying classes, in increasing severity (wire copy of ``inkdiag_core.faults.DRIED_VALUES``).
 DRIED_CLASSES = ("slightly_dried", "intermediately_dried", "deeply_dried")

@@ -29,7 +29,7 @@ from inkdiag_core import scorecard
 from inkdiag_core.simulation import scenario
 from msg_defs import truth
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 
 def test_groups_follow_the_mechanisms_and_partition_the_classes():

@@ -1,7 +1,7 @@
 """Fixed cost per call of "vp"/"vp_cal" (the fe node's small batches): work that depends
 only on the model, the sample rate and the trace length is not redone per call, a basis's
 normal matrix is factored once for all its right-hand sides, and the results stay the bits
-of tests/data/fm_reference.json (tests/test_estimation_split.py)."""
+of tests/core/data/fm_reference.json (tests/core/test_estimation_split.py)."""
 
 import numpy as np
 import pytest

@@ -14,9 +14,9 @@ import sys
 
 import pytest
 
+TESTS = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 _spec = importlib.util.spec_from_file_location(
-    "stop_cycles", os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scripts",
-                                "stop_cycles.py"))
+    "stop_cycles", os.path.join(os.path.dirname(TESTS), "scripts", "stop_cycles.py"))
 stop_cycles = importlib.util.module_from_spec(_spec)
 sys.modules["stop_cycles"] = stop_cycles  # dataclasses look their module up
 _spec.loader.exec_module(stop_cycles)
@@ -44,7 +44,7 @@ def test_spin_node_exits_when_the_context_goes_down_after_the_wake_up(ros):
     import time
 
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    pr = subprocess.Popen([sys.executable, os.path.join(os.path.dirname(__file__), "procs", "missed_wakeup.py")],
+    pr = subprocess.Popen([sys.executable, os.path.join(TESTS, "procs", "missed_wakeup.py")],
                           env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines = []
     for line in pr.stdout:

@@ -20,7 +20,7 @@ from msg_defs import (
     topics,
 )
 
-PROCS = Path(__file__).parent / "procs"
+PROCS = Path(__file__).resolve().parents[1] / "procs"
 
 
 @pytest.mark.parametrize("shape", [(1, 1), (1, 512), (3, 7), (256, 512), (2656, 64)])

@@ -1,7 +1,7 @@
 """The estimation package after the split by method: results bit-identical to the
 single-module estimator it replaced, per-method options, and the old keywords.
 
-``tests/data/fm_reference.json`` was recorded from ``estimation.py`` as it was before
+``tests/core/data/fm_reference.json`` was recorded from ``estimation.py`` as it was before
 the split (main at 85bc1fe), on the seeded batch built by :func:`_batch`: ``fm`` and
 ``std`` as exact float hex strings, the other arrays as sha256 of their float64 bytes.
 """

@@ -1,89 +1,80 @@
-"""Each node alone, real rclpy on a per-test Context, against test publishers/subscribers."""
+"""The fdi node alone, real rclpy on a per-test Context: one FaultDetector model file, a failed batch
+counts every frame; labels, drying nozzles and diagnostics against test publishers/subscribers."""
 
 import shutil
+import time
 
 import numpy as np
 import pytest
-from rclpy.parameter import Parameter
+from rclpy.parameter import Parameter as P
 from std_msgs.msg import Float32MultiArray
 
+from _helpers import collect
 from inkdiag_core import FaultClass, simulate
 from msg_defs import (
     DIAGNOSTICS_MSG_TYPE,
     DIAGNOSTICS_QOS,
     DRYING_MSG_TYPE,
-    ESTIMATES_ARRAY_MSG_TYPE,
-    ESTIMATES_MSG_TYPE,
     LABELS_MSG_TYPE,
     RELIABLE_QOS,
     TRACE_MSG_TYPE,
     TRACES_QOS,
-    TRUTH_MSG_TYPE,
-    DryingNozzles,
     decode_drying,
-    decode_estimates,
-    decode_estimates_array,
     decode_labels,
-    decode_traces,
-    decode_truth,
     diagnostics_values,
-    encode_drying,
     encode_traces,
     topics,
 )
 
-P = Parameter
+
+def _fdi(ros, model_path, **over):
+    from inkdiag_ros.fdi_node import FdiNode
+
+    params = {"model_path": str(model_path), "diagnostics_period_s": 0.2, **over}
+    return ros.add(FdiNode(context=ros.context, namespace="/h",
+                           parameter_overrides=[P(k, value=v) for k, v in params.items()]))
 
 
-def _collect(ros, node, msg_type, topic, qos, decode=lambda m: m):
-    got = []
-    node.create_subscription(msg_type, topic, lambda m: got.append(decode(m)), qos)
-    return got
+def test_a_failed_batch_counts_every_frame_it_held(ros, fdi_model, monkeypatch):
+    import inkdiag_core
+    import inkdiag_ros.fdi_node as fdi_node
+
+    calls = []
+
+    def fail_slowly(*args, **kwargs):  # the first batch holds the worker while the others queue up
+        calls.append(1)
+        time.sleep(0.5 if len(calls) == 1 else 0.0)
+        raise RuntimeError("unexpected labelling error")
+
+    # the labelling call of the node, on this branch and before it (label_frames_isolated)
+    if hasattr(inkdiag_core, "FrameLabeller"):
+        monkeypatch.setattr(inkdiag_core.FrameLabeller, "label", fail_slowly)
+    monkeypatch.setattr(fdi_node, "label_frames_isolated", fail_slowly, raising=False)
+    fdi = _fdi(ros, fdi_model)
+    x = simulate({FaultClass.HEALTHY_NOZZLE: 4}, seed=1).traces.astype(np.float32)
+    for k in range(6):
+        fdi._on_trace_msg(encode_traces(x, first_nozzle=0, frame_id=k))
+        time.sleep(0.05)
+    assert fdi.wait_idle(10)
+    s = fdi.stats
+    assert len(calls) < 6  # some frames were batched together
+    assert s.frames_failed == 6 and s.frames_labelled == 0, (s.frames_failed, len(calls))
+    assert "unexpected labelling error" in s.last_error
 
 
-def test_printhead_sim_publishes_frames_and_truth(ros):
-    from inkdiag_ros.printhead_sim import PrintheadSim
+def test_a_model_file_that_is_not_a_fault_detector_is_refused(ros, tmp_path):
+    from inkdiag_core.fdi import train_default_model
 
-    sim = ros.add(PrintheadSim(context=ros.context, namespace="/head_03", parameter_overrides=[
-        P("n_nozzles", value=16), P("first_nozzle", value=100), P("frame_rate_hz", value=50.0),
-        P("fault_nozzles", value=[102]), P("fault_classes", value=["fully_blocked"]),
-        P("drying_nozzles", value=[105]), P("drying_duration_s", value=0.1), P("max_frames", value=12)]))
-    probe = ros.node("probe", namespace="/head_03")
-    frames = _collect(ros, probe, TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS, decode_traces)
-    truth = _collect(ros, probe, TRUTH_MSG_TYPE, topics.GROUND_TRUTH, RELIABLE_QOS, decode_truth)
-    ros.spin_until(lambda: len(truth) >= 12 and len(frames) >= 3, 10, "12 truth messages")
-    ros.spin_for(0.2)
-    assert sim.frames_published == 12  # max_frames holds
-    f = frames[-1]
-    assert f.traces.shape == (16, 512) and f.first_nozzle == 100 and f.sample_rate_hz == 10e6
-    assert np.isfinite(f.traces).all() and np.ptp(f.traces, axis=1).min() > 0
-    # the head's nozzles keep their tolerances: a healthy nozzle's trace changes from frame
-    # to frame by the noise and the ink temperature, far less than from nozzle to nozzle
-    healthy = [i for i in range(16) if i + 100 not in (102, 105)]
-    a, b = frames[-2].traces[healthy], frames[-1].traces[healthy]
-    same = np.sqrt(((a - b) ** 2).mean(axis=1)).mean()
-    other = np.sqrt(((a - np.roll(b, 1, axis=0)) ** 2).mean(axis=1)).mean()
-    assert same < 0.5 * other
-    classes = [t.class_of() for t in truth]
-    assert all(c[102] == "fully_blocked" for c in classes)
-    assert classes[0][105] == "slightly_dried" and classes[-1][105] == "deeply_dried"
-    fm = [dict((nz, f) for nz, _, f, _ in t.faults)[105] for t in truth]
-    assert fm[-1] < fm[0] < 0  # drying: f_m grows in magnitude
+    old = tmp_path / "old_pipeline.joblib"
+    train_default_model(old, n_per_class=30, features="kpi_y+baseline")  # a plain pipeline file (save_model)
+    fdi = _fdi(ros, old)
+    assert fdi.labeller is None and fdi.model_id == "none"
 
 
-def test_printhead_sim_rejects_bad_scenarios_and_runtime_changes(ros):
-    from inkdiag_ros.printhead_sim import PrintheadSim
-
-    with pytest.raises(ValueError, match="unknown fault class 'melted'"):
-        PrintheadSim(context=ros.context, parameter_overrides=[
-            P("fault_nozzles", value=[1]), P("fault_classes", value=["melted"])])
-    with pytest.raises(ValueError, match="outside this head's nozzles"):
-        PrintheadSim(context=ros.context, parameter_overrides=[P("drying_nozzles", value=[64])])
-    sim = ros.add(PrintheadSim(context=ros.context))
-    res = sim.set_parameters([P("n_nozzles", value=8)])[0]
-    assert not res.successful and "fixed at start" in res.reason
-    res = sim.set_parameters([P("frame_rate_hz", value=1e6)])[0]  # outside the descriptor's range
-    assert not res.successful
+def test_baseline_model_path_is_gone(ros, fdi_baseline_model):
+    fdi = _fdi(ros, fdi_baseline_model)
+    assert not fdi.has_parameter("baseline_model_path") and fdi.has_parameter("baseline_path")
+    assert fdi.model_id.startswith("fdi-rf-kpi_y+baseline-") and not fdi.labeller.uses_baselines
 
 
 def _frames_of(classes_counts, seed=0, n_samples=512):
@@ -103,10 +94,10 @@ class _Rig:
                                    parameter_overrides=[P(k, value=v) for k, v in params.items()]))
         probe = ros.node("probe", namespace="/h")
         self.pub = probe.create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
-        self.labels = _collect(ros, probe, LABELS_MSG_TYPE, topics.LABELS, RELIABLE_QOS, decode_labels)
-        self.drying = _collect(ros, probe, DRYING_MSG_TYPE, topics.DRYING_NOZZLES, RELIABLE_QOS,
+        self.labels = collect(ros, probe, LABELS_MSG_TYPE, topics.LABELS, RELIABLE_QOS, decode_labels)
+        self.drying = collect(ros, probe, DRYING_MSG_TYPE, topics.DRYING_NOZZLES, RELIABLE_QOS,
                                decode_drying)
-        self.diag = _collect(ros, probe, DIAGNOSTICS_MSG_TYPE, topics.DIAGNOSTICS, DIAGNOSTICS_QOS,
+        self.diag = collect(ros, probe, DIAGNOSTICS_MSG_TYPE, topics.DIAGNOSTICS, DIAGNOSTICS_QOS,
                              diagnostics_values)
         ros.spin_until(lambda: self.pub.get_subscription_count() > 0, 10, "fdi's subscription")
 
@@ -255,65 +246,3 @@ def test_fdi_refuses_a_tampered_model(ros, fdi_model, tmp_path):
     ros.spin_until(lambda: rig.diag, 5, "diagnostics")
     d = rig.diag[-1]["inkdiag fdi: /h"]
     assert d["level"] == "error" and d["model_id"] == "none" and not rig.labels
-
-
-def test_fe_estimates_only_the_drying_nozzles(ros):
-    from inkdiag_ros.fe_node import FeNode
-
-    fe = ros.add(FeNode(context=ros.context, namespace="/h"))
-    probe = ros.node("probe", namespace="/h")
-    tpub = probe.create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
-    dpub = probe.create_publisher(DRYING_MSG_TYPE, topics.DRYING_NOZZLES, RELIABLE_QOS)
-    est = _collect(ros, probe, ESTIMATES_MSG_TYPE, topics.FM_ESTIMATES, RELIABLE_QOS, decode_estimates)
-    arr = _collect(ros, probe, ESTIMATES_ARRAY_MSG_TYPE, topics.FM_ESTIMATES_ARRAY, RELIABLE_QOS,
-                   decode_estimates_array)
-    ros.spin_until(lambda: tpub.get_subscription_count() and dpub.get_subscription_count(), 10, "fe")
-    r = simulate({FaultClass.HEALTHY_NOZZLE: 6, FaultClass.DEEPLY_DRIED: 2}, seed=4)
-    # rows 6, 7 are deeply dried; nozzle ids 20..27 -> 26, 27
-    # frame 1's list, its range unknown (as from an fdi that does not say it): it applies to the
-    # rows of frame 1 that it lists
-    dpub.publish(encode_drying(DryingNozzles(1, 1.0, (26, 27, 99), ("deeply_dried",) * 3)))
-    ros.spin_until(lambda: fe.tracker.drying_received, 5, "the drying list")
-    msg = encode_traces(r.traces, first_nozzle=20, frame_id=1, stamp=2.0)
-    deadline_msgs = []
-    while not est:
-        tpub.publish(msg)
-        ros.spin_for(0.1)
-        deadline_msgs.append(1)
-        assert len(deadline_msgs) < 50, "no estimate"
-    ros.spin_until(lambda: arr, 5, "array form")
-    e = est[0]
-    assert e.nozzles.tolist() == [26, 27]  # 99 is not in this frame; healthy rows not estimated
-    np.testing.assert_allclose(e.column("fm"), r.fm[6:], rtol=0.15)
-    np.testing.assert_array_equal(arr[0].table, e.table)
-    assert (e.column("viscosity") > 0.05).all() and (e.column("d_mu") > 0).all()
-    # the cap changes at run time (the tracker uses it from the next pair on); the buffer bound does not
-    assert fe.set_parameters([P("max_estimates_per_frame", value=1)])[0].successful
-    assert fe.tracker.max_estimates == 1
-    res = fe.set_parameters([P("max_pending", value=5)])[0]
-    assert not res.successful and "fixed at start" in res.reason and fe.tracker.max_pending == 128
-    res = fe.set_parameters([P("max_estimates_per_frame", value=0)])[0]  # outside its range
-    assert not res.successful and fe.tracker.max_estimates == 1
-
-
-def test_fe_counts_hostile_messages_malformed_and_stays_up(ros):
-    """A drying list with a huge nozzle id or stamp, or a trace message too short to estimate,
-    is a malformed message for fe: counted and logged, never a crash of the node."""
-    from std_msgs.msg import String
-
-    from inkdiag_ros.fe_node import FeNode
-
-    fe = ros.add(FeNode(context=ros.context, namespace="/h"))
-    bad_drying = [
-        '{"schema":"inkdiag.drying_nozzles","schema_version":1,"frame_id":1,"stamp":1.0,'
-        '"nozzles":[1180591620717411303424],"classes":["deeply_dried"]}',
-        '{"schema":"inkdiag.drying_nozzles","schema_version":1,"frame_id":1,"stamp":1' + "0" * 400 + ','
-        '"nozzles":[3],"classes":["deeply_dried"]}',
-    ]
-    for text in bad_drying:
-        fe._on_drying(String(data=text))
-    short = simulate({FaultClass.DEEPLY_DRIED: 2}, seed=1, n_samples=8).traces
-    fe._on_drying(String(data='{"schema":"inkdiag.drying_nozzles","schema_version":1,"frame_id":2,'
-                              '"stamp":1.0,"nozzles":[0],"classes":["deeply_dried"]}'))
-    fe._on_traces(encode_traces(short, first_nozzle=0, frame_id=2, stamp=2.0))
-    assert fe.frames_malformed == 3
