@@ -1,12 +1,9 @@
 """fdi: fault detection and isolation of every trace message of one printhead.
 
-``traces`` (sensor-data QoS) -> decode -> :class:`.labelling_backend.LabellingPipeline`
-(batches of what queued, labelled by the core's :class:`inkdiag_core.FrameLabeller` on a
-thread or, with ``labelling_process``, in a child process) -> ``labels`` and
-``drying_nozzles`` (reliable), one of each per trace message; counters on
-``/diagnostics``. ``model_path`` is a FaultDetector file; ``baseline_path`` (from
-``record_baseline``) sends the rows of nozzles with a recorded baseline to its baseline
-branch. Parameters: docs/parameters.md; topics and counters: docs/controller.md.
+``traces`` -> decode -> :class:`.labelling_backend.LabellingPipeline` (the core's
+:class:`inkdiag_core.FrameLabeller` on a thread or in a child process) -> ``labels`` and
+``drying_nozzles``, one of each per trace message; counters on ``/diagnostics``.
+Parameters: docs/parameters.md; topics and counters: docs/controller.md.
 
     fdi --ros-args -r __ns:=/head_00 -p model_path:=models/fdi_default.joblib
 """
@@ -36,8 +33,8 @@ PARAMS = (
     ("diagnostics_period_s", 1.0, "period of /diagnostics, s", float, (0.1, 60.0)),
     ("max_queued_frames", 64, "frames waiting for the classifier at most; a full queue drops its oldest", int, (1, 100000)),
     ("max_batch_traces", 16384, "traces classified in one pass at most", int, (1, 2**24)),
-    ("baseline_path", "", "the head's per-nozzle healthy baselines (.npz from record_baseline), classified "
-     "by the model's baseline branch; empty: none", str, None),
+    ("baseline_path", "", "the head's per-nozzle healthy baselines (.npz from record_baseline), classified by the "
+     "model's baseline branch; empty: none", str, None),
     ("max_abs_sample_v", 10.0, "largest sample magnitude a sensor can produce, V; a row with a sample "
      "beyond it is invalid ('out_of_range'). Default: 5x the default head's +-2 V ADC range",
      float, (1e-6, 1e30)),
@@ -63,10 +60,9 @@ class FdiNode(Node):
         backend, why = make_backend(self.labeller, in_process=c["labelling_process"] and bool(self.labeller))
         if why:
             self._config_error(why)
-        self._pipeline = LabellingPipeline(backend, self._publish, on_batch=self._on_batch, on_drop=self._on_dropped,
-                                           on_error=self._failed,
-                                           max_queued=c["max_queued_frames"], max_batch_rows=c["max_batch_traces"],
-                                           name="fdi-labeller")
+        self._pipeline = LabellingPipeline(
+            backend, self._publish, on_batch=self._on_batch, on_drop=self._on_dropped, on_error=self._failed,
+            max_queued=c["max_queued_frames"], max_batch_rows=c["max_batch_traces"], name="fdi-labeller")
         self._sub = self.create_subscription(TRACE_MSG_TYPE, topics.TRACES, self._on_traces, TRACES_QOS)
         self._diag_timer = self.create_timer(c["diagnostics_period_s"], self._on_diagnostics)
 
