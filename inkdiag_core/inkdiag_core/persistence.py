@@ -150,6 +150,10 @@ def read_manifest(path) -> dict:
     for key in ("sha256", "size_bytes", "versions"):
         if key not in manifest:
             raise ModelFileError(f"manifest {mpath} lacks '{key}'")
+    for key in ("versions", "config", "scores"):  # read as mappings by every loader
+        if not isinstance(manifest.get(key, {}), dict):
+            raise ModelFileError(f"manifest {mpath}: '{key}' must be an object, got "
+                                 f"{type(manifest[key]).__name__}")
     return manifest
 
 

@@ -69,3 +69,15 @@ def test_garbage_manifest_is_refused(saved):
     with pytest.raises(ModelFileError, match="not valid JSON"):
         load_model(path)
     assert issubclass(ModelFileError, ValueError)
+
+
+@pytest.mark.parametrize("key", ["config", "versions", "scores"])
+def test_manifest_whose_sections_are_not_objects_is_refused(saved, key):
+    """A manifest edited so that a section is a list or a string: ModelFileError, not AttributeError."""
+    path, _, _ = saved
+    mpath = path.with_name(path.name + ".manifest.json")
+    manifest = json.loads(mpath.read_text())
+    manifest[key] = ["not", "an", "object"]
+    mpath.write_text(json.dumps(manifest))
+    with pytest.raises(ModelFileError, match=f"'{key}' must be an object"):
+        load_model(path)
