@@ -29,7 +29,6 @@ from typing import NamedTuple
 import numpy as np
 from sklearn.base import BaseEstimator, ClassifierMixin
 from sklearn.model_selection import train_test_split
-from sklearn.pipeline import Pipeline
 from sklearn.utils.multiclass import check_classification_targets
 from sklearn.utils.validation import check_is_fitted, validate_data
 
@@ -38,6 +37,7 @@ from .faults import healthy_mask
 from .fdi import (
     FEATURE_SETS,
     decide_classes,
+    finite_rows_proba,
     make_fdi_pipeline,
     pipeline_predict_proba,
     threshold_and_scores,
@@ -70,31 +70,6 @@ class DetectorLabels(NamedTuple):
     p_faulty: np.ndarray
     baseline: np.ndarray
     valid: np.ndarray
-
-
-def _finite_proba(pipeline, X):
-    """Class probabilities of the rows of ``X`` whose features are finite in float32.
-
-    The feature steps run on every row; the final estimator (what scikit-learn's
-    trees take as float32) sees only the rows whose features are finite, so an
-    overflowing row costs itself alone. Overflow is expected here and detected, so
-    numpy's floating-point warnings are silenced. Per row, the probabilities are
-    bit-identical to ``pipeline.predict_proba``.
-
-    Returns
-    -------
-    ok : ndarray of bool, shape (n,)
-    proba : ndarray of float64, shape (ok.sum(), n_classes)
-    """
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
-        if isinstance(pipeline, Pipeline) and len(pipeline) > 1:
-            feats = pipeline[:-1].transform(X)
-            ok = np.isfinite(np.asarray(feats, dtype=np.float32)).all(axis=1)
-            final, rows = pipeline[-1], feats if ok.all() else feats[ok]
-        else:
-            ok, final, rows = np.ones(X.shape[0], dtype=bool), pipeline, X
-        proba = pipeline_predict_proba(final, rows) if ok.any() else np.empty((0, len(final.classes_)))
-    return ok, proba
 
 
 class FaultDetector(ClassifierMixin, BaseEstimator):
@@ -336,7 +311,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
                 Xr = with_baseline(X[rows], base[rows])
             else:
                 Xr = X if rows.all() else X[rows]  # no copy when every row is plain
-            ok, proba = _finite_proba(pipeline, Xr)
+            ok, proba = finite_rows_proba(pipeline, Xr)
             at = np.flatnonzero(rows)
             valid[at[~ok]] = False
             if proba.shape[0]:

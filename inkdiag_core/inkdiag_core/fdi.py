@@ -46,7 +46,9 @@ from .residual import ResidualFilter
 __all__ = [
     "FEATURE_SETS",
     "classify",
+    "classify_finite",
     "decide_classes",
+    "finite_rows_proba",
     "fault_probability",
     "fnr_threshold",
     "forest_predict_proba",
@@ -344,6 +346,58 @@ def classify(pipeline, traces, *, fd_threshold: float = 0.5):
     proba, p_faulty = fault_probability(pipeline, traces)
     idx, confidence = decide_classes(classes, proba, p_faulty, fd_threshold)
     return classes[idx].astype(str), confidence, p_faulty
+
+
+def finite_rows_proba(pipeline, X):
+    """Class probabilities of the rows of ``X`` whose features are finite in float32.
+
+    The feature steps run on every row; the final estimator (what scikit-learn's
+    trees take as float32) sees only the rows whose features are finite, so an
+    overflowing row costs itself alone. Overflow is expected here and detected, so
+    numpy's floating-point warnings are silenced. Per row, the probabilities are
+    bit-identical to ``pipeline.predict_proba``.
+
+    Returns
+    -------
+    ok : ndarray of bool, shape (n,)
+    proba : ndarray of float64, shape (ok.sum(), n_classes)
+    """
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
+        if isinstance(pipeline, Pipeline) and len(pipeline) > 1:
+            feats = pipeline[:-1].transform(X)
+            ok = np.isfinite(np.asarray(feats, dtype=np.float32)).all(axis=1)
+            final, rows = pipeline[-1], feats if ok.all() else feats[ok]
+        else:
+            ok, final, rows = np.ones(X.shape[0], dtype=bool), pipeline, X
+        proba = pipeline_predict_proba(final, rows) if ok.any() else np.empty((0, len(final.classes_)))
+    return ok, proba
+
+
+def classify_finite(pipeline, traces, *, fd_threshold: float = 0.5):
+    """:func:`classify` of the rows whose features are finite; the others are not classified.
+
+    What the labelling path calls: a row whose features overflow (a sample of ~1e30 V
+    squares beyond any float) is left out, not its frame (:func:`finite_rows_proba`).
+
+    Returns
+    -------
+    labels : ndarray of str (object), shape (n,)
+        ``""`` where not classified.
+    confidence : ndarray of float, shape (n,)
+        NaN where not classified.
+    ok : ndarray of bool, shape (n,)
+        The rows classified.
+    """
+    _check_threshold(fd_threshold)
+    n = np.shape(traces)[0]
+    labels, conf = np.full(n, "", dtype=object), np.full(n, np.nan)
+    ok, proba = finite_rows_proba(pipeline, traces)
+    if ok.any():
+        classes = np.asarray(pipeline.classes_, dtype=object)
+        p_faulty = 1.0 - proba[:, healthy_mask(classes)].sum(axis=1)
+        idx, conf[ok] = decide_classes(classes, proba, p_faulty, fd_threshold)
+        labels[ok] = classes[idx].astype(str).astype(object)
+    return labels, conf, ok
 
 
 def _check_threshold(fd_threshold) -> float:

@@ -5,10 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from sklearn.pipeline import Pipeline
 
 from .baselines import NozzleBaselines, with_baseline
-from .fdi import classify
+from .fdi import classify_finite
 from .screening import screen_traces
 
 __all__ = ["BaselineModel", "FrameLabels", "label_frames", "label_frames_isolated", "label_traces"]
@@ -44,37 +43,6 @@ class FrameLabels:
     valid: np.ndarray
     reasons: np.ndarray
     baseline: np.ndarray | None = None
-
-
-def _classify_finite(pipeline, x, fd_threshold: float):
-    """:func:`classify` of the rows whose features are finite; the others are not classified.
-
-    For a ``Pipeline`` of several steps the feature steps run once on every row
-    and the final estimator sees only the rows whose features are finite in
-    float32 (what scikit-learn's trees take); a row whose features overflow
-    (a sample of ~1e30 V squares beyond any float) is left out, not the frame.
-    Overflow there is expected and harmless (it is detected), so numpy's
-    floating-point warnings are silenced on this path.
-
-    Returns
-    -------
-    labels : ndarray of str (object), (n,) -- ``""`` where not classified
-    confidence : ndarray of float, (n,) -- NaN where not classified
-    ok : ndarray of bool, (n,) -- the rows classified
-    """
-    n = x.shape[0]
-    labels, conf = np.full(n, "", dtype=object), np.full(n, np.nan)
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
-        if isinstance(pipeline, Pipeline) and len(pipeline) > 1:
-            feats = pipeline[:-1].transform(x)
-            ok = np.isfinite(np.asarray(feats, dtype=np.float32)).all(axis=1)
-            model, rows = pipeline[-1], feats if ok.all() else feats[ok]
-        else:
-            ok, model, rows = np.ones(n, bool), pipeline, x
-        if ok.any():
-            got, c, _ = classify(model, rows, fd_threshold=fd_threshold)
-            labels[ok], conf[ok] = got.astype(object), c
-    return labels, conf, ok
 
 
 def label_traces(pipeline, traces, *, fd_threshold: float = 0.5, nozzle_ids=None,
@@ -114,14 +82,14 @@ def label_traces(pipeline, traces, *, fd_threshold: float = 0.5, nozzle_ids=None
         has, base_kpis = baseline.baselines.lookup(nozzle_ids)
         with_base = valid & has
         if with_base.any():
-            labels, conf, ok = _classify_finite(
-                baseline.pipeline, with_baseline(x[with_base], base_kpis[with_base]), baseline.fd_threshold)
+            labels, conf, ok = classify_finite(
+                baseline.pipeline, with_baseline(x[with_base], base_kpis[with_base]), fd_threshold=baseline.fd_threshold)
             classes[with_base], confidence[with_base] = labels, conf
             reasons[np.flatnonzero(with_base)[~ok]] = "non_finite_features"
     plain = valid & ~with_base
     if plain.any():
         rows = x if plain.all() else x[plain]  # no copy of a frame that is all valid
-        labels, conf, ok = _classify_finite(pipeline, rows, fd_threshold)
+        labels, conf, ok = classify_finite(pipeline, rows, fd_threshold=fd_threshold)
         classes[plain], confidence[plain] = labels, conf
         reasons[np.flatnonzero(plain)[~ok]] = "non_finite_features"
     valid = reasons == ""
