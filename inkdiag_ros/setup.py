@@ -35,6 +35,7 @@ setup(
             "record_baseline = inkdiag_ros.baseline_node:main",
             "graph = inkdiag_ros.graph:main",
             "echo = inkdiag_ros.echo:main",
+            "inkdiag = inkdiag_ros.cli:main",
         ],
     },
 )

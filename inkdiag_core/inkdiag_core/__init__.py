@@ -112,3 +112,11 @@ __all__ += ["DetectorLabels", "FaultDetector"]
 from .frame_labeller import FrameFailure, FrameInputError, FrameLabeller, LabellerConfigError, load_labeller  # noqa: E402
 
 __all__ += ["FrameFailure", "FrameInputError", "FrameLabeller", "LabellerConfigError", "load_labeller"]
+
+from .head_profile import HeadProfile, ProfileError  # noqa: E402
+
+__all__ += ["HeadProfile", "ProfileError"]
+
+from .recording import Recording, RecordingError, load_recording, save_recording  # noqa: E402
+
+__all__ += ["Recording", "RecordingError", "load_recording", "save_recording"]

@@ -48,6 +48,8 @@ def simulate(
     chunk_size: int = 4000,
     frame_seed=None,
     draw_order=None,
+    sensor_gain_v_per_m3s: float | None = None,
+    sensor_offset_v: float = 0.0,
 ) -> SimulationResult:
     """Simulate self-sensing traces of the requested fault classes.
 
@@ -92,6 +94,12 @@ def simulate(
         :func:`simulate_nozzles` passes its nozzle order, so that a nozzle's
         tolerances follow the nozzle rather than its place among its class's
         rows.
+    sensor_gain_v_per_m3s : float, optional
+        Nominal sense gain, V per (m^3/s) (default: the default head's,
+        ``PHYSICAL_CONSTANTS["sensor_gain_v_per_m3s"]``); each channel's gain
+        spreads around it.
+    sensor_offset_v : float
+        Mean sense offset, V; each channel's offset spreads around it.
 
     Returns
     -------
@@ -127,14 +135,18 @@ def simulate(
     ch = draw_channels(classes, base, spreads, rng, check_severity(severity, classes),
                         frame_rng=frame_rng, perm=perm)
     amplitude = drive.amplitude_v * ch.drive
-    gain, offset = draw_sensor(rng, n, spreads, PHYSICAL_CONSTANTS["sensor_gain_v_per_m3s"], perm)
+    nominal_gain = (PHYSICAL_CONSTANTS["sensor_gain_v_per_m3s"] if sensor_gain_v_per_m3s is None
+                    else check_positive_float("sensor_gain_v_per_m3s", sensor_gain_v_per_m3s))
+    gain, offset = draw_sensor(rng, n, spreads, nominal_gain, perm)
+    if not np.isfinite(sensor_offset_v):
+        raise ValueError(f"sensor_offset_v must be a finite number of volts, got {sensor_offset_v!r}")
+    if sensor_offset_v:
+        offset = offset + float(sensor_offset_v)
 
     lam, coef, x0 = modal_solution(ch, drive, amplitude)
     freq, zeta = dominant_mode(lam)
 
-    nominal_rms_v = nominal_rms(base, drive, n_samples, fs) * PHYSICAL_CONSTANTS[
-        "sensor_gain_v_per_m3s"
-    ]
+    nominal_rms_v = nominal_rms(base, drive, n_samples, fs) * nominal_gain
     noise_std = noise_std_for_snr(spreads, nominal_rms_v)
 
     traces = np.empty((n, n_samples), dtype=np.float32)

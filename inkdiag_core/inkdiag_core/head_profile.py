@@ -1,0 +1,543 @@
+"""Head profiles: one printhead's sampling, channel, drive and sensor, as a YAML file.
+
+A :class:`HeadProfile` is everything inkdiag knows about one printhead. The
+simulator, the feature bands, the residual filters, screening, the estimators,
+their calibration and the trend's deeply-dried level all take it, so nothing
+in the core assumes the default head; that head is just the shipped profile
+(:meth:`HeadProfile.default`).
+
+The file (YAML, SI units)::
+
+    schema: inkdiag.head_profile
+    schema_version: 1
+    name: my_head
+    sampling: {sample_rate_hz: 20.0e+6, n_samples: 1024}
+    channel:   # InkChannelParams field names
+      rho: 1100.0        # kg/m^3
+      mu: 6.0e-3         # Pa s
+      r_n: 11.0e-6       # m
+      L_n: 45.0e-6       # m
+      V_ch: 3.0e-12      # m^3
+      c: 1300.0          # m/s
+      r_r: ...           # m      } left out of a *nominal* profile:
+      L_r: ...           # m      } calibration (``inkdiag calibrate``)
+      B_act: ...         # m^3/Pa } fits them to recorded healthy traces
+      b: ...             # m^3/V  }
+    drive:     # DriveWaveform field names
+      {amplitude_v: 25.0, rise_s: 1.0e-6, dwell_s: 2.0e-6, fall_s: 1.0e-6, switch_delay_s: 1.0e-6}
+    sensor:
+      gain_v_per_m3s: 1.0e+10   # V per (m^3/s)
+      offset_v: 0.0             # V, mean offset
+      noise_std_v: 0.004        # V, white noise (or snr_db, dB of the healthy trace)
+      adc_range_v: 2.0          # V, the ADC reads +-adc_range_v
+      adc_bits: 12              # or null: no quantisation
+    spreads:   # optional: per-trace variation of a head (Spreads field names)
+      temperature_std_k: 1.5
+    calibration: {...}          # optional, free-form: how the profile was made
+
+A *nominal* profile is what a datasheet and the drive settings give:
+``sampling``, ``drive`` and the channel keys :data:`NOMINAL_CHANNEL_KEYS`; every
+other ``channel`` and ``sensor`` key may be missing. A *complete* profile
+(:attr:`HeadProfile.is_complete`) has every channel key and the sensor gain;
+the simulator and the estimators need one.
+
+Errors (:class:`ProfileError`, a ``ValueError``) name the file, the key and
+the expected unit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import json
+import math
+import numbers
+import re
+from collections.abc import Mapping
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from .checks import InputError
+from .model import InkChannelModel, InkChannelParams
+from .simulation.channels import DriveWaveform, Spreads
+from .simulation.linear import simulate
+from .simulation.modal import nominal_rms
+
+__all__ = [
+    "CHANNEL_UNITS",
+    "DRIVE_UNITS",
+    "HeadProfile",
+    "NOMINAL_CHANNEL_KEYS",
+    "ProfileError",
+    "SCHEMA",
+    "SCHEMA_VERSION",
+    "SENSOR_UNITS",
+]
+
+SCHEMA = "inkdiag.head_profile"
+SCHEMA_VERSION = 1
+
+CHANNEL_UNITS = {
+    "rho": "kg/m^3", "mu": "Pa s", "mu_nozzle": "Pa s", "r_n": "m", "L_n": "m", "r_r": "m",
+    "L_r": "m", "V_ch": "m^3", "c": "m/s", "B_act": "m^3/Pa", "b": "m^3/V", "B_extra": "m^3/Pa",
+}
+"""The ``channel`` keys (the :class:`InkChannelParams` fields) and their SI units."""
+
+NOMINAL_CHANNEL_KEYS = ("rho", "mu", "r_n", "L_n", "V_ch", "c")
+"""Channel keys a nominal profile must give (a datasheet's nozzle, chamber and ink)."""
+
+_OPTIONAL_CHANNEL_KEYS = ("mu_nozzle", "B_extra")
+
+DRIVE_UNITS = {"amplitude_v": "V", "rise_s": "s", "dwell_s": "s", "fall_s": "s", "switch_delay_s": "s"}
+"""The ``drive`` keys (the :class:`DriveWaveform` fields) and their SI units."""
+
+SAMPLING_UNITS = {"sample_rate_hz": "Hz", "n_samples": "samples"}
+
+SENSOR_UNITS = {
+    "gain_v_per_m3s": "V/(m^3/s)", "offset_v": "V", "noise_std_v": "V", "snr_db": "dB",
+    "adc_range_v": "V", "adc_bits": "bits",
+}
+"""The ``sensor`` keys and their units (``noise_std_v`` and ``snr_db`` are alternatives)."""
+
+_SPREAD_KEYS = tuple(f.name for f in dataclasses.fields(Spreads)
+                     if f.name not in ("snr_db", "adc_bits", "adc_range_v"))
+_SPREAD_UNITS = {k: ("K" if k.endswith("_k") else "V" if k.endswith("_v") else "relative (std)")
+                 for k in _SPREAD_KEYS}
+
+_TOP_KEYS = ("schema", "schema_version", "name", "sampling", "channel", "drive", "sensor", "spreads",
+             "calibration")
+
+#: The simulator's nominal sense gain, V per (m^3/s): the default head's convention.
+_DEFAULT_SENSOR = {"gain_v_per_m3s": 1.0e10, "offset_v": 0.0, "adc_range_v": 2.0, "adc_bits": 12}
+
+
+class ProfileError(InputError):
+    """A head profile that cannot be used: missing, malformed, another schema, incomplete."""
+
+
+# YAML 1.1 (PyYAML) reads "15e-6" as a string; a head profile means a number.
+def _loader():
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    Loader.add_implicit_resolver(
+        "tag:yaml.org,2002:float",
+        re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+        list("-+0123456789"))
+    return Loader
+
+
+def _number(where, key, value, unit, *, positive=True, integer=False, allow_none=False):
+    if value is None and allow_none:
+        return None
+    if integer:
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value <= 0:
+            raise ProfileError(f"{where}.{key}: expected a positive integer ({unit}), got {value!r}")
+        return int(value)
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+        kind = "a positive" if positive else "a finite"
+        raise ProfileError(f"{where}.{key}: expected {kind} number in {unit}, got {value!r}")
+    value = float(value)
+    if positive and value <= 0:
+        raise ProfileError(f"{where}.{key}: expected a positive number in {unit}, got {value!r}")
+    return value
+
+
+def _section(doc, key, units, source, *, required=(), optional_keys=()):
+    sec = doc.get(key, {})
+    if sec is None:
+        sec = {}
+    if not isinstance(sec, Mapping):
+        raise ProfileError(f"{source}: {key}: expected a mapping of {', '.join(units)}, got {type(sec).__name__}")
+    unknown = sorted(set(sec) - set(units))
+    if unknown:
+        raise ProfileError(f"{source}: {key}.{unknown[0]}: unknown key (expected one of {', '.join(units)})")
+    missing = [k for k in required if k not in sec]
+    if missing:
+        raise ProfileError(f"{source}: {key}.{missing[0]}: missing (a number in {units[missing[0]]})")
+    return dict(sec)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class HeadProfile:
+    """One printhead: sampling, channel, drive, sensor and spreads (SI units).
+
+    Build one with :meth:`load` (a YAML file), :meth:`from_dict` or
+    :meth:`default`; every constructor validates. Instances are immutable;
+    :meth:`replace` returns a validated copy.
+
+    Parameters
+    ----------
+    name : str
+        A name for people (``"default"``, a head's type or serial).
+    sample_rate_hz : float
+        ADC sample rate of the sensed traces, Hz.
+    n_samples : int
+        Samples per trace.
+    channel : mapping of str -> float
+        :class:`InkChannelParams` fields, SI (see :data:`CHANNEL_UNITS`); a nominal
+        profile gives at least :data:`NOMINAL_CHANNEL_KEYS`.
+    drive : DriveWaveform
+        The drive pulse the head is fired with when it is sensed.
+    sensor : mapping of str -> float
+        ``gain_v_per_m3s`` (V per m^3/s), ``offset_v`` (V), ``noise_std_v`` (V) or
+        ``snr_db`` (dB of the nominal healthy trace), ``adc_range_v`` (V), ``adc_bits``
+        (int or None). Missing keys take the default head's convention, except the
+        gain, which a complete profile must give.
+    spreads : mapping of str -> float
+        Overrides of :class:`Spreads` fields (per-trace physical variation).
+    calibration : mapping
+        Free-form provenance (what calibration fitted, its residual); kept, not used.
+    """
+
+    name: str
+    sample_rate_hz: float
+    n_samples: int
+    channel: Mapping
+    drive: DriveWaveform
+    sensor: Mapping = dataclasses.field(default_factory=dict)
+    spreads_overrides: Mapping = dataclasses.field(default_factory=dict)
+    calibration: Mapping = dataclasses.field(default_factory=dict)
+
+    # -- construction -----------------------------------------------------------------------
+
+    @classmethod
+    def from_dict(cls, doc, *, source: str = "head profile") -> "HeadProfile":
+        """Validate a parsed profile document and build the profile.
+
+        Parameters
+        ----------
+        doc : mapping
+            The YAML document (see the module docstring).
+        source : str
+            Where it came from, for error messages (a file name).
+
+        Raises
+        ------
+        ProfileError
+            Another schema or version, an unknown or missing key, a value of the
+            wrong type or sign (the message names the key and its unit).
+        """
+        if not isinstance(doc, Mapping):
+            raise ProfileError(f"{source}: not a head profile (expected a mapping with schema: {SCHEMA})")
+        if doc.get("schema") != SCHEMA:
+            raise ProfileError(f"{source}: schema is {doc.get('schema')!r}, expected {SCHEMA!r}")
+        if doc.get("schema_version") != SCHEMA_VERSION:
+            raise ProfileError(f"{source}: schema_version is {doc.get('schema_version')!r}; this inkdiag reads "
+                               f"version {SCHEMA_VERSION}")
+        unknown = sorted(set(doc) - set(_TOP_KEYS))
+        if unknown:
+            raise ProfileError(f"{source}: {unknown[0]}: unknown key (expected {', '.join(_TOP_KEYS)})")
+        name = doc.get("name", "head")
+        if not isinstance(name, str) or not name:
+            raise ProfileError(f"{source}: name: expected a non-empty string, got {name!r}")
+        samp = _section(doc, "sampling", SAMPLING_UNITS, source, required=tuple(SAMPLING_UNITS))
+        fs = _number(f"{source}: sampling", "sample_rate_hz", samp["sample_rate_hz"], "Hz")
+        n = _number(f"{source}: sampling", "n_samples", samp["n_samples"], "samples", integer=True)
+        if n < 16:
+            raise ProfileError(f"{source}: sampling.n_samples: at least 16 samples per trace, got {n}")
+        ch = _section(doc, "channel", CHANNEL_UNITS, source, required=NOMINAL_CHANNEL_KEYS)
+        channel = {}
+        for k, v in ch.items():
+            if k == "mu_nozzle" and v is None:
+                continue
+            channel[k] = _number(f"{source}: channel", k, v, CHANNEL_UNITS[k], positive=k != "B_extra")
+            if k == "B_extra" and channel[k] < 0:
+                raise ProfileError(f"{source}: channel.B_extra: expected a number >= 0 in m^3/Pa, got {v!r}")
+        dr = _section(doc, "drive", DRIVE_UNITS, source, required=tuple(DRIVE_UNITS))
+        drive = DriveWaveform(**{k: _number(f"{source}: drive", k, v, DRIVE_UNITS[k]) for k, v in dr.items()})
+        se = _section(doc, "sensor", SENSOR_UNITS, source)
+        sensor = {}
+        for k, v in se.items():
+            if k == "adc_bits":
+                sensor[k] = _number(f"{source}: sensor", k, v, "bits", integer=True, allow_none=True)
+                if sensor[k] is not None and sensor[k] > 32:
+                    raise ProfileError(f"{source}: sensor.adc_bits: at most 32 bits, got {v!r}")
+            else:
+                sensor[k] = _number(f"{source}: sensor", k, v, SENSOR_UNITS[k],
+                                    positive=k not in ("offset_v", "noise_std_v", "snr_db"))
+        if "noise_std_v" in sensor and "snr_db" in sensor:
+            raise ProfileError(f"{source}: sensor: give noise_std_v (V) or snr_db (dB), not both")
+        if sensor.get("noise_std_v", 0.0) < 0:
+            raise ProfileError(f"{source}: sensor.noise_std_v: expected a number >= 0 in V, got "
+                               f"{sensor['noise_std_v']!r}")
+        sp = _section(doc, "spreads", _SPREAD_UNITS, source)
+        spreads = {k: _number(f"{source}: spreads", k, v, _SPREAD_UNITS[k], positive=False) for k, v in sp.items()}
+        for k, v in spreads.items():
+            if v < 0:
+                raise ProfileError(f"{source}: spreads.{k}: expected a number >= 0 ({_SPREAD_UNITS[k]}), got {v!r}")
+        cal = doc.get("calibration") or {}
+        if not isinstance(cal, Mapping):
+            raise ProfileError(f"{source}: calibration: expected a mapping, got {type(cal).__name__}")
+        prof = cls(name, fs, n, channel, drive, sensor, spreads, dict(cal))
+        if prof.is_complete:
+            prof._check_physics(source)
+        return prof
+
+    @classmethod
+    def loads(cls, text: str, *, source: str = "head profile") -> "HeadProfile":
+        """Parse YAML text (see :meth:`from_dict`)."""
+        import yaml
+
+        try:
+            doc = yaml.load(text, Loader=_loader())  # noqa: S506 (a SafeLoader subclass)
+        except yaml.YAMLError as exc:
+            raise ProfileError(f"{source}: not valid YAML: {str(exc).splitlines()[0]}") from None
+        return cls.from_dict(doc, source=source)
+
+    @classmethod
+    def load(cls, path) -> "HeadProfile":
+        """Read a profile file (YAML).
+
+        Raises
+        ------
+        ProfileError
+            The file is missing or unreadable, or its content is not a valid profile.
+        """
+        path = Path(path)
+        try:
+            text = path.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            raise ProfileError(f"{path}: no such head profile file") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ProfileError(f"{path}: cannot read the head profile: {exc}") from None
+        return cls.loads(text, source=str(path))
+
+    @classmethod
+    def default(cls) -> "HeadProfile":
+        """The default head (the simulator's 15 x 60 um nozzle, 237 kHz, 10 MHz x 512), a shipped file."""
+        return _default_profile()
+
+    def replace(self, **changes) -> "HeadProfile":
+        """A validated copy with top-level fields changed; ``channel``/``sensor`` mappings merge.
+
+        ``channel={"r_r": 2e-5}`` updates that key and keeps the others (a value of
+        ``None`` removes a key); the same for ``sensor``, ``spreads_overrides``
+        and ``calibration``. ``drive`` may be a mapping of :class:`DriveWaveform` fields.
+        """
+        doc = self.to_dict()
+        mapping = {"channel": "channel", "sensor": "sensor", "spreads_overrides": "spreads",
+                   "calibration": "calibration"}
+        for key, value in changes.items():
+            if key in mapping:
+                sec = dict(doc.get(mapping[key], {}))
+                for k, v in dict(value).items():
+                    if v is None:
+                        sec.pop(k, None)
+                    else:
+                        sec[k] = v
+                doc[mapping[key]] = sec
+            elif key == "drive":
+                doc["drive"] = {**doc["drive"], **(dataclasses.asdict(value) if isinstance(value, DriveWaveform)
+                                                   else dict(value))}
+            elif key in ("sample_rate_hz", "n_samples"):
+                doc["sampling"][key] = value
+            elif key == "name":
+                doc["name"] = value
+            else:
+                raise TypeError(f"HeadProfile.replace: unknown field {key!r}")
+        return HeadProfile.from_dict(doc, source=f"profile {self.name!r}")
+
+    def _check_physics(self, source):
+        fs, n = self.sample_rate_hz, self.n_samples
+        f0, zeta = self.healthy_mode()
+        if not (0 < zeta < 1):
+            raise ProfileError(f"{source}: the channel has no oscillating healthy mode (damping ratio {zeta:.3g})")
+        if f0 >= fs / 2:
+            raise ProfileError(f"{source}: the healthy mode {f0 / 1e3:.1f} kHz is above the Nyquist frequency "
+                               f"{fs / 2e3:.1f} kHz of sampling.sample_rate_hz")
+        if n / fs * f0 < 3:
+            raise ProfileError(f"{source}: a trace of {n} samples at {fs:g} Hz holds {n / fs * f0:.1f} periods of the "
+                               f"healthy mode ({f0 / 1e3:.1f} kHz); at least 3 are needed")
+
+    # -- serialisation ----------------------------------------------------------------------
+
+    def to_dict(self) -> dict:
+        """The profile as a YAML-ready document (plain Python types)."""
+        doc = {
+            "schema": SCHEMA,
+            "schema_version": SCHEMA_VERSION,
+            "name": self.name,
+            "sampling": {"sample_rate_hz": float(self.sample_rate_hz), "n_samples": int(self.n_samples)},
+            "channel": {k: float(self.channel[k]) for k in CHANNEL_UNITS if k in self.channel},
+            "drive": {k: float(v) for k, v in dataclasses.asdict(self.drive).items()},
+        }
+        if self.sensor:
+            doc["sensor"] = {k: (None if v is None else int(v) if k == "adc_bits" else float(v))
+                             for k, v in ((k, self.sensor[k]) for k in SENSOR_UNITS if k in self.sensor)}
+        if self.spreads_overrides:
+            doc["spreads"] = {k: float(self.spreads_overrides[k]) for k in _SPREAD_KEYS
+                              if k in self.spreads_overrides}
+        if self.calibration:
+            doc["calibration"] = json.loads(json.dumps(self.calibration, default=_plain))
+        return doc
+
+    def dumps(self) -> str:
+        """The profile as YAML text (numbers written so that they read back exactly)."""
+        import yaml
+
+        return yaml.safe_dump(self.to_dict(), sort_keys=False, default_flow_style=False)
+
+    def save(self, path) -> Path:
+        """Write the profile as YAML to ``path``; returns the path."""
+        path = Path(path)
+        path.write_text(self.dumps(), encoding="utf-8")
+        return path
+
+    @functools.cached_property
+    def sha256(self) -> str:
+        """sha256 (hex) of the profile's content (canonical JSON of everything but ``name`` and ``calibration``).
+
+        Two files that describe the same head the same way share it, whatever
+        their layout; a model records it to refuse another head.
+        """
+        doc = self.to_dict()
+        doc.pop("name")
+        doc.pop("calibration", None)
+        return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
+
+    def __eq__(self, other):
+        return isinstance(other, HeadProfile) and self.to_dict() == other.to_dict()
+
+    __hash__ = None
+
+    def __repr__(self):
+        kind = "complete" if self.is_complete else "nominal"
+        return (f"HeadProfile({self.name!r}, {kind}, {self.sample_rate_hz / 1e6:g} MHz x {self.n_samples}, "
+                f"sha256={self.sha256[:12]})")
+
+    # -- what the rest of the core asks --------------------------------------------------------
+
+    @property
+    def missing(self) -> tuple[str, ...]:
+        """Keys a complete profile needs and this one lacks (``"channel.r_r"``, ``"sensor.gain_v_per_m3s"``)."""
+        out = [f"channel.{k}" for k in CHANNEL_UNITS if k not in _OPTIONAL_CHANNEL_KEYS and k not in self.channel]
+        if "gain_v_per_m3s" not in self.sensor:
+            out.append("sensor.gain_v_per_m3s")
+        return tuple(out)
+
+    @property
+    def is_complete(self) -> bool:
+        """True when the channel and the sensor gain are all given (simulation and estimation need it)."""
+        return not self.missing
+
+    def _need_complete(self, what):
+        if self.missing:
+            raise ProfileError(f"profile {self.name!r} is nominal ({', '.join(self.missing)} missing): {what} needs a "
+                               "complete profile (run `inkdiag calibrate` on recorded healthy traces)")
+
+    def channel_params(self) -> InkChannelParams:
+        """The healthy channel as :class:`InkChannelParams` (complete profiles only)."""
+        self._need_complete("the channel model")
+        return InkChannelParams(**self.channel)
+
+    def model(self) -> InkChannelModel:
+        """The healthy channel's linear model (eq. 12)."""
+        return InkChannelModel(self.channel_params())
+
+    def healthy_mode(self) -> tuple[float, float]:
+        """Frequency (Hz) and damping ratio of the healthy channel's dominant mode."""
+        return self.model().dominant_mode()
+
+    @property
+    def sensor_gain_v_per_m3s(self) -> float:
+        """Nominal sense gain, V per (m^3/s)."""
+        self._need_complete("the sense gain")
+        return float(self.sensor["gain_v_per_m3s"])
+
+    @property
+    def sensor_offset_v(self) -> float:
+        """Mean sense offset, V."""
+        return float(self.sensor.get("offset_v", 0.0))
+
+    @property
+    def adc_range_v(self) -> float:
+        """The ADC reads +- this, V."""
+        return float(self.sensor.get("adc_range_v", _DEFAULT_SENSOR["adc_range_v"]))
+
+    @property
+    def adc_bits(self):
+        """ADC resolution (int), or None for no quantisation."""
+        return self.sensor.get("adc_bits", _DEFAULT_SENSOR["adc_bits"])
+
+    def noise_std_v(self) -> float:
+        """White-noise standard deviation, V (from ``noise_std_v``, or ``snr_db`` of the nominal healthy trace)."""
+        if "noise_std_v" in self.sensor:
+            return float(self.sensor["noise_std_v"])
+        snr = float(self.sensor.get("snr_db", Spreads().snr_db))
+        rms = nominal_rms(self.channel_params(), self.drive, self.n_samples, self.sample_rate_hz)
+        return rms * self.sensor_gain_v_per_m3s / 10 ** (snr / 20)
+
+    def spreads(self) -> Spreads:
+        """The simulator's :class:`Spreads` for this head: its overrides, its noise and its ADC."""
+        if "noise_std_v" in self.sensor:
+            noise = float(self.sensor["noise_std_v"])
+            if noise == 0:
+                snr = math.inf
+            else:
+                rms = nominal_rms(self.channel_params(), self.drive, self.n_samples, self.sample_rate_hz)
+                snr = 20 * math.log10(rms * self.sensor_gain_v_per_m3s / noise)
+        else:
+            snr = float(self.sensor.get("snr_db", Spreads().snr_db))
+        return dataclasses.replace(Spreads(), **self.spreads_overrides, snr_db=snr, adc_bits=self.adc_bits,
+                                   adc_range_v=self.adc_range_v)
+
+    def simulate(self, counts, *, seed=0, spreads: Spreads | None = None, **kwargs):
+        """:func:`inkdiag_core.simulate` on this head: its channel, drive, sampling, sensor and spreads.
+
+        Parameters
+        ----------
+        counts : mapping of FaultClass (or its value) -> int
+            Traces per class.
+        seed : int or numpy.random.Generator
+        spreads : Spreads, optional
+            Instead of :meth:`spreads` (for instance ``Spreads.none()``).
+        **kwargs
+            Further keywords of :func:`inkdiag_core.simulate` (``severity``, ...).
+
+        Returns
+        -------
+        SimulationResult
+            ``.traces`` (n, n_samples) float32 volts.
+        """
+        self._need_complete("simulation")
+        return simulate(counts, sample_rate_hz=self.sample_rate_hz, n_samples=self.n_samples, seed=seed,
+                        spreads=self.spreads() if spreads is None else spreads, drive=self.drive,
+                        base_params=self.channel_params(), sensor_gain_v_per_m3s=self.sensor_gain_v_per_m3s,
+                        sensor_offset_v=self.sensor_offset_v, **kwargs)
+
+    def check_traces(self, traces, sample_rate_hz, *, what: str = "recording") -> None:
+        """Refuse traces of another sampling: a clear :class:`ProfileError`.
+
+        Parameters
+        ----------
+        traces : array_like, shape (n, n_samples)
+        sample_rate_hz : float
+            Their sample rate, Hz.
+        """
+        shape = np.shape(traces)
+        if not math.isclose(float(sample_rate_hz), self.sample_rate_hz, rel_tol=1e-9):
+            raise ProfileError(f"{what} is sampled at {float(sample_rate_hz):g} Hz; profile {self.name!r} is "
+                               f"{self.sample_rate_hz:g} Hz")
+        if len(shape) != 2 or shape[1] != self.n_samples:
+            got = shape[1] if len(shape) == 2 else f"shape {shape}"
+            raise ProfileError(f"{what} has traces of {got} samples; profile {self.name!r} has {self.n_samples}")
+
+
+def _plain(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"calibration: {type(o).__name__} is not a plain value")
+
+
+@functools.lru_cache(maxsize=1)
+def _default_profile() -> HeadProfile:
+    text = resources.files(__package__).joinpath("profiles/default_head.yaml").read_text(encoding="utf-8")
+    return HeadProfile.loads(text, source="inkdiag_core/profiles/default_head.yaml")

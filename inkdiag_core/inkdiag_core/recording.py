@@ -1,0 +1,187 @@
+"""Recordings of sensed traces for the offline verbs: load, validate, save.
+
+A recording is an ``.npz`` file:
+
+=================  ==========================  ===========================================
+key                shape, type                 meaning
+=================  ==========================  ===========================================
+``traces``         (n, n_samples) float32      sensed traces, V (required)
+``sample_rate_hz`` scalar float                their sample rate, Hz (required)
+``nozzle``         (n,) int                    nozzle id of each row (default 0..n-1)
+``frame_id``       (n,) int                    measurement (frame) of each row (default 0)
+``stamp``          (n,) float                  time of each row's frame, s (default NaN)
+``label``          (n,) str                    class of each row (a FaultClass value), if known
+=================  ==========================  ===========================================
+
+Rows are independent: a row with a non-finite or out-of-range sample is
+loaded as it is and becomes an ``invalid`` row where it is labelled, it never
+costs the other rows. What makes the whole file unusable (no ``traces``, a
+sample rate that is not a positive number, arrays of another length, an
+unknown class name) is a :class:`RecordingError` naming the file and the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from .checks import InputError
+from .faults import FaultClass
+
+__all__ = ["Recording", "RecordingError", "load_recording", "save_recording"]
+
+_CLASS_VALUES = frozenset(c.value for c in FaultClass)
+
+
+class RecordingError(InputError):
+    """A recording that cannot be read (a ``ValueError``)."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Recording:
+    """Traces and their per-row identity, as loaded from a recording.
+
+    Attributes
+    ----------
+    traces : ndarray, shape (n, n_samples), float32
+        Sensed traces, V.
+    sample_rate_hz : float
+        Hz.
+    nozzle, frame_id : ndarray, shape (n,), int64
+        Nozzle and frame of each row.
+    stamp : ndarray, shape (n,), float64
+        Time of each row's frame, s (NaN where the recording has none).
+    label : ndarray of str, shape (n,), or None
+        Known class of each row (FaultClass values), if the recording has labels.
+    source : str
+        Where it was read from.
+    """
+
+    traces: np.ndarray
+    sample_rate_hz: float
+    nozzle: np.ndarray
+    frame_id: np.ndarray
+    stamp: np.ndarray
+    label: np.ndarray | None = None
+    source: str = "recording"
+
+    @property
+    def n_rows(self) -> int:
+        """Number of traces."""
+        return int(self.traces.shape[0])
+
+    @property
+    def n_samples(self) -> int:
+        """Samples per trace."""
+        return int(self.traces.shape[1])
+
+    @classmethod
+    def from_arrays(cls, traces, sample_rate_hz, *, nozzle=None, frame_id=None, stamp=None, label=None,
+                    source: str = "recording") -> "Recording":
+        """Validate arrays into a recording (what :func:`load_recording` does after reading).
+
+        Raises
+        ------
+        RecordingError
+            Naming ``source`` and the key that is wrong.
+        """
+        t = np.asarray(traces)
+        if t.ndim != 2 or t.shape[0] < 1 or t.shape[1] < 2:
+            raise RecordingError(f"{source}: traces must be a 2-D array (n, n_samples) with at least one row, "
+                                 f"got shape {t.shape}")
+        if t.dtype.kind not in "fiu":
+            raise RecordingError(f"{source}: traces must be numbers (float32 volts), got dtype {t.dtype}")
+        t = np.ascontiguousarray(t, dtype=np.float32)
+        fs = sample_rate_hz
+        if isinstance(fs, np.ndarray):
+            if fs.size != 1:
+                raise RecordingError(f"{source}: sample_rate_hz must be a scalar, got shape {fs.shape}")
+            fs = fs.reshape(()).item()
+        if isinstance(fs, bool) or not isinstance(fs, numbers.Real) or not math.isfinite(fs) or fs <= 0:
+            raise RecordingError(f"{source}: sample_rate_hz must be a positive number of Hz, got {fs!r}")
+        n = t.shape[0]
+
+        def column(name, value, kind, default):
+            if value is None:
+                return default
+            a = np.asarray(value)
+            if a.shape != (n,):
+                raise RecordingError(f"{source}: {name} must have one entry per trace, shape ({n},), got {a.shape}")
+            if kind == "int":
+                if a.dtype.kind not in "iu" and not (a.dtype.kind == "f" and np.all(np.isfinite(a))
+                                                     and np.all(a == np.round(a))):
+                    raise RecordingError(f"{source}: {name} must be integers, got dtype {a.dtype}")
+                if a.size and (a.min() < 0 or a.max() >= 2**63):
+                    raise RecordingError(f"{source}: {name} must be >= 0")
+                return a.astype(np.int64)
+            if a.dtype.kind not in "fiu":
+                raise RecordingError(f"{source}: {name} must be numbers (s), got dtype {a.dtype}")
+            return a.astype(np.float64)
+
+        nozzle = column("nozzle", nozzle, "int", np.arange(n, dtype=np.int64))
+        frame = column("frame_id", frame_id, "int", np.zeros(n, dtype=np.int64))
+        st = column("stamp", stamp, "float", np.full(n, np.nan))
+        lab = None
+        if label is not None:
+            lab = np.asarray(label)
+            if lab.shape != (n,):
+                raise RecordingError(f"{source}: label must have one entry per trace, shape ({n},), got {lab.shape}")
+            lab = np.array([str(v) for v in lab.tolist()], dtype=object)
+            bad = sorted(set(lab.tolist()) - _CLASS_VALUES)
+            if bad:
+                raise RecordingError(f"{source}: label {bad[0]!r} is not a class (expected one of "
+                                     f"{', '.join(c.value for c in FaultClass)})")
+        return cls(t, float(fs), nozzle, frame, st, lab, source)
+
+
+def load_recording(path) -> Recording:
+    """Read a recording (``.npz``, see the module docstring).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Raises
+    ------
+    RecordingError
+        A missing or unreadable file, not an npz archive, no ``traces`` or
+        ``sample_rate_hz``, or a key of the wrong shape or type.
+    """
+    path = Path(path)
+    src = str(path)
+    if not path.exists():
+        raise RecordingError(f"{src}: no such recording")
+    if path.is_dir():
+        raise RecordingError(f"{src}: is a directory; a recording is an .npz file")
+    try:
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise RecordingError(f"{src}: not an .npz archive (a single .npy array?)")
+        with z:
+            keys = set(z.files)
+            for req in ("traces", "sample_rate_hz"):
+                if req not in keys:
+                    raise RecordingError(f"{src}: no {req!r} in the recording (it has {', '.join(sorted(keys)) or 'nothing'})")
+            data = {k: z[k] for k in ("traces", "sample_rate_hz", "nozzle", "frame_id", "stamp", "label") if k in keys}
+    except RecordingError:
+        raise
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise RecordingError(f"{src}: cannot read the recording: {exc}") from None
+    return Recording.from_arrays(data.pop("traces"), data.pop("sample_rate_hz"), source=src, **data)
+
+
+def save_recording(path, recording: Recording) -> Path:
+    """Write ``recording`` as an ``.npz`` that :func:`load_recording` reads back; returns the path."""
+    path = Path(path)
+    arrays = {"traces": recording.traces.astype(np.float32), "sample_rate_hz": np.float64(recording.sample_rate_hz),
+              "nozzle": recording.nozzle, "frame_id": recording.frame_id, "stamp": recording.stamp}
+    if recording.label is not None:
+        arrays["label"] = np.asarray(recording.label, dtype=str)
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+    return path

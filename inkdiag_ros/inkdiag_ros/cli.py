@@ -1,0 +1,60 @@
+"""``inkdiag``: the command line, one entry point with a subcommand per task.
+
+    inkdiag calibrate HEALTHY --nominal NOMINAL.yaml --out HEAD.yaml
+    inkdiag train --profile HEAD.yaml --out MODEL.joblib [--features ...] [--baseline] [--data LABELLED]
+    inkdiag label RECORDING --model MODEL.joblib [--baselines B.npz] --out LABELS.csv
+    inkdiag estimate RECORDING --profile HEAD.yaml [--rows ...] --out FM.csv
+
+Each subcommand is a module of :mod:`inkdiag_ros.verbs` with ``HELP`` (one
+line), ``DESCRIPTION``, ``add_arguments(parser)`` and ``run(args) -> int``; the
+modules import the core only inside ``run``, so ``--help`` is fast. Bad input
+(a missing file, another schema, a recording of another sampling, a profile
+calibration cannot fit) is one line on stderr, ``inkdiag VERB: error: ...``,
+and exit status 2; argparse's own usage errors are status 2 as well.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+__all__ = ["VERBS", "build_parser", "main"]
+
+VERBS = ("calibrate", "train", "label", "estimate")
+"""The subcommands, in the order ``inkdiag --help`` lists them."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``inkdiag`` parser with one subparser per verb."""
+    parser = argparse.ArgumentParser(
+        prog="inkdiag", description="inkdiag: fault detection, isolation and estimation for piezo inkjet "
+        "printheads. Offline tasks on a head profile and recordings; see docs/cli.md.")
+    sub = parser.add_subparsers(dest="verb", metavar="VERB", required=True)
+    for verb in VERBS:
+        module = importlib.import_module(f"{__package__}.verbs.{verb}")
+        p = sub.add_parser(verb, help=module.HELP, description=module.DESCRIPTION,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+        module.add_arguments(p)
+        p.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv=None) -> int:
+    """Run ``inkdiag``; returns the exit status (0 done, 1 failed, 2 bad input, 130 interrupted)."""
+    args = build_parser().parse_args(argv)
+    from inkdiag_core.checks import InputError
+
+    try:
+        return int(args._run(args) or 0)
+    except KeyboardInterrupt:
+        print(f"inkdiag {args.verb}: interrupted", file=sys.stderr)
+        return 130
+    except (InputError, ValueError, OSError) as exc:  # bad input: one line, status 2
+        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        print(f"inkdiag {args.verb}: error: {msg}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

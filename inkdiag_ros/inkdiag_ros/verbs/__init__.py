@@ -1,0 +1,1 @@
+"""The ``inkdiag`` subcommands, one module each (see :mod:`inkdiag_ros.cli`)."""

@@ -1,0 +1,118 @@
+"""HeadProfile: the YAML file, its validation, and the default head as a shipped profile."""
+
+import numpy as np
+import pytest
+
+from inkdiag_core import FaultClass, HeadProfile, InkChannelParams, ProfileError, simulate
+from inkdiag_core.head_profile import NOMINAL_CHANNEL_KEYS
+from inkdiag_core.simulation import DriveWaveform, Spreads
+
+
+def _nominal_doc():
+    doc = HeadProfile.default().to_dict()
+    doc.pop("sensor")
+    doc["channel"] = {k: doc["channel"][k] for k in NOMINAL_CHANNEL_KEYS}
+    return doc
+
+
+def test_default_profile_is_the_simulators_default_head():
+    p = HeadProfile.default()
+    assert p.is_complete and p.name == "default"
+    assert p.channel_params() == InkChannelParams()
+    assert p.drive == DriveWaveform()
+    assert (p.sample_rate_hz, p.n_samples) == (10e6, 512)
+    assert p.spreads() == Spreads()
+    f0, zeta = p.healthy_mode()
+    assert abs(f0 - 237e3) < 1e3 and 0.05 < zeta < 0.1
+    counts = {FaultClass.HEALTHY_NOZZLE: 20, FaultClass.DEEPLY_DRIED: 20, FaultClass.EMPTY_CHANNEL_1: 5}
+    np.testing.assert_array_equal(p.simulate(counts, seed=4).traces, simulate(counts, seed=4).traces)
+
+
+def test_round_trip_through_yaml(tmp_path):
+    p = HeadProfile.default().replace(name="h", channel={"r_r": 20e-6}, sensor={"offset_v": 0.05},
+                                      spreads_overrides={"temperature_std_k": 0.5}, n_samples=1024,
+                                      sample_rate_hz=20e6, calibration={"residual_rel": 0.01})
+    path = p.save(tmp_path / "h.yaml")
+    q = HeadProfile.load(path)
+    assert q == p and q.sha256 == p.sha256
+    assert q.channel["r_r"] == 20e-6 and q.n_samples == 1024 and q.spreads().temperature_std_k == 0.5
+    # the name and the provenance do not change the head's hash; its physics does
+    assert p.replace(name="other", calibration={"x": 1}).sha256 == p.sha256
+    assert p.replace(channel={"b": 3e-18}).sha256 != p.sha256
+
+
+def test_yaml_numbers_without_a_dot_are_numbers():
+    text = HeadProfile.default().dumps().replace("r_n: 1.5e-05", "r_n: 15e-6")
+    assert HeadProfile.loads(text).channel["r_n"] == 15e-6
+
+
+def test_nominal_profile_loads_and_says_what_is_missing():
+    p = HeadProfile.from_dict(_nominal_doc())
+    assert not p.is_complete
+    assert set(p.missing) == {"channel.r_r", "channel.L_r", "channel.B_act", "channel.b",
+                              "sensor.gain_v_per_m3s"}
+    with pytest.raises(ProfileError, match="nominal.*channel.r_r.*inkdiag calibrate"):
+        p.simulate({"healthy_nozzle": 1})
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda d: d.update(schema="other"), "schema is 'other'"),
+    (lambda d: d.update(schema_version=2), "schema_version is 2"),
+    (lambda d: d["channel"].pop("mu"), r"channel\.mu: missing \(a number in Pa s\)"),
+    (lambda d: d["channel"].update(r_n="abc"), r"channel\.r_n: expected a positive number in m, got 'abc'"),
+    (lambda d: d["channel"].update(r_n=-1e-6), r"channel\.r_n: expected a positive number in m"),
+    (lambda d: d["channel"].update(r_x=1.0), r"channel\.r_x: unknown key"),
+    (lambda d: d["drive"].pop("fall_s"), r"drive\.fall_s: missing \(a number in s\)"),
+    (lambda d: d["sampling"].update(n_samples=512.5), r"sampling\.n_samples: expected a positive integer"),
+    (lambda d: d["sampling"].update(sample_rate_hz=float("nan")), r"sampling\.sample_rate_hz"),
+    (lambda d: d.update(sensor={"noise_std_v": 0.01, "snr_db": 30.0}), "not both"),
+    (lambda d: d.update(sensor="x"), "sensor: expected a mapping"),
+    (lambda d: d.update(extra=1), "extra: unknown key"),
+])
+def test_bad_profiles_name_the_key_and_the_unit(edit, match):
+    doc = HeadProfile.default().to_dict()
+    edit(doc)
+    with pytest.raises(ProfileError, match=match):
+        HeadProfile.from_dict(doc, source="p.yaml")
+
+
+def test_physics_checks_of_a_complete_profile():
+    doc = HeadProfile.default().to_dict()
+    doc["sampling"]["sample_rate_hz"] = 400e3
+    with pytest.raises(ProfileError, match="above the Nyquist"):
+        HeadProfile.from_dict(doc)
+    doc = HeadProfile.default().to_dict()
+    doc["sampling"].update(n_samples=16)
+    with pytest.raises(ProfileError, match="periods of the healthy mode"):
+        HeadProfile.from_dict(doc)
+
+
+def test_missing_and_malformed_files(tmp_path):
+    with pytest.raises(ProfileError, match="no such head profile file"):
+        HeadProfile.load(tmp_path / "none.yaml")
+    (tmp_path / "bad.yaml").write_text("schema: [")
+    with pytest.raises(ProfileError, match="not valid YAML"):
+        HeadProfile.load(tmp_path / "bad.yaml")
+    (tmp_path / "list.yaml").write_text("- 1\n- 2\n")
+    with pytest.raises(ProfileError, match="not a head profile"):
+        HeadProfile.load(tmp_path / "list.yaml")
+
+
+def test_check_traces_refuses_another_sampling():
+    p = HeadProfile.default()
+    p.check_traces(np.zeros((3, 512), np.float32), 10e6)
+    with pytest.raises(ProfileError, match="sampled at 2e\\+07 Hz"):
+        p.check_traces(np.zeros((3, 512)), 20e6)
+    with pytest.raises(ProfileError, match="traces of 256 samples"):
+        p.check_traces(np.zeros((3, 256)), 10e6)
+
+
+def test_profile_sensor_gain_and_noise_reach_the_simulator():
+    p = HeadProfile.default().replace(sensor={"gain_v_per_m3s": 2e10, "offset_v": 0.3, "snr_db": None,
+                                              "noise_std_v": 0.0, "adc_bits": 24})
+    ref = HeadProfile.default().replace(sensor={"snr_db": None, "noise_std_v": 0.0, "adc_bits": 24})
+    none = {"gain_rel": 0.0, "offset_std_v": 0.0}
+    a = p.replace(spreads_overrides=none).simulate({"healthy_nozzle": 4}, seed=1)
+    b = ref.replace(spreads_overrides=none).simulate({"healthy_nozzle": 4}, seed=1)
+    np.testing.assert_allclose(a.traces, 2 * b.traces + 0.3, rtol=1e-5, atol=1e-5)
+    assert p.spreads().snr_db == np.inf

@@ -1,0 +1,63 @@
+"""Recordings (.npz) for the offline verbs: round trip, defaults, and clear errors."""
+
+import numpy as np
+import pytest
+
+from inkdiag_core import Recording, RecordingError, load_recording, save_recording
+
+
+def _save(path, **arrays):
+    np.savez(path, **arrays)
+    return path
+
+
+def test_round_trip_and_defaults(tmp_path):
+    t = np.random.default_rng(0).normal(size=(5, 64)).astype(np.float32)
+    rec = load_recording(_save(tmp_path / "a.npz", traces=t, sample_rate_hz=10e6))
+    np.testing.assert_array_equal(rec.traces, t)
+    assert rec.sample_rate_hz == 10e6 and rec.n_rows == 5 and rec.n_samples == 64
+    np.testing.assert_array_equal(rec.nozzle, np.arange(5))
+    np.testing.assert_array_equal(rec.frame_id, np.zeros(5))
+    assert np.isnan(rec.stamp).all() and rec.label is None
+    full = Recording.from_arrays(t, 20e6, nozzle=[4, 3, 2, 1, 0], frame_id=[1, 1, 1, 2, 2],
+                                 stamp=[0.1] * 5, label=["healthy_nozzle"] * 4 + ["deeply_dried"])
+    back = load_recording(save_recording(tmp_path / "b.npz", full))
+    for k in ("traces", "nozzle", "frame_id", "stamp"):
+        np.testing.assert_array_equal(getattr(back, k), getattr(full, k))
+    assert list(back.label) == list(full.label) and back.sample_rate_hz == 20e6
+
+
+def test_non_finite_rows_load_as_they_are(tmp_path):
+    t = np.zeros((3, 32), np.float32)
+    t[1, 4] = np.nan
+    rec = load_recording(_save(tmp_path / "a.npz", traces=t, sample_rate_hz=1e6))
+    assert np.isnan(rec.traces[1, 4]) and rec.n_rows == 3
+
+
+@pytest.mark.parametrize("arrays, match", [
+    ({"sample_rate_hz": 1e6}, "no 'traces'"),
+    ({"traces": np.zeros((2, 8))}, "no 'sample_rate_hz'"),
+    ({"traces": np.zeros(8), "sample_rate_hz": 1e6}, "2-D array"),
+    ({"traces": np.zeros((2, 8)), "sample_rate_hz": -1.0}, "positive number of Hz"),
+    ({"traces": np.zeros((2, 8)), "sample_rate_hz": [1e6, 2e6]}, "must be a scalar"),
+    ({"traces": np.zeros((2, 8)), "sample_rate_hz": 1e6, "nozzle": [1, 2, 3]}, r"nozzle must have one entry"),
+    ({"traces": np.zeros((2, 8)), "sample_rate_hz": 1e6, "frame_id": [0.5, 1]}, "frame_id must be integers"),
+    ({"traces": np.zeros((2, 8)), "sample_rate_hz": 1e6, "label": ["healthy_nozzle", "wet"]}, "'wet' is not a class"),
+    ({"traces": np.array([["a", "b"]]), "sample_rate_hz": 1e6}, "must be numbers"),
+])
+def test_bad_recordings_name_the_key(tmp_path, arrays, match):
+    with pytest.raises(RecordingError, match=match):
+        load_recording(_save(tmp_path / "bad.npz", **arrays))
+
+
+def test_unreadable_files(tmp_path):
+    with pytest.raises(RecordingError, match="no such recording"):
+        load_recording(tmp_path / "none.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip at all")
+    with pytest.raises(RecordingError, match="cannot read"):
+        load_recording(tmp_path / "junk.npz")
+    np.save(tmp_path / "one.npy", np.zeros(3))
+    with pytest.raises(RecordingError, match="not an .npz"):
+        load_recording(tmp_path / "one.npy")
+    with pytest.raises(RecordingError, match="directory"):
+        load_recording(tmp_path)
