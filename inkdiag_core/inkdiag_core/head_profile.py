@@ -444,6 +444,15 @@ class HeadProfile:
         """Frequency (Hz) and damping ratio of the healthy channel's dominant mode."""
         return self.model().dominant_mode()
 
+    def frequency_scale(self) -> float:
+        """This head's healthy mode over the default head's (237.15 kHz), dimensionless.
+
+        Frequency bands tuned on the default head (feature bands, residual
+        filter bands) are that head's bands times this factor: they follow the
+        head's modes instead of fixed Hz.
+        """
+        return self.healthy_mode()[0] / _default_profile().healthy_mode()[0]
+
     @property
     def sensor_gain_v_per_m3s(self) -> float:
         """Nominal sense gain, V per (m^3/s)."""
