@@ -9,7 +9,6 @@ import numpy as np
 from .. import checks
 from ..estimation import estimate_fm_batch
 from ..kpis import MIN_KPI_SAMPLES, InvalidTraceError, extract_kpis
-from ..model import InkChannelModel
 from ..screening import screen_traces
 from .features import N_KPIS
 from .store import NozzleBaselines
@@ -37,13 +36,14 @@ class BaselineRecorder:
     ----------
     n_frames : int
         Frames per nozzle in its baseline, >= 1.
-    sample_rate_hz : float
-        Sample rate of the traces, Hz.
-    n_samples : int
-        Samples per trace; every frame must have it.
+    sample_rate_hz : float, optional
+        Sample rate of the traces, Hz (default: the profile's). Given, it must be the profile's.
+    n_samples : int, optional
+        Samples per trace; every frame must have it (default: the profile's; given,
+        it must be the profile's).
     fm_frames : int
         Also record each nozzle's healthy f_m reading (:attr:`NozzleBaselines.fm`),
-        the median of ``estimate_fm_batch(rows, InkChannelModel(), sample_rate_hz).fm``
+        the median of ``estimate_fm_batch(rows, profile.model(), sample_rate_hz).fm``
         over its first ``fm_frames`` rows (at most ``n_frames``); 0: none. It costs
         about a millisecond per row, so it is taken on fewer rows than the KPIs.
     max_nozzles : int
@@ -51,10 +51,39 @@ class BaselineRecorder:
         the recorder's memory (a dense int32 row count per nozzle id, 4 bytes each,
         grown by doubling), so a frame claiming huge ids is refused rather than
         allocating for them.
+    profile : HeadProfile, optional
+        The head (default: the shipped default head, 10 MHz x 512, whose model is
+        ``InkChannelModel()``): its sampling, its healthy model for the f_m readings,
+        and its sha256, which the baselines carry (:attr:`NozzleBaselines.head_sha256`).
+        A complete profile.
+
+    Raises
+    ------
+    ValueError
+        Bad settings; :class:`inkdiag_core.ProfileError` (a ``ValueError``) for a
+        nominal profile or a sampling that is not the profile's.
     """
 
-    def __init__(self, *, n_frames: int = 8, sample_rate_hz: float = 10e6, n_samples: int = 512,
-                 fm_frames: int = 0, max_nozzles: int = DEFAULT_MAX_NOZZLES):
+    def __init__(self, *, n_frames: int = 8, sample_rate_hz: float | None = None, n_samples: int | None = None,
+                 fm_frames: int = 0, max_nozzles: int = DEFAULT_MAX_NOZZLES, profile=None):
+        from ..head_profile import HeadProfile, ProfileError
+
+        if profile is None:
+            profile = HeadProfile.default()
+        elif not isinstance(profile, HeadProfile):
+            raise TypeError(f"profile must be a HeadProfile (or None: the default head), got {type(profile).__name__}")
+        if not profile.is_complete:
+            raise ProfileError(f"profile {profile.name!r} is nominal ({', '.join(profile.missing)} missing): "
+                               "baselines need a complete profile (run `inkdiag calibrate` on recorded healthy traces)")
+        if sample_rate_hz is None:
+            sample_rate_hz = profile.sample_rate_hz
+        elif sample_rate_hz != profile.sample_rate_hz:
+            raise ProfileError(f"sample_rate_hz {sample_rate_hz!r} Hz is not head profile {profile.name!r}'s "
+                               f"{profile.sample_rate_hz:g} Hz")
+        if n_samples is None:
+            n_samples = profile.n_samples
+        elif n_samples != profile.n_samples:
+            raise ProfileError(f"n_samples {n_samples!r} is not head profile {profile.name!r}'s {profile.n_samples}")
         if isinstance(n_frames, bool) or not isinstance(n_frames, (int, np.integer)) or n_frames < 1:
             raise ValueError(f"n_frames must be a positive integer, got {n_frames!r}")
         if isinstance(fm_frames, bool) or not isinstance(fm_frames, (int, np.integer)) \
@@ -69,6 +98,8 @@ class BaselineRecorder:
         self.n_frames = int(n_frames)
         self.sample_rate_hz = checks.sample_rate(sample_rate_hz, error=InvalidTraceError)
         self.n_samples = int(n_samples)
+        self.profile = profile
+        self._model = profile.model() if self.fm_frames else None
         self._ids = []  # chunks of the rows kept so far, in arrival order
         self._kpis = []
         self._count_of = np.zeros(0, np.int32)  # rows kept per nozzle id (dense, grown on demand)
@@ -122,7 +153,7 @@ class BaselineRecorder:
         if self.fm_frames:
             fm_rows = np.flatnonzero(self._count_of[ids] < self.fm_frames)
             if fm_rows.size:
-                kpis[fm_rows, N_KPIS] = estimate_fm_batch(y[fm_rows], InkChannelModel(), self.sample_rate_hz).fm
+                kpis[fm_rows, N_KPIS] = estimate_fm_batch(y[fm_rows], self._model, self.sample_rate_hz).fm
         self._kpis.append(kpis)
         self._ids.append(ids.astype(np.int64))
         self._count_of[ids] += 1  # the ids of one message are distinct
@@ -159,4 +190,4 @@ class BaselineRecorder:
         else:
             med = np.empty((0, N_KPIS + 1))
         return NozzleBaselines(ids[ok], med[:, :N_KPIS], self.sample_rate_hz, self.n_samples, self.n_frames,
-                               fm=med[:, N_KPIS] if self.fm_frames else None)
+                               fm=med[:, N_KPIS] if self.fm_frames else None, head_sha256=self.profile.sha256)

@@ -2,8 +2,10 @@
 
 A file holds the arrays (``nozzle_ids``, ``kpis``, optional ``fm``), no pickle, and a
 JSON header (``meta``) with :data:`BASELINE_FORMAT`, :data:`BASELINE_FORMAT_VERSION`,
-the settings and the sha256 of the content; :meth:`NozzleBaselines.load` checks them
-all and says what is wrong (:class:`BaselineFileError`).
+the settings, the head profile's sha256 (``head_sha256``: the head the baselines
+were recorded on) and the sha256 of the content; :meth:`NozzleBaselines.load` checks
+them all and says what is wrong (:class:`BaselineFileError`). Files of versions 1
+and 2 (before head profiles) read as baselines of the default head.
 """
 
 from __future__ import annotations
@@ -26,8 +28,14 @@ from .features import N_KPIS
 __all__ = ["BASELINE_FORMAT", "BASELINE_FORMAT_VERSION", "BaselineFileError", "NozzleBaselines"]
 
 BASELINE_FORMAT = "inkdiag-nozzle-baselines"
-BASELINE_FORMAT_VERSION = 2  # 2: optional healthy f_m per nozzle ("fm"); 1 (KPIs only) is still read
-_READABLE_VERSIONS = (1, 2)
+BASELINE_FORMAT_VERSION = 3  # 3: head_sha256; 2: optional healthy f_m per nozzle ("fm"); 1: KPIs only
+_READABLE_VERSIONS = (1, 2, 3)
+
+
+def _default_head_sha256() -> str:
+    from ..head_profile import HeadProfile  # the profile module imports the simulators
+
+    return HeadProfile.default().sha256
 
 
 class BaselineFileError(ValueError):
@@ -67,6 +75,9 @@ class NozzleBaselines:
         its first healthy rows (:class:`BaselineRecorder` ``fm_frames``), for
         ``estimate_fm_batch(..., baseline_fm=...)``; NaN where a nozzle has
         none. None: no f_m baselines at all.
+    head_sha256 : str, optional
+        :attr:`inkdiag_core.HeadProfile.sha256` of the head the baselines were
+        recorded on (64 hex digits); default (None): the shipped default head's.
 
     Raises
     ------
@@ -80,6 +91,7 @@ class NozzleBaselines:
     n_samples: int
     n_frames: int
     fm: np.ndarray | None = None
+    head_sha256: str | None = None
 
     def __post_init__(self):
         ids = np.asarray(self.nozzle_ids)
@@ -114,6 +126,29 @@ class NozzleBaselines:
         object.__setattr__(self, "sample_rate_hz", fs)
         object.__setattr__(self, "n_samples", int(self.n_samples))
         object.__setattr__(self, "n_frames", int(self.n_frames))
+        head = _default_head_sha256() if self.head_sha256 is None else self.head_sha256
+        if not isinstance(head, str) or len(head) != 64 or any(ch not in "0123456789abcdef" for ch in head):
+            raise ValueError(f"head_sha256 must be a head profile's sha256 (64 lowercase hex digits), got {head!r}")
+        object.__setattr__(self, "head_sha256", head)
+
+    def check_head(self, profile, *, what: str = "baselines") -> None:
+        """Refuse baselines recorded on another head than ``profile``.
+
+        Parameters
+        ----------
+        profile : HeadProfile or str
+            The head (or its sha256) the baselines are about to be used with.
+
+        Raises
+        ------
+        BaselineFileError
+            The baselines carry another head's sha256.
+        """
+        sha = profile if isinstance(profile, str) else profile.sha256
+        if sha != self.head_sha256:
+            name = "" if isinstance(profile, str) else f" {profile.name!r}"
+            raise BaselineFileError(f"{what} were recorded on another head (profile sha256 {self.head_sha256[:12]}), "
+                                    f"not on head profile{name} (sha256 {sha[:12]}): record them again on this head")
 
     def __len__(self) -> int:
         return int(self.nozzle_ids.size)
@@ -168,7 +203,8 @@ class NozzleBaselines:
     def _meta(self) -> dict:
         return {"format": BASELINE_FORMAT, "format_version": BASELINE_FORMAT_VERSION,
                 "kpi_names": list(KPI_NAMES), "sample_rate_hz": self.sample_rate_hz,
-                "n_samples": self.n_samples, "n_frames": self.n_frames, "has_fm": self.fm is not None}
+                "n_samples": self.n_samples, "n_frames": self.n_frames, "has_fm": self.fm is not None,
+                "head_sha256": self.head_sha256}
 
     def save(self, path) -> Path:
         """Write an ``.npz`` (no pickle) with the arrays, the settings and their sha256.
@@ -225,6 +261,9 @@ class NozzleBaselines:
                                     "corrupted); record the baselines again")
         if meta.get("kpi_names") != list(KPI_NAMES):
             raise BaselineFileError(f"{path}: KPI columns {meta.get('kpi_names')!r} are not {list(KPI_NAMES)}")
+        if meta.get("format_version") >= 3 and not isinstance(meta.get("head_sha256"), str):
+            raise BaselineFileError(f"{path}: its header names no head profile (head_sha256); record the "
+                                    "baselines again")
         stored = meta.pop("sha256", None)
         ids, kpis = arrays["nozzle_ids"], arrays["kpis"]
         try:
@@ -235,6 +274,7 @@ class NozzleBaselines:
             raise BaselineFileError(f"{path}: its content does not match its sha256 (modified or "
                                     "corrupted); record the baselines again")
         try:
-            return cls(ids, kpis, meta["sample_rate_hz"], meta["n_samples"], meta["n_frames"], fm)
+            return cls(ids, kpis, meta["sample_rate_hz"], meta["n_samples"], meta["n_frames"], fm,
+                       head_sha256=meta.get("head_sha256"))  # None (versions 1, 2): the default head
         except (KeyError, ValueError) as exc:
             raise BaselineFileError(f"{path}: inconsistent baselines ({exc})") from None

@@ -177,7 +177,8 @@ def simulate(
 
 def simulate_nozzles(classes, *, mu_nozzle=None, sample_rate_hz: float = 10e6, n_samples: int = 512,
                      seed=0, spreads: Spreads | None = None, drive: DriveWaveform | None = None,
-                     base_params: InkChannelParams | None = None, frame_seed=None) -> SimulationResult:
+                     base_params: InkChannelParams | None = None, frame_seed=None,
+                     sensor_gain_v_per_m3s: float | None = None, sensor_offset_v: float = 0.0) -> SimulationResult:
     """One trace per nozzle, in the nozzles' order: a frame of a printhead.
 
     Nozzle ``i``'s own draws (geometry, piezo, drive, sensor gain and offset,
@@ -202,6 +203,9 @@ def simulate_nozzles(classes, *, mu_nozzle=None, sample_rate_hz: float = 10e6, n
     sample_rate_hz, n_samples, seed, spreads, drive, base_params, frame_seed
         As in :func:`simulate` (``seed``: the head; ``frame_seed``: the
         measurement's ink temperature and sensor noise).
+    sensor_gain_v_per_m3s, sensor_offset_v
+        As in :func:`simulate`: the head's nominal sense gain, V per (m^3/s)
+        (default: the default head's), and mean sense offset, V.
 
     Returns
     -------
@@ -238,7 +242,8 @@ def simulate_nozzles(classes, *, mu_nozzle=None, sample_rate_hz: float = 10e6, n
     # grouped row r is nozzle perm[r]: it takes the nozzle's own position in the draws
     res = simulate(counts, sample_rate_hz=sample_rate_hz, n_samples=n_samples, seed=rng,
                    spreads=spreads, drive=drive, base_params=base, severity=severity or None,
-                   frame_seed=frame_seed, draw_order=perm)
+                   frame_seed=frame_seed, draw_order=perm, sensor_gain_v_per_m3s=sensor_gain_v_per_m3s,
+                   sensor_offset_v=sensor_offset_v)
     inverse = np.empty(n, dtype=np.intp)
     inverse[perm] = np.arange(n)
     return res.take(inverse)

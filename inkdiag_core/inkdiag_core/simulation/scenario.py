@@ -4,6 +4,12 @@
 nozzle has and, for drying nozzles, their nozzle ink viscosity. The physics
 call that turns that into traces is :func:`simulate_head`, the one place
 where the simulator is called.
+
+Both take the head as a :class:`inkdiag_core.HeadProfile` (keyword
+``profile``; default: the shipped default head, whose frames are
+bit-identical to those of the scenario before profiles): its channel, drive,
+sampling, sensor gain and offset, noise, ADC and spreads. The one keyword
+stands for the six the simulator would otherwise need threaded through.
 """
 
 from __future__ import annotations
@@ -13,13 +19,26 @@ import math
 import numpy as np
 
 from ..faults import DRIED_CLASSES, FAULT_CLASSES, MECHANISMS, FaultClass, as_fault_class
-from ..model import InkChannelParams
 from .linear import simulate_nozzles
 
 __all__ = ["HeadScenario", "simulate_head", "dried_class_of", "RANDOM_FAULT_CLASSES"]
 
 #: Classes a random fault is drawn from (drying is the progression's job).
 RANDOM_FAULT_CLASSES = tuple(c for c in FAULT_CLASSES if c not in DRIED_CLASSES)
+
+
+def _complete_profile(profile, what):
+    """``profile``, or the shipped default head; refuse a nominal one (a clear ProfileError)."""
+    from ..head_profile import HeadProfile, ProfileError  # the profile module imports the simulators
+
+    if profile is None:
+        return HeadProfile.default()
+    if not isinstance(profile, HeadProfile):
+        raise TypeError(f"profile must be a HeadProfile (or None: the default head), got {type(profile).__name__}")
+    if not profile.is_complete:
+        raise ProfileError(f"profile {profile.name!r} is nominal ({', '.join(profile.missing)} missing): {what} "
+                           "needs a complete profile (run `inkdiag calibrate` on recorded healthy traces)")
+    return profile
 
 
 def dried_class_of(k: np.ndarray) -> np.ndarray:
@@ -46,16 +65,22 @@ class HeadScenario:
         Fraction of the other nozzles given a random (non-drying) fault, fixed for the run.
     drying_nozzles : sequence of int
         Nozzles that dry: their nozzle viscosity factor goes linearly from
-        ``drying_start_factor`` to ``drying_end_factor`` over ``drying_duration_s``, then holds.
+        ``drying_start_factor`` to ``drying_end_factor`` over ``drying_duration_s``, then holds
+        (factors of the profile's ink viscosity ``channel["mu"]``).
     faults_start_s : float
         Every nozzle is healthy before this time (a purged head, whose baselines
         can be recorded); the faults appear and the drying starts then.
     seed : int
+    profile : HeadProfile, optional
+        The simulated head (default: the shipped default head); a complete
+        profile (a nominal one raises :class:`inkdiag_core.ProfileError`). Its
+        ink viscosity scales the drying nozzles' factors; :meth:`frame` simulates on it.
     """
 
     def __init__(self, *, n_nozzles, first_nozzle=0, fault_nozzles=(), fault_classes=(),
                  random_fault_fraction=0.0, drying_nozzles=(), drying_start_factor=2.4,
-                 drying_end_factor=9.0, drying_duration_s=20.0, faults_start_s=0.0, seed=0):
+                 drying_end_factor=9.0, drying_duration_s=20.0, faults_start_s=0.0, seed=0, profile=None):
+        self.profile = _complete_profile(profile, "the simulated head")
         ids = np.arange(first_nozzle, first_nozzle + n_nozzles)
         fault_nozzles = [int(x) for x in fault_nozzles]
         drying_nozzles = [int(x) for x in drying_nozzles]
@@ -102,19 +127,66 @@ class HeadScenario:
         classes = self.classes.copy()
         k = self.viscosity_factor(t_s)
         classes[self.drying_rows] = dried_class_of(np.full(self.drying_rows.size, k))
-        mu[self.drying_rows] = k * InkChannelParams().mu
+        mu[self.drying_rows] = k * self.profile.channel["mu"]
         return classes, mu
 
+    def frame(self, t_s: float, *, head_seed, rng):
+        """One frame of the head at ``t_s``: :meth:`at`, then :func:`simulate_head` on :attr:`profile`.
 
-def simulate_head(classes, mu_nozzle, *, sample_rate_hz, n_samples, head_seed, rng):
+        Returns ``(traces float32 (n_nozzles, profile.n_samples) V, labels, fm 1/s, mu_nozzle Pa s)``.
+        """
+        classes, mu_nozzle = self.at(t_s)
+        return simulate_head(classes, mu_nozzle, head_seed=head_seed, rng=rng, profile=self.profile)
+
+
+def simulate_head(classes, mu_nozzle, *, head_seed, rng, profile=None, sample_rate_hz=None, n_samples=None):
     """The one physics call of the simulated head: one frame.
 
     ``head_seed`` fixes the head's nozzles (each keeps its tolerances, sensor and
     fault severity from frame to frame); ``rng`` draws the frame's ink temperature
     and sensor noise.
 
-    Returns ``(traces float32 (n, n_samples) V, labels, fm 1/s, mu_nozzle Pa s)``.
+    Parameters
+    ----------
+    classes : sequence of FaultClass (or their values), length n
+        Each nozzle's condition.
+    mu_nozzle : array_like, shape (n,)
+        Nozzle ink viscosity of the dried nozzles, Pa s (NaN: the class's spread).
+    head_seed : int, sequence of int or numpy.random.Generator
+        The head's nozzles.
+    rng : numpy.random.Generator
+        The frame's ink temperature and sensor noise.
+    profile : HeadProfile, optional
+        The head: channel, drive, sampling, sensor gain and offset, noise, ADC
+        and spreads (default: the shipped default head). A complete profile.
+    sample_rate_hz : float, optional
+        Instead of the profile's sample rate, Hz (the same head sampled otherwise).
+    n_samples : int, optional
+        Instead of the profile's samples per trace.
+
+    Returns
+    -------
+    traces : ndarray of float32, shape (n, n_samples)
+        V.
+    labels : ndarray of str, shape (n,)
+    fm : ndarray, shape (n,)
+        True f_m, 1/s.
+    mu_nozzle : ndarray, shape (n,)
+        True nozzle ink viscosity, Pa s.
+
+    Raises
+    ------
+    ProfileError
+        A nominal profile, or sampling overrides the head cannot be sampled at.
     """
-    r = simulate_nozzles(classes, mu_nozzle=mu_nozzle, sample_rate_hz=sample_rate_hz, n_samples=n_samples,
-                         seed=head_seed, frame_seed=rng)
+    profile = _complete_profile(profile, "the simulated head")
+    if (sample_rate_hz is not None and sample_rate_hz != profile.sample_rate_hz) or \
+            (n_samples is not None and n_samples != profile.n_samples):
+        profile = profile.replace(**{k: v for k, v in (("sample_rate_hz", sample_rate_hz), ("n_samples", n_samples))
+                                     if v is not None})
+    r = simulate_nozzles(classes, mu_nozzle=mu_nozzle, sample_rate_hz=profile.sample_rate_hz,
+                         n_samples=profile.n_samples, seed=head_seed, frame_seed=rng, spreads=profile.spreads(),
+                         drive=profile.drive, base_params=profile.channel_params(),
+                         sensor_gain_v_per_m3s=profile.sensor_gain_v_per_m3s,
+                         sensor_offset_v=profile.sensor_offset_v)
     return r.traces, r.labels, r.fm, r.mu_nozzle
