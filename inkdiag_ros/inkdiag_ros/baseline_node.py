@@ -14,7 +14,13 @@ not, and exits with status 1 if none is. The fdi node uses the file
 (``baseline_path``, classified by its model's baseline branch),
 and so does the fe node (``baseline_path``).
 
+The head is ``head_profile`` (a complete :class:`inkdiag_core.HeadProfile` YAML file; empty:
+the shipped default head): frames of another sampling are rejected, the f_m readings use its
+model, and the file records its sha256. A nominal profile, a bad file or a ``sample_rate_hz`` /
+``n_samples`` that is not the profile's stops the node at start (one line, exit status 2).
+
     record_baseline --ros-args -r __ns:=/head_07 -p output_path:=baselines/head_07.npz -p n_nozzles:=2656
+    record_baseline --ros-args -p output_path:=b.npz -p head_profile:=heads/my_head.yaml
 """
 
 from __future__ import annotations
@@ -25,7 +31,7 @@ from pathlib import Path
 
 from rclpy.node import Node
 
-from inkdiag_core import BaselineRecorder
+from inkdiag_core import BaselineRecorder, HeadProfile
 from msg_defs import TRACE_MSG_TYPE, TRACES_QOS, FrameError, decode_traces, topics
 
 from . import _params
@@ -38,8 +44,11 @@ PARAMS = (
      "fm_frames valid rows, at most n_frames; 0: none (about 1 ms of CPU per row)", int, (0, 1000)),
     ("n_nozzles", 0, "nozzles to wait for (0: until timeout_s)", int, (0, 2**24)),
     ("timeout_s", 60.0, "give up waiting after this long, s; writes the complete nozzles", float, (0.1, 86400.0)),
-    ("n_samples", 512, "samples per trace; other frames are rejected", int, (16, 65536)),
-    ("sample_rate_hz", 10e6, "sample rate of the traces, Hz; other frames are rejected", float, (1e3, 1e9)),
+    ("head_profile", "", "head profile YAML file; empty: the shipped default head", str, None),
+    ("n_samples", 0, "samples per trace; other frames are rejected; 0: the head profile's (else it must be "
+     "the profile's)", int, (0, 65536)),
+    ("sample_rate_hz", 0.0, "sample rate of the traces, Hz; other frames are rejected; 0: the head profile's "
+     "(else it must be the profile's)", float, (0.0, 1e9)),
 )
 
 
@@ -52,10 +61,11 @@ class BaselineRecorderNode(Node):
         self.add_on_set_parameters_callback(lambda params: _params.fixed_at_start(params))
         if not self.config["output_path"]:
             raise ValueError("output_path is required (-p output_path:=baselines/head.npz)")
-        self.recorder = BaselineRecorder(n_frames=self.config["n_frames"],
-                                         sample_rate_hz=self.config["sample_rate_hz"],
-                                         n_samples=self.config["n_samples"],
-                                         fm_frames=min(self.config["fm_frames"], self.config["n_frames"]))
+        c = self.config
+        self.profile = HeadProfile.load(c["head_profile"]) if c["head_profile"] else HeadProfile.default()
+        self.recorder = BaselineRecorder(n_frames=c["n_frames"], sample_rate_hz=c["sample_rate_hz"] or None,
+                                         n_samples=c["n_samples"] or None, profile=self.profile,
+                                         fm_frames=min(c["fm_frames"], c["n_frames"]))
         self.frames = 0
         self.malformed = 0
         self.last_error = ""
@@ -68,14 +78,16 @@ class BaselineRecorderNode(Node):
             f"recording {self.config['n_frames']} healthy frames per nozzle"
             + (f" (f_m from the first {self.recorder.fm_frames})" if self.recorder.fm_frames else "")
             + (f" of {self.config['n_nozzles']} nozzles" if self.config["n_nozzles"] else "")
+            + f" of head {self.profile.name!r} ({self.profile.sample_rate_hz / 1e6:g} MHz x {self.profile.n_samples}, "
+            f"sha256 {self.profile.sha256[:12]})"
             + f" into {self.config['output_path']} (timeout {self.config['timeout_s']:g} s)")
 
     def _on_traces(self, msg) -> None:
         if self.done:
             return
         try:
-            frame = decode_traces(msg, n_samples=self.config["n_samples"],
-                                  sample_rate_hz=self.config["sample_rate_hz"])
+            frame = decode_traces(msg, n_samples=self.recorder.n_samples,
+                                  sample_rate_hz=self.recorder.sample_rate_hz)
             self.recorder.add(frame.first_nozzle, frame.traces)
         except (FrameError, ValueError) as exc:  # the recorder never dies of input
             self.malformed += 1

@@ -3,9 +3,13 @@
 Publishes ``traces`` (one frame of all its nozzles per timer tick, sensor-data
 QoS) and ``ground_truth`` (reliable), both relative to the node's namespace.
 The fault scenario (fixed faults, a random fault fraction, drying nozzles
-whose nozzle viscosity rises over time) is :class:`inkdiag_core.simulation.scenario.HeadScenario`.
+whose nozzle viscosity rises over time) is :class:`inkdiag_core.simulation.scenario.HeadScenario`,
+on the head of ``head_profile`` (a complete :class:`inkdiag_core.HeadProfile` YAML file; empty:
+the shipped default head): its channel, drive, sensor, spreads and sampling, which the trace
+header carries. A nominal profile or a bad file stops the node at start (one line, exit status 2).
 
     printhead_sim --ros-args -r __ns:=/head_00 -p n_nozzles:=256 -p drying_nozzles:=[40]
+    printhead_sim --ros-args -p head_profile:=heads/my_head.yaml
     python -m inkdiag_ros.printhead_sim --ros-args --params-file inkdiag.yaml
 """
 
@@ -19,6 +23,7 @@ from rclpy.node import Node
 from ._spin import spin_node
 
 from msg_defs import (
+    FrameError,
     RELIABLE_QOS,
     TRACE_MSG_TYPE,
     TRACES_QOS,
@@ -30,15 +35,17 @@ from msg_defs import (
 )
 
 from . import _params
-from inkdiag_core.simulation.scenario import HeadScenario, simulate_head
+from inkdiag_core import HeadProfile
+from inkdiag_core.simulation.scenario import HeadScenario
 
 PARAMS = (
     # name, default, description, kind, range
     ("n_nozzles", 64, "nozzles of the simulated head (one frame holds all of them)", int, (1, 100_000)),
     ("first_nozzle", 0, "id of the head's first nozzle", int, (0, 2**24 - 1)),
     ("frame_rate_hz", 5.0, "frames published per second", float, (0.01, 1000.0)),
-    ("sample_rate_hz", 10e6, "ADC sample rate of the traces, Hz", float, (1e6, 100e6)),
-    ("n_samples", 512, "samples per trace", int, (16, 65536)),
+    ("head_profile", "", "head profile YAML file; empty: the shipped default head", str, None),
+    ("sample_rate_hz", 0.0, "ADC sample rate of the traces, Hz; 0: the head profile's", float, (0.0, 100e6)),
+    ("n_samples", 0, "samples per trace; 0: the head profile's", int, (0, 65536)),
     ("seed", 0, "seed of the scenario, of the head's nozzles (their tolerances persist across frames) and of the frames' noise", int, (0, 2**31 - 1)),
     ("fault_nozzles", [3, 11, 19, 27], "nozzle ids with a fixed fault", "int[]", None),
     ("fault_classes", ["fully_blocked", "mature_air_bubble", "small_air_bubble", "empty_channel_1"],
@@ -63,12 +70,14 @@ class PrintheadSim(Node):
         super().__init__("printhead_sim", **kwargs)
         p = _params.declare_all(self, PARAMS)
         self.config = p
+        self.profile = self._load_profile(p)
         self._scenario = HeadScenario(
             n_nozzles=p["n_nozzles"], first_nozzle=p["first_nozzle"],
             fault_nozzles=p["fault_nozzles"], fault_classes=p["fault_classes"],
             random_fault_fraction=p["random_fault_fraction"], drying_nozzles=p["drying_nozzles"],
             drying_start_factor=p["drying_start_factor"], drying_end_factor=p["drying_end_factor"],
-            drying_duration_s=p["drying_duration_s"], faults_start_s=p["faults_start_s"], seed=p["seed"])
+            drying_duration_s=p["drying_duration_s"], faults_start_s=p["faults_start_s"], seed=p["seed"],
+            profile=self.profile)
         self.add_on_set_parameters_callback(lambda params: _params.fixed_at_start(params))
         self._rng = np.random.default_rng(p["seed"] + 1)
         self._pub = self.create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
@@ -77,8 +86,26 @@ class PrintheadSim(Node):
         self.frames_published = 0
         self._timer = self.create_timer(1.0 / p["frame_rate_hz"], self._on_timer)
         self.get_logger().info(
-            f"simulating {p['n_nozzles']} nozzles from {p['first_nozzle']} at {p['frame_rate_hz']:g} Hz; "
+            f"simulating {p['n_nozzles']} nozzles from {p['first_nozzle']} at {p['frame_rate_hz']:g} Hz on head "
+            f"{self.profile.name!r} ({self.profile.sample_rate_hz / 1e6:g} MHz x {self.profile.n_samples}, "
+            f"sha256 {self.profile.sha256[:12]}); "
             f"faults {dict(zip(p['fault_nozzles'], p['fault_classes']))}, drying {list(p['drying_nozzles'])}")
+
+    @staticmethod
+    def _load_profile(p) -> HeadProfile:
+        """The head: ``head_profile`` (or the default head), sampled at the sampling parameters if given."""
+        prof = HeadProfile.load(p["head_profile"]) if p["head_profile"] else HeadProfile.default()
+        if not prof.is_complete:  # a ProfileError: one line, exit status 2
+            raise ValueError(f"head_profile {p['head_profile']}: profile {prof.name!r} is nominal "
+                             f"({', '.join(prof.missing)} missing); the simulator needs a complete profile "
+                             "(run `inkdiag calibrate` on recorded healthy traces)")
+        change = {k: p[k] for k in ("sample_rate_hz", "n_samples") if p[k] and p[k] != getattr(prof, k)}
+        prof = prof.replace(**change) if change else prof
+        try:  # the wire must carry its sample rate (msg_defs says how)
+            encode_traces(np.zeros((1, prof.n_samples), np.float32), sample_rate_hz=prof.sample_rate_hz)
+        except FrameError as exc:
+            raise ValueError(f"head profile {prof.name!r} cannot be published: {exc}") from None
+        return prof
 
     @property
     def scenario(self) -> HeadScenario:
@@ -90,13 +117,10 @@ class PrintheadSim(Node):
             return
         now = self.get_clock().now().nanoseconds * 1e-9
         self._t0 = now if self._t0 is None else self._t0
-        classes, mu_nozzle = self._scenario.at(now - self._t0)
-        traces, labels, fm, mu_true = simulate_head(
-            classes, mu_nozzle, sample_rate_hz=p["sample_rate_hz"], n_samples=p["n_samples"],
-            head_seed=[p["seed"], 1], rng=self._rng)
+        traces, labels, fm, mu_true = self._scenario.frame(now - self._t0, head_seed=[p["seed"], 1], rng=self._rng)
         fid = self.frames_published
         self._pub.publish(encode_traces(traces, first_nozzle=p["first_nozzle"], frame_id=fid,
-                                        sample_rate_hz=p["sample_rate_hz"], stamp=now))
+                                        sample_rate_hz=self.profile.sample_rate_hz, stamp=now))
         self._truth_pub.publish(encode_truth(truth_from_arrays(
             frame_id=fid, stamp=now, first_nozzle=p["first_nozzle"], classes=labels, fm=fm,
             mu_nozzle=mu_true)))
@@ -104,7 +128,7 @@ class PrintheadSim(Node):
 
 
 def main(args=None) -> int:
-    return spin_node(PrintheadSim, args)
+    return spin_node(PrintheadSim, args, prog="printhead_sim")
 
 
 if __name__ == "__main__":

@@ -236,6 +236,10 @@ def test_record_baseline_survives_bad_frames_and_an_unwritable_path(ros, tmp_pat
 @pytest.mark.parametrize(("args", "match"), [
     (["--ros-args", "-p", "output_path:=/tmp/never_written.npz", "-p", "n_frames:=0"], "n_frames"),
     ([], "output_path is required"),
+    (["--ros-args", "-p", "output_path:=/tmp/never_written.npz", "-p", "head_profile:=/nonexistent/head.yaml"],
+     "no such head profile file"),
+    (["--ros-args", "-p", "output_path:=/tmp/never_written.npz", "-p", "sample_rate_hz:=20000000.0"],
+     "is not head profile 'default'"),
 ])
 def test_record_baseline_refuses_bad_parameters_without_a_traceback(ros, args, match):
     import os
@@ -247,3 +251,33 @@ def test_record_baseline_refuses_bad_parameters_without_a_traceback(ros, args, m
                          env=env, capture_output=True, text=True, timeout=60)
     assert out.returncode == 2, out.stderr[-2000:]
     assert match in out.stderr and "Traceback" not in out.stderr, out.stderr[-2000:]
+
+
+def test_record_baseline_on_a_head_profile_stores_its_hash(ros, tmp_path):
+    from inkdiag_core import HeadProfile, estimate_fm_batch
+    from inkdiag_core.simulation.scenario import simulate_head
+    from inkdiag_ros.baseline_node import BaselineRecorderNode
+
+    prof = HeadProfile.default().replace(
+        name="foreign", sample_rate_hz=20e6, n_samples=1024,
+        channel={"rho": 1100.0, "mu": 6e-3, "r_n": 11e-6, "L_n": 45e-6}, sensor={"gain_v_per_m3s": 2.0e10})
+    rec = ros.add(BaselineRecorderNode(context=ros.context, namespace="/f", parameter_overrides=[
+        P("output_path", value=str(tmp_path / "f.npz")), P("head_profile", value=str(prof.save(tmp_path / "f.yaml"))),
+        P("n_frames", value=2), P("fm_frames", value=2), P("n_nozzles", value=6), P("timeout_s", value=30.0)]))
+    pub = ros.node("controller", namespace="/f").create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
+    ros.spin_until(lambda: pub.get_subscription_count() > 0, 10, "the recorder's subscription")
+    rng = np.random.default_rng(3)
+    frames = [simulate_head(["healthy_nozzle"] * 6, np.full(6, np.nan), head_seed=5, rng=rng, profile=prof)[0]
+              for _ in range(2)]
+    default_head = simulate_nozzles(["healthy_nozzle"] * 6, seed=HEAD, frame_seed=0).traces  # 10 MHz x 512
+    _publish_until(ros, pub, encode_traces(default_head, first_nozzle=0), lambda: rec.malformed > 0,
+                   "a frame of another head refused")
+    for f in frames:
+        before = rec.frames
+        _publish_until(ros, pub, encode_traces(f, first_nozzle=0, sample_rate_hz=20e6),
+                       lambda: rec.frames > before or rec.done, "a frame recorded")
+    ros.spin_until(lambda: rec.done, 5, "the recorder to finish")
+    b = NozzleBaselines.load(rec.written)
+    assert b.head_sha256 == prof.sha256 and (b.sample_rate_hz, b.n_samples) == (20e6, 1024)
+    fm = np.stack([estimate_fm_batch(f, prof.model(), 20e6).fm for f in frames])
+    np.testing.assert_allclose(b.fm, np.median(fm, axis=0), rtol=1e-5)

@@ -59,3 +59,65 @@ def test_printhead_sim_rejects_bad_scenarios_and_runtime_changes(ros):
     assert not res.successful and "fixed at start" in res.reason
     res = sim.set_parameters([P("frame_rate_hz", value=1e6)])[0]  # outside the descriptor's range
     assert not res.successful
+
+
+def _foreign_profile(tmp_path):
+    """Another head at 20 MHz x 1024 (other ink, nozzle, sense gain), as a YAML file."""
+    from inkdiag_core import HeadProfile
+
+    prof = HeadProfile.default().replace(
+        name="foreign", sample_rate_hz=20e6, n_samples=1024,
+        channel={"rho": 1100.0, "mu": 6e-3, "r_n": 11e-6, "L_n": 45e-6}, sensor={"gain_v_per_m3s": 2.0e10})
+    return prof, prof.save(tmp_path / "foreign.yaml")
+
+
+def test_printhead_sim_publishes_the_traces_of_its_head_profile(ros, tmp_path):
+    from inkdiag_ros.printhead_sim import PrintheadSim
+
+    prof, path = _foreign_profile(tmp_path)
+    sim = ros.add(PrintheadSim(context=ros.context, namespace="/head_09", parameter_overrides=[
+        P("head_profile", value=str(path)), P("n_nozzles", value=12), P("frame_rate_hz", value=50.0),
+        P("fault_nozzles", value=[2]), P("fault_classes", value=["fully_blocked"]),
+        P("drying_nozzles", value=[5]), P("max_frames", value=4)]))
+    assert sim.profile == prof
+    probe = ros.node("probe", namespace="/head_09")
+    frames = collect(ros, probe, TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS, decode_traces)
+    ros.spin_until(lambda: len(frames) >= 2, 10, "two frames")
+    f = frames[-1]
+    assert f.traces.shape == (12, 1024) and f.sample_rate_hz == 20e6
+    healthy = f.traces[[i for i in range(12) if i not in (2, 5)]]
+    x = healthy - healthy.mean(axis=1, keepdims=True)
+    n_fft = 16 * 1024
+    peak_hz = (np.argmax(np.abs(np.fft.rfft(x, n=n_fft, axis=1))[:, 1:], axis=1) + 1) / n_fft * 20e6
+    f0, _ = prof.healthy_mode()
+    assert abs(np.median(peak_hz) / f0 - 1) < 0.03, (np.median(peak_hz), f0)
+    assert abs(f0 / 237.15e3 - 1) > 0.1  # not the default head's mode
+
+
+@pytest.mark.parametrize("case", ["missing file", "not yaml", "other schema", "nominal profile", "bad unit"])
+def test_printhead_sim_refuses_a_bad_head_profile_in_one_line(ros, tmp_path, case):
+    import os
+    import subprocess
+    import sys
+
+    from inkdiag_core import HeadProfile
+
+    path = tmp_path / "head.yaml"
+    text = HeadProfile.default().dumps()
+    if case == "not yaml":
+        path.write_text("schema: [unclosed\n")
+    elif case == "other schema":
+        path.write_text(text.replace("inkdiag.head_profile", "someone.else"))
+    elif case == "nominal profile":
+        HeadProfile.default().replace(channel={"r_r": None, "L_r": None, "B_act": None, "b": None}).save(path)
+    elif case == "bad unit":
+        path.write_text(text.replace("rho: 1000.0", "rho: -1000.0"))
+    match = {"missing file": "no such head profile file", "not yaml": "not valid YAML",
+             "other schema": "schema is 'someone.else'", "nominal profile": "is nominal",
+             "bad unit": "channel.rho: expected a positive number in kg/m^3"}[case]
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    out = subprocess.run([sys.executable, "-m", "inkdiag_ros.printhead_sim", "--ros-args", "-p",
+                          f"head_profile:={path}"], env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2, out.stderr[-2000:]
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("printhead_sim: ") and match in lines[0], out.stderr[-2000:]
