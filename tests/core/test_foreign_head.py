@@ -169,3 +169,13 @@ def test_same_physics_as_our_simulator_on_the_default_head():
     corr = np.sum(a * b, axis=1) / np.sqrt(np.sum(a * a, axis=1) * np.sum(b * b, axis=1))
     assert np.all(corr > 0.99), dict(zip(mine["labels"], corr))
     np.testing.assert_allclose(mine["frequency_hz"], ours.frequency_hz, rtol=1e-6)
+
+
+def test_batched_expm_matches_scipy():
+    from scipy.linalg import expm
+
+    rng = np.random.default_rng(0)
+    M = rng.standard_normal((5, 6, 6)) * np.array([0.01, 1.0, 30.0, 100.0, 0.0])[:, None, None]
+    E = fh._expm(M)
+    for i in range(M.shape[0]):
+        np.testing.assert_allclose(E[i], expm(M[i]), rtol=1e-9, atol=1e-12 * np.abs(expm(M[i])).max())
