@@ -67,11 +67,13 @@ Heads (:data:`FOREIGN_HEADS`; modes measured as the peak of the zero-padded FFT 
 noise-free healthy trace, see the test)
 ------------------------------------------------------------------------------------
 ``h20``
-    1100 kg/m^3, 6 mPa s ink, 11 um x 45 um nozzle, 20 MHz x 1024 samples, 28 V pulse;
-    healthy mode about 169 kHz.
+    1100 kg/m^3, 6 mPa s ink, 11 um x 45 um nozzle, 24 um x 200 um restrictor
+    (``I_r ~ 0.78 I_n``), 20 MHz x 1024 samples, 28 V pulse; healthy mode about 169 kHz,
+    damping ratio 0.08; fully blocked about 128 kHz, empty channels 0.99-1.6 MHz.
 ``h5``
-    1040 kg/m^3, 11 mPa s ink, 13 um x 50 um nozzle, 5 MHz x 256 samples, 22 V pulse;
-    healthy mode about 135 kHz.
+    1040 kg/m^3, 8 mPa s ink, 13 um x 50 um nozzle, 36 um x 360 um restrictor
+    (``I_r ~ 0.78 I_n``), 5 MHz x 256 samples, 22 V pulse; healthy mode about 135 kHz,
+    damping ratio 0.09; fully blocked about 103 kHz, empty channels 0.65-1.05 MHz.
 """
 
 from __future__ import annotations
@@ -126,8 +128,8 @@ FOREIGN_HEADS = {
         "sampling": {"sample_rate_hz": 20.0e6, "n_samples": 1024},
         "channel": {
             "rho": 1100.0, "mu": 6.0e-3, "r_n": 11.0e-6, "L_n": 45.0e-6,
-            "r_r": 24.0e-6, "L_r": 150.0e-6, "V_ch": 8.0e-12, "c": 1350.0,
-            "B_act": 1.121e-20, "b": 3.0e-18,
+            "r_r": 24.0e-6, "L_r": 200.0e-6, "V_ch": 8.0e-12, "c": 1350.0,
+            "B_act": 8.79e-21, "b": 3.0e-18,
         },
         "drive": {"amplitude_v": 28.0, "rise_s": 0.8e-6, "dwell_s": 2.4e-6,
                   "fall_s": 0.9e-6, "switch_delay_s": 1.5e-6},
@@ -137,9 +139,9 @@ FOREIGN_HEADS = {
     "h5": {
         "sampling": {"sample_rate_hz": 5.0e6, "n_samples": 256},
         "channel": {
-            "rho": 1040.0, "mu": 11.0e-3, "r_n": 13.0e-6, "L_n": 50.0e-6,
-            "r_r": 36.0e-6, "L_r": 170.0e-6, "V_ch": 10.0e-12, "c": 1250.0,
-            "B_act": 3.599e-20, "b": 2.5e-18,
+            "rho": 1040.0, "mu": 8.0e-3, "r_n": 13.0e-6, "L_n": 50.0e-6,
+            "r_r": 36.0e-6, "L_r": 360.0e-6, "V_ch": 10.0e-12, "c": 1250.0,
+            "B_act": 1.995e-20, "b": 2.5e-18,
         },
         "drive": {"amplitude_v": 22.0, "rise_s": 1.0e-6, "dwell_s": 3.2e-6,
                   "fall_s": 1.2e-6, "switch_delay_s": 2.0e-6},
