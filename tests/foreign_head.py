@@ -148,6 +148,20 @@ FOREIGN_HEADS = {
         "sensor": {"gain_v_per_m3s": 1.6e10, "offset_v": 0.0, "noise_std_v": 0.01,
                    "adc_range_v": 2.0, "adc_bits": 10},
     },
+    # inkdiag's own default head (the shipped profile's channel, drive, sampling and sensor),
+    # simulated by this module's code: the reference row of reports/heads.md.
+    "default": {
+        "sampling": {"sample_rate_hz": 10.0e6, "n_samples": 512},
+        "channel": {
+            "rho": 1000.0, "mu": 10.0e-3, "r_n": 15.0e-6, "L_n": 60.0e-6,
+            "r_r": 23.56e-6, "L_r": 182.4e-6, "V_ch": 5.0e-12, "c": 1200.0,
+            "B_act": 5.198e-21, "b": 2.0e-18,
+        },
+        "drive": {"amplitude_v": 20.0, "rise_s": 0.6e-6, "dwell_s": 1.6e-6,
+                  "fall_s": 0.6e-6, "switch_delay_s": 1.0e-6},
+        "sensor": {"gain_v_per_m3s": 1.0e10, "offset_v": 0.0, "noise_std_v": 0.00585,
+                   "adc_range_v": 2.0, "adc_bits": 12},
+    },
 }
 """The foreign heads: name -> ``{"sampling", "channel", "drive", "sensor"}`` (SI units).
 
@@ -168,6 +182,8 @@ _DEFAULT_PHYSICS = {
 }
 
 FOREIGN_PHYSICS = {
+    "default": dict(T_ref_k=303.15, visc_temp_coeff_per_k=0.03, p0_pa=1.0e5, sigma_n_per_m=0.030,
+                    kappa_gas=1.2, f_act_hz=2.175e6, zeta_act=0.03, film_loss_factor=1.5),
     "h20": dict(_DEFAULT_PHYSICS),
     "h5": dict(_DEFAULT_PHYSICS, T_ref_k=313.15, visc_temp_coeff_per_k=0.03,
                sigma_n_per_m=0.032, f_act_hz=1.05e6, zeta_act=0.05, film_loss_factor=1.0),
