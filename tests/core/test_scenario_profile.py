@@ -149,3 +149,21 @@ def test_baselines_without_a_head_are_the_default_heads(tmp_path):
     assert NozzleBaselines.load(tmp_path / "v2.npz").head_sha256 == HeadProfile.default().sha256
     with pytest.raises(ValueError, match="head_sha256"):
         NozzleBaselines(np.arange(3), np.ones((3, 7)), 10e6, 512, 4, head_sha256="abc")
+
+
+@pytest.mark.parametrize("name", ["h20", "h5"])
+def test_simulate_head_on_a_foreign_heads_true_profile_matches_the_independent_simulator(tmp_path, name):
+    """Our simulated head against ``tests/foreign_head.py`` (independent code), given that head's true profile."""
+    from foreign_head import simulate_foreign, write_true_yaml
+
+    write_true_yaml(tmp_path / "true.yaml", name)
+    prof = HeadProfile.load(tmp_path / "true.yaml")
+    fs = prof.sample_rate_hz
+    theirs = simulate_foreign(name, {"healthy_nozzle": 200}, seed=1)["traces"]
+    ours = simulate_head(["healthy_nozzle"] * 200, np.full(200, np.nan), head_seed=1, rng=np.random.default_rng(1),
+                         profile=prof)[0]
+    assert ours.shape == theirs.shape == (200, prof.n_samples)
+    f_ours, f_theirs = np.median(dominant_hz(ours, fs)), np.median(dominant_hz(theirs, fs))
+    assert abs(f_ours / prof.healthy_mode()[0] - 1) < 0.03 and abs(f_ours / f_theirs - 1) < 0.01
+    s_ours, s_theirs = np.median(ours.std(axis=1)), np.median(theirs.std(axis=1))
+    assert abs(s_ours / s_theirs - 1) < 0.05  # the same drive, coupling and sense gain: the same amplitude

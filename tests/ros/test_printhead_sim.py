@@ -61,20 +61,28 @@ def test_printhead_sim_rejects_bad_scenarios_and_runtime_changes(ros):
     assert not res.successful
 
 
-def _foreign_profile(tmp_path):
-    """Another head at 20 MHz x 1024 (other ink, nozzle, sense gain), as a YAML file."""
+def _foreign_profile(tmp_path, head):
+    """Another head as a YAML file: the default head at 20 MHz x 1024 with other ink, nozzle and sense
+    gain, or the true profile of a head of ``tests/foreign_head.py`` (h5: 5 MHz x 256)."""
     from inkdiag_core import HeadProfile
 
-    prof = HeadProfile.default().replace(
-        name="foreign", sample_rate_hz=20e6, n_samples=1024,
-        channel={"rho": 1100.0, "mu": 6e-3, "r_n": 11e-6, "L_n": 45e-6}, sensor={"gain_v_per_m3s": 2.0e10})
-    return prof, prof.save(tmp_path / "foreign.yaml")
+    if head == "replaced":
+        prof = HeadProfile.default().replace(
+            name="foreign", sample_rate_hz=20e6, n_samples=1024,
+            channel={"rho": 1100.0, "mu": 6e-3, "r_n": 11e-6, "L_n": 45e-6}, sensor={"gain_v_per_m3s": 2.0e10})
+        return prof, prof.save(tmp_path / "foreign.yaml")
+    from foreign_head import write_true_yaml
+
+    write_true_yaml(tmp_path / f"{head}.yaml", head)
+    return HeadProfile.load(tmp_path / f"{head}.yaml"), tmp_path / f"{head}.yaml"
 
 
-def test_printhead_sim_publishes_the_traces_of_its_head_profile(ros, tmp_path):
+@pytest.mark.parametrize("head", ["replaced", "h5"])
+def test_printhead_sim_publishes_the_traces_of_its_head_profile(ros, tmp_path, head):
     from inkdiag_ros.printhead_sim import PrintheadSim
 
-    prof, path = _foreign_profile(tmp_path)
+    prof, path = _foreign_profile(tmp_path, head)
+    fs, n = prof.sample_rate_hz, prof.n_samples
     sim = ros.add(PrintheadSim(context=ros.context, namespace="/head_09", parameter_overrides=[
         P("head_profile", value=str(path)), P("n_nozzles", value=12), P("frame_rate_hz", value=50.0),
         P("fault_nozzles", value=[2]), P("fault_classes", value=["fully_blocked"]),
@@ -84,11 +92,11 @@ def test_printhead_sim_publishes_the_traces_of_its_head_profile(ros, tmp_path):
     frames = collect(ros, probe, TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS, decode_traces)
     ros.spin_until(lambda: len(frames) >= 2, 10, "two frames")
     f = frames[-1]
-    assert f.traces.shape == (12, 1024) and f.sample_rate_hz == 20e6
+    assert f.traces.shape == (12, n) and f.sample_rate_hz == fs and (fs, n) != (10e6, 512)
     healthy = f.traces[[i for i in range(12) if i not in (2, 5)]]
     x = healthy - healthy.mean(axis=1, keepdims=True)
-    n_fft = 16 * 1024
-    peak_hz = (np.argmax(np.abs(np.fft.rfft(x, n=n_fft, axis=1))[:, 1:], axis=1) + 1) / n_fft * 20e6
+    n_fft = 16 * n
+    peak_hz = (np.argmax(np.abs(np.fft.rfft(x, n=n_fft, axis=1))[:, 1:], axis=1) + 1) / n_fft * fs
     f0, _ = prof.healthy_mode()
     assert abs(np.median(peak_hz) / f0 - 1) < 0.03, (np.median(peak_hz), f0)
     assert abs(f0 / 237.15e3 - 1) > 0.1  # not the default head's mode
