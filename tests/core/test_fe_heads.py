@@ -121,3 +121,20 @@ def test_estimate_rows_reports_bad_rows_and_keeps_the_others(head_cal):
     assert np.isnan(out.columns["fm_trend"]).all()  # no stamp: the trends are not fed
     alone = t.estimate_rows(r.traces[[0, 2, 4]], [0, 2, 4], stamp=float("nan"), sample_rate_hz=p.sample_rate_hz)
     np.testing.assert_array_equal(out.columns["fm"][ok], alone.columns["fm"])
+
+
+def test_a_5_mhz_head_of_256_samples():
+    """A larger nozzle in a more viscous ink, sampled at 5 MHz x 256: its own constants, d_mu within 10 %."""
+    p = HeadProfile.default().replace(
+        name="big5", sample_rate_hz=5e6, n_samples=256,
+        channel={"rho": 1050.0, "mu": 14e-3, "r_n": 20e-6, "L_n": 80e-6, "V_ch": 12e-12, "c": 1150.0,
+                 "L_r": 300e-6, "r_r": 30e-6},
+        drive={"amplitude_v": 18.0, "rise_s": 1.5e-6, "dwell_s": 3e-6, "fall_s": 1.5e-6})
+    p = p.replace(calibration={"vp_cal": calibrate_vp_cal(p, seeds=(11, 12), n_per_class=20)})
+    r = p.simulate(DRIED, seed=8)
+    t = DryingTracker(profile=p)
+    out = t.estimate_rows(r.traces, np.arange(r.traces.shape[0]), stamp=1.0, sample_rate_hz=5e6)
+    assert (out.reasons == "").all()
+    d_mu_true = fm_to_viscosity(p.channel_params(), r.fm)[0]
+    assert np.median(np.abs(out.columns["d_mu"] - d_mu_true) / d_mu_true) <= 0.10
+    assert t.trends.fm_deep == deeply_dried_fm(p.channel_params())
