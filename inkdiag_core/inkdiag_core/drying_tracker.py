@@ -45,7 +45,7 @@ from .model import InkChannelModel
 from .screening import screen_traces
 from .trend import FmTrendBank, deeply_dried_fm
 
-__all__ = ["ESTIMATE_COLUMNS", "CLIP_RUN_S", "DryingTracker", "RangeEstimates", "RowEstimates"]
+__all__ = ["ESTIMATE_COLUMNS", "CLIP_RUN_S", "DryingTracker", "RangeEstimates", "RowEstimates", "clip_run_samples"]
 
 CLIP_RUN_S = 0.5e-6
 """Screening's clipped-run length in seconds (5 samples at the default head's 10 MHz)."""
