@@ -101,9 +101,9 @@ from .baselines import (  # noqa: E402
 __all__ += ["BaselineFileError", "BaselineKpis", "BaselineRecorder", "NozzleBaselines", "baseline_kpis",
             "baseline_training_kpis", "baseline_training_rows", "with_baseline"]
 
-from .drying_tracker import ESTIMATE_COLUMNS, DryingTracker, RangeEstimates  # noqa: E402
+from .drying_tracker import ESTIMATE_COLUMNS, DryingTracker, RangeEstimates, RowEstimates  # noqa: E402
 
-__all__ += ["ESTIMATE_COLUMNS", "DryingTracker", "RangeEstimates"]
+__all__ += ["ESTIMATE_COLUMNS", "DryingTracker", "RangeEstimates", "RowEstimates"]
 
 from .detector import DetectorLabels, FaultDetector  # noqa: E402
 

@@ -22,6 +22,14 @@ not say which range it labelled) applies to every range of its frame: each
 held range with a listed nozzle is estimated; lists of one frame without a
 range are merged; they stay until evicted, since more ranges of that frame
 may still come, and a range none of them names waits until it is evicted.
+
+With a :class:`~inkdiag_core.HeadProfile` the tracker estimates on that head:
+its model, its ``"vp_cal"`` constants (:func:`~inkdiag_core.estimation.vp_cal_for`),
+its deeply-dried level (:func:`~inkdiag_core.deeply_dried_fm` of its channel)
+and its sampling (trace messages of another sample rate or length are
+refused with a ``ValueError``). :meth:`DryingTracker.estimate_rows` is the
+screening-estimation-trend step on its own, for offline use
+(``inkdiag estimate``): the node and the command run the same code.
 """
 
 from __future__ import annotations
@@ -35,9 +43,17 @@ import numpy as np
 from .estimation import MIN_FM_SAMPLES, estimate_fm_batch
 from .model import InkChannelModel
 from .screening import screen_traces
-from .trend import FmTrendBank
+from .trend import FmTrendBank, deeply_dried_fm
 
-__all__ = ["ESTIMATE_COLUMNS", "DryingTracker", "RangeEstimates"]
+__all__ = ["ESTIMATE_COLUMNS", "CLIP_RUN_S", "DryingTracker", "RangeEstimates", "RowEstimates", "clip_run_samples"]
+
+CLIP_RUN_S = 0.5e-6
+"""Screening's clipped-run length in seconds (5 samples at the default head's 10 MHz)."""
+
+
+def clip_run_samples(sample_rate_hz: float) -> int:
+    """:data:`CLIP_RUN_S` in samples at ``sample_rate_hz`` (at least 3): 5 at 10 MHz."""
+    return max(3, int(round(CLIP_RUN_S * float(sample_rate_hz))))
 
 #: Columns of :attr:`RangeEstimates.columns`, in this order (the fields of ``fm_estimates``).
 ESTIMATE_COLUMNS = ("nozzle", "fm", "fm_std", "d_mu", "viscosity", "fm_trend", "fm_rate",
@@ -78,6 +94,30 @@ class RangeEstimates:
         return self.columns["nozzle"]
 
 
+@dataclass(frozen=True)
+class RowEstimates:
+    """The estimates of some rows of one frame, valid or not (:meth:`DryingTracker.estimate_rows`).
+
+    Attributes
+    ----------
+    columns : dict of str -> ndarray, shape (n,)
+        :data:`ESTIMATE_COLUMNS`, one entry per given row in the given order; NaN
+        in every estimate column of a row that was not estimated.
+    reasons : ndarray of str (object), shape (n,)
+        ``""`` for estimated rows; else screening's reason
+        (:data:`~inkdiag_core.INVALID_REASONS`) or ``"estimate_not_finite"``.
+    method : str
+        The estimator that ran.
+    note : str
+        Why the f_m baselines were not used ("" when they were, or there are none).
+    """
+
+    columns: dict
+    reasons: np.ndarray
+    method: str
+    note: str = ""
+
+
 @dataclass
 class _Traces:
     traces: np.ndarray
@@ -103,7 +143,12 @@ class DryingTracker:
     Parameters
     ----------
     model : InkChannelModel, optional
-        The nominal channel model of the estimator (default ``InkChannelModel()``).
+        The nominal channel model of the estimator (default ``InkChannelModel()``,
+        the default head's); not with ``profile``.
+    profile : HeadProfile, optional
+        The head (complete profile): the estimator's model, ``"vp_cal"`` constants,
+        deeply-dried level and the sampling its trace messages must have. None:
+        the default head, with traces of any sampling.
     max_estimates : int
         At most this many listed nozzles are estimated per frame and range, lowest
         ids first (bounds the cost of one pair). An attribute: may change between calls.
@@ -117,6 +162,8 @@ class DryingTracker:
         when the frame's sample rate and trace length are the baselines'.
     trend_accel_std, trend_rel_floor : float
         :class:`~inkdiag_core.FmTrend`'s ``accel_std`` (1/s^3) and ``rel_floor``.
+    method : {"auto", "vp", "vp_cal"}
+        The estimator (``estimate_fm_batch``'s ``method``; "auto" is "vp_cal").
 
     Attributes
     ----------
@@ -135,15 +182,31 @@ class DryingTracker:
         Nozzle estimates made; those relative to a healthy f_m.
     """
 
-    def __init__(self, model=None, *, max_estimates: int = 64, max_pending: int = 128, baselines=None,
-                 trend_accel_std: float = 5e3, trend_rel_floor: float = 0.05):
+    def __init__(self, model=None, *, profile=None, max_estimates: int = 64, max_pending: int = 128,
+                 baselines=None, trend_accel_std: float = 5e3, trend_rel_floor: float = 0.05,
+                 method: str = "auto"):
         if int(max_estimates) < 1 or int(max_pending) < 1:
             raise ValueError(f"max_estimates and max_pending must be >= 1, got {max_estimates}, {max_pending}")
+        if method not in ("auto", "vp", "vp_cal"):
+            raise ValueError(f"method must be 'auto', 'vp' or 'vp_cal' (no initial state), got {method!r}")
+        if profile is not None and model is not None:
+            raise ValueError("give the head's model or its profile, not both")
+        self.profile = profile
+        self.method = method
+        self.vp_cal = None
+        fm_deep = None
+        if profile is not None:
+            from .estimation import vp_cal_for
+
+            model = profile.model()
+            fm_deep = deeply_dried_fm(profile.channel_params())
+            if method != "vp":
+                self.vp_cal = vp_cal_for(profile)
         self.model = InkChannelModel() if model is None else model
         self.max_estimates = int(max_estimates)
         self.max_pending = int(max_pending)
         self.baselines = baselines
-        self.trends = FmTrendBank(accel_std=trend_accel_std, rel_floor=trend_rel_floor)
+        self.trends = FmTrendBank(accel_std=trend_accel_std, rel_floor=trend_rel_floor, fm_deep=fm_deep)
         self._traces = OrderedDict()  # (frame_id, first_nozzle) -> _Traces
         self._drying = OrderedDict()  # (frame_id, first_nozzle or None) -> _Drying
         self.traces_received = self.drying_received = 0
@@ -182,6 +245,8 @@ class DryingTracker:
         first, frame_id = _index("first_nozzle", first_nozzle), _index("frame_id", frame_id)
         if not (math.isfinite(sample_rate_hz) and sample_rate_hz > 0 and math.isfinite(stamp)):
             raise ValueError(f"sample_rate_hz must be > 0 and stamp finite, got {sample_rate_hz!r}, {stamp!r}")
+        if self.profile is not None:
+            self.profile.check_traces(x, sample_rate_hz, what="trace frame")
         self.traces_received += 1
         t = _Traces(x, float(stamp), float(sample_rate_hz))
         d = self._drying.pop((frame_id, first), None)
@@ -268,19 +333,69 @@ class DryingTracker:
         self.ranges_joined += 1
         x = t.traces
         ids = self._in_range(nozzles, first, x.shape[0])[: self.max_estimates]
-        rows = np.array(x[ids - first])
-        valid, _ = screen_traces(rows)
-        self.rows_invalid += int(ids.size - np.count_nonzero(valid))
-        ids, rows = ids[valid], rows[valid]
-        if ids.size == 0:
+        r = self.estimate_rows(np.array(x[ids - first]), ids, stamp=t.stamp, sample_rate_hz=t.sample_rate_hz)
+        ok = r.reasons == ""
+        if not ok.any():
             return []
-        baseline_fm, note = self._baseline_fm(ids, t.sample_rate_hz, x.shape[1])
-        est = estimate_fm_batch(rows, self.model, t.sample_rate_hz, baseline_fm=baseline_fm)
-        trend, rate, eta = self.trends.update(t.stamp, ids, est.fm, est.std)
         self.ranges_estimated += 1
-        self.estimates += int(ids.size)
-        cols = dict(zip(ESTIMATE_COLUMNS, (ids, est.fm, est.std, est.d_mu, est.viscosity, trend, rate, eta)))
-        return [RangeEstimates(frame_id, t.stamp, first, int(x.shape[0]), cols, note)]
+        cols = {k: v[ok] for k, v in r.columns.items()}
+        return [RangeEstimates(frame_id, t.stamp, first, int(x.shape[0]), cols, r.note)]
+
+    def estimate_rows(self, traces, nozzles, *, stamp: float, sample_rate_hz: float) -> RowEstimates:
+        """Screen some rows of one frame, estimate f_m of the valid ones in one batch, update their trends.
+
+        The step the tracker runs for every joined (frame, range) pair, on its own:
+        rows that screening rejects (:func:`~inkdiag_core.screen_traces`, its
+        clipped-run length :data:`CLIP_RUN_S` at this sample rate) or whose estimate
+        comes out non-finite are not estimated and never cost the other rows.
+
+        Parameters
+        ----------
+        traces : array_like, shape (n, n_samples)
+            Sensed traces, V.
+        nozzles : array_like of int, shape (n,)
+            Their nozzle ids (a nozzle's healthy f_m baseline and trend are keyed by it).
+        stamp : float
+            Measurement time of the frame, s; NaN: the trends are not updated (their
+            columns are NaN).
+        sample_rate_hz : float
+            Hz.
+
+        Returns
+        -------
+        RowEstimates
+            One entry per row, in the given order.
+        """
+        rows = np.asarray(traces)
+        ids = np.asarray(nozzles, dtype=np.int64).reshape(-1)
+        if rows.ndim != 2 or rows.shape[0] != ids.size:
+            raise ValueError(f"traces must be (n, n_samples) with one nozzle id per row, got shape "
+                             f"{rows.shape} and {ids.size} ids")
+        n = ids.size
+        valid, reasons = screen_traces(rows, clip_run=clip_run_samples(sample_rate_hz))
+        cols = {k: np.full(n, np.nan) for k in ESTIMATE_COLUMNS}
+        cols["nozzle"] = ids.copy()
+        self.rows_invalid += int(n - np.count_nonzero(valid))
+        method = "vp" if self.method == "vp" else "vp_cal"
+        note = ""
+        sel = np.flatnonzero(valid)
+        if sel.size:
+            baseline_fm, note = self._baseline_fm(ids[sel], sample_rate_hz, rows.shape[1])
+            kw = {} if self.vp_cal is None else {"cal": self.vp_cal}
+            est = estimate_fm_batch(rows[sel], self.model, sample_rate_hz, baseline_fm=baseline_fm,
+                                    method=self.method, **kw)
+            bad = ~np.isfinite(est.fm)
+            reasons[sel[bad]] = "estimate_not_finite"
+            for k, v in zip(("fm", "fm_std", "d_mu", "viscosity"), (est.fm, est.std, est.d_mu, est.viscosity)):
+                cols[k][sel] = v
+            good = sel[~bad]
+            self.estimates += int(good.size)
+            if good.size and math.isfinite(stamp):
+                trend, rate, eta = self.trends.update(stamp, ids[good], cols["fm"][good], cols["fm_std"][good])
+                cols["fm_trend"][good], cols["fm_rate"][good], cols["eta_deeply_dried_s"][good] = trend, rate, eta
+        for k in ("fm", "fm_std", "d_mu", "viscosity"):
+            cols[k][reasons != ""] = np.nan
+        return RowEstimates(cols, reasons, method, note)
 
     def _baseline_fm(self, ids, sample_rate_hz, n_samples):
         """``(healthy f_m of ids or None, why not used)``."""

@@ -18,6 +18,7 @@ of the faulty matrix, no UIO).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -209,7 +210,7 @@ def synthetic_set(model: InkChannelModel | None = None, *, kind="ct", x0="common
 
 
 def nonlinear_set(n_per_class=100, *, seed=0, sample_rate_hz=10e6, n_samples=512,
-                  healthy_frames=0):
+                  healthy_frames=0, profile=None, clean=True):
     """Physics-based dried-nozzle traces from :func:`inkdiag_core.simulate_nonlinear`.
 
     Classes slightly / intermediately / deeply dried (``level`` 0, 1, 2), each with the
@@ -231,6 +232,12 @@ def nonlinear_set(n_per_class=100, *, seed=0, sample_rate_hz=10e6, n_samples=512
     frame gets its own sensor noise (the simulator's noise level, drawn from an
     independent stream), so neither the temperature nor the noise is shared with
     the dried trace.
+
+    ``profile`` (a complete :class:`~inkdiag_core.HeadProfile`): the same set on
+    that head: its channel as the nominal channel, its drive, its spreads and
+    noise, and its sampling (``sample_rate_hz`` and ``n_samples`` are ignored).
+    None: the simulator's defaults, as before. ``clean=False`` skips the
+    noise-free draw (``y_clean`` is None; half the time).
     """
     from .faults import FaultClass
     from .simulation.nonlinear import simulate_nonlinear
@@ -240,8 +247,17 @@ def nonlinear_set(n_per_class=100, *, seed=0, sample_rate_hz=10e6, n_samples=512
                FaultClass.DEEPLY_DRIED)
     counts = {c: int(n_per_class) for c in classes}
     kw = dict(sample_rate_hz=sample_rate_hz, n_samples=n_samples, seed=seed)
-    r = simulate_nonlinear(counts, **kw)
-    rc = simulate_nonlinear(counts, spreads=Spreads(snr_db=np.inf, adc_bits=None), **kw)
+    spreads = Spreads()
+    if profile is not None:
+        sample_rate_hz, n_samples = profile.sample_rate_hz, profile.n_samples
+        spreads = profile.spreads()
+        kw = dict(sample_rate_hz=sample_rate_hz, n_samples=n_samples, seed=seed,
+                  base_params=profile.channel_params(), drive=profile.drive)
+        r = simulate_nonlinear(counts, spreads=spreads, **kw)
+    else:
+        r = simulate_nonlinear(counts, **kw)
+    rc = simulate_nonlinear(counts, spreads=dataclasses.replace(spreads, snr_db=np.inf, adc_bits=None), **kw) \
+        if clean else r
     if not np.array_equal(r.fm, rc.fm):  # pragma: no cover - defensive
         raise RuntimeError("clean and noisy nonlinear draws differ")
 
@@ -251,14 +267,15 @@ def nonlinear_set(n_per_class=100, *, seed=0, sample_rate_hz=10e6, n_samples=512
     level = np.array([classes.index(c) for c in r.labels])
     y_healthy = None
     if healthy_frames > 0:
+        twin_kw = {k: v for k, v in kw.items() if k != "seed"}
         h, volts = healthy_twin_frames(len(r.fm), seed=seed, n_frames=int(healthy_frames),
                                        noise_std_v=r.noise_std_v, simulate_fn=simulate_nonlinear,
-                                       sample_rate_hz=sample_rate_hz, n_samples=n_samples)
+                                       **({} if profile is None else {"spreads": spreads}), **twin_kw)
         for name in ("r_n", "L_n", "r_r", "B_act", "b"):
             if not np.array_equal(h.params[name], r.params[name]):  # pragma: no cover - defensive
                 raise RuntimeError(f"healthy and dried draws differ in {name}")
         y_healthy = (volts.astype(float) - h.sensor_offset[:, None, None]) / h.sensor_gain[:, None, None]
-    return FeDataset(y=to_si(r), y_clean=to_si(rc), fm=np.asarray(r.fm, float),
+    return FeDataset(y=to_si(r), y_clean=to_si(rc) if clean else None, fm=np.asarray(r.fm, float),
                      mu_nozzle=np.asarray(r.mu_nozzle, float), level=level,
                      x0=np.asarray(r.x0, float), sample_rate_hz=float(sample_rate_hz),
                      snr_db=float(np.median(r.snr_db)), kind="nonlinear", y_healthy=y_healthy)

@@ -29,6 +29,14 @@ that as a fault; its healthy reading removes the part that acts as an offset
 (``reports/fe.md``). Nozzles without one are estimated as before. A file that
 does not load or has no f_m is logged and the node runs without it.
 
+``head_profile`` (a head profile YAML file, default: the shipped default
+head) gives the estimator's model, its "vp_cal" constants (fitted once at
+start for a head other than the default one, unless the profile holds
+them), the deeply-dried level of the trend and the sampling: trace frames
+of another sample rate or trace length are malformed (counted, logged). A
+profile that does not load, or a nominal one, stops the node at start
+(one line on stderr, exit status 2).
+
     fe --ros-args -r __ns:=/head_00
 """
 
@@ -41,7 +49,7 @@ from rclpy.node import Node
 
 from ._spin import spin_node
 
-from inkdiag_core import BaselineFileError, DryingTracker, NozzleBaselines
+from inkdiag_core import BaselineFileError, DryingTracker, HeadProfile, NozzleBaselines
 from msg_defs import (
     DRYING_MSG_TYPE,
     ESTIMATES_ARRAY_MSG_TYPE,
@@ -70,6 +78,7 @@ PARAMS = (
     ("trend_rel_floor", 0.05, "relative floor of one estimate's standard deviation", float, (0.0, 1.0)),
     ("baseline_path", "", "the head's per-nozzle baselines with healthy f_m (.npz from record_baseline): "
      "each estimate is relative to its nozzle's healthy reading; empty: none", str, None),
+    ("head_profile", "", "head profile YAML file; empty: the shipped default head", str, None),
 )
 
 
@@ -81,10 +90,11 @@ class FeNode(Node):
         self.config = c = _params.declare_all(self, PARAMS)
         self.add_on_set_parameters_callback(self._on_set)
         self.add_post_set_parameters_callback(self._after_set)
+        self.profile = self._load_profile(c["head_profile"])
         self.baselines = self._load_baselines(c["baseline_path"])
         self.tracker = DryingTracker(
-            max_estimates=c["max_estimates_per_frame"], max_pending=c["max_pending"], baselines=self.baselines,
-            trend_accel_std=c["trend_accel_std"], trend_rel_floor=c["trend_rel_floor"])
+            profile=self.profile, max_estimates=c["max_estimates_per_frame"], max_pending=c["max_pending"],
+            baselines=self.baselines, trend_accel_std=c["trend_accel_std"], trend_rel_floor=c["trend_rel_floor"])
         self.frames_malformed = 0
         self.estimates_published = 0
         self._pub = self.create_publisher(ESTIMATES_MSG_TYPE, topics.FM_ESTIMATES, RELIABLE_QOS)
@@ -94,6 +104,20 @@ class FeNode(Node):
                                                     self._on_drying, RELIABLE_QOS)
         self._traces_sub = self.create_subscription(TRACE_MSG_TYPE, topics.TRACES, self._on_traces,
                                                     TRACES_QOS)
+
+    def _load_profile(self, path: str):
+        """The head profile, or the default head; a bad or nominal file raises (the node stops at start)."""
+        if not path:
+            return HeadProfile.default()
+        try:
+            profile = HeadProfile.load(path)
+            profile.channel_params()  # a nominal profile: ProfileError ("run inkdiag calibrate")
+        except ValueError as exc:
+            self.get_logger().error(f"head_profile: {exc}")
+            raise
+        self.get_logger().info(f"head profile {profile.name!r} ({profile.sample_rate_hz:g} Hz x "
+                               f"{profile.n_samples}) from {path}")
+        return profile
 
     def _load_baselines(self, path: str):
         if not path:

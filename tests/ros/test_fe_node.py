@@ -1,6 +1,7 @@
 """The fe node alone, real rclpy on a per-test Context, against test publishers/subscribers."""
 
 import numpy as np
+import pytest
 from rclpy.parameter import Parameter as P
 
 from _helpers import collect
@@ -81,3 +82,68 @@ def test_fe_counts_hostile_messages_malformed_and_stays_up(ros):
                               '"stamp":1.0,"nozzles":[0],"classes":["deeply_dried"]}'))
     fe._on_traces(encode_traces(short, first_nozzle=0, frame_id=2, stamp=2.0))
     assert fe.frames_malformed == 3
+
+
+def _foreign_profile(path):
+    """A 20 MHz x 1024 head of other geometry, with vp_cal constants in its file (no fit at start)."""
+    from inkdiag_core import HeadProfile
+    from inkdiag_core.estimation import VP_CAL
+
+    p = HeadProfile.default().replace(
+        name="foreign20", sample_rate_hz=20e6, n_samples=1024,
+        channel={"rho": 1100.0, "mu": 6e-3, "r_n": 11e-6, "L_n": 45e-6, "V_ch": 8e-12, "c": 1300.0, "L_r": 250e-6})
+    cal = {k: VP_CAL[k] * 1.5 for k in ("a_sigma", "b_sigma", "a_omega", "b_omega")}
+    p = p.replace(calibration={"vp_cal": {**cal, "profile_sha256": p.sha256}})
+    p.save(path)
+    return p
+
+
+def test_fe_head_profile_gives_model_constants_and_sampling(ros, tmp_path):
+    """With head_profile, fe estimates on that head (its model, vp_cal constants, deeply-dried level)
+    and counts a trace frame of another sampling malformed."""
+    from std_msgs.msg import String
+
+    from inkdiag_core import DryingTracker
+    from inkdiag_core.trend import deeply_dried_fm
+    from inkdiag_ros.fe_node import FeNode
+
+    p = _foreign_profile(tmp_path / "head.yaml")
+    fe = ros.add(FeNode(context=ros.context, namespace="/h",
+                        parameter_overrides=[P("head_profile", value=str(tmp_path / "head.yaml"))]))
+    assert fe.tracker.profile == p and fe.tracker.vp_cal["a_sigma"] == 1.5 * 8.80346
+    assert fe.tracker.trends.fm_deep == deeply_dried_fm(p.channel_params())
+    drying = '{"schema":"inkdiag.drying_nozzles","schema_version":1,"frame_id":%d,"stamp":1.0,' \
+             '"nozzles":[1],"classes":["deeply_dried"]}'
+    fe._on_drying(String(data=drying % 1))
+    fe._on_traces(encode_traces(simulate({FaultClass.DEEPLY_DRIED: 2}, seed=1).traces, first_nozzle=0, frame_id=1,
+                                stamp=2.0))  # 10 MHz x 512: another head's sampling
+    assert fe.frames_malformed == 1 and fe.tracker.estimates == 0
+    r = p.simulate({FaultClass.DEEPLY_DRIED: 2}, seed=2)
+    fe._on_drying(String(data=drying % 2))
+    fe._on_traces(encode_traces(r.traces, first_nozzle=0, frame_id=2, stamp=2.0, sample_rate_hz=20e6))
+    assert fe.frames_malformed == 1 and fe.tracker.estimates == 1 and fe.estimates_published == 1
+    ref = DryingTracker(profile=p).estimate_rows(r.traces[1:], [1], stamp=2.0, sample_rate_hz=20e6)
+    assert fe.tracker.trends.x[0, 0] == ref.columns["fm_trend"][0]
+
+
+def test_fe_refuses_a_bad_or_nominal_head_profile_at_start(ros, tmp_path):
+    from inkdiag_ros.fe_node import FeNode
+
+    p = _foreign_profile(tmp_path / "head.yaml")
+    p.replace(channel={"r_r": None}).save(tmp_path / "nominal.yaml")
+    for path, message in ((tmp_path / "missing.yaml", "no such head profile"),
+                          (tmp_path / "nominal.yaml", "inkdiag calibrate")):
+        with pytest.raises(ValueError, match=message):
+            FeNode(context=ros.context, namespace="/h", parameter_overrides=[P("head_profile", value=str(path))])
+
+
+def test_fe_node_exits_2_on_a_bad_head_profile(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ)
+    res = subprocess.run([sys.executable, "-m", "inkdiag_ros.fe_node", "--ros-args", "-p",
+                          f"head_profile:={tmp_path / 'missing.yaml'}"], capture_output=True, text=True,
+                         timeout=60, env=env)
+    assert res.returncode == 2 and "no such head profile" in res.stderr, res.stderr

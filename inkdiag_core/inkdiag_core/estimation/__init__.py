@@ -76,7 +76,8 @@ each trace is divided by its RMS; nothing of this leaks out.
 The package, one topic per module: :mod:`.base` (result types, the scaled model, the
 windowed regression, shared helpers), :mod:`.uio` ("dt", "dt_exact", "ct" and their
 options :class:`DtOptions`, :class:`DtExactOptions`, :class:`CtOptions`), :mod:`.vp`
-("vp", "vp_cal", :class:`VpOptions`, :data:`VP_CAL`) and :mod:`.dispatch`
+("vp", "vp_cal", :class:`VpOptions`, :data:`VP_CAL`), :mod:`.vp_calibration` (the
+"vp_cal" constants of a head: :func:`calibrate_vp_cal`, :func:`vp_cal_for`) and :mod:`.dispatch`
 (:func:`estimate_fm_batch`, :func:`estimate_fm`). Input checks raise the typed errors
 of :mod:`inkdiag_core.checks` (``ValueError`` subclasses).
 """
@@ -85,6 +86,7 @@ from .base import MIN_FM_SAMPLES, FmBatchEstimate, FmEstimate
 from .dispatch import METHODS, OPTIONS, estimate_fm, estimate_fm_batch
 from .uio import CtOptions, DtExactOptions, DtOptions
 from .vp import VP_CAL, VpOptions
+from .vp_calibration import calibrate_vp_cal, vp_cal_for
 
 __all__ = [
     "METHODS",
@@ -98,8 +100,10 @@ __all__ = [
     "FmBatchEstimate",
     "FmEstimate",
     "VpOptions",
+    "calibrate_vp_cal",
     "estimate_fm",
     "estimate_fm_batch",
+    "vp_cal_for",
 ]
 
 MIN_SAMPLES = MIN_FM_SAMPLES

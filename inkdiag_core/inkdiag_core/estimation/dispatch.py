@@ -70,6 +70,13 @@ def _bounds(A, B_f, fm_bounds):
     return bounds
 
 
+def _profile(model):
+    """``model`` if it is a HeadProfile (imported lazily: the profile module imports the simulator)."""
+    from ..head_profile import HeadProfile
+
+    return model if isinstance(model, HeadProfile) else None
+
+
 def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, baseline_fm=None,
                       options=None, **kwargs) -> FmBatchEstimate:
     """Estimate f_m for many traces at once.
@@ -79,8 +86,11 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, basel
     Y : array_like, shape (n_traces, n_samples)
         Outputs ``y = C x`` in m^3/s; sample k at ``t = k / sample_rate_hz``; at least
         :data:`~.base.MIN_FM_SAMPLES` (16) finite samples per trace.
-    model : InkChannelModel or tuple (A, C, B_f)
+    model : InkChannelModel, HeadProfile or tuple (A, C, B_f)
         Healthy model (eq. 12), shapes (3, 3), (1, 3), (3, 1) if given as matrices.
+        A complete :class:`~inkdiag_core.HeadProfile`: its model, and for "vp_cal"
+        its constants (:func:`~.vp_calibration.vp_cal_for`: the default head's
+        :data:`~.vp.VP_CAL`, another head's fitted once) unless ``cal`` is given.
     sample_rate_hz : float
         Sample rate, Hz.
     method : {"auto", "dt", "dt_exact", "ct", "vp", "vp_cal"}
@@ -104,7 +114,8 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, basel
         ``prefilter_hz``, ``window``, ``steady_frac`` ("dt", "dt_exact", "ct");
         ``n_iter``, ``sensitivity`` ("dt_exact"); ``fm_bounds`` ("dt_exact", "vp",
         "vp_cal"); ``n_grid``, ``vp_trace_points`` (``VpOptions.trace_points``; "vp",
-        "vp_cal"). See the options classes for their meaning.
+        "vp_cal"); ``cal`` ("vp_cal": the head's constants). See the options classes
+        for their meaning.
 
     Returns
     -------
@@ -120,6 +131,9 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, basel
     if method not in METHODS:
         raise checks.InputError(
             f"unknown method {method!r}; valid methods are {', '.join(METHODS)}")
+    profile = _profile(model)
+    if profile is not None:
+        model = profile.model()
     A, C, B_f, params = model_matrices(model)
     fs = checks.sample_rate(sample_rate_hz)
     Y = checks.traces_2d(Y, "y", min_samples=MIN_FM_SAMPLES, promote_1d=False, dtype=np.float64)
@@ -133,6 +147,10 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, basel
         )
     X0 = check_x0(x0, n) if x0 is not None else None
     o = _method_options(method, options, kwargs)
+    if method == "vp_cal" and o.cal is None and profile is not None:
+        from .vp_calibration import vp_cal_for
+
+        o = dataclasses.replace(o, cal=vp_cal_for(profile))
     sc = scaled(A, C, B_f, fs)
     c = np.sqrt(np.mean(Y * Y, axis=1))
     c = np.where(c > 0, c, 1.0)
@@ -162,11 +180,12 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, basel
         key = (tuple(A.ravel()), tuple(C.ravel()), tuple(B_f.ravel()), float(fs))
         fm, std, xs0, off_s = vp_batch(sc, key, Ys, fm_bounds=bounds, n_grid=o.n_grid)
         if method == "vp_cal":
-            fm_c, std_c, _ = vp_cal_correct(sc, Ys, fm * T0)
+            fm_c, std_c, _ = vp_cal_correct(sc, Ys, fm * T0, cal=o.cal)
             fm, std = fm_c / T0, std_c / T0
         if o.trace_points and o.trace_points > 1:
             trace = vp_growing_trace(sc, key, Ys, fm, fm_bounds=bounds, n_grid=o.n_grid,
-                                     points=int(o.trace_points), cal=method == "vp_cal")
+                                     points=int(o.trace_points), cal=method == "vp_cal",
+                                     cal_constants=o.cal)
         else:
             trace = np.repeat(fm[:, None], N, axis=1)
         x0_out = sc.from_scaled_x(xs0, c)

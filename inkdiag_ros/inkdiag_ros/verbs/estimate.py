@@ -1,12 +1,188 @@
-"""``inkdiag estimate``: (being written)."""
+"""``inkdiag estimate``: f_m, its standard deviation and the nozzle viscosity of recorded traces.
 
-HELP = "estimate (not yet available)"
-DESCRIPTION = HELP
+    inkdiag estimate RECORDING --profile HEAD.yaml [--rows ROWS] [--method vp_cal] \
+        [--baselines B.npz] --out FM.csv
+
+The fe node's code path on a recording: a :class:`inkdiag_core.DryingTracker` on
+the head profile (its model, its "vp_cal" constants, its deeply-dried level)
+screens the rows and estimates the valid ones in batches
+(:meth:`~inkdiag_core.DryingTracker.estimate_rows`); with stamps, each nozzle's
+trend is then fed frame by frame in time order. See docs/cli_estimate.md.
+"""
+
+from __future__ import annotations
+
+import re
+
+HELP = "estimate the drying fault f_m and the nozzle viscosity of recorded traces"
+DESCRIPTION = """\
+Estimate the drying-nozzle fault f_m (1/s), its standard deviation and the
+nozzle's viscosity increase and viscosity (Pa s) of each selected row of a
+recording, on the head of a complete profile (its model, sampling and
+"vp_cal" constants; a head other than the default one gets its constants
+fitted once, a minute or so, unless the profile's calibration: section holds
+them). The same code as the fe node.
+
+Output CSV, one line per selected row, columns:
+  row, nozzle, fm, fm_std, d_mu, viscosity,
+  frame_id, stamp, fm_trend, fm_rate, eta_deeply_dried_s, method, reason
+Units: fm, fm_std, fm_trend 1/s; fm_rate 1/s^2; d_mu, viscosity Pa s;
+stamp, eta_deeply_dried_s s. A row that cannot be estimated (non-finite,
+flat or clipped samples; an estimate that is not finite) has empty values
+and its reason; the others are estimated all the same. fm_trend and fm_rate
+are filled when the recording has stamps (several frames per nozzle).
+
+ROWS: comma-separated indices and ranges START:STOP (STOP excluded, either
+may be omitted), e.g. 0:100 or 3,7,9 or 0:10,50; or a class name
+(dried = the three dried classes, or one FaultClass value such as
+deeply_dried) to take the rows whose label is that (the recording needs a
+label column). Default: every row.
+
+Exit status 2 with a one-line message for bad input: a missing or
+unreadable file, a nominal profile (run inkdiag calibrate first), a
+recording of another sample rate or trace length than the profile's, bad
+ROWS."""
+
+_CHUNK = 2048  # rows per estimator batch: bounds memory, keeps numpy's batches large
 
 
 def add_arguments(parser) -> None:
-    pass
+    parser.add_argument("recording", metavar="RECORDING", help="recording (.npz: traces, sample_rate_hz, ...)")
+    parser.add_argument("--profile", required=True, metavar="HEAD.yaml",
+                        help="complete head profile (from inkdiag calibrate, or the shipped default)")
+    parser.add_argument("--out", required=True, metavar="FM.csv", help="output CSV")
+    parser.add_argument("--rows", default=None, metavar="ROWS",
+                        help="rows to estimate: 0:100, 3,7,9, dried or a class name (default: all)")
+    parser.add_argument("--method", default="vp_cal", choices=("vp_cal", "vp"),
+                        help="estimator (default vp_cal, as the fe node; vp: without the mismatch correction)")
+    parser.add_argument("--baselines", default=None, metavar="B.npz",
+                        help="per-nozzle baselines with healthy f_m (record_baseline): estimates relative to them")
+
+
+def select_rows(spec, n: int, labels=None):
+    """Row indices (int64, increasing order of the spec) of ``--rows``; see DESCRIPTION.
+
+    Raises
+    ------
+    inkdiag_core.checks.InputError
+        A malformed spec, an index out of range, a class name without labels.
+    """
+    import numpy as np
+    from inkdiag_core import FaultClass
+    from inkdiag_core.checks import InputError
+
+    if spec is None:
+        return np.arange(n, dtype=np.int64)
+    spec = spec.strip()
+    classes = {c.value for c in FaultClass}
+    if spec == "dried" or spec in classes:
+        if labels is None:
+            raise InputError(f"--rows {spec}: the recording has no label column")
+        want = ({c.value for c in FaultClass if c.value.endswith("_dried")} if spec == "dried" else {spec})
+        return np.flatnonzero(np.isin(labels, sorted(want))).astype(np.int64)
+    out = []
+    for part in spec.split(","):
+        part = part.strip()
+        m = re.fullmatch(r"(-?\d*)\s*:\s*(-?\d*)", part)
+        if m:
+            lo = int(m.group(1)) if m.group(1) else 0
+            hi = int(m.group(2)) if m.group(2) else n
+            if not (0 <= lo <= n and 0 <= hi <= n) or lo > hi:
+                raise InputError(f"--rows {part}: outside 0:{n} (the recording has {n} rows)")
+            out.append(np.arange(lo, hi, dtype=np.int64))
+        elif re.fullmatch(r"\d+", part):
+            i = int(part)
+            if i >= n:
+                raise InputError(f"--rows {part}: no such row (the recording has {n} rows)")
+            out.append(np.array([i], dtype=np.int64))
+        else:
+            raise InputError(f"--rows {spec!r}: expected indices and ranges such as 0:100 or 3,7,9, "
+                             f"'dried' or a class name ({', '.join(sorted(classes))})")
+    return np.concatenate(out) if out else np.empty(0, dtype=np.int64)
+
+
+def _fmt(v) -> str:
+    import math
+
+    v = float(v)
+    return repr(v) if math.isfinite(v) else ""
 
 
 def run(args) -> int:
-    raise NotImplementedError("inkdiag estimate is not available yet")
+    import csv
+    import sys
+
+    import numpy as np
+    from inkdiag_core import DryingTracker, HeadProfile, load_recording
+    from inkdiag_core import BaselineFileError, NozzleBaselines
+    from inkdiag_core.estimation import vp_cal_for
+    from inkdiag_core.head_profile import ProfileError
+
+    profile = HeadProfile.load(args.profile)
+    if not profile.is_complete:
+        raise ProfileError(f"{args.profile}: a nominal profile ({', '.join(profile.missing)} missing): run "
+                           "inkdiag calibrate first on recorded healthy traces of the head")
+    rec = load_recording(args.recording)
+    profile.check_traces(rec.traces, rec.sample_rate_hz, what=f"{args.recording}")
+    rows = select_rows(args.rows, rec.n_rows, rec.label)
+    baselines = None
+    if args.baselines:
+        try:
+            baselines = NozzleBaselines.load(args.baselines)
+        except BaselineFileError as exc:
+            raise ProfileError(str(exc)) from None
+    if (args.method == "vp_cal" and profile.sha256 != HeadProfile.default().sha256
+            and "vp_cal" not in (profile.calibration or {})):
+        print(f"inkdiag estimate: fitting the vp_cal constants of head {profile.name!r} (first use of this head "
+              "in this process)...", file=sys.stderr, flush=True)
+        cal = vp_cal_for(profile)
+        if "seconds" in cal:
+            print(f"inkdiag estimate: vp_cal fitted in {cal['seconds']:.1f} s on {cal['n_traces']} simulated traces",
+                  file=sys.stderr, flush=True)
+    tracker = DryingTracker(profile=profile, baselines=baselines, method=args.method)
+    n = rows.size
+    cols = {}
+    reasons = np.full(n, "", dtype=object)
+    notes = set()
+    for start in range(0, n, _CHUNK):  # estimates without trends, in large batches
+        sel = rows[start:start + _CHUNK]
+        r = tracker.estimate_rows(rec.traces[sel], rec.nozzle[sel], stamp=float("nan"),
+                                  sample_rate_hz=rec.sample_rate_hz)
+        for k, v in r.columns.items():
+            cols.setdefault(k, np.empty(n, dtype=v.dtype))[start:start + sel.size] = v
+        reasons[start:start + sel.size] = r.reasons
+        if r.note:
+            notes.add(r.note)
+    method = "vp" if args.method == "vp" else "vp_cal"
+    if not cols:
+        cols = {k: np.empty(0) for k in ("nozzle", "fm", "fm_std", "d_mu", "viscosity", "fm_trend", "fm_rate",
+                                         "eta_deeply_dried_s")}
+    # trends: each frame's estimates in time order (stamp, then frame_id), as fe would have seen them
+    stamps = rec.stamp[rows]
+    frames = rec.frame_id[rows]
+    ok = (reasons == "") & np.isfinite(stamps)
+    if ok.any():
+        order = np.lexsort((frames[ok], stamps[ok]))
+        idx = np.flatnonzero(ok)[order]
+        keys = np.stack([stamps[idx], frames[idx].astype(float)], axis=1)
+        bounds = np.flatnonzero(np.any(keys[1:] != keys[:-1], axis=1)) + 1
+        for grp in np.split(idx, bounds):  # one trend update per frame
+            t, rate, eta = tracker.trends.update(float(stamps[grp[0]]), cols["nozzle"][grp], cols["fm"][grp],
+                                                 cols["fm_std"][grp])
+            cols["fm_trend"][grp], cols["fm_rate"][grp], cols["eta_deeply_dried_s"][grp] = t, rate, eta
+    with open(args.out, "w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f)
+        w.writerow(["row", "nozzle", "fm", "fm_std", "d_mu", "viscosity", "frame_id", "stamp", "fm_trend",
+                    "fm_rate", "eta_deeply_dried_s", "method", "reason"])
+        for i in range(n):  # formatting only
+            w.writerow([int(rows[i]), int(rec.nozzle[rows[i]]), _fmt(cols["fm"][i]), _fmt(cols["fm_std"][i]),
+                        _fmt(cols["d_mu"][i]), _fmt(cols["viscosity"][i]), int(frames[i]), _fmt(stamps[i]),
+                        _fmt(cols["fm_trend"][i]), _fmt(cols["fm_rate"][i]), _fmt(cols["eta_deeply_dried_s"][i]),
+                        method, reasons[i]])
+    bad = reasons != ""
+    why = ", ".join(f"{k} {int(np.sum(reasons == k))}" for k in sorted(set(reasons[bad].tolist())))
+    print(f"inkdiag estimate: {n - int(bad.sum())} of {n} rows estimated ({method}, head {profile.name!r})"
+          + (f"; not estimated: {why}" if bad.any() else "") + f" -> {args.out}")
+    for note in sorted(notes):
+        print(f"inkdiag estimate: note: {note}", file=sys.stderr)
+    return 0

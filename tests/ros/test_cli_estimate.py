@@ -1,0 +1,115 @@
+"""``inkdiag estimate`` end to end, as a user runs it: a subprocess on files."""
+
+import csv
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from inkdiag_core import HeadProfile, Recording, fm_to_viscosity, save_recording
+from inkdiag_core.estimation import calibrate_vp_cal
+
+COLUMNS = ["row", "nozzle", "fm", "fm_std", "d_mu", "viscosity", "frame_id", "stamp", "fm_trend", "fm_rate",
+           "eta_deeply_dried_s", "method", "reason"]
+
+
+def run_cli(*args, timeout=300):
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
+    return subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "estimate", *map(str, args)],
+                          capture_output=True, text=True, timeout=timeout, env=env)
+
+
+def read_csv(path):
+    with open(path, newline="") as f:
+        rows = list(csv.reader(f))
+    return rows[0], [dict(zip(rows[0], r)) for r in rows[1:]]
+
+
+@pytest.fixture(scope="module")
+def head(tmp_path_factory):
+    """A 20 MHz x 1024 head of other geometry, ink and drive, its profile file with its vp_cal constants
+    (a small fit, so the command does not fit them again), and a recording of it: 2 frames x 8 nozzles,
+    healthy and dried, with a non-finite row, a flat row and a clipped row."""
+    d = tmp_path_factory.mktemp("estimate")
+    p = HeadProfile.default().replace(
+        name="foreign20", sample_rate_hz=20e6, n_samples=1024,
+        channel={"rho": 1100.0, "mu": 6e-3, "r_n": 11e-6, "L_n": 45e-6, "V_ch": 8e-12, "c": 1300.0, "L_r": 250e-6},
+        drive={"amplitude_v": 25.0, "rise_s": 1e-6, "dwell_s": 2e-6, "fall_s": 1e-6})
+    p = p.replace(calibration={"vp_cal": calibrate_vp_cal(p, seeds=(11, 12), n_per_class=20)})
+    p.save(d / "head.yaml")
+    r = p.simulate({"healthy_nozzle": 4, "slightly_dried": 4, "intermediately_dried": 4, "deeply_dried": 4}, seed=9)
+    t = r.traces.copy()
+    t[1, 5] = np.inf
+    t[2] = 0.3
+    t[3, 100:120] = t[3].max()
+    labels = [getattr(c, "value", c) for c in r.labels]
+    save_recording(d / "rec.npz", Recording.from_arrays(
+        t, p.sample_rate_hz, nozzle=np.tile(np.arange(8), 2), frame_id=np.repeat([5, 6], 8),
+        stamp=np.repeat([1.0, 1.5], 8), label=labels))
+    return d, p, r
+
+
+def test_estimate_writes_the_columns_and_reports_bad_rows(head):
+    d, p, r = head
+    out = d / "fm.csv"
+    res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--out", out)
+    assert res.returncode == 0, res.stderr
+    assert "13 of 16 rows estimated" in res.stdout
+    header, rows = read_csv(out)
+    assert header == COLUMNS
+    assert [int(x["row"]) for x in rows] == list(range(16))
+    assert [x["reason"] for x in rows[:4]] == ["", "non_finite", "flat", "clipped"]
+    for x in rows[1:4]:
+        assert x["fm"] == x["fm_std"] == x["d_mu"] == x["viscosity"] == ""
+    good = [x for x in rows if not x["reason"]]
+    for x in good:
+        assert all(np.isfinite(float(x[k])) for k in ("fm", "fm_std", "d_mu", "viscosity", "fm_trend"))
+        assert x["method"] == "vp_cal"
+    # the second frame's nozzles have a rate (two updates), the first frame's not
+    assert all(x["fm_rate"] == "" for x in good if x["frame_id"] == "5")
+    assert all(x["fm_rate"] != "" for x in good if x["frame_id"] == "6" and rows[int(x["nozzle"])]["reason"] == "")
+    dried = [x for x in good if int(x["row"]) >= 4]
+    fm_true = r.fm[[int(x["row"]) for x in dried]]
+    d_mu_true = fm_to_viscosity(p.channel_params(), fm_true)[0]
+    d_mu = np.array([float(x["d_mu"]) for x in dried])
+    assert np.median(np.abs(d_mu - d_mu_true) / d_mu_true) <= 0.10
+    np.testing.assert_allclose([float(x["viscosity"]) - float(x["d_mu"]) for x in dried], p.channel["mu"],
+                               rtol=1e-9)
+
+
+def test_estimate_selects_rows(head):
+    d, p, r = head
+    out = d / "sel.csv"
+    res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--out", out, "--rows", "0:2,9", "--method", "vp")
+    assert res.returncode == 0, res.stderr
+    _, rows = read_csv(out)
+    assert [int(x["row"]) for x in rows] == [0, 1, 9] and {x["method"] for x in rows} == {"vp"}
+    res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--out", out, "--rows", "dried")
+    assert res.returncode == 0, res.stderr
+    assert [int(x["row"]) for x in read_csv(out)[1]] == list(range(4, 16))
+
+
+def test_estimate_bad_input_is_one_line_and_status_2(head, tmp_path):
+    d, p, r = head
+    out = tmp_path / "fm.csv"
+    # a recording of another sampling than the profile's
+    save_recording(tmp_path / "10mhz.npz", Recording.from_arrays(
+        HeadProfile.default().simulate({"deeply_dried": 2}, seed=1).traces, 10e6))
+    # a nominal profile
+    nominal = p.replace(channel={"r_r": None, "L_r": None, "B_act": None, "b": None},
+                        sensor={"gain_v_per_m3s": None}, calibration={"vp_cal": None})
+    nominal.save(tmp_path / "nominal.yaml")
+    cases = [
+        ((tmp_path / "10mhz.npz", "--profile", d / "head.yaml"), "is sampled at 1e+07 Hz; profile 'foreign20' is 2e+07 Hz"),
+        ((d / "rec.npz", "--profile", tmp_path / "nominal.yaml"), "run inkdiag calibrate first"),
+        ((tmp_path / "missing.npz", "--profile", d / "head.yaml"), "no such recording"),
+        ((d / "rec.npz", "--profile", tmp_path / "missing.yaml"), "no such head profile"),
+        ((d / "rec.npz", "--profile", d / "head.yaml", "--rows", "40"), "no such row"),
+    ]
+    for args, message in cases:
+        res = run_cli(*args, "--out", out)
+        assert res.returncode == 2, (args, res.stderr)
+        assert res.stderr.startswith("inkdiag estimate: error: ") and message in res.stderr, res.stderr
+        assert len(res.stderr.strip().splitlines()) == 1 and not out.exists()
