@@ -41,9 +41,9 @@ PARAMS = (
     ("max_batch_traces", 16384, "traces classified in one pass at most", int, (1, 2**24)),
     ("baseline_path", "", "the head's per-nozzle healthy baselines (.npz from record_baseline), classified by the "
      "model's baseline branch; empty: none", str, None),
-    ("max_abs_sample_v", 10.0, "largest sample magnitude a sensor can produce, V; a row with a sample "
-     "beyond it is invalid ('out_of_range'). Default: 5x the default head's +-2 V ADC range",
-     float, (1e-6, 1e30)),
+    ("max_abs_sample_v", 0.0, "largest sample magnitude a sensor can produce, V; a row with a sample "
+     "beyond it is invalid ('out_of_range'). 0: 5x the head profile's ADC range (10 V for the default head's "
+     "+-2 V)", float, (0.0, 1e30)),
     ("labelling_process", False, "label in a child process (a core of its own: no GIL shared with "
      "receiving and publishing) instead of a thread of this one", bool, None),
 )
@@ -53,7 +53,8 @@ def head_from_parameters(config):
     """The head profile of ``config['head_profile']`` (empty: the default head); fills in its sampling.
 
     ``config['sample_rate_hz']`` / ``config['n_samples']`` of 0 become the profile's; other
-    values must be the profile's.
+    values must be the profile's. ``config['max_abs_sample_v']`` of 0 becomes 5x the head's
+    ADC range.
 
     Raises
     ------
@@ -63,6 +64,8 @@ def head_from_parameters(config):
     """
     path = config["head_profile"]
     head = HeadProfile.load(path) if path else HeadProfile.default()
+    if not config["max_abs_sample_v"]:
+        config["max_abs_sample_v"] = 5.0 * head.adc_range_v
     for key, want in (("sample_rate_hz", head.sample_rate_hz), ("n_samples", head.n_samples)):
         if not config[key]:
             config[key] = type(config[key])(want)

@@ -40,10 +40,13 @@ def _fdi(ros, **params):
                            parameter_overrides=[P(k, value=v) for k, v in params.items()]))
 
 
-def test_fdi_labels_a_foreign_heads_frames_with_its_model_and_refuses_other_sampling(ros, head, head_model):
+@pytest.mark.parametrize("in_child", [False, True], ids=["thread", "labelling_process"])
+def test_fdi_labels_a_foreign_heads_frames_with_its_model_and_refuses_other_sampling(ros, head, head_model,
+                                                                                     in_child):
     h, path = head
-    fdi = _fdi(ros, model_path=str(head_model), head_profile=str(path))
+    fdi = _fdi(ros, model_path=str(head_model), head_profile=str(path), labelling_process=in_child)
     assert fdi.labeller is not None and (fdi.config["sample_rate_hz"], fdi.config["n_samples"]) == (20e6, 1024)
+    assert fdi.config["max_abs_sample_v"] == 5 * h.adc_range_v
     probe = ros.node("probe", namespace="/h")
     pub = probe.create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
     labels = collect(ros, probe, LABELS_MSG_TYPE, topics.LABELS, RELIABLE_QOS, decode_labels)
@@ -74,6 +77,7 @@ def test_fdi_refuses_a_model_of_another_head_at_start(ros, head, head_model, fdi
 def test_fdi_with_the_default_head_keeps_its_sampling(ros, fdi_model):
     fdi = _fdi(ros, model_path=str(fdi_model))
     assert fdi.labeller is not None and (fdi.config["sample_rate_hz"], fdi.config["n_samples"]) == (10e6, 512)
+    assert fdi.config["max_abs_sample_v"] == 10.0  # as before: 5x the default head's +-2 V
     with pytest.raises(ValueError, match="leave sample_rate_hz 0"):
         _fdi(ros, model_path=str(fdi_model), sample_rate_hz=20e6)
 
