@@ -269,7 +269,7 @@ class DryingTracker:
         x = t.traces
         ids = self._in_range(nozzles, first, x.shape[0])[: self.max_estimates]
         rows = np.array(x[ids - first])
-        valid, _ = screen_traces(rows)
+        valid, _ = screen_traces(rows, sample_rate_hz=t.sample_rate_hz)  # clipped run: a duration
         self.rows_invalid += int(ids.size - np.count_nonzero(valid))
         ids, rows = ids[valid], rows[valid]
         if ids.size == 0:
