@@ -318,7 +318,7 @@ def load_detector(path, *, check_versions: bool = True):
     detector, manifest = load_model(path, check_versions=check_versions, as_pipeline=False)
     if not isinstance(detector, FaultDetector):
         raise ModelFileError(f"model file {path} holds a {type(detector).__name__}, not a FaultDetector")
-    if model_head_sha256(manifest) != detector.head_sha256:
+    if detector.profile is not None and model_head_sha256(manifest) != detector.head_sha256:
         raise ModelFileError(f"model file {path}: its manifest's profile_sha256 is not the head of the detector "
                              "inside: refusing an inconsistent file")
     detector.file_sha256_ = manifest["sha256"]
@@ -328,11 +328,14 @@ def load_detector(path, *, check_versions: bool = True):
 def model_head_sha256(manifest: dict) -> str:
     """sha256 of the head a model file is for, from its manifest (:func:`read_manifest`).
 
-    ``config['profile_sha256']``; a file written before head profiles has none and
-    is a model of the default head (:meth:`inkdiag_core.HeadProfile.default`).
+    ``config['profile_sha256']`` of a model trained on a profile; a model of the
+    default head without one (``config['profile']`` null, or a file written before
+    head profiles) is the *current* default head's (:meth:`inkdiag_core.HeadProfile.default`),
+    as its detector says (:attr:`inkdiag_core.FaultDetector.head_sha256`).
     """
-    sha = manifest.get("config", {}).get("profile_sha256")
-    if sha is None:
+    cfg = manifest.get("config", {})
+    sha = cfg.get("profile_sha256")
+    if sha is None or cfg.get("profile") is None:
         from .head_profile import HeadProfile
 
         return HeadProfile.default().sha256

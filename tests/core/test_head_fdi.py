@@ -145,6 +145,12 @@ def test_a_default_head_file_says_so_and_old_files_load_as_the_default_head(tmp_
     cfg = read_manifest(tmp_path / "d.joblib")["config"]
     assert cfg["profile"] is None and cfg["profile_sha256"] == HeadProfile.default().sha256
     assert cfg["sample_rate_hz"] == 10e6
+    # a default-head model stays the default head's when the shipped default profile changes
+    mpath = tmp_path / "d.joblib.manifest.json"
+    m = json.loads(mpath.read_text())
+    m["config"]["profile_sha256"] = "0" * 64
+    mpath.write_text(json.dumps(m))
+    FrameLabeller(load_detector(tmp_path / "d.joblib"), profile=HeadProfile.default())
     # a file from before profiles: no profile keys in its manifest, no profile attribute inside
     old = tmp_path / "old.joblib"
     del det.profile
