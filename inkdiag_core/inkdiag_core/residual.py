@@ -75,6 +75,9 @@ def head_bands_hz(profile=None) -> tuple:
     The bands sit at the default head's fault modes; another head's modes move
     with its healthy mode, so its bands are the default's times
     :meth:`inkdiag_core.HeadProfile.frequency_scale` (exactly 1 for the default head).
+    A band at or above 0.45 x the head's sample rate (the empty-channel band of a
+    head sampled slowly for its modes) is left out: a resonator there would sit on
+    the Nyquist frequency; the filter keeps the other bands.
 
     Parameters
     ----------
@@ -83,13 +86,13 @@ def head_bands_hz(profile=None) -> tuple:
 
     Returns
     -------
-    tuple of 3 float
-        Band centre frequencies, Hz.
+    tuple of float
+        Band centre frequencies, Hz (3, or fewer when the sampling cannot hold one).
     """
     if profile is None:
         return MODIFIED_BANDS_HZ
     scale = profile.frequency_scale()
-    return tuple(float(f * scale) for f in MODIFIED_BANDS_HZ)
+    return tuple(float(f * scale) for f in MODIFIED_BANDS_HZ if f * scale < 0.45 * profile.sample_rate_hz)
 
 
 @dataclass(frozen=True)

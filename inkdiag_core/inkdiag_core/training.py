@@ -9,7 +9,8 @@ itself. Optionally the user's own labelled recordings join them.
 How real and simulated rows are combined
 ----------------------------------------
 With ``data`` (a labelled :class:`inkdiag_core.Recording` of the same head) the
-recorded rows are appended to the simulated ones and the detector's usual
+recorded rows that labelling would judge (:func:`inkdiag_core.screen_traces` at
+5x the head's ADC range: not non-finite, out of range, flat or clipped) are appended to the simulated ones and the detector's usual
 stratified split (:meth:`inkdiag_core.FaultDetector.fit`) sends a quarter of
 them, class by class, to validation: the threshold and the scores see real
 rows too. Each class's recorded rows are *replicated* (whole copies, then a
@@ -66,11 +67,15 @@ def _real_rows(data, profile, seed, validation_fraction, n_sim_per_class):
     if data.label is None:
         raise RecordingError(f"{data.source}: the recording has no 'label' array: training data needs each row's "
                              "class")
+    from .screening import screen_traces
+
     profile.check_traces(data.traces, data.sample_rate_hz, what=data.source)
-    finite = np.isfinite(data.traces).all(axis=1)
-    if not finite.any():
-        raise RecordingError(f"{data.source}: no row is finite")
-    X, y = data.traces[finite], np.asarray(data.label[finite]).astype(str)
+    # the rows labelling would judge (not invalid: non-finite, beyond 5x the ADC range, flat, clipped)
+    usable, _ = screen_traces(data.traces, max_abs_v=5.0 * profile.adc_range_v, sample_rate_hz=profile.sample_rate_hz)
+    if not usable.any():
+        raise RecordingError(f"{data.source}: no row is usable (every row is non-finite, out of range, flat or "
+                             "clipped)")
+    X, y = data.traces[usable], np.asarray(data.label[usable]).astype(str)
     rng = np.random.default_rng([int(seed), 14])
     fit_x, fit_y, val_x, val_y = [], [], [], []
     for cls in np.unique(y):
@@ -84,7 +89,7 @@ def _real_rows(data, profile, seed, validation_fraction, n_sim_per_class):
         val_x.append(X[val])
         val_y.append(y[val])
     return (np.concatenate(fit_x), np.concatenate(fit_y), np.concatenate(val_x), np.concatenate(val_y),
-            int(finite.sum()), int((~finite).sum()))
+            int(usable.sum()), int((~usable).sum()))
 
 
 def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseline: bool = False,
@@ -181,7 +186,7 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
     else:
         Xr_fit, yr_fit, Xr_val, yr_val, n_real, n_dropped = _real_rows(
             data, profile, seed, float(validation_fraction), int(n_per_class))
-        info.update(training_data="simulated+recorded", n_real_rows=n_real, n_real_rows_non_finite=n_dropped,
+        info.update(training_data="simulated+recorded", n_real_rows=n_real, n_real_rows_invalid=n_dropped,
                     real_rows_weighting="per class: recorded training rows replicated up to the simulated count; "
                     "a quarter of each recorded class held out for validation, once")
         from sklearn.model_selection import train_test_split

@@ -57,6 +57,13 @@ def test_bands_scale_with_the_heads_healthy_mode(head):
     np.testing.assert_allclose(head_bands_hz(head), np.array(MODIFIED_BANDS_HZ) * scale)
     np.testing.assert_allclose(head_band_edges_hz(head), np.array(BAND_EDGES_HZ) * scale)
     assert head_bands_hz(HeadProfile.default()) == MODIFIED_BANDS_HZ  # scale exactly 1
+    # a head whose empty-channel band the sampling cannot hold: that band is left out, the filter works
+    fast = HeadProfile.default().replace(name="fast5", sample_rate_hz=5e6, n_samples=256,
+                                         channel={"r_n": 10e-6, "L_n": 30e-6, "V_ch": 2e-12})
+    bands = head_bands_hz(fast)
+    assert fast.frequency_scale() > 1.06 and len(bands) == 2 and max(bands) < 0.45 * 5e6
+    sim = fast.simulate({c: 2 for c in FaultClass}, seed=0)
+    ResidualFilter("modified", sample_rate_hz=5e6, params=fast.channel_params(), bands_hz=bands).fit(sim.traces)
     assert head_band_edges_hz(HeadProfile.default()) == BAND_EDGES_HZ
 
 
@@ -215,10 +222,14 @@ def test_the_default_head_trains_the_default_model():
 
 
 def test_training_with_recorded_rows_weighs_each_recorded_class_as_its_simulated_one(head):
-    rec_sim = head.simulate({FaultClass.HEALTHY_NOZZLE: 8, FaultClass.FULLY_BLOCKED: 4}, seed=30)
-    data = Recording.from_arrays(rec_sim.traces, head.sample_rate_hz, label=rec_sim.label_values())
+    rec_sim = head.simulate({FaultClass.HEALTHY_NOZZLE: 9, FaultClass.FULLY_BLOCKED: 5}, seed=30)
+    x = rec_sim.traces.copy()
+    x[0, 4] = np.nan  # rows labelling would call invalid are not trained on
+    x[-1, :] = 0.1
+    data = Recording.from_arrays(x, head.sample_rate_hz, label=rec_sim.label_values())
     det, info, td = train_detector(head, n_per_class=16, seed=3, data=data, return_data=True)
-    assert info["n_real_rows"] == 12 and info["training_data"] == "simulated+recorded"
+    assert info["n_real_rows"] == 12 and info["n_real_rows_invalid"] == 2
+    assert info["training_data"] == "simulated+recorded" and np.isfinite(td.traces).all()
     real = td.labels[td.real]
     # fitted part: replicated up to 12 rows (16 * 0.75) per class; validation part: 2 and 1 rows once
     assert (real == "healthy_nozzle").sum() == 12 + 2 and (real == "fully_blocked").sum() == 12 + 1
