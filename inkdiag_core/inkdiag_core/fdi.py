@@ -236,7 +236,7 @@ def _features(features: str, fs: float, profile=None):
     raise ValueError(f"features must be one of {FEATURE_SETS}, got {features!r}")
 
 
-def make_fdi_pipeline(kind: str = "rf", features: str = "kpi_y", *, sample_rate_hz: float = 10e6,
+def make_fdi_pipeline(kind: str = "rf", features: str = "kpi_y", *, sample_rate_hz: float | None = None,
                       random_state: int | None = 0, n_estimators: int = 100,
                       min_samples_leaf: int = 1, n_neighbors: int = 5,
                       n_jobs: int | None = None, profile=None) -> Pipeline:
@@ -249,8 +249,10 @@ def make_fdi_pipeline(kind: str = "rf", features: str = "kpi_y", *, sample_rate_
         neighbours (standardised features).
     features : str
         One of :data:`FEATURE_SETS`.
-    sample_rate_hz : float
-        Sample rate of the traces the pipeline will see, Hz.
+    sample_rate_hz : float or None
+        Sample rate of the traces the pipeline will see, Hz. None: the profile's
+        (10 MHz, the default head's, without a profile); with a profile it must be
+        the profile's.
     random_state : int or None
         Seed of the Random Forest.
     n_estimators, min_samples_leaf, n_neighbors : int
@@ -261,8 +263,7 @@ def make_fdi_pipeline(kind: str = "rf", features: str = "kpi_y", *, sample_rate_
         The head the traces come from: the residual filters use its healthy model
         (:meth:`~inkdiag_core.HeadProfile.channel_params`) and its bands
         (:func:`inkdiag_core.residual.head_bands_hz`), the band energies its edges
-        (:func:`head_band_edges_hz`). None: the default head. ``sample_rate_hz`` is
-        still the one given (:class:`inkdiag_core.FaultDetector` passes the profile's).
+        (:func:`head_band_edges_hz`). None: the default head.
 
     Returns
     -------
@@ -271,6 +272,11 @@ def make_fdi_pipeline(kind: str = "rf", features: str = "kpi_y", *, sample_rate_
     """
     if kind not in ("rf", "knn"):
         raise ValueError(f"kind must be 'rf' or 'knn', got {kind!r}")
+    if sample_rate_hz is None:
+        sample_rate_hz = 10e6 if profile is None else profile.sample_rate_hz
+    elif profile is not None and float(sample_rate_hz) != profile.sample_rate_hz:
+        raise ValueError(f"sample_rate_hz={sample_rate_hz!r} Hz but profile {profile.name!r} is sampled at "
+                         f"{profile.sample_rate_hz:g} Hz")
     feats = _features(features, float(sample_rate_hz), profile)
     if kind == "rf":
         clf = RandomForestClassifier(n_estimators=n_estimators, min_samples_leaf=min_samples_leaf,

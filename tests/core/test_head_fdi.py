@@ -68,11 +68,13 @@ def test_bands_scale_with_the_heads_healthy_mode(head):
 
 
 def test_a_pipeline_on_a_profile_uses_the_heads_model_and_bands(head):
-    pipe = make_fdi_pipeline("rf", "rich", sample_rate_hz=head.sample_rate_hz, profile=head)
+    pipe = make_fdi_pipeline("rf", "rich", profile=head)  # at the profile's sample rate
+    with pytest.raises(ValueError, match="sampled at"):
+        make_fdi_pipeline("rf", "rich", sample_rate_hz=10e6, profile=head)
     union = pipe.named_steps["features"]
     raw = dict(union.transformer_list)["raw"]
     res = dict(union.transformer_list)["kpi_r_modified"].named_steps["residual"]
-    assert raw.band_edges_hz == head_band_edges_hz(head)
+    assert raw.band_edges_hz == head_band_edges_hz(head) and raw.sample_rate_hz == 20e6
     assert res.params == head.channel_params() and res.bands_hz == head_bands_hz(head)
     sim = head.simulate({c: 3 for c in FaultClass}, seed=0)
     f = ResidualFilter("modified", sample_rate_hz=head.sample_rate_hz, params=head.channel_params(),
