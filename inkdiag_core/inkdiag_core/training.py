@@ -8,21 +8,26 @@ itself. Optionally the user's own labelled recordings join them.
 
 How real and simulated rows are combined
 ----------------------------------------
-With ``data`` (a labelled :class:`inkdiag_core.Recording` of the same head) the
-recorded rows that labelling would judge (:func:`inkdiag_core.screen_traces` at
-5x the head's ADC range: not non-finite, out of range, flat or clipped) are appended to the simulated ones and the detector's usual
-stratified split (:meth:`inkdiag_core.FaultDetector.fit`) sends a quarter of
-them, class by class, to validation: the threshold and the scores see real
-rows too. Each class's recorded rows are *replicated* (whole copies, then a
-seeded sample of the remainder) up to as many rows as that class has
-simulated, so a class's real rows weigh as much in the forest as its
-simulated ones however few were recorded: real and simulated data count half
-and half per recorded class (a forest has no ``sample_weight`` through the
-detector's pipelines, and replication is what a weight of ``n_sim / n_real``
-would do). A copy of a row lands on one side of the split only if the split is
-done before replicating, so the split is done first: recorded rows are split
-75/25 per class (seeded), only the training part is replicated, the validation
-part enters once. Recorded classes with a single row go to training.
+With ``data`` (a labelled :class:`inkdiag_core.Recording` of the same head):
+
+1. only the recorded rows labelling would judge are used
+   (:func:`inkdiag_core.screen_traces` at 5x the head's ADC range: rows that are
+   non-finite, out of range, flat or clipped are left out and counted);
+2. each recorded class is split first, ``validation_fraction`` (a quarter) held
+   out, seeded (a class of one row goes to fitting); the simulated rows get the
+   detector's usual stratified split;
+3. the held-out recorded rows join the validation rows once: the fault-detection
+   threshold and the scores see real rows too;
+4. the fitting part of each recorded class is *replicated* (whole copies, then
+   a seeded sample of the remainder) up to the number of simulated fitting rows
+   of that class (``0.75 x n_per_class``), so a class's recorded rows weigh as
+   much in the forest as its simulated ones however few were recorded: for a
+   recorded class, real and simulated rows count half and half. Replication is
+   what a ``sample_weight`` of ``n_sim / n_real`` would do; the detector's
+   pipelines take none. Copies never cross the split (it is done before). A
+   class recorded with more rows than that keeps them all, once.
+
+Classes the recording does not have are simulated only.
 """
 
 from __future__ import annotations
@@ -63,12 +68,11 @@ def _check_profile(profile):
 def _real_rows(data, profile, seed, validation_fraction, n_sim_per_class):
     """Recorded rows split per class, the training part replicated: (X_fit, y_fit, X_val, y_val)."""
     from .recording import RecordingError
+    from .screening import screen_traces
 
     if data.label is None:
         raise RecordingError(f"{data.source}: the recording has no 'label' array: training data needs each row's "
                              "class")
-    from .screening import screen_traces
-
     profile.check_traces(data.traces, data.sample_rate_hz, what=data.source)
     # the rows labelling would judge (not invalid: non-finite, beyond 5x the ADC range, flat, clipped)
     usable, _ = screen_traces(data.traces, max_abs_v=5.0 * profile.adc_range_v, sample_rate_hz=profile.sample_rate_hz)
