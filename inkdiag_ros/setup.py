@@ -20,7 +20,8 @@ setup(
     # PyPI wheels of requirements/ros.txt), never from install_requires.
     # threadpoolctl: every node process limits its BLAS threads (inkdiag_ros.blas);
     # threadpool_limits(limits=, user_api="blas") as used there is in 3.x.
-    install_requires=["numpy>=1.26", "threadpoolctl>=3.1"],
+    # tqdm: `inkdiag train`'s progress bar on stderr (a plain one without it).
+    install_requires=["numpy>=1.26", "threadpoolctl>=3.1", "tqdm>=4.66"],
     zip_safe=True,
     maintainer="inkdiag developers",
     maintainer_email="inkdiag@example.com",

@@ -109,6 +109,10 @@ from .detector import DetectorLabels, FaultDetector  # noqa: E402
 
 __all__ += ["DetectorLabels", "FaultDetector"]
 
+from .training import train_detector  # noqa: E402
+
+__all__ += ["train_detector"]
+
 from .frame_labeller import FrameFailure, FrameInputError, FrameLabeller, LabellerConfigError, load_labeller  # noqa: E402
 
 __all__ += ["FrameFailure", "FrameInputError", "FrameLabeller", "LabellerConfigError", "load_labeller"]

@@ -46,6 +46,8 @@ from .kpis import MIN_KPI_SAMPLES
 
 __all__ = ["DetectorLabels", "FaultDetector"]
 
+#: Sample rate of a detector with neither ``sample_rate_hz`` nor a profile: the default head's, Hz.
+DEFAULT_SAMPLE_RATE_HZ = 10e6
 #: Feature set of the baseline branch (its rows are ``with_baseline(traces, baseline_kpis)``).
 BASELINE_FEATURES = "kpi_y+baseline"
 _DTYPES = [np.float64, np.float32]
@@ -89,8 +91,17 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         Feature set of the plain branch: one of :data:`inkdiag_core.FEATURE_SETS`
         except ``"kpi_y+baseline"`` (baselines are given to ``fit`` and ``label``
         as ``baseline_kpis`` instead; the baseline branch always uses that set).
-    sample_rate_hz : float
-        Sample rate of the traces, Hz.
+    sample_rate_hz : float or None
+        Sample rate of the traces, Hz. None (default): the profile's (10 MHz, the
+        default head's, without one). A number with a profile must be the
+        profile's (kept for callers from before profiles).
+    profile : HeadProfile or None
+        The head the traces come from (a complete :class:`inkdiag_core.HeadProfile`):
+        its sample rate, its healthy model in the residual filters and its frequency
+        scale on the feature bands (:func:`inkdiag_core.fdi.make_fdi_pipeline`).
+        None: the default head, exactly as before profiles. The model file records
+        the profile and its sha256 (:func:`inkdiag_core.save_detector`), so a
+        labeller of another head refuses it.
     n_estimators, min_samples_leaf : int
         Random Forest size (``kind="rf"``).
     n_neighbors : int
@@ -133,12 +144,13 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         sha256 of the file; never pickled, cleared by ``fit``.
     """
 
-    def __init__(self, *, kind="rf", features="kpi_y", sample_rate_hz=10e6, n_estimators=50,
+    def __init__(self, *, kind="rf", features="kpi_y", sample_rate_hz=None, profile=None, n_estimators=50,
                  min_samples_leaf=3, n_neighbors=5, fnr_target=0.005, validation_fraction=0.25,
                  random_state=0, n_jobs=None):
         self.kind = kind
         self.features = features
         self.sample_rate_hz = sample_rate_hz
+        self.profile = profile
         self.n_estimators = n_estimators
         self.min_samples_leaf = min_samples_leaf
         self.n_neighbors = n_neighbors
@@ -147,13 +159,44 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         self.random_state = random_state
         self.n_jobs = n_jobs
 
+    # -- the head ---------------------------------------------------------------------------
+
+    @property
+    def sample_rate_hz_(self) -> float:
+        """The sample rate the detector works at, Hz: ``sample_rate_hz``, else the profile's, else 10 MHz."""
+        if self.sample_rate_hz is not None:
+            return float(self.sample_rate_hz)
+        if self.profile is not None:
+            return float(self.profile.sample_rate_hz)
+        return DEFAULT_SAMPLE_RATE_HZ
+
+    @property
+    def head_sha256(self) -> str:
+        """sha256 of the head this detector is for (:attr:`inkdiag_core.HeadProfile.sha256`).
+
+        The profile's; without a profile (and in files from before profiles) the
+        default head's.
+        """
+        from .head_profile import HeadProfile
+
+        return (self.profile if self.profile is not None else HeadProfile.default()).sha256
+
+    @property
+    def head_name(self) -> str:
+        """Name of the head's profile (``"default"`` without one)."""
+        return self.profile.name if self.profile is not None else "default"
+
+    def __setstate__(self, state):  # files pickled before profiles: the default head
+        state.setdefault("profile", None)
+        super().__setstate__(state)
+
     # -- fitting ---------------------------------------------------------------------------
 
     def _make_pipeline(self, features):
-        return make_fdi_pipeline(self.kind, features, sample_rate_hz=self.sample_rate_hz,
+        return make_fdi_pipeline(self.kind, features, sample_rate_hz=self.sample_rate_hz_,
                                  random_state=self.random_state, n_estimators=self.n_estimators,
                                  min_samples_leaf=self.min_samples_leaf, n_neighbors=self.n_neighbors,
-                                 n_jobs=self.n_jobs)
+                                 n_jobs=self.n_jobs, profile=self.profile)
 
     def _check_params(self):
         if self.features not in FEATURE_SETS or self.features == BASELINE_FEATURES:
@@ -161,6 +204,17 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
                              f"(give baselines to fit/label as baseline_kpis), got {self.features!r}")
         if self.kind not in ("rf", "knn"):
             raise ValueError(f"kind must be 'rf' or 'knn', got {self.kind!r}")
+        if self.profile is not None:
+            from .head_profile import HeadProfile
+
+            if not isinstance(self.profile, HeadProfile):
+                raise ValueError(f"profile must be a HeadProfile or None, got {type(self.profile).__name__}")
+            if not self.profile.is_complete:
+                raise ValueError(f"profile {self.profile.name!r} is nominal ({', '.join(self.profile.missing)} "
+                                 "missing): a detector needs a complete profile (run `inkdiag calibrate` first)")
+            if self.sample_rate_hz is not None and float(self.sample_rate_hz) != self.profile.sample_rate_hz:
+                raise ValueError(f"sample_rate_hz={self.sample_rate_hz!r} Hz but profile {self.profile.name!r} is "
+                                 f"sampled at {self.profile.sample_rate_hz:g} Hz (leave sample_rate_hz None)")
         for name, lo_open, hi_open, lo, hi in (("fnr_target", False, True, 0.0, 1.0),
                                                ("validation_fraction", True, True, 0.0, 1.0)):
             v = getattr(self, name)
@@ -179,7 +233,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
                 "lower fnr_target or train on more rows")
         return threshold, scores
 
-    def fit(self, X, y, *, baseline_kpis=None):
+    def fit(self, X, y, *, baseline_kpis=None, validation_mask=None):
         """Fit the plain branch (and the baseline branch with ``baseline_kpis``) and their thresholds.
 
         Parameters
@@ -193,6 +247,10 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
             for simulated training data :func:`inkdiag_core.baselines.baseline_training_kpis`),
             all finite. Fits the baseline branch on ``with_baseline(X, baseline_kpis)``
             with the same split.
+        validation_mask : array_like of bool, shape (n,), optional
+            The rows held out for the threshold and the scores (True), instead of
+            the stratified split of ``validation_fraction`` (:func:`inkdiag_core.training.train_detector`
+            uses it to keep every copy of a replicated recorded row on one side).
 
         Returns
         -------
@@ -201,6 +259,9 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         self.__dict__.pop("file_sha256_", None)
         self._check_params()
         X, y = validate_data(self, X, y, dtype=_DTYPES, ensure_min_features=MIN_KPI_SAMPLES)
+        if self.profile is not None and X.shape[1] != self.profile.n_samples:
+            raise ValueError(f"X has traces of {X.shape[1]} samples; profile {self.profile.name!r} has "
+                             f"{self.profile.n_samples}")
         check_classification_targets(y)
         base = None
         if baseline_kpis is not None:
@@ -211,9 +272,16 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
             if not np.isfinite(base).all():
                 raise ValueError(f"baseline_kpis must be finite to fit on; {int((~np.isfinite(base).all(1)).sum())} "
                                  "rows are not")
-        # The same split as train_test_split(X, y, ...) gives: it depends on y and n only.
-        train, val = train_test_split(np.arange(X.shape[0]), test_size=self.validation_fraction,
-                                      random_state=self.random_state, stratify=y)
+        if validation_mask is None:
+            # The same split as train_test_split(X, y, ...) gives: it depends on y and n only.
+            train, val = train_test_split(np.arange(X.shape[0]), test_size=self.validation_fraction,
+                                          random_state=self.random_state, stratify=y)
+        else:
+            m = np.asarray(validation_mask)
+            if m.shape != (X.shape[0],) or m.dtype != bool or m.all() or not m.any():
+                raise ValueError(f"validation_mask must be a boolean array of shape ({X.shape[0]},) with rows on "
+                                 "both sides")
+            train, val = np.flatnonzero(~m), np.flatnonzero(m)
         self.pipeline_ = self._make_pipeline(self.features).fit(X[train], y[train])
         self.classes_ = self.pipeline_.classes_
         self.fd_threshold_, self.scores_ = self._fitted_threshold(self.pipeline_, X[val], y[val], "plain")

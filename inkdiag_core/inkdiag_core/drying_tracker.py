@@ -45,15 +45,8 @@ from .model import InkChannelModel
 from .screening import screen_traces
 from .trend import FmTrendBank, deeply_dried_fm
 
-__all__ = ["ESTIMATE_COLUMNS", "CLIP_RUN_S", "DryingTracker", "RangeEstimates", "RowEstimates", "clip_run_samples"]
+__all__ = ["ESTIMATE_COLUMNS", "DryingTracker", "RangeEstimates", "RowEstimates"]
 
-CLIP_RUN_S = 0.5e-6
-"""Screening's clipped-run length in seconds (5 samples at the default head's 10 MHz)."""
-
-
-def clip_run_samples(sample_rate_hz: float) -> int:
-    """:data:`CLIP_RUN_S` in samples at ``sample_rate_hz`` (at least 3): 5 at 10 MHz."""
-    return max(3, int(round(CLIP_RUN_S * float(sample_rate_hz))))
 
 #: Columns of :attr:`RangeEstimates.columns`, in this order (the fields of ``fm_estimates``).
 ESTIMATE_COLUMNS = ("nozzle", "fm", "fm_std", "d_mu", "viscosity", "fm_trend", "fm_rate",
@@ -346,7 +339,7 @@ class DryingTracker:
 
         The step the tracker runs for every joined (frame, range) pair, on its own:
         rows that screening rejects (:func:`~inkdiag_core.screen_traces`, its
-        clipped-run length :data:`CLIP_RUN_S` at this sample rate) or whose estimate
+        clipped run a duration at this sample rate) or whose estimate
         comes out non-finite are not estimated and never cost the other rows.
 
         Parameters
@@ -372,7 +365,7 @@ class DryingTracker:
             raise ValueError(f"traces must be (n, n_samples) with one nozzle id per row, got shape "
                              f"{rows.shape} and {ids.size} ids")
         n = ids.size
-        valid, reasons = screen_traces(rows, clip_run=clip_run_samples(sample_rate_hz))
+        valid, reasons = screen_traces(rows, sample_rate_hz=sample_rate_hz)
         cols = {k: np.full(n, np.nan) for k in ESTIMATE_COLUMNS}
         cols["nozzle"] = ids.copy()
         self.rows_invalid += int(n - np.count_nonzero(valid))

@@ -41,7 +41,7 @@ from sklearn.utils.validation import check_is_fitted, validate_data
 
 from .faults import HEALTHY_VALUES, healthy_mask  # noqa: F401  (HEALTHY_VALUES: kept as fdi.HEALTHY_VALUES)
 from .kpis import KPI_NAMES, MIN_KPI_SAMPLES, KpiExtractor, extract_kpis, reconstruct
-from .residual import ResidualFilter
+from .residual import ResidualFilter, head_bands_hz
 
 __all__ = [
     "FEATURE_SETS",
@@ -59,6 +59,7 @@ __all__ = [
     "RawTraceFeatures",
     "SecondModeKpis",
     "fd_labels",
+    "head_band_edges_hz",
     "make_fdi_pipeline",
 ]
 
@@ -67,6 +68,30 @@ FEATURE_SETS = ("kpi_y", "kpi_r", "kpi_r_modified", "kpi_y+r_modified", "rich", 
 #: Band edges of :class:`BandEnergies`, Hz: around the classes' modes (Table 3).
 BAND_EDGES_HZ = (50e3, 150e3, 180e3, 195e3, 207e3, 219e3, 231e3, 245e3, 280e3, 320e3,
                  345e3, 400e3, 800e3, 1200e3, 1700e3, 2000e3, 2300e3, 5000e3)
+
+
+def head_band_edges_hz(profile=None) -> tuple:
+    """:data:`BAND_EDGES_HZ` for a head, Hz: the default head's edges times its frequency scale.
+
+    The edges bracket the default head's fault modes (Table 3); another head's
+    modes move with its healthy mode (:meth:`inkdiag_core.HeadProfile.frequency_scale`,
+    exactly 1 for the default head). Edges beyond the Nyquist frequency leave
+    empty bands (a constant feature), not an error.
+
+    Parameters
+    ----------
+    profile : HeadProfile or None
+        A complete head profile; None: the default head.
+
+    Returns
+    -------
+    tuple of float
+        Increasing band edges, Hz.
+    """
+    if profile is None:
+        return BAND_EDGES_HZ
+    scale = profile.frequency_scale()
+    return tuple(float(e * scale) for e in BAND_EDGES_HZ)
 
 
 def fd_labels(labels) -> np.ndarray:
@@ -181,11 +206,14 @@ class BandEnergies(TransformerMixin, BaseEstimator):
         return np.array([f"band_{a:.0f}_{b:.0f}khz" for a, b in zip(e[:-1], e[1:])], dtype=object)
 
 
-def _features(features: str, fs: float):
+def _features(features: str, fs: float, profile=None):
     kpi_y = ("kpi_y", KpiExtractor(sample_rate_hz=fs))
+    # The default head (profile None) keeps the filters' own defaults: the same pipeline as always.
+    head = {} if profile is None else {"params": profile.channel_params(), "bands_hz": head_bands_hz(profile)}
+    raw = {} if profile is None else {"band_edges_hz": head_band_edges_hz(profile)}
 
     def residual(kind, name):
-        return (name, Pipeline([("residual", ResidualFilter(kind=kind, sample_rate_hz=fs)),
+        return (name, Pipeline([("residual", ResidualFilter(kind=kind, sample_rate_hz=fs, **head)),
                                 ("kpis", KpiExtractor(sample_rate_hz=fs))]))
 
     if features == "kpi_y":
@@ -198,7 +226,7 @@ def _features(features: str, fs: float):
         return FeatureUnion([kpi_y, residual("modified", "kpi_r_modified")])
     if features == "rich":
         return FeatureUnion([
-            ("raw", RawTraceFeatures(sample_rate_hz=fs)),
+            ("raw", RawTraceFeatures(sample_rate_hz=fs, **raw)),
             residual("modified", "kpi_r_modified"),
         ])
     if features == "kpi_y+baseline":
@@ -208,10 +236,10 @@ def _features(features: str, fs: float):
     raise ValueError(f"features must be one of {FEATURE_SETS}, got {features!r}")
 
 
-def make_fdi_pipeline(kind: str = "rf", features: str = "kpi_y", *, sample_rate_hz: float = 10e6,
+def make_fdi_pipeline(kind: str = "rf", features: str = "kpi_y", *, sample_rate_hz: float | None = None,
                       random_state: int | None = 0, n_estimators: int = 100,
                       min_samples_leaf: int = 1, n_neighbors: int = 5,
-                      n_jobs: int | None = None) -> Pipeline:
+                      n_jobs: int | None = None, profile=None) -> Pipeline:
     """Build an unfitted FDI pipeline: features -> (scaling) -> classifier.
 
     Parameters
@@ -221,14 +249,21 @@ def make_fdi_pipeline(kind: str = "rf", features: str = "kpi_y", *, sample_rate_
         neighbours (standardised features).
     features : str
         One of :data:`FEATURE_SETS`.
-    sample_rate_hz : float
-        Sample rate of the traces the pipeline will see, Hz.
+    sample_rate_hz : float or None
+        Sample rate of the traces the pipeline will see, Hz. None: the profile's
+        (10 MHz, the default head's, without a profile); with a profile it must be
+        the profile's.
     random_state : int or None
         Seed of the Random Forest.
     n_estimators, min_samples_leaf, n_neighbors : int
         Classifier sizes (the thesis does not state them; scikit-learn's defaults).
     n_jobs : int or None
         Parallel trees for the Random Forest.
+    profile : HeadProfile or None
+        The head the traces come from: the residual filters use its healthy model
+        (:meth:`~inkdiag_core.HeadProfile.channel_params`) and its bands
+        (:func:`inkdiag_core.residual.head_bands_hz`), the band energies its edges
+        (:func:`head_band_edges_hz`). None: the default head.
 
     Returns
     -------
@@ -237,7 +272,12 @@ def make_fdi_pipeline(kind: str = "rf", features: str = "kpi_y", *, sample_rate_
     """
     if kind not in ("rf", "knn"):
         raise ValueError(f"kind must be 'rf' or 'knn', got {kind!r}")
-    feats = _features(features, float(sample_rate_hz))
+    if sample_rate_hz is None:
+        sample_rate_hz = 10e6 if profile is None else profile.sample_rate_hz
+    elif profile is not None and float(sample_rate_hz) != profile.sample_rate_hz:
+        raise ValueError(f"sample_rate_hz={sample_rate_hz!r} Hz but profile {profile.name!r} is sampled at "
+                         f"{profile.sample_rate_hz:g} Hz")
+    feats = _features(features, float(sample_rate_hz), profile)
     if kind == "rf":
         clf = RandomForestClassifier(n_estimators=n_estimators, min_samples_leaf=min_samples_leaf,
                                      random_state=random_state, n_jobs=n_jobs)

@@ -74,21 +74,35 @@ class FrameLabeller:
     max_abs_v : float, optional
         Largest sample magnitude a sensor can produce, V: rows beyond it are
         invalid, ``"out_of_range"``. None: no such check.
+    profile : HeadProfile, optional
+        The head the frames come from: the detector must have been built for it
+        (the same :attr:`inkdiag_core.HeadProfile.sha256`; a detector without a
+        profile is the default head's), and ``sample_rate_hz`` / ``n_samples``
+        default to its sampling. None: no head check.
 
     Raises
     ------
     LabellerConfigError
-        Not a fitted FaultDetector; its sample rate or trace length differ from
+        Not a fitted FaultDetector; a detector built for another head than
+        ``profile``; its sample rate or trace length differ from
         ``sample_rate_hz`` / ``n_samples``; the baselines' differ; or baselines with
         nozzles were given to a detector without a baseline branch.
     """
 
     def __init__(self, detector, baselines: NozzleBaselines | None = None, *, sample_rate_hz: float | None = None,
-                 n_samples: int | None = None, max_abs_v: float | None = None):
+                 n_samples: int | None = None, max_abs_v: float | None = None, profile=None):
         if not isinstance(detector, FaultDetector) or not hasattr(detector, "pipeline_"):
             raise LabellerConfigError(f"a fitted FaultDetector is needed, got {type(detector).__name__}; "
                                       "retrain the model: python -m inkdiag_core.model_cache")
-        want_fs = float(detector.sample_rate_hz)
+        if profile is not None:
+            if detector.head_sha256 != profile.sha256:
+                raise LabellerConfigError(
+                    f"the model is for head {detector.head_name!r} (profile sha256 {detector.head_sha256[:12]}), "
+                    f"this is head {profile.name!r} (profile sha256 {profile.sha256[:12]}): a model of another head; "
+                    "train one on this head's profile (inkdiag train --profile)")
+            sample_rate_hz = profile.sample_rate_hz if sample_rate_hz is None else sample_rate_hz
+            n_samples = profile.n_samples if n_samples is None else n_samples
+        want_fs = float(detector.sample_rate_hz_)
         want_n = int(detector.n_features_in_)
         if sample_rate_hz is not None and float(sample_rate_hz) != want_fs:
             raise LabellerConfigError(f"the model is for {want_fs:g} Hz, the frames are {float(sample_rate_hz):g} Hz")
@@ -105,6 +119,8 @@ class FrameLabeller:
         self.detector = detector
         self.baselines = baselines if baselines is not None and len(baselines) else None
         self.n_samples = want_n
+        self.sample_rate_hz = want_fs
+        self.profile = profile
         self.max_abs_v = None if max_abs_v is None else float(max_abs_v)
 
     @property
@@ -117,7 +133,7 @@ class FrameLabeller:
         """Rows of nozzles with a recorded baseline are classified against it."""
         return self.baselines is not None
 
-    def label(self, frames, first_nozzles) -> list:
+    def label(self, frames, first_nozzles, *, nozzles=None) -> list:
         """Label a batch of frames: one screening and one detector call, each frame isolated.
 
         Parameters
@@ -127,6 +143,9 @@ class FrameLabeller:
         first_nozzles : sequence of int
             Each frame's first nozzle id (row ``j`` of frame ``i`` is nozzle
             ``first_nozzles[i] + j``).
+        nozzles : sequence of array_like of int, each of shape (n_i,), optional
+            Each frame's nozzle id per row, instead of consecutive ids from
+            ``first_nozzles`` (a recording's rows; they select the baselines).
 
         Returns
         -------
@@ -138,19 +157,28 @@ class FrameLabeller:
         """
         if len(frames) != len(first_nozzles):
             raise ValueError(f"{len(frames)} frames but {len(first_nozzles)} first nozzle ids")
+        if nozzles is not None and len(nozzles) != len(frames):
+            raise ValueError(f"{len(frames)} frames but {len(nozzles)} nozzle id arrays")
         out: list = [None] * len(frames)
         good, arrays = [], []
+        head = f" (head {self.profile.name!r})" if self.profile is not None else ""
         for i, f in enumerate(frames):
             a = np.asarray(f)
             if a.ndim != 2 or a.shape[1] != self.n_samples:
                 out[i] = FrameFailure(i, FrameInputError(
-                    f"frame {i} has shape {a.shape}, the model takes (n, {self.n_samples})"))
+                    f"frame {i} has shape {a.shape}, the model{head} takes (n, {self.n_samples})"))
+            elif nozzles is not None and np.shape(nozzles[i]) != (a.shape[0],):
+                out[i] = FrameFailure(i, FrameInputError(
+                    f"frame {i} has {a.shape[0]} rows but {np.shape(nozzles[i])} nozzle ids"))
             else:
                 good.append(i)
                 arrays.append(a)
         if not good:
             return out
-        firsts = [int(first_nozzles[i]) for i in good]
+        if nozzles is None:
+            firsts = [int(first_nozzles[i]) for i in good]
+        else:  # each row's own id
+            firsts = [np.asarray(nozzles[i], dtype=np.int64) for i in good]
         try:
             rows = self._label_rows(arrays, firsts)
         except Exception:  # noqa: BLE001 - find the frame(s) at fault: each alone
@@ -168,7 +196,7 @@ class FrameLabeller:
         """Screen and classify frames of the right width together; a list of FrameLabels."""
         x = np.concatenate(arrays) if len(arrays) > 1 else arrays[0]
         n = x.shape[0]
-        valid, reasons = screen_traces(x, max_abs_v=self.max_abs_v)
+        valid, reasons = screen_traces(x, max_abs_v=self.max_abs_v, sample_rate_hz=self.sample_rate_hz)
         classes = np.full(n, "", dtype=object)
         confidence = np.full(n, np.nan)
         with_base = np.zeros(n, dtype=bool)
@@ -176,7 +204,8 @@ class FrameLabeller:
         if at.size:
             kpis = None
             if self.baselines is not None:
-                ids = np.concatenate([f + np.arange(a.shape[0]) for f, a in zip(firsts, arrays)])
+                ids = np.concatenate([f + np.arange(a.shape[0]) if np.ndim(f) == 0 else f
+                                      for f, a in zip(firsts, arrays)])
                 has, kpis = self.baselines.lookup(ids[at])
                 kpis[~has] = np.nan  # routed to the plain branch
             got = self.detector.label(x if at.size == n else x[at], baseline_kpis=kpis)
@@ -206,7 +235,7 @@ def load_labeller(model_path, baseline_path=None, **checks):
     baseline_path : str or Path, optional
         The head's recorded baselines (:meth:`NozzleBaselines.load`); empty or None: none.
     **checks
-        ``sample_rate_hz``, ``n_samples``, ``max_abs_v`` as for :class:`FrameLabeller`.
+        ``sample_rate_hz``, ``n_samples``, ``max_abs_v``, ``profile`` as for :class:`FrameLabeller`.
 
     Returns
     -------
@@ -220,7 +249,7 @@ def load_labeller(model_path, baseline_path=None, **checks):
         The model file is missing, tampered with, from other library versions, or not a
         FaultDetector (an older plain-pipeline file: retrain it).
     LabellerConfigError
-        The model does not fit ``checks``.
+        The model does not fit ``checks`` (e.g. it was built for another head than ``profile``).
     """
     labeller = FrameLabeller(load_detector(model_path), **checks)
     if not baseline_path:

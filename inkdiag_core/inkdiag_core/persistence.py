@@ -38,7 +38,7 @@ import sklearn
 from ._version import __version__
 
 __all__ = ["ModelFileError", "save_model", "load_model", "save_detector", "load_detector", "read_manifest",
-           "library_versions"]
+           "library_versions", "model_head_sha256"]
 
 FORMAT = "inkdiag-model"
 FORMAT_VERSION = 1
@@ -231,7 +231,11 @@ def save_detector(detector, path, *, config: dict | None = None) -> Path:
       ``baseline`` (bool: has the baseline branch), ``fd_threshold``,
       ``baseline_fd_threshold`` (float or null), ``sample_rate_hz`` (Hz) and
       ``n_samples`` (trace length) it was built for, ``classes`` (list of str),
-      and ``config``'s entries (e.g. how the training data was made);
+      the head: ``profile`` (the :class:`inkdiag_core.HeadProfile` document, null for
+      the default head), ``profile_sha256`` (its :attr:`~inkdiag_core.HeadProfile.sha256`;
+      the default head's when null) and ``profile_name``, and ``config``'s entries
+      (e.g. how the training data was made). A file from before profiles has no
+      ``profile_sha256``: it is a model of the default head (:func:`model_head_sha256`);
     - ``scores``: ``scores_``, and ``baseline_scores_`` with each key prefixed ``baseline_``.
 
     ``config['fd_threshold']``, ``kind`` and ``features`` are where loaders of plain
@@ -260,8 +264,11 @@ def save_detector(detector, path, *, config: dict | None = None) -> Path:
            "fd_threshold": float(detector.fd_threshold_),
            "baseline_fd_threshold": (None if detector.baseline_fd_threshold_ is None
                                      else float(detector.baseline_fd_threshold_)),
-           "sample_rate_hz": float(detector.sample_rate_hz), "n_samples": int(detector.n_features_in_),
-           "classes": [str(c) for c in detector.classes_]}
+           "sample_rate_hz": float(detector.sample_rate_hz_), "n_samples": int(detector.n_features_in_),
+           "classes": [str(c) for c in detector.classes_],
+           # the head: its profile document (None: the default head) and its sha256
+           "profile": None if detector.profile is None else detector.profile.to_dict(),
+           "profile_sha256": detector.head_sha256, "profile_name": detector.head_name}
     clash = sorted(set(own) & set(config or {}))
     if clash:
         raise ValueError(f"config may not replace the detector's own entries {clash}")
@@ -311,5 +318,28 @@ def load_detector(path, *, check_versions: bool = True):
     detector, manifest = load_model(path, check_versions=check_versions, as_pipeline=False)
     if not isinstance(detector, FaultDetector):
         raise ModelFileError(f"model file {path} holds a {type(detector).__name__}, not a FaultDetector")
+    if detector.profile is not None and model_head_sha256(manifest) != detector.head_sha256:
+        raise ModelFileError(f"model file {path}: its manifest's profile_sha256 is not the head of the detector "
+                             "inside: refusing an inconsistent file")
     detector.file_sha256_ = manifest["sha256"]
     return detector
+
+
+def model_head_sha256(manifest: dict) -> str:
+    """sha256 of the head a model file is for, from its manifest (:func:`read_manifest`).
+
+    ``config['profile_sha256']`` of a model trained on a profile; a model of the
+    default head without one (``config['profile']`` null, or a file written before
+    head profiles) is the *current* default head's (:meth:`inkdiag_core.HeadProfile.default`),
+    as its detector says (:attr:`inkdiag_core.FaultDetector.head_sha256`).
+    """
+    cfg = manifest.get("config", {})
+    sha = cfg.get("profile_sha256")
+    if sha is None or cfg.get("profile") is None:
+        from .head_profile import HeadProfile
+
+        return HeadProfile.default().sha256
+    if not isinstance(sha, str):
+        raise ModelFileError(f"manifest of {manifest.get('file', 'the model')}: profile_sha256 must be a string, "
+                             f"got {type(sha).__name__}")
+    return sha

@@ -56,6 +56,7 @@ from .model import InkChannelModel, InkChannelParams
 __all__ = [
     "MODIFIED_BANDS_HZ",
     "FilterDesign",
+    "head_bands_hz",
     "design_residual_filter",
     "ResidualFilter",
 ]
@@ -66,6 +67,32 @@ MODIFIED_BANDS_HZ = (
     (357.45e3 + 330.78e3) / 2.0,
     (200.48e3 + 225.13e3 + 212.73e3) / 3.0,
 )
+
+
+def head_bands_hz(profile=None) -> tuple:
+    """The modified filter's three bands for a head, Hz: :data:`MODIFIED_BANDS_HZ` times its frequency scale.
+
+    The bands sit at the default head's fault modes; another head's modes move
+    with its healthy mode, so its bands are the default's times
+    :meth:`inkdiag_core.HeadProfile.frequency_scale` (exactly 1 for the default head).
+    A band at or above 0.45 x the head's sample rate (the empty-channel band of a
+    head sampled slowly for its modes) is left out: a resonator there would sit on
+    the Nyquist frequency; the filter keeps the other bands.
+
+    Parameters
+    ----------
+    profile : HeadProfile or None
+        A complete head profile; None: the default head.
+
+    Returns
+    -------
+    tuple of float
+        Band centre frequencies, Hz (3, or fewer when the sampling cannot hold one).
+    """
+    if profile is None:
+        return MODIFIED_BANDS_HZ
+    scale = profile.frequency_scale()
+    return tuple(float(f * scale) for f in MODIFIED_BANDS_HZ if f * scale < 0.45 * profile.sample_rate_hz)
 
 
 @dataclass(frozen=True)
@@ -169,7 +196,7 @@ def _bandpass(f_hz: float, zeta: float, fs: float):
 
 def design_residual_filter(kind: str = "original", *, params: InkChannelParams | None = None,
                            sample_rate_hz: float = 10e6, band_gain: float = 2.0,
-                           band_zeta: float = 0.05) -> FilterDesign:
+                           band_zeta: float = 0.05, bands_hz=None) -> FilterDesign:
     """Design the original or the modified residual filter.
 
     Parameters
@@ -183,6 +210,10 @@ def design_residual_filter(kind: str = "original", *, params: InkChannelParams |
         Peak gain ``g_i`` of each band resonator of the modified filter.
     band_zeta : float
         Damping ratio of the band resonators (lightly damped).
+    bands_hz : sequence of float, optional
+        Centre frequencies of the modified filter's band resonators, Hz; None:
+        :data:`MODIFIED_BANDS_HZ` (the default head's; :func:`head_bands_hz` gives
+        another head's).
 
     Returns
     -------
@@ -193,10 +224,11 @@ def design_residual_filter(kind: str = "original", *, params: InkChannelParams |
     fs = float(sample_rate_hz)
     if not (math.isfinite(fs) and fs > 0):
         raise ValueError(f"sample_rate_hz must be positive, got {sample_rate_hz!r}")
-    if kind == "modified" and fs <= 2 * max(MODIFIED_BANDS_HZ):
+    bands = MODIFIED_BANDS_HZ if bands_hz is None else tuple(float(f) for f in bands_hz)
+    if kind == "modified" and (not bands or min(bands) <= 0 or fs <= 2 * max(bands)):
         raise ValueError(
-            f"sample_rate_hz must exceed twice the highest band ({2 * max(MODIFIED_BANDS_HZ):.0f} Hz) "
-            f"for the modified filter, got {fs:g}"
+            f"sample_rate_hz must exceed twice the highest band ({2 * max(bands, default=0.0):.0f} Hz) "
+            f"for the modified filter, and the bands must be positive; got {fs:g} Hz and bands {bands!r}"
         )
     params = InkChannelParams() if params is None else params
     Ad, Cb, lam = _balanced_dt_model(params, fs)
@@ -217,7 +249,7 @@ def design_residual_filter(kind: str = "original", *, params: InkChannelParams |
         loop_ss = _pi_loop(Ad, Cb, Kp, Ki)
         # band emphasis r_mod = (1 + sum g_i H_i) r, in series after the observer
         sum_ss = None
-        for f_band in MODIFIED_BANDS_HZ:
+        for f_band in bands:
             Ab_, Bb_, Cb_, Db_ = _bandpass(f_band, band_zeta, fs)
             Cb_, Db_ = band_gain * Cb_, band_gain * Db_
             sum_ss = (Ab_, Bb_, Cb_, Db_) if sum_ss is None else _parallel(sum_ss, (Ab_, Bb_, Cb_, Db_))
@@ -309,7 +341,10 @@ class ResidualFilter(TransformerMixin, BaseEstimator):
     sample_rate_hz : float
         Trace sample rate, Hz.
     params : InkChannelParams or None
-        Healthy channel; ``None`` is the nominal one.
+        Healthy channel; ``None`` is the nominal one (the default head's).
+    bands_hz : sequence of float or None
+        Band centres of the modified filter, Hz; ``None``: :data:`MODIFIED_BANDS_HZ`
+        (the default head's; :func:`head_bands_hz` for another head).
     healthy_labels : tuple
         Labels (as given to ``fit``) of the healthy reference rows whose initial
         states are averaged. Without labels, or with no healthy row, all rows are used.
@@ -326,17 +361,22 @@ class ResidualFilter(TransformerMixin, BaseEstimator):
     """
 
     def __init__(self, kind="original", sample_rate_hz=10e6, params=None,
-                 healthy_labels=(*HEALTHY_VALUES, 0)):
+                 healthy_labels=(*HEALTHY_VALUES, 0), bands_hz=None):
         self.kind = kind
         self.sample_rate_hz = sample_rate_hz
         self.params = params
         self.healthy_labels = healthy_labels
+        self.bands_hz = bands_hz
+
+    def __setstate__(self, state):  # files pickled before bands_hz existed: the default bands
+        state.setdefault("bands_hz", None)
+        super().__setstate__(state)
 
     def fit(self, X, y=None):
         X = validate_data(self, X, dtype=[np.float64, np.float32], ensure_min_samples=1,
                           ensure_min_features=MIN_KPI_SAMPLES)
         self.design_ = design_residual_filter(self.kind, params=self.params,
-                                              sample_rate_hz=self.sample_rate_hz)
+                                              sample_rate_hz=self.sample_rate_hz, bands_hz=self.bands_hz)
         rows = X
         if y is not None:
             y = np.asarray(y)

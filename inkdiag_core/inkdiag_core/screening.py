@@ -9,9 +9,16 @@ a reason instead of being classified; the rest of the frame is unaffected.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-__all__ = ["INVALID_REASONS", "screen_traces"]
+__all__ = ["CLIP_S", "INVALID_REASONS", "clip_run_samples", "screen_traces"]
+
+#: Shortest plateau at a row's extreme that reads as ADC clipping, s (5 samples at 10 MHz).
+CLIP_S = 0.5e-6
+#: A clipped run is never shorter than this many samples, whatever the sample rate.
+MIN_CLIP_RUN = 3
 
 #: Reason codes of invalid rows. The first four are :func:`screen_traces`'s, in the order
 #: of precedence used when several apply; ``"non_finite_features"`` is a row that passed
@@ -19,7 +26,32 @@ __all__ = ["INVALID_REASONS", "screen_traces"]
 INVALID_REASONS = ("non_finite", "out_of_range", "flat", "clipped", "non_finite_features")
 
 
-def screen_traces(traces, *, flat_tol: float = 1e-6, clip_run: int = 5, max_abs_v: float | None = None):
+def clip_run_samples(sample_rate_hz: float = 10e6, clip_s: float = CLIP_S) -> int:
+    """The clipped-run length in samples at a sample rate: ``max(3, ceil(clip_s * sample_rate_hz))``.
+
+    5 samples at 10 MHz (the length tuned there), 10 at 20 MHz, 3 at 5 MHz
+    (never fewer than 3: with 2, a quantised healthy peak repeating one ADC
+    code would read as clipped).
+
+    Parameters
+    ----------
+    sample_rate_hz : float
+        Hz.
+    clip_s : float
+        Plateau duration, s.
+
+    Returns
+    -------
+    int
+    """
+    fs, d = float(sample_rate_hz), float(clip_s)
+    if not (math.isfinite(fs) and fs > 0 and math.isfinite(d) and d > 0):
+        raise ValueError(f"sample_rate_hz and clip_s must be positive, got {sample_rate_hz!r} Hz, {clip_s!r} s")
+    return max(MIN_CLIP_RUN, math.ceil(d * fs - 1e-9))
+
+
+def screen_traces(traces, *, flat_tol: float = 1e-6, clip_run: int | None = None, max_abs_v: float | None = None,
+                  sample_rate_hz: float = 10e6, clip_s: float = CLIP_S):
     """Find the rows of a frame that cannot be classified, and why.
 
     Parameters
@@ -28,17 +60,23 @@ def screen_traces(traces, *, flat_tol: float = 1e-6, clip_run: int = 5, max_abs_
         Sensor samples, V.
     flat_tol : float
         A row whose peak-to-peak range is at most this (V) is *flat*.
-    clip_run : int
+    clip_run : int, optional
         A row with ``clip_run`` or more consecutive samples exactly at its
         maximum (or minimum) value, sitting on a plateau, is *clipped*: an ADC
-        saturates there, a damped oscillation does not. 5 samples (0.5 us at
-        10 MHz): with 3, 12-bit quantisation flagged 0.2 % of simulated
-        healthy and faulty traces whose flat peak repeats one ADC code.
+        saturates there, a damped oscillation does not. None (default):
+        :func:`clip_run_samples` of ``sample_rate_hz`` and ``clip_s``, i.e. a
+        duration: 0.5 us, 5 samples at 10 MHz (with 3 there, 12-bit quantisation
+        flagged 0.2 % of simulated healthy and faulty traces whose flat peak
+        repeats one ADC code). An explicit count of samples overrides.
     max_abs_v : float, optional
         The largest sample magnitude a sensor can produce, V (above its ADC's
         range). A finite row with any ``|sample| > max_abs_v`` is
         *out_of_range*: no sensor produced it, and its features could overflow.
         None: no such check.
+    sample_rate_hz : float
+        Sample rate of the traces, Hz (for the clipped-run duration).
+    clip_s : float
+        Clipped-run duration, s.
 
     Returns
     -------
@@ -49,6 +87,8 @@ def screen_traces(traces, *, flat_tol: float = 1e-6, clip_run: int = 5, max_abs_
     x = np.asarray(traces)
     if x.ndim != 2:
         raise ValueError(f"traces must be 2-D (n, n_samples), got shape {x.shape}")
+    if clip_run is None:
+        clip_run = clip_run_samples(sample_rate_hz, clip_s)
     if clip_run < 2:
         raise ValueError(f"clip_run must be >= 2, got {clip_run}")
     if max_abs_v is not None and not max_abs_v > 0:

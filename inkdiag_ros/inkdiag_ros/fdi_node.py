@@ -6,6 +6,9 @@
 Parameters: docs/parameters.md; topics and counters: docs/controller.md.
 
     fdi --ros-args -r __ns:=/head_00 -p model_path:=models/fdi_default.joblib
+
+``head_profile`` names the head (default: the shipped default head): its sampling is what
+frames must have, and a model trained for another head is refused at start.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ import sys
 import numpy as np
 from rclpy.node import Node
 
-from inkdiag_core import FrameFailure, LabellerConfigError, ModelFileError, load_labeller
+from inkdiag_core import FrameFailure, HeadProfile, LabellerConfigError, ModelFileError, load_labeller
 from msg_defs import (DIAGNOSTICS_MSG_TYPE, DIAGNOSTICS_QOS, DRYING_MSG_TYPE, LABELS_MSG_TYPE, RELIABLE_QOS,
                       TRACE_MSG_TYPE, TRACES_QOS, DryingNozzles, FrameError, LabelsReport, build_diagnostics,
                       decode_traces, encode_drying, encode_labels, topics)
@@ -28,19 +31,48 @@ from .stats import FdiStats
 PARAMS = (
     ("model_path", "", "FaultDetector model file (.joblib with its .manifest.json beside it)", str, None),
     ("n_nozzles", 0, "nozzles of this head: frames with ids >= n_nozzles are rejected (0: no check)", int, (0, 2**24)),
-    ("n_samples", 512, "samples per trace the model was built for; other frames are rejected", int, (16, 65536)),
-    ("sample_rate_hz", 10e6, "sample rate the model was built for, Hz; other frames are rejected", float, (1e3, 1e9)),
+    ("head_profile", "", "head profile YAML file; empty: the shipped default head", str, None),
+    ("n_samples", 0, "samples per trace of this head's frames (the model must be built for them); other frames "
+     "are rejected. 0: the head profile's", int, (0, 65536)),
+    ("sample_rate_hz", 0.0, "sample rate of this head's frames, Hz (the model must be built for it); other frames "
+     "are rejected. 0: the head profile's", float, (0.0, 1e9)),
     ("diagnostics_period_s", 1.0, "period of /diagnostics, s", float, (0.1, 60.0)),
     ("max_queued_frames", 64, "frames waiting for the classifier at most; a full queue drops its oldest", int, (1, 100000)),
     ("max_batch_traces", 16384, "traces classified in one pass at most", int, (1, 2**24)),
     ("baseline_path", "", "the head's per-nozzle healthy baselines (.npz from record_baseline), classified by the "
      "model's baseline branch; empty: none", str, None),
-    ("max_abs_sample_v", 10.0, "largest sample magnitude a sensor can produce, V; a row with a sample "
-     "beyond it is invalid ('out_of_range'). Default: 5x the default head's +-2 V ADC range",
-     float, (1e-6, 1e30)),
+    ("max_abs_sample_v", 0.0, "largest sample magnitude a sensor can produce, V; a row with a sample "
+     "beyond it is invalid ('out_of_range'). 0: 5x the head profile's ADC range (10 V for the default head's "
+     "+-2 V)", float, (0.0, 1e30)),
     ("labelling_process", False, "label in a child process (a core of its own: no GIL shared with "
      "receiving and publishing) instead of a thread of this one", bool, None),
 )
+
+
+def head_from_parameters(config):
+    """The head profile of ``config['head_profile']`` (empty: the default head); fills in its sampling.
+
+    ``config['sample_rate_hz']`` / ``config['n_samples']`` of 0 become the profile's; other
+    values must be the profile's. ``config['max_abs_sample_v']`` of 0 becomes 5x the head's
+    ADC range.
+
+    Raises
+    ------
+    ValueError
+        The file does not load (:class:`inkdiag_core.ProfileError`), or the sampling
+        parameters contradict it.
+    """
+    path = config["head_profile"]
+    head = HeadProfile.load(path) if path else HeadProfile.default()
+    if not config["max_abs_sample_v"]:
+        config["max_abs_sample_v"] = 5.0 * head.adc_range_v
+    for key, want in (("sample_rate_hz", head.sample_rate_hz), ("n_samples", head.n_samples)):
+        if not config[key]:
+            config[key] = type(config[key])(want)
+        elif config[key] != want:
+            raise ValueError(f"{key} is {config[key]:g} but head profile {head.name!r} "
+                             f"({path or 'the default head'}) has {want:g}: leave {key} 0 to take the profile's")
+    return head
 
 
 class FdiNode(Node):
@@ -50,6 +82,7 @@ class FdiNode(Node):
         super().__init__("fdi", **kwargs)
         self.config = c = _params.declare_all(self, PARAMS)
         self.add_on_set_parameters_callback(lambda params: _params.fixed_at_start(params))
+        self.head = head_from_parameters(c)  # a bad file or sampling: ValueError, exit 2 at start
         self.stats = FdiStats()
         self.labeller = self._load_labeller()
         self.model_id = self.labeller.model_id if self.labeller else "none"
@@ -73,7 +106,8 @@ class FdiNode(Node):
             return None
         try:
             labeller, baseline_error = load_labeller(c["model_path"], c["baseline_path"], max_abs_v=c["max_abs_sample_v"],
-                                                     sample_rate_hz=c["sample_rate_hz"], n_samples=c["n_samples"])
+                                                     sample_rate_hz=c["sample_rate_hz"], n_samples=c["n_samples"],
+                                                     profile=self.head)
         except (ModelFileError, LabellerConfigError) as exc:
             self.get_logger().error(f"FDI model not loaded: {exc}")
             return None
@@ -109,8 +143,9 @@ class FdiNode(Node):
             frame = decode_traces(msg, max_nozzle_id=self._max_id, n_samples=c["n_samples"],
                                   sample_rate_hz=c["sample_rate_hz"])
         except FrameError as exc:
-            self.stats.malformed(str(exc))
-            self.get_logger().warning(f"dropped a malformed trace frame: {exc}", throttle_duration_sec=1.0)
+            why = f"{exc} (head {self.head.name!r}: {c['sample_rate_hz']:g} Hz x {c['n_samples']} samples)"
+            self.stats.malformed(why)
+            self.get_logger().warning(f"dropped a malformed trace frame: {why}", throttle_duration_sec=1.0)
             return
         if self.labeller is not None:
             self._pipeline.submit(frame)

@@ -129,7 +129,7 @@ class BaselineRecorder:
         if first_nozzle + x.shape[0] > self.max_nozzles:
             raise ValueError(f"nozzle ids must stay below {self.max_nozzles} (the recorder's max_nozzles, "
                              f"a bound on its memory), got {first_nozzle}..{first_nozzle + x.shape[0] - 1}")
-        use, _ = screen_traces(x)
+        use, _ = screen_traces(x, sample_rate_hz=self.sample_rate_hz)
         if keep is not None:
             k = np.asarray(keep, dtype=bool)
             if k.shape != (x.shape[0],):

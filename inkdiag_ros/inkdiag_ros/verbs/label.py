@@ -1,12 +1,144 @@
-"""``inkdiag label``: (being written)."""
+"""``inkdiag label``: classify every row of a recording with a fault detector, as the fdi node does."""
 
-HELP = "label (not yet available)"
-DESCRIPTION = HELP
+HELP = "label every trace of a recording with a trained fault detector (CSV)"
+DESCRIPTION = """\
+Label every row of a recording (.npz: traces, sample_rate_hz, optional nozzle,
+frame_id, stamp) with a fault detector from `inkdiag train`, by the fdi node's
+code path (inkdiag_core.FrameLabeller): rows are screened first (non-finite,
+out-of-range, flat, clipped: class 'invalid' with that reason; the other rows
+are classified), then one detector call per batch of frames. Rows with the
+same frame_id are one frame; with --baselines each row's nozzle id selects its
+nozzle's recorded healthy baseline (the model needs a baseline branch:
+`inkdiag train --baseline`).
+
+The recording must have the sampling (sample rate, samples per trace) of the
+model's head; another is refused (exit status 2), as is a model file that is
+missing, tampered with or from other library versions.
+
+CSV columns: row, nozzle, frame_id, class, confidence, reason, baseline
+  class       a FaultClass value (healthy_nozzle, ...) or 'invalid'
+  confidence  probability of that class (empty for invalid rows)
+  reason      why a row is invalid (non_finite, out_of_range, flat, clipped,
+              non_finite_features, labelling_failed); empty for classified rows
+  baseline    1 if the row was classified against its nozzle's baseline
+
+example:
+  inkdiag label recording.npz --model models/head.joblib --out labels.csv
+"""
+
+COLUMNS = ("row", "nozzle", "frame_id", "class", "confidence", "reason", "baseline")
+#: Rows labelled per detector call at most (frames are never split).
+BATCH_ROWS = 16384
 
 
 def add_arguments(parser) -> None:
-    pass
+    parser.add_argument("recording", metavar="RECORDING", help="recording (.npz) to label")
+    parser.add_argument("--model", required=True, metavar="MODEL.joblib",
+                        help="FaultDetector file from `inkdiag train` (its .manifest.json beside it)")
+    parser.add_argument("--baselines", metavar="B.npz",
+                        help="the head's per-nozzle healthy baselines (from record_baseline)")
+    parser.add_argument("--out", required=True, metavar="LABELS.csv", help="CSV file to write ('-': stdout)")
+    parser.add_argument("--max-abs-v", type=float, default=None, metavar="V",
+                        help="largest sample magnitude a sensor can produce, V; a row beyond it is invalid "
+                        "(out_of_range). Default: 5x the model head's ADC range")
+
+
+def frames_of(frame_id):
+    """Rows of each frame, frames in order of first appearance: a list of int index arrays."""
+    import numpy as np
+
+    uniq, first, inverse = np.unique(frame_id, return_index=True, return_inverse=True)
+    order = np.argsort(first, kind="stable")
+    rows = np.argsort(inverse, kind="stable")  # rows grouped by frame, in row order within each
+    cuts = np.cumsum(np.bincount(inverse, minlength=uniq.size))[:-1]
+    groups = np.split(rows, cuts)
+    return [groups[k] for k in order]
+
+
+def label_recording(labeller, recording):
+    """Label a :class:`inkdiag_core.Recording` frame by frame with a :class:`inkdiag_core.FrameLabeller`.
+
+    Returns
+    -------
+    classes : ndarray of object, shape (n,)
+        FaultClass value or ``"invalid"``.
+    confidence : ndarray of float, shape (n,)
+        NaN for invalid rows.
+    reasons : ndarray of object, shape (n,)
+        ``""`` for classified rows.
+    baseline : ndarray of bool, shape (n,)
+    """
+    import numpy as np
+
+    from inkdiag_core import FrameFailure
+
+    n = recording.n_rows
+    classes = np.full(n, "invalid", dtype=object)
+    confidence = np.full(n, np.nan)
+    reasons = np.full(n, "", dtype=object)
+    baseline = np.zeros(n, dtype=bool)
+    batches, cur, size = [], [], 0
+    for rows in frames_of(recording.frame_id):  # whole frames, at most BATCH_ROWS rows a batch (or one frame)
+        if cur and size + rows.size > BATCH_ROWS:
+            batches.append(cur)
+            cur, size = [], 0
+        cur.append(rows)
+        size += rows.size
+    if cur:
+        batches.append(cur)
+    for batch in batches:
+        results = labeller.label([recording.traces[r] for r in batch], [0] * len(batch),
+                                 nozzles=[recording.nozzle[r] for r in batch])
+        for r, res in zip(batch, results):
+            if isinstance(res, FrameFailure):
+                reasons[r] = "labelling_failed"
+                continue
+            ok = res.valid
+            classes[r[ok]] = res.classes[ok]
+            confidence[r[ok]] = res.confidence[ok]
+            reasons[r[~ok]] = res.reasons[~ok]
+            if res.baseline is not None:
+                baseline[r] = res.baseline
+    return classes, confidence, reasons, baseline
 
 
 def run(args) -> int:
-    raise NotImplementedError("inkdiag label is not available yet")
+    import csv
+    import sys
+
+    from inkdiag_core import FrameLabeller, LabellerConfigError, NozzleBaselines, load_detector
+    from inkdiag_core.head_profile import HeadProfile
+    from inkdiag_core.recording import load_recording
+
+    detector = load_detector(args.model)  # ModelFileError (a ValueError): missing, tampered, other versions
+    head = detector.profile if detector.profile is not None else HeadProfile.default()
+    rec = load_recording(args.recording)
+    if rec.sample_rate_hz != detector.sample_rate_hz_ or rec.n_samples != detector.n_features_in_:
+        raise LabellerConfigError(
+            f"{args.recording} is sampled at {rec.sample_rate_hz:g} Hz x {rec.n_samples} samples; the model is for "
+            f"head {head.name!r} at {detector.sample_rate_hz_:g} Hz x {detector.n_features_in_}: label recordings of "
+            "the head the model was trained for")
+    max_abs_v = args.max_abs_v if args.max_abs_v is not None else 5.0 * head.adc_range_v
+    if not max_abs_v > 0:
+        raise ValueError(f"--max-abs-v must be > 0 V, got {max_abs_v!r}")
+    baselines = NozzleBaselines.load(args.baselines) if args.baselines else None
+    labeller = FrameLabeller(detector, baselines, sample_rate_hz=rec.sample_rate_hz, n_samples=rec.n_samples,
+                             max_abs_v=max_abs_v)
+    classes, confidence, reasons, baseline = label_recording(labeller, rec)
+    out = sys.stdout if args.out == "-" else open(args.out, "w", newline="", encoding="utf-8")
+    try:
+        w = csv.writer(out, lineterminator="\n")
+        w.writerow(COLUMNS)
+        for i in range(rec.n_rows):
+            conf = "" if confidence[i] != confidence[i] else f"{confidence[i]:.6f}"
+            w.writerow((i, int(rec.nozzle[i]), int(rec.frame_id[i]), classes[i], conf, reasons[i],
+                        int(baseline[i])))
+    finally:
+        if out is not sys.stdout:
+            out.close()
+    n_invalid = int((classes == "invalid").sum())
+    n_failed = int((reasons == "labelling_failed").sum())
+    print(f"labelled {rec.n_rows - n_invalid} of {rec.n_rows} rows with {detector.model_id} (head {head.name!r}); "
+          f"{n_invalid} invalid" + (f", {n_failed} in frames whose labelling failed" if n_failed else "")
+          + (f"; wrote {args.out}" if args.out != "-" else ""), file=sys.stderr)
+    return 1 if n_failed else 0

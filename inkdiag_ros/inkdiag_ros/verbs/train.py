@@ -1,12 +1,116 @@
-"""``inkdiag train``: (being written)."""
+"""``inkdiag train``: a FaultDetector for one head, from its complete profile (and labelled recordings)."""
 
-HELP = "train (not yet available)"
-DESCRIPTION = HELP
+HELP = "train a fault detector for a head from its complete profile"
+DESCRIPTION = """\
+Train a fault detector (FaultDetector .joblib + .manifest.json) for the head of
+a complete profile: every fault class is simulated on the head's calibrated
+model (the same physical mechanisms as the default head's, scaled to its
+geometry, ink, drive and sampling), a quarter held out for the detection
+threshold and the validation scores.
+
+With --data, the head's own labelled recordings (.npz with a 'label' array)
+join the simulated rows: a quarter of each recorded class is held out for
+validation; the rest is replicated up to the simulated rows of its class, so a
+recorded class weighs as much as its simulated one.
+
+The manifest records the profile (and its sha256: fdi and `inkdiag label`
+refuse the model for another head), the training configuration and the
+validation scores, which are printed at the end.
+
+A nominal profile (only a datasheet's values) is refused: run `inkdiag
+calibrate` on recorded healthy traces first.
+
+example:
+  inkdiag train --profile head.yaml --out models/head.joblib
+  inkdiag train --profile head.yaml --out models/head.joblib --baseline --n-per-class 600
+"""
+
+FEATURES = ("kpi_y", "kpi_r", "kpi_r_modified", "kpi_y+r_modified", "rich")
 
 
 def add_arguments(parser) -> None:
-    pass
+    parser.add_argument("--profile", required=True, metavar="HEAD.yaml", help="complete head profile (YAML)")
+    parser.add_argument("--out", required=True, metavar="MODEL.joblib",
+                        help="model file to write (its manifest is written beside it)")
+    parser.add_argument("--features", default="kpi_y", choices=FEATURES,
+                        help="feature set of the plain branch (default: %(default)s)")
+    parser.add_argument("--kind", default="rf", choices=("rf", "knn"),
+                        help="classifier: random forest or k-nearest neighbours (default: %(default)s)")
+    parser.add_argument("--baseline", action="store_true",
+                        help="also train the per-nozzle baseline branch (for fdi's / label's --baselines)")
+    parser.add_argument("--data", metavar="LABELLED.npz",
+                        help="labelled recordings of this head to train on as well (a 'label' per row)")
+    parser.add_argument("--n-per-class", type=int, default=400, metavar="N",
+                        help="simulated traces per class (default: %(default)s; >= 8)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the simulation, split and forest "
+                        "(default: %(default)s)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _progress(quiet):
+    """A progress callable and a close function: tqdm on stderr if available, else a plain line per stage."""
+    import sys
+
+    if quiet:
+        return (lambda step, total, message: None), (lambda: None)
+    try:
+        from tqdm import tqdm
+    except ImportError:  # a plain bar
+        def plain(step, total, message):
+            bar = "#" * step + "." * (total - step)
+            print(f"[{bar}] {step}/{total} {message}", file=sys.stderr, flush=True)
+
+        return plain, (lambda: None)
+    bar = tqdm(total=4, file=sys.stderr, desc="inkdiag train", unit="stage", leave=True)
+
+    def step(step, total, message):
+        bar.set_postfix_str(message)
+        bar.update(step - bar.n)
+
+    return step, bar.close
 
 
 def run(args) -> int:
-    raise NotImplementedError("inkdiag train is not available yet")
+    from pathlib import Path
+
+    from inkdiag_core.head_profile import HeadProfile, ProfileError
+    from inkdiag_core.persistence import save_detector
+    from inkdiag_core.recording import load_recording
+    from inkdiag_core.training import train_detector
+
+    profile = HeadProfile.load(args.profile)
+    if not profile.is_complete:
+        raise ProfileError(f"{args.profile}: a nominal profile ({', '.join(profile.missing)} missing): run "
+                           "`inkdiag calibrate` first to fit them to recorded healthy traces")
+    if args.n_per_class < 8:
+        raise ValueError(f"--n-per-class must be >= 8, got {args.n_per_class}")
+    data = load_recording(args.data) if args.data else None
+    if data is not None:
+        if data.label is None:
+            raise ValueError(f"{args.data}: no 'label' array: --data needs each row's class")
+        profile.check_traces(data.traces, data.sample_rate_hz, what=args.data)
+    out = Path(args.out)
+    if out.is_dir():
+        raise IsADirectoryError(f"--out {out} is a directory; give the model file's name")
+    report, close = _progress(args.quiet)
+    try:
+        det, info = train_detector(profile, features=args.features, kind=args.kind, baseline=args.baseline,
+                                   n_per_class=args.n_per_class, data=data, seed=args.seed, progress=report)
+        info["profile_file"] = str(args.profile)
+        if args.data:
+            info["data_file"] = str(args.data)
+        mpath = save_detector(det, out, config=info)
+        report(4, 4, f"saved {out}")
+    finally:
+        close()
+    s = det.scores_
+    print(f"model {det.model_id} for head {profile.name!r} (profile sha256 {profile.sha256[:12]})")
+    print(f"validation ({s['n_validation']} rows): FI accuracy {100 * s['validation_fi_accuracy']:.1f} %, "
+          f"at the FD threshold {det.fd_threshold_:.3f}: FI {100 * s['validation_fi_accuracy_at_threshold']:.1f} %, "
+          f"faults missed {100 * s['validation_fd_fnr']:.2f} %, false alarms {100 * s['validation_fd_fpr']:.2f} %")
+    if det.baseline_scores_:
+        b = det.baseline_scores_
+        print(f"baseline branch: FI accuracy {100 * b['validation_fi_accuracy']:.1f} %, faults missed "
+              f"{100 * b['validation_fd_fnr']:.2f} %, false alarms {100 * b['validation_fd_fpr']:.2f} %")
+    print(f"wrote {out} and {mpath}")
+    return 0

@@ -1,0 +1,214 @@
+"""Train a :class:`inkdiag_core.FaultDetector` for one head: :func:`train_detector`.
+
+The faults are simulated on the head's own (calibrated) model by
+:meth:`inkdiag_core.HeadProfile.simulate`: the same physical mechanisms as for
+the default head (air bubbles, blockage, drying, an empty channel, ...), each
+scaled to the head's geometry, ink, drive and sampling by the simulator
+itself. Optionally the user's own labelled recordings join them.
+
+How real and simulated rows are combined
+----------------------------------------
+With ``data`` (a labelled :class:`inkdiag_core.Recording` of the same head):
+
+1. only the recorded rows labelling would judge are used
+   (:func:`inkdiag_core.screen_traces` at 5x the head's ADC range: rows that are
+   non-finite, out of range, flat or clipped are left out and counted);
+2. each recorded class is split first, ``validation_fraction`` (a quarter) held
+   out, seeded (a class of one row goes to fitting); the simulated rows get the
+   detector's usual stratified split;
+3. the held-out recorded rows join the validation rows once: the fault-detection
+   threshold and the scores see real rows too;
+4. the fitting part of each recorded class is *replicated* (whole copies, then
+   a seeded sample of the remainder) up to the number of simulated fitting rows
+   of that class (``0.75 x n_per_class``), so a class's recorded rows weigh as
+   much in the forest as its simulated ones however few were recorded: for a
+   recorded class, real and simulated rows count half and half. Replication is
+   what a ``sample_weight`` of ``n_sim / n_real`` would do; the detector's
+   pipelines take none. Copies never cross the split (it is done before). A
+   class recorded with more rows than that keeps them all, once.
+
+Classes the recording does not have are simulated only.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .faults import FaultClass
+
+__all__ = ["train_detector", "TrainingData"]
+
+
+class TrainingData:
+    """The rows :func:`train_detector` fitted on (for reports and tests).
+
+    Attributes
+    ----------
+    traces : ndarray, shape (n, n_samples), float32
+        V; simulated rows first, then recorded ones (replicated).
+    labels : ndarray of str, shape (n,)
+    real : ndarray of bool, shape (n,)
+        The row came from the recording.
+    """
+
+    def __init__(self, traces, labels, real):
+        self.traces, self.labels, self.real = traces, labels, real
+
+
+def _check_profile(profile):
+    from .head_profile import HeadProfile, ProfileError
+
+    if not isinstance(profile, HeadProfile):
+        raise TypeError(f"profile must be a HeadProfile, got {type(profile).__name__}")
+    if not profile.is_complete:
+        raise ProfileError(f"profile {profile.name!r} is nominal ({', '.join(profile.missing)} missing): training "
+                           "simulates faults on the head's complete model: run `inkdiag calibrate` first")
+
+
+def _real_rows(data, profile, seed, validation_fraction, n_sim_per_class):
+    """Recorded rows split per class, the training part replicated: (X_fit, y_fit, X_val, y_val)."""
+    from .recording import RecordingError
+    from .screening import screen_traces
+
+    if data.label is None:
+        raise RecordingError(f"{data.source}: the recording has no 'label' array: training data needs each row's "
+                             "class")
+    profile.check_traces(data.traces, data.sample_rate_hz, what=data.source)
+    # the rows labelling would judge (not invalid: non-finite, beyond 5x the ADC range, flat, clipped)
+    usable, _ = screen_traces(data.traces, max_abs_v=5.0 * profile.adc_range_v, sample_rate_hz=profile.sample_rate_hz)
+    if not usable.any():
+        raise RecordingError(f"{data.source}: no row is usable (every row is non-finite, out of range, flat or "
+                             "clipped)")
+    X, y = data.traces[usable], np.asarray(data.label[usable]).astype(str)
+    rng = np.random.default_rng([int(seed), 14])
+    fit_x, fit_y, val_x, val_y = [], [], [], []
+    for cls in np.unique(y):
+        idx = rng.permutation(np.flatnonzero(y == cls))
+        n_val = int(np.floor(validation_fraction * idx.size)) if idx.size > 1 else 0
+        val, fit = idx[:n_val], idx[n_val:]
+        want = max(int(n_sim_per_class * (1 - validation_fraction)), fit.size)
+        reps = np.concatenate([np.tile(fit, want // fit.size), rng.choice(fit, want % fit.size, replace=False)])
+        fit_x.append(X[reps])
+        fit_y.append(y[reps])
+        val_x.append(X[val])
+        val_y.append(y[val])
+    return (np.concatenate(fit_x), np.concatenate(fit_y), np.concatenate(val_x), np.concatenate(val_y),
+            int(usable.sum()), int((~usable).sum()))
+
+
+def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseline: bool = False,
+                   n_per_class: int = 400, data=None, seed: int = 0, n_estimators: int = 50,
+                   min_samples_leaf: int = 3, fnr_target: float = 0.005, validation_fraction: float = 0.25,
+                   progress=None, return_data: bool = False):
+    """Fit a :class:`inkdiag_core.FaultDetector` for the head of ``profile``.
+
+    Simulates ``n_per_class`` traces of each of the 12 classes on the head
+    (:meth:`inkdiag_core.HeadProfile.simulate`, ``seed``), adds the recorded rows of
+    ``data`` if given (see the module docstring: split first, the training part
+    replicated per class up to the simulated count, the validation part once),
+    and fits a detector with ``profile=profile`` (its sample rate, its residual
+    model, its feature bands). With ``baseline=True`` also the baseline branch:
+    each simulated trace gets its nozzle's healthy baseline, ``8`` healthy frames of
+    the same simulated nozzle on this head (recorded rows have no baseline and
+    then train the plain branch only, so ``baseline`` with ``data`` is refused).
+
+    For the default head and no ``data`` the detector is the one
+    :func:`inkdiag_core.fdi.train_default_model` fits (same rows, same seed).
+
+    Parameters
+    ----------
+    profile : HeadProfile
+        A complete profile (``inkdiag calibrate`` makes one from a nominal one).
+    features : str
+        Feature set of the plain branch (:data:`inkdiag_core.FEATURE_SETS` but
+        ``"kpi_y+baseline"``).
+    kind : {"rf", "knn"}
+    baseline : bool
+        Fit the per-nozzle baseline branch too.
+    n_per_class : int
+        Simulated traces per class, >= 8.
+    data : Recording, optional
+        Labelled recordings of this head (``label`` required, the profile's sampling).
+    seed : int
+        Seed of the simulation, the split and the forest.
+    n_estimators, min_samples_leaf, fnr_target, validation_fraction
+        As :class:`inkdiag_core.FaultDetector`.
+    progress : callable(step: int, total: int, message: str), optional
+        Called after each stage.
+    return_data : bool
+        Also return the :class:`TrainingData` fitted on.
+
+    Returns
+    -------
+    detector : FaultDetector
+        Fitted; ``scores_`` are on the validation split (simulated and recorded rows).
+    info : dict
+        JSON-ready description of the training data for the manifest's config
+        (``n_per_class``, ``seed``, ``training_data``, ``n_real_rows``, ...).
+    data : TrainingData
+        Only with ``return_data``.
+
+    Raises
+    ------
+    ProfileError
+        A nominal profile.
+    RecordingError
+        ``data`` without labels or of another sampling.
+    """
+    from .baselines import baseline_kpis
+    from .detector import FaultDetector
+    from .simulation import healthy_twin_frames
+
+    _check_profile(profile)
+    if isinstance(n_per_class, bool) or not isinstance(n_per_class, (int, np.integer)) or n_per_class < 8:
+        raise ValueError(f"n_per_class must be an integer >= 8, got {n_per_class!r}")
+    if baseline and data is not None:
+        raise ValueError("baseline=True with recorded data: recorded rows have no per-nozzle baselines; train the "
+                         "baseline branch on simulated rows only (leave out data) or train without baseline")
+    report = progress or (lambda step, total, message: None)
+    total = 4
+    counts = {c: int(n_per_class) for c in FaultClass}
+    sim = profile.simulate(counts, seed=seed)
+    X, y = sim.traces, sim.label_values()
+    report(1, total, f"simulated {len(sim)} traces on head {profile.name!r}")
+    info = {"n_per_class": int(n_per_class), "seed": int(seed),
+            "training_data": "simulated", "n_real_rows": 0}
+    det = FaultDetector(kind=kind, features=features, profile=profile, n_estimators=int(n_estimators),
+                        min_samples_leaf=int(min_samples_leaf), fnr_target=float(fnr_target),
+                        validation_fraction=float(validation_fraction), random_state=int(seed))
+    real = np.zeros(len(y), dtype=bool)
+    if data is None:
+        base = None
+        if baseline:
+            _, frames = healthy_twin_frames(
+                len(sim), seed=seed, n_frames=8, noise_std_v=sim.noise_std_v, spreads=profile.spreads(),
+                sample_rate_hz=profile.sample_rate_hz, n_samples=profile.n_samples, drive=profile.drive,
+                base_params=profile.channel_params(), sensor_gain_v_per_m3s=profile.sensor_gain_v_per_m3s,
+                sensor_offset_v=profile.sensor_offset_v)
+            base = baseline_kpis(frames, profile.sample_rate_hz)
+        det.fit(X, y, baseline_kpis=base)
+    else:
+        Xr_fit, yr_fit, Xr_val, yr_val, n_real, n_dropped = _real_rows(
+            data, profile, seed, float(validation_fraction), int(n_per_class))
+        info.update(training_data="simulated+recorded", n_real_rows=n_real, n_real_rows_invalid=n_dropped,
+                    real_rows_weighting="per class: recorded training rows replicated up to the simulated count; "
+                    "a quarter of each recorded class held out for validation, once")
+        from sklearn.model_selection import train_test_split
+
+        # the simulated rows' usual split, the recorded rows' own (done before replicating)
+        _, sim_val = train_test_split(np.arange(len(y)), test_size=float(validation_fraction),
+                                      random_state=int(seed), stratify=y)
+        mask = np.zeros(len(y) + len(yr_fit) + len(yr_val), dtype=bool)
+        mask[sim_val] = True
+        mask[len(y) + len(yr_fit):] = True
+        X = np.concatenate([X, Xr_fit, Xr_val])
+        y = np.concatenate([y, yr_fit, yr_val])
+        real = np.concatenate([real, np.ones(len(yr_fit) + len(yr_val), dtype=bool)])
+        det.fit(X, y, validation_mask=mask)
+    report(2, total, f"fitted {kind} on {features} features" + (" and baselines" if baseline else ""))
+    s = det.scores_
+    report(3, total, f"validation FI accuracy {100 * s['validation_fi_accuracy']:.1f}%, "
+                     f"FD miss rate {100 * s['validation_fd_fnr']:.2f}%, false alarms {100 * s['validation_fd_fpr']:.2f}%")
+    if return_data:
+        return det, info, TrainingData(X, y, real)
+    return det, info

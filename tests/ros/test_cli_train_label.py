@@ -1,0 +1,132 @@
+"""``inkdiag train`` and ``inkdiag label`` end to end on a head that is not the default one
+(20 MHz x 1024, another nozzle and ink): a model trained on its profile labels a simulated
+recording of it; CSV columns exact; invalid rows with reasons while the rest of their frame is
+labelled; per-nozzle baselines by the recording's nozzle ids; one-line errors, exit status 2."""
+
+import csv
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from inkdiag_core import BaselineRecorder, FaultClass, HeadProfile, Recording, save_recording
+from inkdiag_ros.cli import main
+
+COLUMNS = ["row", "nozzle", "frame_id", "class", "confidence", "reason"]
+CLASSES = {c.value for c in FaultClass} | {"invalid"}
+
+
+def _head():
+    return HeadProfile.default().replace(name="foreign20", sample_rate_hz=20e6, n_samples=1024,
+                                         channel={"rho": 1100.0, "mu": 6e-3, "r_n": 11e-6, "L_n": 45e-6},
+                                         drive={"amplitude_v": 25.0, "dwell_s": 2.0e-6})
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cli")
+    head = _head()
+    head.save(d / "head.yaml")
+    head.replace(channel={"r_r": None, "L_r": None, "B_act": None, "b": None}).save(d / "nominal.yaml")
+    sim = head.simulate({c: 10 for c in FaultClass}, seed=77)
+    x = sim.traces.copy()
+    x[3, 5] = np.nan  # non_finite
+    x[45, 9] = 1e30  # out_of_range
+    n = len(x)
+    save_recording(d / "rec.npz", Recording.from_arrays(x, 20e6, nozzle=np.arange(n) % 40,
+                                                        frame_id=np.arange(n) // 40, label=sim.label_values()))
+    d10 = HeadProfile.default().simulate({FaultClass.HEALTHY_NOZZLE: 4}, seed=0)
+    save_recording(d / "rec10.npz", Recording.from_arrays(d10.traces, 10e6))
+    return d, head, sim
+
+
+@pytest.fixture(scope="module")
+def trained(work):
+    d, _, _ = work
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    out = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "train", "--profile", str(d / "head.yaml"),
+                          "--out", str(d / "head.joblib"), "--n-per-class", "40", "--seed", "1"],
+                         capture_output=True, text=True, timeout=300, env=env)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return d / "head.joblib", out
+
+
+def _read(path):
+    with open(path, newline="") as f:
+        r = csv.reader(f)
+        header = next(r)
+        return header, [dict(zip(header, row)) for row in r]
+
+
+def test_train_then_label_a_foreign_head_end_to_end(work, trained):
+    d, head, sim = work
+    model, out = trained
+    assert "validation" in out.stdout and "FI accuracy" in out.stdout
+    m = json.loads((d / "head.joblib.manifest.json").read_text())
+    assert m["config"]["profile_sha256"] == head.sha256 and m["config"]["n_per_class"] == 40
+    assert 0 < m["scores"]["validation_fi_accuracy"] <= 1
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    lab = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "label", str(d / "rec.npz"), "--model",
+                          str(model), "--out", str(d / "labels.csv")], capture_output=True, text=True,
+                         timeout=300, env=env)
+    assert lab.returncode == 0, lab.stderr[-2000:]
+    header, rows = _read(d / "labels.csv")
+    assert header[:6] == COLUMNS
+    assert [int(r["row"]) for r in rows] == list(range(len(sim)))
+    assert [int(r["frame_id"]) for r in rows] == (np.arange(len(sim)) // 40).tolist()
+    assert [int(r["nozzle"]) for r in rows] == (np.arange(len(sim)) % 40).tolist()
+    got = np.array([r["class"] for r in rows])
+    assert set(got) <= CLASSES
+    # the NaN row and the 1e30 row are invalid with their reason; their frames' other rows are labelled
+    assert (rows[3]["class"], rows[3]["reason"], rows[3]["confidence"]) == ("invalid", "non_finite", "")
+    assert (rows[45]["class"], rows[45]["reason"]) == ("invalid", "out_of_range")
+    assert (got == "invalid").sum() == 2
+    ok = got != "invalid"
+    assert all(r["reason"] == "" and 0 < float(r["confidence"]) <= 1 for r in np.array(rows)[ok])
+    acc = np.mean(got[ok] == sim.label_values()[ok])
+    assert acc > 0.8, acc
+
+
+def test_label_uses_each_rows_nozzle_baseline(work, tmp_path):
+    d, head, _ = work
+    assert main(["train", "--profile", str(d / "head.yaml"), "--out", str(tmp_path / "b.joblib"), "--baseline",
+                 "--n-per-class", "24", "--quiet"]) == 0
+    rec = BaselineRecorder(n_frames=2, sample_rate_hz=20e6, n_samples=1024)
+    for k in range(2):
+        rec.add(100, head.simulate({FaultClass.HEALTHY_NOZZLE: 5}, seed=50 + k).traces)
+    rec.baselines().save(tmp_path / "base.npz")  # nozzles 100..104
+    x = head.simulate({FaultClass.HEALTHY_NOZZLE: 6}, seed=60).traces
+    save_recording(tmp_path / "r.npz", Recording.from_arrays(x, 20e6, nozzle=[104, 7, 100, 8, 102, 9]))
+    assert main(["label", str(tmp_path / "r.npz"), "--model", str(tmp_path / "b.joblib"), "--baselines",
+                 str(tmp_path / "base.npz"), "--out", str(tmp_path / "l.csv")]) == 0
+    _, rows = _read(tmp_path / "l.csv")
+    assert [r["baseline"] for r in rows] == ["1", "0", "1", "0", "1", "0"]
+
+
+@pytest.mark.parametrize(("argv", "match"), [
+    (["train", "--profile", "{d}/nominal.yaml", "--out", "{d}/x.joblib"], "inkdiag calibrate"),
+    (["train", "--profile", "{d}/missing.yaml", "--out", "{d}/x.joblib"], "no such head profile"),
+    (["train", "--profile", "{d}/head.yaml", "--out", "{d}/x.joblib", "--data", "{d}/rec10.npz"], "label"),
+    (["label", "{d}/rec10.npz", "--model", "{d}/head.joblib", "--out", "{d}/l.csv"], "head 'foreign20'"),
+    (["label", "{d}/missing.npz", "--model", "{d}/head.joblib", "--out", "{d}/l.csv"], "no such recording"),
+    (["label", "{d}/rec.npz", "--model", "{d}/missing.joblib", "--out", "{d}/l.csv"], "does not exist"),
+    (["label", "{d}/rec.npz", "--model", "{d}/tampered.joblib", "--out", "{d}/l.csv"], "tampered"),
+    (["label", "{d}/rec.npz", "--model", "{d}/head.joblib", "--baselines", "{d}/base10.npz", "--out",
+      "{d}/l.csv"], "baseline"),
+])
+def test_bad_input_is_one_line_and_exit_status_2(work, trained, argv, match, capsys):
+    d, _, _ = work
+    if not (d / "tampered.joblib").exists():
+        data = trained[0].read_bytes()
+        (d / "tampered.joblib").write_bytes(data[:-1] + bytes([data[-1] ^ 1]))
+        (d / "tampered.joblib.manifest.json").write_text((d / "head.joblib.manifest.json").read_text())
+        rec = BaselineRecorder(n_frames=1)
+        rec.add(0, HeadProfile.default().simulate({FaultClass.HEALTHY_NOZZLE: 3}, seed=0).traces)
+        rec.baselines().save(d / "base10.npz")
+    capsys.readouterr()
+    assert main([a.format(d=d) for a in argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"inkdiag {argv[0]}: error: ") and match in err[0], err
