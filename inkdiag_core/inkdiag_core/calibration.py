@@ -41,7 +41,10 @@ estimators) only the product and the shape matter.
 Method
 ------
 1. Drop traces with non-finite samples (counted in the report).
-2. Fit the mean trace (the per-trace gain and offset average out) with
+2. Fit the mean of the typical traces (the :data:`TYPICAL_FRACTION` nearest the median
+   dominant frequency and damping: averaging traces of different frequencies would
+   damp the mean and bias the weakly identified direction; the per-trace gain and
+   offset average out) with
    :func:`scipy.optimize.least_squares` (trust region reflective, bounds) on the
    log-parameters ``(B_act, I_r, R_r)``; amplitude and offset are solved by linear
    least squares for each shape (variable projection). Data residuals are scaled by
@@ -91,6 +94,9 @@ PRIOR_RATIOS = {"I_r/I_n": 1.03, "R_r/R_n": 0.5}
 
 PRIOR_SD_LOG = math.log(2.0)
 """Standard deviation of the prior on ``ln I_r`` and ``ln R_r`` (a factor of 2)."""
+
+TYPICAL_FRACTION = 0.2
+"""Fraction of the traces, nearest the median frequency and damping, whose mean is fitted."""
 
 MAX_RESIDUAL_REL = 0.15
 """A mean-trace fit whose RMS residual exceeds this fraction of the trace's RMS is refused."""
@@ -297,7 +303,8 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
                                f"calibration needs at least {MIN_TRACES}")
     fs = nominal.sample_rate_hz
     known = _Known.of(nominal)
-    mean = y.mean(axis=0)
+    typical = _typical_rows(y, fs, TYPICAL_FRACTION)
+    mean = y[typical].mean(axis=0)
     mean_rms = float(_rms_ac(mean))
     kp_mean = extract_kpis(mean, fs)[0]
     f_rec = float(kp_mean[1])
@@ -313,7 +320,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
 
     # -- 2. the mean trace ------------------------------------------------------------------
     noise0, _ = _noise_std(y - mean, f_rec, fs)
-    sigma_d = max(noise0 / math.sqrt(y.shape[0]), 1e-3 * mean_rms)
+    sigma_d = max(noise0 / math.sqrt(typical.size), 1e-3 * mean_rms)
     scale = np.log(known.scale())
     lo = scale + np.log([_BOUNDS_REL[p][0] for p in _PARAMS])
     hi = scale + np.log([_BOUNDS_REL[p][1] for p in _PARAMS])
@@ -352,8 +359,8 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     J = best.jac
     chi2 = float(np.sum(best.fun[:m] ** 2))
     s2 = max(1.0, chi2 / max(1, m - len(_PARAMS)))
-    cov = np.linalg.pinv(J.T @ J) * s2
-    sd_post = np.sqrt(np.clip(np.diag(cov), 0, None))
+    Jw = np.vstack([J[:m] / math.sqrt(s2), J[m:]])  # data rows at the misfit's own scale, then the prior
+    sd_post = np.sqrt(np.clip(np.diag(np.linalg.pinv(Jw.T @ Jw)), 0, None))
     sv = np.linalg.svd(J[:m] / math.sqrt(s2), compute_uv=False)
 
     # -- 3. every trace on the fitted shape ---------------------------------------------------
@@ -382,8 +389,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
         convention = "sensor.gain_v_per_m3s = 1e10 V/(m^3/s), the default head's"
         b = amp / gain
     sensor = {"gain_v_per_m3s": gain, "offset_v": float(np.median(o)), "noise_std_v": noise}
-    sensor.pop("snr_db", None)
-    calibrated = nominal.replace(
+        calibrated = nominal.replace(
         name=name or nominal.name,
         channel={"r_r": r_r, "L_r": L_r, "B_act": float(B_act), "b": b},
         sensor={**sensor, "snr_db": None},
@@ -398,6 +404,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     gain_rel = math.sqrt(max(_mad_std(la) ** 2 - _mad_std(la_s) ** 2, 0.0))
     offset_std = math.sqrt(max(_mad_std(o) ** 2 - _mad_std(o_s) ** 2, 0.0))
 
+    kp_mean_fit = extract_kpis(mean_fit, fs)[0]
     kp_rec = extract_kpis(y, fs)
     kp_fit = extract_kpis(fitted, fs)
     kp_sim = extract_kpis(sim, fs)
@@ -405,8 +412,11 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     pinned = {}
     for i, p in enumerate(_PARAMS):
         prior_sd = None if p == "B_act" else PRIOR_SD_LOG
-        by = ("data" if (prior_sd is None and sd_post[i] < 0.5) or (prior_sd and sd_post[i] < 0.5 * prior_sd)
-              else "prior" if prior_sd else "poorly determined")
+        if prior_sd is None:
+            by = "data" if sd_post[i] < 0.25 else "poorly determined"
+        else:
+            by = ("data" if sd_post[i] < 0.25 * prior_sd else "data and prior" if sd_post[i] < 0.75 * prior_sd
+                  else "prior")
         pinned[p] = {"value": float(np.exp(theta[i])), "sd_log": float(sd_post[i]), "prior_sd_log": prior_sd,
                      "determined_by": by}
     pinned["I_r"]["ratio_to_I_n"] = float(I_r / known.I_n)
@@ -425,6 +435,11 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
                    "sensor.noise_std_v": noise, "spreads.gain_rel": gain_rel,
                    "spreads.offset_std_v": offset_std},
         "amplitude_convention": convention,
+        "mean_trace_recorded_vs_fitted": {
+            "dominant_frequency_hz": [float(kp_mean[1]), float(kp_mean_fit[1])],
+            "damping_ratio": [float(kp_mean[2]), float(kp_mean_fit[2])],
+            "amplitude_v": [float(kp_mean[3]), float(kp_mean_fit[3])],
+        },
         "recorded_vs_fitted": {
             "dominant_frequency_hz": [med(kp_rec, 1), med(kp_fit, 1)],
             "damping_ratio": [med(kp_rec, 2), med(kp_fit, 2)],
@@ -456,6 +471,21 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     rows = np.flatnonzero(finite)[np.linspace(0, y.shape[0] - 1, k).astype(int)] if k else np.zeros(0, int)
     pos = np.linspace(0, y.shape[0] - 1, k).astype(int)
     return CalibrationResult(profile, report, known.t_s.copy(), mean, mean_fit, y[pos], fitted[pos], rows)
+
+
+def _typical_rows(y, fs, fraction):
+    """Rows nearest the median dominant frequency and damping ratio (robust z-distance): ``fraction`` of them.
+
+    Averaging traces of different frequencies damps their mean (they dephase) and
+    distorts its shape along the direction the data pin least; averaging only the
+    typical ones keeps that bias about ``fraction**2`` as small.
+    """
+    kp = extract_kpis(y, fs)[:, 1:3]
+    med = np.median(kp, axis=0)
+    spread = 1.4826 * np.median(np.abs(kp - med), axis=0)
+    z = (kp - med) / np.where(spread > 0, spread, 1.0)
+    k = max(MIN_TRACES, int(round(fraction * y.shape[0])))
+    return np.sort(np.argsort(np.hypot(z[:, 0], z[:, 1]), kind="stable")[:k])
 
 
 def _start(known, f_hz, ratio, lo, hi):

@@ -111,6 +111,7 @@ def _plot(result, path) -> None:
 
 def _markdown(r) -> str:
     rv, rr, hm = r["recorded_vs_fitted"], r["residual_rel"], r["healthy_mode"]
+    mt = r["mean_trace_recorded_vs_fitted"]
     lines = [
         f"# Calibration fit report: {r['profile']}",
         "",
@@ -120,10 +121,14 @@ def _markdown(r) -> str:
         "",
         "| quantity | recorded | fitted |",
         "|---|---|---|",
-        f"| dominant frequency (median, kHz) | {rv['dominant_frequency_hz'][0] / 1e3:.2f} | "
+        f"| mean trace: dominant frequency (kHz) | {mt['dominant_frequency_hz'][0] / 1e3:.2f} | "
+        f"{mt['dominant_frequency_hz'][1] / 1e3:.2f} |",
+        f"| mean trace: damping ratio | {mt['damping_ratio'][0]:.4f} | {mt['damping_ratio'][1]:.4f} |",
+        f"| mean trace: amplitude (V) | {mt['amplitude_v'][0]:.4g} | {mt['amplitude_v'][1]:.4g} |",
+        f"| per trace: dominant frequency (median, kHz) | {rv['dominant_frequency_hz'][0] / 1e3:.2f} | "
         f"{rv['dominant_frequency_hz'][1] / 1e3:.2f} |",
-        f"| damping ratio (median) | {rv['damping_ratio'][0]:.4f} | {rv['damping_ratio'][1]:.4f} |",
-        f"| amplitude (median, V) | {rv['amplitude_v'][0]:.4g} | {rv['amplitude_v'][1]:.4g} |",
+        f"| per trace: damping ratio (median) | {rv['damping_ratio'][0]:.4f} | {rv['damping_ratio'][1]:.4f} |",
+        f"| per trace: amplitude (median, V) | {rv['amplitude_v'][0]:.4g} | {rv['amplitude_v'][1]:.4g} |",
         f"| frequency spread (robust std, kHz; fitted = calibrated head simulated) | "
         f"{rv['frequency_std_hz'][0] / 1e3:.2f} | {rv['frequency_std_hz'][1] / 1e3:.2f} |",
         f"| damping spread (robust std) | {rv['damping_std'][0]:.4f} | {rv['damping_std'][1]:.4f} |",
