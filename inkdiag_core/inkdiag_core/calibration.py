@@ -389,7 +389,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
         convention = "sensor.gain_v_per_m3s = 1e10 V/(m^3/s), the default head's"
         b = amp / gain
     sensor = {"gain_v_per_m3s": gain, "offset_v": float(np.median(o)), "noise_std_v": noise}
-        calibrated = nominal.replace(
+    calibrated = nominal.replace(
         name=name or nominal.name,
         channel={"r_r": r_r, "L_r": L_r, "B_act": float(B_act), "b": b},
         sensor={**sensor, "snr_db": None},
