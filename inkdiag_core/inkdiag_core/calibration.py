@@ -264,9 +264,11 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     Parameters
     ----------
     nominal : HeadProfile
-        The nominal profile: sampling, drive and :data:`~inkdiag_core.head_profile.NOMINAL_CHANNEL_KEYS`
-        (further keys it gives, such as ``sensor.gain_v_per_m3s`` or ``channel.b``,
-        are kept). A complete profile is accepted too; its fitted keys are refitted.
+        The nominal profile: sampling, drive and :data:`~inkdiag_core.head_profile.NOMINAL_CHANNEL_KEYS`.
+        When it gives the restrictor (``channel.r_r`` and ``channel.L_r``) they are kept
+        and only ``B_act`` is fitted to the shape; ``sensor.gain_v_per_m3s`` or
+        ``channel.b`` fix the amplitude convention. Every other key is (re)fitted, so a
+        complete profile is accepted too.
     traces : array_like, shape (n, n_samples)
         Recorded traces of healthy nozzles fired with ``nominal.drive``, V.
     sample_rate_hz : float
@@ -325,24 +327,42 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     lo = scale + np.log([_BOUNDS_REL[p][0] for p in _PARAMS])
     hi = scale + np.log([_BOUNDS_REL[p][1] for p in _PARAMS])
     prior = np.array([np.log(known.I_n * PRIOR_RATIOS["I_r/I_n"]), np.log(known.R_n * PRIOR_RATIOS["R_r/R_n"])])
+    ch = nominal.channel
+    fixed_restrictor = "r_r" in ch and "L_r" in ch  # a datasheet's restrictor: kept, only B_act is fitted
+    full = np.zeros(3)
+    if fixed_restrictor:
+        full[1:] = np.log([known.rho * ch["L_r"] / (math.pi * ch["r_r"] ** 2),
+                           8.0 * known.mu * ch["L_r"] / (math.pi * ch["r_r"] ** 4)])
+        if not (lo[1:] <= full[1:]).all() or not (full[1:] <= hi[1:]).all():
+            raise CalibrationError(f"the nominal profile's restrictor (r_r {ch['r_r']:g} m, L_r {ch['L_r']:g} m) is "
+                                   "outside the range calibration fits (I_r 0.02-50 I_n, R_r 0.01-100 R_n)")
+    free = np.array([0]) if fixed_restrictor else np.arange(3)
 
-    def fun(theta):
+    def theta_of(x):
+        th = full.copy()
+        th[free] = x
+        return th
+
+    def fun(x):
+        theta = theta_of(x)
         s = _response(known, theta)[0]
         r = (_project(mean[None, :], s)[2][0] - mean) / sigma_d
-        return np.concatenate([r, (theta[1:] - prior) / PRIOR_SD_LOG])
+        return r if fixed_restrictor else np.concatenate([r, (theta[1:] - prior) / PRIOR_SD_LOG])
 
     fits = []
-    for ratio in _STARTS:
-        x0 = _start(known, f_rec, ratio, lo, hi)
+    starts = [full[1:]] if fixed_restrictor else [
+        np.log([ratio * known.I_n, PRIOR_RATIOS["R_r/R_n"] * known.R_n]) for ratio in _STARTS]
+    for restrictor in starts:
+        x0 = _start(known, f_rec, restrictor, lo, hi)[free]
         try:
-            fits.append(least_squares(fun, x0, bounds=(lo, hi), method="trf", x_scale=1.0, max_nfev=400))
+            fits.append(least_squares(fun, x0, bounds=(lo[free], hi[free]), method="trf", max_nfev=400))
         except (ValueError, np.linalg.LinAlgError):  # pragma: no cover - a start outside the domain
             continue
     fits = [f for f in fits if np.isfinite(f.cost)]
     if not fits:
         raise CalibrationError("the fit failed from every start (the model gave non-finite traces)")
     best = min(fits, key=lambda f: f.cost)
-    theta = best.x
+    theta = theta_of(best.x)
     shape = _response(known, theta)[0]
     a_mean, o_mean, mean_fit = (v[0] for v in _project(mean[None, :], shape))
     resid_rel = float(np.sqrt(np.mean((mean_fit - mean) ** 2)) / mean_rms)
@@ -360,7 +380,8 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     chi2 = float(np.sum(best.fun[:m] ** 2))
     s2 = max(1.0, chi2 / max(1, m - len(_PARAMS)))
     Jw = np.vstack([J[:m] / math.sqrt(s2), J[m:]])  # data rows at the misfit's own scale, then the prior
-    sd_post = np.sqrt(np.clip(np.diag(np.linalg.pinv(Jw.T @ Jw)), 0, None))
+    sd_post = np.zeros(3)
+    sd_post[free] = np.sqrt(np.clip(np.diag(np.linalg.pinv(Jw.T @ Jw)), 0, None))
     sv = np.linalg.svd(J[:m] / math.sqrt(s2), compute_uv=False)
 
     # -- 3. every trace on the fitted shape ---------------------------------------------------
@@ -375,8 +396,11 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
 
     # -- the amplitude convention and the profile ----------------------------------------------
     B_act, I_r, R_r = np.exp(theta)
-    r_r = math.sqrt(8.0 * known.mu * I_r / (known.rho * R_r))
-    L_r = I_r * math.pi * r_r**2 / known.rho
+    if fixed_restrictor:
+        r_r, L_r = float(ch["r_r"]), float(ch["L_r"])
+    else:
+        r_r = math.sqrt(8.0 * known.mu * I_r / (known.rho * R_r))
+        L_r = I_r * math.pi * r_r**2 / known.rho
     amp = float(a_mean)  # = b * gain, V per unit response
     if "gain_v_per_m3s" in nominal.sensor:
         gain, convention = float(nominal.sensor["gain_v_per_m3s"]), "sensor.gain_v_per_m3s from the nominal profile"
@@ -411,8 +435,10 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     f_prof, z_prof = calibrated.healthy_mode()
     pinned = {}
     for i, p in enumerate(_PARAMS):
-        prior_sd = None if p == "B_act" else PRIOR_SD_LOG
-        if prior_sd is None:
+        prior_sd = None if p == "B_act" or fixed_restrictor else PRIOR_SD_LOG
+        if i not in free:
+            by = "nominal profile (channel.r_r, channel.L_r)"
+        elif prior_sd is None:
             by = "data" if sd_post[i] < 0.25 else "poorly determined"
         else:
             by = ("data" if sd_post[i] < 0.25 * prior_sd else "data and prior" if sd_post[i] < 0.75 * prior_sd
@@ -430,7 +456,8 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
         "n_dropped_nonfinite": n_dropped,
         "sample_rate_hz": fs,
         "n_samples": int(nominal.n_samples),
-        "fitted": {"channel.r_r": r_r, "channel.L_r": L_r, "channel.B_act": float(B_act), "channel.b": b,
+        "fitted": {**({} if fixed_restrictor else {"channel.r_r": r_r, "channel.L_r": L_r}),
+                   "channel.B_act": float(B_act), "channel.b": b,
                    "sensor.gain_v_per_m3s": gain, "sensor.offset_v": sensor["offset_v"],
                    "sensor.noise_std_v": noise, "spreads.gain_rel": gain_rel,
                    "spreads.offset_std_v": offset_std},
@@ -488,9 +515,9 @@ def _typical_rows(y, fs, fraction):
     return np.sort(np.argsort(np.hypot(z[:, 0], z[:, 1]), kind="stable")[:k])
 
 
-def _start(known, f_hz, ratio, lo, hi):
-    """Log-parameters with ``I_r = ratio I_n``, ``R_r = R_n / 2`` and ``B_act`` matching ``f_hz``."""
-    th = np.array([np.log(known.B_liq), np.log(ratio * known.I_n), np.log(PRIOR_RATIOS["R_r/R_n"] * known.R_n)])
+def _start(known, f_hz, restrictor, lo, hi):
+    """Log-parameters with the restrictor's ``(ln I_r, ln R_r)`` given and ``B_act`` matching ``f_hz``."""
+    th = np.array([np.log(known.B_liq), restrictor[0], restrictor[1]])
 
     def g(lb):
         return float(_mode(known, np.array([lb, th[1], th[2]]))[0][0]) - f_hz

@@ -117,3 +117,17 @@ def test_a_mode_the_nominal_channel_cannot_reach_is_refused(recorded):
     nominal = nominal_of(TRUE).replace(channel={"V_ch": 3e-9})
     with pytest.raises(CalibrationError, match="dominant mode 27[0-9].[0-9] kHz is outside what the nominal channel"):
         calibrate(nominal, recorded.traces, TRUE.sample_rate_hz)
+
+
+def test_a_datasheets_restrictor_is_kept_and_fixes_the_blocked_mode(recorded):
+    nominal = nominal_of(TRUE).replace(channel={"r_r": TRUE.channel["r_r"], "L_r": TRUE.channel["L_r"]})
+    r = calibrate(nominal, recorded.traces[:100], TRUE.sample_rate_hz)
+    p = r.profile
+    assert (p.channel["r_r"], p.channel["L_r"]) == (TRUE.channel["r_r"], TRUE.channel["L_r"])
+    assert "channel.r_r" not in r.report["fitted"] and "channel.B_act" in r.report["fitted"]
+    assert r.report["identifiability"]["parameters"]["I_r"]["determined_by"].startswith("nominal profile")
+    assert abs(p.channel["B_act"] / TRUE.channel["B_act"] - 1) < 0.05
+    # the restrictor-only mode (a fully blocked nozzle) follows the true channel
+    f_true = np.median(TRUE.simulate({"fully_blocked": 50}, seed=5).frequency_hz)
+    f_cal = np.median(p.simulate({"fully_blocked": 50}, seed=5).frequency_hz)
+    assert abs(f_cal / f_true - 1) < 0.02
