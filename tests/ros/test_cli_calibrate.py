@@ -105,3 +105,18 @@ def test_without_matplotlib_the_report_says_so(files, tmp_path, monkeypatch, cap
     report = json.loads((tmp_path / "rep" / "head.fit.json").read_text())
     assert report["figure"] is None and not (tmp_path / "rep" / "head.fit.png").exists()
     assert "No figure: matplotlib is not installed" in (tmp_path / "rep" / "head.fit.md").read_text()
+
+
+def test_a_labelled_recording_calibrates_on_its_healthy_rows(tmp_path, capsys):
+    sim = TRUE.simulate({"healthy_nozzle": 60, "fully_blocked": 20}, seed=4)
+    save_recording(tmp_path / "mixed.npz", Recording.from_arrays(sim.traces, TRUE.sample_rate_hz, label=sim.labels))
+    doc = TRUE.to_dict()
+    doc.pop("sensor")
+    doc["channel"] = {k: doc["channel"][k] for k in NOMINAL_CHANNEL_KEYS}
+    HeadProfile.from_dict(doc).save(tmp_path / "nominal.yaml")
+    status = cli.main(["calibrate", str(tmp_path / "mixed.npz"), "--nominal", str(tmp_path / "nominal.yaml"),
+                       "--out", str(tmp_path / "head.yaml")])
+    assert status == 0
+    assert "(60 traces, 0 dropped; 20 rows labelled otherwise left out)" in capsys.readouterr().out
+    assert json.loads((tmp_path / "head.fit.json").read_text())["n_rows_left_out_by_label"] == 20
+    assert abs(HeadProfile.load(tmp_path / "head.yaml").healthy_mode()[0] / TRUE.healthy_mode()[0] - 1) < 0.01

@@ -23,7 +23,8 @@ frequency, damping, amplitude and the RMS residual, and which parameters the dat
 pinned and which the prior (the default head's design ratios) fixed.
 
 The recording (.npz) must have the nominal profile's sample rate and trace length.
-Traces with non-finite samples are dropped and counted. See docs/calibration.md.
+Traces with non-finite samples are dropped and counted; if the recording has a label
+column, only its healthy_nozzle rows are used. See docs/calibration.md.
 
 example:
   inkdiag calibrate healthy.npz --nominal nominal.yaml --out head.yaml
@@ -53,17 +54,25 @@ def run(args) -> int:
     nominal = HeadProfile.load(args.nominal)
     rec = load_recording(args.healthy)
     nominal.check_traces(rec.traces, rec.sample_rate_hz, what=f"{args.healthy}")
+    traces, note, left_out = rec.traces, "", 0
+    if rec.label is not None:  # a labelled recording: its healthy rows only
+        keep = rec.label == "healthy_nozzle"
+        if not keep.any():
+            raise ValueError(f"{args.healthy}: its label column has no healthy_nozzle row to calibrate from")
+        traces = rec.traces[keep]
+        left_out = int((~keep).sum())
+        note = f"; {left_out} rows labelled otherwise left out"
     out = Path(args.out)
     report_dir = Path(args.report_dir) if args.report_dir else out.parent
     if not out.parent.is_dir():
         raise OSError(f"{out.parent}: no such directory for --out")
     report_dir.mkdir(parents=True, exist_ok=True)
-    result = calibrate(nominal, rec.traces, rec.sample_rate_hz, name=args.name, seed=args.seed)
+    result = calibrate(nominal, traces, rec.sample_rate_hz, name=args.name, seed=args.seed)
     result.profile.save(out)
     stem = report_dir / out.name.removesuffix(".yaml").removesuffix(".yml")
     png = stem.with_name(stem.name + ".fit.png")
     report = dict(result.report, recording=str(args.healthy), nominal=str(args.nominal), profile=str(out),
-                  profile_sha256=result.profile.sha256)
+                  profile_sha256=result.profile.sha256, n_rows_left_out_by_label=left_out)
     try:
         _plot(result, png)
         report["figure"] = png.name
@@ -73,7 +82,7 @@ def run(args) -> int:
     stem.with_name(stem.name + ".fit.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     stem.with_name(stem.name + ".fit.md").write_text(_markdown(report), encoding="utf-8")
     rv = report["recorded_vs_fitted"]
-    print(f"inkdiag calibrate: {out} ({report['n_traces']} traces, {report['n_dropped_nonfinite']} dropped); "
+    print(f"inkdiag calibrate: {out} ({report['n_traces']} traces, {report['n_dropped_nonfinite']} dropped{note}); "
           f"healthy mode {report['healthy_mode']['frequency_hz'] / 1e3:.1f} kHz, damping "
           f"{report['healthy_mode']['damping_ratio']:.3f}; recorded/fitted {rv['dominant_frequency_hz'][0] / 1e3:.1f}/"
           f"{rv['dominant_frequency_hz'][1] / 1e3:.1f} kHz; residual {100 * report['residual_rel']['per_trace_median']:.1f} "
