@@ -73,7 +73,7 @@ from scipy.optimize import brentq, least_squares
 from .checks import InputError
 from .head_profile import NOMINAL_CHANNEL_KEYS, HeadProfile, ProfileError
 from .kpis import extract_kpis
-from .simulation.channels import PHYSICAL_CONSTANTS, Spreads
+from .simulation.channels import PHYSICAL_CONSTANTS
 from .simulation.modal import cubic_roots, modal_solution
 
 __all__ = [

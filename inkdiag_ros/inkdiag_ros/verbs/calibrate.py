@@ -61,7 +61,7 @@ def run(args) -> int:
             raise ValueError(f"{args.healthy}: its label column has no healthy_nozzle row to calibrate from")
         traces = rec.traces[keep]
         left_out = int((~keep).sum())
-        note = f"; {left_out} rows labelled otherwise left out"
+        note = f"; {left_out} rows labelled otherwise left out" if left_out else ""
     out = Path(args.out)
     report_dir = Path(args.report_dir) if args.report_dir else out.parent
     if not out.parent.is_dir():
@@ -81,13 +81,12 @@ def run(args) -> int:
         report["figure_note"] = "matplotlib is not installed: no PNG overlay (pip install matplotlib)"
     stem.with_name(stem.name + ".fit.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     stem.with_name(stem.name + ".fit.md").write_text(_markdown(report), encoding="utf-8")
-    rv = report["recorded_vs_fitted"]
+    mt, hm, rr = report["mean_trace_recorded_vs_fitted"], report["healthy_mode"], report["residual_rel"]
     print(f"inkdiag calibrate: {out} ({report['n_traces']} traces, {report['n_dropped_nonfinite']} dropped{note}); "
-          f"healthy mode {report['healthy_mode']['frequency_hz'] / 1e3:.1f} kHz, damping "
-          f"{report['healthy_mode']['damping_ratio']:.3f}; recorded/fitted {rv['dominant_frequency_hz'][0] / 1e3:.1f}/"
-          f"{rv['dominant_frequency_hz'][1] / 1e3:.1f} kHz; residual {100 * report['residual_rel']['per_trace_median']:.1f} "
-          f"% of the trace RMS (noise floor {100 * report['residual_rel']['noise_floor']:.1f} %); report "
-          f"{stem.name}.fit.md", file=sys.stdout)
+          f"healthy mode {hm['frequency_hz'] / 1e3:.1f} kHz, damping {hm['damping_ratio']:.3f}; mean trace "
+          f"recorded/fitted {mt['dominant_frequency_hz'][0] / 1e3:.1f}/{mt['dominant_frequency_hz'][1] / 1e3:.1f} kHz; "
+          f"residual {100 * rr['per_trace_median']:.1f} % of the trace RMS (noise alone "
+          f"{100 * rr['noise_floor']:.1f} %); report {stem.name}.fit.md", file=sys.stdout)
     if report["figure"] is None:
         print(f"inkdiag calibrate: {report['figure_note']}", file=sys.stderr)
     return 0
