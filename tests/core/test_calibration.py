@@ -131,3 +131,11 @@ def test_a_datasheets_restrictor_is_kept_and_fixes_the_blocked_mode(recorded):
     f_true = np.median(TRUE.simulate({"fully_blocked": 50}, seed=5).frequency_hz)
     f_cal = np.median(p.simulate({"fully_blocked": 50}, seed=5).frequency_hz)
     assert abs(f_cal / f_true - 1) < 0.02
+
+
+def test_a_fit_the_nominal_channel_cannot_make_says_why(recorded):
+    # a chamber 10 x larger: the mode is reachable only with a restrictor that damps it far too much
+    nominal = nominal_of(TRUE).replace(channel={"V_ch": 3e-11})
+    why = "RMS residual of [0-9]+ % .*recorded mode 2[67][0-9].[0-9] kHz.*fitted 1[0-9][0-9].[0-9] kHz"
+    with pytest.raises(CalibrationError, match=why):
+        calibrate(nominal, recorded.traces[:40], TRUE.sample_rate_hz)
