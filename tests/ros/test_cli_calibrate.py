@@ -120,3 +120,27 @@ def test_a_labelled_recording_calibrates_on_its_healthy_rows(tmp_path, capsys):
     assert "(60 traces, 0 dropped; 20 rows labelled otherwise left out)" in capsys.readouterr().out
     assert json.loads((tmp_path / "head.fit.json").read_text())["n_rows_left_out_by_label"] == 20
     assert abs(HeadProfile.load(tmp_path / "head.yaml").healthy_mode()[0] / TRUE.healthy_mode()[0] - 1) < 0.01
+
+
+@pytest.mark.parametrize("head, tol_dried", [("h20", 0.08), ("h5", 0.03)])
+def test_a_foreign_head_through_the_cli(tmp_path, capsys, head, tol_dried):
+    """Traces from the independent simulator, its nominal profile, ``inkdiag calibrate`` as documented."""
+    import foreign_head as fh
+
+    fh.write_recording(tmp_path / "healthy.npz", fh.simulate_foreign(head, {"healthy_nozzle": 300}, seed=1))
+    fh.write_nominal_yaml(tmp_path / "nominal.yaml", head)
+    fh.write_true_yaml(tmp_path / "true.yaml", head)
+    status = cli.main(["calibrate", str(tmp_path / "healthy.npz"), "--nominal", str(tmp_path / "nominal.yaml"),
+                       "--out", str(tmp_path / "head.yaml")])
+    assert status == 0, capsys.readouterr().err
+    p, true = HeadProfile.load(tmp_path / "head.yaml"), HeadProfile.load(tmp_path / "true.yaml")
+    assert p.is_complete
+    assert abs(p.healthy_mode()[0] / true.healthy_mode()[0] - 1) < 0.01
+    assert abs(p.healthy_mode()[1] / true.healthy_mode()[1] - 1) < 0.10
+    assert abs(p.channel["b"] * p.sensor_gain_v_per_m3s / (true.channel["b"] * true.sensor_gain_v_per_m3s) - 1) < 0.03
+    assert abs(p.noise_std_v() / true.noise_std_v() - 1) < 0.05
+    # where the fault classes land: the restrictor-loading classes carry the weakly identified split
+    for cls in ("deeply_dried", "fully_blocked"):
+        f_true = np.median(true.simulate({cls: 100}, seed=5).frequency_hz)
+        f_cal = np.median(p.simulate({cls: 100}, seed=5).frequency_hz)
+        assert abs(f_cal / f_true - 1) < tol_dried, cls
