@@ -510,7 +510,7 @@ def _typical_rows(y, fs, fraction):
 
     Averaging traces of different frequencies damps their mean (they dephase) and
     distorts its shape along the direction the data pin least; averaging only the
-    typical ones keeps that bias about ``fraction**2`` as small.
+    typical ones makes that bias smaller.
     """
     kp = extract_kpis(y, fs)[:, 1:3]
     med = np.median(kp, axis=0)
