@@ -28,9 +28,10 @@ numbers; the real pole and the modal amplitudes (their ratio, their phase agains
 the drive) carry the third, weakly. So ``B_act`` is pinned by the data, ``I_r`` and
 ``R_r`` in part: a prior from the default head's design ratios
 (``I_r = 1.03 I_n``, ``R_r = R_n / 2``, a log-normal of standard deviation
-``ln 1.25``, see :data:`PRIOR_SD_LOG`) regularises the direction the data leave open. The report
-says, per parameter, whether the data or the prior fixed it (its posterior standard
-error against the prior's).
+``ln 1.25``, see :data:`PRIOR_SD_LOG`) regularises the direction the data leave
+open. A nominal profile that gives the restrictor (``r_r`` and ``L_r``) keeps it, and
+only ``B_act`` is fitted to the shape. The report says, per parameter, whether the
+data or the prior fixed it (its posterior standard error against the prior's).
 
 The amplitude gives only the product ``b * gain``: one of the two is fixed by a
 convention. The sensor gain is kept when the nominal profile gives one; otherwise
@@ -44,8 +45,7 @@ Method
 2. Fit the mean of the typical traces (the :data:`TYPICAL_FRACTION` nearest the median
    dominant frequency and damping: averaging traces of different frequencies would
    damp the mean and bias the weakly identified direction; the per-trace gain and
-   offset average out) with
-   :func:`scipy.optimize.least_squares` (trust region reflective, bounds) on the
+   offset average out) with :func:`scipy.optimize.least_squares` (trust region reflective, bounds) on the
    log-parameters ``(B_act, I_r, R_r)``; amplitude and offset are solved by linear
    least squares for each shape (variable projection). Data residuals are scaled by
    the noise of the mean trace (floored at 0.1 % of its RMS); the prior adds two
@@ -53,8 +53,9 @@ Method
    set to match the recorded dominant frequency); the lowest cost wins.
 3. Project every trace on the fitted shape and its derivatives in the three
    log-parameters (each trace's own small shape change, to first order): per-trace
-   amplitude and offset by linear least squares, the residual, the white noise from a high-order difference of the
-   residual (which removes what is left of the signal), less the ADC's quantisation.
+   amplitude and offset by linear least squares, the residual, the white noise from a
+   high-order difference of the residual (which removes what is left of the signal),
+   less the ADC's quantisation.
 4. Per-trace spreads: the spread of log-amplitudes and offsets over the recording,
    less what the simulator's other spreads and the noise give on the calibrated head
    (simulated with no gain or offset spread, projected the same way), is the gain
