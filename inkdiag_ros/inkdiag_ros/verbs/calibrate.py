@@ -1,12 +1,167 @@
-"""``inkdiag calibrate``: (being written)."""
+"""``inkdiag calibrate``: a complete head profile from a nominal one and recorded healthy traces.
 
-HELP = "calibrate (not yet available)"
-DESCRIPTION = HELP
+    inkdiag calibrate HEALTHY --nominal NOMINAL.yaml --out HEAD.yaml [--report-dir DIR] [--name NAME]
+
+Reads the recording (:func:`inkdiag_core.load_recording`), fits what the nominal
+profile leaves out (:func:`inkdiag_core.calibration.calibrate`), writes the
+complete profile and a fit report beside it: ``HEAD.fit.json`` (every number),
+``HEAD.fit.md`` (a table for people) and ``HEAD.fit.png`` (recorded and fitted
+traces overlaid; needs matplotlib, otherwise the report says it is missing).
+See ``docs/calibration.md``.
+"""
+
+from __future__ import annotations
+
+HELP = "fit a complete head profile to recorded healthy traces"
+DESCRIPTION = """\
+Fit what a nominal head profile leaves out (channel r_r, L_r, B_act, b; the sensor
+gain, offset and noise; the per-trace gain and offset spreads) to a recording of
+healthy nozzles fired with the profile's drive, from the whole waveform, with
+scipy.optimize.least_squares. Writes the complete profile (--out) and a fit report
+beside it (OUT.fit.json, OUT.fit.md, OUT.fit.png): recorded vs fitted dominant
+frequency, damping, amplitude and the RMS residual, and which parameters the data
+pinned and which the prior (the default head's design ratios) fixed.
+
+The recording (.npz) must have the nominal profile's sample rate and trace length.
+Traces with non-finite samples are dropped and counted; if the recording has a label
+column, only its healthy_nozzle rows are used. See docs/calibration.md.
+
+example:
+  inkdiag calibrate healthy.npz --nominal nominal.yaml --out head.yaml
+"""
 
 
 def add_arguments(parser) -> None:
-    pass
+    parser.add_argument("healthy", metavar="HEALTHY", help="recording (.npz) of healthy traces, volts")
+    parser.add_argument("--nominal", metavar="NOMINAL.yaml", required=True,
+                        help="nominal head profile: sampling, drive, channel rho, mu, r_n, L_n, V_ch, c")
+    parser.add_argument("--out", metavar="HEAD.yaml", required=True, help="complete head profile to write")
+    parser.add_argument("--report-dir", metavar="DIR", default=None,
+                        help="where to write the fit report (default: beside --out)")
+    parser.add_argument("--name", default=None, help="name of the calibrated profile (default: the nominal's)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the spread-separating simulation (default 0)")
 
 
 def run(args) -> int:
-    raise NotImplementedError("inkdiag calibrate is not available yet")
+    import json
+    import sys
+    from pathlib import Path
+
+    from inkdiag_core.calibration import calibrate
+    from inkdiag_core.head_profile import HeadProfile
+    from inkdiag_core.recording import load_recording
+
+    nominal = HeadProfile.load(args.nominal)
+    rec = load_recording(args.healthy)
+    nominal.check_traces(rec.traces, rec.sample_rate_hz, what=f"{args.healthy}")
+    traces, note, left_out = rec.traces, "", 0
+    if rec.label is not None:  # a labelled recording: its healthy rows only
+        keep = rec.label == "healthy_nozzle"
+        if not keep.any():
+            raise ValueError(f"{args.healthy}: its label column has no healthy_nozzle row to calibrate from")
+        traces = rec.traces[keep]
+        left_out = int((~keep).sum())
+        note = f"; {left_out} rows labelled otherwise left out" if left_out else ""
+    out = Path(args.out)
+    report_dir = Path(args.report_dir) if args.report_dir else out.parent
+    if not out.parent.is_dir():
+        raise OSError(f"{out.parent}: no such directory for --out")
+    report_dir.mkdir(parents=True, exist_ok=True)
+    result = calibrate(nominal, traces, rec.sample_rate_hz, name=args.name, seed=args.seed)
+    result.profile.save(out)
+    stem = report_dir / out.name.removesuffix(".yaml").removesuffix(".yml")
+    png = stem.with_name(stem.name + ".fit.png")
+    report = dict(result.report, recording=str(args.healthy), nominal=str(args.nominal), profile=str(out),
+                  profile_sha256=result.profile.sha256, n_rows_left_out_by_label=left_out)
+    try:
+        _plot(result, png)
+        report["figure"] = png.name
+    except ImportError:
+        report["figure"] = None
+        report["figure_note"] = "matplotlib is not installed: no PNG overlay (pip install matplotlib)"
+    stem.with_name(stem.name + ".fit.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    stem.with_name(stem.name + ".fit.md").write_text(_markdown(report), encoding="utf-8")
+    mt, hm, rr = report["mean_trace_recorded_vs_fitted"], report["healthy_mode"], report["residual_rel"]
+    print(f"inkdiag calibrate: {out} ({report['n_traces']} traces, {report['n_dropped_nonfinite']} dropped{note}); "
+          f"healthy mode {hm['frequency_hz'] / 1e3:.1f} kHz, damping {hm['damping_ratio']:.3f}; mean trace "
+          f"recorded/fitted {mt['dominant_frequency_hz'][0] / 1e3:.1f}/{mt['dominant_frequency_hz'][1] / 1e3:.1f} kHz; "
+          f"residual {100 * rr['per_trace_median']:.1f} % of the trace RMS (noise alone "
+          f"{100 * rr['noise_floor']:.1f} %); report {stem.name}.fit.md", file=sys.stdout)
+    if report["figure"] is None:
+        print(f"inkdiag calibrate: {report['figure_note']}", file=sys.stderr)
+    return 0
+
+
+def _plot(result, path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t_us = result.t_s * 1e6
+    k = result.examples_recorded.shape[0]
+    fig, axes = plt.subplots(k + 1, 1, figsize=(8, 1.8 * (k + 1)), sharex=True)
+    axes[0].plot(t_us, result.mean_recorded, lw=1.2, label="recorded (mean)")
+    axes[0].plot(t_us, result.mean_fitted, lw=1.0, ls="--", label="fitted")
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[0].set_ylabel("V")
+    axes[0].set_title(f"{result.profile.name}: mean of {result.report['n_traces']} healthy traces")
+    for ax, row, rec, fit in zip(axes[1:], result.example_rows, result.examples_recorded, result.examples_fitted):
+        ax.plot(t_us, rec, lw=0.8, label=f"recorded row {int(row)}")
+        ax.plot(t_us, fit, lw=0.8, ls="--", label="fitted")
+        ax.legend(loc="upper right", fontsize=8)
+        ax.set_ylabel("V")
+    axes[-1].set_xlabel("time from the first sensed sample (us)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _markdown(r) -> str:
+    rv, rr, hm = r["recorded_vs_fitted"], r["residual_rel"], r["healthy_mode"]
+    mt = r["mean_trace_recorded_vs_fitted"]
+    lines = [
+        f"# Calibration fit report: {r['profile']}",
+        "",
+        f"Recording `{r['recording']}`: {r['n_traces']} healthy traces used, {r['n_dropped_nonfinite']} dropped "
+        f"(non-finite samples); {r['sample_rate_hz'] / 1e6:g} MHz x {r['n_samples']} samples. Nominal profile "
+        f"`{r['nominal']}`. Profile sha256 `{r['profile_sha256'][:16]}`.",
+        "",
+        "| quantity | recorded | fitted |",
+        "|---|---|---|",
+        f"| mean trace: dominant frequency (kHz) | {mt['dominant_frequency_hz'][0] / 1e3:.2f} | "
+        f"{mt['dominant_frequency_hz'][1] / 1e3:.2f} |",
+        f"| mean trace: damping ratio | {mt['damping_ratio'][0]:.4f} | {mt['damping_ratio'][1]:.4f} |",
+        f"| mean trace: amplitude (V) | {mt['amplitude_v'][0]:.4g} | {mt['amplitude_v'][1]:.4g} |",
+        f"| per trace: dominant frequency (median, kHz) | {rv['dominant_frequency_hz'][0] / 1e3:.2f} | "
+        f"{rv['dominant_frequency_hz'][1] / 1e3:.2f} |",
+        f"| per trace: damping ratio (median) | {rv['damping_ratio'][0]:.4f} | {rv['damping_ratio'][1]:.4f} |",
+        f"| per trace: amplitude (median, V) | {rv['amplitude_v'][0]:.4g} | {rv['amplitude_v'][1]:.4g} |",
+        f"| frequency spread (robust std, kHz; fitted = calibrated head simulated) | "
+        f"{rv['frequency_std_hz'][0] / 1e3:.2f} | {rv['frequency_std_hz'][1] / 1e3:.2f} |",
+        f"| damping spread (robust std) | {rv['damping_std'][0]:.4f} | {rv['damping_std'][1]:.4f} |",
+        "",
+        f"Healthy mode of the calibrated channel: {hm['frequency_hz'] / 1e3:.2f} kHz, damping ratio "
+        f"{hm['damping_ratio']:.4f}.",
+        "",
+        f"RMS residual relative to the trace RMS: mean trace {100 * rr['mean_trace']:.2f} %, per trace median "
+        f"{100 * rr['per_trace_median']:.2f} % (P90 {100 * rr['per_trace_p90']:.2f} %); the white noise alone is "
+        f"{100 * rr['noise_floor']:.2f} %.",
+        "",
+        "| fitted | value |",
+        "|---|---|",
+    ]
+    lines += [f"| {k} | {v:.6g} |" for k, v in r["fitted"].items()]
+    lines += ["", f"Amplitude convention (only b x gain is identified): {r['amplitude_convention']}.", "",
+              "| parameter | value | posterior sd (log) | prior sd (log) | determined by |", "|---|---|---|---|---|"]
+    for p, d in r["identifiability"]["parameters"].items():
+        prior = "-" if d["prior_sd_log"] is None else f"{d['prior_sd_log']:.3f}"
+        lines.append(f"| {p} | {d['value']:.4g} | {d['sd_log']:.3g} | {prior} | {d['determined_by']} |")
+    lines += ["", f"Prior: I_r/I_n = {r['prior']['I_r/I_n']}, R_r/R_n = {r['prior']['R_r/R_n']}, log-normal sd "
+              f"{r['prior']['sd_log']:.3f}. Optimiser: {r['optimiser']['method']}, {r['optimiser']['nfev']} "
+              f"evaluations of the best start, status {r['optimiser']['status']} ({r['optimiser']['message']}).", ""]
+    if r.get("figure"):
+        lines += [f"![recorded and fitted traces]({r['figure']})", ""]
+    else:
+        lines += [f"No figure: {r.get('figure_note', 'not written')}.", ""]
+    return "\n".join(lines)

@@ -1,0 +1,548 @@
+"""Calibration: a complete head profile from a nominal one and recorded healthy traces.
+
+A *nominal* profile (:class:`~inkdiag_core.head_profile.HeadProfile`) gives what a
+datasheet and the drive settings give: the sampling, the drive pulse, and the ink and
+nozzle (``rho, mu, r_n, L_n, V_ch, c``). :func:`calibrate` fits what it leaves out
+(``r_r, L_r, B_act, b``, the sensor gain and offset, the white-noise level and the
+per-trace gain and offset spreads) to recorded traces of healthy nozzles fired with
+that drive, and returns the complete profile with a fit report.
+
+The model
+---------
+The fitted trace is the core's own linear model, the exact modal response the
+simulator uses (:func:`inkdiag_core.simulation.modal.modal_solution`): the outflow
+``y(t)`` of the 3-state model (eq. 12) after the trapezoidal drive, from the first
+sensed sample on, in volts ``v = gain * y + offset``. The whole waveform is fitted,
+not only its dominant mode: the complex pole pair, the real pole, the modal
+amplitudes and their phase relative to the known drive timing.
+
+What healthy traces identify (see ``docs/calibration.md``)
+-----------------------------------------------------------
+With ``rho, mu, r_n, L_n`` known, the nozzle's inertance ``I_n`` and resistance
+``R_n`` are known, and so is the liquid compliance ``V_ch / (rho c^2)``. The shape
+of a healthy trace depends on three unknowns: the total compliance ``B_t`` (so
+``B_act``), the restrictor's inertance ``I_r`` and resistance ``R_r`` (the
+restrictor's radius and length follow: ``R_r / I_r = 8 mu / (rho r_r^2)``,
+``I_r = rho L_r / (pi r_r^2)``). The complex pole pair (frequency, damping) gives two
+numbers; the real pole and the modal amplitudes (their ratio, their phase against
+the drive) carry the third, weakly. So ``B_act`` is pinned by the data, ``I_r`` and
+``R_r`` in part: a prior from the default head's design ratios
+(``I_r = 1.03 I_n``, ``R_r = R_n / 2``, a log-normal of standard deviation
+``ln 1.25``, see :data:`PRIOR_SD_LOG`) regularises the direction the data leave
+open. A nominal profile that gives the restrictor (``r_r`` and ``L_r``) keeps it, and
+only ``B_act`` is fitted to the shape. The report says, per parameter, whether the
+data or the prior fixed it (its posterior standard error against the prior's).
+
+The amplitude gives only the product ``b * gain``: one of the two is fixed by a
+convention. The sensor gain is kept when the nominal profile gives one; otherwise
+``b`` when it gives that; otherwise the gain is the default head's
+``1e10 V/(m^3/s)`` and ``b`` is fitted. Downstream (simulation, features,
+estimators) only the product and the shape matter.
+
+Method
+------
+1. Drop traces with non-finite samples (counted in the report).
+2. Fit the mean of the typical traces (the :data:`TYPICAL_FRACTION` nearest the median
+   dominant frequency and damping: averaging traces of different frequencies would
+   damp the mean and bias the weakly identified direction; the per-trace gain and
+   offset average out) with :func:`scipy.optimize.least_squares` (trust region reflective, bounds) on the
+   log-parameters ``(B_act, I_r, R_r)``; amplitude and offset are solved by linear
+   least squares for each shape (variable projection). Data residuals are scaled by
+   the noise of the mean trace (floored at 0.1 % of its RMS); the prior adds two
+   residual rows. Three starts (``I_r / I_n`` = 1.03, 0.3, 3, each with ``B_act``
+   set to match the recorded dominant frequency); the lowest cost wins.
+3. Project every trace on the fitted shape and its derivatives in the three
+   log-parameters (each trace's own small shape change, to first order): per-trace
+   amplitude and offset by linear least squares, the residual, the white noise from a
+   high-order difference of the residual (which removes what is left of the signal),
+   less the ADC's quantisation.
+4. Per-trace spreads: the spread of log-amplitudes and offsets over the recording,
+   less what the simulator's other spreads and the noise give on the calibrated head
+   (simulated with no gain or offset spread, projected the same way), is the gain
+   and offset spread.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from types import SimpleNamespace
+
+import numpy as np
+from scipy.optimize import brentq, least_squares
+
+from .checks import InputError
+from .head_profile import NOMINAL_CHANNEL_KEYS, HeadProfile, ProfileError
+from .kpis import extract_kpis
+from .simulation.channels import PHYSICAL_CONSTANTS
+from .simulation.modal import cubic_roots, modal_solution
+
+__all__ = [
+    "CalibrationError",
+    "CalibrationResult",
+    "MIN_TRACES",
+    "PRIOR_RATIOS",
+    "PRIOR_SD_LOG",
+    "calibrate",
+    "healthy_response",
+]
+
+MIN_TRACES = 10
+"""Fewest finite healthy traces :func:`calibrate` accepts."""
+
+PRIOR_RATIOS = {"I_r/I_n": 1.03, "R_r/R_n": 0.5}
+"""The prior's centre: the default head's design ratios of restrictor to nozzle."""
+
+PRIOR_SD_LOG = math.log(1.25)
+"""Standard deviation of the prior on ``ln I_r`` and ``ln R_r`` (a factor of 1.25).
+
+Chosen on measurements (``docs/calibration.md``): along the direction the data pin
+least, the per-trace spreads of a real recording pull the fit further from the truth
+than the design ratios are from it (a factor of 2 let ``I_r`` reach 1.8 times its
+true value on the default head simulated independently)."""
+
+TYPICAL_FRACTION = 0.2
+"""Fraction of the traces, nearest the median frequency and damping, whose mean is fitted."""
+
+MAX_RESIDUAL_REL = 0.15
+"""A mean-trace fit whose RMS residual exceeds this fraction of the trace's RMS is refused."""
+
+_PARAMS = ("B_act", "I_r", "R_r")
+_BOUNDS_REL = {"B_act": (1e-3, 1e3), "I_r": (0.02, 50.0), "R_r": (0.01, 100.0)}  # of B_liq, I_n, R_n
+_STARTS = (1.03, 0.3, 3.0)  # I_r / I_n of the starts
+
+
+class CalibrationError(InputError):
+    """Healthy traces that calibration cannot fit (too few, no oscillation, a poor fit); says why."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    """What :func:`calibrate` returns.
+
+    Attributes
+    ----------
+    profile : HeadProfile
+        The complete profile (its ``calibration`` section is the provenance).
+    report : dict
+        The fit report, JSON-ready (see ``docs/calibration.md`` for its fields).
+    t_s : ndarray, shape (n_samples,)
+        Sample times from the first sensed sample, s.
+    mean_recorded, mean_fitted : ndarray, shape (n_samples,)
+        Mean recorded trace and the fitted model trace, V.
+    examples_recorded, examples_fitted : ndarray, shape (k, n_samples)
+        A few recorded traces (rows ``example_rows`` of the recording) and their fits, V.
+    example_rows : ndarray of int, shape (k,)
+    """
+
+    profile: HeadProfile
+    report: dict
+    t_s: np.ndarray
+    mean_recorded: np.ndarray
+    mean_fitted: np.ndarray
+    examples_recorded: np.ndarray
+    examples_fitted: np.ndarray
+    example_rows: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class _Known:
+    """What the nominal profile fixes: nozzle, liquid compliance, drive, sample times."""
+
+    I_n: float
+    R_n: float
+    B_liq: float
+    rho: float
+    mu: float
+    drive: object
+    t_s: np.ndarray
+
+    @classmethod
+    def of(cls, nominal: HeadProfile):
+        ch = nominal.channel
+        rho, mu, r_n, L_n = ch["rho"], ch["mu"], ch["r_n"], ch["L_n"]
+        mu_n = ch.get("mu_nozzle", mu)
+        I_n = rho * (L_n + math.pi * r_n / 4.0) / (math.pi * r_n**2)
+        R_n = 8.0 * mu_n * L_n / (math.pi * r_n**4)
+        B_liq = ch["V_ch"] / (rho * ch["c"] ** 2) + ch.get("B_extra", 0.0)
+        t = np.arange(nominal.n_samples) / nominal.sample_rate_hz
+        return cls(I_n, R_n, B_liq, rho, mu, nominal.drive, t)
+
+    def scale(self):
+        return np.array([self.B_liq, self.I_n, self.R_n])
+
+
+def _coefficients(known: _Known, theta):
+    """Model coefficients (k_r, k_n, d_r, d_n, b_r, b_n as (m,) arrays) for log-parameters ``theta`` (m, 3)."""
+    B_act, I_r, R_r = np.exp(np.atleast_2d(theta)).T
+    B_t = B_act + known.B_liq
+    k_r = 1.0 / (I_r * B_t)
+    k_n = 1.0 / (known.I_n * B_t)
+    d_r = R_r / I_r
+    d_n = np.full_like(d_r, known.R_n / known.I_n)
+    return SimpleNamespace(k_r=k_r, k_n=k_n, d_r=d_r, d_n=d_n, b_r=k_r, b_n=k_n)
+
+
+def _mode(known: _Known, theta):
+    """Dominant (complex pair) frequency, Hz, and damping ratio for log-parameters (m, 3)."""
+    c = _coefficients(known, theta)
+    lam = cubic_roots(c.d_r + c.d_n, c.d_r * c.d_n + c.k_r + c.k_n, c.k_r * c.d_n + c.k_n * c.d_r)
+    l0 = lam[:, 0]
+    osc = np.abs(l0.imag) > 0
+    return np.where(osc, np.abs(l0.imag) / (2 * np.pi), 0.0), np.where(osc, -l0.real / np.abs(l0), 1.0)
+
+
+def healthy_response(nominal: HeadProfile, B_act, I_r, R_r):
+    """Noise-free healthy traces of the linear model per unit ``b * gain``, vectorised over parameter sets.
+
+    Parameters
+    ----------
+    nominal : HeadProfile
+        Gives the nozzle, ink, chamber, drive and sampling (a nominal profile suffices).
+    B_act : array_like, shape (m,)
+        Actuator compliance, m^3/Pa.
+    I_r, R_r : array_like, shape (m,)
+        Restrictor inertance (kg/m^4) and resistance (Pa s/m^3).
+
+    Returns
+    -------
+    ndarray, shape (m, n_samples)
+        The outflow per unit coupling ``b`` (1 m^3/V) and unit gain (1 V per m^3/s): a
+        trace in volts is ``b * gain * response + offset``.
+    """
+    known = _Known.of(nominal)
+    theta = np.log(np.column_stack([np.atleast_1d(B_act), np.atleast_1d(I_r), np.atleast_1d(R_r)]))
+    return _response(known, theta)
+
+
+def _response(known: _Known, theta):
+    ch = _coefficients(known, theta)
+    m = ch.k_r.shape[0]
+    lam, coef, _ = modal_solution(ch, known.drive, np.full(m, known.drive.amplitude_v))
+    return np.einsum("mi,mit->mt", coef, np.exp(lam[:, :, None] * known.t_s)).real
+
+
+def _project(traces, shape, extra=None):
+    """Per-trace amplitude and offset on a unit shape by linear least squares.
+
+    ``extra`` (k, n_samples) are further basis traces (the shape's derivatives): each
+    trace's own small shape change, to first order. Returns ``(a, o, fitted)``: (n,),
+    (n,) and (n, n_samples).
+    """
+    cols = [shape] + ([] if extra is None else list(extra)) + [np.ones_like(shape)]
+    X = np.column_stack(cols)
+    coef = np.linalg.lstsq(X, traces.T, rcond=None)[0]
+    return coef[0], coef[-1], (X @ coef).T
+
+
+def _shape_derivatives(known, theta, shape, step=1e-3):
+    """Central differences of the unit shape in the log-parameters, scaled like ``shape``: (3, n_samples)."""
+    out = []
+    for j in range(theta.size):
+        dp, dm = theta.copy(), theta.copy()
+        dp[j] += step
+        dm[j] -= step
+        out.append((_response(known, dp)[0] - _response(known, dm)[0]) / (2 * step))
+    return np.array(out)
+
+
+def _mad_std(x):
+    x = np.asarray(x, dtype=float)
+    return float(1.4826 * np.median(np.abs(x - np.median(x))))
+
+
+def _noise_std(residual, f_hz, fs):
+    """White-noise std (V) of residuals (n, n_samples), from a k-th difference that removes the signal."""
+    g = 2.0 * math.sin(math.pi * min(f_hz / fs, 0.25))
+    k = 1 if g >= 0.5 else int(min(6, max(1, math.ceil(math.log(0.01) / math.log(g)))))
+    d = np.diff(residual, n=k, axis=1)
+    return float(np.sqrt(np.mean(d**2) / math.comb(2 * k, k))), k
+
+
+def _rms_ac(x):
+    return np.sqrt(np.mean((x - x.mean(axis=-1, keepdims=True)) ** 2, axis=-1))
+
+
+def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None = None, seed: int = 0,
+              n_examples: int = 4) -> CalibrationResult:
+    """Fit a complete head profile to recorded healthy traces (see the module docstring).
+
+    Parameters
+    ----------
+    nominal : HeadProfile
+        The nominal profile: sampling, drive and :data:`~inkdiag_core.head_profile.NOMINAL_CHANNEL_KEYS`.
+        When it gives the restrictor (``channel.r_r`` and ``channel.L_r``) they are kept
+        and only ``B_act`` is fitted to the shape; ``sensor.gain_v_per_m3s`` or
+        ``channel.b`` fix the amplitude convention. Every other key is (re)fitted, so a
+        complete profile is accepted too.
+    traces : array_like, shape (n, n_samples)
+        Recorded traces of healthy nozzles fired with ``nominal.drive``, V.
+    sample_rate_hz : float
+        Their sample rate, Hz; it and ``n_samples`` must be the profile's.
+    name : str, optional
+        Name of the calibrated profile (default: the nominal's).
+    seed : int
+        Seed of the simulation that separates the gain and offset spreads from the others.
+    n_examples : int
+        Recorded traces kept for the report's overlay.
+
+    Returns
+    -------
+    CalibrationResult
+
+    Raises
+    ------
+    ProfileError
+        The traces are not of the profile's sampling, or the nominal profile lacks a key.
+    CalibrationError
+        Fewer than :data:`MIN_TRACES` finite traces, no oscillation in them, or a fit the
+        model cannot make (the message says why).
+    """
+    missing = [k for k in NOMINAL_CHANNEL_KEYS if k not in nominal.channel]
+    if missing:
+        raise ProfileError(f"nominal profile {nominal.name!r}: channel.{missing[0]} is missing")
+    nominal.check_traces(traces, sample_rate_hz, what="the recording")
+    y = np.asarray(traces, dtype=np.float64)
+    finite = np.isfinite(y).all(axis=1)
+    n_dropped = int((~finite).sum())
+    y = y[finite]
+    if y.shape[0] < MIN_TRACES:
+        raise CalibrationError(f"{y.shape[0]} finite healthy traces ({n_dropped} dropped for non-finite samples); "
+                               f"calibration needs at least {MIN_TRACES}")
+    fs = nominal.sample_rate_hz
+    known = _Known.of(nominal)
+    typical = _typical_rows(y, fs, TYPICAL_FRACTION)
+    mean = y[typical].mean(axis=0)
+    mean_rms = float(_rms_ac(mean))
+    kp_mean = extract_kpis(mean, fs)[0]
+    f_rec = float(kp_mean[1])
+    if not (mean_rms > 0 and f_rec > 0):
+        raise CalibrationError("the recorded traces do not oscillate (their mean trace is flat): are they healthy "
+                               "nozzles fired with the profile's drive?")
+    reach = _reachable(known)
+    if not (reach[0] * 0.98 <= f_rec <= reach[1] * 1.02):
+        raise CalibrationError(
+            f"the recorded traces' dominant mode {f_rec / 1e3:.1f} kHz is outside what the nominal channel can reach "
+            f"({reach[0] / 1e3:.1f}-{reach[1] / 1e3:.1f} kHz with its nozzle, ink and chamber): check "
+            "channel.r_n, L_n, V_ch, c, rho and the sampling")
+
+    # -- 2. the mean trace ------------------------------------------------------------------
+    noise0, _ = _noise_std(y - mean, f_rec, fs)
+    sigma_d = max(noise0 / math.sqrt(typical.size), 1e-3 * mean_rms)
+    scale = np.log(known.scale())
+    lo = scale + np.log([_BOUNDS_REL[p][0] for p in _PARAMS])
+    hi = scale + np.log([_BOUNDS_REL[p][1] for p in _PARAMS])
+    prior = np.array([np.log(known.I_n * PRIOR_RATIOS["I_r/I_n"]), np.log(known.R_n * PRIOR_RATIOS["R_r/R_n"])])
+    ch = nominal.channel
+    fixed_restrictor = "r_r" in ch and "L_r" in ch  # a datasheet's restrictor: kept, only B_act is fitted
+    full = np.zeros(3)
+    if fixed_restrictor:
+        full[1:] = np.log([known.rho * ch["L_r"] / (math.pi * ch["r_r"] ** 2),
+                           8.0 * known.mu * ch["L_r"] / (math.pi * ch["r_r"] ** 4)])
+        if not (lo[1:] <= full[1:]).all() or not (full[1:] <= hi[1:]).all():
+            raise CalibrationError(f"the nominal profile's restrictor (r_r {ch['r_r']:g} m, L_r {ch['L_r']:g} m) is "
+                                   "outside the range calibration fits (I_r 0.02-50 I_n, R_r 0.01-100 R_n)")
+    free = np.array([0]) if fixed_restrictor else np.arange(3)
+
+    def theta_of(x):
+        th = full.copy()
+        th[free] = x
+        return th
+
+    def fun(x):
+        theta = theta_of(x)
+        s = _response(known, theta)[0]
+        r = (_project(mean[None, :], s)[2][0] - mean) / sigma_d
+        return r if fixed_restrictor else np.concatenate([r, (theta[1:] - prior) / PRIOR_SD_LOG])
+
+    fits = []
+    starts = [full[1:]] if fixed_restrictor else [
+        np.log([ratio * known.I_n, PRIOR_RATIOS["R_r/R_n"] * known.R_n]) for ratio in _STARTS]
+    for restrictor in starts:
+        x0 = _start(known, f_rec, restrictor, lo, hi)[free]
+        try:
+            fits.append(least_squares(fun, x0, bounds=(lo[free], hi[free]), method="trf", max_nfev=400))
+        except (ValueError, np.linalg.LinAlgError):  # pragma: no cover - a start outside the domain
+            continue
+    fits = [f for f in fits if np.isfinite(f.cost)]
+    if not fits:
+        raise CalibrationError("the fit failed from every start (the model gave non-finite traces)")
+    best = min(fits, key=lambda f: f.cost)
+    theta = theta_of(best.x)
+    shape = _response(known, theta)[0]
+    a_mean, o_mean, mean_fit = (v[0] for v in _project(mean[None, :], shape))
+    resid_rel = float(np.sqrt(np.mean((mean_fit - mean) ** 2)) / mean_rms)
+    f_fit, z_fit = (float(v[0]) for v in _mode(known, theta))
+    if not best.success or resid_rel > MAX_RESIDUAL_REL or a_mean <= 0:
+        why = (f"the optimiser stopped: {best.message}" if not best.success else
+               f"the best fit leaves an RMS residual of {100 * resid_rel:.0f} % of the mean trace's RMS "
+               f"(recorded mode {f_rec / 1e3:.1f} kHz, damping {kp_mean[2]:.3f}; fitted {f_fit / 1e3:.1f} kHz, "
+               f"damping {z_fit:.3f}): the traces are not what the nominal channel and drive give")
+        raise CalibrationError(f"cannot calibrate: {why}")
+
+    # -- identifiability --------------------------------------------------------------------
+    m = mean.size
+    J = best.jac
+    chi2 = float(np.sum(best.fun[:m] ** 2))
+    s2 = max(1.0, chi2 / max(1, m - len(_PARAMS)))
+    Jw = np.vstack([J[:m] / math.sqrt(s2), J[m:]])  # data rows at the misfit's own scale, then the prior
+    sd_post = np.zeros(3)
+    sd_post[free] = np.sqrt(np.clip(np.diag(np.linalg.pinv(Jw.T @ Jw)), 0, None))
+    sv = np.linalg.svd(J[:m] / math.sqrt(s2), compute_uv=False)
+
+    # -- 3. every trace on the fitted shape ---------------------------------------------------
+    deriv = _shape_derivatives(known, theta, shape)
+    a, o, fitted = _project(y, shape, deriv)
+    res = y - fitted
+    rel = np.sqrt(np.mean(res**2, axis=1)) / np.maximum(_rms_ac(y), 1e-300)
+    noise_raw, k_diff = _noise_std(res, f_fit, fs)
+    bits = nominal.adc_bits
+    lsb = 2.0 * nominal.adc_range_v / 2**bits if bits is not None else 0.0
+    noise = math.sqrt(max(noise_raw**2 - lsb**2 / 12.0, 0.0))
+
+    # -- the amplitude convention and the profile ----------------------------------------------
+    B_act, I_r, R_r = np.exp(theta)
+    if fixed_restrictor:
+        r_r, L_r = float(ch["r_r"]), float(ch["L_r"])
+    else:
+        r_r = math.sqrt(8.0 * known.mu * I_r / (known.rho * R_r))
+        L_r = I_r * math.pi * r_r**2 / known.rho
+    amp = float(a_mean)  # = b * gain, V per unit response
+    if "gain_v_per_m3s" in nominal.sensor:
+        gain, convention = float(nominal.sensor["gain_v_per_m3s"]), "sensor.gain_v_per_m3s from the nominal profile"
+        b = amp / gain
+    elif "b" in nominal.channel:
+        b, convention = float(nominal.channel["b"]), "channel.b from the nominal profile"
+        gain = amp / b
+    else:
+        gain = PHYSICAL_CONSTANTS["sensor_gain_v_per_m3s"]
+        convention = "sensor.gain_v_per_m3s = 1e10 V/(m^3/s), the default head's"
+        b = amp / gain
+    sensor = {"gain_v_per_m3s": gain, "offset_v": float(np.median(o)), "noise_std_v": noise}
+    calibrated = nominal.replace(
+        name=name or nominal.name,
+        channel={"r_r": r_r, "L_r": L_r, "B_act": float(B_act), "b": b},
+        sensor={**sensor, "snr_db": None},
+        spreads_overrides={"gain_rel": 0.0, "offset_std_v": 0.0},
+        calibration={})
+
+    # -- 4. gain and offset spreads ------------------------------------------------------------
+    n_sim = max(300, y.shape[0])
+    sim = calibrated.simulate({"healthy_nozzle": n_sim}, seed=seed).traces.astype(np.float64)
+    a_s, o_s, _ = _project(sim, shape, deriv)
+    la, la_s = np.log(a[a > 0]), np.log(a_s[a_s > 0])
+    gain_rel = math.sqrt(max(_mad_std(la) ** 2 - _mad_std(la_s) ** 2, 0.0))
+    offset_std = math.sqrt(max(_mad_std(o) ** 2 - _mad_std(o_s) ** 2, 0.0))
+
+    kp_mean_fit = extract_kpis(mean_fit, fs)[0]
+    kp_rec = extract_kpis(y, fs)
+    kp_fit = extract_kpis(fitted, fs)
+    kp_sim = extract_kpis(sim, fs)
+    f_prof, z_prof = calibrated.healthy_mode()
+    pinned = {}
+    for i, p in enumerate(_PARAMS):
+        prior_sd = None if p == "B_act" or fixed_restrictor else PRIOR_SD_LOG
+        if i not in free:
+            by = "nominal profile (channel.r_r, channel.L_r)"
+        elif prior_sd is None:
+            by = "data" if sd_post[i] < 0.25 else "poorly determined"
+        else:
+            by = ("data" if sd_post[i] < 0.25 * prior_sd else "data and prior" if sd_post[i] < 0.75 * prior_sd
+                  else "prior")
+        pinned[p] = {"value": float(np.exp(theta[i])), "sd_log": float(sd_post[i]), "prior_sd_log": prior_sd,
+                     "determined_by": by}
+    pinned["I_r"]["ratio_to_I_n"] = float(I_r / known.I_n)
+    pinned["R_r"]["ratio_to_R_n"] = float(R_r / known.R_n)
+
+    def med(k, col):
+        return float(np.median(k[:, col]))
+
+    report = {
+        "n_traces": int(y.shape[0]),
+        "n_dropped_nonfinite": n_dropped,
+        "sample_rate_hz": fs,
+        "n_samples": int(nominal.n_samples),
+        "fitted": {**({} if fixed_restrictor else {"channel.r_r": r_r, "channel.L_r": L_r}),
+                   "channel.B_act": float(B_act), "channel.b": b,
+                   "sensor.gain_v_per_m3s": gain, "sensor.offset_v": sensor["offset_v"],
+                   "sensor.noise_std_v": noise, "spreads.gain_rel": gain_rel,
+                   "spreads.offset_std_v": offset_std},
+        "amplitude_convention": convention,
+        "mean_trace_recorded_vs_fitted": {
+            "dominant_frequency_hz": [float(kp_mean[1]), float(kp_mean_fit[1])],
+            "damping_ratio": [float(kp_mean[2]), float(kp_mean_fit[2])],
+            "amplitude_v": [float(kp_mean[3]), float(kp_mean_fit[3])],
+        },
+        "recorded_vs_fitted": {
+            "dominant_frequency_hz": [med(kp_rec, 1), med(kp_fit, 1)],
+            "damping_ratio": [med(kp_rec, 2), med(kp_fit, 2)],
+            "amplitude_v": [med(kp_rec, 3), med(kp_fit, 3)],
+            "frequency_std_hz": [_mad_std(kp_rec[:, 1]), _mad_std(kp_sim[:, 1])],
+            "damping_std": [_mad_std(kp_rec[:, 2]), _mad_std(kp_sim[:, 2])],
+        },
+        "healthy_mode": {"frequency_hz": f_prof, "damping_ratio": z_prof},
+        "residual_rel": {"mean_trace": resid_rel, "per_trace_median": float(np.median(rel)),
+                         "per_trace_p90": float(np.percentile(rel, 90)),
+                         "noise_floor": float(noise_raw / np.median(_rms_ac(y)))},
+        "noise": {"difference_order": k_diff, "adc_lsb_v": lsb, "residual_std_v": noise_raw},
+        "identifiability": {"parameters": pinned, "data_singular_values": [float(v) for v in sv],
+                            "residual_scale": math.sqrt(s2)},
+        "prior": {**PRIOR_RATIOS, "sd_log": PRIOR_SD_LOG},
+        "optimiser": {"method": "scipy.optimize.least_squares (trf, bounds, variable projection)",
+                      "starts_I_r_over_I_n": list(_STARTS), "nfev": int(best.nfev), "status": int(best.status),
+                      "message": str(best.message), "costs": [float(f.cost) for f in fits]},
+    }
+    provenance = {"method": "inkdiag calibrate", "n_traces": report["n_traces"],
+                  "n_dropped_nonfinite": n_dropped, "fitted": sorted(report["fitted"]),
+                  "amplitude_convention": convention, "residual_rel_mean_trace": resid_rel,
+                  "residual_rel_per_trace_median": report["residual_rel"]["per_trace_median"],
+                  "determined_by": {p: pinned[p]["determined_by"] for p in _PARAMS},
+                  "nominal_sha256": nominal.sha256}
+    profile = calibrated.replace(spreads_overrides={"gain_rel": gain_rel, "offset_std_v": offset_std},
+                                 calibration=provenance)
+    k = min(n_examples, y.shape[0])
+    rows = np.flatnonzero(finite)[np.linspace(0, y.shape[0] - 1, k).astype(int)] if k else np.zeros(0, int)
+    pos = np.linspace(0, y.shape[0] - 1, k).astype(int)
+    return CalibrationResult(profile, report, known.t_s.copy(), mean, mean_fit, y[pos], fitted[pos], rows)
+
+
+def _typical_rows(y, fs, fraction):
+    """Rows nearest the median dominant frequency and damping ratio (robust z-distance): ``fraction`` of them.
+
+    Averaging traces of different frequencies damps their mean (they dephase) and
+    distorts its shape along the direction the data pin least; averaging only the
+    typical ones makes that bias smaller.
+    """
+    kp = extract_kpis(y, fs)[:, 1:3]
+    med = np.median(kp, axis=0)
+    spread = 1.4826 * np.median(np.abs(kp - med), axis=0)
+    z = (kp - med) / np.where(spread > 0, spread, 1.0)
+    k = max(MIN_TRACES, int(round(fraction * y.shape[0])))
+    return np.sort(np.argsort(np.hypot(z[:, 0], z[:, 1]), kind="stable")[:k])
+
+
+def _start(known, f_hz, restrictor, lo, hi):
+    """Log-parameters with the restrictor's ``(ln I_r, ln R_r)`` given and ``B_act`` matching ``f_hz``."""
+    th = np.array([np.log(known.B_liq), restrictor[0], restrictor[1]])
+
+    def g(lb):
+        return float(_mode(known, np.array([lb, th[1], th[2]]))[0][0]) - f_hz
+
+    if g(lo[0]) < 0:
+        th[0] = lo[0] + 1e-6
+    elif g(hi[0]) > 0:
+        th[0] = hi[0] - 1e-6
+    else:
+        th[0] = brentq(g, lo[0], hi[0], xtol=1e-6)
+    return np.clip(th, lo + 1e-9, hi - 1e-9)
+
+
+def _reachable(known):
+    """Lowest and highest healthy-mode frequency (Hz) within the fit's bounds."""
+    s = np.log(known.scale())
+    lo = s + np.log([_BOUNDS_REL[p][0] for p in _PARAMS])
+    hi = s + np.log([_BOUNDS_REL[p][1] for p in _PARAMS])
+    corners = np.array(np.meshgrid(*zip(lo, hi), indexing="ij")).reshape(3, -1).T
+    f, _ = _mode(known, corners)
+    f = f[f > 0]
+    return (float(f.min()), float(f.max())) if f.size else (0.0, 0.0)

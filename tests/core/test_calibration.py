@@ -1,0 +1,141 @@
+"""Calibration: a complete head profile from a nominal profile and recorded healthy traces."""
+
+import numpy as np
+import pytest
+
+from inkdiag_core import HeadProfile, ProfileError
+from inkdiag_core.calibration import MIN_TRACES, CalibrationError, calibrate, healthy_response
+from inkdiag_core.head_profile import NOMINAL_CHANNEL_KEYS
+from inkdiag_core.simulation import Spreads
+
+# a head unlike the default: other nozzle, ink, restrictor, actuator, drive and sampling
+TRUE = HeadProfile.default().replace(
+    name="h20x",
+    channel={"rho": 1100.0, "mu": 6e-3, "r_n": 11e-6, "L_n": 45e-6, "V_ch": 3e-12, "c": 1300.0,
+             "r_r": 17e-6, "L_r": 150e-6, "B_act": 2.5e-21, "b": 1.2e-18},
+    sample_rate_hz=20e6, n_samples=1024,
+    drive={"amplitude_v": 25.0, "rise_s": 1e-6, "dwell_s": 2e-6, "fall_s": 1e-6})
+
+
+def nominal_of(profile):
+    doc = profile.to_dict()
+    doc.pop("sensor", None)
+    doc.pop("spreads", None)
+    doc["channel"] = {k: doc["channel"][k] for k in NOMINAL_CHANNEL_KEYS}
+    return HeadProfile.from_dict(doc)
+
+
+@pytest.fixture(scope="module")
+def recorded():
+    return TRUE.simulate({"healthy_nozzle": 300}, seed=3)  # default spreads, 30 dB, 12-bit ADC
+
+
+@pytest.fixture(scope="module")
+def result(recorded):
+    return calibrate(nominal_of(TRUE), recorded.traces, TRUE.sample_rate_hz, name="fitted")
+
+
+def test_fits_a_foreign_head_to_its_healthy_mode_and_noise(result, recorded):
+    p = result.profile
+    assert p.is_complete and p.name == "fitted"
+    f_true, z_true = TRUE.healthy_mode()
+    f_fit, z_fit = p.healthy_mode()
+    assert abs(f_fit / f_true - 1) < 0.01
+    assert abs(z_fit / z_true - 1) < 0.10
+    # the amplitude: only b x gain is identified; the gain follows the default head's convention
+    assert p.sensor_gain_v_per_m3s == 1e10
+    assert abs(p.channel["b"] / TRUE.channel["b"] - 1) < 0.03
+    assert abs(p.noise_std_v() / TRUE.noise_std_v() - 1) < 0.05
+    rr = result.report["residual_rel"]
+    assert rr["per_trace_median"] < 1.15 * rr["noise_floor"]  # the fitted traces are at the noise floor
+    assert rr["mean_trace"] < 0.02
+    # per-trace spreads: the simulator's gain 5 %, offset 10 mV
+    assert 0.03 < p.spreads().gain_rel < 0.07
+    assert 0.007 < p.spreads().offset_std_v < 0.013
+    cal = p.calibration
+    assert cal["n_traces"] == 300 and "channel.r_r" in cal["fitted"] and "sensor.gain_v_per_m3s" in cal["fitted"]
+    assert set(cal["determined_by"]) == {"B_act", "I_r", "R_r"}
+    ident = result.report["identifiability"]["parameters"]
+    assert ident["I_r"]["sd_log"] < ident["I_r"]["prior_sd_log"]  # the posterior is never wider than the prior
+
+
+def test_the_calibrated_head_simulates_like_the_recording(result, recorded):
+    rv = result.report["recorded_vs_fitted"]
+    mt = result.report["mean_trace_recorded_vs_fitted"]
+    assert abs(mt["dominant_frequency_hz"][1] / mt["dominant_frequency_hz"][0] - 1) < 0.005
+    assert abs(mt["amplitude_v"][1] / mt["amplitude_v"][0] - 1) < 0.02
+    # the calibrated head's simulated per-trace frequency spread is the recording's
+    assert abs(rv["frequency_std_hz"][1] / rv["frequency_std_hz"][0] - 1) < 0.3
+    sim = result.profile.simulate({"healthy_nozzle": 300}, seed=9).traces
+    assert abs(np.median(np.std(sim, axis=1)) / np.median(np.std(recorded.traces, axis=1)) - 1) < 0.03
+
+
+def test_the_profile_round_trips_through_yaml(result, tmp_path):
+    q = HeadProfile.load(result.profile.save(tmp_path / "h.yaml"))
+    assert q == result.profile and q.is_complete
+
+
+def test_healthy_response_is_the_simulators_noise_free_trace():
+    p = HeadProfile.default()
+    ch = p.channel_params()
+    s = healthy_response(p, [ch.B_act], [ch.I_r], [ch.R_r])[0]
+    ref = p.simulate({"healthy_nozzle": 1}, spreads=Spreads.none()).traces[0].astype(float)
+    y = s * ch.b * p.sensor_gain_v_per_m3s
+    np.testing.assert_allclose(y, ref, atol=1e-6 * np.abs(ref).max())
+
+
+def test_non_finite_traces_are_dropped_and_counted(recorded):
+    y = recorded.traces[:60].copy()
+    y[[1, 7, 20], 5] = np.nan
+    y[30, -1] = np.inf
+    r = calibrate(nominal_of(TRUE), y, TRUE.sample_rate_hz)
+    assert r.report["n_traces"] == 56 and r.report["n_dropped_nonfinite"] == 4
+    assert abs(r.profile.healthy_mode()[0] / TRUE.healthy_mode()[0] - 1) < 0.01
+
+
+def test_too_few_traces(recorded):
+    y = recorded.traces[: MIN_TRACES + 2].copy()
+    y[:3, 0] = np.nan
+    with pytest.raises(CalibrationError, match=f"{MIN_TRACES - 1} finite healthy traces.*at least {MIN_TRACES}"):
+        calibrate(nominal_of(TRUE), y, TRUE.sample_rate_hz)
+
+
+def test_another_sampling_is_refused(recorded):
+    with pytest.raises(ProfileError, match="sampled at 1e\\+07 Hz"):
+        calibrate(nominal_of(TRUE), recorded.traces, 10e6)
+    with pytest.raises(ProfileError, match="512 samples.*1024"):
+        calibrate(nominal_of(TRUE), recorded.traces[:, :512], 20e6)
+
+
+def test_flat_traces_are_refused():
+    with pytest.raises(CalibrationError, match="do not oscillate"):
+        calibrate(nominal_of(TRUE), np.full((50, 1024), 0.01, np.float32), 20e6)
+
+
+def test_a_mode_the_nominal_channel_cannot_reach_is_refused(recorded):
+    # a chamber 1000 x larger: its liquid compliance alone puts the mode far below the recording's
+    nominal = nominal_of(TRUE).replace(channel={"V_ch": 3e-9})
+    with pytest.raises(CalibrationError, match="dominant mode 27[0-9].[0-9] kHz is outside what the nominal channel"):
+        calibrate(nominal, recorded.traces, TRUE.sample_rate_hz)
+
+
+def test_a_datasheets_restrictor_is_kept_and_fixes_the_blocked_mode(recorded):
+    nominal = nominal_of(TRUE).replace(channel={"r_r": TRUE.channel["r_r"], "L_r": TRUE.channel["L_r"]})
+    r = calibrate(nominal, recorded.traces[:100], TRUE.sample_rate_hz)
+    p = r.profile
+    assert (p.channel["r_r"], p.channel["L_r"]) == (TRUE.channel["r_r"], TRUE.channel["L_r"])
+    assert "channel.r_r" not in r.report["fitted"] and "channel.B_act" in r.report["fitted"]
+    assert r.report["identifiability"]["parameters"]["I_r"]["determined_by"].startswith("nominal profile")
+    assert abs(p.channel["B_act"] / TRUE.channel["B_act"] - 1) < 0.05
+    # the restrictor-only mode (a fully blocked nozzle) follows the true channel
+    f_true = np.median(TRUE.simulate({"fully_blocked": 50}, seed=5).frequency_hz)
+    f_cal = np.median(p.simulate({"fully_blocked": 50}, seed=5).frequency_hz)
+    assert abs(f_cal / f_true - 1) < 0.02
+
+
+def test_a_fit_the_nominal_channel_cannot_make_says_why(recorded):
+    # a chamber 10 x larger: the mode is reachable only with a restrictor that damps it far too much
+    nominal = nominal_of(TRUE).replace(channel={"V_ch": 3e-11})
+    why = "RMS residual of [0-9]+ % .*recorded mode 2[67][0-9].[0-9] kHz.*fitted 1[0-9][0-9].[0-9] kHz"
+    with pytest.raises(CalibrationError, match=why):
+        calibrate(nominal, recorded.traces[:40], TRUE.sample_rate_hz)

@@ -1,0 +1,146 @@
+"""``inkdiag calibrate``: the real entry point end to end, and its one-line errors (exit status 2)."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from inkdiag_core import HeadProfile
+from inkdiag_core.head_profile import NOMINAL_CHANNEL_KEYS
+from inkdiag_core.recording import Recording, save_recording
+from inkdiag_ros import cli
+
+TRUE = HeadProfile.default().replace(
+    name="h5x",
+    channel={"rho": 1040.0, "mu": 8e-3, "r_n": 13e-6, "L_n": 50e-6, "V_ch": 6e-12, "c": 1250.0,
+             "r_r": 30e-6, "L_r": 260e-6, "B_act": 9e-21, "b": 2.5e-18},
+    sample_rate_hz=5e6, n_samples=256,
+    drive={"amplitude_v": 22.0, "rise_s": 1e-6, "dwell_s": 3e-6, "fall_s": 1.2e-6, "switch_delay_s": 2e-6})
+
+
+def inkdiag(*args):
+    return subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", *map(str, args)], capture_output=True,
+                          text=True, timeout=120)
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cal")
+    doc = TRUE.to_dict()
+    doc.pop("sensor")
+    doc["channel"] = {k: doc["channel"][k] for k in NOMINAL_CHANNEL_KEYS}
+    HeadProfile.from_dict(doc).save(d / "nominal.yaml")
+    sim = TRUE.simulate({"healthy_nozzle": 300}, seed=2)
+    save_recording(d / "healthy.npz", Recording.from_arrays(sim.traces, TRUE.sample_rate_hz))
+    save_recording(d / "10mhz.npz", Recording.from_arrays(sim.traces, 10e6))
+    save_recording(d / "few.npz", Recording.from_arrays(sim.traces[:5], TRUE.sample_rate_hz))
+    (d / "other.yaml").write_text("schema: something.else\nschema_version: 1\n")
+    return d
+
+
+def test_calibrate_end_to_end(files, tmp_path):
+    out = tmp_path / "head.yaml"
+    r = inkdiag("calibrate", files / "healthy.npz", "--nominal", files / "nominal.yaml", "--out", out)
+    assert r.returncode == 0, r.stderr
+    assert "head.yaml (300 traces, 0 dropped)" in r.stdout
+    p = HeadProfile.load(out)
+    assert p.is_complete and p.calibration["n_traces"] == 300
+    assert abs(p.healthy_mode()[0] / TRUE.healthy_mode()[0] - 1) < 0.01
+    assert abs(p.healthy_mode()[1] / TRUE.healthy_mode()[1] - 1) < 0.10
+    report = json.loads((tmp_path / "head.fit.json").read_text())
+    assert report["n_traces"] == 300 and report["profile_sha256"] == p.sha256
+    md = (tmp_path / "head.fit.md").read_text()
+    assert "dominant frequency" in md and "damping ratio" in md and "determined by" in md
+    png = tmp_path / "head.fit.png"
+    assert report["figure"] == "head.fit.png" and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_help():
+    r = inkdiag("calibrate", "--help")
+    assert r.returncode == 0 and "--nominal" in r.stdout and "--out" in r.stdout
+
+
+def test_wrong_sampling_is_one_line_and_status_2(files, tmp_path):
+    r = inkdiag("calibrate", files / "10mhz.npz", "--nominal", files / "nominal.yaml", "--out", tmp_path / "h.yaml")
+    assert r.returncode == 2
+    assert r.stderr.count("\n") == 1 and r.stderr.startswith("inkdiag calibrate: error: ")
+    assert "sampled at 1e+07 Hz" in r.stderr and "5e+06 Hz" in r.stderr
+    assert not (tmp_path / "h.yaml").exists()
+
+
+@pytest.mark.parametrize("case, message", [
+    ("missing", "no such"),
+    ("schema", "schema is 'something.else'"),
+    ("few", "5 finite healthy traces"),
+    ("nominal_missing", "no such head profile file"),
+])
+def test_bad_input_is_one_line_and_status_2(files, tmp_path, capsys, case, message):
+    healthy, nominal = files / "healthy.npz", files / "nominal.yaml"
+    if case == "missing":
+        healthy = files / "nope.npz"
+    elif case == "schema":
+        nominal = files / "other.yaml"
+    elif case == "few":
+        healthy = files / "few.npz"
+    else:
+        nominal = files / "nope.yaml"
+    status = cli.main(["calibrate", str(healthy), "--nominal", str(nominal), "--out", str(tmp_path / "h.yaml")])
+    err = capsys.readouterr().err
+    assert status == 2 and err.count("\n") == 1 and err.startswith("inkdiag calibrate: error: ")
+    assert message in err
+    assert not (tmp_path / "h.yaml").exists()
+
+
+def test_without_matplotlib_the_report_says_so(files, tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
+    out = tmp_path / "head.yaml"
+    y = np.load(files / "healthy.npz")["traces"][:40]
+    save_recording(tmp_path / "h40.npz", Recording.from_arrays(y, TRUE.sample_rate_hz))
+    status = cli.main(["calibrate", str(tmp_path / "h40.npz"), "--nominal", str(files / "nominal.yaml"),
+                       "--out", str(out), "--report-dir", str(tmp_path / "rep")])
+    assert status == 0
+    assert "matplotlib is not installed" in capsys.readouterr().err
+    report = json.loads((tmp_path / "rep" / "head.fit.json").read_text())
+    assert report["figure"] is None and not (tmp_path / "rep" / "head.fit.png").exists()
+    assert "No figure: matplotlib is not installed" in (tmp_path / "rep" / "head.fit.md").read_text()
+
+
+def test_a_labelled_recording_calibrates_on_its_healthy_rows(tmp_path, capsys):
+    sim = TRUE.simulate({"healthy_nozzle": 60, "fully_blocked": 20}, seed=4)
+    save_recording(tmp_path / "mixed.npz", Recording.from_arrays(sim.traces, TRUE.sample_rate_hz, label=sim.labels))
+    doc = TRUE.to_dict()
+    doc.pop("sensor")
+    doc["channel"] = {k: doc["channel"][k] for k in NOMINAL_CHANNEL_KEYS}
+    HeadProfile.from_dict(doc).save(tmp_path / "nominal.yaml")
+    status = cli.main(["calibrate", str(tmp_path / "mixed.npz"), "--nominal", str(tmp_path / "nominal.yaml"),
+                       "--out", str(tmp_path / "head.yaml")])
+    assert status == 0
+    assert "(60 traces, 0 dropped; 20 rows labelled otherwise left out)" in capsys.readouterr().out
+    assert json.loads((tmp_path / "head.fit.json").read_text())["n_rows_left_out_by_label"] == 20
+    assert abs(HeadProfile.load(tmp_path / "head.yaml").healthy_mode()[0] / TRUE.healthy_mode()[0] - 1) < 0.01
+
+
+@pytest.mark.parametrize("head, tol_dried", [("h20", 0.05), ("h5", 0.03)])
+def test_a_foreign_head_through_the_cli(tmp_path, capsys, head, tol_dried):
+    """Traces from the independent simulator, its nominal profile, ``inkdiag calibrate`` as documented."""
+    import foreign_head as fh
+
+    fh.write_recording(tmp_path / "healthy.npz", fh.simulate_foreign(head, {"healthy_nozzle": 300}, seed=1))
+    fh.write_nominal_yaml(tmp_path / "nominal.yaml", head)
+    fh.write_true_yaml(tmp_path / "true.yaml", head)
+    status = cli.main(["calibrate", str(tmp_path / "healthy.npz"), "--nominal", str(tmp_path / "nominal.yaml"),
+                       "--out", str(tmp_path / "head.yaml")])
+    assert status == 0, capsys.readouterr().err
+    p, true = HeadProfile.load(tmp_path / "head.yaml"), HeadProfile.load(tmp_path / "true.yaml")
+    assert p.is_complete
+    assert abs(p.healthy_mode()[0] / true.healthy_mode()[0] - 1) < 0.01
+    assert abs(p.healthy_mode()[1] / true.healthy_mode()[1] - 1) < 0.10
+    assert abs(p.channel["b"] * p.sensor_gain_v_per_m3s / (true.channel["b"] * true.sensor_gain_v_per_m3s) - 1) < 0.03
+    assert abs(p.noise_std_v() / true.noise_std_v() - 1) < 0.05
+    # where the fault classes land: the restrictor-loading classes carry the weakly identified split
+    for cls in ("deeply_dried", "fully_blocked"):
+        f_true = np.median(true.simulate({cls: 100}, seed=5).frequency_hz)
+        f_cal = np.median(p.simulate({cls: 100}, seed=5).frequency_hz)
+        assert abs(f_cal / f_true - 1) < tol_dried, cls
