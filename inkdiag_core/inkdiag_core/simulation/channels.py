@@ -80,7 +80,11 @@ PHYSICAL_CONSTANTS = {
     "p0_pa": 1.0e5,  # static chamber pressure (about atmospheric)
     "sigma_n_per_m": 0.030,  # ink surface tension
     "kappa_gas": 1.2,  # polytropic exponent of a micro-bubble at 200 kHz
-    "f_act_hz": 2.175e6,  # structural resonance of the unloaded actuator
+    "f_act_hz": 2.175e6,  # structural resonance of the unloaded actuator (default head)
+    # ... at this nominal actuator compliance (the default head's B_act, m^3/Pa). A head of
+    # another B_act keeps the actuator's modal inertance, so its empty-channel resonance is
+    # f_act_hz * sqrt(f_act_ref_b_act / B_act) (healthy traces do not show the actuator alone).
+    "f_act_ref_b_act": 5.198e-21,
     "zeta_act": 0.03,  # its damping ratio (piezo loss + air)
     "film_loss_factor": 1.5,  # extra actuator resistance per unit ink-film mass ratio
     "sensor_gain_v_per_m3s": 1.0e10,  # nominal sense gain, V per (m^3/s)
@@ -367,7 +371,7 @@ def draw_channels(classes, base: InkChannelParams, spreads: Spreads, rng, severi
     empty = kinds == "empty"
     if empty.any():
         c = PHYSICAL_CONSTANTS
-        I_act = 1.0 / ((2 * np.pi * c["f_act_hz"]) ** 2 * base.B_act)
+        I_act = 1.0 / ((2 * np.pi * c["f_act_hz"]) ** 2 * c["f_act_ref_b_act"])
         R_act0 = 2.0 * c["zeta_act"] * math.sqrt(I_act / base.B_act)
         m = severity[empty]
         I_e = I_act * (1.0 + m)

@@ -7,7 +7,7 @@ The fe node's code path on a recording: a :class:`inkdiag_core.DryingTracker` on
 the head profile (its model, its "vp_cal" constants, its deeply-dried level)
 screens the rows and estimates the valid ones in batches
 (:meth:`~inkdiag_core.DryingTracker.estimate_rows`); with stamps, each nozzle's
-trend is then fed frame by frame in time order. See docs/cli_estimate.md.
+trend is then fed frame by frame in time order. See docs/cli.md.
 """
 
 from __future__ import annotations
