@@ -434,8 +434,15 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     gain_rel = math.sqrt(max(_mad_std(la) ** 2 - _mad_std(la_s) ** 2, 0.0))
     offset_std = math.sqrt(max(_mad_std(o) ** 2 - _mad_std(o_s) ** 2, 0.0))
 
-    kp_mean_fit = extract_kpis(mean_fit, fs)[0]
     kp_rec = extract_kpis(y, fs)
+    # -- 5. physical spreads: the recording's spread of frequency and damping ---------------------
+    spread_scale = _fit_spread_scales(calibrated.replace(
+        spreads_overrides={"gain_rel": gain_rel, "offset_std_v": offset_std}), kp_rec, fs, seed)
+    physical = _scaled_spreads(calibrated.spreads(), *spread_scale)
+    sim = calibrated.replace(spreads_overrides={**physical, "gain_rel": gain_rel, "offset_std_v": offset_std}
+                             ).simulate({"healthy_nozzle": n_sim}, seed=seed).traces.astype(np.float64)
+
+    kp_mean_fit = extract_kpis(mean_fit, fs)[0]
     kp_fit = extract_kpis(fitted, fs)
     kp_sim = extract_kpis(sim, fs)
     f_prof, z_prof = calibrated.healthy_mode()
@@ -466,7 +473,9 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
                    "channel.B_act": float(B_act), "channel.b": b,
                    "sensor.gain_v_per_m3s": gain, "sensor.offset_v": sensor["offset_v"],
                    "sensor.noise_std_v": noise, "spreads.gain_rel": gain_rel,
-                   "spreads.offset_std_v": offset_std},
+                   "spreads.offset_std_v": offset_std,
+                   **{f"spreads.{k}": v for k, v in physical.items()}},
+        "spread_scales": {"geometry": spread_scale[0], "temperature": spread_scale[1]},
         "amplitude_convention": convention,
         "mean_trace_recorded_vs_fitted": {
             "dominant_frequency_hz": [float(kp_mean[1]), float(kp_mean_fit[1])],
@@ -498,12 +507,59 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
                   "residual_rel_per_trace_median": report["residual_rel"]["per_trace_median"],
                   "determined_by": {p: pinned[p]["determined_by"] for p in _PARAMS},
                   "nominal_sha256": nominal.sha256}
-    profile = calibrated.replace(spreads_overrides={"gain_rel": gain_rel, "offset_std_v": offset_std},
+    profile = calibrated.replace(spreads_overrides={**physical, "gain_rel": gain_rel, "offset_std_v": offset_std},
                                  calibration=provenance)
     k = min(n_examples, y.shape[0])
     rows = np.flatnonzero(finite)[np.linspace(0, y.shape[0] - 1, k).astype(int)] if k else np.zeros(0, int)
     pos = np.linspace(0, y.shape[0] - 1, k).astype(int)
     return CalibrationResult(profile, report, known.t_s.copy(), mean, mean_fit, y[pos], fitted[pos], rows)
+
+
+GEOMETRY_SPREADS = ("nozzle_radius_rel", "nozzle_length_rel", "restrictor_radius_rel", "actuator_compliance_rel")
+"""Spreads scaled together to match the recording's spread of the healthy frequency."""
+
+SPREAD_SCALE_BOUNDS = (0.25, 4.0)
+"""Range of the fitted spread scales (x the default head's spreads)."""
+
+
+def _scaled_spreads(base, geometry, temperature):
+    out = {k: float(getattr(base, k) * geometry) for k in GEOMETRY_SPREADS}
+    out["temperature_std_k"] = float(base.temperature_std_k * temperature)
+    return out
+
+
+def _fit_spread_scales(profile, kp_rec, fs, seed, n=600):
+    """Scales of the geometry and temperature spreads that give the recording's healthy spread.
+
+    The robust relative spreads of the dominant frequency and of the damping ratio are,
+    to first order, ``var = g^2 V_geometry + t^2 V_temperature + V_rest`` (``V_rest``:
+    noise, gain and offset). Three simulations of ``n`` healthy traces of the
+    calibrated head (geometry spreads only, temperature only, neither) give the
+    ``V``; non-negative least squares gives ``g^2, t^2``, clipped to
+    :data:`SPREAD_SCALE_BOUNDS`.
+
+    Returns
+    -------
+    (float, float)
+        Geometry and temperature scales (x the profile's current spreads).
+    """
+    from scipy.optimize import nnls
+
+    def rel_var(k):
+        return np.array([(_mad_std(k[:, c]) / np.median(k[:, c])) ** 2 for c in (1, 2)])
+
+    base = profile.spreads()
+    v = []
+    for g, t in ((1.0, 0.0), (0.0, 1.0), (0.0, 0.0)):
+        p = profile.replace(spreads_overrides=_scaled_spreads(base, g, t))
+        v.append(rel_var(extract_kpis(p.simulate({"healthy_nozzle": n}, seed=seed + 1).traces, fs)))
+    v_geo, v_temp, v_rest = (x - v[2] if i < 2 else x for i, x in enumerate(v))
+    target = rel_var(kp_rec) - v_rest
+    A = np.column_stack([np.maximum(v_geo, 0.0), np.maximum(v_temp, 0.0)])
+    w = 1.0 / np.maximum(rel_var(kp_rec), 1e-12)  # relative misfit of each spread
+    sq, _ = nnls(A * w[:, None], np.maximum(target, 0.0) * w)
+    lo, hi = SPREAD_SCALE_BOUNDS
+    return tuple(float(np.clip(np.sqrt(x), lo, hi)) for x in sq)
 
 
 def _typical_rows(y, fs, fraction):

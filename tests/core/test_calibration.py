@@ -139,3 +139,21 @@ def test_a_fit_the_nominal_channel_cannot_make_says_why(recorded):
     why = "RMS residual of [0-9]+ % .*recorded mode 2[67][0-9].[0-9] kHz.*fitted 1[0-9][0-9].[0-9] kHz"
     with pytest.raises(CalibrationError, match=why):
         calibrate(nominal, recorded.traces[:40], TRUE.sample_rate_hz)
+
+
+def test_physical_spreads_follow_the_recordings_spread(result):
+    """A head with twice the geometry tolerances and half the temperature spread is fitted so."""
+    base = TRUE.spreads()
+    wide = TRUE.replace(spreads_overrides={
+        "nozzle_radius_rel": 2 * base.nozzle_radius_rel, "nozzle_length_rel": 2 * base.nozzle_length_rel,
+        "restrictor_radius_rel": 2 * base.restrictor_radius_rel,
+        "actuator_compliance_rel": 2 * base.actuator_compliance_rel,
+        "temperature_std_k": 0.5 * base.temperature_std_k})
+    rec = wide.simulate({"healthy_nozzle": 300}, seed=4)
+    fit = calibrate(nominal_of(wide), rec.traces, wide.sample_rate_hz)
+    geo, temp = fit.report["spread_scales"]["geometry"], fit.report["spread_scales"]["temperature"]
+    assert 1.6 < geo < 2.5 and 0.2 < temp < 0.8
+    assert fit.profile.spreads().nozzle_radius_rel == pytest.approx(geo * base.nozzle_radius_rel)
+    # the head recorded with the default spreads is fitted near them
+    g1, t1 = result.report["spread_scales"]["geometry"], result.report["spread_scales"]["temperature"]
+    assert 0.7 < g1 < 1.4 and 0.6 < t1 < 1.5
