@@ -476,6 +476,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
                    "spreads.offset_std_v": offset_std,
                    **{f"spreads.{k}": v for k, v in physical.items()}},
         "spread_scales": {"geometry": spread_scale[0], "temperature": spread_scale[1]},
+        "unseen_physics_spreads": dict(UNSEEN_PHYSICS_SPREADS),
         "amplitude_convention": convention,
         "mean_trace_recorded_vs_fitted": {
             "dominant_frequency_hz": [float(kp_mean[1]), float(kp_mean_fit[1])],
@@ -507,13 +508,24 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
                   "residual_rel_per_trace_median": report["residual_rel"]["per_trace_median"],
                   "determined_by": {p: pinned[p]["determined_by"] for p in _PARAMS},
                   "nominal_sha256": nominal.sha256}
-    profile = calibrated.replace(spreads_overrides={**physical, "gain_rel": gain_rel, "offset_std_v": offset_std},
+    profile = calibrated.replace(spreads_overrides={**physical, "gain_rel": gain_rel, "offset_std_v": offset_std,
+                                                    **UNSEEN_PHYSICS_SPREADS},
                                  calibration=provenance)
     k = min(n_examples, y.shape[0])
     rows = np.flatnonzero(finite)[np.linspace(0, y.shape[0] - 1, k).astype(int)] if k else np.zeros(0, int)
     pos = np.linspace(0, y.shape[0] - 1, k).astype(int)
     return CalibrationResult(profile, report, known.t_s.copy(), mean, mean_fit, y[pos], fitted[pos], rows)
 
+
+UNSEEN_PHYSICS_SPREADS = {"actuator_resonance_rel": 0.05, "actuator_damping_rel": 0.35, "film_loss_rel": 0.35}
+"""Spreads a calibrated profile gets for the fault physics healthy traces cannot show.
+
+The empty channel is the actuator alone: its resonance (here the default head's
+actuator inertance with the head's compliance), damping ratio and ink-film loss are
+the default head's constants, unknown for another head. Training over these
+log-normal spreads keeps a detector from leaning on their exact values (written
+into the profile's ``spreads``; edit them there if the head's values are known).
+"""
 
 GEOMETRY_SPREADS = ("nozzle_radius_rel", "nozzle_length_rel", "restrictor_radius_rel", "actuator_compliance_rel")
 """Spreads scaled together to match the recording's spread of the healthy frequency."""

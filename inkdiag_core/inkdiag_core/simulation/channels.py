@@ -164,6 +164,13 @@ class Spreads:
         ADC resolution; ``None`` = no quantisation.
     adc_range_v : float
         ADC input range is +-adc_range_v, V (values beyond are clipped).
+    actuator_resonance_rel, actuator_damping_rel, film_loss_rel : float
+        Spread (log-normal, relative) of the empty channel's physics: the unloaded
+        actuator's resonance and damping ratio and the ink film's loss factor
+        (:data:`PHYSICAL_CONSTANTS`). Healthy traces do not show them, so a head
+        calibrated from healthy traces trains over a range of them instead of the
+        default head's values (:mod:`inkdiag_core.calibration`). Default 0: the
+        constants as they are, and no draws (the default head's results do not change).
     """
 
     temperature_std_k: float = 1.5
@@ -178,6 +185,9 @@ class Spreads:
     snr_db: float = 30.0
     adc_bits: int | None = 12
     adc_range_v: float = 2.0
+    actuator_resonance_rel: float = 0.0
+    actuator_damping_rel: float = 0.0
+    film_loss_rel: float = 0.0
 
     @classmethod
     def none(cls) -> "Spreads":
@@ -305,6 +315,10 @@ def draw_channels(classes, base: InkChannelParams, spreads: Spreads, rng, severi
     b = base.b * lognormal(spreads.coupling_rel)
     drive = lognormal(spreads.drive_rel)
     u01 = per_row(rng.random(n))
+    # the empty channel's actuator physics, drawn only when its spreads are set
+    f_act_factor = lognormal(spreads.actuator_resonance_rel)
+    zeta_act_factor = lognormal(spreads.actuator_damping_rel)
+    film_factor = lognormal(spreads.film_loss_rel)
 
     lo = np.array([m.low for m in mech])[kind_idx]
     hi = np.array([m.high for m in mech])[kind_idx]
@@ -371,11 +385,11 @@ def draw_channels(classes, base: InkChannelParams, spreads: Spreads, rng, severi
     empty = kinds == "empty"
     if empty.any():
         c = PHYSICAL_CONSTANTS
-        I_act = 1.0 / ((2 * np.pi * c["f_act_hz"]) ** 2 * c["f_act_ref_b_act"])
-        R_act0 = 2.0 * c["zeta_act"] * math.sqrt(I_act / base.B_act)
+        I_act = 1.0 / ((2 * np.pi * c["f_act_hz"] * f_act_factor[empty]) ** 2 * c["f_act_ref_b_act"])
+        R_act0 = 2.0 * c["zeta_act"] * zeta_act_factor[empty] * np.sqrt(I_act / base.B_act)
         m = severity[empty]
         I_e = I_act * (1.0 + m)
-        R_e = R_act0 * (1.0 + c["film_loss_factor"] * m * mu[empty] / base.mu)
+        R_e = R_act0 * (1.0 + c["film_loss_factor"] * film_factor[empty] * m * mu[empty] / base.mu)
         k_r[empty] = 0.0
         b_r[empty] = 0.0
         k_n[empty] = 1.0 / (I_e * B_act[empty])
