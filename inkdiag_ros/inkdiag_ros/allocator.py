@@ -113,17 +113,19 @@ class PeriodicRelease:
     """A spin loop's helper: :func:`release_freed_memory` after the process grew.
 
     Called as often as convenient; every ``period_s`` seconds it compares the resident
-    size with the one after its last release (or its first check) and releases once it
-    grew by more than ``above`` bytes. A backlog's memory goes back within about a
-    period after it drained; in the steady state, whose buffers reuse their pages, the
-    resident size stays put and nothing is done.
+    size with its reference and releases once it grew by more than ``above`` bytes. The
+    reference is the size at the first check, and after a release the size one check
+    later (once the steady state's buffers have faulted in again: comparing with the size
+    right after the release would release again every period when those buffers are
+    more than ``above``). A backlog's memory goes back within about two periods after it
+    drained; in the steady state the resident size stays put and nothing is done.
 
     Parameters
     ----------
     period_s : float
         Seconds between two checks.
     above : int
-        Growth of the resident size, bytes, that triggers a release.
+        Growth of the resident size over the reference, bytes, that triggers a release.
     clock : callable, optional
         Monotonic time, s (default ``time.monotonic``).
     resident : callable, optional
@@ -141,7 +143,7 @@ class PeriodicRelease:
         self.above = int(above)
         self._clock, self._resident = clock, resident
         self._next = clock() + self.period_s
-        self._floor = None
+        self._ref = None
         self.releases = 0
 
     def __call__(self) -> bool:
@@ -151,10 +153,12 @@ class PeriodicRelease:
             return False
         self._next = now + self.period_s
         rss = self._resident()
-        if self._floor is None or rss - self._floor <= self.above:
-            self._floor = rss if self._floor is None else self._floor
+        if self._ref is None:  # the first check, or the first after a release
+            self._ref = rss
+            return False
+        if rss - self._ref <= self.above:
             return False
         released = release_freed_memory()
         self.releases += released
-        self._floor = self._resident()
+        self._ref = None
         return released

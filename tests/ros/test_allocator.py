@@ -90,19 +90,16 @@ def test_a_drained_backlog_is_released():
 def test_periodic_release_only_after_growth(monkeypatch):
     from inkdiag_ros import allocator
 
-    now, rss, calls = [0.0], [200 << 20], []
-
-    def release():
-        calls.append(now[0])
-        rss[0] = 201 << 20
-        return True
-
-    monkeypatch.setattr(allocator, "release_freed_memory", release)
+    now, rss, calls = [0.0], [0], []
+    monkeypatch.setattr(allocator, "release_freed_memory", lambda: calls.append(now[0]) or True)
     p = allocator.PeriodicRelease(5.0, 8 << 20, clock=lambda: now[0], resident=lambda: rss[0])
-    for t, size in ((1.0, 300), (5.0, 200), (7.0, 300), (10.0, 207), (15.0, 230), (16.0, 230), (20.0, 230)):
+    steps = ((1.0, 300), (5.0, 200), (10.0, 207), (15.0, 230), (16.0, 230), (20.0, 190), (25.0, 201),
+             (30.0, 230), (35.0, 236))
+    for t, size in steps:
         now[0], rss[0] = t, size << 20
         p()
-    # 1 s: before the first period; 5 s: the reference; 10 s: grown 7 MB (not more than 8);
-    # 15 s: grown 30 MB -> released (the reference becomes 201 MB); 16 s: within the period;
-    # 20 s: 230 MB again -> released again
-    assert calls == [15.0, 20.0] and p.releases == 2
+    # 1 s: before the first period; 5 s: the reference (200 MB); 10 s: grown 7 MB, not more
+    # than 8; 15 s: grown 30 MB -> released; 16 s: within the period; 20 s: the new reference
+    # once the buffers faulted in again (190 MB); 25 s: 11 MB over it -> released; 30 s: the
+    # reference; 35 s: 6 MB over it
+    assert calls == [15.0, 25.0] and p.releases == 2
