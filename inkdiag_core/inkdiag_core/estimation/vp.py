@@ -17,11 +17,6 @@ import numpy as np
 
 from .base import MIN_FM_SAMPLES, T0, Scaled, period_samples, scaled_cached
 
-try:  # the gufuncs behind np.linalg.eig / inv / solve
-    from numpy.linalg import _umath_linalg as _gufuncs
-except ImportError:  # pragma: no cover - another numpy layout: the public functions only
-    _gufuncs = None
-
 __all__ = [
     "VP_CAL",
     "VpOptions",
@@ -55,59 +50,6 @@ class VpOptions:
 
 
 # ---------------------------------------------------------------------------
-# small linear algebra with less fixed cost per call
-# ---------------------------------------------------------------------------
-# np.linalg.eig / inv / solve check their inputs, pick a signature, set an errstate and
-# wrap their results on every call: about 90 of eig's 130 us on a (2, 3, 3) stack here,
-# a fixed cost the fe node pays a few dozen times per frame for its two drying nozzles.
-# These call the same gufuncs with the same signatures (the same bits) and hand every
-# call whose input or result is not finite to the public function, which raises (or
-# returns) exactly as before: a singular matrix or a failed decomposition gives a
-# non-finite result from the gufunc.
-
-
-def _finite(a) -> bool:
-    """No NaN or Inf in a (one reduction: a sum that overflows also says no, which only
-    sends a call to the public function)."""
-    return bool(np.isfinite(a.sum()))
-
-
-def _eig(A):
-    """``np.linalg.eig(A)`` for a real float64 stack A (m, 3, 3): ``(w (m, 3), V (m, 3, 3))``."""
-    if _gufuncs is None or A.dtype != np.float64 or not _finite(A):
-        return tuple(np.linalg.eig(A))
-    w, V = _gufuncs.eig(A, signature="d->DD")
-    if not (_finite(w) and _finite(V)):
-        return tuple(np.linalg.eig(A))
-    if (w.imag == 0.0).all():  # as np.linalg.eig: real results when every eigenvalue is real
-        return w.real, V.real
-    return w, V
-
-
-def _inv(V):
-    """``np.linalg.inv(V)`` for a float64 or complex128 stack V (m, k, k).
-
-    Like :func:`_eig` and :func:`_solve`, run under ``np.errstate(invalid="ignore")`` (as
-    this module's functions do): the gufunc flags a singular matrix before the fallback raises.
-    """
-    sig = {np.dtype(np.float64): "d->d", np.dtype(np.complex128): "D->D"}.get(V.dtype)
-    if _gufuncs is not None and sig is not None:
-        Vi = _gufuncs.inv(V, signature=sig)
-        if _finite(Vi):
-            return Vi
-    return np.linalg.inv(V)
-
-
-def _solve(G, b):
-    """``np.linalg.solve(G, b)`` for float64 stacks G (..., k, k) and b (..., k, r)."""
-    if _gufuncs is not None and G.dtype == b.dtype == np.float64:
-        x = _gufuncs.solve(G, b, signature="dd->d")
-        if _finite(x):
-            return x
-    return np.linalg.solve(G, b)
-
-
-# ---------------------------------------------------------------------------
 # variable projection (no x0)
 # ---------------------------------------------------------------------------
 _I3 = np.arange(3)
@@ -128,13 +70,13 @@ def _modes(sc: Scaled, fs):
     A = np.empty((m, 3, 3))
     A[...] = sc.A
     A[:, :, 2] += fs[:, None] * sc.G[None, :]
-    lam, V = _eig(A)
+    lam, V = np.linalg.eig(A)
     # order: the eigenvalue with largest Im first, then its conjugate, then the real one
     order = np.argsort(-lam.imag, axis=1)[:, [0, 2, 1]]
     rows = np.arange(m)[:, None]
     lam = lam[rows, order]
     V = V[rows[:, :, None], _I3[None, :, None], order[:, None, :]]
-    Vi = _inv(V)
+    Vi = np.linalg.inv(V)
     dlam = (Vi @ sc.G) * V[:, 2, :]  # w_j^H (G e3^T) v_j with Vi V = I
     return lam, dlam, V, Vi
 
@@ -196,7 +138,7 @@ def _vp_solve(B, y, factor=None):
     axes of y are further right-hand sides with the same B)."""
     Gs, d = _vp_factor(B) if factor is None else factor
     b = (B @ y[..., None])[..., 0]
-    theta = _solve(Gs, (b * d)[..., None])[..., 0] * d
+    theta = np.linalg.solve(Gs, (b * d)[..., None])[..., 0] * d
     res = y - (theta[..., None, :] @ B)[..., 0, :]
     return theta, res, np.einsum("...k,...k->...", res, res)
 
