@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import functools
 import os
 import time
 
@@ -50,13 +51,18 @@ RELEASE_PERIOD_S = 5.0
 """Seconds between two checks of :class:`PeriodicRelease`."""
 
 
-def _libc():
-    if os.environ.get("INKDIAG_MALLOC_TUNING", "1") == "0":
-        return None
-    try:
+@functools.lru_cache(maxsize=1)
+def _load_libc():
+    try:  # find_library may run ldconfig: once per process
         return ctypes.CDLL(ctypes.util.find_library("c"))
     except (OSError, TypeError):
         return None
+
+
+def _libc():
+    if os.environ.get("INKDIAG_MALLOC_TUNING", "1") == "0":
+        return None
+    return _load_libc()
 
 
 def keep_freed_memory() -> bool:
