@@ -8,7 +8,11 @@ the lists reliable, after the labelling). :class:`DryingTracker` joins them
 on ``(frame_id, first_nozzle)``: each range of each frame is estimated with
 *that* frame's list for *that* range, never with an earlier frame's or
 another range's. What waits for its partner is held in two bounded buffers
-(oldest dropped first, and counted).
+(oldest dropped first, and counted). The FDI stage answers each range's messages
+in frame order, so a range's traces still held when a later frame's list for that
+range comes will get no list (the FDI stage never had that frame): they are
+dropped then, and counted, instead of holding their message's memory until the
+buffer is full.
 
 For each joined pair the rows of the listed nozzles are screened
 (:func:`~inkdiag_core.screen_traces`), f_m is estimated in one batch
@@ -168,7 +172,8 @@ class DryingTracker:
         gave estimates (the others listed no valid row of the range).
     traces_unmatched, drying_unmatched : int
         Dropped from a full buffer before a partner came (a drying list without a
-        range counts only if it matched no range at all).
+        range counts only if it matched no range at all); traces also when a later
+        frame's list for their range came first.
     rows_invalid : int
         Listed rows that screening rejected (not estimated).
     estimates, estimates_with_baseline : int
@@ -290,6 +295,7 @@ class DryingTracker:
             raise ValueError(f"drying nozzles {ids[0]}..{ids[-1]} are outside the range "
                              f"{first}..{first + n_nozzles - 1}")
         self.drying_received += 1
+        self._drop_stale_traces(frame_id, first)
         t = self._traces.pop((frame_id, first), None)
         if t is not None:
             return self._join(frame_id, first, t, ids)
@@ -309,6 +315,14 @@ class DryingTracker:
             d.matched = True
             out += self._join(frame_id, key[1], self._traces.pop(key), d.nozzles)
         return out
+
+    def _drop_stale_traces(self, frame_id, first) -> None:
+        """Drop held traces of range ``first`` from frames before ``frame_id`` (their lists
+        would have come before this one)."""
+        stale = [k for k in self._traces if k[1] == first and k[0] < frame_id]
+        for k in stale:
+            del self._traces[k]
+        self.traces_unmatched += len(stale)
 
     def _hold_drying(self, key, d) -> None:
         self._drying[key] = d

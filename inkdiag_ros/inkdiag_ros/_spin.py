@@ -11,7 +11,7 @@ import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
-from .allocator import keep_freed_memory
+from .allocator import PeriodicRelease, keep_freed_memory
 from .blas import limit_blas_threads
 
 
@@ -127,9 +127,11 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None) -> 
 
     BLAS libraries run one thread each (:func:`limit_blas_threads`). A SIGINT or SIGTERM
     stops the spin loop through :func:`stop_on_signals`; the loop also re-checks the
-    context at least once a second (``until``: every 0.1 s).
+    context at least once a second (``until``: every 0.1 s), and every few seconds hands
+    a drained backlog's free heap back to the system (:class:`.allocator.PeriodicRelease`).
     """
     keep_freed_memory()
+    release = PeriodicRelease()
     limit_blas_threads()
     prog = prog or os.path.basename(sys.argv[0] or "node")
     with stop_on_signals() as stop:
@@ -151,6 +153,7 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None) -> 
             period = 1.0 if until is None else 0.1
             while not stop.requested and node.context.ok() and not (until is not None and until(node)):
                 executor.spin_once(timeout_sec=period)
+                release()
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         except Exception:

@@ -48,7 +48,7 @@ from msg_defs import (
 )
 
 from ._spin import shutting_down, sigint_as_shutdown
-from .allocator import keep_freed_memory
+from .allocator import PeriodicRelease, keep_freed_memory
 from .blas import limit_blas_threads
 from .baseline_node import BaselineRecorderNode
 from .fdi_node import FdiNode
@@ -190,7 +190,9 @@ def _run(duration_s, *, namespace, model_path, out, context, baseline, own) -> S
         t0 = time.monotonic()
         next_print = t0 + 1.0
         ctx = executor.context
+        release = PeriodicRelease()  # as spin_node: a drained backlog's free heap goes back
         while ctx.ok() and (duration_s <= 0 or time.monotonic() - t0 < duration_s):
+            release()
             try:
                 executor.spin_once(timeout_sec=0.05)
             except Exception:

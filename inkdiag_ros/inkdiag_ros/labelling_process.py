@@ -380,10 +380,11 @@ def _child_main(requests, results, labeller) -> None:
     try:
         import inkdiag_core  # noqa: F401 - imported before "ready": a broken install is fatal here
 
-        from .allocator import keep_freed_memory
+        from .allocator import PeriodicRelease, keep_freed_memory
         from .blas import limit_blas_threads
 
         keep_freed_memory()
+        release = PeriodicRelease()  # as the nodes' spin loops: a drained backlog's heap goes back
         limit_blas_threads()  # as in every node process: no BLAS worker spinning beside the classifier
         results.send(("ready", None))
     except Exception as exc:  # noqa: BLE001 - reported to the parent, which raises it
@@ -391,6 +392,7 @@ def _child_main(requests, results, labeller) -> None:
         return
     buffers = {}  # slot -> SharedMemory
     while True:
+        release()
         try:
             request = requests.recv()
         except (EOFError, OSError):  # the parent is gone

@@ -10,6 +10,12 @@ time per call of "vp" and "vp_cal" on 1, 2, 8 and 64 traces, against the estimat
 of an older commit (``--old-ref``, extracted with ``git archive`` into a temporary
 directory and imported as its own package), measured in the same run and checked
 to give the same bits.
+
+Per frame of the fe node (``--tracker-only``, or before the rest): CPU time of
+``DryingTracker.add_traces`` + ``add_drying`` for one 1,024-row frame of the soak's
+head (5 % random faults, nozzles 40 and 600 drying) with its two drying rows, this
+tree against ``--tracker-ref`` (default: main before the soak-12 changes), same run,
+calls interleaved, estimates checked bit-identical.
 """
 
 import os
@@ -67,9 +73,8 @@ def _rate(fn, n, repeat=1):
     return n / best
 
 
-def _old_estimator(ref, tmp):
-    """``estimate_fm_batch`` of commit ``ref`` (imported as package ``inkdiag_core_<ref>``)
-    and that package's default ``InkChannelModel()``."""
+def _old_package(ref, tmp):
+    """The ``inkdiag_core`` of commit ``ref``, imported as package ``inkdiag_core_<ref>``."""
     tar = Path(tmp) / "old.tar"
     with open(tar, "wb") as fh:
         subprocess.run(["git", "-C", str(ROOT), "archive", ref, "inkdiag_core/inkdiag_core"],
@@ -79,7 +84,12 @@ def _old_estimator(ref, tmp):
     name = f"inkdiag_core_{ref.replace('-', '_').replace('.', '_')}"
     (Path(tmp) / "inkdiag_core" / "inkdiag_core").rename(Path(tmp) / name)
     sys.path.insert(0, tmp)
-    pkg = importlib.import_module(name)
+    return importlib.import_module(name)
+
+
+def _old_estimator(ref, tmp):
+    """``estimate_fm_batch`` of commit ``ref`` and that package's default ``InkChannelModel()``."""
+    pkg = _old_package(ref, tmp)
     return pkg.estimate_fm_batch, pkg.InkChannelModel()
 
 
@@ -115,6 +125,54 @@ def small_batches(Y, model, fs, ref, sizes=(1, 2, 8, 64), repeat=7):
                       f"ratio {t_old / t_new:4.2f}x  {'bit-identical' if same else 'DIFFERENT'}")
 
 
+def _soak_frames(n_frames=8):
+    """Frames (float32 (1024, 512), V) of the soak's head at times spread over its drying."""
+    from inkdiag_core.simulation.scenario import HeadScenario, simulate_head
+
+    sc = HeadScenario(n_nozzles=1024, random_fault_fraction=0.05, drying_nozzles=[40, 600],
+                      drying_duration_s=60.0, seed=0)
+    rng = np.random.default_rng(1)
+    out = []
+    for t in np.linspace(1.0, 120.0, n_frames):
+        classes, mu = sc.at(float(t))
+        out.append(simulate_head(classes, mu, sample_rate_hz=10e6, n_samples=512, head_seed=[0, 1],
+                                 rng=rng)[0])
+    return out
+
+
+def tracker_frames(ref, repeat=7, calls=40):
+    """CPU ms per frame of DryingTracker.add_traces + add_drying, this tree vs ``ref``."""
+    from inkdiag_core import DryingTracker
+
+    frames = _soak_frames()
+    with tempfile.TemporaryDirectory() as tmp:
+        old = _old_package(ref, tmp)
+        trackers = {"this tree": DryingTracker(), ref: old.DryingTracker()}
+        fid = {k: 0 for k in trackers}
+
+        def frame(key):
+            tr, i = trackers[key], fid[key]
+            fid[key] += 1
+            tr.add_traces(frames[i % len(frames)], first_nozzle=0, frame_id=i, stamp=0.1 * i,
+                          sample_rate_hz=10e6)
+            return tr.add_drying(i, [40, 600], first_nozzle=0, n_nozzles=1024)
+
+        outs = {k: [frame(k)[0] for _ in range(len(frames))] for k in trackers}  # warm; results
+        same = all(np.array_equal(a.columns[c], b.columns[c], equal_nan=True)
+                   for a, b in zip(*outs.values()) for c in a.columns)
+        best = {k: np.inf for k in trackers}
+        for _ in range(repeat):  # interleaved: both see the same machine
+            for k in trackers:
+                t = time.process_time()
+                for _ in range(calls):
+                    frame(k)
+                best[k] = min(best[k], (time.process_time() - t) / calls)
+    new, old_t = best["this tree"], best[ref]
+    print(f"DryingTracker, one 1,024-row frame with 2 drying rows (add_traces + add_drying), CPU ms "
+          f"per frame, best of {repeat} x {calls}: this tree {1e3 * new:.2f}, {ref} {1e3 * old_t:.2f}, "
+          f"ratio {old_t / new:.2f}x; estimates {'bit-identical' if same else 'DIFFERENT'}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--n", type=int, default=4900, help="traces per timed batch")
@@ -123,7 +181,14 @@ def main(argv=None):
                     help="commit whose estimator the small-batch per-call times compare with "
                     "(default: before the per-call cost cut)")
     ap.add_argument("--small-only", action="store_true", help="only the small-batch comparison")
+    ap.add_argument("--tracker-ref", default="c137b1d",
+                    help="commit whose DryingTracker the per-frame times compare with (default: main "
+                    "before the soak-12 changes)")
+    ap.add_argument("--tracker-only", action="store_true", help="only the per-frame DryingTracker comparison")
     args = ap.parse_args(argv)
+    tracker_frames(args.tracker_ref)
+    if args.tracker_only:
+        return
     model = InkChannelModel()
     fs = 10e6
     reps = max(1, args.n // 49)

@@ -131,3 +131,24 @@ def test_bad_input_is_refused_and_changes_nothing():
     with pytest.raises(ValueError, match=">= 1"):
         DryingTracker(max_pending=0)
     assert tr.pending == (0, 0) and tr.traces_received == tr.drying_received == 0
+
+
+def test_traces_whose_list_cannot_come_are_dropped_when_a_later_list_comes():
+    # fdi answers a range's messages in frame order: once frame 7's list for range 0 is here,
+    # frames 5 and 6 of range 0 (which fdi never had: lost on the best-effort topic) get none,
+    # and their traces (a whole message each) are not held until max_pending of them pile up
+    x = _frame(5)
+    tr = DryingTracker(max_pending=128)
+    for f in (5, 6, 7):
+        assert _traces(tr, x, f, 0) == []
+    assert _traces(tr, x, 6, 1) == []  # another range: its own list may still come
+    (e,) = _drying(tr, 7, 0, DRIED[0])
+    assert e.frame_id == 7 and e.nozzles.tolist() == DRIED[0]
+    assert tr.pending == (1, 0) and tr.traces_unmatched == 2
+    (e,) = _drying(tr, 6, 1, DRIED[1])
+    assert e.first_nozzle == 8 and tr.pending == (0, 0) and tr.traces_unmatched == 2
+    # a list that comes before its traces drops nothing that can still be joined
+    assert _drying(tr, 9, 2, DRIED[2]) == [] and _traces(tr, x, 8, 2) == []
+    assert tr.pending == (1, 1)
+    (e,) = _traces(tr, x, 9, 2)
+    assert e.frame_id == 9 and tr.pending == (1, 0) and tr.traces_unmatched == 2
