@@ -97,7 +97,7 @@ def _real_rows(data, profile, seed, validation_fraction, n_sim_per_class):
 
 
 def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseline: bool = False,
-                   n_per_class: int = 400, data=None, seed: int = 0, n_estimators: int = 50,
+                   n_per_class: int = 1000, data=None, seed: int = 0, n_estimators: int = 50,
                    min_samples_leaf: int = 3, fnr_target: float = 0.005, validation_fraction: float = 0.25,
                    progress=None, return_data: bool = False):
     """Fit a :class:`inkdiag_core.FaultDetector` for the head of ``profile``.

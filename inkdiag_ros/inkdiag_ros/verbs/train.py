@@ -40,7 +40,7 @@ def add_arguments(parser) -> None:
                         help="also train the per-nozzle baseline branch (for fdi's / label's --baselines)")
     parser.add_argument("--data", metavar="LABELLED.npz",
                         help="labelled recordings of this head to train on as well (a 'label' per row)")
-    parser.add_argument("--n-per-class", type=int, default=400, metavar="N",
+    parser.add_argument("--n-per-class", type=int, default=1000, metavar="N",
                         help="simulated traces per class (default: %(default)s; >= 8)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulation, split and forest "
                         "(default: %(default)s)")
