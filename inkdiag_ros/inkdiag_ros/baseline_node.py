@@ -31,10 +31,11 @@ from pathlib import Path
 
 from rclpy.node import Node
 
-from inkdiag_core import BaselineRecorder, HeadProfile
+from inkdiag_core import BaselineRecorder
 from msg_defs import TRACE_MSG_TYPE, TRACES_QOS, FrameError, decode_traces, topics
 
 from . import _params
+from ._head import HEAD_PROFILE_PARAM, head_from_parameters
 from ._spin import spin_node
 
 PARAMS = (
@@ -44,7 +45,7 @@ PARAMS = (
      "fm_frames valid rows, at most n_frames; 0: none (about 1 ms of CPU per row)", int, (0, 1000)),
     ("n_nozzles", 0, "nozzles to wait for (0: until timeout_s)", int, (0, 2**24)),
     ("timeout_s", 60.0, "give up waiting after this long, s; writes the complete nozzles", float, (0.1, 86400.0)),
-    ("head_profile", "", "head profile YAML file; empty: the shipped default head", str, None),
+    HEAD_PROFILE_PARAM,
     ("n_samples", 0, "samples per trace; other frames are rejected; 0: the head profile's (else it must be "
      "the profile's)", int, (0, 65536)),
     ("sample_rate_hz", 0.0, "sample rate of the traces, Hz; other frames are rejected; 0: the head profile's "
@@ -62,9 +63,9 @@ class BaselineRecorderNode(Node):
         if not self.config["output_path"]:
             raise ValueError("output_path is required (-p output_path:=baselines/head.npz)")
         c = self.config
-        self.profile = HeadProfile.load(c["head_profile"]) if c["head_profile"] else HeadProfile.default()
-        self.recorder = BaselineRecorder(n_frames=c["n_frames"], sample_rate_hz=c["sample_rate_hz"] or None,
-                                         n_samples=c["n_samples"] or None, profile=self.profile,
+        self.profile = head_from_parameters(c)  # bad, nominal or contradicting: ValueError, exit 2 at start
+        self.recorder = BaselineRecorder(n_frames=c["n_frames"], sample_rate_hz=c["sample_rate_hz"],
+                                         n_samples=c["n_samples"], profile=self.profile,
                                          fm_frames=min(c["fm_frames"], c["n_frames"]))
         self.frames = 0
         self.malformed = 0

@@ -1,14 +1,10 @@
 """fdi: fault detection and isolation of every trace message of one printhead.
 
-``traces`` -> decode -> :class:`.labelling_backend.LabellingPipeline` (the core's
-:class:`inkdiag_core.FrameLabeller` on a thread or in a child process) -> ``labels`` and
-``drying_nozzles``, one of each per trace message; counters on ``/diagnostics``.
-Parameters: docs/parameters.md; topics and counters: docs/controller.md.
-
-    fdi --ros-args -r __ns:=/head_00 -p model_path:=models/fdi_default.joblib
-
-``head_profile`` names the head (default: the shipped default head): its sampling is what
-frames must have, and a model trained for another head is refused at start.
+``traces`` -> decode -> :class:`.labelling_backend.LabellingPipeline` (the core's :class:`inkdiag_core.FrameLabeller`
+on a thread or in a child process) -> ``labels`` and ``drying_nozzles``, one of each per trace message;
+counters on ``/diagnostics``. ``head_profile`` (default: the shipped default head): frames must have its
+sampling; a model or baselines of another head are refused at start. Parameters: docs/parameters.md;
+topics and counters: docs/controller.md; running it: docs/nodes.md.
 """
 
 from __future__ import annotations
@@ -18,12 +14,13 @@ import sys
 import numpy as np
 from rclpy.node import Node
 
-from inkdiag_core import FrameFailure, HeadProfile, LabellerConfigError, ModelFileError, load_labeller
+from inkdiag_core import FrameFailure, LabellerConfigError, ModelFileError, load_labeller
 from msg_defs import (DIAGNOSTICS_MSG_TYPE, DIAGNOSTICS_QOS, DRYING_MSG_TYPE, LABELS_MSG_TYPE, RELIABLE_QOS,
                       TRACE_MSG_TYPE, TRACES_QOS, DryingNozzles, FrameError, LabelsReport, build_diagnostics,
                       decode_traces, encode_drying, encode_labels, topics)
 
 from . import _params
+from ._head import HEAD_PROFILE_PARAM, SAMPLING_PARAMS, head_from_parameters
 from ._spin import spin_node, take_queued
 from .labelling_backend import LabellingPipeline, make_backend
 from .stats import FdiStats
@@ -31,48 +28,17 @@ from .stats import FdiStats
 PARAMS = (
     ("model_path", "", "FaultDetector model file (.joblib with its .manifest.json beside it)", str, None),
     ("n_nozzles", 0, "nozzles of this head: frames with ids >= n_nozzles are rejected (0: no check)", int, (0, 2**24)),
-    ("head_profile", "", "head profile YAML file; empty: the shipped default head", str, None),
-    ("n_samples", 0, "samples per trace of this head's frames (the model must be built for them); other frames "
-     "are rejected. 0: the head profile's", int, (0, 65536)),
-    ("sample_rate_hz", 0.0, "sample rate of this head's frames, Hz (the model must be built for it); other frames "
-     "are rejected. 0: the head profile's", float, (0.0, 1e9)),
+    HEAD_PROFILE_PARAM,
+    *SAMPLING_PARAMS,
     ("diagnostics_period_s", 1.0, "period of /diagnostics, s", float, (0.1, 60.0)),
     ("max_queued_frames", 64, "frames waiting for the classifier at most; a full queue drops its oldest", int, (1, 100000)),
     ("max_batch_traces", 16384, "traces classified in one pass at most", int, (1, 2**24)),
-    ("baseline_path", "", "the head's per-nozzle healthy baselines (.npz from record_baseline), classified by the "
-     "model's baseline branch; empty: none", str, None),
-    ("max_abs_sample_v", 0.0, "largest sample magnitude a sensor can produce, V; a row with a sample "
-     "beyond it is invalid ('out_of_range'). 0: 5x the head profile's ADC range (10 V for the default head's "
-     "+-2 V)", float, (0.0, 1e30)),
-    ("labelling_process", False, "label in a child process (a core of its own: no GIL shared with "
-     "receiving and publishing) instead of a thread of this one", bool, None),
+    ("baseline_path", "", "the head's per-nozzle baselines (.npz from record_baseline) for the model's baseline "
+     "branch; empty: none", str, None),
+    ("max_abs_sample_v", 0.0, "largest sample magnitude a sensor can produce, V; a row beyond it is invalid "
+     "('out_of_range'). 0: 5x the head profile's ADC range (10 V for the default head)", float, (0.0, 1e30)),
+    ("labelling_process", False, "label in a child process (a core and a GIL of its own), not a thread", bool, None),
 )
-
-
-def head_from_parameters(config):
-    """The head profile of ``config['head_profile']`` (empty: the default head); fills in its sampling.
-
-    ``config['sample_rate_hz']`` / ``config['n_samples']`` of 0 become the profile's; other
-    values must be the profile's. ``config['max_abs_sample_v']`` of 0 becomes 5x the head's
-    ADC range.
-
-    Raises
-    ------
-    ValueError
-        The file does not load (:class:`inkdiag_core.ProfileError`), or the sampling
-        parameters contradict it.
-    """
-    path = config["head_profile"]
-    head = HeadProfile.load(path) if path else HeadProfile.default()
-    if not config["max_abs_sample_v"]:
-        config["max_abs_sample_v"] = 5.0 * head.adc_range_v
-    for key, want in (("sample_rate_hz", head.sample_rate_hz), ("n_samples", head.n_samples)):
-        if not config[key]:
-            config[key] = type(config[key])(want)
-        elif config[key] != want:
-            raise ValueError(f"{key} is {config[key]:g} but head profile {head.name!r} "
-                             f"({path or 'the default head'}) has {want:g}: leave {key} 0 to take the profile's")
-    return head
 
 
 class FdiNode(Node):
@@ -83,6 +49,7 @@ class FdiNode(Node):
         self.config = c = _params.declare_all(self, PARAMS)
         self.add_on_set_parameters_callback(lambda params: _params.fixed_at_start(params))
         self.head = head_from_parameters(c)  # a bad file or sampling: ValueError, exit 2 at start
+        c["max_abs_sample_v"] = c["max_abs_sample_v"] or 5.0 * self.head.adc_range_v
         self.stats = FdiStats()
         self.labeller = self._load_labeller()
         self.model_id = self.labeller.model_id if self.labeller else "none"
@@ -100,8 +67,7 @@ class FdiNode(Node):
         self._diag_timer = self.create_timer(c["diagnostics_period_s"], self._on_diagnostics)
 
     def _load_labeller(self):
-        c = self.config
-        if not c["model_path"]:
+        if not (c := self.config)["model_path"]:
             self.get_logger().error("no model_path given: frames will not be labelled")
             return None
         try:
@@ -123,17 +89,16 @@ class FdiNode(Node):
         self.get_logger().error(why)
 
     def destroy_node(self):
-        if getattr(self, "_pipeline", None) is not None:  # absent if __init__ failed part-way
+        if getattr(self, "_pipeline", None) is not None:  # absent if __init__ failed part-way; else
             self._pipeline.close()  # the batches out are published first
         return super().destroy_node()
 
-    def wait_idle(self, timeout: float | None = None) -> bool:
-        """Block until every received frame is labelled and published (for tests and tools)."""
-        return self._pipeline.wait_idle(timeout)
+    def wait_idle(self, timeout: float | None = None) -> bool:  # for tests and tools
+        return self._pipeline.wait_idle(timeout)  # every received frame labelled and published
 
     def _on_traces(self, msg) -> None:
         self._on_trace_msg(msg)
-        for taken in take_queued(self._sub, 64):  # one executor wake-up per burst
+        for taken in take_queued(self._sub, 64):  # one executor wake-up per burst, taken one by one
             self._on_trace_msg(taken)
 
     def _on_trace_msg(self, msg) -> None:
@@ -150,7 +115,7 @@ class FdiNode(Node):
         if self.labeller is not None:
             self._pipeline.submit(frame)
 
-    def _on_dropped(self, frame) -> None:
+    def _on_dropped(self, frame) -> None:  # the labelling queue was full
         self.stats.dropped(f"frame {frame.frame_id}: dropped, the labelling queue was full")
         self.get_logger().warning("labelling queue full: dropped the oldest frame", throttle_duration_sec=1.0)
 

@@ -1,41 +1,19 @@
 """fe: fault estimation (f_m) of the drying nozzles of one printhead.
 
-Subscribes to ``traces`` (sensor-data QoS) and ``drying_nozzles`` (reliable,
-from the fdi node). A frame may come as several trace messages, one per
-nozzle range (``first_nozzle`` in the trace header), and fdi answers each
-with the drying list of that range (``first_nozzle``/``n_nozzles`` in the
-message). The node hands both streams to :class:`inkdiag_core.DryingTracker`,
-which joins them on ``(frame_id, first_nozzle)`` in whichever order they
-arrive: every range of a frame is estimated with that same frame's list for
-that range (a nozzle is estimated in the first frame it is labelled dried,
-and no longer once it recovered). What waits for its partner is held in two
-bounded buffers (``max_pending``; the oldest is dropped and counted). An
-empty list releases its range's traces; a list without a range (an older
-fdi) applies to every range of its frame.
+``traces`` (sensor-data QoS) and ``drying_nozzles`` (reliable, from fdi, one list per
+trace message's nozzle range) -> :class:`inkdiag_core.DryingTracker`, which joins them on
+``(frame_id, first_nozzle)`` in either order (every range is estimated with that same
+frame's list; waiting partners are held in bounded buffers, ``max_pending``), screens
+the listed rows, estimates their f_m in one batch on the head profile's model and
+"vp_cal" constants, and feeds each nozzle's Kalman trend -> ``fm_estimates`` (JSON) and
+``fm_estimates/array`` (Float64MultiArray), reliable, per frame and range with estimates.
 
-For each joined pair the listed rows are screened and their f_m estimated in
-one batch (x0-free variable projection on the nominal channel model: the
-traces' unknown gain and offset drop out); each nozzle's history feeds a
-Kalman trend (:class:`inkdiag_core.FmTrendBank`) that gives the smoothed f_m,
-its rate and the time until the deeply-dried level. Publishes, per frame and
-range with estimates, ``fm_estimates`` (JSON, with ``frame_id`` and
-``first_nozzle``) and ``fm_estimates/array`` (Float64MultiArray), reliable.
-
-With ``baseline_path`` (the head's baselines from ``record_baseline``, with
-healthy f_m per nozzle), each nozzle's estimate is taken relative to its own
-healthy reading (``estimate_fm_batch(..., baseline_fm=...)``): a real nozzle
-differs from the nominal model within its tolerances and the estimator reads
-that as a fault; its healthy reading removes the part that acts as an offset
-(``reports/fe.md``). Nozzles without one are estimated as before. A file that
-does not load or has no f_m is logged and the node runs without it.
-
-``head_profile`` (a head profile YAML file, default: the shipped default
-head) gives the estimator's model, its "vp_cal" constants (fitted once at
-start for a head other than the default one, unless the profile holds
-them), the deeply-dried level of the trend and the sampling: trace frames
-of another sample rate or trace length are malformed (counted, logged). A
-profile that does not load, or a nominal one, stops the node at start
-(one line on stderr, exit status 2).
+``baseline_path``: the head's baselines with healthy f_m (``record_baseline``), each
+estimate relative to its nozzle's healthy reading (``reports/fe.md``); a file that does
+not load, has no f_m or belongs to another head is logged and not used.
+``head_profile`` (empty: the shipped default head): frames of another sampling are
+malformed; a bad or nominal profile stops the node at start (exit status 2).
+docs/nodes.md has the details.
 
     fe --ros-args -r __ns:=/head_00
 """
@@ -47,9 +25,10 @@ import sys
 import numpy as np
 from rclpy.node import Node
 
+from ._head import HEAD_PROFILE_PARAM, head_from_parameters
 from ._spin import spin_node
 
-from inkdiag_core import BaselineFileError, DryingTracker, HeadProfile, NozzleBaselines
+from inkdiag_core import BaselineFileError, DryingTracker, NozzleBaselines
 from msg_defs import (
     DRYING_MSG_TYPE,
     ESTIMATES_ARRAY_MSG_TYPE,
@@ -78,7 +57,7 @@ PARAMS = (
     ("trend_rel_floor", 0.05, "relative floor of one estimate's standard deviation", float, (0.0, 1.0)),
     ("baseline_path", "", "the head's per-nozzle baselines with healthy f_m (.npz from record_baseline): "
      "each estimate is relative to its nozzle's healthy reading; empty: none", str, None),
-    ("head_profile", "", "head profile YAML file; empty: the shipped default head", str, None),
+    HEAD_PROFILE_PARAM,
 )
 
 
@@ -90,7 +69,7 @@ class FeNode(Node):
         self.config = c = _params.declare_all(self, PARAMS)
         self.add_on_set_parameters_callback(self._on_set)
         self.add_post_set_parameters_callback(self._after_set)
-        self.profile = self._load_profile(c["head_profile"])
+        self.profile = head_from_parameters(c)  # a bad or nominal file: ValueError, exit 2 at start
         self.baselines = self._load_baselines(c["baseline_path"])
         self.tracker = DryingTracker(
             profile=self.profile, max_estimates=c["max_estimates_per_frame"], max_pending=c["max_pending"],
@@ -105,25 +84,12 @@ class FeNode(Node):
         self._traces_sub = self.create_subscription(TRACE_MSG_TYPE, topics.TRACES, self._on_traces,
                                                     TRACES_QOS)
 
-    def _load_profile(self, path: str):
-        """The head profile, or the default head; a bad or nominal file raises (the node stops at start)."""
-        if not path:
-            return HeadProfile.default()
-        try:
-            profile = HeadProfile.load(path)
-            profile.channel_params()  # a nominal profile: ProfileError ("run inkdiag calibrate")
-        except ValueError as exc:
-            self.get_logger().error(f"head_profile: {exc}")
-            raise
-        self.get_logger().info(f"head profile {profile.name!r} ({profile.sample_rate_hz:g} Hz x "
-                               f"{profile.n_samples}) from {path}")
-        return profile
-
     def _load_baselines(self, path: str):
         if not path:
             return None
         try:
             baselines = NozzleBaselines.load(path)
+            baselines.check_head(self.profile)
         except BaselineFileError as exc:
             self.get_logger().error(f"f_m baselines not used: {exc}")
             return None

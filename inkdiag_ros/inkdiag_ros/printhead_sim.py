@@ -35,6 +35,7 @@ from msg_defs import (
 )
 
 from . import _params
+from ._head import HEAD_PROFILE_PARAM, head_from_parameters
 from inkdiag_core import HeadProfile
 from inkdiag_core.simulation.scenario import HeadScenario
 
@@ -43,7 +44,7 @@ PARAMS = (
     ("n_nozzles", 64, "nozzles of the simulated head (one frame holds all of them)", int, (1, 100_000)),
     ("first_nozzle", 0, "id of the head's first nozzle", int, (0, 2**24 - 1)),
     ("frame_rate_hz", 5.0, "frames published per second", float, (0.01, 1000.0)),
-    ("head_profile", "", "head profile YAML file; empty: the shipped default head", str, None),
+    HEAD_PROFILE_PARAM,
     ("sample_rate_hz", 0.0, "ADC sample rate of the traces, Hz; 0: the head profile's", float, (0.0, 100e6)),
     ("n_samples", 0, "samples per trace; 0: the head profile's", int, (0, 65536)),
     ("seed", 0, "seed of the scenario, of the head's nozzles (their tolerances persist across frames) and of the frames' noise", int, (0, 2**31 - 1)),
@@ -94,13 +95,7 @@ class PrintheadSim(Node):
     @staticmethod
     def _load_profile(p) -> HeadProfile:
         """The head: ``head_profile`` (or the default head), sampled at the sampling parameters if given."""
-        prof = HeadProfile.load(p["head_profile"]) if p["head_profile"] else HeadProfile.default()
-        if not prof.is_complete:  # a ProfileError: one line, exit status 2
-            raise ValueError(f"head_profile {p['head_profile']}: profile {prof.name!r} is nominal "
-                             f"({', '.join(prof.missing)} missing); the simulator needs a complete profile "
-                             "(run `inkdiag calibrate` on recorded healthy traces)")
-        change = {k: p[k] for k in ("sample_rate_hz", "n_samples") if p[k] and p[k] != getattr(prof, k)}
-        prof = prof.replace(**change) if change else prof
+        prof = head_from_parameters(dict(p), resample=True)  # bad or nominal: ValueError, exit 2
         try:  # the wire must carry its sample rate (msg_defs says how)
             encode_traces(np.zeros((1, prof.n_samples), np.float32), sample_rate_hz=prof.sample_rate_hz)
         except FrameError as exc:
