@@ -41,7 +41,7 @@ estimators) only the product and the shape matter.
 
 Method
 ------
-1. Drop traces with non-finite samples (counted in the report).
+1. Drop the traces screening refuses (non-finite, beyond 5x the ADC range, flat, clipped; counted in the report).
 2. Fit the mean of the typical traces (the :data:`TYPICAL_FRACTION` nearest the median
    dominant frequency and damping: averaging traces of different frequencies would
    damp the mean and bias the weakly identified direction; the per-trace gain and
@@ -74,6 +74,7 @@ from scipy.optimize import brentq, least_squares
 from .checks import InputError
 from .head_profile import NOMINAL_CHANNEL_KEYS, HeadProfile, ProfileError
 from .kpis import extract_kpis
+from .screening import screen_traces
 from .simulation.channels import PHYSICAL_CONSTANTS
 from .simulation.modal import cubic_roots, modal_solution
 
@@ -303,12 +304,14 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
         raise ProfileError(f"nominal profile {nominal.name!r}: channel.{missing[0]} is missing")
     nominal.check_traces(traces, sample_rate_hz, what="the recording")
     y = np.asarray(traces, dtype=np.float64)
-    finite = np.isfinite(y).all(axis=1)
+    # rows labelling would refuse (non-finite, beyond 5x the ADC range, flat, clipped) are left out
+    finite, why = screen_traces(y, sample_rate_hz=sample_rate_hz, max_abs_v=5.0 * nominal.adc_range_v)
     n_dropped = int((~finite).sum())
     y = y[finite]
     if y.shape[0] < MIN_TRACES:
-        raise CalibrationError(f"{y.shape[0]} finite healthy traces ({n_dropped} dropped for non-finite samples); "
-                               f"calibration needs at least {MIN_TRACES}")
+        reasons = ", ".join(f"{r} {int((why == r).sum())}" for r in sorted(set(why[~finite].tolist())))
+        raise CalibrationError(f"{y.shape[0]} usable healthy traces ({n_dropped} left out by screening"
+                               f"{': ' + reasons if reasons else ''}); calibration needs at least {MIN_TRACES}")
     fs = nominal.sample_rate_hz
     known = _Known.of(nominal)
     typical = _typical_rows(y, fs, TYPICAL_FRACTION)

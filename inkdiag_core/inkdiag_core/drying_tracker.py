@@ -47,6 +47,12 @@ import numpy as np
 from .estimation import MIN_FM_SAMPLES, estimate_fm_batch
 from .model import InkChannelModel
 from .screening import screen_traces
+
+
+def _default_head():
+    from .head_profile import HeadProfile
+
+    return HeadProfile.default()
 from .trend import FmTrendBank, deeply_dried_fm
 
 __all__ = ["ESTIMATE_COLUMNS", "DryingTracker", "RangeEstimates", "RowEstimates"]
@@ -182,7 +188,7 @@ class DryingTracker:
 
     def __init__(self, model=None, *, profile=None, max_estimates: int = 64, max_pending: int = 128,
                  baselines=None, trend_accel_std: float = 5e3, trend_rel_floor: float = 0.05,
-                 method: str = "auto"):
+                 method: str = "auto", max_abs_v: float | None = None):
         if int(max_estimates) < 1 or int(max_pending) < 1:
             raise ValueError(f"max_estimates and max_pending must be >= 1, got {max_estimates}, {max_pending}")
         if method not in ("auto", "vp", "vp_cal"):
@@ -191,6 +197,11 @@ class DryingTracker:
             raise ValueError("give the head's model or its profile, not both")
         self.profile = profile
         self.method = method
+        # a sample no sensor can produce: the row is invalid ('out_of_range'), as fdi screens it
+        self.max_abs_v = (float(max_abs_v) if max_abs_v is not None
+                          else 5.0 * (profile if profile is not None else _default_head()).adc_range_v)
+        if not self.max_abs_v > 0:
+            raise ValueError(f"max_abs_v must be > 0 V, got {max_abs_v!r}")
         self.vp_cal = None
         fm_deep = None
         if profile is not None:
@@ -379,7 +390,7 @@ class DryingTracker:
             raise ValueError(f"traces must be (n, n_samples) with one nozzle id per row, got shape "
                              f"{rows.shape} and {ids.size} ids")
         n = ids.size
-        valid, reasons = screen_traces(rows, sample_rate_hz=sample_rate_hz)
+        valid, reasons = screen_traces(rows, sample_rate_hz=sample_rate_hz, max_abs_v=self.max_abs_v)
         cols = {k: np.full(n, np.nan) for k in ESTIMATE_COLUMNS}
         cols["nozzle"] = ids.copy()
         self.rows_invalid += int(n - np.count_nonzero(valid))

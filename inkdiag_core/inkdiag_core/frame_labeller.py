@@ -109,6 +109,10 @@ class FrameLabeller:
         if n_samples is not None and int(n_samples) != want_n:
             raise LabellerConfigError(f"the model is for {want_n} samples per trace, the frames have {int(n_samples)}")
         if baselines is not None:
+            if baselines.head_sha256 != detector.head_sha256:
+                raise LabellerConfigError(
+                    f"the baselines were recorded on another head (profile sha256 {baselines.head_sha256[:12]}) than "
+                    f"the model's {detector.head_name!r} ({detector.head_sha256[:12]}): record them on this head")
             got = (float(baselines.sample_rate_hz), int(baselines.n_samples))
             if got != (want_fs, want_n):
                 raise LabellerConfigError(f"the baselines are for {got[0]:g} Hz x {got[1]} samples, the model "

@@ -75,6 +75,7 @@ __all__ = [
     "SCHEMA",
     "SCHEMA_VERSION",
     "SENSOR_UNITS",
+    "SPREAD_KEYS",
 ]
 
 SCHEMA = "inkdiag.head_profile"
@@ -102,8 +103,10 @@ SENSOR_UNITS = {
 }
 """The ``sensor`` keys and their units (``noise_std_v`` and ``snr_db`` are alternatives)."""
 
-_SPREAD_KEYS = tuple(f.name for f in dataclasses.fields(Spreads)
-                     if f.name not in ("snr_db", "adc_bits", "adc_range_v"))
+SPREAD_KEYS = tuple(f.name for f in dataclasses.fields(Spreads)
+                    if f.name not in ("snr_db", "adc_bits", "adc_range_v"))
+"""The ``spreads`` keys: :class:`Spreads` fields other than the sensor's noise and ADC."""
+_SPREAD_KEYS = SPREAD_KEYS
 _SPREAD_UNITS = {k: ("K" if k.endswith("_k") else "V" if k.endswith("_v") else "relative (std)")
                  for k in _SPREAD_KEYS}
 
@@ -123,7 +126,15 @@ def _loader():
     import yaml
 
     class Loader(yaml.SafeLoader):
-        pass
+        def construct_mapping(self, node, deep=False):
+            seen = set()
+            for key_node, _ in node.value:
+                key = self.construct_object(key_node, deep=deep)
+                if key in seen:
+                    raise yaml.constructor.ConstructorError(
+                        None, None, f"duplicate key {key!r} (line {key_node.start_mark.line + 1})", key_node.start_mark)
+                seen.add(key)
+            return super().construct_mapping(node, deep=deep)
 
     Loader.add_implicit_resolver(
         "tag:yaml.org,2002:float",

@@ -131,7 +131,8 @@ class Recording:
             lab = np.asarray(label)
             if lab.shape != (n,):
                 raise RecordingError(f"{source}: label must have one entry per trace, shape ({n},), got {lab.shape}")
-            lab = np.array([str(v) for v in lab.tolist()], dtype=object)
+            lab = np.array([v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v) for v in lab.tolist()],
+                           dtype=object)  # bytes (an 'S' array, as h5py or MATLAB write) are UTF-8 text
             bad = sorted(set(lab.tolist()) - _CLASS_VALUES)
             if bad:
                 raise RecordingError(f"{source}: label {bad[0]!r} is not a class (expected one of "

@@ -42,9 +42,12 @@ import foreign_head as fh  # noqa: E402
 from _common import md_table, out_path  # noqa: E402
 
 from inkdiag_core import FaultClass, HeadProfile  # noqa: E402
+from inkdiag_core.calibration import UNSEEN_PHYSICS_SPREADS  # noqa: E402
 from inkdiag_core.faults import DRIED_CLASSES  # noqa: E402
+from inkdiag_core.head_profile import SPREAD_KEYS  # noqa: E402
 
 HEALTHY = {FaultClass.OK_SIGNAL.value, FaultClass.HEALTHY_NOZZLE.value}
+_WORK = [""]  # the work directory, shown as WORK in the report
 
 
 def _inkdiag(*args, log):
@@ -52,7 +55,8 @@ def _inkdiag(*args, log):
     t0 = time.perf_counter()
     r = subprocess.run(cmd, capture_output=True, text=True)
     dt = time.perf_counter() - t0
-    log.append(f"$ inkdiag {' '.join(map(str, args))}   # {dt:.1f} s, exit {r.returncode}")
+    shown = " ".join(str(a).replace(_WORK[0], "WORK") if _WORK[0] else str(a) for a in args)
+    log.append(f"$ inkdiag {shown}   # {dt:.1f} s, exit {r.returncode}")
     if r.returncode != 0:
         raise SystemExit(f"inkdiag {args[0]} failed (exit {r.returncode}):\n{r.stderr[-2000:]}")
     return r, dt
@@ -65,8 +69,13 @@ def _read_csv(path):
 
 def _true_profile_yaml(name, path):
     head = fh.FOREIGN_HEADS[name]
+    # the head's true channel, drive, sensor and spreads; and the same training over the
+    # physics healthy traces cannot show as a calibrated profile gets, so that the two rows
+    # differ by calibration only
+    spreads = {k: v for k, v in fh.FOREIGN_SPREADS.items() if k in SPREAD_KEYS}
     doc = {"schema": "inkdiag.head_profile", "schema_version": 1, "name": f"{name}_true", **{
-        k: dict(head[k]) for k in ("sampling", "channel", "drive", "sensor")}}
+        k: dict(head[k]) for k in ("sampling", "channel", "drive", "sensor")},
+        "spreads": {**spreads, **UNSEEN_PHYSICS_SPREADS}}
     HeadProfile.from_dict(doc, source=f"{name} true profile").save(path)
     return path
 
@@ -144,6 +153,7 @@ def main(argv=None) -> int:
     if unknown:
         ap.error(f"unknown head {unknown[0]!r}; tests/foreign_head.py has {', '.join(fh.FOREIGN_HEADS)}")
     work = Path(tempfile.mkdtemp(prefix="inkdiag_heads_"))
+    _WORK[0] = str(work)
     log: list[str] = []
     results = {}
     t0 = time.perf_counter()
@@ -212,7 +222,33 @@ def write_report(results, args, log, elapsed):
             rows.append(["", key, f"{t:.4g}", f"{c:.4g}", f"{100 * (c / t - 1):+.1f}"])
         rows.append(["", "calibrate time (s)", "", f"{r['calibrate_s']:.1f}", ""])
     lines += [md_table(["head", "quantity", "true", "calibrated", "error %"], rows), ""]
-    lines += ["## Commands run", "", "```", *log, "```", ""]
+    lines += [
+        "## Reading it",
+        "",
+        "- *invalid / not estimated*: rows screening refused (for instance a trace clipped at the ADC's rails, "
+        "which the 10-bit +-2 V sensor of h5 produces) or whose estimate is not finite; they are left out of "
+        "the scores above, not counted as right.",
+        "- *true*: the head's true channel, drive, sensor and spreads (`tests/foreign_head.py`), plus the "
+        "spreads a calibrated profile trains over for the physics healthy traces cannot show (the empty "
+        "channel's actuator, `calibration.UNSEEN_PHYSICS_SPREADS`): the two rows differ by calibration only. "
+        "The foreign simulator's own fault constants (actuator resonance and damping, ink-temperature law) "
+        "stay unknown to both.",
+        "- partially_blocked (a particle in the bore: resistance and inertance) and the dried classes "
+        "(resistance only) overlap in frequency and damping where the head's geometry spreads are wide; "
+        "per-nozzle baselines (`inkdiag train --baseline`, `inkdiag label --baselines`) remove most of that "
+        "spread on the default head (reports/fdi.md).",
+        "- d_mu truth: each trace's nozzle viscosity over its own channel's ink viscosity (at its "
+        "temperature).",
+        "",
+        "## Commands run",
+        "",
+        "`WORK` is a temporary directory; `tests/foreign_head.py` wrote its recordings and nominal profiles.",
+        "",
+        "```",
+        *log,
+        "```",
+        "",
+    ]
     out_path("heads.md").write_text("\n".join(lines))
     print(f"wrote {out_path('heads.md')}", file=sys.stderr)
 

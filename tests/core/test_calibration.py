@@ -96,7 +96,7 @@ def test_non_finite_traces_are_dropped_and_counted(recorded):
 def test_too_few_traces(recorded):
     y = recorded.traces[: MIN_TRACES + 2].copy()
     y[:3, 0] = np.nan
-    with pytest.raises(CalibrationError, match=f"{MIN_TRACES - 1} finite healthy traces.*at least {MIN_TRACES}"):
+    with pytest.raises(CalibrationError, match=f"{MIN_TRACES - 1} usable healthy traces \\(3 left out by screening: non_finite 3\\).*at least {MIN_TRACES}"):
         calibrate(nominal_of(TRUE), y, TRUE.sample_rate_hz)
 
 
@@ -108,7 +108,7 @@ def test_another_sampling_is_refused(recorded):
 
 
 def test_flat_traces_are_refused():
-    with pytest.raises(CalibrationError, match="do not oscillate"):
+    with pytest.raises(CalibrationError, match="0 usable healthy traces \\(50 left out by screening: flat 50\\)"):
         calibrate(nominal_of(TRUE), np.full((50, 1024), 0.01, np.float32), 20e6)
 
 
@@ -157,3 +157,11 @@ def test_physical_spreads_follow_the_recordings_spread(result):
     # the head recorded with the default spreads is fitted near them
     g1, t1 = result.report["spread_scales"]["geometry"], result.report["spread_scales"]["temperature"]
     assert 0.7 < g1 < 1.4 and 0.6 < t1 < 1.5
+
+
+def test_a_spike_row_is_screened_out_not_fatal(recorded):
+    y = recorded.traces[:60].copy()
+    y[7, 200] = 1e30  # beyond any sensor: out_of_range
+    r = calibrate(nominal_of(TRUE), y, TRUE.sample_rate_hz)
+    assert r.report["n_traces"] == 59 and r.report["n_dropped_nonfinite"] == 1
+    assert r.profile.healthy_mode()[0] == pytest.approx(TRUE.healthy_mode()[0], rel=0.01)

@@ -152,3 +152,16 @@ def test_traces_whose_list_cannot_come_are_dropped_when_a_later_list_comes():
     assert tr.pending == (1, 1)
     (e,) = _traces(tr, x, 9, 2)
     assert e.frame_id == 9 and tr.pending == (1, 0) and tr.traces_unmatched == 2
+
+
+def test_a_sample_no_sensor_can_produce_is_out_of_range_not_an_estimate():
+    """A finite spike beyond 5x the head's ADC range is invalid (as fdi screens it); the other rows go on."""
+    tr = DryingTracker(max_estimates=64)
+    x = _frame(1)[:RANGE].copy()
+    x[2, 100] = 1e30
+    r = tr.estimate_rows(x[[2, 5]], np.array([2, 5]), stamp=0.0, sample_rate_hz=10e6)
+    assert list(r.reasons) == ["out_of_range", ""]
+    assert np.isnan(r.columns["fm"][0]) and np.isfinite(r.columns["fm"][1])
+    assert tr.max_abs_v == 10.0  # 5x the default head's +-2 V
+    with pytest.raises(ValueError, match="max_abs_v"):
+        DryingTracker(max_abs_v=0.0)

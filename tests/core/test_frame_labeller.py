@@ -143,3 +143,16 @@ def test_results_pickle_for_the_labelling_process(detector, baselines):
     _same(got[:-1], _previous(detector, frames, firsts, baselines))
     back = pickle.loads(pickle.dumps(got[-1]))
     assert isinstance(back, FrameFailure) and isinstance(back.error, FrameInputError) and back.frame_index == 4
+
+
+def test_baselines_of_another_head_are_refused(detector, baselines):
+    """The baselines carry the head they were recorded on; a model of another head refuses them."""
+    import dataclasses
+
+    from inkdiag_core import HeadProfile
+
+    other = HeadProfile.default().replace(channel={"L_r": 1.3 * HeadProfile.default().channel["L_r"]})
+    foreign = dataclasses.replace(baselines, head_sha256=other.sha256)
+    with pytest.raises(LabellerConfigError, match="another head"):
+        FrameLabeller(detector, foreign)
+    FrameLabeller(detector, baselines)  # the default head's own baselines still go

@@ -116,3 +116,9 @@ def test_profile_sensor_gain_and_noise_reach_the_simulator():
     b = ref.replace(spreads_overrides=none).simulate({"healthy_nozzle": 4}, seed=1)
     np.testing.assert_allclose(a.traces, 2 * b.traces + 0.3, rtol=1e-5, atol=1e-5)
     assert p.spreads().snr_db == np.inf
+
+
+def test_a_duplicate_key_is_an_error_not_the_last_value():
+    text = HeadProfile.default().dumps().replace("rho: 1000.0", "rho: 1000.0\n  rho: 900.0")
+    with pytest.raises(ProfileError, match="duplicate key 'rho'"):
+        HeadProfile.loads(text, source="p.yaml")

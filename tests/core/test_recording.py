@@ -61,3 +61,10 @@ def test_unreadable_files(tmp_path):
         load_recording(tmp_path / "one.npy")
     with pytest.raises(RecordingError, match="directory"):
         load_recording(tmp_path)
+
+
+def test_labels_stored_as_bytes_are_text(tmp_path):
+    """An 'S' array (as h5py or MATLAB write) holds the class names as bytes."""
+    rec = load_recording(_save(tmp_path / "b.npz", traces=np.zeros((2, 8)), sample_rate_hz=1e6,
+                               label=np.array(["healthy_nozzle", "deeply_dried"]).astype("S")))
+    assert list(rec.label) == ["healthy_nozzle", "deeply_dried"]

@@ -73,7 +73,7 @@ def test_wrong_sampling_is_one_line_and_status_2(files, tmp_path):
 @pytest.mark.parametrize("case, message", [
     ("missing", "no such"),
     ("schema", "schema is 'something.else'"),
-    ("few", "5 finite healthy traces"),
+    ("few", "5 usable healthy traces"),
     ("nominal_missing", "no such head profile file"),
 ])
 def test_bad_input_is_one_line_and_status_2(files, tmp_path, capsys, case, message):

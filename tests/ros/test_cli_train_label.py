@@ -94,7 +94,7 @@ def test_label_uses_each_rows_nozzle_baseline(work, tmp_path):
     d, head, _ = work
     assert main(["train", "--profile", str(d / "head.yaml"), "--out", str(tmp_path / "b.joblib"), "--baseline",
                  "--n-per-class", "24", "--quiet"]) == 0
-    rec = BaselineRecorder(n_frames=2, sample_rate_hz=20e6, n_samples=1024)
+    rec = BaselineRecorder(n_frames=2, profile=head)  # baselines of this head (its sha256 in the file)
     for k in range(2):
         rec.add(100, head.simulate({FaultClass.HEALTHY_NOZZLE: 5}, seed=50 + k).traces)
     rec.baselines().save(tmp_path / "base.npz")  # nozzles 100..104
@@ -130,3 +130,14 @@ def test_bad_input_is_one_line_and_exit_status_2(work, trained, argv, match, cap
     assert main([a.format(d=d) for a in argv]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"inkdiag {argv[0]}: error: ") and match in err[0], err
+
+
+def test_a_rate_computed_as_one_over_dt_is_the_models(work, trained, tmp_path):
+    """10 MHz written by another tool as 1/dt (1e7 + 1e-8) is the model's rate, as the profile checks say."""
+    d, head, sim = work
+    rec = Recording.from_arrays(sim.traces[:20], head.sample_rate_hz * (1 + 1e-15))
+    assert rec.sample_rate_hz != head.sample_rate_hz
+    save_recording(tmp_path / "dt.npz", rec)
+    out = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "label", str(tmp_path / "dt.npz"), "--model",
+                          str(trained[0]), "--out", str(tmp_path / "l.csv")], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr

@@ -23,7 +23,7 @@ frequency, damping, amplitude and the RMS residual, and which parameters the dat
 pinned and which the prior (the default head's design ratios) fixed.
 
 The recording (.npz) must have the nominal profile's sample rate and trace length.
-Traces with non-finite samples are dropped and counted; if the recording has a label
+Traces screening refuses (non-finite, out of range, flat, clipped) are dropped and counted; if the recording has a label
 column, only its healthy_nozzle rows are used. See docs/calibration.md.
 
 example:
@@ -124,7 +124,7 @@ def _markdown(r) -> str:
         f"# Calibration fit report: {r['profile']}",
         "",
         f"Recording `{r['recording']}`: {r['n_traces']} healthy traces used, {r['n_dropped_nonfinite']} dropped "
-        f"(non-finite samples); {r['sample_rate_hz'] / 1e6:g} MHz x {r['n_samples']} samples. Nominal profile "
+        f"(screened out: non-finite, out of range, flat or clipped); {r['sample_rate_hz'] / 1e6:g} MHz x {r['n_samples']} samples. Nominal profile "
         f"`{r['nominal']}`. Profile sha256 `{r['profile_sha256'][:16]}`.",
         "",
         "| quantity | recorded | fitted |",

@@ -57,6 +57,9 @@ def add_arguments(parser) -> None:
                         help="estimator (default vp_cal, as the fe node; vp: without the mismatch correction)")
     parser.add_argument("--baselines", default=None, metavar="B.npz",
                         help="per-nozzle baselines with healthy f_m (record_baseline): estimates relative to them")
+    parser.add_argument("--max-abs-v", type=float, default=None, metavar="V",
+                        help="a row with a sample beyond +-V is invalid, out_of_range (default: 5x the profile's "
+                             "ADC range, as fdi)")
 
 
 def select_rows(spec, n: int, labels=None):
@@ -129,6 +132,7 @@ def run(args) -> int:
     if args.baselines:
         try:
             baselines = NozzleBaselines.load(args.baselines)
+            baselines.check_head(profile)
         except BaselineFileError as exc:
             raise ProfileError(str(exc)) from None
     if (args.method == "vp_cal" and profile.sha256 != HeadProfile.default().sha256
@@ -139,7 +143,7 @@ def run(args) -> int:
         if "seconds" in cal:
             print(f"inkdiag estimate: vp_cal fitted in {cal['seconds']:.1f} s on {cal['n_traces']} simulated traces",
                   file=sys.stderr, flush=True)
-    tracker = DryingTracker(profile=profile, baselines=baselines, method=args.method)
+    tracker = DryingTracker(profile=profile, baselines=baselines, method=args.method, max_abs_v=args.max_abs_v)
     n = rows.size
     cols = {}
     reasons = np.full(n, "", dtype=object)

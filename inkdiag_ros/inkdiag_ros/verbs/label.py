@@ -104,6 +104,7 @@ def label_recording(labeller, recording):
 
 def run(args) -> int:
     import csv
+    import math
     import sys
 
     from inkdiag_core import FrameLabeller, LabellerConfigError, NozzleBaselines, load_detector
@@ -113,16 +114,17 @@ def run(args) -> int:
     detector = load_detector(args.model)  # ModelFileError (a ValueError): missing, tampered, other versions
     head = detector.profile if detector.profile is not None else HeadProfile.default()
     rec = load_recording(args.recording)
-    if rec.sample_rate_hz != detector.sample_rate_hz_ or rec.n_samples != detector.n_features_in_:
+    same_rate = math.isclose(rec.sample_rate_hz, detector.sample_rate_hz_, rel_tol=1e-9)  # as check_traces
+    if not same_rate or rec.n_samples != detector.n_features_in_:
         raise LabellerConfigError(
-            f"{args.recording} is sampled at {rec.sample_rate_hz:g} Hz x {rec.n_samples} samples; the model is for "
-            f"head {head.name!r} at {detector.sample_rate_hz_:g} Hz x {detector.n_features_in_}: label recordings of "
-            "the head the model was trained for")
+            f"{args.recording} is sampled at {rec.sample_rate_hz:.10g} Hz x {rec.n_samples} samples; the model is for "
+            f"head {head.name!r} at {detector.sample_rate_hz_:.10g} Hz x {detector.n_features_in_}: label recordings "
+            "of the head the model was trained for")
     max_abs_v = args.max_abs_v if args.max_abs_v is not None else 5.0 * head.adc_range_v
     if not max_abs_v > 0:
         raise ValueError(f"--max-abs-v must be > 0 V, got {max_abs_v!r}")
     baselines = NozzleBaselines.load(args.baselines) if args.baselines else None
-    labeller = FrameLabeller(detector, baselines, sample_rate_hz=rec.sample_rate_hz, n_samples=rec.n_samples,
+    labeller = FrameLabeller(detector, baselines, sample_rate_hz=detector.sample_rate_hz_, n_samples=rec.n_samples,
                              max_abs_v=max_abs_v)
     classes, confidence, reasons, baseline = label_recording(labeller, rec)
     out = sys.stdout if args.out == "-" else open(args.out, "w", newline="", encoding="utf-8")
