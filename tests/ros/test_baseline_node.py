@@ -239,7 +239,7 @@ def test_record_baseline_survives_bad_frames_and_an_unwritable_path(ros, tmp_pat
     (["--ros-args", "-p", "output_path:=/tmp/never_written.npz", "-p", "head_profile:=/nonexistent/head.yaml"],
      "no such head profile file"),
     (["--ros-args", "-p", "output_path:=/tmp/never_written.npz", "-p", "sample_rate_hz:=20000000.0"],
-     "is not head profile 'default'"),
+     "but head profile 'default'"),
 ])
 def test_record_baseline_refuses_bad_parameters_without_a_traceback(ros, args, match):
     import os
