@@ -59,7 +59,7 @@ from msg_defs import (
     TRACES_QOS,
     FmEstimates,
     decode_drying,
-    decode_traces,
+    decode_traces_serialized,
     encode_estimates,
     encode_estimates_array,
     topics,
@@ -102,8 +102,9 @@ class FeNode(Node):
                                                 RELIABLE_QOS)
         self._drying_sub = self.create_subscription(DRYING_MSG_TYPE, topics.DRYING_NOZZLES,
                                                     self._on_drying, RELIABLE_QOS)
+        # raw: the 2 MB of a 1,024-nozzle frame are viewed in the taken bytes, not converted to a message
         self._traces_sub = self.create_subscription(TRACE_MSG_TYPE, topics.TRACES, self._on_traces,
-                                                    TRACES_QOS)
+                                                    TRACES_QOS, raw=True)
 
     def _load_profile(self, path: str):
         """The head profile, or the default head; a bad or nominal file raises (the node stops at start)."""
@@ -150,9 +151,9 @@ class FeNode(Node):
             return
         self._publish(out)
 
-    def _on_traces(self, msg) -> None:
+    def _on_traces(self, msg: bytes) -> None:
         try:
-            f = decode_traces(msg)
+            f = decode_traces_serialized(msg)
             out = self.tracker.add_traces(f.traces, first_nozzle=f.first_nozzle, frame_id=f.frame_id,
                                           stamp=f.stamp, sample_rate_hz=f.sample_rate_hz)
         except (ValueError, OverflowError) as exc:  # a frame the codec or the estimator cannot take
