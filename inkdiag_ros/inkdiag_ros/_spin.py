@@ -133,7 +133,7 @@ def freeze_startup_objects() -> int:
     return gc.get_freeze_count()
 
 
-def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None) -> int:
+def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, events: bool = False) -> int:
     """Init rclpy, spin one ``node_cls()`` until Ctrl-C / SIGTERM / shutdown, clean up.
 
     ``until(node)``: stop spinning once it is true (default: never). ``exit_code(node)``:
@@ -148,6 +148,12 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None) -> 
     a drained backlog's free heap back to the system (:class:`.allocator.PeriodicRelease`).
     The objects of the built node and its imports are frozen out of the cyclic garbage
     collector before spinning (:func:`freeze_startup_objects`).
+
+    ``events``: spin rclpy's C++ ``EventsExecutor`` (``rclpy.experimental``) instead of the
+    Python ``SingleThreadedExecutor``: no wait set rebuilt in Python per wake-up (``scripts/bench
+    take``: about 0.6 ms less CPU per taken 2 MB trace message here). It takes no guard
+    condition: a signal reaches the loop through rclpy's shutdown, which wakes it, or its
+    1 s timeout.
     """
     keep_freed_memory()
     release = PeriodicRelease()
@@ -166,8 +172,14 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None) -> 
                 if not (stop.requested or shutting_down(rclpy.utilities.get_default_context())):
                     raise
                 return 0 if exit_code is None else 1
-            stop.attach(node)
-            executor = SingleThreadedExecutor(context=node.context)
+            if not events:  # the EventsExecutor takes no guard condition; rclpy's shutdown wakes it
+                stop.attach(node)
+            if events:
+                from rclpy.experimental import EventsExecutor
+
+                executor = EventsExecutor(context=node.context)
+            else:
+                executor = SingleThreadedExecutor(context=node.context)
             executor.add_node(node)
             freeze_startup_objects()
             period = 1.0 if until is None else 0.1

@@ -176,7 +176,7 @@ class FeNode(Node):
 
 
 def main(args=None) -> int:
-    return spin_node(FeNode, args)
+    return spin_node(FeNode, args, events=True)  # its cost per frame is the executor's too (issue 12)
 
 
 if __name__ == "__main__":
