@@ -13,7 +13,9 @@ faults (``getrusage(RUSAGE_THREAD)``), and the ratio of the two runs' CPU per me
 
 ``--raw``: instead, both runs with the allocator setting, one taking the message as rclpy
 converts it (``decode_traces``) and one taking it serialized (``raw=True``,
-``msg_defs.decode_traces_serialized``: what the fe node does).
+``msg_defs.decode_traces_serialized``: what the fe node does). ``--events``: the
+subscriber spins rclpy's ``EventsExecutor`` (as the fe node does) instead of the
+``SingleThreadedExecutor``.
 """
 
 from __future__ import annotations
@@ -60,7 +62,7 @@ def publisher(rate: float, seconds: float, nozzles: int) -> int:
     return 0
 
 
-def subscriber(seconds: float, raw: bool = False) -> int:
+def subscriber(seconds: float, raw: bool = False, events: bool = False) -> int:
     from inkdiag_ros.allocator import keep_freed_memory
 
     tuned = keep_freed_memory()
@@ -80,7 +82,12 @@ def subscriber(seconds: float, raw: bool = False) -> int:
         count[0] += 1
 
     node.create_subscription(TRACE_MSG_TYPE, TOPIC, on_msg, TRACES_QOS, raw=raw)
-    ex = SingleThreadedExecutor()
+    if events:
+        from rclpy.experimental import EventsExecutor
+
+        ex = EventsExecutor()
+    else:
+        ex = SingleThreadedExecutor()
     ex.add_node(node)
     deadline = time.monotonic() + 15.0
     while count[0] < 20 and time.monotonic() < deadline:  # warm-up
@@ -105,7 +112,8 @@ def measure(tuning: str, ns, raw: bool = False) -> dict:
     env = dict(os.environ, INKDIAG_MALLOC_TUNING=tuning)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     me = [sys.executable, __file__]
-    sub = subprocess.Popen(me + ["--role", "sub", "--seconds", str(ns.seconds)] + (["--raw"] if raw else []), env=env,
+    sub = subprocess.Popen(me + ["--role", "sub", "--seconds", str(ns.seconds)] + (["--raw"] if raw else [])
+                           + (["--events"] if ns.events else []), env=env,
                            stdout=subprocess.PIPE, text=True)
     pub = subprocess.Popen(me + ["--role", "pub", "--rate", str(ns.rate), "--nozzles", str(ns.nozzles),
                                 "--seconds", str(ns.seconds + 8.0)], env=env)
@@ -122,11 +130,12 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=6.0, help="measured time per run")
     ap.add_argument("--nozzles", type=int, default=200, help="traces per message (512 samples each)")
     ap.add_argument("--raw", action="store_true", help="compare the message with the serialized take (fe's)")
+    ap.add_argument("--events", action="store_true", help="the subscriber spins rclpy's EventsExecutor (fe's)")
     ns = ap.parse_args()
     if ns.role == "pub":
         return publisher(ns.rate, ns.seconds, ns.nozzles)
     if ns.role == "sub":
-        return subscriber(ns.seconds, ns.raw)
+        return subscriber(ns.seconds, ns.raw, ns.events)
     print(f"take benchmark: {ns.nozzles} x 512 float32 samples per message "
           f"({ns.nozzles * 512 * 4 / 1e3:.0f} kB), {ns.rate:g} msgs/s for {ns.seconds:g} s per run; "
           "executor thread of the subscribing process, per message")
