@@ -15,6 +15,7 @@ from .codec import (
     FrameError,
     TraceFrame,
     decode_traces,
+    decode_traces_serialized,
     encode_traces,
     restamp_traces,
 )
@@ -73,6 +74,7 @@ __all__ = [
     "decode_estimates_array",
     "decode_labels",
     "decode_traces",
+    "decode_traces_serialized",
     "decode_truth",
     "diagnostics_values",
     "encode_drying",

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import array
 import math
+import struct
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,6 +60,7 @@ __all__ = [
     "TraceFrame",
     "encode_traces",
     "decode_traces",
+    "decode_traces_serialized",
     "restamp_traces",
 ]
 
@@ -227,7 +229,17 @@ def decode_traces(msg, *, max_nozzle_id: int | None = None, n_samples: int | Non
     """
     if not isinstance(msg, Float32MultiArray):
         raise FrameError(f"expected a std_msgs/Float32MultiArray, got {type(msg).__name__}")
-    dims = msg.layout.dim
+    try:  # received messages hold an array.array: zero-copy view
+        data = np.frombuffer(msg.data, dtype=np.float32)
+    except TypeError:  # a hand-built message may hold a list
+        data = np.asarray(msg.data, dtype=np.float32)
+    return _decode(msg.layout.dim, msg.layout.data_offset, data, max_nozzle_id=max_nozzle_id,
+                   n_samples=n_samples, sample_rate_hz=sample_rate_hz)
+
+
+def _decode(dims, data_offset, data, *, max_nozzle_id, n_samples, sample_rate_hz) -> TraceFrame:
+    """The checks of :func:`decode_traces` on a message's layout dimensions (objects with
+    ``label``, ``size`` and ``stride``), ``data_offset`` and float32 data (1-D)."""
     if len(dims) != 2:
         raise FrameError(
             f"expected 2 dimensions ('{NOZZLE_LABEL}', '{SAMPLE_LABEL}'), got {len(dims)}"
@@ -244,14 +256,10 @@ def decode_traces(msg, *, max_nozzle_id: int | None = None, n_samples: int | Non
             f"expected row-major strides ({n * s}, {s}) for {n} x {s}, "
             f"got ({dims[0].stride}, {dims[1].stride})"
         )
-    if int(msg.layout.data_offset) != HEADER_LEN:
+    if int(data_offset) != HEADER_LEN:
         raise FrameError(
-            f"expected layout.data_offset {HEADER_LEN} (the header), got {msg.layout.data_offset}"
+            f"expected layout.data_offset {HEADER_LEN} (the header), got {data_offset}"
         )
-    try:  # received messages hold an array.array: zero-copy view
-        data = np.frombuffer(msg.data, dtype=np.float32)
-    except TypeError:  # a hand-built message may hold a list
-        data = np.asarray(msg.data, dtype=np.float32)
     want = HEADER_LEN + n * s
     if data.size != want:
         raise FrameError(
@@ -292,6 +300,99 @@ def decode_traces(msg, *, max_nozzle_id: int | None = None, n_samples: int | Non
         sample_rate_hz=float(head[4]),
         stamp=(int(head[6]) * _EXACT + int(head[5])) + int(head[7]) * 1e-6,
     )
+
+
+@dataclass(frozen=True)
+class _Dim:
+    label: str
+    size: int
+    stride: int
+
+
+# CDR encapsulation identifiers (first two bytes of a serialized message): plain CDR, big/little endian
+_CDR_BYTE_ORDER = {b"\x00\x00": ">", b"\x00\x01": "<"}
+
+
+def _read_cdr_traces(buf):
+    """``(dims, data_offset, data)`` of a serialized Float32MultiArray (plain CDR: ROS 2's
+    encoding on the wire), the data a zero-copy float32 view of ``buf``; None for another
+    encapsulation."""
+    mv = memoryview(buf).cast("B")
+    order = _CDR_BYTE_ORDER.get(bytes(mv[:2]))
+    if order is None:
+        return None
+    u32 = struct.Struct(order + "I")
+    end = len(mv)
+    pos = 4  # CDR aligns relative to the end of the 4-byte encapsulation header
+
+    def uint32():
+        nonlocal pos
+        pos += -(pos - 4) % 4
+        if pos + 4 > end:
+            raise FrameError(f"serialized trace frame truncated at byte {pos} of {end}")
+        v = u32.unpack_from(mv, pos)[0]
+        pos += 4
+        return v
+
+    n_dims = uint32()
+    if n_dims > 64:
+        raise FrameError(f"serialized trace frame: {n_dims} layout dimensions")
+    dims = []
+    for _ in range(n_dims):
+        n_chars = uint32()  # with the terminating NUL
+        if pos + n_chars > end:
+            raise FrameError(f"serialized trace frame truncated in a dimension label (byte {pos} of {end})")
+        label = bytes(mv[pos:pos + max(n_chars - 1, 0)]).decode("utf-8", "replace")
+        pos += n_chars
+        dims.append(_Dim(label, uint32(), uint32()))
+    data_offset = uint32()
+    count = uint32()
+    if pos + 4 * count > end:
+        raise FrameError(f"serialized trace frame: {count} data values announced, "
+                         f"{(end - pos) // 4} present")
+    data = np.frombuffer(buf, dtype=np.dtype(np.float32).newbyteorder(order), count=count, offset=pos)
+    if order == ">":
+        data = data.astype(np.float32)
+    return dims, data_offset, data
+
+
+def decode_traces_serialized(buf, *, max_nozzle_id: int | None = None, n_samples: int | None = None,
+                             sample_rate_hz: float | None = None) -> TraceFrame:
+    """:func:`decode_traces` of a serialized trace message, as a raw subscription
+    (``create_subscription(..., raw=True)``) takes it.
+
+    The traces are a read-only view of ``buf``: no conversion to a Python message and
+    no copy of the ``n_nozzles x n_samples`` float32 samples (a 1,024-nozzle frame is
+    2 MB). The same checks and errors as :func:`decode_traces`.
+
+    Parameters
+    ----------
+    buf : bytes or std_msgs.msg.Float32MultiArray
+        The serialized ``std_msgs/Float32MultiArray`` (CDR, either byte order; another
+        encapsulation is deserialized by rclpy first); a message object is decoded by
+        :func:`decode_traces`.
+    max_nozzle_id, n_samples, sample_rate_hz
+        As for :func:`decode_traces`.
+
+    Returns
+    -------
+    TraceFrame
+    """
+    if isinstance(buf, Float32MultiArray):
+        return decode_traces(buf, max_nozzle_id=max_nozzle_id, n_samples=n_samples, sample_rate_hz=sample_rate_hz)
+    if not isinstance(buf, (bytes, bytearray, memoryview)):
+        raise FrameError(f"expected a serialized std_msgs/Float32MultiArray (bytes), got {type(buf).__name__}")
+    if len(buf) < 4:
+        raise FrameError(f"serialized trace frame of {len(buf)} bytes")
+    parts = _read_cdr_traces(buf)
+    if parts is None:
+        from rclpy.serialization import deserialize_message
+
+        return decode_traces(deserialize_message(bytes(buf), Float32MultiArray), max_nozzle_id=max_nozzle_id,
+                             n_samples=n_samples, sample_rate_hz=sample_rate_hz)
+    dims, data_offset, data = parts
+    return _decode(dims, data_offset, data, max_nozzle_id=max_nozzle_id, n_samples=n_samples,
+                   sample_rate_hz=sample_rate_hz)
 
 
 def restamp_traces(msg, *, frame_id: int, stamp: float) -> None:

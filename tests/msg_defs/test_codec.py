@@ -16,6 +16,7 @@ from msg_defs import (
     TRACES_QOS,
     FrameError,
     decode_traces,
+    decode_traces_serialized,
     encode_traces,
     topics,
 )
@@ -65,29 +66,90 @@ def _good_header():
     return [1, 0, 0, 0, 10e6, 0, 0, 0]
 
 
-@pytest.mark.parametrize(
-    "msg, match",
-    [
-        (Float32MultiArray(), r"expected 2 dimensions .* got 0 \(empty layout\)"),
-        (_msg([("nozzle", 4, 4)], _good_header() + [0] * 4), r"expected 2 dimensions .* got 1"),
-        (
-            _msg([("nozzle", 1, 4), ("sample", 2, 2), ("x", 2, 2)], _good_header() + [0] * 4),
-            r"expected 2 dimensions .* got 3",
-        ),
-        (_msg([("sample", 2, 4), ("nozzle", 2, 2)], _good_header() + [0] * 4), r"labels"),
-        (_msg([("nozzle", 2, 4), ("sample", 2, 2)], _good_header() + [0] * 3), r"expected 12 .* got 11"),
-        (_msg([("nozzle", 2, 4), ("sample", 2, 2)], _good_header() + [0] * 5), r"expected 12 .* got 13"),
-        (_msg([("nozzle", 0, 0), ("sample", 512, 512)], _good_header()), r"empty frame: 0 nozzles"),
-        (_msg([("nozzle", 2, 5), ("sample", 2, 2)], _good_header() + [0] * 4), r"strides"),
-        (_msg([("nozzle", 2, 4), ("sample", 2, 2)], [0] * 4, offset=0), r"data_offset 8"),
-        (_msg([("nozzle", 2, 4), ("sample", 2, 2)], [2] + _good_header()[1:] + [0] * 4), r"schema version 1, got 2"),
-        (_msg([("nozzle", 2, 4), ("sample", 2, 2)], [1, 0, 0, 0, 0, 0, 0, 0] + [0] * 4), r"sample_rate_hz"),
-        (_msg([("nozzle", 2, 4), ("sample", 2, 2)], [1, -3, 0, 0, 1e6, 0, 0, 0] + [0] * 4), r"non-negative integers"),
-    ],
-)
+_MALFORMED = [
+    (Float32MultiArray(), r"expected 2 dimensions .* got 0 \(empty layout\)"),
+    (_msg([("nozzle", 4, 4)], _good_header() + [0] * 4), r"expected 2 dimensions .* got 1"),
+    (
+        _msg([("nozzle", 1, 4), ("sample", 2, 2), ("x", 2, 2)], _good_header() + [0] * 4),
+        r"expected 2 dimensions .* got 3",
+    ),
+    (_msg([("sample", 2, 4), ("nozzle", 2, 2)], _good_header() + [0] * 4), r"labels"),
+    (_msg([("nozzle", 2, 4), ("sample", 2, 2)], _good_header() + [0] * 3), r"expected 12 .* got 11"),
+    (_msg([("nozzle", 2, 4), ("sample", 2, 2)], _good_header() + [0] * 5), r"expected 12 .* got 13"),
+    (_msg([("nozzle", 0, 0), ("sample", 512, 512)], _good_header()), r"empty frame: 0 nozzles"),
+    (_msg([("nozzle", 2, 5), ("sample", 2, 2)], _good_header() + [0] * 4), r"strides"),
+    (_msg([("nozzle", 2, 4), ("sample", 2, 2)], [0] * 4, offset=0), r"data_offset 8"),
+    (_msg([("nozzle", 2, 4), ("sample", 2, 2)], [2] + _good_header()[1:] + [0] * 4), r"schema version 1, got 2"),
+    (_msg([("nozzle", 2, 4), ("sample", 2, 2)], [1, 0, 0, 0, 0, 0, 0, 0] + [0] * 4), r"sample_rate_hz"),
+    (_msg([("nozzle", 2, 4), ("sample", 2, 2)], [1, -3, 0, 0, 1e6, 0, 0, 0] + [0] * 4), r"non-negative integers"),
+]
+
+
+@pytest.mark.parametrize("msg, match", _MALFORMED)
 def test_malformed_messages_raise_frame_error(msg, match):
     with pytest.raises(FrameError, match=match):
         decode_traces(msg)
+
+
+@pytest.mark.parametrize("msg, match", _MALFORMED)
+def test_serialized_malformed_messages_raise_the_same_frame_error(msg, match):
+    from rclpy.serialization import serialize_message
+
+    with pytest.raises(FrameError, match=match):
+        decode_traces_serialized(serialize_message(msg))
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (3, 7), (1024, 512)])
+def test_serialized_decode_is_decode_traces_of_the_message(shape):
+    """fe takes its trace messages raw (issue 12: no conversion of 2 MB to a Python message)."""
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    x = np.random.default_rng(sum(shape)).standard_normal(shape).astype(np.float32)
+    msg = encode_traces(x, first_nozzle=17, frame_id=(1 << 30) + 5, stamp=1763798400.125, sample_rate_hz=20e6)
+    buf = serialize_message(msg)
+    a, b = decode_traces(deserialize_message(buf, Float32MultiArray)), decode_traces_serialized(buf)
+    assert (a.first_nozzle, a.frame_id, a.sample_rate_hz, a.stamp) == (b.first_nozzle, b.frame_id,
+                                                                       b.sample_rate_hz, b.stamp)
+    assert b.traces.dtype == np.float32 and np.array_equal(b.traces, x) and not b.traces.flags.writeable
+    assert np.shares_memory(np.frombuffer(buf, np.uint8), b.traces.view(np.uint8)), "a view, no copy"
+    assert decode_traces_serialized(msg).frame_id == a.frame_id, "a message object is decoded too"
+    with pytest.raises(FrameError, match="samples per trace"):
+        decode_traces_serialized(buf, n_samples=shape[1] + 1)
+
+
+def test_serialized_decode_reads_big_endian_cdr_and_refuses_truncated_bytes():
+    import struct
+
+    from rclpy.serialization import serialize_message
+
+    x = np.arange(6, dtype=np.float32).reshape(2, 3)
+    buf = serialize_message(encode_traces(x, first_nozzle=3, frame_id=9, stamp=2.5))
+    assert buf[:2] == b"\x00\x01"  # little-endian plain CDR
+    # the same message in big-endian CDR: every 4-byte field swapped, labels kept
+    le = bytearray(buf)
+    be = bytearray(b"\x00\x00" + bytes(le[2:4]))
+    pos, n_dims = 4, struct.unpack_from("<I", le, 4)[0]
+    be += struct.pack(">I", n_dims)
+    pos = 8
+    for _ in range(n_dims):
+        n = struct.unpack_from("<I", le, pos)[0]
+        be += struct.pack(">I", n) + le[pos + 4:pos + 4 + n]
+        pos += 4 + n
+        pad = -(pos - 4) % 4
+        be += le[pos:pos + pad]
+        pos += pad
+        be += struct.pack(">II", *struct.unpack_from("<II", le, pos))
+        pos += 8
+    be += struct.pack(">II", *struct.unpack_from("<II", le, pos))
+    pos += 8
+    be += np.frombuffer(bytes(le[pos:]), "<f4").astype(">f4").tobytes()
+    f = decode_traces_serialized(bytes(be))
+    assert (f.first_nozzle, f.frame_id, f.stamp) == (3, 9, 2.5) and np.array_equal(f.traces, x)
+    for cut in (3, 10, len(buf) - 4):
+        with pytest.raises(FrameError):
+            decode_traces_serialized(bytes(buf[:cut]))
+    with pytest.raises(FrameError, match="serialized"):
+        decode_traces_serialized(12)
 
 
 def test_frame_error_is_a_value_error():

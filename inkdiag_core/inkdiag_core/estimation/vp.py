@@ -60,6 +60,7 @@ class VpOptions:
 # variable projection (no x0)
 # ---------------------------------------------------------------------------
 _I3 = np.arange(3)
+_PAIR_FIRST = np.array([0, 2, 1])  # argsort of -Im: (Im > 0, real, Im < 0) -> (pair, conjugate, real)
 
 
 @functools.lru_cache(maxsize=32)
@@ -79,7 +80,7 @@ def _modes(sc: Scaled, fs):
     A[:, :, 2] += fs[:, None] * sc.G[None, :]
     lam, V = np.linalg.eig(A)
     # order: the eigenvalue with largest Im first, then its conjugate, then the real one
-    order = np.argsort(-lam.imag, axis=1)[:, [0, 2, 1]]
+    order = np.argsort(-lam.imag, axis=1)[:, _PAIR_FIRST]
     rows = np.arange(m)[:, None]
     lam = lam[rows, order]
     V = V[rows[:, :, None], _I3[None, :, None], order[:, None, :]]
@@ -96,30 +97,32 @@ def _vp_basis(sc: Scaled, fs, N, *, deriv=False):
     s1, w1 = lam[:, 0].real, lam[:, 0].imag
     l3 = lam[:, 2].real
     pair = w1 > 1e-12
+    B = np.empty((fs.shape[0], 4, N))  # (m, 4, N): basis functions along the last axis
+    c, s, nu = B[:, 0], B[:, 1], B[:, 2]  # views: written in place
     decay = np.exp(s1[:, None] * kd)
     ang = w1[:, None] * kd
-    c, s = decay * np.cos(ang), decay * np.sin(ang)
+    np.multiply(decay, np.cos(ang), out=c)
+    np.multiply(decay, np.sin(ang), out=s)
     # overdamped: use the two other real eigenvalues instead of a pair
     if not pair.all():
         lr = lam[~pair].real
         c[~pair] = np.exp(lr[:, 0:1] * kd)
         s[~pair] = np.exp(lr[:, 1:2] * kd)
-    nu = np.exp(l3[:, None] * kd)
-    B = np.empty((fs.shape[0], 4, N))  # (m, 4, N): basis functions along the last axis
-    B[:, 0], B[:, 1], B[:, 2], B[:, 3] = c, s, nu, 1.0
+    np.exp(l3[:, None] * kd, out=nu)
+    B[:, 3] = 1.0
     if not deriv:
         return B, lam, V, Vi
     ds, dw, d3 = dlam[:, 0].real, dlam[:, 0].imag, dlam[:, 2].real
+    dB = np.empty((fs.shape[0], 3, N))
+    dc, dsn = dB[:, 0], dB[:, 1]  # views: written in place
     # d(e^{lam k dt})/dfs = k dt dlam e^{lam k dt}; in (cos, sin) components
-    dc = kd * (ds[:, None] * c - dw[:, None] * s)
-    dsn = kd * (ds[:, None] * s + dw[:, None] * c)
+    np.multiply(kd, ds[:, None] * c - dw[:, None] * s, out=dc)
+    np.multiply(kd, ds[:, None] * s + dw[:, None] * c, out=dsn)
     if not pair.all():
         dl = dlam[~pair].real
         dc[~pair] = kd * dl[:, 0:1] * c[~pair]
         dsn[~pair] = kd * dl[:, 1:2] * s[~pair]
-    dnu = kd * d3[:, None] * nu
-    dB = np.empty((fs.shape[0], 3, N))
-    dB[:, 0], dB[:, 1], dB[:, 2] = dc, dsn, dnu
+    np.multiply(kd * d3[:, None], nu, out=dB[:, 2])
     return B, dB, lam, V, Vi
 
 
@@ -256,17 +259,18 @@ def _pair_refit(sc, Ys, fs, iters):
     pair = lam[:, 0].imag > 1e-12
     sig0, w0, l3 = lam[:, 0].real, np.where(pair, lam[:, 0].imag, 1.0), lam[:, 2].real
     t = _times(N, sc.dt)
-    nu = np.exp(l3[:, None] * t)
+    B = np.empty((n, 4, N))  # one buffer for every fit: nothing returned refers to it
+    np.exp(l3[:, None] * t, out=B[:, 2])
+    B[:, 3] = 1.0
+    c, s = B[:, 0], B[:, 1]
 
     def fit(sig, w):
         dec = np.exp(sig[:, None] * t)
         ang = w[:, None] * t
-        B = np.empty((n, 4, N))
-        B[:, 0], B[:, 1] = dec * np.cos(ang), dec * np.sin(ang)
-        B[:, 2], B[:, 3] = nu, 1.0
+        np.multiply(dec, np.cos(ang), out=c)
+        np.multiply(dec, np.sin(ang), out=s)
         fac = _vp_factor(B)
         th, res, R = _vp_solve(B, Ys, fac)
-        c, s = B[:, 0], B[:, 1]
         J1 = t * (th[:, :1] * c + th[:, 1:2] * s)  # d/d sigma
         J2 = t * (th[:, 1:2] * c - th[:, :1] * s)  # d/d omega
         tJ = _vp_solve(B, np.stack([J1, J2]), fac)[1].transpose(1, 0, 2)  # (n, 2, N)
