@@ -187,8 +187,20 @@ def _open_reader(bag_dir):
         reader = Reader(p)
         reader.open()
     except Exception as exc:  # rosbags' ReaderError, or a storage error of a damaged file
-        raise RecordingError(f"{src}: cannot open the bag: {_one_line(exc)}") from None
+        raise RecordingError(f"{src}: cannot open the bag{_listed(p)}: {_one_line(exc)}") from None
     return reader
+
+
+def _listed(bag: Path) -> str:
+    """`` (FILE, 0 of the N messages metadata.yaml lists readable: truncated or corrupt)`` where it says so."""
+    try:
+        import yaml
+
+        info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        files = ", ".join(str(bag / f) for f in info.get("relative_file_paths", []))
+        return f" ({files}: 0 of the {int(info['message_count'])} messages metadata.yaml lists readable)"
+    except Exception:
+        return ""
 
 
 def _one_line(exc) -> str:
