@@ -347,8 +347,3 @@ def load_and_report(path, topic: str | None = None, *, file=None) -> Recording:
         print(f"{path}: {stats.summary()}", file=file or sys.stderr)
     return rec
 
-
-def add_topic_argument(parser) -> None:
-    """The offline verbs' ``--topic`` option (the traces topic of a bag)."""
-    parser.add_argument("--topic", default=None, metavar="TOPIC",
-                        help="traces topic of a bag (default: its one Float32MultiArray topic ending in /traces)")

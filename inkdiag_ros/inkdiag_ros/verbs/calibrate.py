@@ -33,9 +33,8 @@ example:
 
 def add_arguments(parser) -> None:
     parser.add_argument("healthy", metavar="HEALTHY", help="recording (.npz, or a rosbag2 bag directory) of healthy traces, volts")
-    from ..bags import add_topic_argument
-
-    add_topic_argument(parser)
+    parser.add_argument("--topic", default=None, metavar="TOPIC", help="traces topic of a bag (default: its one "
+                        "Float32MultiArray topic ending in /traces)")
     parser.add_argument("--nominal", metavar="NOMINAL.yaml", required=True,
                         help="nominal head profile: sampling, drive, channel rho, mu, r_n, L_n, V_ch, c")
     parser.add_argument("--out", metavar="HEAD.yaml", required=True, help="complete head profile to write")

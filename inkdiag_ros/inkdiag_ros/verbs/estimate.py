@@ -48,9 +48,8 @@ _CHUNK = 2048  # rows per estimator batch: bounds memory, keeps numpy's batches 
 
 def add_arguments(parser) -> None:
     parser.add_argument("recording", metavar="RECORDING", help="recording (.npz: traces, sample_rate_hz, ...) or rosbag2 bag directory")
-    from ..bags import add_topic_argument
-
-    add_topic_argument(parser)
+    parser.add_argument("--topic", default=None, metavar="TOPIC", help="traces topic of a bag (default: its one "
+                        "Float32MultiArray topic ending in /traces)")
     parser.add_argument("--profile", required=True, metavar="HEAD.yaml",
                         help="complete head profile (from inkdiag calibrate, or the shipped default)")
     parser.add_argument("--out", required=True, metavar="FM.csv", help="output CSV")

@@ -33,9 +33,8 @@ BATCH_ROWS = 16384
 
 def add_arguments(parser) -> None:
     parser.add_argument("recording", metavar="RECORDING", help="recording (.npz) or rosbag2 bag directory to label")
-    from ..bags import add_topic_argument
-
-    add_topic_argument(parser)
+    parser.add_argument("--topic", default=None, metavar="TOPIC", help="traces topic of a bag (default: its one "
+                        "Float32MultiArray topic ending in /traces)")
     parser.add_argument("--model", required=True, metavar="MODEL.joblib",
                         help="FaultDetector file from `inkdiag train` (its .manifest.json beside it)")
     parser.add_argument("--baselines", metavar="B.npz",
