@@ -224,3 +224,31 @@ def test_replay_into_a_subscriber_delivers_every_traces_message(tmp_path, sim, r
     assert "replayed 24 messages" in err
     assert [f.frame_id for f in got] == list(range(12))
     np.testing.assert_array_equal(got[5].traces, frames[5][1])
+
+
+def test_replay_into_fdi_gives_one_labels_message_per_traces_message(tmp_path, sim, ros, fdi_model):
+    from rclpy.parameter import Parameter as P
+
+    from _helpers import collect
+    from inkdiag_ros.fdi_node import FdiNode
+    from msg_defs import LABELS_MSG_TYPE, RELIABLE_QOS, decode_labels, topics
+
+    frames = [(0, sim.traces[i:i + 6].astype(np.float32)) for i in range(0, 6 * 8, 6)]
+    bag = write_bag(tmp_path / "bag", frames)
+    ros.add(FdiNode(context=ros.context, namespace="/h", parameter_overrides=[
+        P("model_path", value=str(fdi_model)), P("n_nozzles", value=64)]))
+    probe = ros.node("probe", namespace="/h")
+    labels = collect(ros, probe, LABELS_MSG_TYPE, topics.LABELS, RELIABLE_QOS, decode_labels)
+    proc = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.cli", "replay", str(bag), "--namespace", "/h",
+                             "--topics", "traces", "--rate", "4"], env=_env(ros.domain_id),
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        ros.spin_until(lambda: proc.poll() is not None, timeout=60, what="the replay to end")
+        ros.spin_until(lambda: len(labels) >= 8, timeout=30, what="8 labels messages")
+        ros.spin_for(0.5)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, proc.stderr.read()
+    assert [m.frame_id for m in labels] == list(range(8))
+    assert [m.n_nozzles for m in labels] == [6] * 8
