@@ -178,14 +178,15 @@ def test_record_a_live_printhead_sim_and_read_it_back_with_rosbags_and_load_reco
     try:
         _wait_for_line(rec, "recording")
         sim = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.printhead_sim", "--ros-args", "-r",
-                                f"__ns:={NS}", "-p", "max_frames:=10", "-p", "frame_rate_hz:=10.0",
-                                "-p", "n_nozzles:=48"], env=env, stderr=subprocess.PIPE, text=True)
+                                f"__ns:={NS}", "-p", "frame_rate_hz:=10.0", "-p", "n_nozzles:=48"],
+                               env=env, stderr=subprocess.PIPE, text=True)
         _wait_for_line(sim, "simulating")  # logged once its publishers exist
-        time.sleep(10 / 10.0 + 2.0)  # its 10 frames at 10 Hz, and a margin
+        time.sleep(3.0)  # discovery (slow on a loaded machine), then frames at 10 Hz
     finally:
-        if sim is not None:
+        if sim is not None:  # the publisher stops first: the recorder has had every frame it will get
             sim.send_signal(signal.SIGINT)
             sim.wait(timeout=20)
+        time.sleep(0.5)
         rec.send_signal(signal.SIGINT)
         _, err = rec.communicate(timeout=20)
     assert rec.returncode == 0, err
@@ -193,14 +194,17 @@ def test_record_a_live_printhead_sim_and_read_it_back_with_rosbags_and_load_reco
         counts = {c.topic: c.msgcount for c in r.connections}
         n_read = sum(1 for _ in r.messages())
         types = {c.topic: c.msgtype for c in r.connections}
-    assert counts == {f"{NS}/traces": 10, f"{NS}/ground_truth": 10, f"{NS}/labels": 0}, counts
-    assert n_read == 20
+    assert set(counts) == {f"{NS}/traces", f"{NS}/ground_truth", f"{NS}/labels"} and counts[f"{NS}/labels"] == 0
+    assert counts[f"{NS}/traces"] >= 5 and n_read == sum(counts.values())
     assert types[f"{NS}/traces"] == "std_msgs/msg/Float32MultiArray" and types[f"{NS}/labels"] == "std_msgs/msg/String"
     meta = (bag / "metadata.yaml").read_text()
     assert "storage_identifier: mcap" in meta and "version: 8" in meta and "offered_qos_profiles" in meta
     got = load_recording(bag)
-    assert got.traces.shape == (480, got.n_samples) and sorted(set(got.frame_id.tolist())) == list(range(10))
-    assert "wrote 20 messages" in err
+    ids = sorted(set(got.frame_id.tolist()))
+    # nothing lost once the recorder was matched: every frame from the first recorded to the sim's last
+    assert ids == list(range(ids[0], ids[-1] + 1)) and len(ids) == counts[f"{NS}/traces"]
+    assert got.traces.shape == (48 * len(ids), got.n_samples)
+    assert f"wrote {n_read} messages" in err
 
 
 def test_replay_into_a_subscriber_delivers_every_traces_message(tmp_path, sim, ros):

@@ -97,7 +97,7 @@ def run(args) -> int:
                 qos = qos_from_rosbags(offered[0] if offered else None, default)
                 pubs[c.id] = node.create_publisher(msg_class(c.msgtype), remap(c.topic, args.namespace), qos)
             _wait_for_subscribers(executor, node, list(pubs.values()), args.wait_s, stop)
-            print(f"replaying {reader.message_count} messages of {', '.join(sorted({c.topic for c in conns}))} "
+            print(f"replaying {sum(c.msgcount for c in conns)} messages of {', '.join(sorted({c.topic for c in conns}))} "
                   f"from {bag}", file=sys.stderr, flush=True)
             while not stop.requested and rclpy.ok():
                 t_bag0 = t_wall0 = None
