@@ -21,7 +21,10 @@ setup(
     # threadpoolctl: every node process limits its BLAS threads (inkdiag_ros.blas);
     # threadpool_limits(limits=, user_api="blas") as used there is in 3.x.
     # tqdm: `inkdiag train`'s progress bar on stderr (a plain one without it).
-    install_requires=["numpy>=1.26", "threadpoolctl>=3.1", "tqdm>=4.66"],
+    # rosbags: rosbag2 bags (MCAP) for inkdiag record / replay and the offline verbs
+    # (inkdiag_ros.bags); pure Python, no rclpy. Writer(version=8|9, storage_plugin=MCAP) and
+    # add_connection(offered_qos_profiles=[Qos]) as used there are in 0.10 (0.11.9 tested).
+    install_requires=["numpy>=1.26", "threadpoolctl>=3.1", "tqdm>=4.66", "rosbags>=0.10"],
     zip_safe=True,
     maintainer="inkdiag developers",
     maintainer_email="inkdiag@example.com",

@@ -158,7 +158,10 @@ def load_recording(path) -> Recording:
     if not path.exists():
         raise RecordingError(f"{src}: no such recording")
     if path.is_dir():
-        raise RecordingError(f"{src}: is a directory; a recording is an .npz file")
+        if (path / "metadata.yaml").is_file():  # the core cannot decode the wire's trace frames (msg_defs does)
+            raise RecordingError(f"{src}: is a rosbag2 bag; read it with inkdiag_ros.bags.load_recording "
+                                 "(the inkdiag verbs do)")
+        raise RecordingError(f"{src}: is a directory; a recording is an .npz file or a rosbag2 bag directory")
     try:
         z = np.load(path, allow_pickle=False)
         if not isinstance(z, np.lib.npyio.NpzFile):

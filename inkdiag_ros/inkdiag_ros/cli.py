@@ -4,6 +4,10 @@
     inkdiag train --profile HEAD.yaml --out MODEL.joblib [--features ...] [--baseline] [--data LABELLED]
     inkdiag label RECORDING --model MODEL.joblib [--baselines B.npz] --out LABELS.csv
     inkdiag estimate RECORDING --profile HEAD.yaml [--rows ...] --out FM.csv
+    inkdiag record BAG_DIR --namespace /head_00 [--topics ...] [--duration S]
+    inkdiag replay BAG_DIR [--rate R | --as-fast-as-possible] [--namespace NS] [--topics ...] [--loop]
+
+A RECORDING is an .npz file or a rosbag2 bag directory (see docs/bags.md).
 
 Each subcommand is a module of :mod:`inkdiag_ros.verbs` with ``HELP`` (one
 line), ``DESCRIPTION``, ``add_arguments(parser)`` and ``run(args) -> int``; the
@@ -21,7 +25,7 @@ import sys
 
 __all__ = ["VERBS", "build_parser", "main"]
 
-VERBS = ("calibrate", "train", "label", "estimate")
+VERBS = ("calibrate", "train", "label", "estimate", "record", "replay")
 """The subcommands, in the order ``inkdiag --help`` lists them."""
 
 

@@ -32,7 +32,9 @@ example:
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("healthy", metavar="HEALTHY", help="recording (.npz) of healthy traces, volts")
+    parser.add_argument("healthy", metavar="HEALTHY", help="recording (.npz, or a rosbag2 bag directory) of healthy traces, volts")
+    parser.add_argument("--topic", default=None, metavar="TOPIC", help="traces topic of a bag (default: its one "
+                        "Float32MultiArray topic ending in /traces)")
     parser.add_argument("--nominal", metavar="NOMINAL.yaml", required=True,
                         help="nominal head profile: sampling, drive, channel rho, mu, r_n, L_n, V_ch, c")
     parser.add_argument("--out", metavar="HEAD.yaml", required=True, help="complete head profile to write")
@@ -49,10 +51,10 @@ def run(args) -> int:
 
     from inkdiag_core.calibration import calibrate
     from inkdiag_core.head_profile import HeadProfile
-    from inkdiag_core.recording import load_recording
+    from ..bags import load_and_report
 
     nominal = HeadProfile.load(args.nominal)
-    rec = load_recording(args.healthy)
+    rec = load_and_report(args.healthy, args.topic)
     nominal.check_traces(rec.traces, rec.sample_rate_hz, what=f"{args.healthy}")
     traces, note, left_out = rec.traces, "", 0
     if rec.label is not None:  # a labelled recording: its healthy rows only

@@ -47,7 +47,9 @@ _CHUNK = 2048  # rows per estimator batch: bounds memory, keeps numpy's batches 
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("recording", metavar="RECORDING", help="recording (.npz: traces, sample_rate_hz, ...)")
+    parser.add_argument("recording", metavar="RECORDING", help="recording (.npz: traces, sample_rate_hz, ...) or rosbag2 bag directory")
+    parser.add_argument("--topic", default=None, metavar="TOPIC", help="traces topic of a bag (default: its one "
+                        "Float32MultiArray topic ending in /traces)")
     parser.add_argument("--profile", required=True, metavar="HEAD.yaml",
                         help="complete head profile (from inkdiag calibrate, or the shipped default)")
     parser.add_argument("--out", required=True, metavar="FM.csv", help="output CSV")
@@ -116,7 +118,9 @@ def run(args) -> int:
     import sys
 
     import numpy as np
-    from inkdiag_core import DryingTracker, HeadProfile, load_recording
+    from inkdiag_core import DryingTracker, HeadProfile
+
+    from ..bags import load_and_report
     from inkdiag_core import BaselineFileError, NozzleBaselines
     from inkdiag_core.estimation import vp_cal_for
     from inkdiag_core.head_profile import ProfileError
@@ -125,7 +129,7 @@ def run(args) -> int:
     if not profile.is_complete:
         raise ProfileError(f"{args.profile}: a nominal profile ({', '.join(profile.missing)} missing): run "
                            "inkdiag calibrate first on recorded healthy traces of the head")
-    rec = load_recording(args.recording)
+    rec = load_and_report(args.recording, args.topic)
     profile.check_traces(rec.traces, rec.sample_rate_hz, what=f"{args.recording}")
     rows = select_rows(args.rows, rec.n_rows, rec.label)
     baselines = None

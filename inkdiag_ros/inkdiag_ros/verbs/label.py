@@ -3,7 +3,7 @@
 HELP = "label every trace of a recording with a trained fault detector (CSV)"
 DESCRIPTION = """\
 Label every row of a recording (.npz: traces, sample_rate_hz, optional nozzle,
-frame_id, stamp) with a fault detector from `inkdiag train`, by the fdi node's
+frame_id, stamp; or a rosbag2 bag directory, its traces topic chosen by --topic) with a fault detector from `inkdiag train`, by the fdi node's
 code path (inkdiag_core.FrameLabeller): rows are screened first (non-finite,
 out-of-range, flat, clipped: class 'invalid' with that reason; the other rows
 are classified), then one detector call per batch of frames. Rows with the
@@ -32,7 +32,9 @@ BATCH_ROWS = 16384
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("recording", metavar="RECORDING", help="recording (.npz) to label")
+    parser.add_argument("recording", metavar="RECORDING", help="recording (.npz) or rosbag2 bag directory to label")
+    parser.add_argument("--topic", default=None, metavar="TOPIC", help="traces topic of a bag (default: its one "
+                        "Float32MultiArray topic ending in /traces)")
     parser.add_argument("--model", required=True, metavar="MODEL.joblib",
                         help="FaultDetector file from `inkdiag train` (its .manifest.json beside it)")
     parser.add_argument("--baselines", metavar="B.npz",
@@ -109,11 +111,11 @@ def run(args) -> int:
 
     from inkdiag_core import FrameLabeller, LabellerConfigError, NozzleBaselines, load_detector
     from inkdiag_core.head_profile import HeadProfile
-    from inkdiag_core.recording import load_recording
+    from ..bags import load_and_report
 
     detector = load_detector(args.model)  # ModelFileError (a ValueError): missing, tampered, other versions
     head = detector.profile if detector.profile is not None else HeadProfile.default()
-    rec = load_recording(args.recording)
+    rec = load_and_report(args.recording, args.topic)
     same_rate = math.isclose(rec.sample_rate_hz, detector.sample_rate_hz_, rel_tol=1e-9)  # as check_traces
     if not same_rate or rec.n_samples != detector.n_features_in_:
         raise LabellerConfigError(

@@ -40,6 +40,8 @@ def add_arguments(parser) -> None:
                         help="also train the per-nozzle baseline branch (for fdi's / label's --baselines)")
     parser.add_argument("--data", metavar="LABELLED.npz",
                         help="labelled recordings of this head to train on as well (a 'label' per row)")
+    parser.add_argument("--topic", default=None, metavar="TOPIC",
+                        help="traces topic when --data is a rosbag2 bag (its rows need labels: a bag has none yet)")
     parser.add_argument("--n-per-class", type=int, default=1000, metavar="N",
                         help="simulated traces per class (default: %(default)s; >= 8)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulation, split and forest "
@@ -75,7 +77,7 @@ def run(args) -> int:
 
     from inkdiag_core.head_profile import HeadProfile, ProfileError
     from inkdiag_core.persistence import save_detector
-    from inkdiag_core.recording import load_recording
+    from ..bags import load_and_report
     from inkdiag_core.training import train_detector
 
     profile = HeadProfile.load(args.profile)
@@ -84,7 +86,7 @@ def run(args) -> int:
                            "`inkdiag calibrate` first to fit them to recorded healthy traces")
     if args.n_per_class < 8:
         raise ValueError(f"--n-per-class must be >= 8, got {args.n_per_class}")
-    data = load_recording(args.data) if args.data else None
+    data = load_and_report(args.data, args.topic) if args.data else None
     if data is not None:
         if data.label is None:
             raise ValueError(f"{args.data}: no 'label' array: --data needs each row's class")

@@ -1,0 +1,349 @@
+"""rosbag2 bags (MCAP) of a head's topics: what they hold, and reading trace frames out of them.
+
+A bag is a rosbag2 directory (``metadata.yaml`` plus ``*.mcap``), as
+``ros2 bag record`` writes, read and written through ``rosbags`` (a pure-Python
+rosbag2 reader and writer): ``inkdiag record`` writes one, ``inkdiag replay``
+publishes one, and :func:`load_recording` reads the trace frames of one into the
+same :class:`inkdiag_core.Recording` an ``.npz`` recording gives, so the offline
+verbs take either.
+
+Why here and not in ``inkdiag_core``: a trace frame's layout (the header in the
+MultiArray's leading padding) is the wire contract, decoded only by
+:func:`msg_defs.decode_traces`, and the core imports neither msg_defs nor ROS.
+Each stored message (CDR, as received) is deserialised by rclpy into a
+``std_msgs/Float32MultiArray`` and decoded by msg_defs, exactly as the fdi node
+decodes a live message.
+
+Topic names in a bag are absolute (``/head_00/traces``); :data:`HEAD_TOPICS` are
+the relative names :func:`head_topics` resolves under a namespace.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+from pathlib import Path
+
+import numpy as np
+
+from inkdiag_core.recording import Recording, RecordingError
+from inkdiag_core.recording import load_recording as load_npz_recording
+
+from msg_defs import topics
+from msg_defs.qos import DIAGNOSTICS_QOS, RELIABLE_QOS, TRACES_QOS
+
+__all__ = ["TRACES_TYPE", "HEAD_TOPICS", "BagFrames", "is_bag", "head_topics", "ros_type_name",
+           "msg_class", "qos_to_rosbags", "qos_from_rosbags", "iter_bag_frames", "read_bag_recording",
+           "load_recording"]
+
+#: The rosbag2 type name of a trace frame.
+TRACES_TYPE = "std_msgs/msg/Float32MultiArray"
+
+#: The head's topics ``inkdiag record`` records by default: relative name -> (type, QoS it subscribes with).
+HEAD_TOPICS = {
+    topics.TRACES: (TRACES_TYPE, TRACES_QOS),
+    topics.LABELS: ("std_msgs/msg/String", RELIABLE_QOS),
+    topics.DRYING_NOZZLES: ("std_msgs/msg/String", RELIABLE_QOS),
+    topics.FM_ESTIMATES: ("std_msgs/msg/String", RELIABLE_QOS),
+    topics.FM_ESTIMATES_ARRAY: ("std_msgs/msg/Float64MultiArray", RELIABLE_QOS),
+    topics.DIAGNOSTICS: ("diagnostic_msgs/msg/DiagnosticArray", DIAGNOSTICS_QOS),
+}
+#: Topics that may be asked for by name but are not recorded by default.
+EXTRA_TOPICS = {topics.GROUND_TRUTH: ("std_msgs/msg/String", RELIABLE_QOS)}
+
+
+def head_topics(namespace: str, names=None) -> dict:
+    """Absolute topic name -> (type, QoS) of a head's topics under ``namespace``.
+
+    Parameters
+    ----------
+    namespace : str
+        E.g. ``/head_00``.
+    names : iterable of str, optional
+        Relative names (``traces``, ``fm_estimates/array``, ``/diagnostics``,
+        ``ground_truth``); default: all of :data:`HEAD_TOPICS`.
+
+    Raises
+    ------
+    ValueError
+        An unknown topic name.
+    """
+    ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
+    known = {**HEAD_TOPICS, **EXTRA_TOPICS}
+    out = {}
+    for name in (names if names else HEAD_TOPICS):
+        rel = name.strip()
+        if rel not in known and rel.lstrip("/") in known:
+            rel = rel.lstrip("/")
+        if rel not in known:
+            raise ValueError(f"unknown topic {name!r}: expected one of {', '.join(known)}")
+        full = rel if rel.startswith("/") else f"{ns}/{rel}"
+        out[full] = known[rel]
+    return out
+
+
+def is_bag(path) -> bool:
+    """Whether ``path`` is a rosbag2 directory (it has a ``metadata.yaml``)."""
+    p = Path(path)
+    return p.is_dir() and (p / "metadata.yaml").is_file()
+
+
+def ros_type_name(msg_type) -> str:
+    """``std_msgs/msg/String`` for the rclpy class ``std_msgs.msg.String``."""
+    pkg = msg_type.__module__.split(".")[0]
+    return f"{pkg}/msg/{msg_type.__name__}"
+
+
+def msg_class(type_name: str):
+    """The rclpy message class of a rosbag2 type name (``std_msgs/msg/String``).
+
+    Raises
+    ------
+    ValueError
+        A type whose Python package is not installed.
+    """
+    parts = type_name.split("/")
+    if len(parts) != 3 or parts[1] != "msg":
+        raise ValueError(f"not a ROS 2 message type name: {type_name!r}")
+    try:
+        return getattr(importlib.import_module(f"{parts[0]}.msg"), parts[2])
+    except (ImportError, AttributeError):
+        raise ValueError(f"message type {type_name} is not installed here") from None
+
+
+def qos_to_rosbags(profile):
+    """A ``rosbags.interfaces.Qos`` (what rosbag2's metadata stores) from an rclpy ``QoSProfile``."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+    def t(d):
+        ns = int(getattr(d, "nanoseconds", 0))
+        return QosTime(ns // 1_000_000_000, ns % 1_000_000_000)
+
+    return Qos(history=QosHistory(int(profile.history)), depth=int(profile.depth),
+               reliability=QosReliability(int(profile.reliability)),
+               durability=QosDurability(int(profile.durability)),
+               deadline=t(profile.deadline), lifespan=t(profile.lifespan),
+               liveliness=QosLiveliness(int(profile.liveliness)),
+               liveliness_lease_duration=t(profile.liveliness_lease_duration),
+               avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions))
+
+
+def qos_from_rosbags(qos, default):
+    """An rclpy ``QoSProfile`` for publishing what a bag offered: reliability, durability, history, depth.
+
+    Deadline, lifespan and liveliness stay rclpy's defaults (rosbag2's player does
+    the same: a recorded "infinite" duration is not a valid value to set). ``qos``
+    None: ``default``.
+    """
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    if qos is None:
+        return default
+    rel = qos.reliability.value if qos.reliability.value in (1, 2) else int(default.reliability)
+    dur = qos.durability.value if qos.durability.value in (1, 2) else int(default.durability)
+    hist = qos.history.value if qos.history.value in (1, 2) else int(default.history)
+    depth = int(qos.depth) if qos.depth > 0 else int(default.depth)
+    return QoSProfile(reliability=ReliabilityPolicy(rel), durability=DurabilityPolicy(dur),
+                      history=HistoryPolicy(hist), depth=depth)
+
+
+@dataclasses.dataclass
+class BagFrames:
+    """What :func:`iter_bag_frames` read: counts and the frames it skipped.
+
+    Attributes
+    ----------
+    topic : str
+        The traces topic read.
+    n_messages : int
+        Messages read on it.
+    skipped : list of (int, str)
+        ``(message index, reason)`` of each message that is not a valid trace frame.
+    """
+
+    topic: str = ""
+    n_messages: int = 0
+    skipped: list = dataclasses.field(default_factory=list)
+
+    def summary(self) -> str:
+        """One line: frames read, and the skipped ones with their first reasons."""
+        s = f"{self.n_messages - len(self.skipped)} of {self.n_messages} messages on {self.topic} decoded"
+        if self.skipped:
+            s += f"; skipped {len(self.skipped)}: " + "; ".join(
+                f"message {i}: {why}" for i, why in self.skipped[:3]) + (" ..." if len(self.skipped) > 3 else "")
+        return s
+
+
+def _open_reader(bag_dir):
+    from rosbags.rosbag2 import Reader
+
+    src = str(bag_dir)
+    p = Path(bag_dir)
+    if not p.exists():
+        raise RecordingError(f"{src}: no such bag")
+    if not is_bag(p):
+        raise RecordingError(f"{src}: not a rosbag2 bag (a directory with a metadata.yaml)")
+    try:
+        reader = Reader(p)
+        reader.open()
+    except Exception as exc:  # rosbags' ReaderError, or a storage error of a damaged file
+        raise RecordingError(f"{src}: cannot open the bag{_listed(p)}: {_one_line(exc)}") from None
+    return reader
+
+
+def _listed(bag: Path) -> str:
+    """`` (FILE, 0 of the N messages metadata.yaml lists readable: truncated or corrupt)`` where it says so."""
+    try:
+        import yaml
+
+        info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        files = ", ".join(str(bag / f) for f in info.get("relative_file_paths", []))
+        return f" ({files}: 0 of the {int(info['message_count'])} messages metadata.yaml lists readable)"
+    except Exception:
+        return ""
+
+
+def _one_line(exc) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def _traces_connections(reader, topic, src):
+    conns = reader.connections
+    if topic is None:
+        named = sorted({c.topic for c in conns if c.topic.endswith("/" + topics.TRACES)})
+        cands = sorted({c.topic for c in conns if c.msgtype == TRACES_TYPE and c.topic in named})
+        if len(cands) > 1:
+            raise RecordingError(f"{src}: {len(cands)} traces topics ({', '.join(cands)}): choose one with --topic")
+        if not cands and len(named) != 1:
+            have = ", ".join(f"{c.topic} ({c.msgtype})" for c in conns) or "no topics"
+            raise RecordingError(f"{src}: no {TRACES_TYPE} traces topic (it has {have}); choose one with --topic")
+        topic = cands[0] if cands else named[0]  # one traces topic of another type: refused below
+    sel = [c for c in conns if c.topic == topic]
+    if not sel:
+        raise RecordingError(f"{src}: no topic {topic} in the bag (it has "
+                             f"{', '.join(sorted({c.topic for c in conns})) or 'no topics'})")
+    other = sorted({c.msgtype for c in sel if c.msgtype != TRACES_TYPE})
+    if other:
+        raise RecordingError(f"{src}: topic {topic} is {other[0]}, not {TRACES_TYPE} trace frames")
+    return topic, sel
+
+
+def iter_bag_frames(bag_dir, *, topic: str | None = None, stats: BagFrames | None = None):
+    """Stream the trace frames of a bag, one decoded frame per message, in bag order.
+
+    Parameters
+    ----------
+    bag_dir : str or os.PathLike
+        A rosbag2 directory.
+    topic : str, optional
+        The traces topic (absolute, e.g. ``/head_00/traces``); default: the
+        bag's one ``Float32MultiArray`` topic whose name ends in ``/traces``.
+    stats : BagFrames, optional
+        Filled as the frames are read: message count and skipped messages with reasons.
+
+    Yields
+    ------
+    msg_defs.TraceFrame
+        Traces (n_nozzles, n_samples) float32, V, first nozzle, frame id, sample rate
+        (Hz) and stamp (s). A message that is not a valid trace frame is skipped
+        and recorded in ``stats`` (it never costs the other frames).
+
+    Raises
+    ------
+    RecordingError
+        Not a bag, a bag that cannot be opened, no such traces topic, a topic of
+        another type, or a bag that breaks off (says how many messages were read).
+    """
+    from rclpy.serialization import deserialize_message
+
+    from msg_defs import FrameError, TRACE_MSG_TYPE, decode_traces
+
+    src = str(bag_dir)
+    stats = stats if stats is not None else BagFrames()
+    reader = _open_reader(bag_dir)
+    try:
+        stats.topic, conns = _traces_connections(reader, topic, src)
+        it = reader.messages(connections=conns)
+        while True:
+            try:
+                _, _, raw = next(it)
+            except StopIteration:
+                break
+            except Exception as exc:  # a truncated or damaged storage file
+                raise RecordingError(f"{src}: truncated or corrupt bag: {stats.n_messages} messages on "
+                                     f"{stats.topic} readable, then: {_one_line(exc)}") from None
+            i = stats.n_messages
+            stats.n_messages += 1
+            try:
+                frame = decode_traces(deserialize_message(bytes(raw), TRACE_MSG_TYPE))
+            except FrameError as exc:
+                stats.skipped.append((i, _one_line(exc)))
+                continue
+            except Exception as exc:  # CDR that does not deserialise as a Float32MultiArray
+                stats.skipped.append((i, f"not a serialised {TRACES_TYPE}: {_one_line(exc)}"))
+                continue
+            yield frame
+    finally:
+        reader.close()
+
+
+def read_bag_recording(bag_dir, *, topic: str | None = None, stats: BagFrames | None = None) -> Recording:
+    """Read a bag's trace frames into a :class:`inkdiag_core.Recording` (as ``load_recording`` gives).
+
+    Rows are the frames' nozzles in bag order: ``nozzle`` from each frame's first
+    nozzle, ``frame_id`` and ``stamp`` (s) from its header. Frames of another
+    sample rate or samples per trace than the first decoded frame are skipped
+    (counted in ``stats`` with the reason). Parameters as :func:`iter_bag_frames`.
+
+    Raises
+    ------
+    RecordingError
+        As :func:`iter_bag_frames`, and a bag with no decodable trace frame
+        (empty, or every frame skipped: the first reasons are given).
+    """
+    stats = stats if stats is not None else BagFrames()
+    blocks, noz, fid, st = [], [], [], []
+    fs = n_s = None
+    for frame in iter_bag_frames(bag_dir, topic=topic, stats=stats):
+        if fs is None:
+            fs, n_s = frame.sample_rate_hz, frame.n_samples
+        elif frame.sample_rate_hz != fs or frame.n_samples != n_s:
+            stats.skipped.append((stats.n_messages - 1, f"sampled at {frame.sample_rate_hz:g} Hz x {frame.n_samples}, "
+                                  f"the bag's first frame at {fs:g} Hz x {n_s}"))
+            continue
+        n = frame.n_nozzles
+        blocks.append(np.array(frame.traces))  # a copy: the frame is a view into its message
+        noz.append(frame.nozzle_ids)
+        fid.append(np.full(n, frame.frame_id, dtype=np.int64))
+        st.append(np.full(n, frame.stamp))
+    if not blocks:
+        what = "no messages" if stats.n_messages == 0 else f"no valid trace frame ({stats.summary()})"
+        raise RecordingError(f"{bag_dir}: {what} on {stats.topic}")
+    return Recording.from_arrays(np.concatenate(blocks), fs, nozzle=np.concatenate(noz),
+                                 frame_id=np.concatenate(fid), stamp=np.concatenate(st), source=str(bag_dir))
+
+
+def load_recording(path, *, topic: str | None = None, stats: BagFrames | None = None) -> Recording:
+    """A recording from an ``.npz`` file or a rosbag2 bag directory (dispatch on what ``path`` is).
+
+    ``topic`` and ``stats``: for a bag, as :func:`read_bag_recording`; an ``.npz``
+    has no topics (``topic`` given for one is an error).
+    """
+    if is_bag(path):
+        return read_bag_recording(path, topic=topic, stats=stats)
+    if topic is not None:
+        raise RecordingError(f"{path}: --topic is for a bag directory; this is not one")
+    return load_npz_recording(path)
+
+
+def load_and_report(path, topic: str | None = None, *, file=None) -> Recording:
+    """:func:`load_recording` for the offline verbs: a bag's frame counts and skipped frames go to ``file`` (stderr)."""
+    import sys
+
+    stats = BagFrames()
+    rec = load_recording(path, topic=topic, stats=stats)
+    if stats.topic:
+        print(f"{path}: {stats.summary()}", file=file or sys.stderr)
+    return rec
+

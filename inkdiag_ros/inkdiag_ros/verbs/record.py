@@ -1,0 +1,142 @@
+"""``inkdiag record``: a rosbag2 bag (MCAP) of a head's topics, as ``ros2 bag record`` writes."""
+
+HELP = "record a head's topics into a rosbag2 bag (MCAP storage)"
+DESCRIPTION = """\
+Subscribe to a head's topics and write every message, serialized as received
+(CDR, no re-serialisation), into a new rosbag2 bag directory: metadata.yaml and
+one .mcap file, storage 'mcap', each topic with its type and the QoS profiles its
+publishers offered (rosbag2 metadata version 8 by default, the newest that Humble's
+`ros2 bag` reads; --metadata-version 9 for Jazzy's). Message timestamps are the
+receive times (ns), as `ros2 bag record` stores them.
+
+Default topics, under --namespace: traces, labels, drying_nozzles, fm_estimates,
+fm_estimates/array, and /diagnostics (ground_truth on request). It stops after
+--duration seconds, or on Ctrl-C / SIGTERM, and closes a valid bag either way;
+it prints the messages written per topic.
+
+example:
+  inkdiag record bags/head00_run1 --namespace /head_00 --duration 10
+  inkdiag record bags/truth --namespace /head_00 --topics traces ground_truth
+"""
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("bag", metavar="BAG_DIR", help="bag directory to create (must not exist)")
+    parser.add_argument("--namespace", default="/head_00", metavar="NS", help="the head's namespace (default /head_00)")
+    parser.add_argument("--topics", nargs="+", metavar="TOPIC",
+                        help="topics relative to the namespace (default: traces labels drying_nozzles fm_estimates "
+                        "fm_estimates/array /diagnostics)")
+    parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: "
+                        "until Ctrl-C / SIGTERM)")
+    parser.add_argument("--metadata-version", type=int, choices=(8, 9), default=8,
+                        help="rosbag2 metadata version: 8 (Humble's ros2 bag reads it, default) or 9 (Jazzy)")
+
+
+class BagRecorder:
+    """Raw subscriptions of one node, each writing what it receives into a rosbags rosbag2 writer.
+
+    Parameters
+    ----------
+    node : rclpy.node.Node
+    writer : rosbags.rosbag2.Writer
+        Open.
+    wanted : dict
+        Absolute topic -> (type name, subscription QoS), from :func:`inkdiag_ros.bags.head_topics`.
+    """
+
+    def __init__(self, node, writer, wanted):
+        from rosbags.typesys import Stores, get_typestore
+
+        from ..bags import msg_class
+
+        self.node, self.writer, self.wanted = node, writer, wanted
+        self.typestore = get_typestore(Stores.ROS2_JAZZY)
+        self.connections = {}
+        self.counts = dict.fromkeys(wanted, 0)
+        self._subs = [node.create_subscription(msg_class(t), topic, self._callback(topic), qos, raw=True)
+                      for topic, (t, qos) in wanted.items()]
+
+    def _offered(self, topic):
+        """The QoS profiles the topic's publishers offer (the subscription's own when none is seen)."""
+        from ..bags import qos_to_rosbags
+
+        try:
+            infos = self.node.get_publishers_info_by_topic(topic)
+        except Exception:  # the context went down (a signal): no graph to ask any more
+            infos = []
+        profiles = [qos_to_rosbags(i.qos_profile) for i in infos]
+        return profiles or [qos_to_rosbags(self.wanted[topic][1])]
+
+    def connection(self, topic):
+        """The bag connection of ``topic``, added (with its offered QoS) at its first message."""
+        conn = self.connections.get(topic)
+        if conn is None:
+            conn = self.writer.add_connection(topic, self.wanted[topic][0], typestore=self.typestore,
+                                              offered_qos_profiles=self._offered(topic))
+            self.connections[topic] = conn
+        return conn
+
+    def _callback(self, topic):
+        def on_message(raw):
+            stamp = self.node.get_clock().now().nanoseconds
+            self.writer.write(self.connection(topic), stamp, raw)
+            self.counts[topic] += 1
+        return on_message
+
+    def finish(self):
+        """Add the topics that had no message (so the metadata lists every recorded topic)."""
+        for topic in self.wanted:
+            self.connection(topic)
+
+
+def run(args) -> int:
+    import sys
+    import time
+    from pathlib import Path
+
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from .._spin import stop_on_signals
+    from ..bags import head_topics
+
+    if args.duration is not None and not args.duration > 0:
+        raise ValueError(f"--duration must be > 0 s, got {args.duration!r}")
+    wanted = head_topics(args.namespace, args.topics)
+    bag = Path(args.bag)
+    if bag.exists():
+        raise ValueError(f"{bag}: exists already; a bag is written into a new directory")
+    if not bag.parent.is_dir():
+        raise ValueError(f"{bag.parent}: no such directory")
+    with stop_on_signals() as stop:
+        rclpy.init()
+        writer = Writer(bag, version=args.metadata_version, storage_plugin=StoragePlugin.MCAP)
+        writer.open()
+        node = executor = rec = None
+        try:
+            node = rclpy.create_node("inkdiag_record")
+            stop.attach(node)
+            rec = BagRecorder(node, writer, wanted)
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+            print(f"recording {', '.join(wanted)} into {bag}", file=sys.stderr, flush=True)
+            end = None if args.duration is None else time.monotonic() + args.duration
+            while not stop.requested and rclpy.ok() and (end is None or time.monotonic() < end):
+                try:
+                    executor.spin_once(timeout_sec=0.1 if end is None else max(0.0, min(0.1, end - time.monotonic())))
+                except ExternalShutdownException:  # SIGINT/SIGTERM through rclpy's handler
+                    break
+        finally:
+            if rec is not None:
+                rec.finish()
+            writer.close()  # metadata.yaml and the MCAP summary: a valid bag whatever stopped us
+            if executor is not None:
+                executor.shutdown()
+            if node is not None:
+                node.destroy_node()
+            rclpy.try_shutdown()
+    counts = rec.counts if rec is not None else {}
+    print(f"wrote {sum(counts.values())} messages to {bag}: "
+          + ", ".join(f"{t} {n}" for t, n in counts.items()), file=sys.stderr)
+    return 0

@@ -1,0 +1,158 @@
+"""``inkdiag replay``: publish a rosbag2 bag's messages again, with their recorded QoS and timing."""
+
+HELP = "publish a rosbag2 bag's messages again (recorded QoS and timing)"
+DESCRIPTION = """\
+Publish every message of a rosbag2 bag (from `inkdiag record`, `ros2 bag record`
+or any rosbag2 writer; MCAP or SQLite 3 storage), serialized as stored, on its
+recorded topic with the QoS its publishers offered (reliability, durability,
+history, depth; the first offered profile), spaced as recorded (--rate scales the
+time: 2 is twice as fast), or back to back with --as-fast-as-possible.
+
+Before the first message it waits (up to --wait-s) until its publishers are
+matched by subscribers: a replay that published at once would lose its first
+messages to discovery. Reliable topics are waited on to be acknowledged at the end.
+
+--namespace NS moves the head's topics: the first name component of every topic
+that has more than one (/head_00/traces -> NS/traces; /diagnostics stays).
+--topics keeps only those topics (relative names as in `inkdiag record`, or the
+absolute recorded names).
+
+example:
+  inkdiag replay bags/head00_run1 --namespace /head_07 --rate 1
+"""
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("bag", metavar="BAG_DIR", help="rosbag2 bag directory")
+    speed = parser.add_mutually_exclusive_group()
+    speed.add_argument("--rate", type=float, default=1.0, metavar="R", help="time scale (default 1: as recorded)")
+    speed.add_argument("--as-fast-as-possible", action="store_true", help="publish back to back, no recorded timing")
+    parser.add_argument("--namespace", default=None, metavar="NS", help="publish the head's topics under NS instead")
+    parser.add_argument("--topics", nargs="+", metavar="TOPIC", help="replay only these topics")
+    parser.add_argument("--loop", action="store_true", help="start again at the end (until Ctrl-C / SIGTERM)")
+    parser.add_argument("--wait-s", type=float, default=10.0, metavar="S",
+                        help="wait at most S seconds for subscribers before the first message (default 10)")
+
+
+def remap(topic: str, namespace) -> str:
+    """``topic`` under ``namespace``: its first component replaced when it has more than one."""
+    if not namespace:
+        return topic
+    parts = topic.strip("/").split("/")
+    if len(parts) < 2:
+        return topic
+    ns = namespace.strip("/")
+    return "/" + "/".join(([ns] if ns else []) + parts[1:])
+
+
+def _selected(topic: str, wanted) -> bool:
+    if not wanted:
+        return True
+    return any(topic == w or (not w.startswith("/") and topic.endswith("/" + w)) for w in wanted)
+
+
+def run(args) -> int:
+    import sys
+    import time
+    from pathlib import Path
+
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.qos import ReliabilityPolicy
+    from rosbags.rosbag2 import Reader
+
+    from msg_defs.qos import RELIABLE_QOS, TRACES_QOS
+    from inkdiag_core.recording import RecordingError
+
+    from .._spin import stop_on_signals
+    from ..bags import TRACES_TYPE, is_bag, msg_class, qos_from_rosbags
+
+    if not args.as_fast_as_possible and not args.rate > 0:
+        raise ValueError(f"--rate must be > 0, got {args.rate!r}")
+    bag = Path(args.bag)
+    if not is_bag(bag):
+        raise RecordingError(f"{bag}: not a rosbag2 bag (a directory with a metadata.yaml)")
+    try:
+        reader = Reader(bag)
+        reader.open()
+    except Exception as exc:
+        raise RecordingError(f"{bag}: cannot open the bag: {str(exc).strip().splitlines()[0]}") from None
+    conns = [c for c in reader.connections if _selected(c.topic, args.topics)]
+    if not conns:
+        reader.close()
+        raise RecordingError(f"{bag}: no topic to replay (it has {', '.join(c.topic for c in reader.connections)})")
+    n_sent = 0
+    with stop_on_signals() as stop:
+        rclpy.init()
+        node = executor = None
+        try:
+            node = rclpy.create_node("inkdiag_replay")
+            stop.attach(node)
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+            pubs = {}
+            for c in conns:
+                default = TRACES_QOS if c.msgtype == TRACES_TYPE else RELIABLE_QOS
+                offered = c.ext.offered_qos_profiles
+                qos = qos_from_rosbags(offered[0] if offered else None, default)
+                pubs[c.id] = node.create_publisher(msg_class(c.msgtype), remap(c.topic, args.namespace), qos)
+            _wait_for_subscribers(executor, node, list(pubs.values()), args.wait_s, stop)
+            print(f"replaying {sum(c.msgcount for c in conns)} messages of {', '.join(sorted({c.topic for c in conns}))} "
+                  f"from {bag}", file=sys.stderr, flush=True)
+            while not stop.requested and rclpy.ok():
+                t_bag0 = t_wall0 = None
+                for c, ts, raw in reader.messages(connections=conns):
+                    if stop.requested:
+                        break
+                    if t_bag0 is None:
+                        t_bag0, t_wall0 = ts, time.monotonic()
+                    if not args.as_fast_as_possible:
+                        due = t_wall0 + (ts - t_bag0) * 1e-9 / args.rate
+                        while not stop.requested and time.monotonic() < due:
+                            try:
+                                executor.spin_once(timeout_sec=min(0.05, max(0.0, due - time.monotonic())))
+                            except ExternalShutdownException:
+                                stop.requested = True
+                    try:
+                        pubs[c.id].publish(bytes(raw))
+                    except Exception:
+                        if stop.requested or not rclpy.ok():  # a signal took the context down meanwhile
+                            break
+                        raise
+                    n_sent += 1
+                if not args.loop:
+                    break
+            for pub in pubs.values() if rclpy.ok() else ():  # reliable topics: let the subscribers have them before we go
+                if pub.qos_profile.reliability == ReliabilityPolicy.RELIABLE and pub.get_subscription_count():
+                    pub.wait_for_all_acked(rclpy.duration.Duration(seconds=5.0))
+        finally:
+            reader.close()
+            if executor is not None:
+                executor.shutdown()
+            if node is not None:
+                node.destroy_node()
+            rclpy.try_shutdown()
+    print(f"replayed {n_sent} messages from {bag}", file=sys.stderr)
+    return 0
+
+
+def _wait_for_subscribers(executor, node, pubs, wait_s, stop):
+    """Spin until every publisher is matched, or some are and 1 s more passed, or ``wait_s`` ran out."""
+    import time
+
+    deadline = time.monotonic() + wait_s
+    first_match = None
+    while not stop.requested and time.monotonic() < deadline:
+        matched = [p.get_subscription_count() > 0 for p in pubs]
+        if all(matched):
+            break
+        if any(matched):
+            first_match = first_match or time.monotonic()
+            if time.monotonic() - first_match > 1.0:
+                break
+        try:
+            executor.spin_once(timeout_sec=0.05)
+        except Exception:  # the context went down (a signal)
+            return
+    if any(p.get_subscription_count() > 0 for p in pubs):
+        time.sleep(0.2)  # the subscriber side may still be completing its own match

@@ -1,0 +1,258 @@
+"""rosbag2 (MCAP) bags (issue 15, part 1): bags written by ``rosbags`` itself read by inkdiag
+and labelled by ``inkdiag label``; ``inkdiag record`` of a live printhead_sim read back by
+rosbags' reader (messages in the bag = messages published) and by load_recording; ``inkdiag
+replay`` into a subscriber delivers every traces message; one-line errors for a corrupt,
+truncated or empty bag, a directory that is no bag and a traces topic of another type."""
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from inkdiag_core import FaultClass, HeadProfile, RecordingError
+from msg_defs import HEADER_LEN, SCHEMA_VERSION
+
+FS = 10e6
+NS = "/head_00"
+
+
+def _typestore():
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def _frame_msg(ts, traces, *, first, frame_id, stamp_s, data_offset=HEADER_LEN):
+    """A trace frame built with rosbags' own message classes (no rclpy, no msg_defs encoder)."""
+    ma = ts.types
+    n, s = traces.shape
+    head = np.array([SCHEMA_VERSION, first, frame_id, 0, FS, stamp_s, 0, 0], dtype=np.float32)
+    layout = ma["std_msgs/msg/MultiArrayLayout"](
+        dim=[ma["std_msgs/msg/MultiArrayDimension"](label="nozzle", size=n, stride=n * s),
+             ma["std_msgs/msg/MultiArrayDimension"](label="sample", size=s, stride=s)], data_offset=data_offset)
+    return ma["std_msgs/msg/Float32MultiArray"](layout=layout, data=np.concatenate([head, traces.ravel()]))
+
+
+def write_bag(path, frames, *, version=9, bad_frame=None, traces_type="std_msgs/msg/Float32MultiArray"):
+    """A rosbag2 MCAP bag written by rosbags directly: ``frames`` is a list of (first_nozzle, traces)."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    ts = _typestore()
+    qos = Qos(QosHistory.KEEP_LAST, 32, QosReliability.BEST_EFFORT, QosDurability.VOLATILE, QosTime(0, 0),
+              QosTime(0, 0), QosLiveliness.AUTOMATIC, QosTime(0, 0), False)
+    t0 = 1_700_000_000_000_000_000
+    with Writer(path, version=version, storage_plugin=StoragePlugin.MCAP) as w:
+        conn = w.add_connection(f"{NS}/traces", traces_type, typestore=ts, offered_qos_profiles=[qos])
+        other = w.add_connection(f"{NS}/labels", "std_msgs/msg/String", typestore=ts)
+        for k, (first, x) in enumerate(frames):
+            if traces_type == "std_msgs/msg/String":
+                msg = ts.types["std_msgs/msg/String"](data="not traces")
+            else:
+                msg = _frame_msg(ts, x, first=first, frame_id=k, stamp_s=100 + k,
+                                 data_offset=3 if k == bad_frame else HEADER_LEN)
+            w.write(conn, t0 + k * 100_000_000, ts.serialize_cdr(msg, traces_type))
+            w.write(other, t0 + k * 100_000_000 + 1, ts.serialize_cdr(ts.types["std_msgs/msg/String"](data="{}"),
+                                                                       "std_msgs/msg/String"))
+    return path
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return HeadProfile.default().simulate({c: 6 for c in FaultClass}, seed=5)
+
+
+@pytest.mark.parametrize("version", [8, 9])
+def test_a_bag_written_by_rosbags_reads_as_a_recording_and_a_bad_frame_is_skipped_with_its_reason(tmp_path, version):
+    from inkdiag_ros.bags import BagFrames, load_recording
+
+    rng = np.random.default_rng(0)
+    frames = [(16 * k, rng.standard_normal((16, 512)).astype(np.float32)) for k in range(4)]
+    bag = write_bag(tmp_path / "bag", frames, version=version, bad_frame=2)
+    stats = BagFrames()
+    rec = load_recording(bag, stats=stats)
+    keep = [0, 1, 3]
+    np.testing.assert_array_equal(rec.traces, np.concatenate([frames[k][1] for k in keep]))
+    np.testing.assert_array_equal(rec.nozzle, np.concatenate([np.arange(16 * k, 16 * k + 16) for k in keep]))
+    np.testing.assert_array_equal(rec.frame_id, np.repeat(keep, 16))
+    np.testing.assert_array_equal(rec.stamp, np.repeat(np.array(keep) + 100.0, 16))
+    assert rec.sample_rate_hz == FS and rec.source == str(bag)
+    assert stats.topic == f"{NS}/traces" and stats.n_messages == 4
+    assert [i for i, _ in stats.skipped] == [2] and "data_offset" in stats.skipped[0][1]
+    assert "skipped 1: message 2" in stats.summary()
+
+
+def test_inkdiag_label_labels_a_rosbags_bag_and_finds_the_injected_faults(tmp_path, sim, fdi_model):
+    bag = write_bag(tmp_path / "bag", [(0, sim.traces[i:i + 30].astype(np.float32)) for i in range(0, len(sim), 30)])
+    out = tmp_path / "labels.csv"
+    r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "label", str(bag), "--model", str(fdi_model),
+                        "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    n_frames = -(-len(sim) // 30)
+    assert f"{n_frames} of {n_frames} messages on {NS}/traces decoded" in r.stderr
+    with open(out, newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert {"frame_id", "nozzle", "class", "confidence", "reason"} <= set(rows[0])
+    assert len(rows) == len(sim)
+    truth = sim.label_values()
+    faulty = truth != FaultClass.HEALTHY_NOZZLE.value
+    got = np.array([r["class"] for r in rows])
+    found = (got[faulty] != FaultClass.HEALTHY_NOZZLE.value).mean()
+    assert found >= 0.8, found  # the injected faults are found (labelled a fault)
+    assert (got == truth).mean() >= 0.6
+
+
+def _one_line_error(bag, match):
+    from inkdiag_ros.bags import load_recording
+
+    with pytest.raises(RecordingError, match=match) as info:
+        load_recording(bag)
+    assert "\n" not in str(info.value) and str(bag) in str(info.value)
+    return str(info.value)
+
+
+def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim):
+    x = sim.traces[:8].astype(np.float32)
+    bag = write_bag(tmp_path / "ok", [(0, x)] * 3)
+    # truncated: rosbags reads nothing without the MCAP summary; says so and how many were listed
+    trunc = tmp_path / "trunc"
+    trunc.mkdir()
+    for f in bag.iterdir():
+        (trunc / f.name).write_bytes(f.read_bytes())
+    mcap = next(trunc.glob("*.mcap"))
+    mcap.write_bytes(mcap.read_bytes()[: mcap.stat().st_size * 2 // 3])
+    msg = _one_line_error(trunc, "cannot open the bag")
+    assert str(mcap) in msg and "0 of the 6 messages" in msg
+    # empty: a traces topic with no message
+    assert "no messages on /head_00/traces" in _one_line_error(write_bag(tmp_path / "empty", []), "no messages")
+    # the traces topic of another type
+    _one_line_error(write_bag(tmp_path / "str", [(0, x)], traces_type="std_msgs/msg/String"),
+                    "/head_00/traces is std_msgs/msg/String, not std_msgs/msg/Float32MultiArray")
+    # a directory that is no bag; and the core's own loader says where bags are read
+    (tmp_path / "plain").mkdir()
+    _one_line_error(tmp_path / "plain", "a rosbag2 bag directory")
+    from inkdiag_core import load_recording as core_load
+
+    with pytest.raises(RecordingError, match="rosbag2 bag"):
+        core_load(bag)
+    # the CLI: exit status 2, one line
+    r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "label", str(trunc), "--model", "none.joblib",
+                        "--out", "-"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+
+
+def _env(domain_id):
+    return dict(os.environ, ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+
+
+def _wait_for_line(proc, text, timeout=30.0):
+    deadline = time.monotonic() + timeout
+    seen = []
+    while time.monotonic() < deadline:
+        line = proc.stderr.readline()
+        seen.append(line)
+        if text in line:
+            return
+        if not line and proc.poll() is not None:
+            break
+    pytest.fail(f"no {text!r} from the process: {''.join(seen)[-1500:]}")
+
+
+def test_record_a_live_printhead_sim_and_read_it_back_with_rosbags_and_load_recording(tmp_path):
+    from conftest import next_domain_id
+    from rosbags.rosbag2 import Reader
+
+    from inkdiag_ros.bags import load_recording
+
+    env = _env(next_domain_id())
+    bag = tmp_path / "live"
+    rec = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.cli", "record", str(bag), "--namespace", NS,
+                            "--topics", "traces", "ground_truth", "labels"],
+                           env=env, stderr=subprocess.PIPE, text=True)
+    sim = None
+    try:
+        _wait_for_line(rec, "recording")
+        sim = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.printhead_sim", "--ros-args", "-r",
+                                f"__ns:={NS}", "-p", "frame_rate_hz:=10.0", "-p", "n_nozzles:=48"],
+                               env=env, stderr=subprocess.PIPE, text=True)
+        _wait_for_line(sim, "simulating")  # logged once its publishers exist
+        time.sleep(3.0)  # discovery (slow on a loaded machine), then frames at 10 Hz
+    finally:
+        if sim is not None:  # the publisher stops first: the recorder has had every frame it will get
+            sim.send_signal(signal.SIGINT)
+            sim.wait(timeout=20)
+        time.sleep(0.5)
+        rec.send_signal(signal.SIGINT)
+        _, err = rec.communicate(timeout=20)
+    assert rec.returncode == 0, err
+    with Reader(bag) as r:
+        counts = {c.topic: c.msgcount for c in r.connections}
+        n_read = sum(1 for _ in r.messages())
+        types = {c.topic: c.msgtype for c in r.connections}
+    assert set(counts) == {f"{NS}/traces", f"{NS}/ground_truth", f"{NS}/labels"} and counts[f"{NS}/labels"] == 0
+    assert counts[f"{NS}/traces"] >= 5 and n_read == sum(counts.values())
+    assert types[f"{NS}/traces"] == "std_msgs/msg/Float32MultiArray" and types[f"{NS}/labels"] == "std_msgs/msg/String"
+    meta = (bag / "metadata.yaml").read_text()
+    assert "storage_identifier: mcap" in meta and "version: 8" in meta and "offered_qos_profiles" in meta
+    got = load_recording(bag)
+    ids = sorted(set(got.frame_id.tolist()))
+    # nothing lost once the recorder was matched: every frame from the first recorded to the sim's last
+    assert ids == list(range(ids[0], ids[-1] + 1)) and len(ids) == counts[f"{NS}/traces"]
+    assert got.traces.shape == (48 * len(ids), got.n_samples)
+    assert f"wrote {n_read} messages" in err
+
+
+def test_replay_into_a_subscriber_delivers_every_traces_message(tmp_path, sim, ros):
+    from msg_defs import TRACE_MSG_TYPE, TRACES_QOS, decode_traces
+
+    frames = [(0, sim.traces[i:i + 5].astype(np.float32)) for i in range(0, 5 * 12, 5)]
+    bag = write_bag(tmp_path / "bag", frames, version=8)
+    node = ros.node("replay_sink")
+    got = []
+    node.create_subscription(TRACE_MSG_TYPE, "/head_07/traces", lambda m: got.append(decode_traces(m)), TRACES_QOS)
+    proc = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.cli", "replay", str(bag), "--namespace", "/head_07",
+                             "--rate", "4"], env=_env(ros.domain_id), stderr=subprocess.PIPE, text=True)
+    try:
+        ros.spin_until(lambda: proc.poll() is not None, timeout=60, what="the replay to end")
+        ros.spin_for(0.5)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    err = proc.stderr.read()
+    assert proc.returncode == 0, err
+    assert "replayed 24 messages" in err
+    assert [f.frame_id for f in got] == list(range(12))
+    np.testing.assert_array_equal(got[5].traces, frames[5][1])
+
+
+def test_replay_into_fdi_gives_one_labels_message_per_traces_message(tmp_path, sim, ros, fdi_model):
+    from rclpy.parameter import Parameter as P
+
+    from _helpers import collect
+    from inkdiag_ros.fdi_node import FdiNode
+    from msg_defs import LABELS_MSG_TYPE, RELIABLE_QOS, decode_labels, topics
+
+    frames = [(0, sim.traces[i:i + 6].astype(np.float32)) for i in range(0, 6 * 8, 6)]
+    bag = write_bag(tmp_path / "bag", frames)
+    ros.add(FdiNode(context=ros.context, namespace="/h", parameter_overrides=[
+        P("model_path", value=str(fdi_model)), P("n_nozzles", value=64)]))
+    probe = ros.node("probe", namespace="/h")
+    labels = collect(ros, probe, LABELS_MSG_TYPE, topics.LABELS, RELIABLE_QOS, decode_labels)
+    proc = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.cli", "replay", str(bag), "--namespace", "/h",
+                             "--topics", "traces", "--rate", "4"], env=_env(ros.domain_id),
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        ros.spin_until(lambda: proc.poll() is not None, timeout=60, what="the replay to end")
+        ros.spin_until(lambda: len(labels) >= 8, timeout=30, what="8 labels messages")
+        ros.spin_for(0.5)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, proc.stderr.read()
+    assert [m.frame_id for m in labels] == list(range(8))
+    assert [m.n_nozzles for m in labels] == [6] * 8
