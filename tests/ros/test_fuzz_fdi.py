@@ -268,7 +268,10 @@ def test_fdi_node_accounts_for_every_hostile_frame(ros, fdi_model):
                    "every well-formed frame done")
     ros.spin_until(lambda: n_labels[0] >= st.frames_labelled, 20, "the labels published")
     n_malformed = N_FRAMES - n_labelled
-    ros.spin_until(lambda: diag and diag[-1]["frames_received"] == str(N_FRAMES), 5, "final diagnostics")
+    # a /diagnostics message published after the last frame was labelled (an earlier one may still say
+    # frames_received == N_FRAMES with the last few frames in the labelling queue)
+    ros.spin_until(lambda: diag and diag[-1]["frames_received"] == str(N_FRAMES)
+                   and diag[-1]["frames_labelled"] == str(st.frames_labelled), 5, "final diagnostics")
     d = diag[-1]
     counters = {k: int(d[k]) for k in ("frames_received", "frames_labelled", "frames_malformed",
                                        "frames_failed", "frames_dropped")}
