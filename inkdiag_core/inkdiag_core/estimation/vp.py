@@ -136,19 +136,23 @@ def _vp_grid(key, N, lo, hi, n_grid):
 
 
 def _vp_factor(B):
-    """Column-equilibrated normal matrix of B (m, 4, N): (Gs (m, 4, 4), d (m, 4))."""
+    """Inverse of the normal matrix of B (m, 4, N), (m, 4, 4), computed on the
+    column-equilibrated matrix (the columns' scales differ by orders of magnitude)."""
     Gm = B @ B.transpose(0, 2, 1)
     d = 1.0 / np.sqrt(np.diagonal(Gm, axis1=1, axis2=2))
-    return Gm * d[:, :, None] * d[:, None, :], d
+    dd = d[:, :, None] * d[:, None, :]
+    return np.linalg.inv(Gm * dd) * dd
 
 
 def _vp_solve(B, y, factor=None):
     """Least squares of y (..., m, N) on the rows of B (m, 4, N): theta, residual,
     ||residual||^2. ``factor``: :func:`_vp_factor` of B when already known (leading
-    axes of y are further right-hand sides with the same B)."""
-    Gs, d = _vp_factor(B) if factor is None else factor
-    b = (B @ y[..., None])[..., 0]
-    theta = np.linalg.solve(Gs, (b * d)[..., None])[..., 0] * d
+    axes of y are further right-hand sides with the same B). One inverse per basis,
+    matrix products per right-hand side: the fe node's few rows per frame make this
+    per-call cost, not arithmetic."""
+    Minv = _vp_factor(B) if factor is None else factor
+    b = B @ y[..., None]
+    theta = (Minv @ b)[..., 0]
     res = y - (theta[..., None, :] @ B)[..., 0, :]
     return theta, res, np.einsum("...k,...k->...", res, res)
 
@@ -176,12 +180,16 @@ def _vp_batch(sc, key, Ys, fm_bounds, n_grid, max_iter, tol):
     B, dB, lam, V, _ = _vp_basis(sc, f, N, deriv=True)
     fac = _vp_factor(B)
     theta, res, R = _vp_solve(B, Ys, fac)
-    for _ in range(max_iter):
+    for it in range(max_iter + 1):
         # Gauss-Newton on f with the linear parameters projected out (Kaufman)
         J = (theta[:, None, :3] @ dB)[:, 0, :]
         tJ = _vp_solve(B, J, fac)[1]  # (I - P) J
         JJ = np.einsum("nk,nk->n", tJ, tJ)
+        if it == max_iter:
+            break
         d = np.where(JJ > 0, np.einsum("nk,nk->n", tJ, res) / JJ, 0.0)
+        if (np.abs(d) < tol).all():  # scaled units: 1e-8 per us = 0.01 1/s; J, tJ stay f's
+            break
         f_new = np.minimum(np.maximum(f + d, f_lo), f_hi)
         B2, dB2, lam2, V2, _ = _vp_basis(sc, f_new, N, deriv=True)
         fac2 = _vp_factor(B2)
@@ -189,22 +197,17 @@ def _vp_batch(sc, key, Ys, fm_bounds, n_grid, max_iter, tol):
         acc = R2 <= R
         if acc.all():
             f, B, dB, lam, V, fac, theta, res, R = f_new, B2, dB2, lam2, V2, fac2, th2, res2, R2
-        elif acc.any():
+            continue
+        if acc.any():
             a1, a2 = acc[:, None], acc[:, None, None]
             f = np.where(acc, f_new, f)
             B, dB = np.where(a2, B2, B), np.where(a2, dB2, dB)
             lam, V = np.where(a1, lam2, lam), np.where(a2, V2, V)
-            fac = (np.where(a2, fac2[0], fac[0]), np.where(a1, fac2[1], fac[1]))
+            fac = np.where(a2, fac2, fac)
             theta, res, R = np.where(a1, th2, theta), np.where(a1, res2, res), np.where(acc, R2, R)
         # a rejected step is halved next time through the bracket
-        if not acc.all():
-            f_lo = np.where(~acc & (d < 0), np.maximum(f_lo, f + 0.5 * d), f_lo)
-            f_hi = np.where(~acc & (d > 0), np.minimum(f_hi, f + 0.5 * d), f_hi)
-        if (np.abs(d) < tol).all():  # scaled units: 1e-8 per us = 0.01 1/s
-            break
-    J = (theta[:, None, :3] @ dB)[:, 0, :]
-    tJ = _vp_solve(B, J, fac)[1]
-    JJ = np.einsum("nk,nk->n", tJ, tJ)
+        f_lo = np.where(~acc & (d < 0), np.maximum(f_lo, f + 0.5 * d), f_lo)
+        f_hi = np.where(~acc & (d > 0), np.minimum(f_hi, f + 0.5 * d), f_hi)
     sigma2 = R / max(N - 5, 1)
     std = np.sqrt(sigma2 / JJ)
     # initial state from the modal coefficients: y_k = sum_j (C V)_j m_j mu_j^k
@@ -236,6 +239,10 @@ VP_CAL = {
     "a_omega": 1.31005, "b_omega": 3.63541,  # (a + b f/w0) * d_omega
     "seeds": (11, 19), "n_traces": 2700,
 }
+
+
+#: Relative step (of the healthy angular frequency) below which :func:`pair_refit` stops.
+_PAIR_TOL = 1e-9
 
 
 def pair_refit(sc: Scaled, Ys, fs, *, iters=3):
@@ -287,6 +294,8 @@ def _pair_refit(sc, Ys, fs, iters):
         d1 = np.where(ok, (G[:, 1, 1] * g[:, 0] - G[:, 0, 1] * g[:, 1]) / det, 0.0)
         d2 = np.where(ok, (G[:, 0, 0] * g[:, 1] - G[:, 0, 1] * g[:, 0]) / det, 0.0)
         d1, d2 = np.minimum(np.maximum(d1, -cap), cap), np.minimum(np.maximum(d2, -cap), cap)
+        if (np.maximum(np.abs(d1), np.abs(d2)) < _PAIR_TOL * np.abs(w0)).all():
+            break  # converged (Gauss-Newton: steps ~1e-4, 1e-7, 1e-10 of w0): skip the fit
         res2, R2, tJ2 = fit(sig + d1, w + d2)
         acc = (R2 <= R) & pair
         sig, w = np.where(acc, sig + d1, sig), np.where(acc, w + d2, w)
