@@ -93,7 +93,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..faults import MECHANISMS, FaultClass
-from .channels import PHYSICAL_CONSTANTS, draw_channels
+from .channels import draw_channels
 from .linear import synthesize_chunk
 from .modal import cubic_roots, nominal_rms, ramp_response
 from .sensor import adc_quantiser, draw_sensor, noise_std_for_snr, white_noise
