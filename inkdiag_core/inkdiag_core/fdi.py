@@ -388,7 +388,7 @@ def classify(pipeline, traces, *, fd_threshold: float = 0.5):
     return classes[idx].astype(str), confidence, p_faulty
 
 
-def finite_rows_proba(pipeline, X):
+def finite_rows_proba(pipeline, X, *, return_features=False):
     """Class probabilities of the rows of ``X`` whose features are finite in float32.
 
     The feature steps run on every row; the final estimator (what scikit-learn's
@@ -397,10 +397,15 @@ def finite_rows_proba(pipeline, X):
     numpy's floating-point warnings are silenced. Per row, the probabilities are
     bit-identical to ``pipeline.predict_proba``.
 
+    With ``return_features=True`` also the feature rows the final estimator saw
+    (for the open-set layer of :class:`inkdiag_core.FaultDetector`).
+
     Returns
     -------
     ok : ndarray of bool, shape (n,)
     proba : ndarray of float64, shape (ok.sum(), n_classes)
+    features : ndarray, shape (n, n_features), only with ``return_features``
+        Every row's features (``X`` itself for a bare estimator).
     """
     with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
         if isinstance(pipeline, Pipeline) and len(pipeline) > 1:
@@ -408,9 +413,10 @@ def finite_rows_proba(pipeline, X):
             ok = np.isfinite(np.asarray(feats, dtype=np.float32)).all(axis=1)
             final, rows = pipeline[-1], feats if ok.all() else feats[ok]
         else:
+            feats = X
             ok, final, rows = np.ones(X.shape[0], dtype=bool), pipeline, X
         proba = pipeline_predict_proba(final, rows) if ok.any() else np.empty((0, len(final.classes_)))
-    return ok, proba
+    return (ok, proba, feats) if return_features else (ok, proba)
 
 
 def classify_finite(pipeline, traces, *, fd_threshold: float = 0.5):
