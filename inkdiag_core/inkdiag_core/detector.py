@@ -359,7 +359,12 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
             return None
         with np.errstate(all="ignore"):
             F = self._openset_features(pipeline[0].transform(rows), X, baseline)
-        return ConformalOpenSet(rate).fit(F[val], y[val], F[train], y[train], self.classes_,
+        # each distinct row calibrates once (train_detector replicates recorded rows in the training split)
+        Xt = np.ascontiguousarray(rows[train])
+        _, first = np.unique(Xt.view(np.dtype((np.void, Xt.dtype.itemsize * Xt.shape[1]))).ravel(),
+                             return_index=True)
+        cal = train[np.sort(first)]
+        return ConformalOpenSet(rate).fit(F[val], y[val], F[cal], y[cal], self.classes_,
                                           random_state=self.random_state)
 
     # -- inference ------------------------------------------------------------------------

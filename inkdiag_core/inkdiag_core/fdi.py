@@ -524,7 +524,8 @@ def fnr_threshold(p_faulty_of_faults, fnr_target: float = 0.005) -> float:
 
 def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: str = "rf",
                         features: str = "kpi_y", n_estimators: int = 50, min_samples_leaf: int = 3,
-                        fnr_target: float = 0.005, baseline: bool = False, progress=None):
+                        fnr_target: float = 0.005, baseline: bool = False, unknown_rate: float | None = 0.01,
+                        progress=None):
     """Train the FDI model the nodes load by default, and save it with its manifest.
 
     The default is a Random Forest on KPI_Y: on its validation split it isolates
@@ -556,6 +557,9 @@ def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: st
         Destination ``.joblib``.
     baseline : bool
         Fit the baseline branch too.
+    unknown_rate : float or None
+        The open-set layer's bound on the false-unknown rate of known traces
+        (:class:`inkdiag_core.FaultDetector`, default 0.01); None or 0: no layer.
     progress : callable(step: int, total: int, message: str), optional
         Called after each stage (for a progress bar).
 
@@ -582,7 +586,7 @@ def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: st
 
     det = FaultDetector(kind=kind, features=features, sample_rate_hz=float(sim.sample_rate_hz),
                         n_estimators=int(n_estimators), min_samples_leaf=int(min_samples_leaf),
-                        fnr_target=float(fnr_target), random_state=int(seed))
+                        fnr_target=float(fnr_target), unknown_rate=unknown_rate, random_state=int(seed))
     det.fit(sim.traces, y, baseline_kpis=baseline_training_kpis(sim, seed) if baseline else None)
     report(2, total, f"fitted {kind} on {features} features" + (" and baselines" if baseline else ""))
     report(3, total, f"validation FI accuracy {100 * det.scores_['validation_fi_accuracy']:.1f}%")

@@ -6,7 +6,11 @@ Train a fault detector (FaultDetector .joblib + .manifest.json) for the head of
 a complete profile: every fault class is simulated on the head's calibrated
 model (the same physical mechanisms as the default head's, scaled to its
 geometry, ink, drive and sampling), a quarter held out for the detection
-threshold and the validation scores.
+threshold and the validation scores. The detector also gets an open-set layer
+(--unknown-rate, default 0.01): a trace unlike every known class is labelled
+'unknown', and a trace of a known class is called 'unknown' with probability
+at most that rate (per-class conformal p-values; needs >= 1/R - 1 held-out
+rows per class, i.e. --n-per-class >= 133 for the default).
 
 With --data, the head's own labelled recordings (.npz with a 'label' array)
 join the simulated rows: a quarter of each recorded class is held out for
@@ -23,6 +27,7 @@ calibrate` on recorded healthy traces first.
 example:
   inkdiag train --profile head.yaml --out models/head.joblib
   inkdiag train --profile head.yaml --out models/head.joblib --baseline --n-per-class 600
+  inkdiag train --profile head.yaml --out models/head.joblib --unknown-rate 0.005
 """
 
 FEATURES = ("kpi_y", "kpi_r", "kpi_r_modified", "kpi_y+r_modified", "rich")
@@ -46,6 +51,9 @@ def add_arguments(parser) -> None:
                         help="simulated traces per class (default: %(default)s; >= 8)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulation, split and forest "
                         "(default: %(default)s)")
+    parser.add_argument("--unknown-rate", type=float, default=0.01, metavar="R",
+                        help="open-set layer: a trace of a known class is called 'unknown' with probability <= R "
+                        "(conformal, per class; default: %(default)s; 0: no layer, never 'unknown')")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -97,7 +105,8 @@ def run(args) -> int:
     report, close = _progress(args.quiet)
     try:
         det, info = train_detector(profile, features=args.features, kind=args.kind, baseline=args.baseline,
-                                   n_per_class=args.n_per_class, data=data, seed=args.seed, progress=report)
+                                   n_per_class=args.n_per_class, data=data, seed=args.seed,
+                                   unknown_rate=args.unknown_rate or None, progress=report)
         info["profile_file"] = str(args.profile)
         if args.data:
             info["data_file"] = str(args.data)
