@@ -143,7 +143,7 @@ def test_a_rate_computed_as_one_over_dt_is_the_models(work, trained, tmp_path):
     assert out.returncode == 0, out.stderr
 
 
-def test_label_csv_says_unknown_for_a_trace_unlike_every_class(work, tmp_path):
+def test_label_csv_says_unknown_for_a_trace_unlike_every_class(work, tmp_path, capsys):
     # issue 16: `inkdiag train --unknown-rate` and `class` = unknown in `inkdiag label`'s CSV
     from inkdiag_core import extract_kpis
 
@@ -151,6 +151,9 @@ def test_label_csv_says_unknown_for_a_trace_unlike_every_class(work, tmp_path):
     for rate, name in (("0.01", "u.joblib"), ("0", "c.joblib")):
         assert main(["train", "--profile", str(d / "head.yaml"), "--out", str(tmp_path / name), "--n-per-class",
                      "140", "--unknown-rate", rate, "--quiet"]) == 0
+        said = capsys.readouterr().out
+        assert ("open-set layer: a trace of a known class is 'unknown' with probability <= 0.01; calibration rows "
+                "per class 105-105") in said if rate != "0" else "open-set" not in said
     x = head.simulate({FaultClass.HEALTHY_NOZZLE: 20}, seed=61).traces.astype(np.float64)
     k = extract_kpis(x, 20e6)
     t = np.arange(x.shape[1]) / 20e6

@@ -81,6 +81,7 @@ def _progress(quiet):
 
 
 def run(args) -> int:
+    import math
     from pathlib import Path
 
     from inkdiag_core.head_profile import HeadProfile, ProfileError
@@ -123,5 +124,12 @@ def run(args) -> int:
         b = det.baseline_scores_
         print(f"baseline branch: FI accuracy {100 * b['validation_fi_accuracy']:.1f} %, faults missed "
               f"{100 * b['validation_fd_fnr']:.2f} %, false alarms {100 * b['validation_fd_fpr']:.2f} %")
+    if det.openset_ is not None:
+        n_cal = [c.size for c in det.openset_.calibration_]
+        rate = det.openset_.rate
+        print(f"open-set layer: a trace of a known class is 'unknown' with probability <= {rate:g}; calibration "
+              f"rows per class {min(n_cal)}-{max(n_cal)}" + ("" if min(n_cal) + 1 >= 1 / rate else
+              f" (a class with fewer than {math.ceil(1 / rate - 1)} can never make a trace unknown: "
+              "raise --n-per-class)"))
     print(f"wrote {out} and {mpath}")
     return 0
