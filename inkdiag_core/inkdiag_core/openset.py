@@ -126,23 +126,25 @@ def unexplained_fraction(traces, kpis, sample_rate_hz):
         kk = np.where(bad[:, None], 0.0, k)
         w = 2.0 * np.pi * kk[:, 1] / float(sample_rate_hz)  # rad per sample
         sigma = kk[:, 2] * w / np.sqrt(1.0 - kk[:, 2] ** 2)  # decay per sample
-        z = np.exp(-sigma + 1j * w)
+        log_z = -sigma + 1j * w
+        z = np.exp(log_z)
         C = kk[:, 3] * np.exp(1j * kk[:, 4])
-        lo = np.empty((n, B), dtype=complex)  # z**b, b < B
+        lo = np.empty((n, B), dtype=np.complex64)  # z**b, b < B (32 products: float32 is exact enough)
         lo[:, 0] = 1.0
         lo[:, 1:] = z[:, None]
         np.cumprod(lo, axis=1, out=lo)
-        hi = np.empty((n, n_hi), dtype=complex)  # C z**(B a)
+        hi = np.empty((n, n_hi), dtype=np.complex64)  # C z**(B a)
         hi[:, 0] = C
-        hi[:, 1:] = (lo[:, -1] * z)[:, None]
+        hi[:, 1:] = np.exp(B * log_z)[:, None]
         np.cumprod(hi, axis=1, out=hi)
         G = np.empty((n, B, 2), dtype=np.float32)
         G[:, :, 0] = lo.real
         G[:, :, 1] = lo.imag
-        # |model|**2 = |C|**2/2 sum r**(2k) + Re(C**2 sum z**(2k))/2, k < N
-        r2, z2 = np.exp(-2.0 * sigma), z * z
-        s1 = np.where(np.abs(1 - r2) > 1e-12, (1 - r2 ** N) / np.where(np.abs(1 - r2) > 1e-12, 1 - r2, 1.0), N)
-        s2 = np.where(np.abs(1 - z2) > 1e-12, (1 - z2 ** N) / np.where(np.abs(1 - z2) > 1e-12, 1 - z2, 1.0), N)
+        hr, hq = np.ascontiguousarray(hi.real), np.ascontiguousarray(hi.imag)
+        # |model|**2 = |C|**2/2 sum r**(2k) + Re(C**2 sum z**(2k))/2, k < N (geometric series)
+        d1, d2 = -np.expm1(-2.0 * sigma), 1.0 - np.exp(2.0 * log_z)
+        s1 = np.where(d1 > 1e-12, -np.expm1(-2.0 * N * sigma) / np.where(d1 > 1e-12, d1, 1.0), N)
+        s2 = np.where(np.abs(d2) > 1e-12, (1.0 - np.exp(2.0 * N * log_z)) / np.where(np.abs(d2) > 1e-12, d2, 1.0), N)
         model2 = 0.5 * np.abs(C) ** 2 * s1 + 0.5 * np.real(C * C * s2)
         dc = kk[:, 0].astype(np.float32)
         total, cross = np.empty(n), np.empty(n)
@@ -153,8 +155,7 @@ def unexplained_fraction(traces, kpis, sample_rate_hz):
                 ac = np.concatenate([ac, np.zeros((b - a, pad), dtype=np.float32)], axis=1)
             total[a:b] = np.einsum("ij,ij->i", ac, ac)
             P = np.matmul(ac.reshape(b - a, n_hi, B), G[a:b])  # (chunk, n_hi, 2)
-            cross[a:b] = (np.einsum("na,na->n", hi[a:b].real, P[:, :, 0])
-                          - np.einsum("na,na->n", hi[a:b].imag, P[:, :, 1]))
+            cross[a:b] = np.einsum("na,na->n", hr[a:b], P[:, :, 0]) - np.einsum("na,na->n", hq[a:b], P[:, :, 1])
         out = np.maximum(total - 2.0 * cross + model2, 0.0) / np.maximum(total, _TINY)
     out[bad | ~np.isfinite(out)] = np.nan
     return out
