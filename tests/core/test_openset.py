@@ -94,9 +94,16 @@ def test_known_traces_are_rarely_unknown(det):
 
 def test_no_layer_without_unknown_rate_and_for_old_files(sim, det, healthy):
     x = _foreign_body(healthy.traces, 2)
-    off = FaultDetector(n_estimators=10, unknown_rate=None).fit(sim.traces, sim.label_values())
+    off = FaultDetector(n_estimators=10, unknown_rate=None).fit(sim.traces, sim.label_values(),
+                                                                baseline_kpis=baseline_training_kpis(sim, 11))
     out = off.label(x)
     assert off.openset_ is None and UNKNOWN not in out.classes and np.isnan(out.unknown_score).all()
+    # the layer leaves the classifiers and thresholds as they were: only rows it calls unknown change
+    on = det.label(x)
+    np.testing.assert_array_equal(off.predict_proba(x), det.predict_proba(x))
+    assert (off.fd_threshold_, off.baseline_fd_threshold_) == (det.fd_threshold_, det.baseline_fd_threshold_)
+    keep = on.classes != UNKNOWN
+    assert on.classes[keep].tolist() == out.classes[keep].tolist()
     # a file pickled before the layer (no unknown_rate, no openset_): loads and labels, no unknown
     state = det.__getstate__()
     for key in ("unknown_rate", "openset_", "baseline_openset_"):
