@@ -308,6 +308,8 @@ class ConformalOpenSet:
             self.whiten_[i] = np.linalg.cholesky(prec)
             self.means_[i] = est.location_
             self.modelled_[i] = True
+        for cache in ("_w_all", "_mu_w", "_block_sum"):  # scores() rebuilds them from these models
+            self.__dict__.pop(cache, None)
         cal_ok = np.isfinite(X_cal).all(axis=1)
         S = self.scores(X_cal[cal_ok])
         yc = y_cal[cal_ok]
@@ -318,21 +320,23 @@ class ConformalOpenSet:
         return (np.asarray(X, dtype=np.float64) - self.center_) / self.scale_
 
     def scores(self, X):
-        """Nonconformity of each row to each class: squared Mahalanobis distances, (n, n_classes).
+        """Nonconformity of each row to each class: squared Mahalanobis distances, float32 (n, n_classes).
 
-        One matrix product for all classes (``Z @ [W_1 ... W_k]``); NaN for a row with
+        One matrix product for all classes (``Z @ [W_1 ... W_k]``), in float32 (calibration
+        and test rows alike, so their ranks compare like with like); NaN for a row with
         non-finite features.
         """
         Z = self._standardize(X)
         k, d = self.means_.shape
-        if not hasattr(self, "_w_all"):
-            self._w_all = self.whiten_.transpose(1, 0, 2).reshape(d, k * d)  # (d, k*d)
-            self._mu_w = np.einsum("kd,kde->ke", self.means_, self.whiten_).reshape(k * d)
+        if not hasattr(self, "_w_all"):  # float32: the same arithmetic for calibration and test rows
+            self._w_all = self.whiten_.transpose(1, 0, 2).reshape(d, k * d).astype(np.float32)  # (d, k*d)
+            self._mu_w = np.einsum("kd,kde->ke", self.means_, self.whiten_).reshape(k * d).astype(np.float32)
+            self._block_sum = np.repeat(np.eye(k, dtype=np.float32), d, axis=0)  # (k*d, k): sums d squares
         with np.errstate(all="ignore"):
-            W = Z @ self._w_all
+            W = Z.astype(np.float32) @ self._w_all  # (z - mu_c) W_c for every class c at once, centred below
             W -= self._mu_w
             W *= W
-            return W.reshape(-1, k, d).sum(axis=2)
+            return W @ self._block_sum
 
     def p_values(self, X):
         """Conformal p-value of each row for each class, (n, n_classes), in (0, 1].
@@ -341,7 +345,7 @@ class ConformalOpenSet:
         model; NaN for a row with non-finite features.
         """
         S = self.scores(X)
-        P = np.ones_like(S)
+        P = np.ones(S.shape)
         for i, cal in enumerate(self.calibration_):
             if not self.modelled_[i]:
                 continue
