@@ -49,6 +49,8 @@ except ImportError:  # pragma: no cover - until the held-out conditions land
 
 CLASSES = [c.value for c in FaultClass]
 MILD = (0.0, 0.2)
+#: A stricter unknown_rate shown beside the default (same detectors: only the threshold on the p-values moves).
+STRICT = 0.005
 
 
 def best_of(fns, repeats=3):
@@ -80,13 +82,16 @@ def one_seed(seed, n, n_train, n_bench):
     y_train = sim.label_values()
     det = FaultDetector(n_estimators=50, min_samples_leaf=3, fnr_target=0.005, unknown_rate=0.01,
                         random_state=seed).fit(sim.traces, y_train, baseline_kpis=baseline_training_kpis(sim, seed))
-    out = {"held": {}, "mild": {}, "false": {}, "false_base": {}}
+    out = {"held": {}, "mild": {}, "false": {}, "false_base": {}, "held_strict": {}, "mild_strict": {},
+           "false_strict": {}}
     for k, cond in enumerate(HELDOUT_CONDITIONS):
         for key, sev in (("held", None), ("mild", MILD)):
             s = 10_000 * (seed + 1) + 10 * k + (key == "mild")
             h = simulate_heldout(cond, n, seed=s, severity=sev)
-            out[key][cond] = (fractions(det.label(h.traces).classes)
+            plain = det.label(h.traces)
+            out[key][cond] = (fractions(plain.classes)
                               + fractions(det.label(h.traces, baseline_kpis=healthy_baselines(n, s)).classes))
+            out[f"{key}_strict"][cond] = float(np.mean(plain.unknown_score >= 1 - STRICT))
     test = simulate({c: n for c in FaultClass}, seed=1000 + seed)
     y = test.label_values()
     got = det.label(test.traces)
@@ -94,6 +99,7 @@ def one_seed(seed, n, n_train, n_bench):
     for c in CLASSES:
         out["false"][c] = float(np.mean(got.classes[y == c] == UNKNOWN))
         out["false_base"][c] = float(np.mean(got_base.classes[y == c] == UNKNOWN))
+        out["false_strict"][c] = float(np.mean(got.unknown_score[y == c] >= 1 - STRICT))
     # FD / FI with and without the layer, same detector (the layer only relabels rows as unknown)
     layer, det.openset_ = det.openset_, None  # the classifier alone: what the rows were called before
     closed = det.label(test.traces).classes
@@ -165,7 +171,23 @@ def main():
     rows.append(["**all 12 (mean)**", rng_cell(allf.mean(axis=1), digits=2), rng_cell(allb.mean(axis=1), digits=2)])
     rows.append(["**worst class per seed**", rng_cell(allf.max(axis=1), digits=2),
                  rng_cell(allb.max(axis=1), digits=2)])
+    rows.append(["**worst class, its mean over the seeds**", f"{100 * allf.mean(axis=0).max():.2f}",
+                 f"{100 * allb.mean(axis=0).max():.2f}"])
     lines += [md_table(["class", "called unknown (plain branch)", "called unknown (baseline branch)"], rows), ""]
+    strict = np.array([[r["false_strict"][c] for c in CLASSES] for r in runs])
+    lines += [f"### The same detectors at `unknown_rate` {STRICT} (plain branch)", "",
+              f"Only the threshold moves (`max_c p_c <= {STRICT}`): the choice `inkdiag train --unknown-rate` "
+              "offers.", "",
+              md_table(["", f"unknown_rate {STRICT}", "unknown_rate 0.01 (above)"],
+                       [["false unknown, mean over classes", rng_cell(strict.mean(axis=1), digits=2),
+                         rng_cell(allf.mean(axis=1), digits=2)],
+                        ["false unknown, worst class per seed", rng_cell(strict.max(axis=1), digits=2),
+                         rng_cell(allf.max(axis=1), digits=2)]]
+                       + [[f"{cond} called unknown (whole range / mild end)",
+                           f"{rng_cell([r['held_strict'][cond] for r in runs])} / "
+                           f"{rng_cell([r['mild_strict'][cond] for r in runs])}",
+                           f"{rng_cell([r['held'][cond][0] for r in runs])} / "
+                           f"{rng_cell([r['mild'][cond][0] for r in runs])}"] for cond in HELDOUT_CONDITIONS]), ""]
     lines += ["## Fault detection and isolation on the known classes, with and without the layer", "",
               "Plain branch, same detector, same traces. Decision: an `unknown` is a fault for FD (a faulty row "
               "called `unknown` is detected; a healthy row called `unknown` is a false alarm) and a wrong class "
@@ -194,6 +216,7 @@ def main():
               "rank look-ups per trace).", ""]
     held = {c: np.array([r["held"][c] for r in runs]) for c in HELDOUT_CONDITIONS}
     ratio = tp["open50"] / tp["ref"]
+    ratio100 = tp["open100"] / tp["ref"]
     checks = [
         ("each held-out condition `unknown` >= 80 % (whole range, mean over seeds, plain branch)",
          all(held[c][:, 0].mean() >= 0.80 for c in HELDOUT_CONDITIONS),
@@ -205,14 +228,22 @@ def main():
          allf.mean() <= 0.01 and allb.mean() <= 0.01, f"{100 * allf.mean():.2f} / {100 * allb.mean():.2f}"),
         ("false unknown never above 2 % (worst class, worst seed, plain / baseline branch)",
          allf.max() <= 0.02 and allb.max() <= 0.02, f"{100 * allf.max():.2f} / {100 * allb.max():.2f}"),
+        ("false unknown never above 2 % (worst class, its mean over the seeds, plain / baseline branch)",
+         allf.mean(axis=0).max() <= 0.02 and allb.mean(axis=0).max() <= 0.02,
+         f"{100 * allf.mean(axis=0).max():.2f} / {100 * allb.mean(axis=0).max():.2f}"),
         ("throughput >= 0.8x rf/kpi_y (the default-size detector with the layer, worst seed)",
          ratio.min() >= 0.8, f"{ratio.min():.3f}"),
+        ("throughput >= 0.8x rf/kpi_y (a 100-tree detector with the layer: the reference's forest, worst seed)",
+         ratio100.min() >= 0.8, f"{ratio100.min():.3f} (mean {ratio100.mean():.3f})"),
     ]
     lines += ["## Against the issue's targets", "",
               md_table(["target", "met", "measured"], [[t, "yes" if ok else "**no**", m] for t, ok, m in checks]),
               "", f"With {n} traces per class a 1 % rate has a binomial standard deviation of "
               f"{100 * np.sqrt(0.01 * 0.99 / n):.2f} %; each class's calibration set (its ~300 training rows) adds "
               "its own spread around the 1 % bound, which holds on average over calibration draws.", "",
+              f"Load: the 1-minute load average was {os.getloadavg()[0]:.1f} on a "
+              f"{os.cpu_count()}-core machine when the report finished (other processes were running); the "
+              "throughput rows were timed in turns, so a load change hits all four, but the spread is wide.", "",
               "`scripts/report fdi` loads the default files' plain pipelines (`load_model`), which the layer does "
               "not change (`tests/core/test_openset.py` checks the classifier and threshold are the same with and "
               "without it), so its FD/FI numbers cannot move; the table above is the layer's effect.", ""]
