@@ -40,6 +40,7 @@ from msg_defs import (
     LABELS_MSG_TYPE,
     RELIABLE_QOS,
     TRUTH_MSG_TYPE,
+    UNKNOWN_CLASS,
     decode_estimates,
     decode_labels,
     decode_truth,
@@ -104,6 +105,8 @@ class OperatorMonitor(Node):
             dried = [f"{nz}:{c}" for nz, c, p in rep.faults if c in DRIED_CLASSES]
             parts.append(f"faults [{', '.join(faults)}]")
             parts.append(f"drying [{', '.join(dried)}]")
+            if rep.counts.get(UNKNOWN_CLASS):  # unlike every known class: listed in faults, counted here
+                parts.append(f"unknown {rep.counts[UNKNOWN_CLASS]}")
             if rep.counts.get("invalid"):
                 parts.append(f"invalid {rep.counts['invalid']}")
         est = self.last_estimates
