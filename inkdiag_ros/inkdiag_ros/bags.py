@@ -34,7 +34,8 @@ from msg_defs.qos import DIAGNOSTICS_QOS, RELIABLE_QOS, TRACES_QOS
 
 __all__ = ["TRACES_TYPE", "HEAD_TOPICS", "BagFrames", "is_bag", "head_topics", "ros_type_name",
            "msg_class", "qos_to_rosbags", "qos_from_rosbags", "iter_bag_frames", "iter_bag_chunks",
-           "read_bag_recording", "load_recording", "stream_recording", "report_stats"]
+           "read_bag_recording", "load_recording", "stream_recording", "report_stats", "BagRecorder",
+           "InProcessRecording", "recording_node", "pop_record_arg", "check_new_bag"]
 
 #: The rosbag2 type name of a trace frame.
 TRACES_TYPE = "std_msgs/msg/Float32MultiArray"
@@ -401,6 +402,182 @@ def load_recording(path, *, topic: str | None = None, stats: BagFrames | None = 
     if topic is not None:
         raise RecordingError(f"{path}: --topic is for a bag directory; this is not one")
     return load_npz_recording(path)
+
+
+class BagRecorder:
+    """Raw subscriptions of one node, each writing what it receives into a rosbags rosbag2 writer.
+
+    Used by ``inkdiag record`` (a node of its own) and :class:`InProcessRecording`.
+
+    Parameters
+    ----------
+    node : rclpy.node.Node
+    writer : rosbags.rosbag2.Writer
+        Open.
+    wanted : dict
+        Absolute topic -> (type name, subscription QoS), from :func:`inkdiag_ros.bags.head_topics`.
+    """
+
+    def __init__(self, node, writer, wanted):
+        from rosbags.typesys import Stores, get_typestore
+
+        self.node, self.writer, self.wanted = node, writer, wanted
+        self.typestore = get_typestore(Stores.ROS2_JAZZY)
+        self.connections = {}
+        self.counts = dict.fromkeys(wanted, 0)
+        self._subs = [node.create_subscription(msg_class(t), topic, self._callback(topic), qos, raw=True)
+                      for topic, (t, qos) in wanted.items()]
+
+    def _offered(self, topic):
+        """The QoS profiles the topic's publishers offer (the subscription's own when none is seen)."""
+        try:
+            infos = self.node.get_publishers_info_by_topic(topic)
+        except Exception:  # the context went down (a signal): no graph to ask any more
+            infos = []
+        profiles = [qos_to_rosbags(i.qos_profile) for i in infos]
+        return profiles or [qos_to_rosbags(self.wanted[topic][1])]
+
+    def connection(self, topic):
+        """The bag connection of ``topic``, added (with its offered QoS) at its first message."""
+        conn = self.connections.get(topic)
+        if conn is None:
+            conn = self.writer.add_connection(topic, self.wanted[topic][0], typestore=self.typestore,
+                                              offered_qos_profiles=self._offered(topic))
+            self.connections[topic] = conn
+        return conn
+
+    def _callback(self, topic):
+        def on_message(raw):
+            stamp = self.node.get_clock().now().nanoseconds
+            self.writer.write(self.connection(topic), stamp, raw)
+            self.counts[topic] += 1
+        return on_message
+
+    def finish(self):
+        """Add the topics that had no message (so the metadata lists every recorded topic)."""
+        for topic in self.wanted:
+            self.connection(topic)
+
+    def destroy(self):
+        """Drop the subscriptions (no message is written after this)."""
+        for sub in self._subs:
+            try:
+                self.node.destroy_subscription(sub)
+            except Exception:  # the node or its context is gone already
+                pass
+        self._subs = []
+
+
+def pop_record_arg(argv):
+    """``(argv without --record BAG_DIR, BAG_DIR or None)``: a node's own ``--record`` option.
+
+    Only the arguments before ``--ros-args`` are looked at (ROS arguments pass through).
+
+    Raises
+    ------
+    ValueError
+        ``--record`` without a directory.
+    """
+    argv = list(argv)
+    end = argv.index("--ros-args") if "--ros-args" in argv else len(argv)
+    for i, a in enumerate(argv[:end]):
+        if a == "--record" or a.startswith("--record="):
+            if "=" in a:
+                return argv[:i] + argv[i + 1:], a.split("=", 1)[1]
+            if i + 1 >= end:
+                raise ValueError("--record needs a bag directory: --record BAG_DIR")
+            return argv[:i] + argv[i + 2:], argv[i + 1]
+    return argv, None
+
+
+def check_new_bag(bag_dir) -> Path:
+    """``bag_dir`` as a Path, refused if it exists or its parent does not (a bag goes into a new directory)."""
+    bag = Path(bag_dir)
+    if bag.exists():
+        raise ValueError(f"{bag}: exists already; a bag is written into a new directory")
+    if not bag.parent.is_dir():
+        raise ValueError(f"{bag.parent}: no such directory")
+    return bag
+
+
+class InProcessRecording:
+    """A rosbag2 bag (MCAP) written from a node's own subscriptions: ``--record`` of printhead_sim and graph.
+
+    Subscribes ``node`` (raw) to the topics and writes every message as received, as
+    ``inkdiag record`` does, in the process that publishes them: nothing is lost to
+    discovery or to a second process starting late. :meth:`close` (idempotent) closes
+    a valid bag; call it before the node is destroyed.
+
+    Parameters
+    ----------
+    node : rclpy.node.Node
+        Its namespace resolves relative names.
+    bag_dir : str or os.PathLike
+        New directory (:func:`check_new_bag`).
+    names : iterable of str, optional
+        Relative topic names as :func:`head_topics` takes them (default: :data:`HEAD_TOPICS`).
+    metadata_version : int
+        8 (default, Humble's ``ros2 bag`` reads it) or 9.
+    """
+
+    def __init__(self, node, bag_dir, names=None, *, metadata_version: int = 8):
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        self.bag = check_new_bag(bag_dir)
+        self.writer = Writer(self.bag, version=metadata_version, storage_plugin=StoragePlugin.MCAP)
+        self.writer.open()
+        try:
+            self.recorder = BagRecorder(node, self.writer, head_topics(node.get_namespace(), names))
+        except Exception:
+            self.writer.close()
+            raise
+        self._closed = False
+
+    def close(self) -> dict:
+        """Stop recording and close the bag; returns the messages written per topic."""
+        if not self._closed:
+            self._closed = True
+            self.recorder.destroy()
+            try:
+                self.recorder.finish()
+            finally:
+                self.writer.close()
+        return dict(self.recorder.counts)
+
+    def summary(self) -> str:
+        """``wrote N messages to BAG: topic n, ...``."""
+        c = self.recorder.counts
+        return f"wrote {sum(c.values())} messages to {self.bag}: " + ", ".join(f"{t} {n}" for t, n in c.items())
+
+
+def recording_node(node_cls, bag_dir, names=None):
+    """A factory for :func:`inkdiag_ros._spin.spin_node`: ``node_cls()`` recording ``names`` into ``bag_dir``.
+
+    The bag is closed (and its summary logged) when the node is destroyed, which
+    ``spin_node`` does after Ctrl-C / SIGTERM as after a normal stop.
+    """
+    check_new_bag(bag_dir)
+
+    def make(**kwargs):
+        node = node_cls(**kwargs)
+        try:
+            rec = InProcessRecording(node, bag_dir, names)
+        except Exception:
+            node.destroy_node()
+            raise
+        destroy = node.destroy_node
+
+        def destroy_node():
+            rec.close()
+            print(rec.summary(), file=__import__("sys").stderr, flush=True)
+            return destroy()
+
+        node.destroy_node = destroy_node
+        node.get_logger().info(f"recording {', '.join(rec.recorder.wanted)} into {rec.bag}")
+        return node
+
+    return make
+
 
 
 #: Skipped messages an offline verb reports one by one on stderr (the rest are counted in its summary).
