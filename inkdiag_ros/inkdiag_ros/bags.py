@@ -225,6 +225,17 @@ def _listed(bag: Path) -> str:
         return ""
 
 
+def _files(bag: Path) -> str:
+    """`` (FILE, ...)``: the bag's storage files metadata.yaml lists, or nothing if it cannot be read."""
+    try:
+        import yaml
+
+        info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        return " (" + ", ".join(str(bag / f) for f in info["relative_file_paths"]) + ")"
+    except Exception:
+        return ""
+
+
 def _one_line(exc) -> str:
     text = str(exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__
@@ -293,8 +304,8 @@ def iter_bag_frames(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
             except StopIteration:
                 break
             except Exception as exc:  # a truncated or damaged storage file
-                raise RecordingError(f"{src}: truncated or corrupt bag: {stats.n_messages} messages on "
-                                     f"{stats.topic} readable, then: {_one_line(exc)}") from None
+                raise RecordingError(f"{src}: truncated or corrupt bag{_files(Path(bag_dir))}: {stats.n_messages} "
+                                     f"messages on {stats.topic} readable, then: {_one_line(exc)}") from None
             i = stats.n_messages
             stats.n_messages += 1
             try:
@@ -341,8 +352,9 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
     Raises
     ------
     RecordingError
-        As :func:`iter_bag_frames`; and, once the bag is read, a bag with no
-        decodable trace frame (empty, or every frame skipped: the first reasons are given).
+        As :func:`iter_bag_frames` (a bag that breaks off: after the chunk of the frames
+        read before it); and, once the bag is read, a bag with no decodable trace frame
+        (empty, or every frame skipped: the first reasons are given).
     """
     stats = stats if stats is not None else BagFrames()
     blocks, n_rows, first_row = [], 0, 0
@@ -355,20 +367,25 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
                                      stamp=np.concatenate([np.full(b[0].shape[0], b[3]) for b in blocks]),
                                      source=str(bag_dir))
 
-    for frame in iter_bag_frames(bag_dir, topic=topic, stats=stats):
-        if fs is None:
-            fs, n_s = frame.sample_rate_hz, frame.n_samples
-        elif frame.sample_rate_hz != fs or frame.n_samples != n_s:
-            stats.skip(stats.n_messages - 1, f"sampled at {frame.sample_rate_hz:g} Hz x {frame.n_samples}, "
-                       f"the bag's first frame at {fs:g} Hz x {n_s}", frame.frame_id)
-            continue
-        if blocks and n_rows + frame.n_nozzles > max_rows:
+    try:
+        for frame in iter_bag_frames(bag_dir, topic=topic, stats=stats):
+            if fs is None:
+                fs, n_s = frame.sample_rate_hz, frame.n_samples
+            elif frame.sample_rate_hz != fs or frame.n_samples != n_s:
+                stats.skip(stats.n_messages - 1, f"sampled at {frame.sample_rate_hz:g} Hz x {frame.n_samples}, "
+                           f"the bag's first frame at {fs:g} Hz x {n_s}", frame.frame_id)
+                continue
+            if blocks and n_rows + frame.n_nozzles > max_rows:
+                yield first_row, chunk()
+                first_row += n_rows
+                blocks, n_rows = [], 0
+            # a copy: the frame is a view into its message
+            blocks.append((np.array(frame.traces), np.asarray(frame.nozzle_ids, np.int64), frame.frame_id, frame.stamp))
+            n_rows += frame.n_nozzles
+    except RecordingError:  # the bag broke off: the frames read before it are still given
+        if blocks:
             yield first_row, chunk()
-            first_row += n_rows
-            blocks, n_rows = [], 0
-        # a copy: the frame is a view into its message
-        blocks.append((np.array(frame.traces), np.asarray(frame.nozzle_ids, np.int64), frame.frame_id, frame.stamp))
-        n_rows += frame.n_nozzles
+        raise
     if blocks:
         yield first_row, chunk()
     elif first_row == 0:

@@ -16,7 +16,7 @@ import pytest
 
 from inkdiag_core import FaultClass, HeadProfile, RecordingError
 
-from _bags import FS, NS, write_bag
+from _bags import FS, NS, assert_two_readers_agree, corrupt_a_record, write_bag
 
 
 @pytest.fixture(scope="module")
@@ -44,8 +44,11 @@ def test_a_bag_written_by_rosbags_reads_as_a_recording_and_a_bad_frame_is_skippe
     assert "skipped 1: message 2" in stats.summary()
 
 
-def test_inkdiag_label_labels_a_rosbags_bag_and_finds_the_injected_faults(tmp_path, sim, fdi_model):
-    bag = write_bag(tmp_path / "bag", [(0, sim.traces[i:i + 30].astype(np.float32)) for i in range(0, len(sim), 30)])
+@pytest.mark.parametrize("version", [8, 9])
+def test_inkdiag_label_labels_a_rosbags_bag_and_finds_the_injected_faults(tmp_path, sim, fdi_model, version):
+    bag = write_bag(tmp_path / "bag", [(0, sim.traces[i:i + 30].astype(np.float32)) for i in range(0, len(sim), 30)],
+                    version=version)
+    assert f"version: {version}" in (bag / "metadata.yaml").read_text()
     out = tmp_path / "labels.csv"
     r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "label", str(bag), "--model", str(fdi_model),
                         "--out", str(out)], capture_output=True, text=True, timeout=120)
@@ -73,7 +76,7 @@ def _one_line_error(bag, match):
     return str(info.value)
 
 
-def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim):
+def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim, fdi_model):
     x = sim.traces[:8].astype(np.float32)
     bag = write_bag(tmp_path / "ok", [(0, x)] * 3)
     # truncated: rosbags reads nothing without the MCAP summary; says so and how many were listed
@@ -85,6 +88,13 @@ def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim):
     mcap.write_bytes(mcap.read_bytes()[: mcap.stat().st_size * 2 // 3])
     msg = _one_line_error(trunc, "cannot open the bag")
     assert str(mcap) in msg and "0 of the 6 messages" in msg
+    # corrupt: it opens, then breaks off; names the file and how many messages were read first
+    corrupt = corrupt_a_record(write_bag(tmp_path / "corrupt", [(0, x)] * 100))  # two 1 MB chunks
+    msg = _one_line_error(tmp_path / "corrupt", "truncated or corrupt bag")
+    import re
+
+    n_ok = int(re.search(r"(\d+) messages on /head_00/traces readable", msg).group(1))
+    assert str(corrupt) in msg and 0 < n_ok < 100, msg
     # empty: a traces topic with no message
     assert "no messages on /head_00/traces" in _one_line_error(write_bag(tmp_path / "empty", []), "no messages")
     # the traces topic of another type
@@ -101,6 +111,12 @@ def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim):
     r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "label", str(trunc), "--model", "none.joblib",
                         "--out", "-"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+    r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "label", str(tmp_path / "corrupt"), "--model",
+                        str(fdi_model), "--out", str(tmp_path / "c.csv")], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        f"inkdiag label: error: {msg}"], r.stderr  # the frames before it were labelled and written
+    with open(tmp_path / "c.csv") as f:
+        assert sum(1 for _ in f) == 1 + 8 * n_ok
 
 
 def _env(domain_id):
@@ -162,6 +178,8 @@ def test_record_a_live_printhead_sim_and_read_it_back_with_rosbags_and_load_reco
     assert ids == list(range(ids[0], ids[-1] + 1)) and len(ids) == counts[f"{NS}/traces"]
     assert got.traces.shape == (48 * len(ids), got.n_samples)
     assert f"wrote {n_read} messages" in err
+    # an independent reader: mcap + mcap_ros2 decode the same fields from the schemas in the file
+    assert_two_readers_agree(bag)
 
 
 def test_replay_into_a_subscriber_delivers_every_traces_message(tmp_path, sim, ros):

@@ -11,6 +11,7 @@ import time
 
 import pytest
 
+from _bags import assert_two_readers_agree
 from conftest import next_domain_id
 
 NS = "/head_00"
@@ -21,17 +22,30 @@ def _env(domain_id):
                 PYTHONUNBUFFERED="1")
 
 
-def _wait_for(stream, proc, text, timeout=60.0):
-    deadline = time.monotonic() + timeout
-    seen = []
-    while time.monotonic() < deadline:
-        line = stream.readline()
-        seen.append(line)
-        if text in line:
-            return
-        if not line and proc.poll() is not None:
-            break
-    pytest.fail(f"no {text!r} from the process: {''.join(seen)[-1500:]}")
+class Lines:
+    """A process's output stream read by a thread: waiting for a line never blocks on a silent process."""
+
+    def __init__(self, proc, stream):
+        import threading
+
+        self.proc, self.lines = proc, []
+        self._thread = threading.Thread(target=lambda: self.lines.extend(iter(stream.readline, "")), daemon=True)
+        self._thread.start()
+
+    def wait_for(self, text, timeout=60.0):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if any(text in line for line in list(self.lines)):
+                return
+            if self.proc.poll() is not None and not self._thread.is_alive():
+                break
+            time.sleep(0.05)
+        pytest.fail(f"no {text!r} from the process: {''.join(self.lines)[-1500:]}")
+
+    def text(self) -> str:
+        """Everything, once the process has exited."""
+        self._thread.join(timeout=10)
+        return "".join(self.lines)
 
 
 def _stop(proc, sig, limit_s=2.0):
@@ -62,14 +76,15 @@ def test_printhead_sim_records_what_it_publishes_and_a_sigterm_closes_a_valid_ba
     proc = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.printhead_sim", "--record", str(bag), "--ros-args",
                              "-r", f"__ns:={NS}", "-p", "frame_rate_hz:=20.0", "-p", "n_nozzles:=48"],
                             env=_env(next_domain_id()), stderr=subprocess.PIPE, text=True)
+    err = Lines(proc, proc.stderr)
     try:
-        _wait_for(proc.stderr, proc, "recording")
-        time.sleep(1.0)
+        err.wait_for("recording")
+        time.sleep(3.0)  # the first frame's simulation is slow on a loaded machine
         rc, took = _stop(proc, signal.SIGTERM)
     finally:
         if proc.poll() is None:
             proc.kill()
-    err = proc.stderr.read()
+    err = err.text()
     assert rc == 0 and took < 2.0, (rc, took, err[-1500:])
     got = _read(bag)
     assert set(got) == {f"{NS}/traces", f"{NS}/ground_truth"}
@@ -107,17 +122,19 @@ def test_a_recorded_live_graph_replayed_into_a_fresh_fdi_gives_the_live_labels(t
     live = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.graph", "--model", str(fdi_model), "--duration", "0",
                              "--record", str(bag), "--ros-args", "-p", "frame_rate_hz:=10.0"],
                             env=_env(next_domain_id()), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    out = Lines(live, live.stdout)
     try:
-        _wait_for(live.stdout, live, "t=  2.")  # labelling for 2 s at 10 frames/s
+        out.wait_for("t=  2.")  # labelling for 2 s at 10 frames/s
         rc, took = _stop(live, signal.SIGINT)
     finally:
         if live.poll() is None:
             live.kill()
-    out = live.stdout.read()
+    out = out.text()
     assert rc == 0 and took < 2.0, (rc, took, out[-1500:])
     got = _read(bag)
     assert {f"{NS}/{t}" for t in ("traces", "labels", "drying_nozzles", "fm_estimates", "fm_estimates/array",
                                   "ground_truth")} | {"/diagnostics"} == set(got)
+    assert_two_readers_agree(bag)  # every message type the head publishes, decoded by mcap_ros2 too
     n_traces = len(got[f"{NS}/traces"])
     live_labels = _labels_by_frame(json.loads(m.data) for _, m in got[f"{NS}/labels"])
     assert n_traces >= 15 and len(live_labels) >= 0.9 * n_traces
