@@ -141,3 +141,29 @@ def test_train_refuses_a_bag_as_data_before_reading_it(tmp_path):
     HeadProfile.default().save(tmp_path / "head.yaml")
     r = _cli("train", "--profile", tmp_path / "head.yaml", "--out", tmp_path / "m.joblib", "--data", bag, "--quiet")
     assert r.returncode == 2 and "has no per-row labels" in r.stderr, r.stderr
+
+
+def test_calibrate_on_a_bag_fits_a_bounded_sample_of_its_healthy_rows(tmp_path, capsys, monkeypatch):
+    import json
+
+    from inkdiag_core.head_profile import NOMINAL_CHANNEL_KEYS
+    from inkdiag_ros import cli
+    from inkdiag_ros.verbs import calibrate
+
+    true = HeadProfile.default()
+    x = true.simulate({"healthy_nozzle": 60}, seed=4).traces.astype(np.float32)
+    x[7] = 0.25  # flat: screened out
+    bag = write_bag(tmp_path / "bag", [(10 * k, x[10 * k:10 * k + 10]) for k in range(6)])
+    doc = true.to_dict()
+    doc.pop("sensor")
+    doc["channel"] = {k: doc["channel"][k] for k in NOMINAL_CHANNEL_KEYS}
+    HeadProfile.from_dict(doc).save(tmp_path / "nominal.yaml")
+    monkeypatch.setattr(calibrate, "MAX_BAG_ROWS", 40)
+    status = cli.main(["calibrate", str(bag), "--nominal", str(tmp_path / "nominal.yaml"),
+                       "--out", str(tmp_path / "head.yaml")])
+    out, err = capsys.readouterr()
+    assert status == 0, err
+    assert "(40 traces, 0 dropped; 1 of the bag's 60 rows screened out; a uniform sample of 40 of its 59 usable rows)" in out
+    assert f"6 of 6 messages on {NS}/traces decoded" in err
+    assert json.loads((tmp_path / "head.fit.json").read_text())["n_traces"] == 40
+    assert abs(HeadProfile.load(tmp_path / "head.yaml").healthy_mode()[0] / true.healthy_mode()[0] - 1) < 0.01

@@ -119,9 +119,10 @@ def run(args) -> int:
     stats, chunks = stream_recording(args.healthy, args.topic)
     _, rec = next(chunks)  # a bag with no trace frame: RecordingError
     nominal.check_traces(rec.traces, rec.sample_rate_hz, what=f"{args.healthy}")
-    traces, note, left_out = rec.traces, "", 0
+    fs, traces, note, left_out = rec.sample_rate_hz, rec.traces, "", 0
     if is_bag(args.healthy):  # streamed: a bounded sample of its healthy rows
-        traces, n_read, n_screened = bag_sample(itertools.chain([(0, rec)], chunks), nominal, seed=args.seed)
+        traces, n_read, n_screened = bag_sample(itertools.chain([(0, rec)], chunks), nominal, max_rows=MAX_BAG_ROWS,
+                                                   seed=args.seed)
         del rec
         report_stats(args.healthy, stats)
         note = (f"; {n_screened} of the bag's {n_read} rows screened out" if n_screened else "") + (
@@ -139,7 +140,7 @@ def run(args) -> int:
     if not out.parent.is_dir():
         raise OSError(f"{out.parent}: no such directory for --out")
     report_dir.mkdir(parents=True, exist_ok=True)
-    result = calibrate(nominal, traces, rec.sample_rate_hz, name=args.name, seed=args.seed)
+    result = calibrate(nominal, traces, fs, name=args.name, seed=args.seed)
     result.profile.save(out)
     stem = report_dir / out.name.removesuffix(".yaml").removesuffix(".yml")
     png = stem.with_name(stem.name + ".fit.png")
