@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -586,7 +587,7 @@ def recording_node(node_cls, bag_dir, names=None):
 
         def destroy_node():
             rec.close()
-            print(rec.summary(), file=__import__("sys").stderr, flush=True)
+            print(rec.summary(), file=sys.stderr, flush=True)
             return destroy()
 
         node.destroy_node = destroy_node
