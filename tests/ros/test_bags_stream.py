@@ -93,8 +93,9 @@ def test_label_reports_each_bad_frame_on_stderr_and_labels_the_others(tmp_path, 
     assert list(rows[0])[:6] == ["row", "nozzle", "frame_id", "class", "confidence", "reason"]
 
 
-def test_estimate_on_a_bag_streams_the_rows_the_npz_gives(tmp_path):
+def test_estimate_on_a_bag_streams_the_rows_the_npz_gives(tmp_path, capsys):
     from inkdiag_core import save_recording
+    from inkdiag_ros import cli
     from inkdiag_ros.bags import load_recording
 
     prof = HeadProfile.default()
@@ -103,18 +104,23 @@ def test_estimate_on_a_bag_streams_the_rows_the_npz_gives(tmp_path):
     x = r.traces.astype(np.float32)
     bag = write_bag(tmp_path / "bag", [(0, x[k::3]) for k in range(3)])
     save_recording(tmp_path / "same.npz", load_recording(bag))
+
+    def estimate(src, rows, out):  # in-process, as the command runs
+        status = cli.main(["estimate", str(src), "--profile", str(tmp_path / "head.yaml"), "--rows", rows,
+                           "--out", str(tmp_path / out)])
+        return status, capsys.readouterr().err
+
     outs = {}
     for name, src in (("bag", bag), ("npz", tmp_path / "same.npz")):
-        res = _cli("estimate", src, "--profile", tmp_path / "head.yaml", "--rows", "1:11", "--out",
-                   tmp_path / f"{name}.csv")
-        assert res.returncode == 0, res.stderr
+        status, err = estimate(src, "1:11", f"{name}.csv")
+        assert status == 0, err
         with open(tmp_path / f"{name}.csv", newline="") as f:
             outs[name] = list(csv.reader(f))
     assert outs["bag"] == outs["npz"] and len(outs["bag"]) == 11
-    res = _cli("estimate", bag, "--profile", tmp_path / "head.yaml", "--rows", "5:40", "--out", tmp_path / "x.csv")
-    assert res.returncode == 2 and "error: --rows 5:40: row 39 is beyond the bag's 12 rows" in res.stderr.splitlines()[-1]
-    res = _cli("estimate", bag, "--profile", tmp_path / "head.yaml", "--rows", "dried", "--out", tmp_path / "x.csv")
-    assert res.returncode == 2 and "a bag has no label column" in res.stderr
+    status, err = estimate(bag, "5:40", "x.csv")
+    assert status == 2 and "error: --rows 5:40: row 39 is beyond the bag's 12 rows" in err.splitlines()[-1]
+    status, err = estimate(bag, "dried", "x.csv")
+    assert status == 2 and "a bag has no label column" in err
 
 
 def test_bag_sample_is_bounded_uniform_and_screened():
