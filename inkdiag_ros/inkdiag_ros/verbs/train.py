@@ -46,7 +46,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--data", metavar="LABELLED.npz",
                         help="labelled recordings of this head to train on as well (a 'label' per row)")
     parser.add_argument("--topic", default=None, metavar="TOPIC",
-                        help="traces topic when --data is a rosbag2 bag (its rows need labels: a bag has none yet)")
+                        help="traces topic of a bag (a bag is refused as --data for now: its rows have no labels)")
     parser.add_argument("--n-per-class", type=int, default=1000, metavar="N",
                         help="simulated traces per class (default: %(default)s; >= 8)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulation, split and forest "
@@ -86,7 +86,7 @@ def run(args) -> int:
 
     from inkdiag_core.head_profile import HeadProfile, ProfileError
     from inkdiag_core.persistence import save_detector
-    from ..bags import load_and_report
+    from ..bags import is_bag, load_and_report
     from inkdiag_core.training import train_detector
 
     profile = HeadProfile.load(args.profile)
@@ -95,6 +95,9 @@ def run(args) -> int:
                            "`inkdiag calibrate` first to fit them to recorded healthy traces")
     if args.n_per_class < 8:
         raise ValueError(f"--n-per-class must be >= 8, got {args.n_per_class}")
+    if args.data and is_bag(args.data):  # refused before reading it: a bag's rows have no class to train on
+        raise ValueError(f"{args.data}: a rosbag2 bag has no per-row labels: --data needs a labelled .npz "
+                         "(a 'label' per row); label the bag first and save it as one")
     data = load_and_report(args.data, args.topic) if args.data else None
     if data is not None:
         if data.label is None:
