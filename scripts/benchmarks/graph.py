@@ -93,6 +93,42 @@ def make_frames(n_nozzles, n_frames, seed):
                              seed=seed + i).traces for i in range(n_frames)]
 
 
+def realistic_head(n_nozzles, n_frames, seed, *, faulty=0.02, n_baseline_frames=8):
+    """Frames of one realistic head and its nozzles' healthy baselines, recorded as commissioning does.
+
+    Every nozzle has its own tolerances (``simulate_nozzles(seed=seed)``) and one of the two
+    healthy conditions; ``round(faulty * n_nozzles)`` nozzles (seeded choice) carry a fault of a
+    seeded class among the ten fault classes, the same in every frame; frames differ in their
+    ink temperature and noise (``frame_seed``). The baselines are recorded from
+    ``n_baseline_frames`` frames of the same nozzles all healthy, by
+    :class:`inkdiag_core.BaselineRecorder` (whatever it records: KPI baselines, and the
+    healthy references once the gate records them).
+
+    Returns
+    -------
+    frames : list of ndarray, shape (n_nozzles, 512), float32
+        V.
+    baselines : inkdiag_core.NozzleBaselines
+        Every nozzle's.
+    n_faulty : int
+    """
+    from inkdiag_core import BaselineRecorder, FaultClass, simulate_nozzles
+    from inkdiag_core.faults import HEALTHY_CLASSES
+
+    rng = np.random.default_rng(seed)
+    healthy = np.array(sorted(HEALTHY_CLASSES, key=lambda c: c.value), dtype=object)
+    faults = np.array([c for c in FaultClass if c not in HEALTHY_CLASSES], dtype=object)
+    classes = rng.choice(healthy, size=n_nozzles)  # each nozzle's healthy condition
+    rec = BaselineRecorder(n_frames=n_baseline_frames)
+    for k in range(n_baseline_frames):
+        rec.add(0, simulate_nozzles(classes, seed=seed, frame_seed=1_000_000 + k).traces)
+    n_faulty = int(round(faulty * n_nozzles))
+    idx = rng.choice(n_nozzles, n_faulty, replace=False)
+    classes[idx] = rng.choice(faults, size=n_faulty)
+    frames = [simulate_nozzles(classes, seed=seed, frame_seed=k).traces for k in range(n_frames)]
+    return frames, rec.baselines(), n_faulty
+
+
 def replay(node, executor, pub, msgs, answered, seconds, window, lost_after_s=0.25, first_id=0):
     """Closed-loop replay; returns (published, latencies s, lost ids, elapsed s).
 
