@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -253,7 +254,8 @@ def main() -> int:
           f"({ns.faulty:.0%}), baselines of every nozzle ({time.perf_counter() - t:.0f} s for {max(n_list)} heads); "
           f"messages of {ns.chunk} nozzles, {ns.window} in flight per head; {ns.seconds:g} s per phase; "
           f"model {Path(model).name}; executor {ns.executor}"
-          + ("; fdi WITHOUT baselines" if ns.no_baselines else ""), flush=True)
+          + ("; fdi WITHOUT baselines" if ns.no_baselines else "")
+          + f"; load average {' '.join(Path('/proc/loadavg').read_text().split()[:3])}", flush=True)
     results, first_id = [], 0
     hdr = (f"{'phase':<28} {'traces/s':>10} {'per head':>9} {'msgs/s':>7} {'p50 ms':>7} {'p99 ms':>7} "
            f"{'lost':>5} {'CPU ms/msg':>10} {'cores':>5}  / ceiling")
@@ -282,8 +284,10 @@ def main() -> int:
             print(f"{name:<28} {r['traces_per_s']:>10,.0f} {r['traces_per_s'] / n:>9,.0f} {r['msgs_per_s']:>7.1f} "
                   f"{r['p50_ms']:>7.1f} {r['p99_ms']:>7.1f} {r['lost']:>5d} {r['cpu_ms_per_msg']:>10.2f} "
                   f"{r['cores']:>5.2f}  {r['ratio']:.2f}x", flush=True)
+    print(f"load average at the end: {' '.join(Path('/proc/loadavg').read_text().split()[:3])}")
     if ns.json:
         Path(ns.json).write_text(json.dumps(results, indent=1))
+    shutil.rmtree(tmp, ignore_errors=True)
     return 0
 
 

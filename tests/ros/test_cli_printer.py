@@ -72,7 +72,7 @@ def test_three_heads_in_two_processes_label_on_every_namespace_and_stop_on_sigin
 
 @pytest.mark.timeout(90)
 def test_a_child_that_dies_is_reported_and_the_command_exits_non_zero(ros, fdi_model):
-    proc = _start(ros, "--heads", "2", "--processes", "2", "--model", str(fdi_model),
+    proc = _start(ros, "--heads", "2", "--first-head", "5", "--processes", "2", "--model", str(fdi_model),
                   "--ros-args", "--log-level", "warn")
     try:
         pids = _child_pids(proc)
@@ -83,12 +83,13 @@ def test_a_child_that_dies_is_reported_and_the_command_exits_non_zero(ros, fdi_m
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 1, (out, err)
-    assert "fdi process 1 (heads 01) exited with status -9" in err, err
+    assert "fdi process 1 (heads 06) exited with status -9" in err, err
     assert not _alive(pids[0]), "the other child outlived the command"
 
 
 @pytest.mark.parametrize("argv, match", [
     (["--heads", "0"], "--heads must be"),
+    (["--heads", "2", "--first-head", "99"], "--first-head must be 0 .. 98"),
     (["--heads", "2", "--processes", "3"], "--processes must be 1 .. --heads (2)"),
     (["--heads", "2", "--baselines", "{d}/head_{{i:02d}}.npz"], "head_00.npz not found"),
     (["--heads", "2", "--model", "{d}/missing.joblib"], "missing.joblib not found"),

@@ -11,7 +11,8 @@ import time
 
 HELP = "run the fdi nodes of N printheads in P processes (a whole printer), with a live summary"
 DESCRIPTION = """\
-Run one fdi node per head, namespaces /head_00 .. /head_{N-1} (the topics a single
+Run one fdi node per head, namespaces /head_00 .. /head_{N-1} (from /head_K with
+--first-head K, so that several boxes share a printer's heads; the topics a single
 head uses: /head_07/traces in, /head_07/labels and /head_07/drying_nozzles out,
 /diagnostics), in P OS processes on the DDS domain of ROS_DOMAIN_ID. Heads are
 assigned to the processes round-robin (head i in process i mod P); each process
@@ -39,6 +40,9 @@ STOP_GRACE_S = 1.5
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--heads", type=int, required=True, help="printheads N (namespaces /head_00 .. /head_{N-1})")
+    p.add_argument("--first-head", type=int, default=0,
+                   help="index of the first head K: the heads are /head_K .. /head_{K+N-1} (a printer over several "
+                        "boxes: each runs its range), default 0")
     p.add_argument("--processes", type=int, default=1, help="OS processes P running the fdi nodes (1 .. N)")
     p.add_argument("--model", default=None,
                    help="FaultDetector model file for every head (default: models/fdi_default.joblib)")
@@ -54,8 +58,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="ROS arguments for every node (e.g. -p n_nozzles:=2656), the rest of the line")
 
 
-def baseline_paths(spec: str | None, n_heads: int) -> list:
-    """Each head's baselines file from ``--baselines`` (None: none), checked to exist.
+def baseline_paths(spec: str | None, heads) -> list:
+    """The baselines file of each head index of ``heads`` from ``--baselines`` (None: none), checked to exist.
 
     Raises
     ------
@@ -63,14 +67,14 @@ def baseline_paths(spec: str | None, n_heads: int) -> list:
         A bad pattern or a missing file (the first one).
     """
     if not spec:
-        return [None] * n_heads
+        return [None] * len(heads)
     if os.path.isdir(spec):
         spec = os.path.join(spec, "head_{i:02d}.npz")
     elif "{" not in spec:
         raise ValueError(f"--baselines {spec!r} is neither a directory nor a pattern with {{i}} "
                          "(e.g. baselines/head_{i:02d}.npz)")
     try:
-        paths = [spec.format(i=i) for i in range(n_heads)]
+        paths = [spec.format(i=i) for i in heads]
     except (KeyError, IndexError, ValueError) as exc:
         raise ValueError(f"--baselines {spec!r}: bad pattern ({exc}); use {{i}} for the head index") from None
     for path in paths:
@@ -82,6 +86,8 @@ def baseline_paths(spec: str | None, n_heads: int) -> list:
 def _check(args) -> None:
     if not 1 <= args.heads <= 100:
         raise ValueError(f"--heads must be 1 .. 100, got {args.heads}")
+    if not 0 <= args.first_head <= 99 - (args.heads - 1):
+        raise ValueError(f"--first-head must be 0 .. {100 - args.heads} (head indices up to 99), got {args.first_head}")
     if not 1 <= args.processes <= args.heads:
         raise ValueError(f"--processes must be 1 .. --heads ({args.heads}), got {args.processes}")
     if not args.duration >= 0:
@@ -104,25 +110,26 @@ def run(args) -> int:
 
     args.model = os.path.abspath(args.model or str(DEFAULT_MODEL))
     _check(args)
-    paths = baseline_paths(args.baselines, args.heads)
-    groups = [list(range(k, args.heads, args.processes)) for k in range(args.processes)]
+    heads = list(range(args.first_head, args.first_head + args.heads))
+    paths = dict(zip(heads, baseline_paths(args.baselines, heads)))
+    groups = [heads[k::args.processes] for k in range(args.processes)]
     base = [sys.executable, "-m", __name__]
     ros = ["--ros-args", *args.ros_args]
     children = []  # (description, Popen)
     try:
-        for k, heads in enumerate(groups):
-            cmd = base + ["--role", "fdi", "--heads", ",".join(map(str, heads)), "--model", args.model,
+        for k, group in enumerate(groups):
+            cmd = base + ["--role", "fdi", "--heads", ",".join(map(str, group)), "--model", args.model,
                           "--executor", args.executor]
-            for i in heads:
+            for i in group:
                 cmd += ["--baseline", f"{i}={paths[i]}"] if paths[i] else []
-            children.append((f"fdi process {k} (heads {', '.join(f'{i:02d}' for i in heads)})",
+            children.append((f"fdi process {k} (heads {', '.join(f'{i:02d}' for i in group)})",
                              subprocess.Popen(cmd + ros, preexec_fn=_die_with_parent, start_new_session=True)))
         if args.simulate:
-            cmd = base + ["--role", "sim", "--heads", ",".join(map(str, range(args.heads))), "--executor", "single"]
+            cmd = base + ["--role", "sim", "--heads", ",".join(map(str, heads)), "--executor", "single"]
             children.append(("simulator process", subprocess.Popen(cmd + ros, preexec_fn=_die_with_parent,
                                                                    start_new_session=True)))
-        print(f"inkdiag printer: {args.heads} heads' fdi nodes in {args.processes} processes "
-              f"(pids {', '.join(str(p.pid) for _, p in children[:len(groups)])})"
+        print(f"inkdiag printer: {args.heads} heads' fdi nodes (/head_{heads[0]:02d} .. /head_{heads[-1]:02d}) "
+              f"in {args.processes} processes (pids {', '.join(str(p.pid) for _, p in children[:len(groups)])})"
               + (", simulated printheads in one more" if args.simulate else "")
               + f"; {'until Ctrl-C' if args.duration <= 0 else f'{args.duration:g} s'}", flush=True)
         died = _monitor(args, children)
@@ -144,10 +151,11 @@ def _monitor(args, children) -> list:
     from .._spin import stop_on_signals
 
     latest = {}  # head namespace -> (arrival time, values)
+    wanted = {f"{i:02d}" for i in range(args.first_head, args.first_head + args.heads)}
 
     def on_diag(msg):
         for name, d in diagnostics_values(msg).items():
-            if name.startswith("inkdiag fdi: /head_"):
+            if name.startswith("inkdiag fdi: /head_") and name.split(": /head_", 1)[1] in wanted:
                 latest[name.split(": ", 1)[1]] = (time.monotonic(), d)
 
     with stop_on_signals() as stop:
@@ -186,9 +194,12 @@ def summary(latest: dict, n_heads: int, t: float, now: float) -> str:
     fps = sum(float(d.get("frames_per_s", 0) or 0) for d in fresh)
     tps = sum(float(d.get("traces_per_s", 0) or 0) for d in fresh)
     bad = sum(int(d.get("frames_dropped", 0) or 0) + int(d.get("frames_failed", 0) or 0) for d in fresh)
-    not_ok = sum(d.get("level") != "ok" for d in fresh)
+    levels = {}
+    for d in fresh:
+        if d.get("level") != "ok":
+            levels[d.get("level")] = levels.get(d.get("level"), 0) + 1
     return (f"t={t:6.1f}s heads up {len(fresh)}/{n_heads} | {fps:7.1f} frames/s labelled ({tps:,.0f} traces/s)"
-            f" | dropped+failed {bad}" + (f" | {not_ok} heads not OK" if not_ok else ""))
+            f" | dropped+failed {bad}" + "".join(f" | {k} {v}" for k, v in sorted(levels.items())))
 
 
 def _stop(children) -> None:
