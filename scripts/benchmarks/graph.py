@@ -56,7 +56,7 @@ FDI_PROCESS = "fdi, labelling process"
 CEILING = "ceiling: plain subscriber"
 
 
-def sink_main() -> int:
+def sink_main(namespace: str = "/") -> int:
     """Second process of the ceiling run: decode each frame, ack its id."""
     import rclpy
     from rclpy.executors import ExternalShutdownException
@@ -68,7 +68,7 @@ def sink_main() -> int:
 
     keep_freed_memory()  # as every inkdiag node process: the same footing as the fdi node
     rclpy.init()
-    node = Node("bench_sink")
+    node = Node("bench_sink", namespace=namespace)
     pub = node.create_publisher(String, ACK, RELIABLE_QOS)
 
     def on_frame(msg):
@@ -231,9 +231,10 @@ def main() -> int:
     ap.add_argument("--no-process", action="store_true", help="skip the labelling_process phase")
     ap.add_argument("--model", default=str(ROOT / "models" / "fdi_default.joblib"))
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--namespace", default="/", help=argparse.SUPPRESS)  # the sink's
     ns = ap.parse_args()
     if ns.role == "sink":
-        return sink_main()
+        return sink_main(ns.namespace)
     if ns.window is None:
         ns.window = -(-ns.nozzles // ns.chunk)
 
@@ -293,7 +294,9 @@ def main() -> int:
                   f"one {label} per call, one thread, this process)")
 
     rclpy.init()
-    node = Node("bench_replayer")
+    # a namespace of its own: another process on this domain (a test elsewhere) is not taken for ours
+    bench_ns = f"/bench_graph_{os.getpid()}"
+    node = Node("bench_replayer", namespace=bench_ns)
     ex = SingleThreadedExecutor()
     ex.add_node(node)
     pub = node.create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
@@ -306,15 +309,16 @@ def main() -> int:
     env = dict(os.environ)
     results = {}
     next_id = 0
-    fdi = [sys.executable, "-m", "inkdiag_ros.fdi_node", "--ros-args", "-p", f"model_path:={model}",
+    fdi = [sys.executable, "-m", "inkdiag_ros.fdi_node", "--ros-args", "-r", f"__ns:={bench_ns}", "-p", f"model_path:={model}",
            "-p", f"n_nozzles:={ns.nozzles}", "-p", "diagnostics_period_s:=0.5", "--log-level", "warn"]
-    phases = [(CEILING, cases[0], [sys.executable, __file__, "--role", "sink"], lambda: node.count_publishers(ACK) > 0)]
+    phases = [(CEILING, cases[0], [sys.executable, __file__, "--role", "sink", "--namespace", bench_ns],
+               lambda: node.count_publishers(f"{bench_ns}/{ACK}") > 0)]
     for case in cases:
         cmd = fdi + (["-p", f"baseline_path:={data[case][1]}"] if data[case][1] else [])
-        phases.append((f"{case}: {FDI_THREAD}", case, cmd, lambda: node.count_publishers(topics.LABELS) > 0))
+        phases.append((f"{case}: {FDI_THREAD}", case, cmd, lambda: node.count_publishers(f"{bench_ns}/{topics.LABELS}") > 0))
         if not ns.no_process:
             phases.append((f"{case}: {FDI_PROCESS}", case, cmd + ["-p", "labelling_process:=true"],
-                           lambda: node.count_publishers(topics.LABELS) > 0))
+                           lambda: node.count_publishers(f"{bench_ns}/{topics.LABELS}") > 0))
     try:
         for name, case, cmd, matched in phases:
             msgs = data[case][0]
@@ -338,12 +342,13 @@ def main() -> int:
                                              lost_after_s=lost_after, first_id=next_id)
                 cpu = cpu_s(pids) - c0
                 next_id += sent
-                during = dict(next(iter(diag.values()), {}))  # the last period under load
+                mine = f"inkdiag fdi: {bench_ns}"
+                during = dict(diag.get(mine, {}))  # the last period under load
                 ex.spin_once(timeout_sec=0.6)
                 t_end = time.monotonic() + 1.5
                 while time.monotonic() < t_end:
                     ex.spin_once(timeout_sec=0.05)
-                final = dict(next(iter(diag.values()), {}))
+                final = dict(diag.get(mine, {}))
                 if final:
                     final.update({k: during.get(k) for k in ("frames_per_batch", "labeller_busy")})
                 per_msg = float(np.mean([m.layout.dim[0].size for m in msgs]))

@@ -43,8 +43,13 @@ sys.path.insert(0, str(HERE))
 ACK = "bench_ack"
 
 
+FIRST_HEAD = 40
+"""The benchmark's heads are /head_40 .. (``inkdiag printer --first-head``): tests elsewhere on the same
+domain run /head_00 nodes, whose traces must not reach these fdi nodes."""
+
+
 def _ns(i: int) -> str:
-    return f"/head_{i:02d}"
+    return f"/head_{FIRST_HEAD + i:02d}"
 
 
 def sink_main(heads) -> int:
@@ -249,7 +254,7 @@ def main() -> int:
     for i in range(max(n_list)):
         frames, baselines, n_faulty = realistic_head(ns.nozzles, ns.frames, ns.seed + 101 * i, faulty=ns.faulty)
         np.save(tmp / f"frames_{i:02d}.npy", np.stack(frames))
-        baselines.save(tmp / f"head_{i:02d}.npz")
+        baselines.save(tmp / f"head_{FIRST_HEAD + i:02d}.npz")
     print(f"printer benchmark: per head {ns.frames} frames of {ns.nozzles} nozzles x 512 samples, {n_faulty} faulty "
           f"({ns.faulty:.0%}), baselines of every nozzle ({time.perf_counter() - t:.0f} s for {max(n_list)} heads); "
           f"messages of {ns.chunk} nozzles, {ns.window} in flight per head; {ns.seconds:g} s per phase; "
@@ -269,6 +274,7 @@ def main() -> int:
             if p > n:
                 continue
             cmd = [sys.executable, "-m", "inkdiag_ros.cli", "printer", "--heads", str(n), "--processes", str(p),
+                   "--first-head", str(FIRST_HEAD),
                    "--model", str(model), "--executor", ns.executor]
             if not ns.no_baselines:
                 cmd += ["--baselines", str(tmp / "head_{i:02d}.npz")]
