@@ -14,7 +14,7 @@ commissioning does; the fdi nodes get them through ``--baselines``). Then, for e
 
 Each head has an independent publisher process (``graph.replay``'s closed loop on ``/head_ii/traces``:
 messages of ``--chunk`` nozzles, at most one head scan, ``ceil(nozzles / chunk)`` messages, in flight
-per head; a message unanswered for 10x the worst latency of a 1 s warm-up, >= 50 ms, is lost and its
+per head; a message unanswered for N x 10x the worst latency of a 1 s warm-up (>= N x 50 ms) is lost and its
 slot reused). All publishers start together once every one has matched and warmed up. Latency: the
 frame's publish time to its answer arriving at its publisher (one clock). The consumers' CPU
 (utime + stime of their processes from /proc/<pid>/stat, over the measured phase) per message answered
@@ -90,7 +90,7 @@ def sink_main(heads) -> int:
     return 0
 
 
-def pub_main(head: int, data: str, seconds: float, window: int, chunk: int, first_id: int) -> int:
+def pub_main(head: int, data: str, seconds: float, window: int, chunk: int, first_id: int, n_heads: int = 1) -> int:
     """One head's independent publisher: match, warm up, say ``ready``, wait for ``go`` on stdin, replay."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -120,7 +120,10 @@ def pub_main(head: int, data: str, seconds: float, window: int, chunk: int, firs
         return 1
     warm, warm_lat, *_ = replay(node, ex, pub, msgs, answered, 1.0, 1, first_id=first_id)
     answered.clear()
-    lost_after = max(0.05, 10.0 * float(np.max(warm_lat))) if warm_lat.size else 0.25
+    # graph's rule (10x the warm-up's worst latency, >= 50 ms) times the heads sharing the consumers: with one
+    # scan in flight per head, a message waits behind the other heads' too (a run of 4 heads in one process
+    # had every message "lost" at a head's own threshold)
+    lost_after = n_heads * (max(0.05, 10.0 * float(np.max(warm_lat))) if warm_lat.size else 0.25)
     print("ready", flush=True)
     sys.stdin.readline()
     sent, lat, lost, el = replay(node, ex, pub, msgs, answered, seconds, window, lost_after_s=lost_after,
@@ -186,7 +189,7 @@ def phase(name, consumer_cmds, heads, ns, data_dir, first_id, log_path):
             pubs.append(subprocess.Popen(
                 [sys.executable, __file__, "--role", "pub", "--head", str(i), "--data", str(data_dir / f"frames_{i:02d}.npy"),
                  "--seconds", str(ns.seconds), "--window", str(ns.window), "--chunk", str(ns.chunk),
-                 "--first-id", str(first_id)], env=env, cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                 "--first-id", str(first_id), "--n-heads", str(heads)], env=env, cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                 text=True))
         for p in pubs:
             line = p.stdout.readline()
@@ -233,6 +236,7 @@ def main() -> int:
     ap.add_argument("--head", type=int, default=0)
     ap.add_argument("--data", default="")
     ap.add_argument("--first-id", type=int, default=0)
+    ap.add_argument("--n-heads", type=int, default=1, help=argparse.SUPPRESS)  # a publisher's: heads measured
     ap.add_argument("--json", default=None, help="also write the results to this JSON file")
     ns = ap.parse_args()
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -241,7 +245,7 @@ def main() -> int:
     if ns.role == "sink":
         return sink_main([int(h) for h in ns.heads.split(",")])
     if ns.role == "pub":
-        return pub_main(ns.head, ns.data, ns.seconds, ns.window, ns.chunk, ns.first_id)
+        return pub_main(ns.head, ns.data, ns.seconds, ns.window, ns.chunk, ns.first_id, ns.n_heads)
 
     from graph import realistic_head
     from inkdiag_core.model_cache import ensure_default_model
