@@ -32,6 +32,7 @@ from .persistence import ModelFileError, load_detector, load_model, save_detecto
 from .residual import ResidualFilter, design_residual_filter
 from .screening import INVALID_REASONS, screen_traces
 from .simulation import SimulationResult, healthy_twin_frames, simulate, simulate_nonlinear, simulate_nozzles
+from .simulation import HELDOUT_CONDITIONS, HeldoutTraces, simulate_heldout
 
 from ._version import __version__
 
@@ -75,6 +76,9 @@ __all__ = [
     "simulate",
     "simulate_nonlinear",
     "simulate_nozzles",
+    "HELDOUT_CONDITIONS",
+    "HeldoutTraces",
+    "simulate_heldout",
     "healthy_twin_frames",
     "viscosity_to_fm",
 ]
@@ -104,6 +108,10 @@ __all__ += ["BaselineFileError", "BaselineKpis", "BaselineRecorder", "NozzleBase
 from .drying_tracker import ESTIMATE_COLUMNS, DryingTracker, RangeEstimates, RowEstimates  # noqa: E402
 
 __all__ += ["ESTIMATE_COLUMNS", "DryingTracker", "RangeEstimates", "RowEstimates"]
+
+from .openset import UNKNOWN, ConformalOpenSet  # noqa: E402
+
+__all__ += ["UNKNOWN", "ConformalOpenSet"]
 
 from .detector import DetectorLabels, FaultDetector  # noqa: E402
 

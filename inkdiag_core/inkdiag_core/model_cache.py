@@ -32,7 +32,7 @@ DEFAULT_MODEL = Path("models") / "fdi_default.joblib"
 DEFAULT_FEATURES = {DEFAULT_MODEL.name: "kpi_y"}
 #: Training settings that define the default model; a cached file trained otherwise is stale.
 DEFAULT_SETTINGS = ("kind", "features", "n_per_class", "seed", "n_estimators", "min_samples_leaf", "fnr_target",
-                    "baseline")
+                    "baseline", "unknown_rate")
 
 
 def default_config(name: str = DEFAULT_MODEL.name) -> dict:
@@ -45,6 +45,7 @@ def default_config(name: str = DEFAULT_MODEL.name) -> dict:
     cfg["features"] = DEFAULT_FEATURES.get(name, cfg["features"])
     if cfg["features"] == "kpi_y+baseline":
         del cfg["baseline"]
+        del cfg["unknown_rate"]  # a plain pipeline file: no open-set layer
     else:
         cfg["baseline"] = name == DEFAULT_MODEL.name
     return cfg

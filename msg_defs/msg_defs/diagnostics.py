@@ -21,7 +21,9 @@ Each FDI node publishes, every ``diagnostics_period_s``, an array with one
   node is at its capacity); then
   ``last_error`` (the last malformed frame's reason), ``config_error`` (empty, or
   the setting the node runs without, and why) and then ``count.<class>``
-  for each class value and ``count.invalid`` (cumulative rows per label).
+  for each class value and ``count.invalid`` (cumulative rows per label;
+  ``count.unknown`` for the rows the model's open-set layer found unlike every
+  known class, once there has been one).
 
 The ``frames_*``, ``rows_*`` and ``count.*`` values are cumulative since the node
 started (never reset). Each frame taken from ``traces`` is counted in

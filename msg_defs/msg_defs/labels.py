@@ -20,6 +20,13 @@ nozzle whose class is not healthy (not in :data:`HEALTHY_CLASSES`), sorted
 by nozzle id, with the classifier's probability of that class
 (``confidence`` in [0, 1], 3 decimals). ``invalid`` lists the rows that
 could not be judged and why (``non_finite``, ``flat``, ``clipped``).
+
+A nozzle unlike every class the model knows (its open-set layer, issue 16) has
+the class :data:`UNKNOWN_CLASS` (``"unknown"``): it is a fault (listed under
+``faults``, never healthy) whose ``confidence`` is its unknown score, 1 minus
+its largest per-class conformal p-value (``{"nozzle": 9, "class": "unknown",
+"confidence": 0.995}``), and ``counts`` has an ``"unknown"`` entry when the frame
+has one. It is not a drying class.
 """
 
 from __future__ import annotations
@@ -39,6 +46,7 @@ __all__ = [
     "HEALTHY_CLASSES",
     "DRIED_CLASSES",
     "INVALID_KEY",
+    "UNKNOWN_CLASS",
     "LabelsReport",
     "encode_labels",
     "decode_labels",
@@ -50,6 +58,9 @@ LABELS_MSG_TYPE = String
 #: ``inkdiag_core.faults.HEALTHY_VALUES`` (msg_defs does not import the core);
 #: tests/core/test_vocabulary.py pins the two together, as for DRIED_CLASSES.
 HEALTHY_CLASSES = ("ok_signal", "healthy_nozzle")
+#: Class of a nozzle unlike every known class: a fault of no known kind (wire copy of
+#: ``inkdiag_core.openset.UNKNOWN``; tests/core/test_vocabulary.py pins the two together).
+UNKNOWN_CLASS = "unknown"
 #: The drying classes, in increasing severity (wire copy of ``inkdiag_core.faults.DRIED_VALUES``).
 DRIED_CLASSES = ("slightly_dried", "intermediately_dried", "deeply_dried")
 #: Key of the invalid-row count in ``counts``.

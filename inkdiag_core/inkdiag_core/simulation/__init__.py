@@ -13,6 +13,7 @@ module          contents
 ``linear``      :func:`simulate`, :func:`simulate_nozzles`
 ``nonlinear``   :func:`simulate_nonlinear`, :class:`NonlinearTerms`
 ``datasets``    :func:`healthy_twin_frames`
+``heldout``     held-out fault conditions, evaluation only: :func:`simulate_heldout`
 ``scenario``    a simulated head's faults over time: :class:`HeadScenario`,
                 :func:`simulate_head`
 ==============  =====================================================================
@@ -31,6 +32,7 @@ from .channels import (
     observable_A,
 )
 from .datasets import healthy_twin_frames
+from .heldout import HELDOUT_CONDITIONS, HeldoutTraces, simulate_heldout
 from .inputs import check_counts, check_positive_float, check_positive_int, check_severity, prepare_run
 from .linear import simulate, simulate_nozzles
 from .modal import class_max_frequency, cubic_roots, dominant_mode, modal_solution, nominal_rms, ramp_response
@@ -49,6 +51,9 @@ __all__ = [
     "draw_channels",
     "observable_A",
     "healthy_twin_frames",
+    "HELDOUT_CONDITIONS",
+    "HeldoutTraces",
+    "simulate_heldout",
     "check_counts",
     "check_positive_float",
     "check_positive_int",

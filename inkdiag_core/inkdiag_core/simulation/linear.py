@@ -154,7 +154,7 @@ def simulate(
     sig_rms = np.empty(n)
     for start in range(0, n, chunk_size):
         sl = slice(start, min(n, start + chunk_size))
-        sig_rms[sl] = _synthesize(
+        sig_rms[sl] = synthesize_chunk(
             lam[sl], coef[sl], gain[sl] / lsb, offset[sl] / lsb, n_samples, fs, traces[sl],
             noise_std / lsb, frame_rng, quant,
         )
@@ -249,7 +249,7 @@ def simulate_nozzles(classes, *, mu_nozzle=None, sample_rate_hz: float = 10e6, n
     return res.take(inverse)
 
 
-def _synthesize(lam, coef, scale, offset, n_samples, fs, out, noise_std, rng, quant):
+def synthesize_chunk(lam, coef, scale, offset, n_samples, fs, out, noise_std, rng, quant):
     """Write one chunk of traces into ``out`` (m, n_samples), float32.
 
     The noise-free signal is ``scale * y`` with ``y[k] = s[k] + q[k]``: the
