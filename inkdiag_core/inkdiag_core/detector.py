@@ -46,7 +46,14 @@ from .fdi import (
     threshold_and_scores,
 )
 from .kpis import MIN_KPI_SAMPLES, extract_kpis
-from .openset import UNKNOWN, ConformalOpenSet, baseline_openset_features, check_unknown_rate, openset_features
+from .openset import (
+    OPENSET_FEATURES_VERSION,
+    UNKNOWN,
+    ConformalOpenSet,
+    baseline_openset_features,
+    check_unknown_rate,
+    openset_features,
+)
 
 __all__ = ["DetectorLabels", "FaultDetector"]
 
@@ -475,6 +482,11 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
                 idx, conf = decide_classes(self.classes_, proba, pf, threshold)
                 cls = self.classes_[idx].astype(object)
                 if layer is not None:
+                    if getattr(layer, "features_version_", 1) != OPENSET_FEATURES_VERSION:
+                        raise ValueError("this model's open-set layer was fitted on the features of an older "
+                                         "inkdiag (open-set features version "
+                                         f"{getattr(layer, 'features_version_', 1)}, now "
+                                         f"{OPENSET_FEATURES_VERSION}): retrain it (inkdiag train)")
                     sel = ok.all()
                     if len(pipeline) > 2:  # knn: the features before its scaler
                         feats = pipeline[0].transform(Xr)
@@ -508,7 +520,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         return f"fdi-{self.kind}-{self.features}{branch}-{tail}"
 
     def __getstate__(self):
-        state = super().__getstate__()
+        state = dict(super().__getstate__())  # object.__getstate__ returns the live __dict__
         state.pop("file_sha256_", None)  # a file's hash cannot be inside the file
         return state
 

@@ -23,6 +23,7 @@ from pathlib import Path
 
 from .fdi import train_default_model as _core_train
 from .persistence import ModelFileError, load_model
+from .openset import OPENSET_FEATURES_VERSION
 
 __all__ = ["DEFAULT_FEATURES", "DEFAULT_MODEL", "DEFAULT_SETTINGS", "default_config", "ensure_default_model",
            "main", "train_default_model"]
@@ -87,10 +88,14 @@ def ensure_default_model(path=DEFAULT_MODEL, *, progress=True, log=print):
     want = default_config(path.name)
     if path.exists():
         try:
-            _, manifest = load_model(path)
+            obj, manifest = load_model(path, as_pipeline=False)
             cfg = manifest.get("config", {})
             stale = {k: (cfg.get(k), v) for k, v in want.items()
                      if path.name in DEFAULT_FEATURES and cfg.get(k) != v}
+            layers = [getattr(obj, a, None) for a in ("openset_", "baseline_openset_")]
+            versions = {getattr(x, "features_version_", 1) for x in layers if x is not None}
+            if versions - {OPENSET_FEATURES_VERSION}:
+                stale["open-set features version"] = (min(versions), OPENSET_FEATURES_VERSION)
             if not stale:
                 return path
             log(f"inkdiag: cached model trained with other settings than the default "

@@ -44,6 +44,7 @@ import numbers
 import numpy as np
 
 __all__ = [
+    "OPENSET_FEATURES_VERSION",
     "UNKNOWN",
     "ConformalOpenSet",
     "baseline_openset_features",
@@ -54,6 +55,9 @@ __all__ = [
 
 #: The class value of a row unlike every known class (a string, like ``FaultClass`` values).
 UNKNOWN = "unknown"
+#: Version of :func:`openset_features` / :func:`baseline_openset_features` (2: without the
+#: dc offset). A :class:`ConformalOpenSet` fitted on other features cannot score these.
+OPENSET_FEATURES_VERSION = 2
 
 _TINY = 1e-30
 # Added to the diagonal of each class covariance, in standardized units (the features' robust
@@ -162,11 +166,13 @@ def unexplained_fraction(traces, kpis, sample_rate_hz):
 
 
 def openset_features(traces, kpis, sample_rate_hz):
-    """Open-set features of traces from their KPIs: (n, 9), float64.
+    """Open-set features of traces from their KPIs: (n, 8), float64.
 
-    Columns: dc offset (V), ``log`` of dominant frequency, damping ratio, amplitude,
-    energy and magnitude, cos and sin of the phase, and ``log10`` of
-    :func:`unexplained_fraction`. Logs are taken of values floored at 1e-30 (so a
+    Columns: ``log`` of dominant frequency, damping ratio, amplitude, energy and
+    magnitude, cos and sin of the phase, and ``log10`` of :func:`unexplained_fraction`.
+    Not the dc offset: it is the sensor channel's, not the ink channel's response, and a
+    healthy nozzle whose offset sits in the tail of the head's spread would be ``unknown``
+    in every frame (``scripts/run``: one of 64 nozzles, 42 of 42 frames). Logs are taken of values floored at 1e-30 (so a
     zero stays finite); a row with non-finite KPIs comes out non-finite.
 
     Parameters
@@ -180,17 +186,17 @@ def openset_features(traces, kpis, sample_rate_hz):
 
     Returns
     -------
-    ndarray of float64, shape (n, 9)
+    ndarray of float64, shape (n, 8)
     """
     k = np.asarray(kpis, dtype=np.float64)
     with np.errstate(all="ignore"):
         lg = np.log(np.maximum(k[:, [1, 2, 3, 5, 6]], _TINY))
         u = np.log10(np.maximum(unexplained_fraction(traces, k, sample_rate_hz), 1e-12))
-        return np.column_stack([k[:, 0], lg, np.cos(k[:, 4]), np.sin(k[:, 4]), u])
+        return np.column_stack([lg, np.cos(k[:, 4]), np.sin(k[:, 4]), u])
 
 
 def baseline_openset_features(traces, features13, sample_rate_hz):
-    """Open-set features of the baseline branch: :func:`openset_features` + relative KPIs, (n, 14).
+    """Open-set features of the baseline branch: :func:`openset_features` + relative KPIs, (n, 13).
 
     Parameters
     ----------
@@ -205,7 +211,7 @@ def baseline_openset_features(traces, features13, sample_rate_hz):
 
     Returns
     -------
-    ndarray of float64, shape (n, 14)
+    ndarray of float64, shape (n, 13)
         :func:`openset_features` columns, then ``log`` frequency ratio, damping-ratio
         difference, ``log`` amplitude ratio, ``log`` energy ratio, cos of the phase difference.
     """
@@ -310,6 +316,7 @@ class ConformalOpenSet:
             self.modelled_[i] = True
         for cache in ("_w_all", "_mu_w", "_block_sum"):  # scores() rebuilds them from these models
             self.__dict__.pop(cache, None)
+        self.features_version_ = OPENSET_FEATURES_VERSION
         cal_ok = np.isfinite(X_cal).all(axis=1)
         S = self.scores(X_cal[cal_ok])
         yc = y_cal[cal_ok]
