@@ -78,6 +78,9 @@ def test_record_baseline_writes_every_nozzles_median_and_finishes(ros, tmp_path)
 
     fm = np.stack([estimate_fm_batch(f, InkChannelModel(), 10e6).fm for f in frames])
     np.testing.assert_allclose(b.fm, np.median(fm, axis=0), rtol=1e-5)
+    # and each nozzle's healthy reference trace, for the fdi node's healthy gate
+    assert b.has_reference
+    np.testing.assert_allclose(b.reference, np.median(np.stack(frames, axis=1), axis=1), atol=1e-6)
 
 
 def test_fe_takes_each_estimate_relative_to_its_nozzles_healthy_fm(ros, tmp_path):
