@@ -188,9 +188,12 @@ class HealthyGate:
             r = self._ref[p]
             xs = x[at]
         r = r.astype(xs.dtype, copy=False)
-        xr = np.einsum("ij,ij->i", xs, r).astype(np.float64)
-        x1 = xs.sum(axis=1, dtype=np.float64)
-        xx = np.einsum("ij,ij->i", xs, xs).astype(np.float64)
+        # row-wise dot products as batched (1 x n_samples) @ (n_samples x 1) products: BLAS,
+        # faster than einsum here; float32 rows accumulate in float32 (decisions as float64's,
+        # tests/core/test_gate.py)
+        xr = np.matmul(xs[:, None, :], r[:, :, None]).reshape(-1).astype(np.float64)
+        xx = np.matmul(xs[:, None, :], xs[:, :, None]).reshape(-1).astype(np.float64)
+        x1 = xs.sum(axis=1).astype(np.float64)
         with np.errstate(invalid="ignore", divide="ignore"):
             g = xr / self._rr[p]
             var = xx - x1 * x1 / self.n_samples

@@ -115,3 +115,14 @@ def test_references_round_trip_and_are_checked(recorded, tmp_path):
     assert json.loads(str(arrays["meta"]))["format_version"] == 4
     with pytest.raises(ValueError, match="reference"):
         NozzleBaselines(recorded.nozzle_ids, recorded.kpis, 10e6, 512, 4, reference=np.zeros((N, 100)))
+
+
+def test_float32_rows_get_the_float64_decisions(recorded):
+    classes = ["healthy_nozzle", "ok_signal", "slightly_dried", "healthy_nozzle"] * (N // 4)
+    x = simulate_nozzles(classes, seed=HEAD, frame_seed=77).traces
+    x32 = (x + 0.05).astype(np.float32)  # with a sensor offset
+    gate = HealthyGate(recorded)
+    a, b = gate.screen(x32, 0), gate.screen(x32.astype(np.float64), 0)
+    np.testing.assert_array_equal(a.cleared, b.cleared)
+    np.testing.assert_allclose(a.residual_fraction, b.residual_fraction, rtol=1e-3, atol=1e-6)
+    np.testing.assert_allclose(a.gain, b.gain, rtol=1e-5)

@@ -166,6 +166,10 @@ def test_fdi_classifies_nozzles_with_a_baseline_against_it(ros, tmp_path, fdi_mo
     assert sum(got.get(nz) == c for nz, c in truth.items()) >= 0.8 * len(truth), (got, truth)
     ros.spin_until(lambda: diag and diag[-1]["rows_with_baseline"] == str(N), 5, "rows_with_baseline")
     assert diag[-1]["config_error"] == "" and diag[-1]["model_id"] == fdi.model_id
+    # the recorded file carries reference traces: the healthy gate cleared healthy rows (8 of the 40
+    # nozzles with a baseline are healthy; the 10 without one always take the model), and says so
+    assert fdi.labeller.uses_gate and 1 <= rep.gate_cleared <= 8
+    assert diag[-1]["count.gate_cleared"] == str(rep.gate_cleared)
 
 
 @pytest.mark.parametrize("case", ["missing file", "only the file", "plain model", "tampered file",
