@@ -126,3 +126,20 @@ def test_float32_rows_get_the_float64_decisions(recorded):
     np.testing.assert_array_equal(a.cleared, b.cleared)
     np.testing.assert_allclose(a.residual_fraction, b.residual_fraction, rtol=1e-3, atol=1e-6)
     np.testing.assert_allclose(a.gain, b.gain, rtol=1e-5)
+
+
+def test_version_3_files_load_without_references_and_gate_nothing(recorded, tmp_path):
+    from inkdiag_core.baselines.store import _content_sha256
+
+    p = dataclasses.replace(recorded, reference=None).save(tmp_path / "v4.npz")
+    with np.load(p) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(str(arrays["meta"]))
+    old = {k: v for k, v in meta.items() if k not in ("sha256", "has_reference")}
+    old["format_version"] = 3
+    old["sha256"] = _content_sha256(recorded.nozzle_ids, recorded.kpis, {k: v for k, v in old.items() if k != "sha256"})
+    arrays["meta"] = np.array(json.dumps(old, sort_keys=True))
+    np.savez(tmp_path / "v3.npz", **arrays)
+    b = NozzleBaselines.load(tmp_path / "v3.npz")
+    assert not b.has_reference and not HealthyGate(b).active
+    np.testing.assert_array_equal(b.kpis, recorded.kpis)
