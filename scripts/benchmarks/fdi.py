@@ -13,7 +13,7 @@ for KPI_Y, the rich feature set and KPI_Y + the nozzle's healthy baseline
 per nozzle, not per frame), and ``forest_predict_proba`` against scikit-learn's
 ``predict_proba`` on the KPI_Y pipeline. Then the healthy gate
 (:class:`inkdiag_core.HealthyGate`, issue 17): its ``screen`` on a realistic head
-frame (``--head-nozzles`` nozzles, 2 % faulty, half the healthy rows OK-check;
+frame (``--head-nozzles`` nozzles, ``--faulty`` 2 % faulty by default, half the healthy rows OK-check;
 references recorded by ``BaselineRecorder`` from 8 healthy frames) against one
 ``max`` pass over the same frame, and ``FrameLabeller.label`` end to end on that
 frame in 200-nozzle messages (the default detector ``models/fdi_default.joblib``,
@@ -49,9 +49,10 @@ def main():
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--head-nozzles", type=int, default=2656, help="nozzles of the gate's head frame")
     ap.add_argument("--gate-only", action="store_true", help="only the healthy gate and FrameLabeller rows")
+    ap.add_argument("--faulty", type=float, default=0.02, help="faulty fraction of the gate's head (1: worst case)")
     ns = ap.parse_args()
     if ns.gate_only:
-        gate_bench(ns.head_nozzles, ns.seed)
+        gate_bench(ns.head_nozzles, ns.seed, ns.faulty)
         return
     per = max(ns.n // 12, 1)
     batch = simulate({c: per for c in FaultClass}, seed=ns.seed)
@@ -99,10 +100,10 @@ def main():
     for name, pipe, rows_ in (("rf/rich", rich, X), ("rf/kpi_y+baseline", based, Xb)):
         acc = np.mean(pipe.predict(rows_) == batch.label_values())
         print(f"accuracy of {name} on the timed batch: {100 * acc:.1f}% (trained on {len(train)} traces)")
-    gate_bench(ns.head_nozzles, ns.seed)
+    gate_bench(ns.head_nozzles, ns.seed, ns.faulty)
 
 
-def gate_bench(n: int, seed: int, repeats: int = 5):
+def gate_bench(n: int, seed: int, faulty: float = 0.02, repeats: int = 5):
     """The healthy gate against one max pass, and FrameLabeller rows/s with and without references."""
     import dataclasses
     from pathlib import Path
@@ -113,7 +114,7 @@ def gate_bench(n: int, seed: int, repeats: int = 5):
     rng = np.random.default_rng(seed)
     faults = [c.value for c in FaultClass if c.value not in ("healthy_nozzle", "ok_signal")]
     classes = np.where(rng.random(n) < 0.5, "healthy_nozzle", "ok_signal").astype(object)
-    bad = rng.choice(n, size=max(1, round(0.02 * n)), replace=False)
+    bad = rng.choice(n, size=max(1, round(faulty * n)), replace=False)
     classes[bad] = [faults[i] for i in rng.integers(len(faults), size=bad.size)]
     head = 9_100 + seed
     rec = BaselineRecorder(n_frames=8)
@@ -157,7 +158,8 @@ def gate_bench(n: int, seed: int, repeats: int = 5):
     a = t["FrameLabeller, with references (gate), all messages in one call"]
     b = t["FrameLabeller, without references, all messages in one call"]
     print(f"ratio FrameLabeller with gate / without, one call: {b / a:.2f}x faster")
-    same = all((g.classes == w.classes).all() for g, w in zip(with_ref.label(msgs, firsts), without.label(msgs, firsts)))
+    same = all((g.classes == w.classes).all()
+               for g, w in zip(with_ref.label(msgs, firsts), without.label(msgs, firsts)))
     print(f"labels with the gate == without: {same}")
 
 
