@@ -112,8 +112,10 @@ def gate_bench(n: int, seed: int, faulty: float = 0.02, repeats: int = 5):
     from inkdiag_core.model_cache import ensure_default_model
 
     rng = np.random.default_rng(seed)
-    faults = [c.value for c in FaultClass if c.value not in ("healthy_nozzle", "ok_signal")]
-    classes = np.where(rng.random(n) < 0.5, "healthy_nozzle", "ok_signal").astype(object)
+    from inkdiag_core.faults import HEALTHY_CLASSES
+
+    faults = [c.value for c in FaultClass if c not in HEALTHY_CLASSES]
+    classes = np.where(rng.random(n) < 0.5, FaultClass.HEALTHY_NOZZLE.value, FaultClass.OK_SIGNAL.value).astype(object)
     bad = rng.choice(n, size=max(1, round(faulty * n)), replace=False)
     classes[bad] = [faults[i] for i in rng.integers(len(faults), size=bad.size)]
     head = 9_100 + seed

@@ -95,7 +95,8 @@ def make_frames(n_nozzles, n_frames, seed, faulty=0.02):
 
     rng = np.random.default_rng(seed)
     faults = np.array([c.value for c in FaultClass if c not in HEALTHY_CLASSES], dtype=object)
-    classes = np.where(rng.random(n_nozzles) < 0.5, "healthy_nozzle", "ok_signal").astype(object)
+    jet, ok = FaultClass.HEALTHY_NOZZLE.value, FaultClass.OK_SIGNAL.value
+    classes = np.where(rng.random(n_nozzles) < 0.5, jet, ok).astype(object)
     bad = rng.random(n_nozzles) < faulty
     classes[bad] = faults[rng.integers(faults.size, size=int(bad.sum()))]
     return [simulate_nozzles(classes, seed=seed, frame_seed=[seed, 100 + i]).traces for i in range(n_frames)]
