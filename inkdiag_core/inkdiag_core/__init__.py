@@ -109,6 +109,10 @@ from .drying_tracker import ESTIMATE_COLUMNS, DryingTracker, RangeEstimates, Row
 
 __all__ += ["ESTIMATE_COLUMNS", "DryingTracker", "RangeEstimates", "RowEstimates"]
 
+from .openset import UNKNOWN, ConformalOpenSet  # noqa: E402
+
+__all__ += ["UNKNOWN", "ConformalOpenSet"]
+
 from .detector import DetectorLabels, FaultDetector  # noqa: E402
 
 __all__ += ["DetectorLabels", "FaultDetector"]

@@ -11,6 +11,9 @@ rule:
 - optionally ``baseline_pipeline_`` and ``baseline_fd_threshold_``: the same
   traces with each nozzle's healthy baseline KPIs (n, 7)
   (:mod:`inkdiag_core.baselines`);
+- optionally ``openset_`` and ``baseline_openset_``: each branch's open-set layer
+  (:mod:`inkdiag_core.openset`), which calls a row ``unknown`` when it is unlike
+  every known class, at a calibrated false-unknown rate ``unknown_rate``;
 - :meth:`FaultDetector.label`: one call that routes each row to its branch;
 - :attr:`FaultDetector.model_id`, from the sha256 of the file it was saved to
   or loaded from (:func:`inkdiag_core.save_detector`,
@@ -42,7 +45,15 @@ from .fdi import (
     pipeline_predict_proba,
     threshold_and_scores,
 )
-from .kpis import MIN_KPI_SAMPLES
+from .kpis import MIN_KPI_SAMPLES, extract_kpis
+from .openset import (
+    OPENSET_FEATURES_VERSION,
+    UNKNOWN,
+    ConformalOpenSet,
+    baseline_openset_features,
+    check_unknown_rate,
+    openset_features,
+)
 
 __all__ = ["DetectorLabels", "FaultDetector"]
 
@@ -56,15 +67,24 @@ _DTYPES = [np.float64, np.float32]
 class DetectorLabels(NamedTuple):
     """Per-row result of :meth:`FaultDetector.label` (n = rows).
 
-    classes : ndarray of object, (n,) -- class of each row (a value of ``classes_``),
-        None where the row is not ``valid``
-    confidence : ndarray of float64, (n,) -- probability of that class, NaN where not valid
-    p_faulty : ndarray of float64, (n,) -- 1 minus the probability of the healthy classes,
-        NaN where not valid
+    classes : ndarray of object, (n,) -- class of each row (a value of ``classes_``, or
+        ``"unknown"`` (:data:`inkdiag_core.openset.UNKNOWN`) where the open-set layer finds
+        the row unlike every known class), None where the row is not ``valid``
+    confidence : ndarray of float64, (n,) -- probability of that class; for an
+        ``"unknown"`` row its ``unknown_score``; NaN where not valid
+    p_faulty : ndarray of float64, (n,) -- 1 minus the probability of the healthy classes;
+        1.0 for an ``"unknown"`` row (an unknown is a fault for fault detection, never
+        healthy); NaN where not valid
     baseline : ndarray of bool, (n,) -- the row went to the baseline branch
     valid : ndarray of bool, (n,) -- False where the row's features came out NaN or Inf
         in float32 (e.g. a finite sample so large that its energy overflows): that row
         is not classified, the others are
+    unknown_score : ndarray of float64, (n,) -- ``1 - max_c p_c``, the row's largest
+        conformal p-value over the known classes subtracted from 1 (in [0, 1); the row
+        is ``"unknown"`` when it is ``>= 1 - unknown_rate``); NaN where not valid or where
+        the row's branch has no open-set layer (``unknown_rate`` None, or a model file
+        from before the layer) or the row's open-set features are not finite (then it
+        keeps its classifier's class)
     """
 
     classes: np.ndarray
@@ -72,6 +92,7 @@ class DetectorLabels(NamedTuple):
     p_faulty: np.ndarray
     baseline: np.ndarray
     valid: np.ndarray
+    unknown_score: np.ndarray = None
 
 
 class FaultDetector(ClassifierMixin, BaseEstimator):
@@ -82,6 +103,27 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
     probable fault class, a healthy one its more probable healthy class
     (:func:`inkdiag_core.fdi.classify`). ``fit`` learns the threshold that misses at
     most ``fnr_target`` of the faults of a held-out split.
+
+    Open set: with ``unknown_rate`` (default 0.01) each branch also gets a per-class
+    split-conformal layer (:class:`inkdiag_core.openset.ConformalOpenSet`): per class the
+    squared Mahalanobis distance (robust, regularised covariance) of the trace's
+    open-set features (the KPIs, the energy fraction the KPIs' damped sinusoid leaves
+    unexplained and, in the baseline branch, the KPIs relative to the nozzle's own
+    healthy baseline) gives a conformal p-value ``p_c``; a row with ``max_c p_c <=
+    unknown_rate`` is labelled ``"unknown"`` whatever the classifier says.
+    **Guarantee**: a trace of a known class ``c``, exchangeable with that class's
+    calibration rows (same head, same conditions as the training data), is called
+    ``"unknown"`` with probability at most ``unknown_rate`` (marginally over the draw of
+    the calibration rows). Each class needs ``>= 1/unknown_rate - 1`` calibration rows
+    to make a row unknown at all (99 for 0.01); with fewer the layer never says unknown.
+    The class models are fitted on the validation split and calibrated on the
+    classifier's training split (the nonconformity score does not involve the
+    classifier, so calibration rows need only be held out from the class models;
+    calibrating on the larger split steadies each class's threshold: with 400 traces
+    per class the largest per-class false-unknown rate over 4 training seeds was
+    1.5-2.4 % this way against 2.1-4.1 % calibrated on the 100 validation traces).
+    ``predict`` then returns ``"unknown"`` too, a value not in ``classes_`` (scikit-learn's
+    open-set convention for novelty; ``classes_`` stays the known classes).
 
     Parameters
     ----------
@@ -111,6 +153,9 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
     validation_fraction : float in (0, 1)
         Fraction of the training rows held out (stratified) to learn the threshold
         and the scores; the rest fit the pipelines.
+    unknown_rate : float in (0, 1), or None or 0
+        Bound on the probability that a known trace is called ``"unknown"`` (default
+        0.01); None or 0: no open-set layer (``classes`` are always ``classes_`` values).
     random_state : int or None
         Seed of the split and of the forests (one seed for both, as
         :func:`inkdiag_core.fdi.train_default_model` has always used).
@@ -135,6 +180,10 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         Its threshold.
     baseline_scores_ : dict or None
         Its validation scores (same keys as ``scores_``, same split).
+    openset_ : ConformalOpenSet or None
+        Open-set layer of the plain branch (None without ``unknown_rate``).
+    baseline_openset_ : ConformalOpenSet or None
+        Open-set layer of the baseline branch.
     classes_ : ndarray, shape (n_classes,)
         Class labels (``FaultClass`` values for the project's models).
     n_features_in_ : int
@@ -146,7 +195,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
 
     def __init__(self, *, kind="rf", features="kpi_y", sample_rate_hz=None, profile=None, n_estimators=50,
                  min_samples_leaf=3, n_neighbors=5, fnr_target=0.005, validation_fraction=0.25,
-                 random_state=0, n_jobs=None):
+                 unknown_rate=0.01, random_state=0, n_jobs=None):
         self.kind = kind
         self.features = features
         self.sample_rate_hz = sample_rate_hz
@@ -156,6 +205,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         self.n_neighbors = n_neighbors
         self.fnr_target = fnr_target
         self.validation_fraction = validation_fraction
+        self.unknown_rate = unknown_rate
         self.random_state = random_state
         self.n_jobs = n_jobs
 
@@ -186,8 +236,12 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         """Name of the head's profile (``"default"`` without one)."""
         return self.profile.name if self.profile is not None else "default"
 
-    def __setstate__(self, state):  # files pickled before profiles: the default head
+    def __setstate__(self, state):  # files pickled before profiles / the open-set layer
         state.setdefault("profile", None)
+        state.setdefault("unknown_rate", None)
+        if "pipeline_" in state:
+            state.setdefault("openset_", None)
+            state.setdefault("baseline_openset_", None)
         super().__setstate__(state)
 
     # -- fitting ---------------------------------------------------------------------------
@@ -223,6 +277,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
             if not ok:
                 raise ValueError(f"{name} must be a real number in {'(' if lo_open else '['}{lo:g}, {hi:g}"
                                  f"{')' if hi_open else ']'}, got {v!r}")
+        check_unknown_rate(self.unknown_rate)
 
     def _fitted_threshold(self, pipeline, Xval, yval, branch):
         threshold, scores = threshold_and_scores(pipeline, Xval, yval, self.fnr_target)
@@ -285,13 +340,39 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         self.pipeline_ = self._make_pipeline(self.features).fit(X[train], y[train])
         self.classes_ = self.pipeline_.classes_
         self.fd_threshold_, self.scores_ = self._fitted_threshold(self.pipeline_, X[val], y[val], "plain")
+        self.openset_ = self._fit_openset(self.pipeline_, X, X, y, train, val, False)
         self.baseline_pipeline_ = self.baseline_fd_threshold_ = self.baseline_scores_ = None
+        self.baseline_openset_ = None
         if base is not None:
             rows = with_baseline(X, base)
             self.baseline_pipeline_ = self._make_pipeline(BASELINE_FEATURES).fit(rows[train], y[train])
             self.baseline_fd_threshold_, self.baseline_scores_ = self._fitted_threshold(
                 self.baseline_pipeline_, rows[val], y[val], "baseline")
+            self.baseline_openset_ = self._fit_openset(self.baseline_pipeline_, rows, X, y, train, val, True)
         return self
+
+    def _openset_features(self, feats, X, baseline):
+        """Open-set feature rows of traces ``X`` from their branch's pipeline features ``feats``."""
+        fs = self.sample_rate_hz_
+        if baseline:
+            return baseline_openset_features(X, feats, fs)
+        kpis = feats[:, :7] if self.features in ("kpi_y", "rich") else extract_kpis(X, fs)
+        return openset_features(X, kpis, fs)
+
+    def _fit_openset(self, pipeline, rows, X, y, train, val, baseline):
+        """A branch's open-set layer: class models on the validation rows, calibrated on the training rows."""
+        rate = check_unknown_rate(self.unknown_rate)
+        if rate is None:
+            return None
+        with np.errstate(all="ignore"):
+            F = self._openset_features(pipeline[0].transform(rows), X, baseline)
+        # each distinct row calibrates once (train_detector replicates recorded rows in the training split)
+        Xt = np.ascontiguousarray(rows[train])
+        _, first = np.unique(Xt.view(np.dtype((np.void, Xt.dtype.itemsize * Xt.shape[1]))).ravel(),
+                             return_index=True)
+        cal = train[np.sort(first)]
+        return ConformalOpenSet(rate).fit(F[val], y[val], F[cal], y[cal], self.classes_,
+                                          random_state=self.random_state)
 
     # -- inference ------------------------------------------------------------------------
 
@@ -313,7 +394,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         return pipeline_predict_proba(self.pipeline_, X)
 
     def predict(self, X):
-        """Class of each trace at ``fd_threshold_`` (plain branch).
+        """Class of each trace at ``fd_threshold_`` (plain branch), or ``"unknown"``.
 
         Parameters
         ----------
@@ -323,7 +404,9 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         Returns
         -------
         ndarray, shape (n,)
-            Values of ``classes_`` (its dtype).
+            Values of ``classes_`` (its dtype), and ``"unknown"`` where the open-set layer
+            says so: a value outside ``classes_`` (scikit-learn's open-set convention; with
+            non-string classes the array is then of object dtype).
 
         Raises
         ------
@@ -334,7 +417,13 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         if not out.valid.all():
             raise ValueError(f"{int((~out.valid).sum())} of {len(out.valid)} rows have non-finite features "
                              "(label() classifies the others)")
-        return out.classes.astype(self.classes_.dtype)
+        unknown = out.classes == UNKNOWN
+        if unknown.any() and self.classes_.dtype.kind not in "OU":
+            return out.classes
+        dtype = self.classes_.dtype
+        if unknown.any() and dtype.kind == "U" and dtype.itemsize // 4 < len(UNKNOWN):
+            dtype = np.dtype(f"U{len(UNKNOWN)}")
+        return out.classes.astype(dtype)
 
     def label(self, X, *, baseline_kpis=None) -> DetectorLabels:
         """Classes, confidences and P(faulty) of traces, each row by its branch.
@@ -343,6 +432,9 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         branch at ``baseline_fd_threshold_`` when the detector has one; every other row
         by the plain branch at ``fd_threshold_``. One batch per branch. A row whose
         features are not finite is not classified (``valid`` False) and costs no other row.
+        Where the branch has an open-set layer, a row unlike every known class is
+        ``"unknown"`` (confidence = its ``unknown_score``, ``p_faulty`` 1): with the
+        baseline branch, a nozzle unlike its own healthy self and unlike every known fault.
 
         Parameters
         ----------
@@ -370,26 +462,47 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         confidence = np.full(n, np.nan)
         p_faulty = np.full(n, np.nan)
         valid = np.ones(n, dtype=bool)
+        unknown_score = np.full(n, np.nan)
         healthy = healthy_mask(self.classes_)
-        for rows, pipeline, threshold in ((use, self.baseline_pipeline_, self.baseline_fd_threshold_),
-                                          (~use, self.pipeline_, self.fd_threshold_)):
+        openset = getattr(self, "openset_", None)
+        baseline_openset = getattr(self, "baseline_openset_", None)
+        for rows, pipeline, threshold, layer in (
+                (use, self.baseline_pipeline_, self.baseline_fd_threshold_, baseline_openset),
+                (~use, self.pipeline_, self.fd_threshold_, openset)):
             if not rows.any():
                 continue
-            if pipeline is self.baseline_pipeline_:
-                Xr = with_baseline(X[rows], base[rows])
-            else:
-                Xr = X if rows.all() else X[rows]  # no copy when every row is plain
-            ok, proba = finite_rows_proba(pipeline, Xr)
+            plain = pipeline is not self.baseline_pipeline_
+            Xt = X if rows.all() else X[rows]  # no copy when every row is on one branch
+            Xr = Xt if plain else with_baseline(Xt, base[rows])
+            ok, proba, feats = finite_rows_proba(pipeline, Xr, return_features=True)
             at = np.flatnonzero(rows)
             valid[at[~ok]] = False
             if proba.shape[0]:
                 pf = 1.0 - proba[:, healthy].sum(axis=1)  # as fault_probability computes it
                 idx, conf = decide_classes(self.classes_, proba, pf, threshold)
+                cls = self.classes_[idx].astype(object)
+                if layer is not None:
+                    if getattr(layer, "features_version_", 1) != OPENSET_FEATURES_VERSION:
+                        raise ValueError("this model's open-set layer was fitted on the features of an older "
+                                         "inkdiag (open-set features version "
+                                         f"{getattr(layer, 'features_version_', 1)}, now "
+                                         f"{OPENSET_FEATURES_VERSION}): retrain it (inkdiag train)")
+                    sel = ok.all()
+                    if len(pipeline) > 2:  # knn: the features before its scaler
+                        feats = pipeline[0].transform(Xr)
+                    with np.errstate(all="ignore"):
+                        F = self._openset_features(feats if sel else feats[ok], Xt if sel else Xt[ok], not plain)
+                    score = layer.unknown_score(F)
+                    unk = layer.is_unknown(score)
+                    cls[unk] = UNKNOWN
+                    conf = np.where(unk, score, conf)
+                    pf = np.where(unk, 1.0, pf)
+                    unknown_score[at[ok]] = score
                 at = at[ok]
-                classes[at] = self.classes_[idx]
+                classes[at] = cls
                 confidence[at] = conf
                 p_faulty[at] = pf
-        return DetectorLabels(classes, confidence, p_faulty, use, valid)
+        return DetectorLabels(classes, confidence, p_faulty, use, valid, unknown_score)
 
     # -- identity -------------------------------------------------------------------------
 
@@ -407,7 +520,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         return f"fdi-{self.kind}-{self.features}{branch}-{tail}"
 
     def __getstate__(self):
-        state = super().__getstate__()
+        state = dict(super().__getstate__())  # object.__getstate__ returns the live __dict__
         state.pop("file_sha256_", None)  # a file's hash cannot be inside the file
         return state
 

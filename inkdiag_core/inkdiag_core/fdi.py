@@ -388,7 +388,7 @@ def classify(pipeline, traces, *, fd_threshold: float = 0.5):
     return classes[idx].astype(str), confidence, p_faulty
 
 
-def finite_rows_proba(pipeline, X):
+def finite_rows_proba(pipeline, X, *, return_features=False):
     """Class probabilities of the rows of ``X`` whose features are finite in float32.
 
     The feature steps run on every row; the final estimator (what scikit-learn's
@@ -397,10 +397,15 @@ def finite_rows_proba(pipeline, X):
     numpy's floating-point warnings are silenced. Per row, the probabilities are
     bit-identical to ``pipeline.predict_proba``.
 
+    With ``return_features=True`` also the feature rows the final estimator saw
+    (for the open-set layer of :class:`inkdiag_core.FaultDetector`).
+
     Returns
     -------
     ok : ndarray of bool, shape (n,)
     proba : ndarray of float64, shape (ok.sum(), n_classes)
+    features : ndarray, shape (n, n_features), only with ``return_features``
+        Every row's features (``X`` itself for a bare estimator).
     """
     with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
         if isinstance(pipeline, Pipeline) and len(pipeline) > 1:
@@ -408,9 +413,10 @@ def finite_rows_proba(pipeline, X):
             ok = np.isfinite(np.asarray(feats, dtype=np.float32)).all(axis=1)
             final, rows = pipeline[-1], feats if ok.all() else feats[ok]
         else:
+            feats = X
             ok, final, rows = np.ones(X.shape[0], dtype=bool), pipeline, X
         proba = pipeline_predict_proba(final, rows) if ok.any() else np.empty((0, len(final.classes_)))
-    return ok, proba
+    return (ok, proba, feats) if return_features else (ok, proba)
 
 
 def classify_finite(pipeline, traces, *, fd_threshold: float = 0.5):
@@ -518,7 +524,8 @@ def fnr_threshold(p_faulty_of_faults, fnr_target: float = 0.005) -> float:
 
 def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: str = "rf",
                         features: str = "kpi_y", n_estimators: int = 50, min_samples_leaf: int = 3,
-                        fnr_target: float = 0.005, baseline: bool = False, progress=None):
+                        fnr_target: float = 0.005, baseline: bool = False, unknown_rate: float | None = 0.01,
+                        progress=None):
     """Train the FDI model the nodes load by default, and save it with its manifest.
 
     The default is a Random Forest on KPI_Y: on its validation split it isolates
@@ -550,6 +557,9 @@ def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: st
         Destination ``.joblib``.
     baseline : bool
         Fit the baseline branch too.
+    unknown_rate : float or None
+        The open-set layer's bound on the false-unknown rate of known traces
+        (:class:`inkdiag_core.FaultDetector`, default 0.01); None or 0: no layer.
     progress : callable(step: int, total: int, message: str), optional
         Called after each stage (for a progress bar).
 
@@ -576,7 +586,7 @@ def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: st
 
     det = FaultDetector(kind=kind, features=features, sample_rate_hz=float(sim.sample_rate_hz),
                         n_estimators=int(n_estimators), min_samples_leaf=int(min_samples_leaf),
-                        fnr_target=float(fnr_target), random_state=int(seed))
+                        fnr_target=float(fnr_target), unknown_rate=unknown_rate, random_state=int(seed))
     det.fit(sim.traces, y, baseline_kpis=baseline_training_kpis(sim, seed) if baseline else None)
     report(2, total, f"fitted {kind} on {features} features" + (" and baselines" if baseline else ""))
     report(3, total, f"validation FI accuracy {100 * det.scores_['validation_fi_accuracy']:.1f}%")

@@ -23,6 +23,7 @@ from pathlib import Path
 
 from .fdi import train_default_model as _core_train
 from .persistence import ModelFileError, load_model
+from .openset import OPENSET_FEATURES_VERSION
 
 __all__ = ["DEFAULT_FEATURES", "DEFAULT_MODEL", "DEFAULT_SETTINGS", "default_config", "ensure_default_model",
            "main", "train_default_model"]
@@ -32,7 +33,7 @@ DEFAULT_MODEL = Path("models") / "fdi_default.joblib"
 DEFAULT_FEATURES = {DEFAULT_MODEL.name: "kpi_y"}
 #: Training settings that define the default model; a cached file trained otherwise is stale.
 DEFAULT_SETTINGS = ("kind", "features", "n_per_class", "seed", "n_estimators", "min_samples_leaf", "fnr_target",
-                    "baseline")
+                    "baseline", "unknown_rate")
 
 
 def default_config(name: str = DEFAULT_MODEL.name) -> dict:
@@ -45,6 +46,7 @@ def default_config(name: str = DEFAULT_MODEL.name) -> dict:
     cfg["features"] = DEFAULT_FEATURES.get(name, cfg["features"])
     if cfg["features"] == "kpi_y+baseline":
         del cfg["baseline"]
+        del cfg["unknown_rate"]  # a plain pipeline file: no open-set layer
     else:
         cfg["baseline"] = name == DEFAULT_MODEL.name
     return cfg
@@ -86,10 +88,14 @@ def ensure_default_model(path=DEFAULT_MODEL, *, progress=True, log=print):
     want = default_config(path.name)
     if path.exists():
         try:
-            _, manifest = load_model(path)
+            obj, manifest = load_model(path, as_pipeline=False)
             cfg = manifest.get("config", {})
             stale = {k: (cfg.get(k), v) for k, v in want.items()
                      if path.name in DEFAULT_FEATURES and cfg.get(k) != v}
+            layers = [getattr(obj, a, None) for a in ("openset_", "baseline_openset_")]
+            versions = {getattr(x, "features_version_", 1) for x in layers if x is not None}
+            if versions - {OPENSET_FEATURES_VERSION}:
+                stale["open-set features version"] = (min(versions), OPENSET_FEATURES_VERSION)
             if not stale:
                 return path
             log(f"inkdiag: cached model trained with other settings than the default "

@@ -4,7 +4,10 @@ Pure Python on decoded messages (no ROS). Label accuracy counts every nozzle
 of every frame that has both a truth and a labels message; the two healthy
 classes count as one (the simulator's healthy nozzles are jetting-pulse
 traces, and ``ok_signal`` vs ``healthy_nozzle`` is an operating condition, not a
-fault). f_m tracking compares each estimate (and its trend) with the true f_m
+fault). A nozzle labelled ``unknown`` (the model's open-set layer, issue 16)
+counts as a wrong label (the simulator's classes are all known) but as a
+detected fault: ``label_scores`` counts them per true class and scores fault
+detection with them. f_m tracking compares each estimate (and its trend) with the true f_m
 of the same nozzle in the same frame.
 """
 
@@ -15,6 +18,7 @@ from collections import Counter, OrderedDict
 import numpy as np
 
 from .faults import HEALTHY_VALUES, FaultClass
+from .openset import UNKNOWN
 
 __all__ = ["Scorecard", "HEALTHY"]
 
@@ -72,6 +76,8 @@ class Scorecard:
         total = correct = 0
         per_class = Counter()
         per_class_ok = Counter()
+        per_class_unknown = Counter()
+        missed = false_alarms = n_faults = 0
         for fid, rep in self.labels.items():
             t = self.truth.get(fid)
             if t is None:
@@ -89,11 +95,20 @@ class Scorecard:
                 if tc == gc:
                     correct += 1
                     per_class_ok[tc] += 1
+                per_class_unknown[tc] += gc == UNKNOWN
+                n_faults += tc != "healthy"
+                missed += tc != "healthy" and gc == "healthy"  # an unknown is a detected fault
+                false_alarms += tc == "healthy" and gc != "healthy"
+        n_healthy = total - n_faults
         return {
             "frames": sum(1 for f in self.labels if f in self.truth),
             "nozzle_labels": total,
             "accuracy": correct / total if total else float("nan"),
             "per_class": {c: (per_class_ok[c], per_class[c]) for c in sorted(per_class)},
+            "unknown": sum(per_class_unknown.values()),
+            "unknown_per_class": {c: per_class_unknown[c] for c in sorted(per_class)},
+            "fd_missed": missed / n_faults if n_faults else float("nan"),
+            "fd_false_alarms": false_alarms / n_healthy if n_healthy else float("nan"),
         }
 
     def fm_scores(self) -> dict:
@@ -117,9 +132,10 @@ class Scorecard:
         ls, fs = self.label_scores(), self.fm_scores()
         lines = ["scorecard against the simulator's ground truth",
                  f"  labels: {ls['frames']} frames, {ls['nozzle_labels']} nozzle labels, "
-                 f"accuracy {100 * ls['accuracy']:.1f} %"]
+                 f"accuracy {100 * ls['accuracy']:.1f} %; {ls['unknown']} called unknown; fault detection: "
+                 f"missed {100 * ls['fd_missed']:.2f} %, false alarms {100 * ls['fd_false_alarms']:.2f} %"]
         for c, (ok, n) in ls["per_class"].items():
-            lines.append(f"    {c:<24} {ok:>6}/{n:<6} {100 * ok / n:5.1f} %")
+            lines.append(f"    {c:<24} {ok:>6}/{n:<6} {100 * ok / n:5.1f} %  unknown {ls['unknown_per_class'][c]}")
         if fs["estimates"]:
             f0, f1 = fs["first"], fs["last"]
             lines += [

@@ -99,7 +99,7 @@ def _real_rows(data, profile, seed, validation_fraction, n_sim_per_class):
 def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseline: bool = False,
                    n_per_class: int = 1000, data=None, seed: int = 0, n_estimators: int = 50,
                    min_samples_leaf: int = 3, fnr_target: float = 0.005, validation_fraction: float = 0.25,
-                   progress=None, return_data: bool = False):
+                   unknown_rate: float | None = 0.01, progress=None, return_data: bool = False):
     """Fit a :class:`inkdiag_core.FaultDetector` for the head of ``profile``.
 
     Simulates ``n_per_class`` traces of each of the 12 classes on the head
@@ -131,8 +131,9 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
         Labelled recordings of this head (``label`` required, the profile's sampling).
     seed : int
         Seed of the simulation, the split and the forest.
-    n_estimators, min_samples_leaf, fnr_target, validation_fraction
-        As :class:`inkdiag_core.FaultDetector`.
+    n_estimators, min_samples_leaf, fnr_target, validation_fraction, unknown_rate
+        As :class:`inkdiag_core.FaultDetector` (``unknown_rate``: the open-set layer's
+        false-unknown bound, default 0.01; None or 0: no ``unknown``).
     progress : callable(step: int, total: int, message: str), optional
         Called after each stage.
     return_data : bool
@@ -175,7 +176,8 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
             "training_data": "simulated", "n_real_rows": 0}
     det = FaultDetector(kind=kind, features=features, profile=profile, n_estimators=int(n_estimators),
                         min_samples_leaf=int(min_samples_leaf), fnr_target=float(fnr_target),
-                        validation_fraction=float(validation_fraction), random_state=int(seed))
+                        validation_fraction=float(validation_fraction), unknown_rate=unknown_rate,
+                        random_state=int(seed))
     real = np.zeros(len(y), dtype=bool)
     if data is None:
         base = None

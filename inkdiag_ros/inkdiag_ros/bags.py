@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -33,8 +34,9 @@ from msg_defs import topics
 from msg_defs.qos import DIAGNOSTICS_QOS, RELIABLE_QOS, TRACES_QOS
 
 __all__ = ["TRACES_TYPE", "HEAD_TOPICS", "BagFrames", "is_bag", "head_topics", "ros_type_name",
-           "msg_class", "qos_to_rosbags", "qos_from_rosbags", "iter_bag_frames", "read_bag_recording",
-           "load_recording"]
+           "msg_class", "qos_to_rosbags", "qos_from_rosbags", "iter_bag_frames", "iter_bag_chunks",
+           "read_bag_recording", "load_recording", "stream_recording", "report_stats", "BagRecorder",
+           "InProcessRecording", "recording_node", "pop_record_arg", "check_new_bag"]
 
 #: The rosbag2 type name of a trace frame.
 TRACES_TYPE = "std_msgs/msg/Float32MultiArray"
@@ -147,6 +149,10 @@ def qos_from_rosbags(qos, default):
                       history=HistoryPolicy(hist), depth=depth)
 
 
+#: Skipped messages :class:`BagFrames` keeps with their reasons (the others are only counted).
+MAX_SKIPS_KEPT = 1000
+
+
 @dataclasses.dataclass
 class BagFrames:
     """What :func:`iter_bag_frames` read: counts and the frames it skipped.
@@ -158,19 +164,36 @@ class BagFrames:
     n_messages : int
         Messages read on it.
     skipped : list of (int, str)
-        ``(message index, reason)`` of each message that is not a valid trace frame.
+        ``(message index, reason)`` of the first :data:`MAX_SKIPS_KEPT` messages that are
+        not a valid trace frame (or of another sampling than the first frame).
+    n_skipped : int
+        All skipped messages.
+    report : callable, optional
+        ``report(message_index, reason, frame_id)`` called for each skipped message
+        as it is met (``frame_id`` None when the message did not decode).
     """
 
     topic: str = ""
     n_messages: int = 0
     skipped: list = dataclasses.field(default_factory=list)
+    n_skipped: int = 0
+    report: object = None
+
+    def skip(self, index: int, why: str, frame_id=None) -> None:
+        """Count message ``index`` as skipped for ``why`` (and report it)."""
+        self.n_skipped += 1
+        if len(self.skipped) < MAX_SKIPS_KEPT:
+            self.skipped.append((index, why))
+        if self.report is not None:
+            self.report(index, why, frame_id)
 
     def summary(self) -> str:
         """One line: frames read, and the skipped ones with their first reasons."""
-        s = f"{self.n_messages - len(self.skipped)} of {self.n_messages} messages on {self.topic} decoded"
-        if self.skipped:
-            s += f"; skipped {len(self.skipped)}: " + "; ".join(
-                f"message {i}: {why}" for i, why in self.skipped[:3]) + (" ..." if len(self.skipped) > 3 else "")
+        n_skip = max(self.n_skipped, len(self.skipped))
+        s = f"{self.n_messages - n_skip} of {self.n_messages} messages on {self.topic} decoded"
+        if n_skip:
+            s += f"; skipped {n_skip}: " + "; ".join(
+                f"message {i}: {why}" for i, why in self.skipped[:3]) + (" ..." if n_skip > 3 else "")
         return s
 
 
@@ -199,6 +222,17 @@ def _listed(bag: Path) -> str:
         info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
         files = ", ".join(str(bag / f) for f in info.get("relative_file_paths", []))
         return f" ({files}: 0 of the {int(info['message_count'])} messages metadata.yaml lists readable)"
+    except Exception:
+        return ""
+
+
+def _files(bag: Path) -> str:
+    """`` (FILE, ...)``: the bag's storage files metadata.yaml lists, or nothing if it cannot be read."""
+    try:
+        import yaml
+
+        info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        return " (" + ", ".join(str(bag / f) for f in info["relative_file_paths"]) + ")"
     except Exception:
         return ""
 
@@ -271,57 +305,108 @@ def iter_bag_frames(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
             except StopIteration:
                 break
             except Exception as exc:  # a truncated or damaged storage file
-                raise RecordingError(f"{src}: truncated or corrupt bag: {stats.n_messages} messages on "
-                                     f"{stats.topic} readable, then: {_one_line(exc)}") from None
+                raise RecordingError(f"{src}: truncated or corrupt bag{_files(Path(bag_dir))}: {stats.n_messages} "
+                                     f"messages on {stats.topic} readable, then: {_one_line(exc)}") from None
             i = stats.n_messages
             stats.n_messages += 1
             try:
                 frame = decode_traces(deserialize_message(bytes(raw), TRACE_MSG_TYPE))
             except FrameError as exc:
-                stats.skipped.append((i, _one_line(exc)))
+                stats.skip(i, _one_line(exc))
                 continue
             except Exception as exc:  # CDR that does not deserialise as a Float32MultiArray
-                stats.skipped.append((i, f"not a serialised {TRACES_TYPE}: {_one_line(exc)}"))
+                stats.skip(i, f"not a serialised {TRACES_TYPE}: {_one_line(exc)}")
                 continue
             yield frame
     finally:
         reader.close()
 
 
-def read_bag_recording(bag_dir, *, topic: str | None = None, stats: BagFrames | None = None) -> Recording:
-    """Read a bag's trace frames into a :class:`inkdiag_core.Recording` (as ``load_recording`` gives).
+#: Rows per chunk :func:`iter_bag_chunks` yields at most by default (whole frames; 32 MB of 512-sample traces).
+CHUNK_ROWS = 16384
 
-    Rows are the frames' nozzles in bag order: ``nozzle`` from each frame's first
-    nozzle, ``frame_id`` and ``stamp`` (s) from its header. Frames of another
-    sample rate or samples per trace than the first decoded frame are skipped
-    (counted in ``stats`` with the reason). Parameters as :func:`iter_bag_frames`.
+
+def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | None = None,
+                    max_rows: int = CHUNK_ROWS):
+    """Stream a bag's trace frames in chunks of whole frames, each a :class:`inkdiag_core.Recording`.
+
+    Memory stays bounded by one chunk whatever the length of the bag: the offline
+    verbs label, estimate and calibrate chunk by chunk. Rows are the frames' nozzles
+    in bag order: ``nozzle`` from each frame's header, ``frame_id`` and ``stamp`` (s)
+    from its header. Frames of another sample rate or samples per trace than the first
+    decoded frame are skipped (``stats.skip``, with the reason and the frame id).
+
+    Parameters
+    ----------
+    bag_dir, topic, stats
+        As :func:`iter_bag_frames`.
+    max_rows : int
+        Rows per chunk at most; a frame is never split (a frame larger than this is a chunk alone).
+
+    Yields
+    ------
+    first_row : int
+        Index (in the bag's rows, bag order) of the chunk's first row.
+    chunk : Recording
+        Its rows, traces (n, n_samples) float32, V.
 
     Raises
     ------
     RecordingError
-        As :func:`iter_bag_frames`, and a bag with no decodable trace frame
+        As :func:`iter_bag_frames` (a bag that breaks off: after the chunk of the frames
+        read before it); and, once the bag is read, a bag with no decodable trace frame
         (empty, or every frame skipped: the first reasons are given).
     """
     stats = stats if stats is not None else BagFrames()
-    blocks, noz, fid, st = [], [], [], []
+    blocks, n_rows, first_row = [], 0, 0
     fs = n_s = None
-    for frame in iter_bag_frames(bag_dir, topic=topic, stats=stats):
-        if fs is None:
-            fs, n_s = frame.sample_rate_hz, frame.n_samples
-        elif frame.sample_rate_hz != fs or frame.n_samples != n_s:
-            stats.skipped.append((stats.n_messages - 1, f"sampled at {frame.sample_rate_hz:g} Hz x {frame.n_samples}, "
-                                  f"the bag's first frame at {fs:g} Hz x {n_s}"))
-            continue
-        n = frame.n_nozzles
-        blocks.append(np.array(frame.traces))  # a copy: the frame is a view into its message
-        noz.append(frame.nozzle_ids)
-        fid.append(np.full(n, frame.frame_id, dtype=np.int64))
-        st.append(np.full(n, frame.stamp))
-    if not blocks:
+
+    def chunk():
+        return Recording.from_arrays(np.concatenate([b[0] for b in blocks]), fs,
+                                     nozzle=np.concatenate([b[1] for b in blocks]),
+                                     frame_id=np.concatenate([np.full(b[0].shape[0], b[2], np.int64) for b in blocks]),
+                                     stamp=np.concatenate([np.full(b[0].shape[0], b[3]) for b in blocks]),
+                                     source=str(bag_dir))
+
+    try:
+        for frame in iter_bag_frames(bag_dir, topic=topic, stats=stats):
+            if fs is None:
+                fs, n_s = frame.sample_rate_hz, frame.n_samples
+            elif frame.sample_rate_hz != fs or frame.n_samples != n_s:
+                stats.skip(stats.n_messages - 1, f"sampled at {frame.sample_rate_hz:g} Hz x {frame.n_samples}, "
+                           f"the bag's first frame at {fs:g} Hz x {n_s}", frame.frame_id)
+                continue
+            if blocks and n_rows + frame.n_nozzles > max_rows:
+                yield first_row, chunk()
+                first_row += n_rows
+                blocks, n_rows = [], 0
+            # a copy: the frame is a view into its message
+            blocks.append((np.array(frame.traces), np.asarray(frame.nozzle_ids, np.int64), frame.frame_id, frame.stamp))
+            n_rows += frame.n_nozzles
+    except RecordingError:  # the bag broke off: the frames read before it are still given
+        if blocks:
+            yield first_row, chunk()
+        raise
+    if blocks:
+        yield first_row, chunk()
+    elif first_row == 0:
         what = "no messages" if stats.n_messages == 0 else f"no valid trace frame ({stats.summary()})"
         raise RecordingError(f"{bag_dir}: {what} on {stats.topic}")
-    return Recording.from_arrays(np.concatenate(blocks), fs, nozzle=np.concatenate(noz),
-                                 frame_id=np.concatenate(fid), stamp=np.concatenate(st), source=str(bag_dir))
+
+
+def read_bag_recording(bag_dir, *, topic: str | None = None, stats: BagFrames | None = None) -> Recording:
+    """Read a bag's trace frames into one :class:`inkdiag_core.Recording` (as ``load_recording`` gives).
+
+    The whole bag in memory: the offline verbs stream it with :func:`iter_bag_chunks`
+    instead. Rows, skipped frames and errors as :func:`iter_bag_chunks`.
+    """
+    chunks = [c for _, c in iter_bag_chunks(bag_dir, topic=topic, stats=stats)]
+    if len(chunks) == 1:
+        return chunks[0]
+    return Recording.from_arrays(np.concatenate([c.traces for c in chunks]), chunks[0].sample_rate_hz,
+                                 nozzle=np.concatenate([c.nozzle for c in chunks]),
+                                 frame_id=np.concatenate([c.frame_id for c in chunks]),
+                                 stamp=np.concatenate([c.stamp for c in chunks]), source=str(bag_dir))
 
 
 def load_recording(path, *, topic: str | None = None, stats: BagFrames | None = None) -> Recording:
@@ -337,13 +422,237 @@ def load_recording(path, *, topic: str | None = None, stats: BagFrames | None = 
     return load_npz_recording(path)
 
 
+class BagRecorder:
+    """Raw subscriptions of one node, each writing what it receives into a rosbags rosbag2 writer.
+
+    Used by ``inkdiag record`` (a node of its own) and :class:`InProcessRecording`.
+
+    Parameters
+    ----------
+    node : rclpy.node.Node
+    writer : rosbags.rosbag2.Writer
+        Open.
+    wanted : dict
+        Absolute topic -> (type name, subscription QoS), from :func:`inkdiag_ros.bags.head_topics`.
+    """
+
+    def __init__(self, node, writer, wanted):
+        from rosbags.typesys import Stores, get_typestore
+
+        self.node, self.writer, self.wanted = node, writer, wanted
+        self.typestore = get_typestore(Stores.ROS2_JAZZY)
+        self.connections = {}
+        self.counts = dict.fromkeys(wanted, 0)
+        self._subs = [node.create_subscription(msg_class(t), topic, self._callback(topic), qos, raw=True)
+                      for topic, (t, qos) in wanted.items()]
+
+    def _offered(self, topic):
+        """The QoS profiles the topic's publishers offer (the subscription's own when none is seen)."""
+        try:
+            infos = self.node.get_publishers_info_by_topic(topic)
+        except Exception:  # the context went down (a signal): no graph to ask any more
+            infos = []
+        profiles = [qos_to_rosbags(i.qos_profile) for i in infos]
+        return profiles or [qos_to_rosbags(self.wanted[topic][1])]
+
+    def connection(self, topic):
+        """The bag connection of ``topic``, added (with its offered QoS) at its first message."""
+        conn = self.connections.get(topic)
+        if conn is None:
+            conn = self.writer.add_connection(topic, self.wanted[topic][0], typestore=self.typestore,
+                                              offered_qos_profiles=self._offered(topic))
+            self.connections[topic] = conn
+        return conn
+
+    def _callback(self, topic):
+        def on_message(raw):
+            stamp = self.node.get_clock().now().nanoseconds
+            self.writer.write(self.connection(topic), stamp, raw)
+            self.counts[topic] += 1
+        return on_message
+
+    def finish(self):
+        """Add the topics that had no message (so the metadata lists every recorded topic)."""
+        for topic in self.wanted:
+            self.connection(topic)
+
+    def destroy(self):
+        """Drop the subscriptions (no message is written after this)."""
+        for sub in self._subs:
+            try:
+                self.node.destroy_subscription(sub)
+            except Exception:  # the node or its context is gone already
+                pass
+        self._subs = []
+
+
+def pop_record_arg(argv):
+    """``(argv without --record BAG_DIR, BAG_DIR or None)``: a node's own ``--record`` option.
+
+    Only the arguments before ``--ros-args`` are looked at (ROS arguments pass through).
+
+    Raises
+    ------
+    ValueError
+        ``--record`` without a directory.
+    """
+    argv = list(argv)
+    end = argv.index("--ros-args") if "--ros-args" in argv else len(argv)
+    for i, a in enumerate(argv[:end]):
+        if a == "--record" or a.startswith("--record="):
+            if "=" in a:
+                return argv[:i] + argv[i + 1:], a.split("=", 1)[1]
+            if i + 1 >= end:
+                raise ValueError("--record needs a bag directory: --record BAG_DIR")
+            return argv[:i] + argv[i + 2:], argv[i + 1]
+    return argv, None
+
+
+def check_new_bag(bag_dir) -> Path:
+    """``bag_dir`` as a Path, refused if it exists or its parent does not (a bag goes into a new directory)."""
+    bag = Path(bag_dir)
+    if bag.exists():
+        raise ValueError(f"{bag}: exists already; a bag is written into a new directory")
+    if not bag.parent.is_dir():
+        raise ValueError(f"{bag.parent}: no such directory")
+    return bag
+
+
+class InProcessRecording:
+    """A rosbag2 bag (MCAP) written from a node's own subscriptions: ``--record`` of printhead_sim and graph.
+
+    Subscribes ``node`` (raw) to the topics and writes every message as received, as
+    ``inkdiag record`` does, in the process that publishes them: nothing is lost to
+    discovery or to a second process starting late. :meth:`close` (idempotent) closes
+    a valid bag; call it before the node is destroyed.
+
+    Parameters
+    ----------
+    node : rclpy.node.Node
+        Its namespace resolves relative names.
+    bag_dir : str or os.PathLike
+        New directory (:func:`check_new_bag`).
+    names : iterable of str, optional
+        Relative topic names as :func:`head_topics` takes them (default: :data:`HEAD_TOPICS`).
+    metadata_version : int
+        8 (default, Humble's ``ros2 bag`` reads it) or 9.
+    """
+
+    def __init__(self, node, bag_dir, names=None, *, metadata_version: int = 8):
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        self.bag = check_new_bag(bag_dir)
+        self.writer = Writer(self.bag, version=metadata_version, storage_plugin=StoragePlugin.MCAP)
+        self.writer.open()
+        try:
+            self.recorder = BagRecorder(node, self.writer, head_topics(node.get_namespace(), names))
+        except Exception:
+            self.writer.close()
+            raise
+        self._closed = False
+
+    def close(self) -> dict:
+        """Stop recording and close the bag; returns the messages written per topic."""
+        if not self._closed:
+            self._closed = True
+            self.recorder.destroy()
+            try:
+                self.recorder.finish()
+            finally:
+                self.writer.close()
+        return dict(self.recorder.counts)
+
+    def summary(self) -> str:
+        """``wrote N messages to BAG: topic n, ...``."""
+        c = self.recorder.counts
+        return f"wrote {sum(c.values())} messages to {self.bag}: " + ", ".join(f"{t} {n}" for t, n in c.items())
+
+
+def recording_node(node_cls, bag_dir, names=None):
+    """A factory for :func:`inkdiag_ros._spin.spin_node`: ``node_cls()`` recording ``names`` into ``bag_dir``.
+
+    The bag is closed (and its summary logged) when the node is destroyed, which
+    ``spin_node`` does after Ctrl-C / SIGTERM as after a normal stop.
+    """
+    check_new_bag(bag_dir)
+
+    def make(**kwargs):
+        node = node_cls(**kwargs)
+        try:
+            rec = InProcessRecording(node, bag_dir, names)
+        except Exception:
+            node.destroy_node()
+            raise
+        destroy = node.destroy_node
+
+        def destroy_node():
+            rec.close()
+            print(rec.summary(), file=sys.stderr, flush=True)
+            return destroy()
+
+        node.destroy_node = destroy_node
+        node.get_logger().info(f"recording {', '.join(rec.recorder.wanted)} into {rec.bag}")
+        return node
+
+    return make
+
+
+
+#: Skipped messages an offline verb reports one by one on stderr (the rest are counted in its summary).
+MAX_SKIPS_REPORTED = 100
+
+
+def skip_reporter(path, file=None, limit: int = MAX_SKIPS_REPORTED):
+    """A :attr:`BagFrames.report` for the offline verbs: one stderr line per skipped message, up to ``limit``."""
+    import sys
+
+    seen = [0]
+
+    def report(index, why, frame_id=None):
+        seen[0] += 1
+        out = file or sys.stderr
+        if seen[0] <= limit:
+            fid = f" (frame {frame_id})" if frame_id is not None else ""
+            print(f"{path}: message {index}{fid} skipped: {why}", file=out, flush=True)
+        elif seen[0] == limit + 1:
+            print(f"{path}: more messages skipped: counted in the summary only", file=out, flush=True)
+
+    return report
+
+
+def stream_recording(path, topic: str | None = None, *, max_rows: int = CHUNK_ROWS, file=None):
+    """The offline verbs' reader: a recording (``.npz`` or bag) as chunks of whole frames.
+
+    Returns
+    -------
+    stats : BagFrames
+        Filled while the chunks are read (``stats.topic`` empty for an ``.npz``); each
+        skipped message is reported on ``file`` (stderr) as it is met (:func:`skip_reporter`).
+    chunks : iterator of (int, Recording)
+        ``(first_row, chunk)``: an ``.npz`` is one chunk (it is read whole), a bag is
+        streamed by :func:`iter_bag_chunks` (``max_rows`` rows a chunk at most).
+    """
+    stats = BagFrames(report=skip_reporter(path, file))
+    if is_bag(path):
+        return stats, iter_bag_chunks(path, topic=topic, stats=stats, max_rows=max_rows)
+    if topic is not None:
+        raise RecordingError(f"{path}: --topic is for a bag directory; this is not one")
+    return stats, iter([(0, load_npz_recording(path))])
+
+
+def report_stats(path, stats: BagFrames, file=None) -> None:
+    """The bag's summary line on ``file`` (stderr), if ``path`` was a bag."""
+    import sys
+
+    if stats.topic:
+        print(f"{path}: {stats.summary()}", file=file or sys.stderr)
+
+
 def load_and_report(path, topic: str | None = None, *, file=None) -> Recording:
     """:func:`load_recording` for the offline verbs: a bag's frame counts and skipped frames go to ``file`` (stderr)."""
     import sys
 
-    stats = BagFrames()
+    stats = BagFrames(report=skip_reporter(path, file))
     rec = load_recording(path, topic=topic, stats=stats)
-    if stats.topic:
-        print(f"{path}: {stats.summary()}", file=file or sys.stderr)
+    report_stats(path, stats, file or sys.stderr)
     return rec
-

@@ -6,6 +6,7 @@
     inkdiag estimate RECORDING --profile HEAD.yaml [--rows ...] --out FM.csv
     inkdiag record BAG_DIR --namespace /head_00 [--topics ...] [--duration S]
     inkdiag replay BAG_DIR [--rate R | --as-fast-as-possible] [--namespace NS] [--topics ...] [--loop]
+    inkdiag printer --heads N [--processes P] [--model M] [--baselines PATTERN] [--simulate] [--duration S]
 
 A RECORDING is an .npz file or a rosbag2 bag directory (see docs/bags.md).
 
@@ -25,7 +26,7 @@ import sys
 
 __all__ = ["VERBS", "build_parser", "main"]
 
-VERBS = ("calibrate", "train", "label", "estimate", "record", "replay")
+VERBS = ("calibrate", "train", "label", "estimate", "record", "replay", "printer")
 """The subcommands, in the order ``inkdiag --help`` lists them."""
 
 

@@ -1,7 +1,7 @@
 """graph: the simulated printhead, fdi and fe in one process on one executor, with a live summary.
 
     graph [--duration 20] [--model models/fdi_default.joblib] [--namespace /head_00]
-          [--train-if-missing] [--baseline [--baseline-path baselines/head_00.npz]]
+          [--train-if-missing] [--baseline [--baseline-path baselines/head_00.npz]] [--record BAG_DIR]
           [--ros-args -p printhead_sim.n_nozzles:=128 --params-file my.yaml]
 
 Parameters come from the packaged ``config/inkdiag.yaml``, then any
@@ -40,6 +40,7 @@ from msg_defs import (
     LABELS_MSG_TYPE,
     RELIABLE_QOS,
     TRUTH_MSG_TYPE,
+    UNKNOWN_CLASS,
     decode_estimates,
     decode_labels,
     decode_truth,
@@ -50,11 +51,16 @@ from msg_defs import (
 from ._spin import shutting_down, sigint_as_shutdown
 from .allocator import PeriodicRelease, keep_freed_memory
 from .blas import limit_blas_threads
+from .bags import HEAD_TOPICS, InProcessRecording, check_new_bag
 from .baseline_node import BaselineRecorderNode
 from .fdi_node import FdiNode
 from .fe_node import FeNode
 from .printhead_sim import PrintheadSim
 from inkdiag_core.scorecard import Scorecard
+
+
+#: What ``--record`` records: the head's topics and the simulation's ground truth.
+RECORDED_TOPICS = (*HEAD_TOPICS, topics.GROUND_TRUTH)
 
 
 def default_params_file() -> str:
@@ -104,6 +110,8 @@ class OperatorMonitor(Node):
             dried = [f"{nz}:{c}" for nz, c, p in rep.faults if c in DRIED_CLASSES]
             parts.append(f"faults [{', '.join(faults)}]")
             parts.append(f"drying [{', '.join(dried)}]")
+            if rep.counts.get(UNKNOWN_CLASS):  # unlike every known class: listed in faults, counted here
+                parts.append(f"unknown {rep.counts[UNKNOWN_CLASS]}")
             if rep.counts.get("invalid"):
                 parts.append(f"invalid {rep.counts['invalid']}")
         est = self.last_estimates
@@ -122,21 +130,23 @@ class OperatorMonitor(Node):
 
 
 def run(duration_s: float, *, namespace: str, model_path: str | None, args=None, out=print,
-        context=None, baseline: dict | None = None) -> Scorecard:
+        context=None, baseline: dict | None = None, record=None) -> Scorecard:
     """Run the graph for ``duration_s`` (0: until shutdown) and return the scorecard.
 
     ``baseline``: ``{"path": .npz to write, "commissioning_s": healthy time,
     "n_frames": frames per nozzle}`` records the
-    head's baselines first (see the module docstring).
+    head's baselines first (see the module docstring). ``record``: a new bag directory
+    that gets every message of :data:`RECORDED_TOPICS` (:class:`inkdiag_ros.bags.InProcessRecording`),
+    closed valid at the end whatever stops the run.
     """
     own = context is None
     if own:
         with sigint_as_shutdown():
             rclpy.init(args=args)
             return _run(duration_s, namespace=namespace, model_path=model_path, out=out, context=None,
-                        baseline=baseline, own=True)
+                        baseline=baseline, own=True, record=record)
     return _run(duration_s, namespace=namespace, model_path=model_path, out=out, context=context,
-                baseline=baseline, own=False)
+                baseline=baseline, own=False, record=record)
 
 
 class BadParameters(ValueError):
@@ -150,15 +160,20 @@ def _make(node_cls, **kwargs):
         raise BadParameters(f"{node_cls.__name__}: {exc}") from exc
 
 
-def _run(duration_s, *, namespace, model_path, out, context, baseline, own) -> Scorecard:
+def _run(duration_s, *, namespace, model_path, out, context, baseline, own, record=None) -> Scorecard:
     """:func:`run` on an initialised context (``own``: shut it down at the end)."""
     kw = {"namespace": namespace}
     if context is not None:
         kw["context"] = context
     nodes = []
-    monitor = None
+    monitor = bag = None
     executor = SingleThreadedExecutor(**({"context": context} if context is not None else {}))
     try:
+        if record:  # subscribed before the head publishes its first frame
+            nodes.append(Node("inkdiag_record", **kw))
+            bag = InProcessRecording(nodes[0], record, RECORDED_TOPICS)
+            executor.add_node(nodes[0])
+            out(f"recording {', '.join(bag.recorder.wanted)} into {bag.bag}")
         fdi_over = [Parameter("model_path", value=str(model_path))] if model_path else []
         if baseline:
             sim = _make(PrintheadSim, parameter_overrides=[
@@ -168,17 +183,19 @@ def _run(duration_s, *, namespace, model_path, out, context, baseline, own) -> S
                 Parameter("n_frames", value=int(baseline.get("n_frames", 8))),
                 Parameter("n_nozzles", value=sim.config["n_nozzles"]),
                 Parameter("timeout_s", value=float(baseline["commissioning_s"]))], **kw)
-            nodes = [sim, recorder]
+            head = [sim, recorder]
         else:
-            nodes = [_make(PrintheadSim, **kw)]
-        for n in nodes:
+            head = [_make(PrintheadSim, **kw)]
+        for n in head:
             executor.add_node(n)
+        nodes += head
+        first = len(nodes) - len(head)  # the head's nodes: nodes[first] the sim, nodes[first + 1] the recorder
 
         def start_labelling():
             extra, fe_over = [], []
-            if baseline and nodes[1].written:
-                extra = [Parameter("baseline_path", value=str(nodes[1].written))]
-                fe_over = [Parameter("baseline_path", value=str(nodes[1].written))]
+            if baseline and nodes[first + 1].written:
+                extra = [Parameter("baseline_path", value=str(nodes[first + 1].written))]
+                fe_over = [Parameter("baseline_path", value=str(nodes[first + 1].written))]
             for make in (lambda: _make(FdiNode, parameter_overrides=fdi_over + extra, **kw),
                          lambda: _make(FeNode, parameter_overrides=fe_over, **kw), lambda: OperatorMonitor(**kw)):
                 nodes.append(make())  # at once: if a later one fails, the finally destroys this one
@@ -199,8 +216,8 @@ def _run(duration_s, *, namespace, model_path, out, context, baseline, own) -> S
                 if not shutting_down(ctx):
                     raise
                 break  # SIGINT/SIGTERM shut the context down while a callback ran
-            if monitor is None and nodes[1].done:
-                rec = nodes[1]
+            if monitor is None and nodes[first + 1].done:
+                rec = nodes[first + 1]
                 out(f"t={time.monotonic() - t0:5.1f}s "
                     + (f"baselines of {rec.recorder.n_complete} nozzles recorded ({rec.frames} frames) "
                        f"-> {rec.written}; starting fdi and fe" if rec.written else
@@ -210,12 +227,15 @@ def _run(duration_s, *, namespace, model_path, out, context, baseline, own) -> S
             if time.monotonic() >= next_print:
                 out(monitor.summary(time.monotonic() - t0) if monitor is not None else
                     f"t={time.monotonic() - t0:5.1f}s commissioning: head healthy, recording baselines "
-                    f"({nodes[1].recorder.n_complete} nozzles complete)")
+                    f"({nodes[first + 1].recorder.n_complete} nozzles complete)")
                 next_print += 1.0
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
         executor.shutdown()
+        if bag is not None:  # a valid bag before any node goes
+            bag.close()
+            out(bag.summary())
         score = monitor.score if monitor is not None else Scorecard()
         for n in nodes:
             n.destroy_node()
@@ -245,7 +265,15 @@ def main(args=None) -> int:
                         help="where --baseline writes the baselines (default baselines/<namespace>.npz)")
     parser.add_argument("--commissioning", type=_commissioning_s, default=3.0,
                         help="seconds the head is healthy at the start with --baseline (0.1 .. 86400)")
+    parser.add_argument("--record", default=None, metavar="BAG_DIR",
+                        help="write a rosbag2 bag (MCAP) of the head's topics: traces, labels, drying_nozzles, "
+                        "fm_estimates, fm_estimates/array, /diagnostics, ground_truth (a new directory)")
     ns = parser.parse_args(remove_ros_args(argv)[1:])
+    if ns.record:
+        try:
+            check_new_bag(ns.record)
+        except ValueError as exc:
+            parser.error(f"--record: {exc}")
     keep_freed_memory()
     limit_blas_threads()
     # the packaged params first, the user's --ros-args after it (later wins)
@@ -264,10 +292,11 @@ def main(args=None) -> int:
         baseline = {"path": path, "commissioning_s": ns.commissioning}
     print(f"inkdiag graph: printhead_sim -> fdi -> fe in {ns.namespace}, "
           f"{'until Ctrl-C' if ns.duration <= 0 else f'{ns.duration:g} s'} (Ctrl-C stops early)"
-          + (f"; per-nozzle baselines recorded in the first {ns.commissioning:g} s" if baseline else ""))
+          + (f"; per-nozzle baselines recorded in the first {ns.commissioning:g} s" if baseline else "")
+          + (f"; recording its topics into {ns.record}" if ns.record else ""))
     try:
         score = run(ns.duration, namespace=ns.namespace, model_path=ns.model, args=argv[:1] + ros_args,
-                    baseline=baseline)
+                    baseline=baseline, record=ns.record)
     except BadParameters as exc:
         print(f"graph: {exc}", file=sys.stderr)
         return 2

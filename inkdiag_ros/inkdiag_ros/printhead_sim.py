@@ -11,6 +11,7 @@ header carries. A nominal profile or a bad file stops the node at start (one lin
     printhead_sim --ros-args -r __ns:=/head_00 -p n_nozzles:=256 -p drying_nozzles:=[40]
     printhead_sim --ros-args -p head_profile:=heads/my_head.yaml
     python -m inkdiag_ros.printhead_sim --ros-args --params-file inkdiag.yaml
+    printhead_sim --record bags/sim1 --ros-args -r __ns:=/head_00   # and a rosbag2 bag of what it publishes
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import numpy as np
 from rclpy.node import Node
 
 from ._spin import spin_node
+from .bags import pop_record_arg, recording_node
 
 from msg_defs import (
     FrameError,
@@ -123,7 +125,14 @@ class PrintheadSim(Node):
 
 
 def main(args=None) -> int:
-    return spin_node(PrintheadSim, args, prog="printhead_sim")
+    """``--record BAG_DIR`` (before ``--ros-args``): a rosbag2 bag of traces and ground_truth (inkdiag_ros.bags)."""
+    try:
+        argv, bag = pop_record_arg(sys.argv if args is None else args)
+        make = PrintheadSim if bag is None else recording_node(PrintheadSim, bag, (topics.TRACES, topics.GROUND_TRUTH))
+    except ValueError as exc:
+        print(f"printhead_sim: {exc}", file=sys.stderr)
+        return 2
+    return spin_node(make, argv, prog="printhead_sim")
 
 
 if __name__ == "__main__":

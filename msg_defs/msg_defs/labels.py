@@ -25,6 +25,13 @@ could not be judged and why (``non_finite``, ``flat``, ``clipped``).
 labelled healthy without the full model; they are also counted under their class
 in ``counts`` (so it is at most ``n_nozzles - counts["invalid"]``). A message
 without it (an older publisher) reads as 0.
+
+A nozzle unlike every class the model knows (its open-set layer, issue 16) has
+the class :data:`UNKNOWN_CLASS` (``"unknown"``): it is a fault (listed under
+``faults``, never healthy) whose ``confidence`` is its unknown score, 1 minus
+its largest per-class conformal p-value (``{"nozzle": 9, "class": "unknown",
+"confidence": 0.995}``), and ``counts`` has an ``"unknown"`` entry when the frame
+has one. It is not a drying class.
 """
 
 from __future__ import annotations
@@ -44,6 +51,7 @@ __all__ = [
     "HEALTHY_CLASSES",
     "DRIED_CLASSES",
     "INVALID_KEY",
+    "UNKNOWN_CLASS",
     "LabelsReport",
     "encode_labels",
     "decode_labels",
@@ -55,6 +63,9 @@ LABELS_MSG_TYPE = String
 #: ``inkdiag_core.faults.HEALTHY_VALUES`` (msg_defs does not import the core);
 #: tests/core/test_vocabulary.py pins the two together, as for DRIED_CLASSES.
 HEALTHY_CLASSES = ("ok_signal", "healthy_nozzle")
+#: Class of a nozzle unlike every known class: a fault of no known kind (wire copy of
+#: ``inkdiag_core.openset.UNKNOWN``; tests/core/test_vocabulary.py pins the two together).
+UNKNOWN_CLASS = "unknown"
 #: The drying classes, in increasing severity (wire copy of ``inkdiag_core.faults.DRIED_VALUES``).
 DRIED_CLASSES = ("slightly_dried", "intermediately_dried", "deeply_dried")
 #: Key of the invalid-row count in ``counts``.

@@ -11,15 +11,18 @@ classifier), and whole fitted pipelines (raw traces -> label probabilities)
 for KPI_Y, the rich feature set and KPI_Y + the nozzle's healthy baseline
 (rows ``[trace, 7 baseline KPIs]``; the baselines themselves are computed once
 per nozzle, not per frame), and ``forest_predict_proba`` against scikit-learn's
-``predict_proba`` on the KPI_Y pipeline. Then the healthy gate
+``predict_proba`` on the KPI_Y pipeline, and the whole ``FaultDetector.label``
+(100 trees like the pipelines here) with and without its open-set layer
+(issue 16), as a ratio of the rf/kpi_y pipeline's throughput (the three timed
+in turns, best of 5). Then the healthy gate
 (:class:`inkdiag_core.HealthyGate`, issue 17): its ``screen`` on a realistic head
-frame (``--head-nozzles`` nozzles, ``--faulty`` 2 % faulty by default, half the healthy rows OK-check;
-references recorded by ``BaselineRecorder`` from 8 healthy frames) against one
-``max`` pass over the same frame, and ``FrameLabeller.label`` end to end on that
-frame in 200-nozzle messages (the default detector ``models/fdi_default.joblib``,
-trained if missing) with the baselines' references (gate on) and without (gate off).
-Prints traces/s and ratios; run it on one core (``scripts/bench`` sets the thread
-variables). ``--gate-only`` skips the pipelines above.
+frame (``--head-nozzles`` nozzles, ``--faulty`` 2 % faulty by default, half the
+healthy rows OK-check; references recorded by ``BaselineRecorder`` from 8 healthy
+frames) against one ``max`` pass over the same frame, and ``FrameLabeller.label``
+end to end on that frame in 200-nozzle messages (the default detector
+``models/fdi_default.joblib``, trained if missing) with the baselines' references
+(gate on) and without (gate off). Prints traces/s and ratios; run it on one core
+(``scripts/bench`` sets the thread variables). ``--gate-only`` skips all but the gate.
 """
 
 import argparse
@@ -28,8 +31,8 @@ import time
 import numpy as np
 import scipy.fft
 
-from inkdiag_core import (FaultClass, baseline_kpis, extract_kpis, healthy_twin_frames, make_fdi_pipeline,
-                          simulate, with_baseline)
+from inkdiag_core import (FaultClass, FaultDetector, baseline_kpis, extract_kpis, healthy_twin_frames,
+                          make_fdi_pipeline, simulate, with_baseline)
 from inkdiag_core.fdi import forest_predict_proba
 from inkdiag_core.screening import screen_traces
 
@@ -83,6 +86,21 @@ def main():
     Xb = with_base(batch, ns.seed)
     based = make_fdi_pipeline("rf", "kpi_y+baseline").fit(with_base(train, ns.seed + 1), train.label_values())
     rows["pipeline rf/kpi_y+baseline (rows -> proba)"] = best_of(lambda: based.predict_proba(Xb))
+    # the whole FaultDetector.label with its open-set layer (issue 16) vs the same detector without it
+    ytr = train.label_values()
+    det_open = FaultDetector(n_estimators=100, min_samples_leaf=1, unknown_rate=0.01).fit(train.traces, ytr)
+    det_closed = FaultDetector(n_estimators=100, min_samples_leaf=1, unknown_rate=None).fit(train.traces, ytr)
+    # timed taking turns with rf/kpi_y (best of 5 each), so a load change on a shared machine hits all three
+    turns = {"ref": lambda: kpi_pipe.predict_proba(X), "open": lambda: det_open.label(X),
+             "closed": lambda: det_closed.label(X)}
+    best = dict.fromkeys(turns, float("inf"))
+    for _ in range(5):
+        for key, fn in turns.items():
+            t0 = time.perf_counter()
+            fn()
+            best[key] = min(best[key], time.perf_counter() - t0)
+    rows["FaultDetector.label rf/kpi_y, open-set layer"] = best["open"]
+    rows["FaultDetector.label rf/kpi_y, no open-set layer"] = best["closed"]
     rows["forest_predict_proba, kpi_y pipeline"] = best_of(
         lambda: forest_predict_proba(clf, kpi_pipe.named_steps["features"].transform(X)))
     width = max(len(k) for k in rows)
@@ -97,6 +115,9 @@ def main():
           f"{rows['RF predict_proba on 7 features (floor)'] / rows['pipeline rf/kpi_y (traces -> proba)']:.3f}")
     print(f"ratio forest_predict_proba / sklearn predict_proba, kpi_y pipeline: "
           f"{rows['pipeline rf/kpi_y (traces -> proba)'] / rows['forest_predict_proba, kpi_y pipeline']:.2f}x faster")
+    for name, key in (("FaultDetector.label rf/kpi_y, open-set layer", "open"),
+                      ("FaultDetector.label rf/kpi_y, no open-set layer", "closed")):
+        print(f"ratio {name} / pipeline rf/kpi_y (timed in turns): {best['ref'] / best[key]:.3f}x the throughput")
     for name, pipe, rows_ in (("rf/rich", rich, X), ("rf/kpi_y+baseline", based, Xb)):
         acc = np.mean(pipe.predict(rows_) == batch.label_values())
         print(f"accuracy of {name} on the timed batch: {100 * acc:.1f}% (trained on {len(train)} traces)")

@@ -1,30 +1,28 @@
 """Benchmark of the fdi node on a full printhead, against the bare transport ceiling in the same run.
 
-    scripts/bench graph [--nozzles 2656] [--faulty 0.02] [--no-baselines] [--chunk 200] [--seconds 8]
-                        [--window N] [--model models/fdi_default.joblib]
+    scripts/bench graph [--case both|realistic|worst|mixed] [--nozzles 2656] [--chunk 200] [--seconds 8]
+                        [--window N] [--no-baselines] [--no-process] [--model models/fdi_default.joblib]
 
-Pre-generates frames of one realistic 2,656-nozzle head (512 samples,
-``simulate_nozzles``: each nozzle keeps its tolerances from frame to frame, each
-frame its own ink temperatures and noise; ``--faulty`` of the nozzles, 2 % by
-default, have a random fault class, the others are healthy, half of them read
-after the OK-check pulse; ``--faulty 1`` is the worst case, every nozzle faulty).
-Unless ``--no-baselines``, the head's baselines with reference traces are recorded
-first (``BaselineRecorder`` on 8 healthy frames of the same head) and given to
-the fdi node (``baseline_path``: its healthy gate clears most healthy rows). Then
-it replays the frames from this process into a second process, three times:
+Pre-generates frames of a realistic 2,656-nozzle head (512 samples; :func:`realistic_head`: every nozzle
+its own tolerances, the faults the same in every frame, every nozzle's healthy baseline recorded by
+``BaselineRecorder`` from 8 healthy frames of the same nozzles and given to the fdi node as its
+``baseline_path``) in two cases: ``realistic`` (2 % of the nozzles faulty) and ``worst`` (every nozzle
+faulty); ``--case mixed`` is the earlier benchmark's data (10 % faulty, ``simulate_nozzles`` with new
+nozzles each frame, no baselines). Then replays them from this process into a second process:
 
 1. ceiling: a plain subscriber in the second process that decodes each frame
    (zero-copy header + view) and answers with a tiny ack carrying the frame id
    (with the allocator set as in every inkdiag node process, ``inkdiag_ros.allocator``);
-2. fdi: the real fdi node (``python -m inkdiag_ros.fdi_node``) with the model,
-   whose ``labels`` messages are the answers, labelling on its worker thread;
-3. the same node with ``labelling_process:=true`` (the classifier in a child
-   process: a third process on the same 2 cores).
+2. per case, fdi: the real fdi node (``python -m inkdiag_ros.fdi_node``) with the model
+   and the case's baselines, whose ``labels`` messages are the answers, labelling on its worker thread;
+3. per case, the same node with ``labelling_process:=true`` (the classifier in a child
+   process: a third process on the same 2 cores; ``--no-process`` skips it).
 
-Before all three, the fdi node's compute alone is timed in this process
-(``FrameLabeller.label`` with the same model and baselines on the same messages,
-one per call, and one head scan per call): what the node could reach if it had a core to itself and no transport;
-its ratio to the ceiling bounds the node's on this machine.
+Before them, the fdi node's compute alone is timed in this process
+(``label_frames``, the plain branch, on the same messages, one per call, and one head scan per
+call): what the node could reach if it had a core to itself and no transport.
+The CPU of the second process (and its children) over the measured phase, from
+``/proc/<pid>/stat``, divided by the messages answered, is the CPU per message.
 
 All use the same closed loop: at most ``--window`` messages in flight
 (published, not yet answered), so the consumer sets the pace. The default
@@ -55,9 +53,10 @@ ROOT = Path(__file__).resolve().parents[2]
 ACK = "bench_ack"
 FDI_THREAD = "fdi node"
 FDI_PROCESS = "fdi, labelling process"
+CEILING = "ceiling: plain subscriber"
 
 
-def sink_main() -> int:
+def sink_main(namespace: str = "/") -> int:
     """Second process of the ceiling run: decode each frame, ack its id."""
     import rclpy
     from rclpy.executors import ExternalShutdownException
@@ -69,7 +68,7 @@ def sink_main() -> int:
 
     keep_freed_memory()  # as every inkdiag node process: the same footing as the fdi node
     rclpy.init()
-    node = Node("bench_sink")
+    node = Node("bench_sink", namespace=namespace)
     pub = node.create_publisher(String, ACK, RELIABLE_QOS)
 
     def on_frame(msg):
@@ -88,37 +87,52 @@ def sink_main() -> int:
     return 0
 
 
-def make_frames(n_nozzles, n_frames, seed, faulty=0.02):
-    """``n_frames`` frames of one head (seed ``seed``), a ``faulty`` fraction of its nozzles faulty."""
+def make_frames(n_nozzles, n_frames, seed):
     from inkdiag_core import FaultClass, simulate_nozzles
     from inkdiag_core.faults import HEALTHY_CLASSES
 
     rng = np.random.default_rng(seed)
-    faults = np.array([c.value for c in FaultClass if c not in HEALTHY_CLASSES], dtype=object)
-    jet, ok = FaultClass.HEALTHY_NOZZLE.value, FaultClass.OK_SIGNAL.value
-    classes = np.where(rng.random(n_nozzles) < 0.5, jet, ok).astype(object)
-    bad = rng.random(n_nozzles) < faulty
-    classes[bad] = faults[rng.integers(faults.size, size=int(bad.sum()))]
-    return [simulate_nozzles(classes, seed=seed, frame_seed=[seed, 100 + i]).traces for i in range(n_frames)]
+    classes = list(FaultClass)
+    p = np.full(len(classes), 0.1 / (len(classes) - len(HEALTHY_CLASSES)))
+    p[[classes.index(c) for c in HEALTHY_CLASSES]] = 0.45
+    return [simulate_nozzles(rng.choice(np.array(classes, dtype=object), size=n_nozzles, p=p),
+                             seed=seed + i).traces for i in range(n_frames)]
 
 
-def cpu_seconds(pid: int) -> float:
-    """User + system CPU time of process ``pid`` and its threads so far, s (Linux /proc)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return float("nan")
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+def realistic_head(n_nozzles, n_frames, seed, *, faulty=0.02, n_baseline_frames=8):
+    """Frames of one realistic head and its nozzles' healthy baselines, recorded as commissioning does.
 
+    Every nozzle has its own tolerances (``simulate_nozzles(seed=seed)``) and one of the two
+    healthy conditions; ``round(faulty * n_nozzles)`` nozzles (seeded choice) carry a fault of a
+    seeded class among the ten fault classes, the same in every frame; frames differ in their
+    ink temperature and noise (``frame_seed``). The baselines are recorded from
+    ``n_baseline_frames`` frames of the same nozzles all healthy, by
+    :class:`inkdiag_core.BaselineRecorder` (whatever it records: KPI baselines, and the
+    healthy references once the gate records them).
 
-def record_baselines(n_nozzles, seed, path):
-    """The head's baselines with reference traces from 8 healthy frames, saved at ``path``."""
-    from inkdiag_core import BaselineRecorder, simulate_nozzles
+    Returns
+    -------
+    frames : list of ndarray, shape (n_nozzles, 512), float32
+        V.
+    baselines : inkdiag_core.NozzleBaselines
+        Every nozzle's.
+    n_faulty : int
+    """
+    from inkdiag_core import BaselineRecorder, FaultClass, simulate_nozzles
+    from inkdiag_core.faults import HEALTHY_CLASSES
 
-    rec = BaselineRecorder(n_frames=8)
-    for f in range(8):
-        rec.add(0, simulate_nozzles(["healthy_nozzle"] * n_nozzles, seed=seed, frame_seed=[seed, f]).traces)
-    return rec.baselines().save(path)
+    rng = np.random.default_rng(seed)
+    healthy = np.array(sorted(HEALTHY_CLASSES, key=lambda c: c.value), dtype=object)
+    faults = np.array([c for c in FaultClass if c not in HEALTHY_CLASSES], dtype=object)
+    classes = rng.choice(healthy, size=n_nozzles)  # each nozzle's healthy condition
+    rec = BaselineRecorder(n_frames=n_baseline_frames)
+    for k in range(n_baseline_frames):
+        rec.add(0, simulate_nozzles(classes, seed=seed, frame_seed=1_000_000 + k).traces)
+    n_faulty = int(round(faulty * n_nozzles))
+    idx = rng.choice(n_nozzles, n_faulty, replace=False)
+    classes[idx] = rng.choice(faults, size=n_faulty)
+    frames = [simulate_nozzles(classes, seed=seed, frame_seed=k).traces for k in range(n_frames)]
+    return frames, rec.baselines(), n_faulty
 
 
 def replay(node, executor, pub, msgs, answered, seconds, window, lost_after_s=0.25, first_id=0):
@@ -166,6 +180,39 @@ def wait_for_match(executor, pub, sub_topic_count, timeout=30.0):
     return False
 
 
+def tree_pids(pid: int) -> list:
+    """``pid`` and its descendants (from /proc/<pid>/task/*/children)."""
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        try:
+            for task in os.listdir(f"/proc/{p}/task"):
+                with open(f"/proc/{p}/task/{task}/children") as f:
+                    todo += [int(c) for c in f.read().split()]
+        except OSError:
+            pass
+    return out
+
+
+def cpu_s(pids) -> float:
+    """utime + stime of ``pids`` (from /proc/<pid>/stat), s; a process gone counts 0."""
+    tick = os.sysconf("SC_CLK_TCK")
+    total = 0.0
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                fields = f.read().rsplit(") ", 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / tick
+        except OSError:
+            pass
+    return total
+
+
+CASES = {"realistic": 0.02, "worst": 1.0}
+"""Fraction of faulty nozzles of each case (``--case``)."""
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--role", default="bench", choices=["bench", "sink"])
@@ -177,75 +224,79 @@ def main() -> int:
                          "answered); default one head scan, ceil(nozzles / chunk)")
     ap.add_argument("--chunk", type=int, default=200,
                     help="nozzles per message: a head scan travels as contiguous nozzle ranges")
+    ap.add_argument("--case", choices=["both", "realistic", "worst", "mixed"], default="both",
+                    help="realistic: 2 %% of the nozzles faulty; worst: every nozzle faulty; both (default); "
+                         "mixed: the earlier benchmark's frames (10 %% faulty, new nozzles every frame, no baselines)")
+    ap.add_argument("--no-baselines", action="store_true", help="the fdi node without the recorded baselines")
+    ap.add_argument("--no-process", action="store_true", help="skip the labelling_process phase")
     ap.add_argument("--model", default=str(ROOT / "models" / "fdi_default.joblib"))
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--faulty", type=float, default=0.02, help="fraction of faulty nozzles (1: the worst case)")
-    ap.add_argument("--no-baselines", action="store_true", help="give the fdi node no baselines (no gate)")
+    ap.add_argument("--namespace", default="/", help=argparse.SUPPRESS)  # the sink's
     ns = ap.parse_args()
     if ns.role == "sink":
-        return sink_main()
+        return sink_main(ns.namespace)
     if ns.window is None:
         ns.window = -(-ns.nozzles // ns.chunk)
 
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    import tempfile
+
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from std_msgs.msg import String
 
-    from inkdiag_core.persistence import read_manifest
+    from inkdiag_core import label_frames, load_model
     from inkdiag_core.model_cache import ensure_default_model
+    from inkdiag_core.persistence import read_manifest
     from msg_defs import (DIAGNOSTICS_MSG_TYPE, DIAGNOSTICS_QOS, LABELS_MSG_TYPE, RELIABLE_QOS,
-                          TRACE_MSG_TYPE, TRACES_QOS, decode_labels, diagnostics_values, encode_traces,
-                          topics)
+                          TRACE_MSG_TYPE, TRACES_QOS, decode_labels, decode_traces, diagnostics_values,
+                          encode_traces, topics)
 
     model = ensure_default_model(ns.model)
     cfg = read_manifest(model).get("config", {})
-    t = time.perf_counter()
-    frames = make_frames(ns.nozzles, ns.frames, ns.seed, ns.faulty)
-    import tempfile
-
-    tmp = tempfile.TemporaryDirectory()
-    base_path = None if ns.no_baselines else record_baselines(ns.nozzles, ns.seed, Path(tmp.name) / "head.npz")
-    msgs = [encode_traces(x[i:i + ns.chunk], first_nozzle=i, frame_id=0, stamp=0.0)
-            for x in frames for i in range(0, ns.nozzles, ns.chunk)]
-    per_msg = [m.layout.dim[0].size for m in msgs]
-    print(f"graph benchmark: {ns.frames} pre-generated frames of {ns.nozzles} nozzles x 512 samples "
-          f"({frames[0].nbytes / 1e6:.1f} MB each, {time.perf_counter() - t:.1f} s) as messages of {ns.chunk} nozzles; "
-          f"window {ns.window} messages in flight ({ns.window / -(-ns.nozzles // ns.chunk):.2g} head scans); "
-          f"{ns.seconds:g} s per phase; model {Path(model).name} "
-          f"({cfg.get('kind')}, {cfg.get('features')}); {100 * ns.faulty:g} % faulty; "
-          f"{'no baselines' if base_path is None else 'baselines with references recorded (gate on)'}")
-
-    # the fdi node's own compute alone, in this process: label_frames on one message per call
-    # (the node's pace at light batching), same messages, same model
-    from inkdiag_core import FrameLabeller, NozzleBaselines, load_detector
-    from msg_defs import decode_traces
-
-    labeller = FrameLabeller(load_detector(model), None if base_path is None else NozzleBaselines.load(base_path))
-    blocks = [decode_traces(m).traces for m in msgs]
-    firsts = [i for _ in frames for i in range(0, ns.nozzles, ns.chunk)]
-    t0, done, k = time.perf_counter(), 0, 0
-    while time.perf_counter() - t0 < min(ns.seconds, 3.0):
-        labeller.label([blocks[k % len(blocks)]], [firsts[k % len(blocks)]])
-        done += blocks[k % len(blocks)].shape[0]
-        k += 1
-    alone = done / (time.perf_counter() - t0)
-    print(f"{'labelling alone (no ROS)':<26} {alone:>9,.0f} traces/s  (FrameLabeller, one {ns.chunk}-nozzle "
-          "message per call, one thread, this process)")
+    pipe, manifest = load_model(model)
+    thr = float(manifest.get("config", {}).get("fd_threshold", 0.5))
     per_scan = -(-ns.nozzles // ns.chunk)
-    t0, done, k = time.perf_counter(), 0, 0
-    while time.perf_counter() - t0 < min(ns.seconds, 3.0):
-        at = (k * per_scan) % len(blocks)
-        scan = blocks[at:][:per_scan]
-        labeller.label(scan, firsts[at:][:per_scan])
-        done += sum(b.shape[0] for b in scan)
-        k += 1
-    alone_scan = done / (time.perf_counter() - t0)
-    print(f"{'':<26} {alone_scan:>9,.0f} traces/s  (the same, one head scan of {per_scan} messages per call)")
+    tmp = Path(tempfile.mkdtemp(prefix="bench_graph_"))
+    cases = ["realistic", "worst"] if ns.case == "both" else [ns.case]
+    data = {}
+    for case in cases:
+        t = time.perf_counter()
+        if case == "mixed":
+            frames, base, what = make_frames(ns.nozzles, ns.frames, ns.seed), None, "10 % faulty (mixed), no baselines"
+        else:
+            frames, baselines, n_faulty = realistic_head(ns.nozzles, ns.frames, ns.seed, faulty=CASES[case])
+            base = None if ns.no_baselines else str(baselines.save(tmp / f"{case}.npz"))
+            what = (f"{n_faulty} faulty ({CASES[case]:.0%}), "
+                    + ("baselines NOT given to fdi" if ns.no_baselines else "baselines of every nozzle recorded"))
+        msgs = [encode_traces(x[i:i + ns.chunk], first_nozzle=i, frame_id=0, stamp=0.0)
+                for x in frames for i in range(0, ns.nozzles, ns.chunk)]
+        data[case] = (msgs, base, what, time.perf_counter() - t)
+    print(f"graph benchmark: {ns.frames} pre-generated frames of {ns.nozzles} nozzles x 512 samples per case "
+          f"({frames[0].nbytes / 1e6:.1f} MB each) as messages of {ns.chunk} nozzles; "
+          f"window {ns.window} messages in flight ({ns.window / per_scan:.2g} head scans); "
+          f"{ns.seconds:g} s per phase; model {Path(model).name} ({cfg.get('kind')}, {cfg.get('features')})")
+    for case in cases:
+        msgs, base, what, gen_s = data[case]
+        print(f"case {case}: {what} ({gen_s:.1f} s to generate)")
+        # the node's own compute alone, in this process (label_frames: the plain branch, no baselines)
+        blocks = [decode_traces(m).traces for m in msgs]
+        for per_call, label in ((1, "message"), (per_scan, "head scan")):
+            t0, done, k = time.perf_counter(), 0, 0
+            while time.perf_counter() - t0 < min(ns.seconds, 2.0):
+                scan = blocks[(k * per_call) % len(blocks):][:per_call]
+                label_frames(pipe, scan, fd_threshold=thr)
+                done += sum(b.shape[0] for b in scan)
+                k += 1
+            data[case] += (done / (time.perf_counter() - t0),)
+            print(f"  {'labelling alone (no ROS)':<30} {data[case][-1]:>9,.0f} traces/s  (label_frames, plain branch, "
+                  f"one {label} per call, one thread, this process)")
 
     rclpy.init()
-    node = Node("bench_replayer")
+    # a namespace of its own: another process on this domain (a test elsewhere) is not taken for ours
+    bench_ns = f"/bench_graph_{os.getpid()}"
+    node = Node("bench_replayer", namespace=bench_ns)
     ex = SingleThreadedExecutor()
     ex.add_node(node)
     pub = node.create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
@@ -258,18 +309,19 @@ def main() -> int:
     env = dict(os.environ)
     results = {}
     next_id = 0
-    fdi = [sys.executable, "-m", "inkdiag_ros.fdi_node", "--ros-args", "-p", f"model_path:={model}",
+    fdi = [sys.executable, "-m", "inkdiag_ros.fdi_node", "--ros-args", "-r", f"__ns:={bench_ns}", "-p", f"model_path:={model}",
            "-p", f"n_nozzles:={ns.nozzles}", "-p", "diagnostics_period_s:=0.5", "--log-level", "warn"]
-    if base_path is not None:
-        fdi += ["-p", f"baseline_path:={base_path}"]
-    phases = [
-        ("ceiling: plain subscriber", [sys.executable, __file__, "--role", "sink"],
-         lambda: node.count_publishers(ACK) > 0),
-        (FDI_THREAD, fdi, lambda: node.count_publishers(topics.LABELS) > 0),
-        (FDI_PROCESS, fdi + ["-p", "labelling_process:=true"], lambda: node.count_publishers(topics.LABELS) > 0),
-    ]
+    phases = [(CEILING, cases[0], [sys.executable, __file__, "--role", "sink", "--namespace", bench_ns],
+               lambda: node.count_publishers(f"{bench_ns}/{ACK}") > 0)]
+    for case in cases:
+        cmd = fdi + (["-p", f"baseline_path:={data[case][1]}"] if data[case][1] else [])
+        phases.append((f"{case}: {FDI_THREAD}", case, cmd, lambda: node.count_publishers(f"{bench_ns}/{topics.LABELS}") > 0))
+        if not ns.no_process:
+            phases.append((f"{case}: {FDI_PROCESS}", case, cmd + ["-p", "labelling_process:=true"],
+                           lambda: node.count_publishers(f"{bench_ns}/{topics.LABELS}") > 0))
     try:
-        for name, cmd, matched in phases:
+        for name, case, cmd, matched in phases:
+            msgs = data[case][0]
             diag.clear()
             proc = subprocess.Popen(cmd, env=env, cwd=ROOT)
             try:
@@ -284,20 +336,23 @@ def main() -> int:
                 # a lost frame holds its window slot that long, so a fixed long timeout would
                 # let transport losses, not the consumer, set the pace of a fast consumer
                 lost_after = max(0.05, 10.0 * float(np.max(warm_lat))) if warm_lat.size else 0.25
-                cpu0 = cpu_seconds(proc.pid)
+                pids = tree_pids(proc.pid)  # with labelling_process: its child too
+                c0 = cpu_s(pids)
                 sent, lat, lost, el = replay(node, ex, pub, msgs, answered, ns.seconds, ns.window,
                                              lost_after_s=lost_after, first_id=next_id)
-                cpu = cpu_seconds(proc.pid) - cpu0
+                cpu = cpu_s(pids) - c0
                 next_id += sent
-                during = dict(next(iter(diag.values()), {}))  # the last period under load
+                mine = f"inkdiag fdi: {bench_ns}"
+                during = dict(diag.get(mine, {}))  # the last period under load
                 ex.spin_once(timeout_sec=0.6)
                 t_end = time.monotonic() + 1.5
                 while time.monotonic() < t_end:
                     ex.spin_once(timeout_sec=0.05)
-                final = dict(next(iter(diag.values()), {}))
+                final = dict(diag.get(mine, {}))
                 if final:
                     final.update({k: during.get(k) for k in ("frames_per_batch", "labeller_busy")})
-                results[name] = (sent, lat, lost, el, final, warm, lost_after, cpu)
+                per_msg = float(np.mean([m.layout.dim[0].size for m in msgs]))
+                results[name] = (sent, lat, lost, el, final, warm, lost_after, cpu, per_msg, case)
             finally:
                 proc.send_signal(2)
                 try:
@@ -310,37 +365,40 @@ def main() -> int:
         rclpy.try_shutdown()
 
     rates = {}
-    for name, (sent, lat, lost, el, d, warm, lost_after, cpu) in results.items():
+    for name, (sent, lat, lost, el, d, warm, lost_after, cpu, per_msg, case) in results.items():
         done = lat.size
         if not done:
-            print(f"{name:<26} nothing answered: published {sent}, lost {len(lost)}")
+            print(f"{name:<34} nothing answered: published {sent}, lost {len(lost)}")
             continue
-        rates[name] = done * float(np.mean(per_msg)) / el
-        line = (f"{name:<26} {rates[name]:>9,.0f} traces/s ({done / el:6.1f} msgs/s)  "
-                f"published {sent}, answered {done}, lost {len(lost)} (> {1e3 * lost_after:.0f} ms)  "
-                f"latency p50 {1e3 * np.percentile(lat, 50):6.1f} ms  p99 {1e3 * np.percentile(lat, 99):6.1f} ms  "
-                f"CPU {1e3 * cpu / done:.2f} ms per message (the second process"
-                f"{'; not its labelling child' if name == FDI_PROCESS else ''})")
-        print(line)
+        rates[name] = done * per_msg / el
+        print(f"{name:<34} {rates[name]:>9,.0f} traces/s ({done / el:6.1f} msgs/s)  "
+              f"published {sent}, answered {done}, lost {len(lost)} (> {1e3 * lost_after:.0f} ms)  "
+              f"latency p50 {1e3 * np.percentile(lat, 50):6.1f} ms  p99 {1e3 * np.percentile(lat, 99):6.1f} ms  "
+              f"CPU {1e3 * cpu / done:.2f} ms per message ({cpu / el:.2f} cores)")
         if d:
-            print(f"{'':<26} fdi's own counters: received {d.get('frames_received')} "
+            print(f"{'':<34} fdi's own counters: received {d.get('frames_received')} "
                   f"(published {sent + warm}: {sent + warm - int(d.get('frames_received', 0))} lost in transport), labelled "
                   f"{d.get('frames_labelled')}, malformed {d.get('frames_malformed')}, "
                   f"failed {d.get('frames_failed')}, dropped {d.get('frames_dropped')} "
-                  f"(of which {warm} warm-up frames); under load: {d.get('frames_per_batch')} frames per "
-                  f"classifier pass, classifier busy {d.get('labeller_busy')} of the time; healthy gate cleared "
-                  f"{d.get('count.gate_cleared', 'n/a')} rows")
-    c = rates.get("ceiling: plain subscriber")
-    if c:
-        print(f"{'labelling alone:':<26} / ceiling = {alone_scan / c:.2f}x at one head scan per call: what a node "
-              "could reach with a core to itself and no ROS cost at all")
-    for name in (FDI_THREAD, FDI_PROCESS):
-        f = rates.get(name)
-        if c and f:
-            p99 = np.percentile(results[name][1], 99)
-            print(f"{name + ':':<26} / ceiling = {f / c:.2f}x (aim >= 0.5x); p99 {'<=' if p99 <= 0.05 else '>'} 50 ms; "
-                  f"/ labelling alone = {f / alone:.2f}x (one message per call), "
-                  f"{f / alone_scan:.2f}x (one head scan per call)")
+                  f"(of which {warm} warm-up frames), rows vs their baseline {d.get('rows_with_baseline')}"
+                  + (f", cleared by the gate {d['gate_cleared']}" if "gate_cleared" in d else "")
+                  + f"; under load: {d.get('frames_per_batch')} frames per classifier pass, "
+                  f"classifier busy {d.get('labeller_busy')} of the time")
+    import shutil
+
+    shutil.rmtree(tmp, ignore_errors=True)
+    c = rates.get(CEILING)
+    for case in cases:
+        if c:
+            alone, alone_scan = data[case][4], data[case][5]
+            print(f"{case + ': labelling alone':<34} / ceiling = {alone_scan / c:.2f}x at one head scan per call: what "
+                  "a node could reach with a core to itself and no ROS cost at all (plain branch)")
+        for kind in (FDI_THREAD, FDI_PROCESS):
+            f = rates.get(f"{case}: {kind}")
+            if c and f:
+                p99 = np.percentile(results[f"{case}: {kind}"][1], 99)
+                print(f"{case + ': ' + kind + ':':<34} / ceiling = {f / c:.2f}x (aim >= 0.5x); p99 "
+                      f"{1e3 * p99:.1f} ms ({'<=' if p99 <= 0.05 else '>'} 50 ms); lost {len(results[f'{case}: {kind}'][2])}")
     return 0
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import msg_defs
-from inkdiag_core import fdi, kpis, residual
+from inkdiag_core import fdi, kpis, openset, residual
 from inkdiag_core import estimation
 from inkdiag_core.faults import (
     DRIED_CLASSES,
@@ -60,6 +60,7 @@ def test_msg_defs_wire_copy_is_pinned_to_the_core():
     # msg_defs must not import the core, so it keeps its own copy of the value tuples
     assert msg_defs.HEALTHY_CLASSES == HEALTHY_VALUES
     assert msg_defs.DRIED_CLASSES == DRIED_VALUES
+    assert msg_defs.UNKNOWN_CLASS == openset.UNKNOWN
     assert inspect.signature(truth.truth_from_arrays).parameters["healthy"].default is msg_defs.HEALTHY_CLASSES
     for path in (ROOT / "msg_defs" / "msg_defs").glob("*.py"):
         assert not re.search(r"^\s*(from|import)\s+inkdiag_core", path.read_text(), re.M), path

@@ -293,3 +293,16 @@ def test_labels_carry_the_rows_the_gate_cleared():
                             gate_cleared=7)
     d = diagnostics_values(arr)["inkdiag fdi: /h"]
     assert d["count." + GATE_CLEARED_KEY] == "7" and d["count.healthy_nozzle"] == "5"
+def test_an_unknown_nozzle_is_a_fault_with_its_score_and_counted():
+    # issue 16: `unknown` entries in faults with their score, counts["unknown"], not drying
+    from msg_defs import DRIED_CLASSES, UNKNOWN_CLASS, LabelsReport, decode_labels, encode_labels
+
+    classes = np.array(["healthy_nozzle", UNKNOWN_CLASS, "slightly_dried", "ok_signal"], dtype=object)
+    rep = LabelsReport.from_arrays(frame_id=3, stamp=1.5, first_nozzle=10, classes=classes,
+                                   confidence=np.array([0.9, 0.995, 0.8, 0.7]),
+                                   valid=np.ones(4, dtype=bool), reasons=np.array([""] * 4, dtype=object),
+                                   model_id="m")
+    back = decode_labels(encode_labels(rep))
+    assert back.counts[UNKNOWN_CLASS] == 1
+    assert (11, UNKNOWN_CLASS, 0.995) in back.faults
+    assert back.nozzles_of(DRIED_CLASSES) == [12]

@@ -15,51 +15,8 @@ import numpy as np
 import pytest
 
 from inkdiag_core import FaultClass, HeadProfile, RecordingError
-from msg_defs import HEADER_LEN, SCHEMA_VERSION
 
-FS = 10e6
-NS = "/head_00"
-
-
-def _typestore():
-    from rosbags.typesys import Stores, get_typestore
-
-    return get_typestore(Stores.ROS2_JAZZY)
-
-
-def _frame_msg(ts, traces, *, first, frame_id, stamp_s, data_offset=HEADER_LEN):
-    """A trace frame built with rosbags' own message classes (no rclpy, no msg_defs encoder)."""
-    ma = ts.types
-    n, s = traces.shape
-    head = np.array([SCHEMA_VERSION, first, frame_id, 0, FS, stamp_s, 0, 0], dtype=np.float32)
-    layout = ma["std_msgs/msg/MultiArrayLayout"](
-        dim=[ma["std_msgs/msg/MultiArrayDimension"](label="nozzle", size=n, stride=n * s),
-             ma["std_msgs/msg/MultiArrayDimension"](label="sample", size=s, stride=s)], data_offset=data_offset)
-    return ma["std_msgs/msg/Float32MultiArray"](layout=layout, data=np.concatenate([head, traces.ravel()]))
-
-
-def write_bag(path, frames, *, version=9, bad_frame=None, traces_type="std_msgs/msg/Float32MultiArray"):
-    """A rosbag2 MCAP bag written by rosbags directly: ``frames`` is a list of (first_nozzle, traces)."""
-    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
-    from rosbags.rosbag2 import StoragePlugin, Writer
-
-    ts = _typestore()
-    qos = Qos(QosHistory.KEEP_LAST, 32, QosReliability.BEST_EFFORT, QosDurability.VOLATILE, QosTime(0, 0),
-              QosTime(0, 0), QosLiveliness.AUTOMATIC, QosTime(0, 0), False)
-    t0 = 1_700_000_000_000_000_000
-    with Writer(path, version=version, storage_plugin=StoragePlugin.MCAP) as w:
-        conn = w.add_connection(f"{NS}/traces", traces_type, typestore=ts, offered_qos_profiles=[qos])
-        other = w.add_connection(f"{NS}/labels", "std_msgs/msg/String", typestore=ts)
-        for k, (first, x) in enumerate(frames):
-            if traces_type == "std_msgs/msg/String":
-                msg = ts.types["std_msgs/msg/String"](data="not traces")
-            else:
-                msg = _frame_msg(ts, x, first=first, frame_id=k, stamp_s=100 + k,
-                                 data_offset=3 if k == bad_frame else HEADER_LEN)
-            w.write(conn, t0 + k * 100_000_000, ts.serialize_cdr(msg, traces_type))
-            w.write(other, t0 + k * 100_000_000 + 1, ts.serialize_cdr(ts.types["std_msgs/msg/String"](data="{}"),
-                                                                       "std_msgs/msg/String"))
-    return path
+from _bags import FS, NS, assert_two_readers_agree, corrupt_a_record, write_bag
 
 
 @pytest.fixture(scope="module")
@@ -87,8 +44,11 @@ def test_a_bag_written_by_rosbags_reads_as_a_recording_and_a_bad_frame_is_skippe
     assert "skipped 1: message 2" in stats.summary()
 
 
-def test_inkdiag_label_labels_a_rosbags_bag_and_finds_the_injected_faults(tmp_path, sim, fdi_model):
-    bag = write_bag(tmp_path / "bag", [(0, sim.traces[i:i + 30].astype(np.float32)) for i in range(0, len(sim), 30)])
+@pytest.mark.parametrize("version", [8, 9])
+def test_inkdiag_label_labels_a_rosbags_bag_and_finds_the_injected_faults(tmp_path, sim, fdi_model, version):
+    bag = write_bag(tmp_path / "bag", [(0, sim.traces[i:i + 30].astype(np.float32)) for i in range(0, len(sim), 30)],
+                    version=version)
+    assert f"version: {version}" in (bag / "metadata.yaml").read_text()
     out = tmp_path / "labels.csv"
     r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "label", str(bag), "--model", str(fdi_model),
                         "--out", str(out)], capture_output=True, text=True, timeout=120)
@@ -116,7 +76,7 @@ def _one_line_error(bag, match):
     return str(info.value)
 
 
-def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim):
+def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim, fdi_model):
     x = sim.traces[:8].astype(np.float32)
     bag = write_bag(tmp_path / "ok", [(0, x)] * 3)
     # truncated: rosbags reads nothing without the MCAP summary; says so and how many were listed
@@ -128,6 +88,13 @@ def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim):
     mcap.write_bytes(mcap.read_bytes()[: mcap.stat().st_size * 2 // 3])
     msg = _one_line_error(trunc, "cannot open the bag")
     assert str(mcap) in msg and "0 of the 6 messages" in msg
+    # corrupt: it opens, then breaks off; names the file and how many messages were read first
+    corrupt = corrupt_a_record(write_bag(tmp_path / "corrupt", [(0, x)] * 100))  # two 1 MB chunks
+    msg = _one_line_error(tmp_path / "corrupt", "truncated or corrupt bag")
+    import re
+
+    n_ok = int(re.search(r"(\d+) messages on /head_00/traces readable", msg).group(1))
+    assert str(corrupt) in msg and 0 < n_ok < 100, msg
     # empty: a traces topic with no message
     assert "no messages on /head_00/traces" in _one_line_error(write_bag(tmp_path / "empty", []), "no messages")
     # the traces topic of another type
@@ -144,6 +111,12 @@ def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim):
     r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "label", str(trunc), "--model", "none.joblib",
                         "--out", "-"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+    r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "label", str(tmp_path / "corrupt"), "--model",
+                        str(fdi_model), "--out", str(tmp_path / "c.csv")], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        f"inkdiag label: error: {msg}"], r.stderr  # the frames before it were labelled and written
+    with open(tmp_path / "c.csv") as f:
+        assert sum(1 for _ in f) == 1 + 8 * n_ok
 
 
 def _env(domain_id):
@@ -205,6 +178,8 @@ def test_record_a_live_printhead_sim_and_read_it_back_with_rosbags_and_load_reco
     assert ids == list(range(ids[0], ids[-1] + 1)) and len(ids) == counts[f"{NS}/traces"]
     assert got.traces.shape == (48 * len(ids), got.n_samples)
     assert f"wrote {n_read} messages" in err
+    # an independent reader: mcap + mcap_ros2 decode the same fields from the schemas in the file
+    assert_two_readers_agree(bag)
 
 
 def test_replay_into_a_subscriber_delivers_every_traces_message(tmp_path, sim, ros):

@@ -141,3 +141,31 @@ def test_a_rate_computed_as_one_over_dt_is_the_models(work, trained, tmp_path):
     out = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "label", str(tmp_path / "dt.npz"), "--model",
                           str(trained[0]), "--out", str(tmp_path / "l.csv")], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
+
+
+def test_label_csv_says_unknown_for_a_trace_unlike_every_class(work, tmp_path, capsys):
+    # issue 16: `inkdiag train --unknown-rate` and `class` = unknown in `inkdiag label`'s CSV
+    from inkdiag_core import extract_kpis
+
+    d, head, _ = work
+    for rate, name in (("0.01", "u.joblib"), ("0", "c.joblib")):
+        assert main(["train", "--profile", str(d / "head.yaml"), "--out", str(tmp_path / name), "--n-per-class",
+                     "140", "--unknown-rate", rate, "--quiet"]) == 0
+        said = capsys.readouterr().out
+        assert ("open-set layer: a trace of a known class is 'unknown' with probability <= 0.01; calibration rows "
+                "per class 105-105") in said if rate != "0" else "open-set" not in said
+    x = head.simulate({FaultClass.HEALTHY_NOZZLE: 20}, seed=61).traces.astype(np.float64)
+    k = extract_kpis(x, 20e6)
+    t = np.arange(x.shape[1]) / 20e6
+    f = np.linspace(600e3, 1200e3, 20)[:, None]  # a lightly damped foreign-body mode, 30 % of the amplitude
+    x += 0.3 * k[:, [3]] * np.exp(-0.01 * 2 * np.pi * f * t) * np.cos(2 * np.pi * f * t)
+    save_recording(tmp_path / "fb.npz", Recording.from_arrays(x.astype(np.float32), 20e6))
+    got = {}
+    for name in ("u.joblib", "c.joblib"):
+        assert main(["label", str(tmp_path / "fb.npz"), "--model", str(tmp_path / name), "--out",
+                     str(tmp_path / "l.csv")]) == 0
+        got[name] = _read(tmp_path / "l.csv")[1]
+    unknown = [r for r in got["u.joblib"] if r["class"] == "unknown"]
+    assert len(unknown) >= 18
+    assert all(0.99 <= float(r["confidence"]) < 1 and r["reason"] == "" for r in unknown)
+    assert not any(r["class"] == "unknown" for r in got["c.joblib"])  # --unknown-rate 0: no layer

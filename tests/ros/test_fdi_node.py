@@ -246,3 +246,27 @@ def test_fdi_refuses_a_tampered_model(ros, fdi_model, tmp_path):
     ros.spin_until(lambda: rig.diag, 5, "diagnostics")
     d = rig.diag[-1]["inkdiag fdi: /h"]
     assert d["level"] == "error" and d["model_id"] == "none" and not rig.labels
+
+
+def test_fdi_labels_a_trace_unlike_every_class_unknown_and_counts_it(ros, tmp_path):
+    # issue 16: a foreign-body trace comes back `unknown` in the labels JSON (a fault, with its
+    # score) and is counted as count.unknown on /diagnostics
+    from inkdiag_core import extract_kpis
+    from inkdiag_core.fdi import train_default_model
+
+    model = tmp_path / "open.joblib"
+    train_default_model(model, n_per_class=140, seed=0)  # >= 99 calibration rows per class
+    x = simulate({FaultClass.HEALTHY_NOZZLE: 8}, seed=31).traces.astype(np.float64)
+    k = extract_kpis(x, 10e6)
+    t = np.arange(x.shape[1]) / 10e6
+    f = np.linspace(600e3, 1200e3, 8)[:, None]  # a lightly damped foreign-body mode, 30 % of the amplitude
+    x += 0.3 * k[:, [3]] * np.exp(-0.01 * 2 * np.pi * f * t) * np.cos(2 * np.pi * f * t)
+    rig = _Rig(ros, model, labelling_process=False)
+    rig.send(encode_traces(x.astype(np.float32), first_nozzle=0, frame_id=1, stamp=1.0), expect_labels=True)
+    rep = rig.labels[-1]
+    unknown = [(nz, p) for nz, c, p in rep.faults if c == "unknown"]
+    assert len(unknown) >= 7 and all(p >= 0.99 for _, p in unknown)
+    assert rep.counts["unknown"] == len(unknown)
+    ros.spin_until(lambda: rig.diag and rig.diag[-1]["inkdiag fdi: /h"]["frames_labelled"] == "1",
+                   5, "diagnostics")
+    assert rig.diag[-1]["inkdiag fdi: /h"]["count.unknown"] == str(len(unknown))

@@ -26,6 +26,11 @@ The recording (.npz) must have the nominal profile's sample rate and trace lengt
 Traces screening refuses (non-finite, out of range, flat, clipped) are dropped and counted; if the recording has a label
 column, only its healthy_nozzle rows are used. See docs/calibration.md.
 
+A rosbag2 bag is streamed: its rows screening accepts are sampled uniformly, at most
+10000 (reservoir sampling, seeded by --seed), so memory stays bounded whatever the
+bag's length; the message says how many rows were read, screened out and sampled.
+A message that is not a valid trace frame is reported on stderr and skipped.
+
 example:
   inkdiag calibrate healthy.npz --nominal nominal.yaml --out head.yaml
 """
@@ -44,20 +49,86 @@ def add_arguments(parser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the spread-separating simulation (default 0)")
 
 
+#: Healthy rows of a bag calibration uses at most (a uniform sample: 20 MB at 512 samples a row).
+MAX_BAG_ROWS = 10000
+
+
+def bag_sample(chunks, nominal, *, max_rows: int = MAX_BAG_ROWS, seed: int = 0):
+    """A uniform sample of at most ``max_rows`` rows screening accepts, from a stream of chunks.
+
+    Reservoir sampling (Vitter's algorithm R, vectorised per chunk): memory is bounded by
+    ``max_rows`` rows and one chunk whatever the length of the stream, and every usable
+    row is equally likely to be kept.
+
+    Parameters
+    ----------
+    chunks : iterable of (int, Recording)
+        As :func:`inkdiag_ros.bags.stream_recording` gives.
+    nominal : HeadProfile
+        Its ADC range sets the screening's out-of-range limit (5x, as calibrate's own).
+
+    Returns
+    -------
+    traces : ndarray, shape (m, n_samples), float32
+        m <= ``max_rows`` rows, V, in stream order.
+    n_read : int
+        Rows read.
+    n_screened : int
+        Rows screening refused (non-finite, out of range, flat, clipped).
+    """
+    import numpy as np
+
+    from inkdiag_core.screening import screen_traces
+
+    rng = np.random.default_rng(seed)
+    store = order = None
+    n_seen = n_read = n_screened = 0
+    for _, rec in chunks:
+        ok, _why = screen_traces(rec.traces, sample_rate_hz=rec.sample_rate_hz, max_abs_v=5.0 * nominal.adc_range_v)
+        rows = rec.traces[ok]
+        n_read += rec.n_rows
+        n_screened += int((~ok).sum())
+        if store is None:
+            store = np.empty((max_rows, rec.n_samples), np.float32)
+            order = np.empty(max_rows, np.int64)
+        k = rows.shape[0]
+        t = n_seen + np.arange(k)  # each row's index among the usable rows
+        fill = t < max_rows
+        store[t[fill]], order[t[fill]] = rows[fill], t[fill]
+        slot = rng.integers(0, t[~fill] + 1) if (~fill).any() else np.empty(0, np.int64)
+        hit = slot < max_rows  # row t replaces a kept one with probability max_rows / (t + 1)
+        src = np.flatnonzero(~fill)[hit]
+        store[slot[hit]], order[slot[hit]] = rows[src], t[~fill][hit]  # a later row wins a shared slot, as in order
+        n_seen += k
+    m = min(n_seen, max_rows)
+    keep = np.argsort(order[:m], kind="stable")
+    return store[:m][keep], n_read, n_screened
+
+
 def run(args) -> int:
+    import itertools
     import json
     import sys
     from pathlib import Path
 
     from inkdiag_core.calibration import calibrate
     from inkdiag_core.head_profile import HeadProfile
-    from ..bags import load_and_report
+    from ..bags import is_bag, report_stats, stream_recording
 
     nominal = HeadProfile.load(args.nominal)
-    rec = load_and_report(args.healthy, args.topic)
+    stats, chunks = stream_recording(args.healthy, args.topic)
+    _, rec = next(chunks)  # a bag with no trace frame: RecordingError
     nominal.check_traces(rec.traces, rec.sample_rate_hz, what=f"{args.healthy}")
-    traces, note, left_out = rec.traces, "", 0
-    if rec.label is not None:  # a labelled recording: its healthy rows only
+    fs, traces, note, left_out = rec.sample_rate_hz, rec.traces, "", 0
+    if is_bag(args.healthy):  # streamed: a bounded sample of its healthy rows
+        traces, n_read, n_screened = bag_sample(itertools.chain([(0, rec)], chunks), nominal, max_rows=MAX_BAG_ROWS,
+                                                   seed=args.seed)
+        del rec
+        report_stats(args.healthy, stats)
+        note = (f"; {n_screened} of the bag's {n_read} rows screened out" if n_screened else "") + (
+            f"; a uniform sample of {traces.shape[0]} of its {n_read - n_screened} usable rows"
+            if n_read - n_screened > traces.shape[0] else "")
+    elif rec.label is not None:  # a labelled recording: its healthy rows only
         keep = rec.label == "healthy_nozzle"
         if not keep.any():
             raise ValueError(f"{args.healthy}: its label column has no healthy_nozzle row to calibrate from")
@@ -69,7 +140,7 @@ def run(args) -> int:
     if not out.parent.is_dir():
         raise OSError(f"{out.parent}: no such directory for --out")
     report_dir.mkdir(parents=True, exist_ok=True)
-    result = calibrate(nominal, traces, rec.sample_rate_hz, name=args.name, seed=args.seed)
+    result = calibrate(nominal, traces, fs, name=args.name, seed=args.seed)
     result.profile.save(out)
     stem = report_dir / out.name.removesuffix(".yaml").removesuffix(".yml")
     png = stem.with_name(stem.name + ".fit.png")

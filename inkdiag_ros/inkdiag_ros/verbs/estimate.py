@@ -44,6 +44,10 @@ recording of another sample rate or trace length than the profile's, bad
 ROWS."""
 
 _CHUNK = 2048  # rows per estimator batch: bounds memory, keeps numpy's batches large
+_BAG_CHUNK_ROWS = 8192  # rows of a bag read at a time (whole frames)
+
+HEADER = ["row", "nozzle", "fm", "fm_std", "d_mu", "viscosity", "frame_id", "stamp", "fm_trend", "fm_rate",
+          "eta_deeply_dried_s", "method", "reason"]
 
 
 def add_arguments(parser) -> None:
@@ -115,12 +119,13 @@ def _fmt(v) -> str:
 
 def run(args) -> int:
     import csv
+    import itertools
     import sys
 
     import numpy as np
     from inkdiag_core import DryingTracker, HeadProfile
 
-    from ..bags import load_and_report
+    from ..bags import is_bag, stream_recording
     from inkdiag_core import BaselineFileError, NozzleBaselines
     from inkdiag_core.estimation import vp_cal_for
     from inkdiag_core.head_profile import ProfileError
@@ -129,9 +134,12 @@ def run(args) -> int:
     if not profile.is_complete:
         raise ProfileError(f"{args.profile}: a nominal profile ({', '.join(profile.missing)} missing): run "
                            "inkdiag calibrate first on recorded healthy traces of the head")
-    rec = load_and_report(args.recording, args.topic)
+    stats, chunks = stream_recording(args.recording, args.topic, max_rows=_BAG_CHUNK_ROWS)
+    bag = bool(is_bag(args.recording))
+    pick = bag_row_picker(args.rows) if bag else None  # before the bag is read: a bad spec costs nothing
+    first_row, rec = next(chunks)  # a bag with no trace frame: RecordingError
     profile.check_traces(rec.traces, rec.sample_rate_hz, what=f"{args.recording}")
-    rows = select_rows(args.rows, rec.n_rows, rec.label)
+    rows = None if bag else select_rows(args.rows, rec.n_rows, rec.label)
     baselines = None
     if args.baselines:
         try:
@@ -148,6 +156,8 @@ def run(args) -> int:
             print(f"inkdiag estimate: vp_cal fitted in {cal['seconds']:.1f} s on {cal['n_traces']} simulated traces",
                   file=sys.stderr, flush=True)
     tracker = DryingTracker(profile=profile, baselines=baselines, method=args.method, max_abs_v=args.max_abs_v)
+    if bag:
+        return _estimate_bag(args, tracker, profile, pick, itertools.chain([(first_row, rec)], chunks), stats)
     n = rows.size
     cols = {}
     reasons = np.full(n, "", dtype=object)
@@ -191,6 +201,120 @@ def run(args) -> int:
     why = ", ".join(f"{k} {int(np.sum(reasons == k))}" for k in sorted(set(reasons[bad].tolist())))
     print(f"inkdiag estimate: {n - int(bad.sum())} of {n} rows estimated ({method}, head {profile.name!r})"
           + (f"; not estimated: {why}" if bad.any() else "") + f" -> {args.out}")
+    for note in sorted(notes):
+        print(f"inkdiag estimate: note: {note}", file=sys.stderr)
+    return 0
+
+
+def bag_row_picker(spec):
+    """``--rows`` for a streamed bag, whose row count is not known in advance.
+
+    Returns
+    -------
+    callable
+        ``pick(start, n)`` -> the selected indices (int64, increasing) among rows
+        ``start .. start + n - 1``; its attribute ``max_index`` is the largest index
+        the spec names explicitly (-1 if none), checked against the bag's rows at the end.
+
+    Raises
+    ------
+    inkdiag_core.checks.InputError
+        A malformed spec, or a class name (a bag has no label column).
+    """
+    import numpy as np
+    from inkdiag_core import FaultClass
+    from inkdiag_core.checks import InputError
+
+    parts, max_index = [], -1
+    if spec is not None:
+        spec = spec.strip()
+        if spec == "dried" or spec in {c.value for c in FaultClass}:
+            raise InputError(f"--rows {spec}: a bag has no label column")
+        for part in spec.split(","):
+            part = part.strip()
+            m = re.fullmatch(r"(\d*)\s*:\s*(\d*)", part)
+            if m:
+                lo = int(m.group(1)) if m.group(1) else 0
+                hi = int(m.group(2)) if m.group(2) else None
+                if hi is not None and lo > hi:
+                    raise InputError(f"--rows {part}: START > STOP")
+                parts.append((lo, hi))
+                max_index = max(max_index, (lo if hi is None else hi) - 1)  # as select_rows: STOP <= n
+            elif re.fullmatch(r"\d+", part):
+                parts.append((int(part), int(part) + 1))
+                max_index = max(max_index, int(part))
+            else:
+                raise InputError(f"--rows {spec!r}: expected indices and ranges such as 0:100 or 3,7,9")
+
+    def pick(start, n):
+        idx = np.arange(start, start + n, dtype=np.int64)
+        if spec is None:
+            return idx
+        keep = np.zeros(n, dtype=bool)
+        for lo, hi in parts:
+            keep |= (idx >= lo) & (idx < (hi if hi is not None else start + n))
+        return idx[keep]
+
+    pick.max_index = max_index
+    return pick
+
+
+def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
+    """``inkdiag estimate`` on a bag: chunk by chunk, each chunk's rows written before the next is read."""
+    import csv
+    import sys
+
+    import numpy as np
+    from inkdiag_core.checks import InputError
+
+    from ..bags import report_stats
+
+    method = "vp" if args.method == "vp" else "vp_cal"
+    n = n_bad = n_seen = 0
+    why, notes = {}, set()
+    with open(args.out, "w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f)
+        w.writerow(HEADER)
+        for first_row, rec in chunks:
+            n_seen = first_row + rec.n_rows
+            sel = pick(first_row, rec.n_rows) - first_row
+            if not sel.size:
+                continue
+            cols, reasons = {}, np.empty(sel.size, dtype=object)
+            for s0 in range(0, sel.size, _CHUNK):
+                part = sel[s0:s0 + _CHUNK]
+                r = tracker.estimate_rows(rec.traces[part], rec.nozzle[part], stamp=float("nan"),
+                                          sample_rate_hz=rec.sample_rate_hz)
+                for k, v in r.columns.items():
+                    cols.setdefault(k, np.empty(sel.size, dtype=v.dtype))[s0:s0 + part.size] = v
+                reasons[s0:s0 + part.size] = r.reasons
+                if r.note:
+                    notes.add(r.note)
+            stamps, frames = rec.stamp[sel], rec.frame_id[sel]
+            ok = (reasons == "") & np.isfinite(stamps)
+            if ok.any():  # each frame's trend update in bag order (one message is one frame)
+                idx = np.flatnonzero(ok)
+                keys = np.stack([stamps[idx], frames[idx].astype(float)], axis=1)
+                for grp in np.split(idx, np.flatnonzero(np.any(keys[1:] != keys[:-1], axis=1)) + 1):
+                    t, rate, eta = tracker.trends.update(float(stamps[grp[0]]), cols["nozzle"][grp], cols["fm"][grp],
+                                                         cols["fm_std"][grp])
+                    cols["fm_trend"][grp], cols["fm_rate"][grp], cols["eta_deeply_dried_s"][grp] = t, rate, eta
+            for i in range(sel.size):  # formatting only
+                w.writerow([first_row + int(sel[i]), int(rec.nozzle[sel[i]]), _fmt(cols["fm"][i]),
+                            _fmt(cols["fm_std"][i]), _fmt(cols["d_mu"][i]), _fmt(cols["viscosity"][i]),
+                            int(frames[i]), _fmt(stamps[i]), _fmt(cols["fm_trend"][i]), _fmt(cols["fm_rate"][i]),
+                            _fmt(cols["eta_deeply_dried_s"][i]), method, reasons[i]])
+                if reasons[i]:
+                    why[reasons[i]] = why.get(reasons[i], 0) + 1
+            n += sel.size
+            n_bad += int((reasons != "").sum())
+    report_stats(args.recording, stats)
+    if pick.max_index >= n_seen:
+        raise InputError(f"--rows {args.rows}: row {pick.max_index} is beyond the bag's {n_seen} rows "
+                         f"({n} rows estimated into {args.out})")
+    print(f"inkdiag estimate: {n - n_bad} of {n} rows estimated ({method}, head {profile.name!r})"
+          + (f"; not estimated: {', '.join(f'{k} {v}' for k, v in sorted(why.items()))}" if n_bad else "")
+          + f" -> {args.out}")
     for note in sorted(notes):
         print(f"inkdiag estimate: note: {note}", file=sys.stderr)
     return 0

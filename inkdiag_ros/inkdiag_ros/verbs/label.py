@@ -3,7 +3,8 @@
 HELP = "label every trace of a recording with a trained fault detector (CSV)"
 DESCRIPTION = """\
 Label every row of a recording (.npz: traces, sample_rate_hz, optional nozzle,
-frame_id, stamp; or a rosbag2 bag directory, its traces topic chosen by --topic) with a fault detector from `inkdiag train`, by the fdi node's
+frame_id, stamp; or a rosbag2 bag directory, its traces topic chosen by --topic)
+with a fault detector from `inkdiag train`, by the fdi node's
 code path (inkdiag_core.FrameLabeller): rows are screened first (non-finite,
 out-of-range, flat, clipped: class 'invalid' with that reason; the other rows
 are classified), then one detector call per batch of frames. Rows with the
@@ -21,6 +22,11 @@ CSV columns: row, nozzle, frame_id, class, confidence, reason, baseline
   reason      why a row is invalid (non_finite, out_of_range, flat, clipped,
               non_finite_features, labelling_failed); empty for classified rows
   baseline    1 if the row was classified against its nozzle's baseline
+
+A bag is streamed: read, labelled and written a chunk of whole frames at a
+time (16384 rows at most), in bounded memory whatever its length; a message
+that is not a valid trace frame (or of another sampling than the bag's first
+frame) is reported on stderr with its message index and why, and skipped.
 
 example:
   inkdiag label recording.npz --model models/head.joblib --out labels.csv
@@ -104,18 +110,44 @@ def label_recording(labeller, recording):
     return classes, confidence, reasons, baseline
 
 
+def label_stream(labeller, chunks):
+    """Label chunks of a recording as they come: the CSV rows of each chunk before the next is read.
+
+    Parameters
+    ----------
+    labeller : inkdiag_core.FrameLabeller
+    chunks : iterable of (int, Recording)
+        ``(first_row, chunk)`` as :func:`inkdiag_ros.bags.stream_recording` gives (whole frames a chunk).
+
+    Yields
+    ------
+    tuple
+        One per row, in chunk order: ``(row, nozzle, frame_id, class, confidence, reason, baseline)``
+        (:data:`COLUMNS`; confidence NaN for invalid rows, baseline bool).
+    """
+    for first_row, rec in chunks:
+        classes, confidence, reasons, baseline = label_recording(labeller, rec)
+        nozzle, frame_id = rec.nozzle.tolist(), rec.frame_id.tolist()
+        for i in range(rec.n_rows):
+            yield (first_row + i, nozzle[i], frame_id[i], classes[i], float(confidence[i]), reasons[i],
+                   bool(baseline[i]))
+
+
 def run(args) -> int:
     import csv
+    import itertools
     import math
     import sys
 
     from inkdiag_core import FrameLabeller, LabellerConfigError, NozzleBaselines, load_detector
     from inkdiag_core.head_profile import HeadProfile
-    from ..bags import load_and_report
+    from ..bags import report_stats, stream_recording
 
     detector = load_detector(args.model)  # ModelFileError (a ValueError): missing, tampered, other versions
     head = detector.profile if detector.profile is not None else HeadProfile.default()
-    rec = load_and_report(args.recording, args.topic)
+    stats, chunks = stream_recording(args.recording, args.topic, max_rows=BATCH_ROWS)
+    first = next(chunks)  # a bag with no trace frame: RecordingError
+    rec = first[1]
     same_rate = math.isclose(rec.sample_rate_hz, detector.sample_rate_hz_, rel_tol=1e-9)  # as check_traces
     if not same_rate or rec.n_samples != detector.n_features_in_:
         raise LabellerConfigError(
@@ -128,21 +160,23 @@ def run(args) -> int:
     baselines = NozzleBaselines.load(args.baselines) if args.baselines else None
     labeller = FrameLabeller(detector, baselines, sample_rate_hz=detector.sample_rate_hz_, n_samples=rec.n_samples,
                              max_abs_v=max_abs_v)
-    classes, confidence, reasons, baseline = label_recording(labeller, rec)
+    del rec
+    n_rows = n_invalid = n_failed = 0
     out = sys.stdout if args.out == "-" else open(args.out, "w", newline="", encoding="utf-8")
     try:
         w = csv.writer(out, lineterminator="\n")
         w.writerow(COLUMNS)
-        for i in range(rec.n_rows):
-            conf = "" if confidence[i] != confidence[i] else f"{confidence[i]:.6f}"
-            w.writerow((i, int(rec.nozzle[i]), int(rec.frame_id[i]), classes[i], conf, reasons[i],
-                        int(baseline[i])))
+        for row, nozzle, fid, cls, conf, reason, base in label_stream(labeller, itertools.chain([first], chunks)):
+            if cls == "invalid":
+                n_invalid += 1
+                n_failed += reason == "labelling_failed"
+            w.writerow((row, nozzle, fid, cls, "" if conf != conf else f"{conf:.6f}", reason, int(base)))
+            n_rows += 1
     finally:
         if out is not sys.stdout:
             out.close()
-    n_invalid = int((classes == "invalid").sum())
-    n_failed = int((reasons == "labelling_failed").sum())
-    print(f"labelled {rec.n_rows - n_invalid} of {rec.n_rows} rows with {detector.model_id} (head {head.name!r}); "
+    report_stats(args.recording, stats)
+    print(f"labelled {n_rows - n_invalid} of {n_rows} rows with {detector.model_id} (head {head.name!r}); "
           f"{n_invalid} invalid" + (f", {n_failed} in frames whose labelling failed" if n_failed else "")
           + (f"; wrote {args.out}" if args.out != "-" else ""), file=sys.stderr)
     return 1 if n_failed else 0

@@ -32,83 +32,21 @@ def add_arguments(parser) -> None:
                         help="rosbag2 metadata version: 8 (Humble's ros2 bag reads it, default) or 9 (Jazzy)")
 
 
-class BagRecorder:
-    """Raw subscriptions of one node, each writing what it receives into a rosbags rosbag2 writer.
-
-    Parameters
-    ----------
-    node : rclpy.node.Node
-    writer : rosbags.rosbag2.Writer
-        Open.
-    wanted : dict
-        Absolute topic -> (type name, subscription QoS), from :func:`inkdiag_ros.bags.head_topics`.
-    """
-
-    def __init__(self, node, writer, wanted):
-        from rosbags.typesys import Stores, get_typestore
-
-        from ..bags import msg_class
-
-        self.node, self.writer, self.wanted = node, writer, wanted
-        self.typestore = get_typestore(Stores.ROS2_JAZZY)
-        self.connections = {}
-        self.counts = dict.fromkeys(wanted, 0)
-        self._subs = [node.create_subscription(msg_class(t), topic, self._callback(topic), qos, raw=True)
-                      for topic, (t, qos) in wanted.items()]
-
-    def _offered(self, topic):
-        """The QoS profiles the topic's publishers offer (the subscription's own when none is seen)."""
-        from ..bags import qos_to_rosbags
-
-        try:
-            infos = self.node.get_publishers_info_by_topic(topic)
-        except Exception:  # the context went down (a signal): no graph to ask any more
-            infos = []
-        profiles = [qos_to_rosbags(i.qos_profile) for i in infos]
-        return profiles or [qos_to_rosbags(self.wanted[topic][1])]
-
-    def connection(self, topic):
-        """The bag connection of ``topic``, added (with its offered QoS) at its first message."""
-        conn = self.connections.get(topic)
-        if conn is None:
-            conn = self.writer.add_connection(topic, self.wanted[topic][0], typestore=self.typestore,
-                                              offered_qos_profiles=self._offered(topic))
-            self.connections[topic] = conn
-        return conn
-
-    def _callback(self, topic):
-        def on_message(raw):
-            stamp = self.node.get_clock().now().nanoseconds
-            self.writer.write(self.connection(topic), stamp, raw)
-            self.counts[topic] += 1
-        return on_message
-
-    def finish(self):
-        """Add the topics that had no message (so the metadata lists every recorded topic)."""
-        for topic in self.wanted:
-            self.connection(topic)
-
-
 def run(args) -> int:
     import sys
     import time
-    from pathlib import Path
 
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     from .._spin import stop_on_signals
-    from ..bags import head_topics
+    from ..bags import BagRecorder, check_new_bag, head_topics
 
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be > 0 s, got {args.duration!r}")
     wanted = head_topics(args.namespace, args.topics)
-    bag = Path(args.bag)
-    if bag.exists():
-        raise ValueError(f"{bag}: exists already; a bag is written into a new directory")
-    if not bag.parent.is_dir():
-        raise ValueError(f"{bag.parent}: no such directory")
+    bag = check_new_bag(args.bag)
     with stop_on_signals() as stop:
         rclpy.init()
         writer = Writer(bag, version=args.metadata_version, storage_plugin=StoragePlugin.MCAP)

@@ -6,7 +6,11 @@ Train a fault detector (FaultDetector .joblib + .manifest.json) for the head of
 a complete profile: every fault class is simulated on the head's calibrated
 model (the same physical mechanisms as the default head's, scaled to its
 geometry, ink, drive and sampling), a quarter held out for the detection
-threshold and the validation scores.
+threshold and the validation scores. The detector also gets an open-set layer
+(--unknown-rate, default 0.01): a trace unlike every known class is labelled
+'unknown', and a trace of a known class is called 'unknown' with probability
+at most that rate (per-class conformal p-values; needs >= 1/R - 1 held-out
+rows per class, i.e. --n-per-class >= 133 for the default).
 
 With --data, the head's own labelled recordings (.npz with a 'label' array)
 join the simulated rows: a quarter of each recorded class is held out for
@@ -23,6 +27,7 @@ calibrate` on recorded healthy traces first.
 example:
   inkdiag train --profile head.yaml --out models/head.joblib
   inkdiag train --profile head.yaml --out models/head.joblib --baseline --n-per-class 600
+  inkdiag train --profile head.yaml --out models/head.joblib --unknown-rate 0.005
 """
 
 FEATURES = ("kpi_y", "kpi_r", "kpi_r_modified", "kpi_y+r_modified", "rich")
@@ -41,11 +46,14 @@ def add_arguments(parser) -> None:
     parser.add_argument("--data", metavar="LABELLED.npz",
                         help="labelled recordings of this head to train on as well (a 'label' per row)")
     parser.add_argument("--topic", default=None, metavar="TOPIC",
-                        help="traces topic when --data is a rosbag2 bag (its rows need labels: a bag has none yet)")
+                        help="traces topic of a bag (a bag is refused as --data for now: its rows have no labels)")
     parser.add_argument("--n-per-class", type=int, default=1000, metavar="N",
                         help="simulated traces per class (default: %(default)s; >= 8)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulation, split and forest "
                         "(default: %(default)s)")
+    parser.add_argument("--unknown-rate", type=float, default=0.01, metavar="R",
+                        help="open-set layer: a trace of a known class is called 'unknown' with probability <= R "
+                        "(conformal, per class; default: %(default)s; 0: no layer, never 'unknown')")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -73,11 +81,12 @@ def _progress(quiet):
 
 
 def run(args) -> int:
+    import math
     from pathlib import Path
 
     from inkdiag_core.head_profile import HeadProfile, ProfileError
     from inkdiag_core.persistence import save_detector
-    from ..bags import load_and_report
+    from ..bags import is_bag, load_and_report
     from inkdiag_core.training import train_detector
 
     profile = HeadProfile.load(args.profile)
@@ -86,6 +95,9 @@ def run(args) -> int:
                            "`inkdiag calibrate` first to fit them to recorded healthy traces")
     if args.n_per_class < 8:
         raise ValueError(f"--n-per-class must be >= 8, got {args.n_per_class}")
+    if args.data and is_bag(args.data):  # refused before reading it: a bag's rows have no class to train on
+        raise ValueError(f"{args.data}: a rosbag2 bag has no per-row labels: --data needs a labelled .npz "
+                         "(a 'label' per row); label the bag first and save it as one")
     data = load_and_report(args.data, args.topic) if args.data else None
     if data is not None:
         if data.label is None:
@@ -97,7 +109,8 @@ def run(args) -> int:
     report, close = _progress(args.quiet)
     try:
         det, info = train_detector(profile, features=args.features, kind=args.kind, baseline=args.baseline,
-                                   n_per_class=args.n_per_class, data=data, seed=args.seed, progress=report)
+                                   n_per_class=args.n_per_class, data=data, seed=args.seed,
+                                   unknown_rate=args.unknown_rate or None, progress=report)
         info["profile_file"] = str(args.profile)
         if args.data:
             info["data_file"] = str(args.data)
@@ -114,5 +127,12 @@ def run(args) -> int:
         b = det.baseline_scores_
         print(f"baseline branch: FI accuracy {100 * b['validation_fi_accuracy']:.1f} %, faults missed "
               f"{100 * b['validation_fd_fnr']:.2f} %, false alarms {100 * b['validation_fd_fpr']:.2f} %")
+    if det.openset_ is not None:
+        n_cal = [c.size for c in det.openset_.calibration_]
+        rate = det.openset_.rate
+        print(f"open-set layer: a trace of a known class is 'unknown' with probability <= {rate:g}; calibration "
+              f"rows per class {min(n_cal)}-{max(n_cal)}" + ("" if min(n_cal) + 1 >= 1 / rate else
+              f" (a class with fewer than {math.ceil(1 / rate - 1)} can never make a trace unknown: "
+              "raise --n-per-class)"))
     print(f"wrote {out} and {mpath}")
     return 0

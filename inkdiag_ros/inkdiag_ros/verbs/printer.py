@@ -1,0 +1,305 @@
+"""``inkdiag printer``: the fdi nodes of N heads in P processes on one DDS domain (a whole printer)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import time
+
+HELP = "run the fdi nodes of N printheads in P processes (a whole printer), with a live summary"
+DESCRIPTION = """\
+Run one fdi node per head, namespaces /head_00 .. /head_{N-1} (from /head_K with
+--first-head K, so that several boxes share a printer's heads; the topics a single
+head uses: /head_07/traces in, /head_07/labels and /head_07/drying_nozzles out,
+/diagnostics), in P OS processes on the DDS domain of ROS_DOMAIN_ID. Heads are
+assigned to the processes round-robin (head i in process i mod P); each process
+spins its nodes on one rclpy EventsExecutor, one BLAS thread, the allocator set as in
+every inkdiag node. Parameters come from the packaged config/inkdiag.yaml, then
+--ros-args (given to every node of every process), then --model and --baselines.
+
+With --simulate a simulated printhead per head (printhead_sim, seed = head index)
+runs too, all of them in one more process, so the command demos on its own.
+
+Prints once a second: heads whose /diagnostics arrived in the last 2.5 s, and the
+frames and traces labelled per second summed over the heads (from their
+/diagnostics). Ctrl-C or SIGTERM stops every process (exit status 0); a process
+that dies is reported with its exit status and the command exits 1; bad options
+are one line on stderr and exit status 2.
+
+Example: inkdiag printer --heads 4 --processes 2 --baselines baselines/head_{i:02d}.npz
+"""
+
+#: Seconds without a /diagnostics message after which a head is not counted as up.
+STALE_S = 2.5
+#: Seconds the processes get to stop on SIGTERM before they are killed.
+STOP_GRACE_S = 1.5
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--heads", type=int, required=True, help="printheads N (namespaces /head_00 .. /head_{N-1})")
+    p.add_argument("--first-head", type=int, default=0,
+                   help="index of the first head K: the heads are /head_K .. /head_{K+N-1} (a printer over several "
+                        "boxes: each runs its range), default 0")
+    p.add_argument("--processes", type=int, default=1, help="OS processes P running the fdi nodes (1 .. N)")
+    p.add_argument("--model", default=None,
+                   help="FaultDetector model file for every head (default: models/fdi_default.joblib)")
+    p.add_argument("--baselines", default=None, metavar="DIR_OR_PATTERN",
+                   help="per-head baselines: a pattern with {i} (the head index), e.g. "
+                        "baselines/head_{i:02d}.npz, or a directory holding head_00.npz ...; every file must exist")
+    p.add_argument("--simulate", action="store_true", help="also run a simulated printhead per head")
+    p.add_argument("--duration", type=float, default=0.0, help="seconds to run, 0: until Ctrl-C (default)")
+    p.add_argument("--executor", choices=("events", "single"), default="events",
+                   help="the executor of each fdi process: rclpy's C++ EventsExecutor (default) or the Python "
+                        "SingleThreadedExecutor (the simulators always use the latter)")
+    p.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[],
+                   help="ROS arguments for every node (e.g. -p n_nozzles:=2656), the rest of the line")
+
+
+def baseline_paths(spec: str | None, heads) -> list:
+    """The baselines file of each head index of ``heads`` from ``--baselines`` (None: none), checked to exist.
+
+    Raises
+    ------
+    ValueError
+        A bad pattern or a missing file (the first one).
+    """
+    if not spec:
+        return [None] * len(heads)
+    if os.path.isdir(spec):
+        spec = os.path.join(spec, "head_{i:02d}.npz")
+    elif "{" not in spec:
+        raise ValueError(f"--baselines {spec!r} is neither a directory nor a pattern with {{i}} "
+                         "(e.g. baselines/head_{i:02d}.npz)")
+    try:
+        paths = [spec.format(i=i) for i in heads]
+    except (KeyError, IndexError, ValueError) as exc:
+        raise ValueError(f"--baselines {spec!r}: bad pattern ({exc}); use {{i}} for the head index") from None
+    for path in paths:
+        if not os.path.isfile(path):
+            raise ValueError(f"baselines file {path} not found (--baselines {spec!r})")
+    return paths
+
+
+def _check(args) -> None:
+    if not 1 <= args.heads <= 100:
+        raise ValueError(f"--heads must be 1 .. 100, got {args.heads}")
+    if not 0 <= args.first_head <= 99 - (args.heads - 1):
+        raise ValueError(f"--first-head must be 0 .. {100 - args.heads} (head indices up to 99), got {args.first_head}")
+    if not 1 <= args.processes <= args.heads:
+        raise ValueError(f"--processes must be 1 .. --heads ({args.heads}), got {args.processes}")
+    if not args.duration >= 0:
+        raise ValueError(f"--duration must be >= 0 s, got {args.duration}")
+    if not os.path.isfile(args.model):
+        raise ValueError(f"model file {args.model} not found (pass --model, or train one: inkdiag train)")
+
+
+def _die_with_parent() -> None:  # children get SIGTERM if the printer process dies (Linux)
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def run(args) -> int:
+    from inkdiag_core.model_cache import DEFAULT_MODEL
+
+    args.model = os.path.abspath(args.model or str(DEFAULT_MODEL))
+    _check(args)
+    heads = list(range(args.first_head, args.first_head + args.heads))
+    paths = dict(zip(heads, baseline_paths(args.baselines, heads)))
+    groups = [heads[k::args.processes] for k in range(args.processes)]
+    base = [sys.executable, "-m", __name__]
+    ros = ["--ros-args", *args.ros_args]
+    children = []  # (description, Popen)
+    try:
+        for k, group in enumerate(groups):
+            cmd = base + ["--role", "fdi", "--heads", ",".join(map(str, group)), "--model", args.model,
+                          "--executor", args.executor]
+            for i in group:
+                cmd += ["--baseline", f"{i}={paths[i]}"] if paths[i] else []
+            children.append((f"fdi process {k} (heads {', '.join(f'{i:02d}' for i in group)})",
+                             subprocess.Popen(cmd + ros, preexec_fn=_die_with_parent, start_new_session=True)))
+        if args.simulate:
+            cmd = base + ["--role", "sim", "--heads", ",".join(map(str, heads)), "--executor", "single"]
+            children.append(("simulator process", subprocess.Popen(cmd + ros, preexec_fn=_die_with_parent,
+                                                                   start_new_session=True)))
+        print(f"inkdiag printer: {args.heads} heads' fdi nodes (/head_{heads[0]:02d} .. /head_{heads[-1]:02d}) "
+              f"in {args.processes} processes (pids {', '.join(str(p.pid) for _, p in children[:len(groups)])})"
+              + (", simulated printheads in one more" if args.simulate else "")
+              + f"; {'until Ctrl-C' if args.duration <= 0 else f'{args.duration:g} s'}", flush=True)
+        died = _monitor(args, children)
+    finally:
+        _stop(children)
+    for what, proc in died:
+        print(f"inkdiag printer: {what} exited with status {proc.returncode}", file=sys.stderr)
+    return 1 if died else 0
+
+
+def _monitor(args, children) -> list:
+    """Print the summary once a second until the duration, a signal or a child's death; the dead children."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.node import Node
+
+    from msg_defs import DIAGNOSTICS_MSG_TYPE, DIAGNOSTICS_QOS, diagnostics_values
+
+    from .._spin import stop_on_signals
+
+    latest = {}  # head namespace -> (arrival time, values)
+    wanted = {f"{i:02d}" for i in range(args.first_head, args.first_head + args.heads)}
+
+    def on_diag(msg):
+        for name, d in diagnostics_values(msg).items():
+            if name.startswith("inkdiag fdi: /head_") and name.split(": /head_", 1)[1] in wanted:
+                latest[name.split(": ", 1)[1]] = (time.monotonic(), d)
+
+    with stop_on_signals() as stop:
+        rclpy.init()
+        node = Node("printer_monitor")
+        executor = SingleThreadedExecutor(context=node.context)
+        executor.add_node(node)
+        try:
+            stop.attach(node)
+            node.create_subscription(DIAGNOSTICS_MSG_TYPE, "/diagnostics", on_diag, DIAGNOSTICS_QOS)
+            t0 = time.monotonic()
+            next_print = t0 + 1.0
+            while not stop.requested and node.context.ok():
+                executor.spin_once(timeout_sec=0.1)
+                died = [(w, p) for w, p in children if p.poll() is not None]
+                if died:
+                    return died
+                now = time.monotonic()
+                if args.duration > 0 and now - t0 >= args.duration:
+                    break
+                if now >= next_print:
+                    print(summary(latest, args.heads, now - t0, now), flush=True)
+                    next_print += 1.0
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        finally:
+            executor.shutdown()
+            node.destroy_node()
+            rclpy.try_shutdown()
+    return []
+
+
+def summary(latest: dict, n_heads: int, t: float, now: float) -> str:
+    """One line: heads up, frames and traces labelled per second summed over the heads that are up."""
+    fresh = [d for at, d in latest.values() if now - at <= STALE_S]
+    fps = sum(float(d.get("frames_per_s", 0) or 0) for d in fresh)
+    tps = sum(float(d.get("traces_per_s", 0) or 0) for d in fresh)
+    bad = sum(int(d.get("frames_dropped", 0) or 0) + int(d.get("frames_failed", 0) or 0) for d in fresh)
+    levels = {}
+    for d in fresh:
+        if d.get("level") != "ok":
+            levels[d.get("level")] = levels.get(d.get("level"), 0) + 1
+    return (f"t={t:6.1f}s heads up {len(fresh)}/{n_heads} | {fps:7.1f} frames/s labelled ({tps:,.0f} traces/s)"
+            f" | dropped+failed {bad}" + "".join(f" | {k} {v}" for k, v in sorted(levels.items())))
+
+
+def _stop(children) -> None:
+    """SIGTERM every child still running; kill what is left after :data:`STOP_GRACE_S`."""
+    for _, p in children:
+        if p.poll() is None:
+            p.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + STOP_GRACE_S
+    for _, p in children:
+        try:
+            p.wait(timeout=max(deadline - time.monotonic(), 0.01))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+# --- a child process: several nodes on one executor -------------------------------------------------
+
+
+def worker_main(argv=None) -> int:
+    """One child: ``--role fdi|sim --heads 0,2,4 [--model M] [--baseline I=PATH ...] [--executor events|single]
+    [--ros-args ...]``: its heads' nodes on one executor until SIGINT/SIGTERM (exit 0); a node refusing its
+    parameters: one line, exit 2."""
+    import numpy  # noqa: F401 - loaded before the BLAS limit
+    import rclpy
+    import scipy.linalg  # noqa: F401
+    from rclpy.exceptions import ParameterException
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.experimental import EventsExecutor
+    from rclpy.parameter import Parameter
+    from rclpy.utilities import remove_ros_args
+
+    from .._spin import freeze_startup_objects, shutting_down, stop_on_signals
+    from ..allocator import PeriodicRelease, keep_freed_memory
+    from ..blas import limit_blas_threads
+    from ..graph import default_params_file
+
+    argv = list(sys.argv if argv is None else argv)
+    ap = argparse.ArgumentParser(prog="inkdiag printer (child)")
+    ap.add_argument("--role", choices=("fdi", "sim"), required=True)
+    ap.add_argument("--heads", required=True)
+    ap.add_argument("--model", default=None)
+    ap.add_argument("--baseline", action="append", default=[])
+    ap.add_argument("--executor", choices=("events", "single"), default="events")
+    ns = ap.parse_args(remove_ros_args(argv)[1:])
+    ros = argv[argv.index("--ros-args") + 1:] if "--ros-args" in argv else []
+    heads = [int(h) for h in ns.heads.split(",")]
+    baselines = dict(b.split("=", 1) for b in ns.baseline)
+    keep_freed_memory()
+    limit_blas_threads()
+    if ns.role == "fdi":
+        from ..fdi_node import FdiNode as cls
+    else:
+        from ..printhead_sim import PrintheadSim as cls
+
+    def overrides(i):
+        if ns.role == "sim":
+            return [Parameter("seed", value=i)]
+        over = [Parameter("model_path", value=ns.model)] if ns.model else []
+        if str(i) in baselines:
+            over.append(Parameter("baseline_path", value=baselines[str(i)]))
+        return over
+
+    prog = f"inkdiag printer ({ns.role} heads {ns.heads})"
+    with stop_on_signals() as stop:
+        rclpy.init(args=[argv[0], "--ros-args", "--params-file", default_params_file(), *ros])
+        ctx = rclpy.utilities.get_default_context()
+        nodes, executor = [], None
+        try:
+            for i in heads:
+                nodes.append(cls(namespace=f"/head_{i:02d}", parameter_overrides=overrides(i)))
+            if ns.executor == "events":  # it takes no guard condition: rclpy's shutdown wakes it
+                executor = EventsExecutor(context=ctx)
+            else:  # a timer callback failing at shutdown raises here (EventsExecutor logs it as FATAL)
+                stop.attach(nodes[0])
+                executor = SingleThreadedExecutor(context=ctx)
+            for n in nodes:
+                executor.add_node(n)
+            freeze_startup_objects()
+            release = PeriodicRelease()
+            while not stop.requested and ctx.ok():
+                executor.spin_once(timeout_sec=0.5)
+                release()
+        except (ValueError, ParameterException) as exc:
+            if not (stop.requested or shutting_down(ctx)):
+                print(f"{prog}: {exc}", file=sys.stderr)
+                return 2
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        except Exception:
+            if not (stop.requested or shutting_down(ctx)):
+                raise
+        finally:
+            if executor is not None:
+                executor.shutdown()
+            for n in nodes:
+                n.destroy_node()
+            rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(worker_main())

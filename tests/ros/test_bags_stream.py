@@ -1,0 +1,175 @@
+"""The offline verbs stream a bag (issue 15, part 2): ``inkdiag label`` yields a chunk's rows before
+the next chunk is read, its memory does not grow with the bag's length (tracemalloc peak, in a
+subprocess), a bad frame is reported on stderr with its message index and reason and costs no
+other frame; ``inkdiag estimate`` on a bag gives the rows the same recording as an .npz gives;
+``calibrate``'s bounded sample of a bag; ``train --data`` refuses a bag before reading it."""
+
+import csv
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from _bags import NS, write_bag
+from inkdiag_core import FaultClass, HeadProfile
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return HeadProfile.default().simulate({c: 6 for c in FaultClass}, seed=5)
+
+
+def _cli(*args, timeout=120):
+    return subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", *map(str, args)], capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def test_label_stream_yields_the_first_rows_before_the_bag_is_read(tmp_path, sim, fdi_model):
+    from inkdiag_core import FrameLabeller, load_detector
+    from inkdiag_ros.bags import BagFrames, iter_bag_chunks
+    from inkdiag_ros.verbs.label import label_stream
+
+    x = sim.traces[:16].astype(np.float32)
+    bag = write_bag(tmp_path / "bag", [(16 * k, x) for k in range(30)])
+    det = load_detector(fdi_model)
+    labeller = FrameLabeller(det, sample_rate_hz=det.sample_rate_hz_, n_samples=x.shape[1])
+    stats = BagFrames()
+    rows = label_stream(labeller, iter_bag_chunks(bag, stats=stats, max_rows=32))
+    first = next(rows)
+    assert stats.n_messages <= 3  # two frames a chunk (and the one that closed it), not 30
+    assert first[:3] == (0, 0, 0)
+    rest = list(rows)
+    assert stats.n_messages == 30 and len(rest) == 30 * 16 - 1
+    assert [r[0] for r in rest] == list(range(1, 480)) and [r[2] for r in rest[15::16]] == list(range(1, 30))
+
+
+_PEAK = textwrap.dedent("""
+    import sys, tracemalloc, resource
+    import sklearn.ensemble, rosbags.rosbag2, rclpy.serialization, msg_defs, inkdiag_core  # imports out of the peak
+    from inkdiag_ros import cli
+    from inkdiag_ros.verbs import label
+    label.BATCH_ROWS = 1024  # chunks of 1024 rows (16 frames of 64) against bags of 1,280 and 12,800 rows
+    tracemalloc.start()
+    rc = cli.main(["label", sys.argv[1], "--model", sys.argv[2], "--out", sys.argv[3]])
+    print(rc, tracemalloc.get_traced_memory()[1], resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+""")
+
+
+def test_label_memory_does_not_grow_with_the_bag(tmp_path, sim, fdi_model):
+    x = sim.traces[:64].astype(np.float32)  # 128 kB a frame
+    peaks = {}
+    for n_frames in (20, 200):
+        bag = write_bag(tmp_path / f"b{n_frames}", [(0, x)] * n_frames)
+        out = tmp_path / f"l{n_frames}.csv"
+        r = subprocess.run([sys.executable, "-c", _PEAK, str(bag), str(fdi_model), str(out)],
+                           capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr[-2000:]
+        rc, peak, rss_kb = map(int, r.stdout.split())
+        assert rc == 0
+        with open(out, newline="") as f:
+            assert sum(1 for _ in f) == 64 * n_frames + 1
+        peaks[n_frames] = peak
+        print(f"{n_frames} frames: tracemalloc peak {peak / 1e6:.1f} MB, max RSS {rss_kb / 1e3:.0f} MB")
+    grown = peaks[200] - peaks[20]
+    # the larger bag holds 180 x 128 kB = 23.6 MB more traces; streamed, the peak is about one chunk either
+    # way (measured: +3.6 MB, the reader's and the chunks' sizes; reading alone: 9.0 MB at 200 and 600 frames);
+    # the whole bag in memory grew by twice the difference
+    assert grown < 0.25 * 180 * x.nbytes, (peaks, grown)
+
+
+def test_label_reports_each_bad_frame_on_stderr_and_labels_the_others(tmp_path, sim, fdi_model):
+    x = sim.traces[:8].astype(np.float32)
+    bag = write_bag(tmp_path / "bag", [(8 * k, x) for k in range(5)], bad_frame=2)
+    out = tmp_path / "l.csv"
+    r = _cli("label", bag, "--model", fdi_model, "--out", out)
+    assert r.returncode == 0, r.stderr
+    assert f"{bag}: message 2 skipped: " in r.stderr and "data_offset" in r.stderr
+    assert f"4 of 5 messages on {NS}/traces decoded" in r.stderr
+    with open(out, newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert sorted({int(r["frame_id"]) for r in rows}) == [0, 1, 3, 4] and len(rows) == 32
+    assert list(rows[0])[:6] == ["row", "nozzle", "frame_id", "class", "confidence", "reason"]
+
+
+def test_estimate_on_a_bag_streams_the_rows_the_npz_gives(tmp_path, capsys):
+    from inkdiag_core import save_recording
+    from inkdiag_ros import cli
+    from inkdiag_ros.bags import load_recording
+
+    prof = HeadProfile.default()
+    prof.save(tmp_path / "head.yaml")
+    r = prof.simulate({"healthy_nozzle": 6, "intermediately_dried": 6}, seed=3)
+    x = r.traces.astype(np.float32)
+    bag = write_bag(tmp_path / "bag", [(0, x[k::3]) for k in range(3)])
+    save_recording(tmp_path / "same.npz", load_recording(bag))
+
+    def estimate(src, rows, out):  # in-process, as the command runs
+        status = cli.main(["estimate", str(src), "--profile", str(tmp_path / "head.yaml"), "--rows", rows,
+                           "--out", str(tmp_path / out)])
+        return status, capsys.readouterr().err
+
+    outs = {}
+    for name, src in (("bag", bag), ("npz", tmp_path / "same.npz")):
+        status, err = estimate(src, "1:11", f"{name}.csv")
+        assert status == 0, err
+        with open(tmp_path / f"{name}.csv", newline="") as f:
+            outs[name] = list(csv.reader(f))
+    assert outs["bag"] == outs["npz"] and len(outs["bag"]) == 11
+    status, err = estimate(bag, "5:40", "x.csv")
+    assert status == 2 and "error: --rows 5:40: row 39 is beyond the bag's 12 rows" in err.splitlines()[-1]
+    status, err = estimate(bag, "dried", "x.csv")
+    assert status == 2 and "a bag has no label column" in err
+
+
+def test_bag_sample_is_bounded_uniform_and_screened():
+    from inkdiag_core import Recording
+    from inkdiag_ros.verbs.calibrate import bag_sample
+
+    prof = HeadProfile.default()
+    n_s = prof.n_samples
+    rng = np.random.default_rng(0)
+    chunks = []
+    for k in range(40):  # 40 chunks of 100 rows; row value = its index; every 10th row flat (screened out)
+        t = (np.arange(100 * k, 100 * k + 100)[:, None] * 1e-4 + 1e-5 * rng.standard_normal((100, n_s)))
+        t[::10] = 0.0
+        chunks.append((100 * k, Recording.from_arrays(t.astype(np.float32), prof.sample_rate_hz)))
+    traces, n_read, n_screened = bag_sample(iter(chunks), prof, max_rows=500, seed=1)
+    assert traces.shape == (500, n_s) and n_read == 4000 and n_screened == 400
+    idx = np.round(traces.mean(axis=1) / 1e-4).astype(int)
+    assert np.all(idx % 10 != 0) and np.all(np.diff(idx) > 0)  # usable rows only, in stream order, no repeats
+    assert 0.35 < (idx < 2000).mean() < 0.65  # early and late rows alike (uniform)
+
+
+def test_train_refuses_a_bag_as_data_before_reading_it(tmp_path):
+    bag = write_bag(tmp_path / "bag", [])
+    HeadProfile.default().save(tmp_path / "head.yaml")
+    r = _cli("train", "--profile", tmp_path / "head.yaml", "--out", tmp_path / "m.joblib", "--data", bag, "--quiet")
+    assert r.returncode == 2 and "has no per-row labels" in r.stderr, r.stderr
+
+
+def test_calibrate_on_a_bag_fits_a_bounded_sample_of_its_healthy_rows(tmp_path, capsys, monkeypatch):
+    import json
+
+    from inkdiag_core.head_profile import NOMINAL_CHANNEL_KEYS
+    from inkdiag_ros import cli
+    from inkdiag_ros.verbs import calibrate
+
+    true = HeadProfile.default()
+    x = true.simulate({"healthy_nozzle": 60}, seed=4).traces.astype(np.float32)
+    x[7] = 0.25  # flat: screened out
+    bag = write_bag(tmp_path / "bag", [(10 * k, x[10 * k:10 * k + 10]) for k in range(6)])
+    doc = true.to_dict()
+    doc.pop("sensor")
+    doc["channel"] = {k: doc["channel"][k] for k in NOMINAL_CHANNEL_KEYS}
+    HeadProfile.from_dict(doc).save(tmp_path / "nominal.yaml")
+    monkeypatch.setattr(calibrate, "MAX_BAG_ROWS", 40)
+    status = cli.main(["calibrate", str(bag), "--nominal", str(tmp_path / "nominal.yaml"),
+                       "--out", str(tmp_path / "head.yaml")])
+    out, err = capsys.readouterr()
+    assert status == 0, err
+    assert "(40 traces, 0 dropped; 1 of the bag's 60 rows screened out; a uniform sample of 40 of its 59 usable rows)" in out
+    assert f"6 of 6 messages on {NS}/traces decoded" in err
+    assert json.loads((tmp_path / "head.fit.json").read_text())["n_traces"] == 40
+    assert abs(HeadProfile.load(tmp_path / "head.yaml").healthy_mode()[0] / true.healthy_mode()[0] - 1) < 0.01

@@ -1,0 +1,105 @@
+"""``inkdiag printer``: N heads' fdi nodes in P real processes on one domain, stopped by a signal.
+
+Real processes, real Fast DDS: the command runs 3 heads in 2 fdi processes with their simulated
+printheads (one more process), a test node hears labels on every head's namespace; SIGINT stops
+every process and the command exits 0 within about 2 s. A child killed under it is reported
+with its exit status (exit 1); bad options are one line on stderr, exit 2.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+
+def _start(ros, *argv):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    return subprocess.Popen([sys.executable, "-m", "inkdiag_ros.cli", "printer", *argv], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _child_pids(proc) -> list:
+    first = proc.stdout.readline()
+    m = re.search(r"\(pids ([\d, ]+)\)", first)
+    assert m, first
+    return [int(p) for p in m.group(1).split(", ")]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(") ", 1)[1][0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.timeout(90)
+def test_three_heads_in_two_processes_label_on_every_namespace_and_stop_on_sigint(ros, fdi_model):
+    from msg_defs import LABELS_MSG_TYPE, RELIABLE_QOS, decode_labels
+
+    heard = {}
+    node = ros.node("printer_probe")
+    for i in range(3):
+        node.create_subscription(LABELS_MSG_TYPE, f"/head_{i:02d}/labels",
+                                 lambda m, i=i: heard.setdefault(i, decode_labels(m)), RELIABLE_QOS)
+    proc = _start(ros, "--heads", "3", "--processes", "2", "--simulate", "--model", str(fdi_model),
+                  "--ros-args", "--log-level", "warn")
+    try:
+        pids = _child_pids(proc)
+        assert len(pids) == 2
+        ros.spin_until(lambda: len(heard) == 3, timeout=40, what="labels on /head_00, /head_01 and /head_02")
+        assert all(heard[i].n_nozzles == 64 for i in range(3))  # the packaged params' simulated head
+        time.sleep(1.2)  # a summary line with the heads up
+        proc.send_signal(signal.SIGINT)
+        t0 = time.monotonic()
+        out, err = proc.communicate(timeout=10)
+        took = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err[-3000:]
+    assert took <= 2.5, f"stopped after {took:.2f} s"
+    assert "Traceback" not in err, err[-3000:]
+    assert re.search(r"heads up [123]/3 \| +[\d.]+ frames/s labelled", out), out
+    assert not any(_alive(p) for p in pids), "a child outlived the command"
+
+
+@pytest.mark.timeout(90)
+def test_a_child_that_dies_is_reported_and_the_command_exits_non_zero(ros, fdi_model):
+    proc = _start(ros, "--heads", "2", "--first-head", "5", "--processes", "2", "--model", str(fdi_model),
+                  "--ros-args", "--log-level", "warn")
+    try:
+        pids = _child_pids(proc)
+        time.sleep(3.0)
+        os.kill(pids[1], signal.SIGKILL)
+        out, err = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 1, (out, err)
+    assert "fdi process 1 (heads 06) exited with status -9" in err, err
+    assert not _alive(pids[0]), "the other child outlived the command"
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["--heads", "0"], "--heads must be"),
+    (["--heads", "2", "--first-head", "99"], "--first-head must be 0 .. 98"),
+    (["--heads", "2", "--processes", "3"], "--processes must be 1 .. --heads (2)"),
+    (["--heads", "2", "--baselines", "{d}/head_{{i:02d}}.npz"], "head_00.npz not found"),
+    (["--heads", "2", "--model", "{d}/missing.joblib"], "missing.joblib not found"),
+])
+def test_a_bad_option_is_one_line_and_exit_status_2(ros, tmp_path, fdi_model, argv, match):
+    argv = [a.format(d=tmp_path) for a in argv]
+    if "--model" not in argv:
+        argv += ["--model", str(fdi_model)]
+    proc = _start(ros, *argv)
+    out, err = proc.communicate(timeout=30)
+    lines = err.strip().splitlines()
+    assert proc.returncode == 2, err
+    assert len(lines) == 1 and lines[0].startswith("inkdiag printer: error: ") and match in lines[0], lines
