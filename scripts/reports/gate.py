@@ -20,7 +20,9 @@ Writes ``reports/gate.md`` (dated). Seeded: the same options give the same table
    noise), then 10 later frames with new temperatures and noise: healthy rows cleared,
    faulty rows cleared, and (unless ``--no-model``) how often the gate's healthy class
    differs from the default detector's (``models/fdi_default.joblib``, with its
-   baseline branch, as ``FrameLabeller`` uses it) on the healthy rows it clears.
+   baseline branch and open-set layer, trained if missing or stale, as
+   ``FrameLabeller`` uses it) on the rows it clears, and how many of those rows the
+   full model calls ``unknown``.
 """
 
 from __future__ import annotations
@@ -107,14 +109,15 @@ def head_run(n: int, seed: int, use_model: bool):
     labeller = None
     if use_model:
         from inkdiag_core import FrameLabeller, load_detector
+        from inkdiag_core.model_cache import ensure_default_model
 
         import dataclasses
 
         # the full model alone: the same baselines without references (no gate)
-        labeller = FrameLabeller(load_detector(Path(__file__).resolve().parents[2] / "models" / "fdi_default.joblib"),
-                                 dataclasses.replace(base, reference=None))
+        model = ensure_default_model(Path(__file__).resolve().parents[2] / "models" / "fdi_default.joblib")
+        labeller = FrameLabeller(load_detector(model), dataclasses.replace(base, reference=None))
     out = {"healthy": 0, "healthy_cleared": 0, "faulty": 0, "faulty_cleared": 0, "compared": 0, "differ": 0,
-           "model_healthy_cleared": 0, "frames": 10}
+           "model_healthy_cleared": 0, "unknown": 0, "frames": 10}
     for f in range(out["frames"]):
         frame = simulate_nozzles(classes, seed=head, frame_seed=[head, 100 + f]).traces
         got = gate.screen(frame, 0)
@@ -128,6 +131,7 @@ def head_run(n: int, seed: int, use_model: bool):
             m = got.cleared
             out["compared"] += int(m.sum())
             out["differ"] += int((full.classes[m].astype(str) != got.classes[m].astype(str)).sum())
+            out["unknown"] += int((full.classes[m].astype(str) == "unknown").sum())
     return out
 
 
@@ -164,9 +168,10 @@ def main():
              md_table(["healthy rows", "cleared", "cleared %", "faulty rows", "faulty cleared",
                        "cleared rows whose gate class differs from the full model's"],
                       [[head["healthy"], head["healthy_cleared"],
-                        f"{100 * head['healthy_cleared'] / head['healthy']:.2f}", head["faulty"], head["faulty_cleared"],
+                        f"{100 * head['healthy_cleared'] / head['healthy']:.2f}",
+                        head["faulty"], head["faulty_cleared"],
                         "not run" if ns.no_model else f"{head['differ']} of {head['compared']} "
-                        f"({100 * head['differ'] / max(head['compared'], 1):.2f} %)"]]),
+                        f"({100 * head['differ'] / max(head['compared'], 1):.2f} %; {head['unknown']} `unknown`)"]]),
              "",
              "## Notes\n",
              "- Thresholds: calibrated on simulated healthy rows of the default head (30 dB SNR, 1.5 K "
