@@ -132,3 +132,7 @@ __all__ += ["HeadProfile", "ProfileError"]
 from .recording import Recording, RecordingError, load_recording, save_recording  # noqa: E402
 
 __all__ += ["Recording", "RecordingError", "load_recording", "save_recording"]
+
+from .gate import GateResult, HealthyGate  # noqa: E402
+
+__all__ += ["GateResult", "HealthyGate"]

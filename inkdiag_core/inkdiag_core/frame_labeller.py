@@ -8,9 +8,13 @@ reports :class:`LabellerConfigError`, and it validates each frame once:
 
 1. each frame's shape (per frame: a bad one is a :class:`FrameFailure`, the others go on);
 2. one screening of every row (:func:`inkdiag_core.screen_traces`, ``max_abs_v``);
-3. one :meth:`inkdiag_core.FaultDetector.label` call for all valid rows of the batch,
+3. when the baselines carry reference traces, the healthy gate
+   (:class:`inkdiag_core.HealthyGate`): valid rows that match their nozzle's healthy
+   reference are labelled ``healthy_nozzle`` or ``ok_signal`` at once (confidence 1.0,
+   ``baseline`` True, ``gate_cleared`` True);
+4. one :meth:`inkdiag_core.FaultDetector.label` call for the other valid rows of the batch,
    each row routed to the baseline branch when its nozzle has a baseline;
-4. if that call raises, each frame alone, so one bad frame costs only itself.
+5. if that call raises, each frame alone, so one bad frame costs only itself.
 
 No ROS in here.
 """
@@ -23,6 +27,7 @@ import numpy as np
 
 from .baselines import BaselineFileError, NozzleBaselines
 from .detector import FaultDetector
+from .gate import HealthyGate
 from .persistence import load_detector
 from .labelling import FrameLabels
 from .screening import screen_traces
@@ -66,6 +71,12 @@ class FrameLabeller:
     baselines : NozzleBaselines, optional
         The head's recorded healthy baselines. Used only when the detector has a
         baseline branch (else :class:`LabellerConfigError` if any nozzle has one).
+        With reference traces (:attr:`NozzleBaselines.reference`) the healthy gate
+        (:class:`inkdiag_core.HealthyGate`, default thresholds) clears the rows that
+        match their nozzle's reference before the detector; a cleared row's label
+        is the gate's healthy class with confidence 1.0 (the gate does not estimate
+        a probability: it clears only rows within its calibrated bounds,
+        ``reports/gate.md``).
     sample_rate_hz : float, optional
         Sample rate of the frames, Hz; must be the detector's (and the baselines').
     n_samples : int, optional
@@ -122,6 +133,8 @@ class FrameLabeller:
                                           "need a detector trained with baseline=True")
         self.detector = detector
         self.baselines = baselines if baselines is not None and len(baselines) else None
+        gate = HealthyGate(self.baselines) if self.baselines is not None and self.baselines.has_reference else None
+        self.gate = gate if gate is not None and gate.active else None
         self.n_samples = want_n
         self.sample_rate_hz = want_fs
         self.profile = profile
@@ -136,6 +149,11 @@ class FrameLabeller:
     def uses_baselines(self) -> bool:
         """Rows of nozzles with a recorded baseline are classified against it."""
         return self.baselines is not None
+
+    @property
+    def uses_gate(self) -> bool:
+        """Rows of nozzles with a recorded reference trace go through the healthy gate first."""
+        return self.gate is not None
 
     def label(self, frames, first_nozzles, *, nozzles=None) -> list:
         """Label a batch of frames: one screening and one detector call, each frame isolated.
@@ -204,12 +222,22 @@ class FrameLabeller:
         classes = np.full(n, "", dtype=object)
         confidence = np.full(n, np.nan)
         with_base = np.zeros(n, dtype=bool)
+        cleared = np.zeros(n, dtype=bool)
         at = np.flatnonzero(valid)
+        if at.size and self.baselines is not None:
+            ids = np.concatenate([f + np.arange(a.shape[0]) if np.ndim(f) == 0 else f
+                                  for f, a in zip(firsts, arrays)])
+            if self.gate is not None:  # screen -> gate -> full model on the rest
+                g = self.gate.screen(x if at.size == n else x[at], ids[at])
+                done = at[g.cleared]
+                cleared[done] = True
+                classes[done] = g.classes[g.cleared]
+                confidence[done] = 1.0
+                with_base[done] = True
+                at = at[~g.cleared]
         if at.size:
             kpis = None
             if self.baselines is not None:
-                ids = np.concatenate([f + np.arange(a.shape[0]) if np.ndim(f) == 0 else f
-                                      for f, a in zip(firsts, arrays)])
                 has, kpis = self.baselines.lookup(ids[at])
                 kpis[~has] = np.nan  # routed to the plain branch
             got = self.detector.label(x if at.size == n else x[at], baseline_kpis=kpis)
@@ -221,7 +249,7 @@ class FrameLabeller:
         valid = reasons == ""
         with_base &= valid
         cuts = np.cumsum([a.shape[0] for a in arrays])[:-1]
-        cols = (classes, confidence, valid, reasons, with_base)
+        cols = (classes, confidence, valid, reasons, with_base) + ((cleared,) if self.gate is not None else ())
         return [FrameLabels(*p) for p in zip(*(np.split(col, cuts) for col in cols))]
 
 

@@ -36,6 +36,8 @@ class FrameLabels:
     valid : ndarray of bool, (n,)
     reasons : ndarray of str (object), (n,) -- why a row is invalid, ``""`` otherwise
     baseline : ndarray of bool, (n,) -- classified against its nozzle's baseline
+    gate_cleared : ndarray of bool, (n,) or None -- cleared as healthy by the healthy
+        gate (:class:`inkdiag_core.HealthyGate`) without the full model; None: no gate ran
     """
 
     classes: np.ndarray
@@ -43,6 +45,7 @@ class FrameLabels:
     valid: np.ndarray
     reasons: np.ndarray
     baseline: np.ndarray | None = None
+    gate_cleared: np.ndarray | None = None
 
 
 def label_traces(pipeline, traces, *, fd_threshold: float = 0.5, nozzle_ids=None,

@@ -9,7 +9,11 @@ any nozzle ranges, in any order; invalid rows are skipped) and, once
 exits. With ``fm_frames`` > 0 (the default) the file also holds each nozzle's
 healthy f_m reading, the median over its first ``fm_frames`` valid rows, which
 the fe node subtracts (its ``baseline_path``); it costs about 1 ms of CPU per
-row (a 2,656-nozzle head: about 10 s for 3 frames). At ``timeout_s`` it writes the nozzles that are complete, says which are
+row (a 2,656-nozzle head: about 10 s for 3 frames). The file also holds each
+nozzle's healthy reference trace (the sample-wise median of the same rows), which
+the fdi node's healthy gate (:class:`inkdiag_core.HealthyGate`) fits each new row to;
+the node keeps those rows until it writes (float32: a 2,656-nozzle head at
+``n_frames`` 8 holds 44 MB). At ``timeout_s`` it writes the nozzles that are complete, says which are
 not, and exits with status 1 if none is. The fdi node uses the file
 (``baseline_path``, classified by its model's baseline branch),
 and so does the fe node (``baseline_path``).
@@ -66,7 +70,7 @@ class BaselineRecorderNode(Node):
         self.profile = head_from_parameters(c)  # bad, nominal or contradicting: ValueError, exit 2 at start
         self.recorder = BaselineRecorder(n_frames=c["n_frames"], sample_rate_hz=c["sample_rate_hz"],
                                          n_samples=c["n_samples"], profile=self.profile,
-                                         fm_frames=min(c["fm_frames"], c["n_frames"]))
+                                         fm_frames=min(c["fm_frames"], c["n_frames"]), reference=True)
         self.frames = 0
         self.malformed = 0
         self.last_error = ""

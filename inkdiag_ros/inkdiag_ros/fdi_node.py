@@ -131,13 +131,15 @@ class FdiNode(Node):
                 raise result.error
             report = LabelsReport.from_arrays(
                 frame_id=frame.frame_id, stamp=frame.stamp, first_nozzle=frame.first_nozzle, classes=result.classes,
-                confidence=result.confidence, valid=result.valid, reasons=result.reasons, model_id=self.model_id)
+                confidence=result.confidence, valid=result.valid, reasons=result.reasons, model_id=self.model_id,
+                gate_cleared=result.gate_cleared)
             self._labels_pub.publish(encode_labels(report))
             self._drying_pub.publish(encode_drying(DryingNozzles.from_labels(report)))
         except Exception as exc:  # noqa: BLE001 - this frame failed; the batch's others go on
             self._failed(frame, exc)
             return
-        self.stats.labelled(report.counts, report.n_nozzles, int(np.count_nonzero(result.baseline)))
+        self.stats.labelled(report.counts, report.n_nozzles, int(np.count_nonzero(result.baseline)),
+                            report.gate_cleared)
 
     def _failed(self, frame, exc) -> None:
         if self.context.ok():  # else shutting down: nothing left to publish to
@@ -146,10 +148,10 @@ class FdiNode(Node):
             self.get_logger().error(f"labelling frame {frame.frame_id} failed: {why}", throttle_duration_sec=1.0)
 
     def _on_diagnostics(self) -> None:
-        level, message, values, counts = self.stats.period(self.labeller is not None)
+        level, message, values, counts, gate_cleared = self.stats.period(self.labeller is not None)
         self._diag_pub.publish(build_diagnostics(
             namespace=self.get_namespace(), level=level, message=message, values={"model_id": self.model_id, **values},
-            counts=counts, stamp=self.get_clock().now().to_msg()))
+            counts=counts, stamp=self.get_clock().now().to_msg(), gate_cleared=gate_cleared))
 
 
 def main(args=None) -> int:

@@ -26,6 +26,7 @@ class FdiStats:
         self.rows_invalid = 0
         self.traces_labelled = 0
         self.rows_with_baseline = 0
+        self.rows_gate_cleared = 0
         self.counts = Counter()
         self.last_error = ""
         self.config_error = ""  # a setting the node could not honour (it runs without it)
@@ -62,21 +63,23 @@ class FdiStats:
         with self._lock:
             self.frames_received += 1
 
-    def labelled(self, counts: dict, n_rows: int, n_baseline: int = 0) -> None:
+    def labelled(self, counts: dict, n_rows: int, n_baseline: int = 0, n_gate_cleared: int = 0) -> None:
         with self._lock:
             self.frames_labelled += 1
             self.traces_labelled += n_rows
             self.rows_with_baseline += n_baseline
+            self.rows_gate_cleared += n_gate_cleared
             self.counts.update(counts)
             self.rows_invalid += counts.get("invalid", 0)
 
     def period(self, model_loaded: bool):
-        """``(level, message, values, counts)`` over the time since the last call.
+        """``(level, message, values, counts, gate_cleared)`` over the time since the last call.
 
-        ``counts`` is a copy of the cumulative rows per label.
+        ``counts`` is a copy of the cumulative rows per label; ``gate_cleared`` the
+        cumulative rows the healthy gate cleared.
         """
         with self._lock:
-            return self._period(model_loaded) + (dict(self.counts),)
+            return self._period(model_loaded) + (dict(self.counts), self.rows_gate_cleared)
 
     def _period(self, model_loaded: bool):
         now = time.monotonic()

@@ -41,12 +41,13 @@ from .estimates import (
     encode_estimates_array,
 )
 from .truth import TRUTH_MSG_TYPE, GroundTruth, decode_truth, encode_truth, truth_from_arrays
-from .diagnostics import DIAGNOSTICS_MSG_TYPE, build_diagnostics, diagnostics_values
+from .diagnostics import DIAGNOSTICS_MSG_TYPE, GATE_CLEARED_KEY, build_diagnostics, diagnostics_values
 from .qos import DIAGNOSTICS_QOS, RELIABLE_QOS, TRACES_QOS
 from . import topics
 
 __all__ = [
     "DIAGNOSTICS_MSG_TYPE",
+    "GATE_CLEARED_KEY",
     "DIAGNOSTICS_QOS",
     "DRIED_CLASSES",
     "DRYING_MSG_TYPE",

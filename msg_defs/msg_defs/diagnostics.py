@@ -21,6 +21,10 @@ Each FDI node publishes, every ``diagnostics_period_s``, an array with one
   node is at its capacity); then
   ``last_error`` (the last malformed frame's reason), ``config_error`` (empty, or
   the setting the node runs without, and why) and then ``count.<class>``
+  for each class value and ``count.invalid`` (cumulative rows per label), and
+  ``count.gate_cleared``: cumulative rows the healthy gate (``inkdiag_core.HealthyGate``)
+  cleared without the full model (also counted under their class, so not part of
+  the per-label sum; 0 when the node's baselines carry no reference traces).
   for each class value and ``count.invalid`` (cumulative rows per label;
   ``count.unknown`` for the rows the model's open-set layer found unlike every
   known class, once there has been one).
@@ -45,7 +49,7 @@ from __future__ import annotations
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-__all__ = ["DIAGNOSTICS_MSG_TYPE", "LEVELS", "KEYS", "build_diagnostics", "diagnostics_values"]
+__all__ = ["DIAGNOSTICS_MSG_TYPE", "GATE_CLEARED_KEY", "LEVELS", "KEYS", "build_diagnostics", "diagnostics_values"]
 
 DIAGNOSTICS_MSG_TYPE = DiagnosticArray
 #: Level names accepted by :func:`build_diagnostics` -> message constants (bytes values).
@@ -55,6 +59,8 @@ LEVELS = {
     "error": DiagnosticStatus.ERROR,
     "stale": DiagnosticStatus.STALE,
 }
+#: Key (after :data:`COUNT_PREFIX`) of the rows the healthy gate cleared.
+GATE_CLEARED_KEY = "gate_cleared"
 KEYS = ("model_id", "frames_received", "frames_labelled", "frames_malformed", "frames_failed",
         "frames_dropped", "rows_invalid", "rows_with_baseline", "frames_per_s", "traces_per_s",
         "frames_per_batch", "labeller_busy", "last_error", "config_error")
@@ -68,7 +74,7 @@ def _fmt(v) -> str:
 
 
 def build_diagnostics(*, namespace: str, level: str, message: str, values: dict, counts: dict,
-                      stamp=None) -> DiagnosticArray:
+                      stamp=None, gate_cleared: int | None = None) -> DiagnosticArray:
     """One head's DiagnosticArray.
 
     Parameters
@@ -83,6 +89,8 @@ def build_diagnostics(*, namespace: str, level: str, message: str, values: dict,
         Cumulative rows per class value (and ``"invalid"``).
     stamp : builtin_interfaces/Time, optional
         ``header.stamp`` (the node's clock).
+    gate_cleared : int, optional
+        Cumulative rows the healthy gate cleared: ``count.gate_cleared`` (None: not sent).
     """
     status = DiagnosticStatus()
     status.level = LEVELS[level]
@@ -90,9 +98,12 @@ def build_diagnostics(*, namespace: str, level: str, message: str, values: dict,
     status.hardware_id = namespace
     status.message = message
     ordered = [k for k in KEYS if k in values] + [k for k in values if k not in KEYS]
-    status.values = [KeyValue(key=k, value=_fmt(values[k])) for k in ordered] + [
+    kv = [KeyValue(key=k, value=_fmt(values[k])) for k in ordered] + [
         KeyValue(key=COUNT_PREFIX + c, value=str(int(n))) for c, n in sorted(counts.items())
     ]
+    if gate_cleared is not None:
+        kv.append(KeyValue(key=COUNT_PREFIX + GATE_CLEARED_KEY, value=str(int(gate_cleared))))
+    status.values = kv
     arr = DiagnosticArray()
     if stamp is not None:
         arr.header.stamp = stamp

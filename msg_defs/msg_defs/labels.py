@@ -10,6 +10,7 @@ answers one trace frame::
       "first_nozzle": 0, "n_nozzles": 64,
       "model_id": "fdi-rf-kpi_y-3f2a9c1b",   # which FDI model labelled it
       "counts": {"healthy_nozzle": 55, "deeply_dried": 1, ..., "invalid": 1},
+      "gate_cleared": 50,             # rows the healthy gate cleared (0: none, or no gate)
       "faults": [{"nozzle": 7, "class": "deeply_dried", "confidence": 0.91}, ...],
       "invalid": [{"nozzle": 12, "reason": "non_finite"}, ...]
     }
@@ -20,6 +21,10 @@ nozzle whose class is not healthy (not in :data:`HEALTHY_CLASSES`), sorted
 by nozzle id, with the classifier's probability of that class
 (``confidence`` in [0, 1], 3 decimals). ``invalid`` lists the rows that
 could not be judged and why (``non_finite``, ``flat``, ``clipped``).
+``gate_cleared`` counts the rows the healthy gate (``inkdiag_core.HealthyGate``)
+labelled healthy without the full model; they are also counted under their class
+in ``counts`` (so it is at most ``n_nozzles - counts["invalid"]``). A message
+without it (an older publisher) reads as 0.
 
 A nozzle unlike every class the model knows (its open-set layer, issue 16) has
 the class :data:`UNKNOWN_CLASS` (``"unknown"``): it is a fault (listed under
@@ -82,6 +87,8 @@ class LabelsReport:
     faults : tuple of (nozzle, class, confidence)
         Valid, non-healthy nozzles, by nozzle id.
     invalid : tuple of (nozzle, reason)
+    gate_cleared : int
+        Rows the healthy gate cleared (also counted under their class).
     """
 
     frame_id: int
@@ -92,10 +99,11 @@ class LabelsReport:
     counts: dict = field(default_factory=dict)
     faults: tuple = ()
     invalid: tuple = ()
+    gate_cleared: int = 0
 
     @classmethod
     def from_arrays(cls, *, frame_id, stamp, first_nozzle, classes, confidence, valid, reasons,
-                    model_id: str) -> "LabelsReport":
+                    model_id: str, gate_cleared=None) -> "LabelsReport":
         """Build a report from the per-row arrays of one frame.
 
         Parameters
@@ -107,6 +115,8 @@ class LabelsReport:
         valid : array_like of bool, shape (n,)
         reasons : array_like of str, shape (n,)
             Why a row is invalid (``""`` for valid rows).
+        gate_cleared : array_like of bool, shape (n,), optional
+            Rows the healthy gate cleared; None: none.
         """
         classes = np.asarray(classes, dtype=object)
         valid = np.asarray(valid, dtype=bool)
@@ -130,8 +140,14 @@ class LabelsReport:
         faults = tuple(zip(ids[faulty].tolist(), map(str, classes[faulty].tolist()), conf.tolist()))
         bad = ~valid
         invalid = tuple(zip(ids[bad].tolist(), map(str, np.asarray(reasons, dtype=object)[bad].tolist())))
+        n_cleared = 0
+        if gate_cleared is not None:
+            g = np.asarray(gate_cleared, dtype=bool)
+            if g.shape != (n,):
+                raise MessageError(f"labels: gate_cleared must have shape ({n},), got {g.shape}")
+            n_cleared = int(np.count_nonzero(g & valid))
         return cls(int(frame_id), float(stamp), int(first_nozzle), int(n), str(model_id), counts,
-                   faults, invalid)
+                   faults, invalid, n_cleared)
 
     def nozzles_of(self, class_values) -> list:
         """Ids of the listed nozzles whose class is one of ``class_values``."""
@@ -148,6 +164,7 @@ def encode_labels(report: LabelsReport) -> String:
         "n_nozzles": report.n_nozzles,
         "model_id": report.model_id,
         "counts": report.counts,
+        "gate_cleared": report.gate_cleared,
         "faults": [{"nozzle": nz, "class": c, "confidence": p} for nz, c, p in report.faults],
         "invalid": [{"nozzle": nz, "reason": r} for nz, r in report.invalid],
     })
@@ -182,4 +199,8 @@ def decode_labels(msg) -> LabelsReport:
         raise MessageError(f"{s}: malformed faults/invalid entry ({exc!r})") from None
     if counts.get(INVALID_KEY, 0) != len(invalid):
         raise MessageError(f"{s}: counts['invalid'] = {counts.get(INVALID_KEY)}, {len(invalid)} listed")
-    return LabelsReport(frame_id, stamp, first, n, model_id, counts, tuple(faults), tuple(invalid))
+    cleared = doc.get("gate_cleared", 0)
+    if isinstance(cleared, bool) or not isinstance(cleared, int) or not 0 <= cleared <= n - len(invalid):
+        raise MessageError(f"{s}: gate_cleared must be an integer in 0..{n - len(invalid)} (the valid rows), "
+                           f"got {cleared!r}")
+    return LabelsReport(frame_id, stamp, first, n, model_id, counts, tuple(faults), tuple(invalid), cleared)

@@ -14,8 +14,15 @@ per nozzle, not per frame), and ``forest_predict_proba`` against scikit-learn's
 ``predict_proba`` on the KPI_Y pipeline, and the whole ``FaultDetector.label``
 (100 trees like the pipelines here) with and without its open-set layer
 (issue 16), as a ratio of the rf/kpi_y pipeline's throughput (the three timed
-in turns, best of 5). Prints traces/s and ratios; run it on
-one core (``scripts/bench`` sets the thread variables).
+in turns, best of 5). Then the healthy gate
+(:class:`inkdiag_core.HealthyGate`, issue 17): its ``screen`` on a realistic head
+frame (``--head-nozzles`` nozzles, ``--faulty`` 2 % faulty by default, half the
+healthy rows OK-check; references recorded by ``BaselineRecorder`` from 8 healthy
+frames) against one ``max`` pass over the same frame, and ``FrameLabeller.label``
+end to end on that frame in 200-nozzle messages (the default detector
+``models/fdi_default.joblib``, trained if missing) with the baselines' references
+(gate on) and without (gate off). Prints traces/s and ratios; run it on one core
+(``scripts/bench`` sets the thread variables). ``--gate-only`` skips all but the gate.
 """
 
 import argparse
@@ -43,7 +50,13 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=20000, help="traces in the timed batch")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--head-nozzles", type=int, default=2656, help="nozzles of the gate's head frame")
+    ap.add_argument("--gate-only", action="store_true", help="only the healthy gate and FrameLabeller rows")
+    ap.add_argument("--faulty", type=float, default=0.02, help="faulty fraction of the gate's head (1: worst case)")
     ns = ap.parse_args()
+    if ns.gate_only:
+        gate_bench(ns.head_nozzles, ns.seed, ns.faulty)
+        return
     per = max(ns.n // 12, 1)
     batch = simulate({c: per for c in FaultClass}, seed=ns.seed)
     X = batch.traces
@@ -108,6 +121,69 @@ def main():
     for name, pipe, rows_ in (("rf/rich", rich, X), ("rf/kpi_y+baseline", based, Xb)):
         acc = np.mean(pipe.predict(rows_) == batch.label_values())
         print(f"accuracy of {name} on the timed batch: {100 * acc:.1f}% (trained on {len(train)} traces)")
+    gate_bench(ns.head_nozzles, ns.seed, ns.faulty)
+
+
+def gate_bench(n: int, seed: int, faulty: float = 0.02, repeats: int = 5):
+    """The healthy gate against one max pass, and FrameLabeller rows/s with and without references."""
+    import dataclasses
+    from pathlib import Path
+
+    from inkdiag_core import BaselineRecorder, FrameLabeller, HealthyGate, load_detector, simulate_nozzles
+    from inkdiag_core.model_cache import ensure_default_model
+
+    rng = np.random.default_rng(seed)
+    from inkdiag_core.faults import HEALTHY_CLASSES
+
+    faults = [c.value for c in FaultClass if c not in HEALTHY_CLASSES]
+    classes = np.where(rng.random(n) < 0.5, FaultClass.HEALTHY_NOZZLE.value, FaultClass.OK_SIGNAL.value).astype(object)
+    bad = rng.choice(n, size=max(1, round(faulty * n)), replace=False)
+    classes[bad] = [faults[i] for i in rng.integers(len(faults), size=bad.size)]
+    head = 9_100 + seed
+    rec = BaselineRecorder(n_frames=8)
+    for f in range(8):
+        rec.add(0, simulate_nozzles(["healthy_nozzle"] * n, seed=head, frame_seed=[head, f]).traces)
+    base = rec.baselines()
+    frame = simulate_nozzles(classes, seed=head, frame_seed=[head, 100]).traces.astype(np.float32)
+    gate = HealthyGate(base)
+    got = gate.screen(frame, 0)
+    t = {"X.max(axis=1) (one read of each sample)": best_of(lambda: frame.max(axis=1), repeats),
+         "HealthyGate.screen (whole frame, one call)": best_of(lambda: gate.screen(frame, 0), repeats)}
+    root = Path(__file__).resolve().parents[2]
+    det = load_detector(ensure_default_model(root / "models" / "fdi_default.joblib"))
+    msgs = [frame[a:a + 200] for a in range(0, n, 200)]
+    firsts = list(range(0, n, 200))
+    with_ref = FrameLabeller(det, base, max_abs_v=10.0)
+    without = FrameLabeller(det, dataclasses.replace(base, reference=None), max_abs_v=10.0)
+
+    def per_message(lab):
+        for m, f0 in zip(msgs, firsts):
+            lab.label([m], [f0])
+
+    t["FrameLabeller, baselines with references (gate), per 200-nozzle message"] = best_of(
+        lambda: per_message(with_ref), repeats)
+    t["FrameLabeller, baselines without references, per 200-nozzle message"] = best_of(
+        lambda: per_message(without), repeats)
+    t["FrameLabeller, with references (gate), all messages in one call"] = best_of(
+        lambda: with_ref.label(msgs, firsts), repeats)
+    t["FrameLabeller, without references, all messages in one call"] = best_of(
+        lambda: without.label(msgs, firsts), repeats)
+    print(f"\nhealthy gate: head frame of {n} nozzles x {frame.shape[1]} samples, {bad.size} faulty; "
+          f"{int(got.cleared.sum())} rows cleared ({100 * got.cleared.mean():.1f} %); best of {repeats}")
+    width = max(len(k) for k in t)
+    for name, v in t.items():
+        print(f"{name:<{width}} : {n / v:>12,.0f} traces/s  ({1e3 * v:8.2f} ms)")
+    mx = t["X.max(axis=1) (one read of each sample)"]
+    print(f"ratio HealthyGate.screen / one max pass: {mx / t['HealthyGate.screen (whole frame, one call)']:.3f}")
+    a = t["FrameLabeller, baselines with references (gate), per 200-nozzle message"]
+    b = t["FrameLabeller, baselines without references, per 200-nozzle message"]
+    print(f"ratio FrameLabeller with gate / without, per message: {b / a:.2f}x faster")
+    a = t["FrameLabeller, with references (gate), all messages in one call"]
+    b = t["FrameLabeller, without references, all messages in one call"]
+    print(f"ratio FrameLabeller with gate / without, one call: {b / a:.2f}x faster")
+    same = all((g.classes == w.classes).all()
+               for g, w in zip(with_ref.label(msgs, firsts), without.label(msgs, firsts)))
+    print(f"labels with the gate == without: {same}")
 
 
 if __name__ == "__main__":

@@ -156,3 +156,40 @@ def test_baselines_of_another_head_are_refused(detector, baselines):
     with pytest.raises(LabellerConfigError, match="another head"):
         FrameLabeller(detector, foreign)
     FrameLabeller(detector, baselines)  # the default head's own baselines still go
+
+
+def test_gate_clears_healthy_rows_and_leaves_the_rest_to_the_detector(detector):
+    """With reference traces the gate labels the healthy rows it clears; the others are labelled as before."""
+    import dataclasses
+
+    n = 240
+    rec = BaselineRecorder(n_frames=4)
+    for k in range(4):
+        rec.add(FIRST, simulate_nozzles(["healthy_nozzle"] * n, seed=HEAD, frame_seed=k).traces)
+    with_ref = rec.baselines()
+    assert with_ref.has_reference
+    no_ref = dataclasses.replace(with_ref, reference=None)
+    classes = np.array(["healthy_nozzle", "ok_signal"] * (n // 2), dtype=object)
+    faults = [c.value for c in FaultClass if c.value not in ("healthy_nozzle", "ok_signal")]
+    classes[::12] = [faults[i % len(faults)] for i in range(n // 12)]  # 20 faulty nozzles, every fault class
+    x = simulate_nozzles(classes, seed=HEAD, frame_seed=123).traces.astype(np.float32)
+    x[5, 3] = np.nan
+    frames, firsts = [x[:100], x[100:]], [FIRST, FIRST + 100]
+    gated = FrameLabeller(detector, with_ref, max_abs_v=10.0)
+    plain = FrameLabeller(detector, no_ref, max_abs_v=10.0)
+    assert gated.uses_gate and not plain.uses_gate
+    got, want = gated.label(frames, firsts), plain.label(frames, firsts)
+    cleared = np.concatenate([g.gate_cleared for g in got])
+    assert all(w.gate_cleared is None for w in want)
+    healthy = np.isin(classes, ["healthy_nozzle", "ok_signal"])
+    assert not cleared[~healthy].any() and not cleared[5]
+    assert cleared[healthy].mean() > 0.9
+    g = {k: np.concatenate([getattr(f, k) for f in got]) for k in ("classes", "confidence", "valid", "reasons",
+                                                                     "baseline")}
+    w = {k: np.concatenate([getattr(f, k) for f in want]) for k in g}
+    for k in ("valid", "reasons", "baseline"):
+        np.testing.assert_array_equal(g[k], w[k])
+    np.testing.assert_array_equal(g["classes"][~cleared], w["classes"][~cleared])
+    np.testing.assert_array_equal(g["confidence"][~cleared], w["confidence"][~cleared])  # bit-identical
+    assert (g["classes"][cleared] == classes[cleared]).all() and (g["confidence"][cleared] == 1.0).all()
+    assert np.mean(g["classes"][cleared] == w["classes"][cleared]) >= 0.97  # the full model's healthy class

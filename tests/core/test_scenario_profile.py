@@ -138,10 +138,10 @@ def test_baselines_without_a_head_are_the_default_heads(tmp_path):
     with np.load(path) as z:
         arrays = {k: z[k] for k in z.files}
     meta = json.loads(str(arrays["meta"]))
-    assert meta["format_version"] == 3 and meta["head_sha256"] == b.head_sha256
+    assert meta["format_version"] == 4 and meta["head_sha256"] == b.head_sha256
     from inkdiag_core.baselines.store import _content_sha256
 
-    old = {k: v for k, v in meta.items() if k not in ("head_sha256", "sha256")}
+    old = {k: v for k, v in meta.items() if k not in ("head_sha256", "sha256", "has_reference")}
     old["format_version"] = 2
     old["sha256"] = _content_sha256(b.nozzle_ids, b.kpis, {k: v for k, v in old.items() if k != "sha256"})
     arrays["meta"] = np.array(json.dumps(old, sort_keys=True))

@@ -260,6 +260,39 @@ def test_two_process_round_trip(ros):
     assert (frame.first_nozzle, frame.frame_id, frame.stamp) == (100, 7, 1.5)
 
 
+def test_labels_carry_the_rows_the_gate_cleared():
+    import json
+
+    from std_msgs.msg import String
+
+    from msg_defs import GATE_CLEARED_KEY, LabelsReport, MessageError, build_diagnostics, decode_labels, \
+        diagnostics_values, encode_labels
+
+    classes = np.array(["healthy_nozzle", "ok_signal", "deeply_dried", ""], dtype=object)
+    valid = np.array([True, True, True, False])
+    rep = LabelsReport.from_arrays(frame_id=1, stamp=2.0, first_nozzle=10, classes=classes,
+                                   confidence=np.array([1.0, 1.0, 0.9, np.nan]), valid=valid,
+                                   reasons=np.array(["", "", "", "flat"], dtype=object), model_id="m",
+                                   gate_cleared=np.array([True, True, False, True]))
+    assert rep.gate_cleared == 2  # an invalid row is never counted
+    msg = encode_labels(rep)
+    assert json.loads(msg.data)["gate_cleared"] == 2
+    assert decode_labels(msg) == rep
+    old = json.loads(msg.data)
+    del old["gate_cleared"]  # an older publisher: 0
+    assert decode_labels(String(data=json.dumps(old))).gate_cleared == 0
+    for bad in (-1, 4, "2", True):
+        old["gate_cleared"] = bad
+        with pytest.raises(MessageError, match="gate_cleared"):
+            decode_labels(String(data=json.dumps(old)))
+    with pytest.raises(MessageError, match="gate_cleared"):
+        LabelsReport.from_arrays(frame_id=1, stamp=2.0, first_nozzle=10, classes=classes, confidence=np.ones(4),
+                                 valid=valid, reasons=np.array([""] * 4, dtype=object), model_id="m",
+                                 gate_cleared=np.ones(3, bool))
+    arr = build_diagnostics(namespace="/h", level="ok", message="", values={}, counts={"healthy_nozzle": 5},
+                            gate_cleared=7)
+    d = diagnostics_values(arr)["inkdiag fdi: /h"]
+    assert d["count." + GATE_CLEARED_KEY] == "7" and d["count.healthy_nozzle"] == "5"
 def test_an_unknown_nozzle_is_a_fault_with_its_score_and_counted():
     # issue 16: `unknown` entries in faults with their score, counts["unknown"], not drying
     from msg_defs import DRIED_CLASSES, UNKNOWN_CLASS, LabelsReport, decode_labels, encode_labels

@@ -78,6 +78,9 @@ def test_record_baseline_writes_every_nozzles_median_and_finishes(ros, tmp_path)
 
     fm = np.stack([estimate_fm_batch(f, InkChannelModel(), 10e6).fm for f in frames])
     np.testing.assert_allclose(b.fm, np.median(fm, axis=0), rtol=1e-5)
+    # and each nozzle's healthy reference trace, for the fdi node's healthy gate
+    assert b.has_reference
+    np.testing.assert_allclose(b.reference, np.median(np.stack(frames, axis=1), axis=1), atol=1e-6)
 
 
 def test_fe_takes_each_estimate_relative_to_its_nozzles_healthy_fm(ros, tmp_path):
@@ -163,6 +166,10 @@ def test_fdi_classifies_nozzles_with_a_baseline_against_it(ros, tmp_path, fdi_mo
     assert sum(got.get(nz) == c for nz, c in truth.items()) >= 0.8 * len(truth), (got, truth)
     ros.spin_until(lambda: diag and diag[-1]["rows_with_baseline"] == str(N), 5, "rows_with_baseline")
     assert diag[-1]["config_error"] == "" and diag[-1]["model_id"] == fdi.model_id
+    # the recorded file carries reference traces: the healthy gate cleared healthy rows (8 of the 40
+    # nozzles with a baseline are healthy; the 10 without one always take the model), and says so
+    assert fdi.labeller.uses_gate and 1 <= rep.gate_cleared <= 8
+    assert diag[-1]["count.gate_cleared"] == str(rep.gate_cleared)
 
 
 @pytest.mark.parametrize("case", ["missing file", "only the file", "plain model", "tampered file",

@@ -1,5 +1,6 @@
 """inkdiag_ros.labelling_backend: thread and process backends give the FrameLabeller's results, in order."""
 
+import dataclasses
 import os
 import signal
 
@@ -32,7 +33,8 @@ def head(fdi_baseline_model):
     x = simulate_nozzles(classes, seed=HEAD, frame_seed=9).traces.astype(np.float32)
     x[5, 3] = np.inf
     frames, firsts = [x[:16], x[16:40], x[40:]], [0, 16, 40]
-    return det, rec.baselines(), frames, firsts
+    # without reference traces (no healthy gate): the previous path knows no gate
+    return det, dataclasses.replace(rec.baselines(), reference=None), frames, firsts
 
 
 def _previous(det, frames, firsts, baselines):
@@ -67,6 +69,28 @@ def test_backends_label_bit_identically_to_the_previous_path_in_order(head, in_p
         assert np.concatenate([r.baseline for r in first.results]).sum() == (39 if with_baselines else 0)
     finally:
         backend.close()
+
+
+@pytest.mark.parametrize("in_process", [False, True], ids=["thread", "process"])
+def test_backends_carry_the_rows_the_gate_cleared(head, in_process):
+    det, baselines, frames, firsts = head
+    rec = BaselineRecorder(n_frames=4)
+    for k in range(4):
+        rec.add(0, simulate_nozzles(["healthy_nozzle"] * 40, seed=HEAD, frame_seed=k).traces)
+    labeller = FrameLabeller(det, rec.baselines(), max_abs_v=10.0)
+    assert labeller.uses_gate
+    want = labeller.label(frames, firsts)
+    backend, why = make_backend(labeller, in_process=in_process)
+    try:
+        backend.submit(frames, firsts)
+        got = backend.collect().results
+    finally:
+        backend.close()
+    cleared = np.concatenate([r.gate_cleared for r in got])
+    assert cleared.any()
+    np.testing.assert_array_equal(cleared, np.concatenate([r.gate_cleared for r in want]))
+    for g, w in zip(got, want):
+        assert list(g.classes) == list(w.classes)
 
 
 class _Broken(FrameLabeller):

@@ -56,6 +56,12 @@ class BaselineRecorder:
         ``InkChannelModel()``): its sampling, its healthy model for the f_m readings,
         and its sha256, which the baselines carry (:attr:`NozzleBaselines.head_sha256`).
         A complete profile.
+    reference : bool
+        Also record each nozzle's healthy reference trace (:attr:`NozzleBaselines.reference`,
+        for :class:`inkdiag_core.HealthyGate`): the sample-wise median of the same rows
+        as its KPI baseline. It keeps those rows (float32, ``n_frames`` rows of
+        ``n_samples`` per nozzle) until :meth:`baselines`. Like the KPI baselines it
+        assumes the recorded rows are healthy jetting-pulse traces (``healthy_nozzle``).
 
     Raises
     ------
@@ -65,7 +71,7 @@ class BaselineRecorder:
     """
 
     def __init__(self, *, n_frames: int = 8, sample_rate_hz: float | None = None, n_samples: int | None = None,
-                 fm_frames: int = 0, max_nozzles: int = DEFAULT_MAX_NOZZLES, profile=None):
+                 fm_frames: int = 0, max_nozzles: int = DEFAULT_MAX_NOZZLES, profile=None, reference: bool = True):
         from ..head_profile import HeadProfile, ProfileError
 
         if profile is None:
@@ -102,6 +108,8 @@ class BaselineRecorder:
         self._model = profile.model() if self.fm_frames else None
         self._ids = []  # chunks of the rows kept so far, in arrival order
         self._kpis = []
+        self.reference = bool(reference)
+        self._traces = []  # the kept rows (float32), when recording references
         self._count_of = np.zeros(0, np.int32)  # rows kept per nozzle id (dense, grown on demand)
 
     def add(self, first_nozzle: int, traces, keep=None) -> int:
@@ -155,6 +163,8 @@ class BaselineRecorder:
             if fm_rows.size:
                 kpis[fm_rows, N_KPIS] = estimate_fm_batch(y[fm_rows], self._model, self.sample_rate_hz).fm
         self._kpis.append(kpis)
+        if self.reference:
+            self._traces.append(y.astype(np.float32))
         self._ids.append(ids.astype(np.int64))
         self._count_of[ids] += 1  # the ids of one message are distinct
         return int(ids.size)
@@ -189,5 +199,15 @@ class BaselineRecorder:
                 med = np.nanmedian(stack, axis=1)
         else:
             med = np.empty((0, N_KPIS + 1))
+        reference = None
+        if self.reference:
+            reference = np.empty((med.shape[0], self.n_samples), np.float32)
+            if ok.any():
+                rows = np.concatenate(self._traces)[order]
+                counts_ok = np.minimum(counts[ok], self.n_frames)
+                for c in np.unique(counts_ok):  # nozzles with the same number of rows together
+                    sel = np.flatnonzero(counts_ok == c)
+                    reference[sel] = np.median(rows[idx[sel, :c]], axis=1)
         return NozzleBaselines(ids[ok], med[:, :N_KPIS], self.sample_rate_hz, self.n_samples, self.n_frames,
-                               fm=med[:, N_KPIS] if self.fm_frames else None, head_sha256=self.profile.sha256)
+                               fm=med[:, N_KPIS] if self.fm_frames else None, head_sha256=self.profile.sha256,
+                               reference=reference)

@@ -1,11 +1,13 @@
 """The recorded baselines by nozzle id (:class:`NozzleBaselines`) and their checked ``.npz`` file.
 
-A file holds the arrays (``nozzle_ids``, ``kpis``, optional ``fm``), no pickle, and a
+A file holds the arrays (``nozzle_ids``, ``kpis``, optional ``fm``, optional
+``reference``: each nozzle's healthy reference trace for :class:`inkdiag_core.HealthyGate`), no pickle, and a
 JSON header (``meta``) with :data:`BASELINE_FORMAT`, :data:`BASELINE_FORMAT_VERSION`,
 the settings, the head profile's sha256 (``head_sha256``: the head the baselines
 were recorded on) and the sha256 of the content; :meth:`NozzleBaselines.load` checks
 them all and says what is wrong (:class:`BaselineFileError`). Files of versions 1
-and 2 (before head profiles) read as baselines of the default head.
+and 2 (before head profiles) read as baselines of the default head; files of versions
+1 to 3 (before reference traces) read with no references (no healthy gate).
 """
 
 from __future__ import annotations
@@ -28,8 +30,9 @@ from .features import N_KPIS
 __all__ = ["BASELINE_FORMAT", "BASELINE_FORMAT_VERSION", "BaselineFileError", "NozzleBaselines"]
 
 BASELINE_FORMAT = "inkdiag-nozzle-baselines"
-BASELINE_FORMAT_VERSION = 3  # 3: head_sha256; 2: optional healthy f_m per nozzle ("fm"); 1: KPIs only
-_READABLE_VERSIONS = (1, 2, 3)
+BASELINE_FORMAT_VERSION = 4  # 4: optional reference trace per nozzle ("reference"); 3: head_sha256;
+# 2: optional healthy f_m per nozzle ("fm"); 1: KPIs only
+_READABLE_VERSIONS = (1, 2, 3, 4)
 
 
 def _default_head_sha256() -> str:
@@ -42,12 +45,14 @@ class BaselineFileError(ValueError):
     """A baselines file that is missing, not one, modified, or inconsistent (a ``ValueError``)."""
 
 
-def _content_sha256(ids: np.ndarray, kpis: np.ndarray, meta: dict, fm=None) -> str:
+def _content_sha256(ids: np.ndarray, kpis: np.ndarray, meta: dict, fm=None, reference=None) -> str:
     h = hashlib.sha256()
     h.update(np.ascontiguousarray(ids, dtype="<i8").tobytes())
     h.update(np.ascontiguousarray(kpis, dtype="<f8").tobytes())
     if fm is not None:
         h.update(np.ascontiguousarray(fm, dtype="<f8").tobytes())
+    if reference is not None:
+        h.update(np.ascontiguousarray(reference, dtype="<f4").tobytes())
     h.update(json.dumps(meta, sort_keys=True).encode())
     return h.hexdigest()
 
@@ -78,6 +83,11 @@ class NozzleBaselines:
     head_sha256 : str, optional
         :attr:`inkdiag_core.HeadProfile.sha256` of the head the baselines were
         recorded on (64 hex digits); default (None): the shipped default head's.
+    reference : array_like of float, shape (m, n_samples), optional
+        Each nozzle's healthy reference trace, V (float32): the sample-wise
+        median of its recorded healthy rows (:class:`BaselineRecorder`), what
+        :class:`inkdiag_core.HealthyGate` fits each new trace to; a row of NaN
+        where a nozzle has none. None: no references (no gate).
 
     Raises
     ------
@@ -92,6 +102,7 @@ class NozzleBaselines:
     n_frames: int
     fm: np.ndarray | None = None
     head_sha256: str | None = None
+    reference: np.ndarray | None = None
 
     def __post_init__(self):
         ids = np.asarray(self.nozzle_ids)
@@ -118,6 +129,15 @@ class NozzleBaselines:
             v = getattr(self, name)
             if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 1:
                 raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        ref = None
+        if self.reference is not None:
+            ref = np.array(self.reference, dtype=np.float32)
+            if ref.shape != (ids.size, int(self.n_samples)):
+                raise ValueError(f"reference must have shape ({ids.size}, {int(self.n_samples)}), got {ref.shape}")
+            if np.isinf(ref).any() or (np.isnan(ref).any(axis=1) != np.isnan(ref).all(axis=1)).any():
+                raise ValueError("reference must be finite, or a whole row of NaN where a nozzle has none")
+            ref.flags.writeable = False
+        object.__setattr__(self, "reference", ref)
         for arr in (ids, kpis):
             arr.flags.writeable = False
         object.__setattr__(self, "nozzle_ids", ids)
@@ -200,11 +220,35 @@ class NozzleBaselines:
         has = ~np.isnan(fm)
         return has, np.where(has, fm, 0.0)
 
+    @property
+    def has_reference(self) -> bool:
+        """Whether the baselines carry reference traces (:attr:`reference`)."""
+        return self.reference is not None
+
+    def reference_rows(self, nozzle_ids):
+        """Where the given nozzles' reference traces are.
+
+        Parameters
+        ----------
+        nozzle_ids : array_like of int, shape (n,)
+
+        Returns
+        -------
+        has : ndarray of bool, shape (n,)
+            Whether each nozzle has a reference trace (all False without references).
+        rows : ndarray of int64, shape (n,)
+            Its row of :attr:`reference` (meaningless where ``has`` is False).
+        """
+        has, pos = self._rows(nozzle_ids)
+        if self.reference is None or not len(self):
+            return np.zeros(has.size, bool), pos
+        return has & ~np.isnan(self.reference[pos, 0]), pos
+
     def _meta(self) -> dict:
         return {"format": BASELINE_FORMAT, "format_version": BASELINE_FORMAT_VERSION,
                 "kpi_names": list(KPI_NAMES), "sample_rate_hz": self.sample_rate_hz,
                 "n_samples": self.n_samples, "n_frames": self.n_frames, "has_fm": self.fm is not None,
-                "head_sha256": self.head_sha256}
+                "has_reference": self.reference is not None, "head_sha256": self.head_sha256}
 
     def save(self, path) -> Path:
         """Write an ``.npz`` (no pickle) with the arrays, the settings and their sha256.
@@ -214,10 +258,12 @@ class NozzleBaselines:
         """
         path = Path(path)
         meta = self._meta()
-        meta["sha256"] = _content_sha256(self.nozzle_ids, self.kpis, self._meta(), self.fm)
+        meta["sha256"] = _content_sha256(self.nozzle_ids, self.kpis, self._meta(), self.fm, self.reference)
         arrays = {"nozzle_ids": self.nozzle_ids, "kpis": self.kpis}
         if self.fm is not None:
             arrays["fm"] = self.fm
+        if self.reference is not None:
+            arrays["reference"] = self.reference
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
         try:
             with os.fdopen(fd, "wb") as f:
@@ -246,6 +292,7 @@ class NozzleBaselines:
             with np.load(path, allow_pickle=False) as z:
                 arrays = {k: z[k] for k in ("nozzle_ids", "kpis", "meta")}
                 fm = z["fm"] if "fm" in z.files else None
+                reference = z["reference"] if "reference" in z.files else None
             meta = json.loads(str(arrays["meta"]))
         except (OSError, ValueError, KeyError, EOFError, TypeError, zipfile.BadZipFile, zlib.error) as exc:
             raise BaselineFileError(f"{path} is not an inkdiag baselines file, or is damaged "
@@ -259,6 +306,9 @@ class NozzleBaselines:
         if (fm is not None) != bool(meta.get("has_fm", False)):
             raise BaselineFileError(f"{path}: its f_m column does not match its header (modified or "
                                     "corrupted); record the baselines again")
+        if (reference is not None) != bool(meta.get("has_reference", False)):
+            raise BaselineFileError(f"{path}: its reference traces do not match its header (modified or "
+                                    "corrupted); record the baselines again")
         if meta.get("kpi_names") != list(KPI_NAMES):
             raise BaselineFileError(f"{path}: KPI columns {meta.get('kpi_names')!r} are not {list(KPI_NAMES)}")
         if meta.get("format_version") >= 3 and not isinstance(meta.get("head_sha256"), str):
@@ -267,7 +317,7 @@ class NozzleBaselines:
         stored = meta.pop("sha256", None)
         ids, kpis = arrays["nozzle_ids"], arrays["kpis"]
         try:
-            actual = _content_sha256(ids, kpis, meta, fm)
+            actual = _content_sha256(ids, kpis, meta, fm, reference)
         except (TypeError, ValueError) as exc:
             raise BaselineFileError(f"{path}: unreadable arrays ({exc})") from None
         if stored != actual:
@@ -275,6 +325,7 @@ class NozzleBaselines:
                                     "corrupted); record the baselines again")
         try:
             return cls(ids, kpis, meta["sample_rate_hz"], meta["n_samples"], meta["n_frames"], fm,
-                       head_sha256=meta.get("head_sha256"))  # None (versions 1, 2): the default head
+                       head_sha256=meta.get("head_sha256"),  # None (versions 1, 2): the default head
+                       reference=reference)  # None (versions 1-3): no references
         except (KeyError, ValueError) as exc:
             raise BaselineFileError(f"{path}: inconsistent baselines ({exc})") from None

@@ -1,0 +1,210 @@
+"""A cheap healthy gate in front of the full model: :class:`HealthyGate` (issue 17).
+
+Nearly every nozzle of a working head is healthy nearly all the time, and after
+commissioning every nozzle has a recorded healthy reference trace
+(:attr:`inkdiag_core.NozzleBaselines.reference`: the sample-wise median of its
+recorded healthy jetting-pulse rows). A trace ``x`` (n_samples) of such a nozzle is
+fitted to its nozzle's mean-removed reference ``r`` by least squares,
+``x ~ g r + c``, from three row-wise dot products (``x.r``, ``x.1``, ``x.x``; ``r.r``
+is precomputed, ``r.1`` is 0):
+
+- ``g = x.r / r.r``, the gain (1 for a healthy jetting trace of that nozzle; about
+  :data:`inkdiag_core.faults.OK_SIGNAL_DRIVE_FACTOR` = 0.8 for the OK-check pulse:
+  the channel is linear);
+- ``residual_fraction = (var - g x.r) / var`` with ``var = x.x - (x.1)^2 / n``: the
+  share of the trace's variance about its mean that the scaled reference does not
+  explain.
+
+A row is *cleared* as healthy when its residual fraction is at most
+``max_residual_fraction`` and its gain lies in the jetting band (class
+``healthy_nozzle``) or the OK-check band (class ``ok_signal``). Every other row,
+every row of a nozzle without a reference and every non-finite or constant row is
+not cleared: it takes the full model.
+
+Default thresholds (calibrated on simulated healthy traces of the default head, 30 dB
+SNR, 1.5 K ink-temperature spread per trace, the reference from 8 healthy frames at the
+nominal temperature; ``scripts/reports/gate.py`` measures them): the residual fraction
+of healthy rows is about 0.0015 (jetting) / 0.002 (OK-check) at the median and 0.005 /
+0.006 at the 99th percentile; their gain relative to the reference spans 0.90-1.10
+(jetting) and 0.72-0.88 (OK-check) between the 0.1st and 99.9th percentiles. The bands
+are those spans and the residual bound is the jetting rows' 99th percentile, 0.005;
+every fault class and held-out condition then clears at most 0.1 % of its rows
+(``reports/gate.md``). A head with another noise level or temperature spread needs
+its own numbers (its healthy rows' residual fractions and gains).
+
+Batch numpy only; no ROS.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from .faults import FaultClass
+
+__all__ = ["GateResult", "HealthyGate"]
+
+#: Default bound on a cleared row's residual fraction (module docstring).
+DEFAULT_MAX_RESIDUAL_FRACTION = 0.005
+#: Default gain band of a cleared jetting-pulse row (``healthy_nozzle``), relative to its reference.
+DEFAULT_JETTING_GAIN = (0.90, 1.10)
+#: Default gain band of a cleared OK-check row (``ok_signal``), relative to its reference.
+DEFAULT_OK_GAIN = (0.72, 0.88)
+
+
+class GateResult(NamedTuple):
+    """What :meth:`HealthyGate.screen` found, per row.
+
+    Attributes
+    ----------
+    cleared : ndarray of bool, shape (n,)
+        Cleared as healthy (no full model needed).
+    classes : ndarray of object (str), shape (n,)
+        ``"healthy_nozzle"`` or ``"ok_signal"`` where cleared, ``""`` elsewhere.
+    gain : ndarray of float64, shape (n,)
+        Least-squares gain of the row on its nozzle's reference; NaN without a reference.
+    residual_fraction : ndarray of float64, shape (n,)
+        Unexplained share of the row's variance, in [0, 1]; NaN without a reference.
+    """
+
+    cleared: np.ndarray
+    classes: np.ndarray
+    gain: np.ndarray
+    residual_fraction: np.ndarray
+
+
+def _band(name, v):
+    try:
+        lo, hi = (float(x) for x in v)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a pair (lo, hi), got {v!r}") from None
+    if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo < hi):
+        raise ValueError(f"{name} must be finite with 0 < lo < hi, got {v!r}")
+    return lo, hi
+
+
+class HealthyGate:
+    """Clear rows as healthy by a gain/offset fit to their nozzle's healthy reference.
+
+    Parameters
+    ----------
+    baselines : NozzleBaselines
+        The head's baselines; only nozzles with a reference trace
+        (:attr:`NozzleBaselines.reference`) can be cleared. Without references no
+        row is ever cleared (:attr:`active` is False).
+    max_residual_fraction : float
+        Largest residual fraction of a cleared row, in (0, 1) (module docstring).
+    jetting_gain, ok_gain : (float, float)
+        Gain bands of cleared ``healthy_nozzle`` and ``ok_signal`` rows; they must not overlap.
+
+    Raises
+    ------
+    ValueError
+        Bad thresholds.
+    """
+
+    def __init__(self, baselines, *, max_residual_fraction: float = DEFAULT_MAX_RESIDUAL_FRACTION,
+                 jetting_gain=DEFAULT_JETTING_GAIN, ok_gain=DEFAULT_OK_GAIN):
+        t = float(max_residual_fraction)
+        if not 0.0 < t < 1.0:
+            raise ValueError(f"max_residual_fraction must be in (0, 1), got {max_residual_fraction!r}")
+        self.max_residual_fraction = t
+        self.jetting_gain = _band("jetting_gain", jetting_gain)
+        self.ok_gain = _band("ok_gain", ok_gain)
+        if self.ok_gain[1] >= self.jetting_gain[0] and self.jetting_gain[1] >= self.ok_gain[0]:
+            raise ValueError(f"ok_gain {self.ok_gain} and jetting_gain {self.jetting_gain} overlap")
+        self.baselines = baselines
+        ref = baselines.reference
+        if ref is None or not len(baselines):
+            self._ref = None
+            return
+        centred = (ref - np.nanmean(ref, axis=1, keepdims=True)).astype(np.float32)
+        rr = np.einsum("ij,ij->i", centred.astype(np.float64), centred.astype(np.float64))
+        usable = np.isfinite(rr) & (rr > 0)
+        centred[~usable] = 0.0
+        self._ref = centred
+        self._rr = np.where(usable, rr, np.nan)
+        self._usable = usable
+
+    @property
+    def active(self) -> bool:
+        """Whether any nozzle has a usable reference."""
+        return self._ref is not None and bool(self._usable.any())
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.baselines.n_samples)
+
+    def screen(self, traces, nozzle_ids) -> GateResult:
+        """Fit each row to its nozzle's reference and clear the healthy ones.
+
+        Parameters
+        ----------
+        traces : array_like of float, shape (n, n_samples)
+            V; float32 is used as is (no copy), other dtypes are converted.
+        nozzle_ids : int or array_like of int, shape (n,)
+            Each row's nozzle id; an int: the first row's, the others consecutive.
+
+        Returns
+        -------
+        GateResult
+
+        Raises
+        ------
+        ValueError
+            ``traces`` is not 2-D with the baselines' ``n_samples``, or ``nozzle_ids``
+            has the wrong shape.
+        """
+        x = np.asarray(traces)
+        if x.ndim != 2 or x.shape[1] != self.n_samples:
+            raise ValueError(f"traces must have shape (n, {self.n_samples}), got {x.shape}")
+        if x.dtype not in (np.float32, np.float64):
+            x = x.astype(np.float32)
+        n = x.shape[0]
+        if np.ndim(nozzle_ids) == 0:
+            first = int(nozzle_ids)
+            ids = np.arange(first, first + n, dtype=np.int64)
+        else:
+            ids = np.asarray(nozzle_ids, dtype=np.int64)
+            if ids.shape != (n,):
+                raise ValueError(f"nozzle_ids must have shape ({n},), got {ids.shape}")
+        gain = np.full(n, np.nan)
+        frac = np.full(n, np.nan)
+        cleared = np.zeros(n, bool)
+        classes = np.full(n, "", dtype=object)
+        if self._ref is None or n == 0:
+            return GateResult(cleared, classes, gain, frac)
+        has, pos = self.baselines.reference_rows(ids)
+        has &= self._usable[pos]
+        at = np.flatnonzero(has)
+        if at.size == 0:
+            return GateResult(cleared, classes, gain, frac)
+        p = pos[at]
+        if at.size == n and p[-1] - p[0] == n - 1:  # one contiguous nozzle range: a view, no gather
+            r = self._ref[p[0]:p[0] + n]
+            xs = x
+        else:
+            r = self._ref[p]
+            xs = x[at]
+        r = r.astype(xs.dtype, copy=False)
+        # row-wise dot products as batched (1 x n_samples) @ (n_samples x 1) products: BLAS,
+        # faster than einsum here; float32 rows accumulate in float32 (decisions as float64's,
+        # tests/core/test_gate.py)
+        xr = np.matmul(xs[:, None, :], r[:, :, None]).reshape(-1).astype(np.float64)
+        xx = np.matmul(xs[:, None, :], xs[:, :, None]).reshape(-1).astype(np.float64)
+        x1 = xs.sum(axis=1).astype(np.float64)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            g = xr / self._rr[p]
+            var = xx - x1 * x1 / self.n_samples
+            f = (var - g * xr) / var
+        f = np.where(var > 0, np.clip(f, 0.0, 1.0), np.nan)
+        gain[at] = g
+        frac[at] = f
+        ok = f <= self.max_residual_fraction  # NaN: False
+        jet = ok & (g >= self.jetting_gain[0]) & (g <= self.jetting_gain[1])
+        oks = ok & (g >= self.ok_gain[0]) & (g <= self.ok_gain[1])
+        cleared[at] = jet | oks
+        classes[at[jet]] = FaultClass.HEALTHY_NOZZLE.value
+        classes[at[oks]] = FaultClass.OK_SIGNAL.value
+        return GateResult(cleared, classes, gain, frac)

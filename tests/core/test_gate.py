@@ -1,0 +1,145 @@
+"""inkdiag_core.gate: HealthyGate clears healthy rows against their nozzle's reference and never a fault row."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from inkdiag_core import (BaselineRecorder, FaultClass, HealthyGate, NozzleBaselines, healthy_twin_frames, simulate,
+                          simulate_heldout, simulate_nozzles)
+from inkdiag_core.baselines import BaselineFileError
+
+HEAD, N = 23, 240
+
+
+@pytest.fixture(scope="module")
+def recorded():
+    """A head's baselines with references, from 4 healthy frames (each its own temperature and noise)."""
+    rec = BaselineRecorder(n_frames=4)
+    for k in range(4):
+        rec.add(0, simulate_nozzles(["healthy_nozzle"] * N, seed=HEAD, frame_seed=k).traces)
+    return rec.baselines()
+
+
+def _twin_gate(n, seed):
+    _, frames = healthy_twin_frames(n, seed=seed, n_frames=8, noise_std_v=simulate({"healthy_nozzle": 1}).noise_std_v)
+    ref = np.median(frames, axis=1)
+    return HealthyGate(NozzleBaselines(np.arange(n), np.zeros((n, 7)), 10e6, 512, 8, reference=ref))
+
+
+def test_recorder_records_each_nozzles_median_trace(recorded):
+    assert recorded.has_reference and recorded.reference.shape == (N, 512)
+    assert recorded.reference.dtype == np.float32
+    frames = np.stack([simulate_nozzles(["healthy_nozzle"] * N, seed=HEAD, frame_seed=k).traces for k in range(4)],
+                      axis=1)
+    np.testing.assert_allclose(recorded.reference, np.median(frames, axis=1), atol=1e-6)
+    assert not BaselineRecorder(n_frames=2, reference=False).baselines().has_reference
+
+
+def test_healthy_rows_of_later_frames_are_mostly_cleared_with_their_class(recorded):
+    gate = HealthyGate(recorded)
+    classes = ["healthy_nozzle", "ok_signal"] * (N // 2)
+    got = gate.screen(simulate_nozzles(classes, seed=HEAD, frame_seed=99).traces, 0)
+    assert got.cleared.mean() >= 0.9
+    c = got.cleared
+    assert (got.classes[c] == np.array(classes, dtype=object)[c]).all()
+    assert (got.classes[~c] == "").all()
+
+
+@pytest.mark.parametrize("cls", [c for c in FaultClass if c.value not in ("healthy_nozzle", "ok_signal")])
+def test_fault_rows_are_not_cleared(cls):
+    sev = {FaultClass.SLIGHTLY_DRIED: np.full(300, 2.4)} if cls is FaultClass.SLIGHTLY_DRIED else None
+    sim = simulate({cls: 300}, seed=4, severity=sev)
+    assert not _twin_gate(300, 4).screen(sim.traces, 0).cleared.any()
+
+
+@pytest.mark.parametrize("cond", ["poor_contact", "crosstalk", "foreign_body", "truncated_pulse"])
+def test_mild_heldout_rows_are_not_cleared(cond):
+    h = simulate_heldout(cond, 300, seed=6, severity=(0.0, 0.2))
+    assert not _twin_gate(300, 6).screen(h.traces, 0).cleared.any()
+
+
+def test_no_reference_clears_nothing(recorded):
+    frame = simulate_nozzles(["healthy_nozzle"] * N, seed=HEAD, frame_seed=50).traces
+    bare = dataclasses.replace(recorded, reference=None)
+    assert not HealthyGate(bare).active
+    assert not HealthyGate(bare).screen(frame, 0).cleared.any()
+    gate = HealthyGate(recorded)
+    got = gate.screen(frame, 10_000)  # nozzles without a baseline
+    assert not got.cleared.any() and np.isnan(got.gain).all()
+    ids = np.arange(N)
+    ids[::2] += 10_000  # every other row's nozzle unknown: only the others can be cleared
+    got = gate.screen(frame, ids)
+    assert not got.cleared[::2].any() and got.cleared[1::2].mean() > 0.9
+    # a gathered (non-contiguous) lookup gives the contiguous view's numbers
+    perm = np.random.default_rng(0).permutation(N)
+    np.testing.assert_allclose(gate.screen(frame[perm], perm).gain, gate.screen(frame, 0).gain[perm], rtol=1e-5)
+
+
+def test_bad_rows_and_bad_input(recorded):
+    gate = HealthyGate(recorded)
+    frame = simulate_nozzles(["healthy_nozzle"] * N, seed=HEAD, frame_seed=51).traces.copy()
+    before = gate.screen(frame, 0).cleared
+    assert before[1] and before[2] and before.mean() > 0.9
+    frame[1, 3] = np.nan
+    frame[2] = 0.25  # constant
+    got = gate.screen(frame, 0)
+    assert not got.cleared[1] and not got.cleared[2]
+    np.testing.assert_array_equal(np.delete(got.cleared, [1, 2]), np.delete(before, [1, 2]))
+    with pytest.raises(ValueError, match="shape"):
+        gate.screen(frame[:, :100], 0)
+    with pytest.raises(ValueError, match="nozzle_ids"):
+        gate.screen(frame, np.arange(3))
+    with pytest.raises(ValueError, match="max_residual_fraction"):
+        HealthyGate(recorded, max_residual_fraction=0)
+    with pytest.raises(ValueError, match="overlap"):
+        HealthyGate(recorded, ok_gain=(0.7, 0.95))
+
+
+def test_references_round_trip_and_are_checked(recorded, tmp_path):
+    p = recorded.save(tmp_path / "b.npz")
+    back = NozzleBaselines.load(p)
+    np.testing.assert_array_equal(back.reference, recorded.reference)
+    with np.load(p) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["reference"] = arrays["reference"].copy()
+    arrays["reference"][0, 0] += 1e-3
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(BaselineFileError, match="sha256"):
+        NozzleBaselines.load(tmp_path / "bad.npz")
+    del arrays["reference"]
+    np.savez(tmp_path / "gone.npz", **arrays)
+    with pytest.raises(BaselineFileError, match="reference"):
+        NozzleBaselines.load(tmp_path / "gone.npz")
+    assert json.loads(str(arrays["meta"]))["format_version"] == 4
+    with pytest.raises(ValueError, match="reference"):
+        NozzleBaselines(recorded.nozzle_ids, recorded.kpis, 10e6, 512, 4, reference=np.zeros((N, 100)))
+
+
+def test_float32_rows_get_the_float64_decisions(recorded):
+    classes = ["healthy_nozzle", "ok_signal", "slightly_dried", "healthy_nozzle"] * (N // 4)
+    x = simulate_nozzles(classes, seed=HEAD, frame_seed=77).traces
+    x32 = (x + 0.05).astype(np.float32)  # with a sensor offset
+    gate = HealthyGate(recorded)
+    a, b = gate.screen(x32, 0), gate.screen(x32.astype(np.float64), 0)
+    np.testing.assert_array_equal(a.cleared, b.cleared)
+    np.testing.assert_allclose(a.residual_fraction, b.residual_fraction, rtol=1e-3, atol=1e-6)
+    np.testing.assert_allclose(a.gain, b.gain, rtol=1e-5)
+
+
+def test_version_3_files_load_without_references_and_gate_nothing(recorded, tmp_path):
+    from inkdiag_core.baselines.store import _content_sha256
+
+    p = dataclasses.replace(recorded, reference=None).save(tmp_path / "v4.npz")
+    with np.load(p) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(str(arrays["meta"]))
+    old = {k: v for k, v in meta.items() if k not in ("sha256", "has_reference")}
+    old["format_version"] = 3
+    old["sha256"] = _content_sha256(recorded.nozzle_ids, recorded.kpis, {k: v for k, v in old.items() if k != "sha256"})
+    arrays["meta"] = np.array(json.dumps(old, sort_keys=True))
+    np.savez(tmp_path / "v3.npz", **arrays)
+    b = NozzleBaselines.load(tmp_path / "v3.npz")
+    assert not b.has_reference and not HealthyGate(b).active
+    np.testing.assert_array_equal(b.kpis, recorded.kpis)
