@@ -181,7 +181,9 @@ class HealthyGate:
         if at.size == 0:
             return GateResult(cleared, classes, gain, frac)
         p = pos[at]
-        if at.size == n and p[-1] - p[0] == n - 1:  # one contiguous nozzle range: a view, no gather
+        # one contiguous, ascending nozzle range (the node's case): a view, no gather; repeated or
+        # out-of-order ids with the same ends must gather, each row against its own nozzle's reference
+        if at.size == n and p[-1] - p[0] == n - 1 and (n == 1 or bool((np.diff(p) == 1).all())):
             r = self._ref[p[0]:p[0] + n]
             xs = x
         else:

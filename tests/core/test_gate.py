@@ -143,3 +143,17 @@ def test_version_3_files_load_without_references_and_gate_nothing(recorded, tmp_
     b = NozzleBaselines.load(tmp_path / "v3.npz")
     assert not b.has_reference and not HealthyGate(b).active
     np.testing.assert_array_equal(b.kpis, recorded.kpis)
+
+
+def test_each_row_meets_its_own_nozzles_reference_whatever_the_id_order(recorded):
+    """Ids whose ends span a contiguous range but that repeat or go out of order (a recording's
+    rows, overlapping frames) are gathered: a row is never fitted to another nozzle's reference."""
+    gate = HealthyGate(recorded)
+    x = simulate_nozzles(["healthy_nozzle"] * N, seed=HEAD, frame_seed=98).traces
+    ids = np.array([0, 2, 1, 3])
+    got = gate.screen(x[ids], ids)  # each row with its own id, out of order
+    assert got.cleared.all()
+    wrong = gate.screen(x[[0, 1, 2]], np.array([0, 0, 2]))  # row 1 is nozzle 1's trace, claims nozzle 0
+    assert wrong.cleared.tolist() == [True, False, True]
+    swapped = gate.screen(x[[0, 1, 2, 3]], ids)  # rows 1 and 2 claim each other's nozzle
+    assert swapped.cleared.tolist() == [True, False, False, True]
