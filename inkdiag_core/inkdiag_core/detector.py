@@ -482,11 +482,9 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
                 idx, conf = decide_classes(self.classes_, proba, pf, threshold)
                 cls = self.classes_[idx].astype(object)
                 if layer is not None:
-                    if getattr(layer, "features_version_", 1) != OPENSET_FEATURES_VERSION:
-                        raise ValueError("this model's open-set layer was fitted on the features of an older "
-                                         "inkdiag (open-set features version "
-                                         f"{getattr(layer, 'features_version_', 1)}, now "
-                                         f"{OPENSET_FEATURES_VERSION}): retrain it (inkdiag train)")
+                    outdated = self.openset_outdated()
+                    if outdated:
+                        raise ValueError(outdated)
                     sel = ok.all()
                     if len(pipeline) > 2:  # knn: the features before its scaler
                         feats = pipeline[0].transform(Xr)
@@ -503,6 +501,22 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
                 confidence[at] = conf
                 p_faulty[at] = pf
         return DetectorLabels(classes, confidence, p_faulty, use, valid, unknown_score)
+
+    def openset_outdated(self) -> str:
+        """Why this detector's open-set layer cannot label with this inkdiag, or "" if it can.
+
+        A layer fitted on the open-set features of an older inkdiag
+        (:data:`inkdiag_core.openset.OPENSET_FEATURES_VERSION`) cannot score today's;
+        :meth:`label` raises with this message and :class:`inkdiag_core.FrameLabeller`
+        refuses such a model at construction.
+        """
+        for layer in (getattr(self, "openset_", None), getattr(self, "baseline_openset_", None)):
+            version = getattr(layer, "features_version_", 1)
+            if layer is not None and version != OPENSET_FEATURES_VERSION:
+                return (f"this model's open-set layer was fitted on the features of an older inkdiag "
+                        f"(open-set features version {version}, now {OPENSET_FEATURES_VERSION}): "
+                        "retrain it (inkdiag train)")
+        return ""
 
     # -- identity -------------------------------------------------------------------------
 

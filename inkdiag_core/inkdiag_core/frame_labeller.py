@@ -105,6 +105,9 @@ class FrameLabeller:
         if not isinstance(detector, FaultDetector) or not hasattr(detector, "pipeline_"):
             raise LabellerConfigError(f"a fitted FaultDetector is needed, got {type(detector).__name__}; "
                                       "retrain the model: python -m inkdiag_core.model_cache")
+        outdated = detector.openset_outdated()
+        if outdated:
+            raise LabellerConfigError(outdated)
         if profile is not None:
             if detector.head_sha256 != profile.sha256:
                 raise LabellerConfigError(

@@ -21,13 +21,12 @@ Each FDI node publishes, every ``diagnostics_period_s``, an array with one
   node is at its capacity); then
   ``last_error`` (the last malformed frame's reason), ``config_error`` (empty, or
   the setting the node runs without, and why) and then ``count.<class>``
-  for each class value and ``count.invalid`` (cumulative rows per label), and
-  ``count.gate_cleared``: cumulative rows the healthy gate (``inkdiag_core.HealthyGate``)
-  cleared without the full model (also counted under their class, so not part of
-  the per-label sum; 0 when the node's baselines carry no reference traces).
   for each class value and ``count.invalid`` (cumulative rows per label;
   ``count.unknown`` for the rows the model's open-set layer found unlike every
-  known class, once there has been one).
+  known class, once there has been one), and ``count.gate_cleared``: cumulative
+  rows the healthy gate (``inkdiag_core.HealthyGate``) cleared without the full
+  model (also counted under their class, so not part of the per-label sum; 0 when
+  the node's baselines carry no reference traces).
 
 The ``frames_*``, ``rows_*`` and ``count.*`` values are cumulative since the node
 started (never reset). Each frame taken from ``traces`` is counted in

@@ -154,3 +154,14 @@ def test_pickling_leaves_the_detector_as_it_was(det):
     assert det.file_sha256_ == "0" * 64 and det.openset_ is not None
     del det.file_sha256_
     assert set(vars(det)) == before
+
+
+def test_a_labeller_refuses_an_outdated_layer_at_start(det):
+    from inkdiag_core import FrameLabeller
+    from inkdiag_core.frame_labeller import LabellerConfigError
+
+    old = pickle.loads(pickle.dumps(det))
+    del old.baseline_openset_.features_version_
+    with pytest.raises(LabellerConfigError, match="open-set features version 1, now 2"):
+        FrameLabeller(old)
+    assert det.openset_outdated() == ""
