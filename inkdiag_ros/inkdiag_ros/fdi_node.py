@@ -1,11 +1,8 @@
 """fdi: fault detection and isolation of every trace message of one printhead.
 
-``traces`` -> decode -> :class:`.labelling_backend.LabellingPipeline` (the core's :class:`inkdiag_core.FrameLabeller`
-on a thread or in a child process) -> ``labels`` and ``drying_nozzles``, one of each per trace message;
-counters on ``/diagnostics``. ``head_profile`` (default: the shipped default head): frames must have its
-sampling; a model or baselines of another head are refused at start. Parameters: docs/parameters.md;
-topics and counters: docs/controller.md; running it: docs/nodes.md.
-"""
+``traces`` -> decode -> :class:`.labelling_backend.LabellingPipeline` (:class:`inkdiag_core.FrameLabeller`, thread or
+child process) -> ``labels``, ``drying_nozzles``; ``/diagnostics``. A model or baselines of another ``head_profile`` are
+refused at start. Parameters: docs/parameters.md; topics, counters: docs/controller.md; running it: docs/nodes.md."""
 
 from __future__ import annotations
 
