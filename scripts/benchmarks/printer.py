@@ -3,7 +3,7 @@
     scripts/bench printer [--heads 1,2,4] [--processes 1,2] [--seconds 8] [--nozzles 2656] [--chunk 200]
                           [--faulty 0.02] [--no-baselines] [--executor events|single]
 
-Per head, pre-generates frames of a realistic head (:func:`realistic_head`: 2,656 nozzles x 512
+Per head, pre-generates frames of a realistic head (``graph.realistic_head``: 2,656 nozzles x 512
 samples, its own nozzle tolerances, 2 % faulty, the faults the same in every frame) and records every
 nozzle's healthy baseline from 8 healthy frames of the same nozzles (``BaselineRecorder``, as
 commissioning does; the fdi nodes get them through ``--baselines``). Then, for each N of ``--heads``:
@@ -50,42 +50,6 @@ domain run /head_00 nodes, whose traces must not reach these fdi nodes."""
 
 def _ns(i: int) -> str:
     return f"/head_{FIRST_HEAD + i:02d}"
-
-
-def realistic_head(n_nozzles, n_frames, seed, *, faulty=0.02, n_baseline_frames=8):
-    """Frames of one realistic head and its nozzles' healthy baselines, recorded as commissioning does.
-
-    Every nozzle has its own tolerances (``simulate_nozzles(seed=seed)``) and one of the two
-    healthy conditions; ``round(faulty * n_nozzles)`` nozzles (seeded choice) carry a fault of a
-    seeded class among the ten fault classes, the same in every frame; frames differ in their
-    ink temperature and noise (``frame_seed``). The baselines are recorded from
-    ``n_baseline_frames`` frames of the same nozzles all healthy, by
-    :class:`inkdiag_core.BaselineRecorder` (whatever it records: KPI baselines, and the
-    healthy references once the gate records them).
-
-    Returns
-    -------
-    frames : list of ndarray, shape (n_nozzles, 512), float32
-        V.
-    baselines : inkdiag_core.NozzleBaselines
-        Every nozzle's.
-    n_faulty : int
-    """
-    from inkdiag_core import BaselineRecorder, FaultClass, simulate_nozzles
-    from inkdiag_core.faults import HEALTHY_CLASSES
-
-    rng = np.random.default_rng(seed)
-    healthy = np.array(sorted(HEALTHY_CLASSES, key=lambda c: c.value), dtype=object)
-    faults = np.array([c for c in FaultClass if c not in HEALTHY_CLASSES], dtype=object)
-    classes = rng.choice(healthy, size=n_nozzles)  # each nozzle's healthy condition
-    rec = BaselineRecorder(n_frames=n_baseline_frames)
-    for k in range(n_baseline_frames):
-        rec.add(0, simulate_nozzles(classes, seed=seed, frame_seed=1_000_000 + k).traces)
-    n_faulty = int(round(faulty * n_nozzles))
-    idx = rng.choice(n_nozzles, n_faulty, replace=False)
-    classes[idx] = rng.choice(faults, size=n_faulty)
-    frames = [simulate_nozzles(classes, seed=seed, frame_seed=k).traces for k in range(n_frames)]
-    return frames, rec.baselines(), n_faulty
 
 
 def sink_main(heads) -> int:
@@ -283,6 +247,7 @@ def main() -> int:
     if ns.role == "pub":
         return pub_main(ns.head, ns.data, ns.seconds, ns.window, ns.chunk, ns.first_id, ns.n_heads)
 
+    from graph import realistic_head
     from inkdiag_core.model_cache import ensure_default_model
 
     model = ensure_default_model(ns.model)
