@@ -137,20 +137,6 @@ def pub_main(head: int, data: str, seconds: float, window: int, chunk: int, firs
     return 0
 
 
-def cpu_s(pids) -> float:
-    """utime + stime of ``pids``, s (0 for a process gone)."""
-    tick = os.sysconf("SC_CLK_TCK")
-    total = 0.0
-    for pid in pids:
-        try:
-            with open(f"/proc/{pid}/stat") as f:
-                fields = f.read().rsplit(") ", 1)[1].split()
-            total += (int(fields[11]) + int(fields[12])) / tick
-        except OSError:
-            pass
-    return total
-
-
 def _stop(proc, timeout=10.0):
     if proc.poll() is None:
         proc.send_signal(signal.SIGINT)
@@ -167,6 +153,8 @@ def phase(name, consumer_cmds, heads, ns, data_dir, first_id, log_path):
     ``consumer_cmds``: one command per consumer process; an ``inkdiag printer`` command's own
     children (the pids its first line names) are the ones whose CPU is measured.
     """
+    from graph import cpu_s  # the same CPU count as the graph benchmark's
+
     env = dict(os.environ)
     consumers = []
     with open(log_path, "w") as log:
