@@ -152,7 +152,7 @@ class FdiNode(Node):
 
 
 def main(args=None) -> int:
-    return spin_node(FdiNode, args)
+    return spin_node(FdiNode, args, events=True)  # no wait set rebuilt in Python per message (issue 17)
 
 
 if __name__ == "__main__":
