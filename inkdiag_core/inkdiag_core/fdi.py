@@ -388,7 +388,7 @@ def classify(pipeline, traces, *, fd_threshold: float = 0.5):
     return classes[idx].astype(str), confidence, p_faulty
 
 
-def finite_rows_proba(pipeline, X, *, return_features=False):
+def finite_rows_proba(pipeline, X, *, return_features=False, checked=False):
     """Class probabilities of the rows of ``X`` whose features are finite in float32.
 
     The feature steps run on every row; the final estimator (what scikit-learn's
@@ -398,7 +398,10 @@ def finite_rows_proba(pipeline, X, *, return_features=False):
     bit-identical to ``pipeline.predict_proba``.
 
     With ``return_features=True`` also the feature rows the final estimator saw
-    (for the open-set layer of :class:`inkdiag_core.FaultDetector`).
+    (for the open-set layer of :class:`inkdiag_core.FaultDetector`). ``checked=True``:
+    ``X`` is a finite float32/float64 ndarray of the pipeline's input width, validated by
+    the caller; a feature step of inkdiag's own then skips scikit-learn's input checks
+    (the same features: they cost about as much as the KPIs of a few traces).
 
     Returns
     -------
@@ -409,7 +412,8 @@ def finite_rows_proba(pipeline, X, *, return_features=False):
     """
     with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
         if isinstance(pipeline, Pipeline) and len(pipeline) > 1:
-            feats = pipeline[:-1].transform(X)
+            fast = getattr(pipeline[0], "_transform_checked", None) if checked and len(pipeline) == 2 else None
+            feats = fast(X) if fast is not None else pipeline[:-1].transform(X)
             ok = np.isfinite(np.asarray(feats, dtype=np.float32)).all(axis=1)
             final, rows = pipeline[-1], feats if ok.all() else feats[ok]
         else:

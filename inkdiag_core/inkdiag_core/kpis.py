@@ -176,6 +176,29 @@ def extract_kpis(traces, sample_rate_hz):
     """
     fs = checks.sample_rate(sample_rate_hz, error=InvalidTraceError)
     y = checks.traces_2d(traces, min_samples=MIN_KPI_SAMPLES, error=InvalidTraceError)
+    return kpis_of_checked(y, fs)
+
+
+def kpis_of_checked(y, fs):
+    """:func:`extract_kpis` of traces its checks already passed: the same result, without them.
+
+    For a hot path whose input was validated once at its boundary (the FDI detector's
+    :meth:`~inkdiag_core.FaultDetector.label`): the checks cost about as much as the fit
+    of a few traces.
+
+    Parameters
+    ----------
+    y : ndarray of float32 or float64, shape (n_traces, n_samples)
+        Finite traces, ``n_samples >= MIN_KPI_SAMPLES``; float32 is fitted in single
+        precision, float64 in double (as :func:`extract_kpis`); any memory layout.
+    fs : float
+        Sample rate, Hz, positive and finite.
+
+    Returns
+    -------
+    kpis : ndarray of float64, shape (n_traces, 7)
+    """
+    y = np.ascontiguousarray(y)  # what the checks return: the fit's FFT sees the same layout
     n_traces = y.shape[0]
     out = np.zeros((n_traces, len(KPI_NAMES)))
     # Chunks of traces keep the spectra and the fit's temporaries in cache; every step is
@@ -425,6 +448,11 @@ class KpiExtractor(TransformerMixin, BaseEstimator):
         check_is_fitted(self)
         X = self._validate(X, reset=False)
         return extract_kpis(X, self.sample_rate_hz)
+
+    def _transform_checked(self, X):
+        """:meth:`transform` of rows already validated against this fitted step (finite float32/64 ndarray,
+        ``n_features_in_`` columns): the same result without scikit-learn's checks (the detector's hot path)."""
+        return kpis_of_checked(X, float(self.sample_rate_hz))
 
     def get_feature_names_out(self, input_features=None):
         """Names of the output columns: :data:`KPI_NAMES`.

@@ -200,3 +200,27 @@ def test_a_row_whose_features_overflow_costs_only_itself(new, fitted):
         np.testing.assert_array_equal(a[keep], b)
     with pytest.raises(ValueError, match="2 of 72 rows have non-finite features"):
         fitted.predict(X)
+
+
+def test_label_skips_sklearn_checks_for_checked_arrays_with_the_same_result(new, fitted):
+    """The hot path (issue 17): a finite float ndarray of the fitted width skips scikit-learn's input
+    checks (about as costly as the KPIs of a few traces); every other input still gets them."""
+    from inkdiag_core.kpis import extract_kpis, kpis_of_checked
+
+    base = baseline_training_kpis(new, SEED + 100)
+    base[::3] = np.nan
+    X = np.asarray(new.traces, dtype=np.float64)
+    fast = fitted.label(X, baseline_kpis=base)
+    slow = fitted.label(X.tolist(), baseline_kpis=base)  # a list: validate_data's route
+    for field in ("classes", "confidence", "p_faulty", "baseline", "valid", "unknown_score"):
+        np.testing.assert_array_equal(getattr(fast, field), getattr(slow, field), err_msg=field)
+    fortran = fitted.label(np.asfortranarray(X), baseline_kpis=base)  # any layout, the same features
+    np.testing.assert_array_equal(fortran.confidence, fast.confidence)
+    for Y in (X.astype(np.float32), np.asfortranarray(X[:5])):
+        np.testing.assert_array_equal(kpis_of_checked(Y, 10e6), extract_kpis(Y, 10e6))
+    bad = X.copy()
+    bad[4, 10] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        fitted.label(bad)
+    with pytest.raises(ValueError, match="features"):
+        fitted.label(X[:, :-1])

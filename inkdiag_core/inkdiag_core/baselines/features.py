@@ -12,7 +12,7 @@ import numpy as np
 from sklearn.base import BaseEstimator, TransformerMixin
 from sklearn.utils.validation import check_is_fitted, validate_data
 
-from ..kpis import KPI_NAMES, MIN_KPI_SAMPLES, extract_kpis
+from ..kpis import KPI_NAMES, MIN_KPI_SAMPLES, extract_kpis, kpis_of_checked
 
 __all__ = ["N_KPIS", "RELATIVE_NAMES", "BaselineKpis", "baseline_kpis", "with_baseline"]
 
@@ -94,7 +94,12 @@ class BaselineKpis(TransformerMixin, BaseEstimator):
     def transform(self, X):
         check_is_fitted(self, "n_features_in_")
         X = validate_data(self, X, dtype=[np.float64, np.float32], reset=False)
-        k = extract_kpis(X[:, :-N_KPIS], float(self.sample_rate_hz))
+        return self._transform_checked(X)
+
+    def _transform_checked(self, X):
+        """:meth:`transform` of rows already validated against this fitted step (finite float32/64 ndarray,
+        ``n_features_in_`` columns): the same result without scikit-learn's checks (the detector's hot path)."""
+        k = kpis_of_checked(X[:, :-N_KPIS], float(self.sample_rate_hz))
         b = X[:, -N_KPIS:].astype(np.float64)
         dphi = np.angle(np.exp(1j * (k[:, 4] - b[:, 4])))
         rel = np.column_stack([
