@@ -1,0 +1,159 @@
+"""CPU per message of the fdi node's own work, without DDS: this tree against an older commit, same run.
+
+    scripts/bench node [--ref REF] [--rounds 3] [--nozzles 2656] [--chunk 200] [--case realistic|worst]
+
+What the fdi node does with each 200-nozzle trace message once rclpy has taken it:
+``decode_traces`` -> ``FrameLabeller.label`` (screening, the healthy gate, the detector on
+what the gate did not clear) -> ``LabelsReport.from_arrays`` -> ``encode_labels`` and
+``encode_drying``; timed per message with the frames labelled one message per call and in
+batches of 8 messages per call (what the labelling pipeline hands the labeller under load:
+``scripts/bench graph`` reports 8-9 frames per classifier pass). The head is
+:func:`graph.realistic_head` (2,656 nozzles, 2 % faulty, every nozzle's baseline and
+reference recorded; ``--case worst``: every nozzle faulty) with the default model.
+
+Each tree runs in a child process of its own (``REF``'s ``inkdiag_core`` and ``msg_defs``
+extracted with ``git archive`` and put first on ``PYTHONPATH``), on the same frames and
+baselines (written once by this tree), one BLAS thread; the children alternate for
+``--rounds`` rounds and each reports its process CPU time per message, best of 5 passes.
+Prints ms per message for each tree, the ratio, and whether the two trees' labels and drying
+messages are byte-identical.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import subprocess
+import sys
+import tarfile
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+BATCHES = (1, 8)
+
+
+def child(data: Path, model: str, n_nozzles: int, chunk: int, passes: int = 5) -> dict:
+    """This interpreter's package versions: CPU s per message for each batch size, and a digest of the output."""
+    from inkdiag_core import load_labeller
+    from msg_defs import DryingNozzles, LabelsReport, decode_traces, encode_drying, encode_labels, encode_traces
+
+    frames = np.load(data / "frames.npy")
+    labeller, err = load_labeller(model, data / "baselines.npz", max_abs_v=10.0, sample_rate_hz=10e6, n_samples=512)
+    if err is not None:
+        raise SystemExit(f"baselines not used: {err}")
+    msgs = [encode_traces(x[i:i + chunk], first_nozzle=i, frame_id=k, stamp=0.0)
+            for k, x in enumerate(frames) for i in range(0, n_nozzles, chunk)]
+
+    def run(batch: int) -> list:
+        out = []
+        for j in range(0, len(msgs), batch):
+            decoded = [decode_traces(m, max_nozzle_id=n_nozzles - 1, n_samples=512, sample_rate_hz=10e6)
+                       for m in msgs[j:j + batch]]
+            results = labeller.label([f.traces for f in decoded], [f.first_nozzle for f in decoded])
+            for f, r in zip(decoded, results):
+                report = LabelsReport.from_arrays(
+                    frame_id=f.frame_id, stamp=f.stamp, first_nozzle=f.first_nozzle, classes=r.classes,
+                    confidence=r.confidence, valid=r.valid, reasons=r.reasons, model_id="bench",
+                    gate_cleared=r.gate_cleared)
+                out.append((encode_labels(report).data, encode_drying(DryingNozzles.from_labels(report)).data))
+        return out
+
+    digest = hashlib.sha256()
+    for labels, drying in run(1):
+        digest.update(labels.encode())
+        digest.update(drying.encode())
+    per_msg = {}
+    for batch in BATCHES:
+        run(batch)  # warm
+        best = np.inf
+        for _ in range(passes):
+            t = time.process_time()
+            run(batch)
+            best = min(best, (time.process_time() - t) / len(msgs))
+        per_msg[str(batch)] = best
+    return {"per_msg_s": per_msg, "digest": digest.hexdigest(), "messages": len(msgs)}
+
+
+def extract(ref: str, tmp: Path) -> Path:
+    """``inkdiag_core`` and ``msg_defs`` of commit ``ref`` under ``tmp``; the PYTHONPATH for them."""
+    tmp.mkdir(parents=True, exist_ok=True)
+    tar = tmp / "ref.tar"
+    with open(tar, "wb") as fh:
+        subprocess.run(["git", "-C", str(ROOT), "archive", ref, "inkdiag_core/inkdiag_core", "msg_defs/msg_defs"],
+                       stdout=fh, check=True)
+    with tarfile.open(tar) as tf:
+        tf.extractall(tmp, filter="data")
+    return tmp
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--ref", default="06a66b8", help="the older commit to compare with (default: main before "
+                    "the issue-17 per-message cuts)")
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--nozzles", type=int, default=2656)
+    ap.add_argument("--chunk", type=int, default=200)
+    ap.add_argument("--frames", type=int, default=4)
+    ap.add_argument("--case", choices=["realistic", "worst"], default="realistic")
+    ap.add_argument("--model", default=str(ROOT / "models" / "fdi_default.joblib"))
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--role", choices=["bench", "child"], default="bench", help=argparse.SUPPRESS)
+    ap.add_argument("--data", help=argparse.SUPPRESS)
+    ns = ap.parse_args()
+    if ns.role == "child":
+        print(json.dumps(child(Path(ns.data), ns.model, ns.nozzles, ns.chunk)))
+        return 0
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from graph import CASES, realistic_head
+
+    from inkdiag_core.model_cache import ensure_default_model
+
+    model = ensure_default_model(ns.model)
+    with tempfile.TemporaryDirectory(prefix="bench_node_") as tmp:
+        tmp = Path(tmp)
+        frames, baselines, n_faulty = realistic_head(ns.nozzles, ns.frames, ns.seed, faulty=CASES[ns.case])
+        np.save(tmp / "frames.npy", np.stack(frames))
+        baselines.save(tmp / "baselines.npz")
+        trees = {"this tree": None, ns.ref: extract(ns.ref, tmp / "ref")}
+        env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+        cmd = [sys.executable, __file__, "--role", "child", "--data", str(tmp), "--model", model,
+               "--nozzles", str(ns.nozzles), "--chunk", str(ns.chunk)]
+        runs = {k: [] for k in trees}
+        for _ in range(ns.rounds):
+            for name, path in trees.items():  # alternating: both trees see the same machine
+                e = dict(env)
+                if path is not None:
+                    e["PYTHONPATH"] = os.pathsep.join([str(path / "inkdiag_core"), str(path / "msg_defs"),
+                                                       env.get("PYTHONPATH", "")])
+                out = subprocess.run(cmd, env=e, cwd=ROOT, capture_output=True, text=True)
+                if out.returncode:
+                    print(out.stderr, file=sys.stderr)
+                    return 1
+                runs[name].append(json.loads(out.stdout.strip().splitlines()[-1]))
+    n_msgs = runs["this tree"][0]["messages"]
+    print(f"fdi node work per message without DDS: {ns.frames} frames of {ns.nozzles} nozzles ({ns.case}: "
+          f"{n_faulty} faulty, baselines and references of every nozzle), {n_msgs} messages of {ns.chunk} nozzles; "
+          f"process CPU ms per message, best of 5 passes per child, {ns.rounds} rounds (min-max over rounds)")
+    for batch in BATCHES:
+        cells = {}
+        for name, rs in runs.items():
+            v = np.array([r["per_msg_s"][str(batch)] for r in rs]) * 1e3
+            cells[name] = v
+        new, old = cells["this tree"], cells[ns.ref]
+        ratio = old / new
+        print(f"  {batch} message(s) per labeller call: this tree {new.min():.3f}-{new.max():.3f} ms, "
+              f"{ns.ref} {old.min():.3f}-{old.max():.3f} ms; {ns.ref} / this tree {ratio.min():.2f}-{ratio.max():.2f}x")
+    same = len({r["digest"] for rs in runs.values() for r in rs}) == 1
+    print(f"  labels and drying messages: {'byte-identical' if same else 'DIFFER'} between the trees")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
