@@ -79,8 +79,9 @@ class DetectorLabels(NamedTuple):
     valid : ndarray of bool, (n,) -- False where the row's features came out NaN or Inf
         in float32 (e.g. a finite sample so large that its energy overflows): that row
         is not classified, the others are
-    unknown_score : ndarray of float64, (n,) -- ``1 - max_c p_c``, the row's largest
-        conformal p-value over the known classes subtracted from 1 (in [0, 1); the row
+    unknown_score : ndarray of float64, (n,) -- ``1 - max_c q_c``, the row's largest
+        per-class conformal p-value, scaled to the class's training-conditional level
+        (:meth:`inkdiag_core.openset.ConformalOpenSet.unknown_score`), subtracted from 1 (in [0, 1); the row
         is ``"unknown"`` when it is ``>= 1 - unknown_rate``); NaN where not valid or where
         the row's branch has no open-set layer (``unknown_rate`` None, or a model file
         from before the layer) or the row's open-set features are not finite (then it
@@ -109,13 +110,17 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
     squared Mahalanobis distance (robust, regularised covariance) of the trace's
     open-set features (the KPIs, the energy fraction the KPIs' damped sinusoid leaves
     unexplained and, in the baseline branch, the KPIs relative to the nozzle's own
-    healthy baseline) gives a conformal p-value ``p_c``; a row with ``max_c p_c <=
-    unknown_rate`` is labelled ``"unknown"`` whatever the classifier says.
-    **Guarantee**: a trace of a known class ``c``, exchangeable with that class's
-    calibration rows (same head, same conditions as the training data), is called
-    ``"unknown"`` with probability at most ``unknown_rate`` (marginally over the draw of
-    the calibration rows). Each class needs ``>= 1/unknown_rate - 1`` calibration rows
-    to make a row unknown at all (99 for 0.01); with fewer the layer never says unknown.
+    healthy baseline) gives a conformal p-value ``p_c``; a row below every class's
+    training-conditional level (:func:`inkdiag_core.openset.training_conditional_level`)
+    is labelled ``"unknown"`` whatever the classifier says.
+    **Guarantee**: for the detector one ``fit`` returns, a trace of a known class ``c``,
+    exchangeable with that class's calibration rows (same head, same conditions as the
+    training data), is called ``"unknown"`` with probability at most ``unknown_rate``, with
+    probability at least 90 % over the draw of the calibration rows
+    (:data:`inkdiag_core.openset.DEFAULT_DELTA`); on average about ``1 / (n_c + 1)`` to
+    ``unknown_rate / 2``. Each class needs ``(1 - unknown_rate) ** n_c <= 0.1``
+    calibration rows (230 for 0.01) to make a row unknown at all; with fewer the layer
+    never says unknown.
     The class models are fitted on the validation split and calibrated on the
     classifier's training split (the nonconformity score does not involve the
     classifier, so calibration rows need only be held out from the class models;

@@ -49,8 +49,18 @@ except ImportError:  # pragma: no cover - until the held-out conditions land
 
 CLASSES = [c.value for c in FaultClass]
 MILD = (0.0, 0.2)
-#: A stricter unknown_rate shown beside the default (same detectors: only the threshold on the p-values moves).
-STRICT = 0.005
+
+
+def marginal_rule(det):
+    """A copy of ``det`` whose open-set layers decide by the plain split-conformal rule (``max_c p_c <= rate``,
+    the rule before the training-conditional levels): every modelled class's level set to the rate itself."""
+    import copy
+
+    det = copy.deepcopy(det)
+    for layer in (det.openset_, det.baseline_openset_):
+        if layer is not None:
+            layer.levels_ = np.where(layer.modelled_, float(layer.rate), 0.0)
+    return det
 
 
 def best_of(fns, repeats=3):
@@ -82,8 +92,9 @@ def one_seed(seed, n, n_train, n_bench):
     y_train = sim.label_values()
     det = FaultDetector(n_estimators=50, min_samples_leaf=3, fnr_target=0.005, unknown_rate=0.01,
                         random_state=seed).fit(sim.traces, y_train, baseline_kpis=baseline_training_kpis(sim, seed))
-    out = {"held": {}, "mild": {}, "false": {}, "false_base": {}, "held_strict": {}, "mild_strict": {},
-           "false_strict": {}}
+    marginal = marginal_rule(det)
+    out = {"held": {}, "mild": {}, "false": {}, "false_base": {}, "held_marginal": {}, "mild_marginal": {},
+           "false_marginal": {}}
     for k, cond in enumerate(HELDOUT_CONDITIONS):
         for key, sev in (("held", None), ("mild", MILD)):
             s = 10_000 * (seed + 1) + 10 * k + (key == "mild")
@@ -91,15 +102,16 @@ def one_seed(seed, n, n_train, n_bench):
             plain = det.label(h.traces)
             out[key][cond] = (fractions(plain.classes)
                               + fractions(det.label(h.traces, baseline_kpis=healthy_baselines(n, s)).classes))
-            out[f"{key}_strict"][cond] = float(np.mean(plain.unknown_score >= 1 - STRICT))
+            out[f"{key}_marginal"][cond] = float(np.mean(marginal.label(h.traces).classes == UNKNOWN))
     test = simulate({c: n for c in FaultClass}, seed=1000 + seed)
     y = test.label_values()
     got = det.label(test.traces)
     got_base = det.label(test.traces, baseline_kpis=baseline_training_kpis(test, 1000 + seed))
+    got_marginal = marginal.label(test.traces)
     for c in CLASSES:
         out["false"][c] = float(np.mean(got.classes[y == c] == UNKNOWN))
         out["false_base"][c] = float(np.mean(got_base.classes[y == c] == UNKNOWN))
-        out["false_strict"][c] = float(np.mean(got.unknown_score[y == c] >= 1 - STRICT))
+        out["false_marginal"][c] = float(np.mean(got_marginal.classes[y == c] == UNKNOWN))
     # FD / FI with and without the layer, same detector (the layer only relabels rows as unknown)
     layer, det.openset_ = det.openset_, None  # the classifier alone: what the rows were called before
     closed = det.label(test.traces).classes
@@ -150,8 +162,10 @@ def main():
              "phase as cos/sin) and log10 of the energy fraction the KPI sinusoid leaves unexplained (the baseline "
              "branch adds the KPIs relative to the nozzle's own healthy baseline); conformal p-values per class, "
              "class models fitted on the validation split, calibrated on the training split; `unknown` when every "
-             "class's p-value is <= 0.01, so a known trace is `unknown` with probability <= 1 % (exchangeability: "
-             "same head, same conditions as training).", "",
+             "class's p-value is at or below its training-conditional level (`training_conditional_level`: at most "
+             "0.01, and 1/301 with these 300 calibration rows per class), so for each trained detector a known "
+             "trace is `unknown` with probability <= 1 % with 90 % confidence (exchangeability: same head, same "
+             "conditions as training).", "",
              "Plain branch: rows without a baseline. Baseline branch: each row with its nozzle's healthy baseline "
              "(8 healthy frames of the same simulated nozzle).", "",
              "## Held-out conditions (never in training)", ""]
@@ -174,18 +188,18 @@ def main():
     rows.append(["**worst class, its mean over the seeds**", f"{100 * allf.mean(axis=0).max():.2f}",
                  f"{100 * allb.mean(axis=0).max():.2f}"])
     lines += [md_table(["class", "called unknown (plain branch)", "called unknown (baseline branch)"], rows), ""]
-    strict = np.array([[r["false_strict"][c] for c in CLASSES] for r in runs])
-    lines += [f"### The same detectors at `unknown_rate` {STRICT} (plain branch)", "",
-              f"Only the threshold moves (`max_c p_c <= {STRICT}`): the choice `inkdiag train --unknown-rate` "
-              "offers.", "",
-              md_table(["", f"unknown_rate {STRICT}", "unknown_rate 0.01 (above)"],
-                       [["false unknown, mean over classes", rng_cell(strict.mean(axis=1), digits=2),
+    marg = np.array([[r["false_marginal"][c] for c in CLASSES] for r in runs])
+    lines += ["### The same detectors with the plain split-conformal rule (plain branch)", "",
+              "`unknown` when `max_c p_c <= 0.01` (the rule before the training-conditional levels: a rate bound "
+              "only on average over training runs). Same detectors, same p-values; only the level moves.", "",
+              md_table(["", "plain split-conformal rule", "training-conditional levels (above)"],
+                       [["false unknown, mean over classes", rng_cell(marg.mean(axis=1), digits=2),
                          rng_cell(allf.mean(axis=1), digits=2)],
-                        ["false unknown, worst class per seed", rng_cell(strict.max(axis=1), digits=2),
+                        ["false unknown, worst class per seed", rng_cell(marg.max(axis=1), digits=2),
                          rng_cell(allf.max(axis=1), digits=2)]]
                        + [[f"{cond} called unknown (whole range / mild end)",
-                           f"{rng_cell([r['held_strict'][cond] for r in runs])} / "
-                           f"{rng_cell([r['mild_strict'][cond] for r in runs])}",
+                           f"{rng_cell([r['held_marginal'][cond] for r in runs])} / "
+                           f"{rng_cell([r['mild_marginal'][cond] for r in runs])}",
                            f"{rng_cell([r['held'][cond][0] for r in runs])} / "
                            f"{rng_cell([r['mild'][cond][0] for r in runs])}"] for cond in HELDOUT_CONDITIONS]), ""]
     lines += ["## Fault detection and isolation on the known classes, with and without the layer", "",
@@ -239,8 +253,9 @@ def main():
     lines += ["## Against the issue's targets", "",
               md_table(["target", "met", "measured"], [[t, "yes" if ok else "**no**", m] for t, ok, m in checks]),
               "", f"With {n} traces per class a 1 % rate has a binomial standard deviation of "
-              f"{100 * np.sqrt(0.01 * 0.99 / n):.2f} %; each class's calibration set (its ~300 training rows) adds "
-              "its own spread around the 1 % bound, which holds on average over calibration draws.", "",
+              f"{100 * np.sqrt(0.01 * 0.99 / n):.2f} %. A fitted detector's own rate per class (what the measurement "
+              "estimates) is at most 1 % with 90 % confidence over its ~300 calibration rows and 1/301 = 0.33 % on "
+              "average; the plain split-conformal rule bounded it by 1 % only on average over training runs.", "",
               f"Load: the 1-minute load average was {os.getloadavg()[0]:.1f} on a "
               f"{os.cpu_count()}-core machine when the report finished (other processes were running); the "
               "throughput rows were timed in turns, so a load change hits all four, but the spread is wide.", "",

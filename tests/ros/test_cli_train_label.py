@@ -150,10 +150,14 @@ def test_label_csv_says_unknown_for_a_trace_unlike_every_class(work, tmp_path, c
     d, head, _ = work
     for rate, name in (("0.01", "u.joblib"), ("0", "c.joblib")):
         assert main(["train", "--profile", str(d / "head.yaml"), "--out", str(tmp_path / name), "--n-per-class",
-                     "140", "--unknown-rate", rate, "--quiet"]) == 0
+                     "320", "--unknown-rate", rate, "--quiet"]) == 0
         said = capsys.readouterr().out
-        assert ("open-set layer: a trace of a known class is 'unknown' with probability <= 0.01; calibration rows "
-                "per class 105-105") in said if rate != "0" else "open-set" not in said
+        assert ("open-set layer: a trace of a known class is 'unknown' with probability <= 0.01 (with 90 % "
+                "confidence); calibration rows per class 240-240\n") in said if rate != "0" else "open-set" not in said
+    # too few calibration rows for that confidence: the layer never calls a known class's row unknown, and says so
+    assert main(["train", "--profile", str(d / "head.yaml"), "--out", str(tmp_path / "small.joblib"),
+                 "--n-per-class", "140", "--quiet"]) == 0
+    assert "12 classes have fewer than 230 and never make a trace unknown" in capsys.readouterr().out
     x = head.simulate({FaultClass.HEALTHY_NOZZLE: 20}, seed=61).traces.astype(np.float64)
     k = extract_kpis(x, 20e6)
     t = np.arange(x.shape[1]) / 20e6

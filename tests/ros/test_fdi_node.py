@@ -255,7 +255,7 @@ def test_fdi_labels_a_trace_unlike_every_class_unknown_and_counts_it(ros, tmp_pa
     from inkdiag_core.fdi import train_default_model
 
     model = tmp_path / "open.joblib"
-    train_default_model(model, n_per_class=140, seed=0)  # >= 99 calibration rows per class
+    train_default_model(model, n_per_class=320, seed=0)  # >= 230 calibration rows per class
     x = simulate({FaultClass.HEALTHY_NOZZLE: 8}, seed=31).traces.astype(np.float64)
     k = extract_kpis(x, 10e6)
     t = np.arange(x.shape[1]) / 10e6

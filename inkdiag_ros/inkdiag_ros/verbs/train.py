@@ -9,8 +9,10 @@ geometry, ink, drive and sampling), a quarter held out for the detection
 threshold and the validation scores. The detector also gets an open-set layer
 (--unknown-rate, default 0.01): a trace unlike every known class is labelled
 'unknown', and a trace of a known class is called 'unknown' with probability
-at most that rate (per-class conformal p-values; needs >= 1/R - 1 held-out
-rows per class, i.e. --n-per-class >= 133 for the default).
+at most that rate, for the model this run trains, with 90 % confidence
+(per-class training-conditional conformal p-values; a class needs
+(1 - R)**n <= 0.1 calibration rows n, 230 for the default rate: the training
+three quarters of --n-per-class >= 307).
 
 With --data, the head's own labelled recordings (.npz with a 'label' array)
 join the simulated rows: a quarter of each recorded class is held out for
@@ -128,11 +130,13 @@ def run(args) -> int:
         print(f"baseline branch: FI accuracy {100 * b['validation_fi_accuracy']:.1f} %, faults missed "
               f"{100 * b['validation_fd_fnr']:.2f} %, false alarms {100 * b['validation_fd_fpr']:.2f} %")
     if det.openset_ is not None:
-        n_cal = [c.size for c in det.openset_.calibration_]
-        rate = det.openset_.rate
-        print(f"open-set layer: a trace of a known class is 'unknown' with probability <= {rate:g}; calibration "
-              f"rows per class {min(n_cal)}-{max(n_cal)}" + ("" if min(n_cal) + 1 >= 1 / rate else
-              f" (a class with fewer than {math.ceil(1 / rate - 1)} can never make a trace unknown: "
-              "raise --n-per-class)"))
+        layer = det.openset_
+        n_cal = [c.size for c in layer.calibration_]
+        silent = [str(c) for c, a, m in zip(layer.classes_, layer.levels_, layer.modelled_) if m and a == 0]
+        need = math.ceil(math.log(layer.delta) / math.log1p(-layer.rate))
+        print(f"open-set layer: a trace of a known class is 'unknown' with probability <= {layer.rate:g} "
+              f"(with {100 * (1 - layer.delta):g} % confidence); calibration rows per class {min(n_cal)}-{max(n_cal)}"
+              + (f"; {len(silent)} classes have fewer than {need} and never make a trace unknown "
+                 f"({', '.join(silent)}): raise --n-per-class" if silent else ""))
     print(f"wrote {out} and {mpath}")
     return 0
