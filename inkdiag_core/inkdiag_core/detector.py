@@ -119,8 +119,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
     probability at least 90 % over the draw of the calibration rows
     (:data:`inkdiag_core.openset.DEFAULT_DELTA`); on average about ``1 / (n_c + 1)`` to
     ``unknown_rate / 2``. Each class needs ``(1 - unknown_rate) ** n_c <= 0.1``
-    calibration rows (230 for 0.01) to make a row unknown at all; with fewer the layer
-    never says unknown.
+    calibration rows (230 for 0.01); with fewer in any class the layer never says unknown.
     The class models are fitted on the validation split and calibrated on the
     classifier's training split (the nonconformity score does not involve the
     classifier, so calibration rows need only be held out from the class models;

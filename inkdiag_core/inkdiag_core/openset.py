@@ -41,8 +41,9 @@ calibration rows per class one fitted layer's rate spread so that a single class
 single training seed read 2.67 % at ``rate = 0.01`` (``reports/unknown.md``, before).
 On average a class's rate is ``(1 + m_c) / (n_c + 1)``: 0.33 % with 300 calibration rows
 (``m_c = 0``), 0.53 % with 750 (``m_c = 3``), at ``rate = 0.01``, ``delta = 0.1``. A class
-with ``(1 - rate) ** n_c > delta`` (for those settings, fewer than 230 calibration rows) can
-never make a row unknown: the layer is then conservative, never wrong about the guarantee.
+with ``(1 - rate) ** n_c > delta`` (for those settings, fewer than 230 calibration rows)
+cannot certify any row as unlike it, so with such a class (or a class without a model) the
+layer calls no row unknown: conservative, never wrong about the guarantee.
 Nothing is guaranteed about rows of unseen conditions: how often they come out ``unknown``
 is measured (``scripts/report unknown``).
 """

@@ -132,11 +132,11 @@ def run(args) -> int:
     if det.openset_ is not None:
         layer = det.openset_
         n_cal = [c.size for c in layer.calibration_]
-        silent = [str(c) for c, a, m in zip(layer.classes_, layer.levels_, layer.modelled_) if m and a == 0]
+        silent = [str(c) for c, a in zip(layer.classes_, layer.levels_) if a == 0]  # or without a model
         need = math.ceil(math.log(layer.delta) / math.log1p(-layer.rate))
         print(f"open-set layer: a trace of a known class is 'unknown' with probability <= {layer.rate:g} "
               f"(with {100 * (1 - layer.delta):g} % confidence); calibration rows per class {min(n_cal)}-{max(n_cal)}"
-              + (f"; {len(silent)} classes have fewer than {need} and never make a trace unknown "
-                 f"({', '.join(silent)}): raise --n-per-class" if silent else ""))
+              + (f"; {len(silent)} classes have fewer than {need} ({', '.join(silent)}): with them the layer "
+                 "never calls a trace unknown; raise --n-per-class" if silent else ""))
     print(f"wrote {out} and {mpath}")
     return 0
