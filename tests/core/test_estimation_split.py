@@ -5,7 +5,10 @@ single-module estimator it replaced, per-method options, and the old keywords.
 the split (main at 85bc1fe), on the seeded batch built by :func:`_batch`: ``fm`` and
 ``std`` as exact float hex strings, the other arrays as sha256 of their float64 bytes.
 "vp" and "vp_cal" are held to 1e-6 relative on ``fm`` and ``std`` since their per-call
-cost cut (float noise); the other methods to the bits.
+cost cut (float noise); the other methods to the bits. Every other output of the vp-based
+cases (trace, ci, d_mu, viscosity, x0, offset) is held to 1e-6 relative against
+``tests/core/data/fm_reference_vp.json``, recorded after that cut (main at c6081c3) by
+``tests/core/data/record_fm_reference_vp.py`` as float hex.
 """
 
 import dataclasses
@@ -29,6 +32,7 @@ from inkdiag_core.fe_datasets import synthetic_set
 
 FS = 10e6
 REFERENCE = json.loads((Path(__file__).parent / "data" / "fm_reference.json").read_text())
+REFERENCE_VP = json.loads((Path(__file__).parent / "data" / "fm_reference_vp.json").read_text())
 
 # name: (method, x0 given, old keywords, the same as an options object)
 CASES = {
@@ -69,9 +73,14 @@ def _digest(a):
     return hashlib.sha256(np.ascontiguousarray(a, dtype=np.float64).tobytes()).hexdigest()
 
 
-def _assert_reference(r, ref, fields=("trace", "ci", "d_mu", "viscosity", "x0", "offset")):
+def _assert_reference(r, ref, fields=("trace", "ci", "d_mu", "viscosity", "x0", "offset"), vp_ref=None):
     assert r.method == ref["method"]
     if r.method in ("vp", "vp_cal"):
+        assert vp_ref is not None and vp_ref["method"] == r.method
+        for name in ("fm", "std") + tuple(fields):
+            want = np.array([float.fromhex(v) for v in vp_ref[name]["hex"]]).reshape(vp_ref[name]["shape"])
+            np.testing.assert_allclose(np.asarray(getattr(r, name), dtype=np.float64), want, rtol=1e-6, atol=0,
+                                       equal_nan=True, err_msg=name)
         # the variable projection's per-call cost cut (one inverse per basis, matrix products
         # per right-hand side, no fit after a converged step) moves its results by float noise
         # only: within 1e-6 relative of the pre-split bits (measured: 5e-8 at most)
@@ -97,13 +106,14 @@ def test_dispatcher_bit_identical_to_pre_split(model, batch, name, how):
         kw = {"baseline_fm": kw["baseline_fm"]} if "baseline_fm" in kw else {}
         resolved = method if method != "auto" else ("vp" if use_x0 else "vp_cal")
         kw["options"] = opts if opts is not None else OPTIONS[resolved]()
-    _assert_reference(estimate_fm_batch(Y, model, FS, method=method, x0=x0, **kw), REFERENCE[name])
+    _assert_reference(estimate_fm_batch(Y, model, FS, method=method, x0=x0, **kw), REFERENCE[name],
+                      vp_ref=REFERENCE_VP.get(name))
 
 
 def test_single_trace_bit_identical_to_pre_split(model, batch):
     Y, X0 = batch
     _assert_reference(estimate_fm(Y[2], model, FS, method="vp_cal"), REFERENCE["single_vp_cal"],
-                      fields=("trace", "x0"))
+                      fields=("trace", "x0"), vp_ref=REFERENCE_VP["single_vp_cal"])
     _assert_reference(estimate_fm(Y[2], model, FS, method="dt", x0=X0[2], window=30),
                       REFERENCE["single_dt"], fields=("trace", "x0"))
     _assert_reference(estimate_fm(Y[2], model, FS, method="dt", x0=X0[2],
