@@ -178,6 +178,7 @@ def test_training_conditional_level_is_the_binomial_rule():
     assert training_conditional_level(750, 0.01, 0.1) == 4 / 751  # m = 3
     assert binom.cdf(3, 750, 0.01) <= 0.1 < binom.cdf(4, 750, 0.01)
     assert training_conditional_level(0, 0.01, 0.1) == 0.0
+    assert training_conditional_level(1000, 0.01, 0.9) == 0.01  # never looser than the plain rule
 
 
 def test_a_fitted_layer_keeps_its_rate_with_the_stated_confidence():
