@@ -52,6 +52,7 @@ __all__ = [
     "InvalidTraceError",
     "KpiExtractor",
     "extract_kpis",
+    "kpis_of_checked",
     "reconstruct",
 ]
 
