@@ -150,8 +150,9 @@ def main() -> int:
              "Columns: inkdiag's feature sets with its 50-tree forest (the residual filters from the head's "
              "true profile); a gradient-boosted classifier on the 7 KPIs, the first 80 log-normalised FFT "
              "magnitudes and the normalised waveform at 128 points, on the five classes that overlap (1,500 "
-             "training traces each); each trace with its own nozzle's healthy KPIs (a healthy twin of the same "
-             "nozzle, same temperature: the most a commissioning baseline can give); the head without its "
+             "training traces each); each trace with its own nozzle's healthy KPIs (one frame of a healthy twin of "
+             "the same nozzle at the same temperature; a commissioning baseline is the median of 8 frames, at "
+             "another temperature); the head without its "
              "per-nozzle and per-frame spreads (geometry, actuator, coupling, drive, gain, offset, "
              "temperature; noise and ADC kept).", ""]
     for head in ns.heads:
