@@ -83,9 +83,11 @@ __all__ = [
     "CalibrationResult",
     "MIN_TRACES",
     "PRIOR_RATIOS",
+    "POSTERIOR_DRAWS",
     "PRIOR_SD_LOG",
     "calibrate",
     "healthy_response",
+    "posterior_profiles",
 ]
 
 MIN_TRACES = 10
@@ -389,8 +391,10 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     chi2 = float(np.sum(best.fun[:m] ** 2))
     s2 = max(1.0, chi2 / max(1, m - len(_PARAMS)))
     Jw = np.vstack([J[:m] / math.sqrt(s2), J[m:]])  # data rows at the misfit's own scale, then the prior
-    sd_post = np.zeros(3)
-    sd_post[free] = np.sqrt(np.clip(np.diag(np.linalg.pinv(Jw.T @ Jw)), 0, None))
+    cov_post = np.zeros((3, 3))  # log B_act, log I_r, log R_r; zero rows and columns: not fitted
+    cov_post[np.ix_(free, free)] = np.linalg.pinv(Jw.T @ Jw)
+    cov_post = (cov_post + cov_post.T) / 2
+    sd_post = np.sqrt(np.clip(np.diag(cov_post), 0, None))
     sv = np.linalg.svd(J[:m] / math.sqrt(s2), compute_uv=False)
 
     # -- 3. every trace on the fitted shape ---------------------------------------------------
@@ -510,6 +514,8 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
                   "amplitude_convention": convention, "residual_rel_mean_trace": resid_rel,
                   "residual_rel_per_trace_median": report["residual_rel"]["per_trace_median"],
                   "determined_by": {p: pinned[p]["determined_by"] for p in _PARAMS},
+                  "posterior": {"parameters": list(_PARAMS), "units": ["m^3/Pa", "kg/m^4", "Pa s/m^3"],
+                                "mean_log": [float(v) for v in theta], "cov_log": cov_post.tolist()},
                   "nominal_sha256": nominal.sha256}
     profile = calibrated.replace(spreads_overrides={**physical, "gain_rel": gain_rel, "offset_std_v": offset_std,
                                                     **UNSEEN_PHYSICS_SPREADS},
@@ -518,6 +524,65 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     rows = np.flatnonzero(finite)[np.linspace(0, y.shape[0] - 1, k).astype(int)] if k else np.zeros(0, int)
     pos = np.linspace(0, y.shape[0] - 1, k).astype(int)
     return CalibrationResult(profile, report, known.t_s.copy(), mean, mean_fit, y[pos], fitted[pos], rows)
+
+
+POSTERIOR_DRAWS = 8
+"""Profiles :func:`posterior_profiles` returns by default: the fit and 7 draws (``inkdiag train
+--posterior-draws`` chooses its own; its default is the fit alone)."""
+
+_POSTERIOR_CLIP = 2.0  # standard deviations: no draw from the far tails of the Gaussian approximation
+
+
+def posterior_profiles(profile, n_draws: int = POSTERIOR_DRAWS, *, seed: int = 0) -> list:
+    """The calibrated profile and draws of what its healthy traces left uncertain.
+
+    :func:`calibrate` records the Gaussian approximation of its fit's posterior of
+    ``(log B_act, log I_r, log R_r)`` (``calibration.posterior``: the mean and the covariance
+    of the data and prior terms at the optimum). Healthy traces pin the healthy mode
+    (the combination of the actuator compliance and the two branches' inertances and
+    resistances that sets its frequency and damping) but hardly the split between the
+    restrictor and the nozzle branch, which the faults move apart: a fully blocked nozzle
+    rings with the restrictor alone, a dried one changes only the nozzle's resistance.
+    Training on the fit alone trains on one guess of that split; training over these draws
+    (each one as consistent with the healthy traces as the fit, up to the approximation)
+    keeps a detector from leaning on it. The channel's ``r_r`` and ``L_r`` follow from each
+    draw's ``I_r`` and ``R_r`` as in :func:`calibrate`.
+
+    Parameters
+    ----------
+    profile : HeadProfile
+        A complete profile.
+    n_draws : int
+        Profiles returned, the first the profile itself.
+    seed : int
+
+    Returns
+    -------
+    list of HeadProfile
+        ``[profile]`` alone when it has no recorded posterior (the shipped default head, a
+        profile written by hand, a calibration older than the posterior) or ``n_draws <= 1``.
+        Each draw is a standard-normal vector clipped to +-2 in every component, mapped
+        through the covariance's square root (components it does not fit stay at the fit).
+    """
+    post = (profile.calibration or {}).get("posterior")
+    if not post or n_draws <= 1:
+        return [profile]
+    mean = np.asarray(post["mean_log"], dtype=np.float64)
+    cov = np.asarray(post["cov_log"], dtype=np.float64)
+    if mean.shape != (3,) or cov.shape != (3, 3) or not (np.isfinite(mean).all() and np.isfinite(cov).all()):
+        return [profile]
+    w, v = np.linalg.eigh((cov + cov.T) / 2)
+    root = v * np.sqrt(np.clip(w, 0.0, None))
+    rng = np.random.default_rng([int(seed), 17])
+    z = np.clip(rng.standard_normal((n_draws - 1, 3)), -_POSTERIOR_CLIP, _POSTERIOR_CLIP)
+    rho, mu = float(profile.channel["rho"]), float(profile.channel["mu"])
+    out = [profile]
+    for theta in mean + z @ root.T:
+        B_act, I_r, R_r = np.exp(theta)
+        r_r = math.sqrt(8.0 * mu * I_r / (rho * R_r))
+        channel = dict(profile.channel, B_act=float(B_act), r_r=float(r_r), L_r=float(I_r * math.pi * r_r**2 / rho))
+        out.append(profile.replace(channel=channel))
+    return out
 
 
 UNSEEN_PHYSICS_SPREADS = {"actuator_resonance_rel": 0.05, "actuator_damping_rel": 0.35, "film_loss_rel": 0.35}

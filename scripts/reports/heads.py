@@ -1,6 +1,6 @@
 """Heads report: inkdiag on printheads other than its own, through the `inkdiag` command.
 
-    scripts/report heads [--heads default h20 h5] [--per-class 150] [--n-per-class N] [--seed 0]
+    scripts/report heads [--heads default h20 h5] [--per-class 150] [--n-per-class N] [--seed 0] [--posterior-draws K]
 
 For each head, traces come from the independent simulator ``tests/foreign_head.py``
 (its own code, not inkdiag's simulator). The workflow is the one a user runs,
@@ -104,7 +104,7 @@ def _dmu_errors(fm_csv, d_mu_true):
     return float(np.median(err)), float(np.percentile(err, 90)), n_nan
 
 
-def run_head(name, work, *, per_class, n_per_class, seed, log):
+def run_head(name, work, *, per_class, n_per_class, seed, log, posterior_draws=1):
     head_dir = work / name
     head_dir.mkdir(parents=True, exist_ok=True)
     nominal = head_dir / "nominal.yaml"
@@ -125,7 +125,8 @@ def run_head(name, work, *, per_class, n_per_class, seed, log):
     out = {"calibrate_s": t_cal}
     for kind, prof in profiles.items():
         model = head_dir / f"model_{kind}.joblib"
-        train_args = ["train", "--profile", prof, "--out", model, "--seed", seed]
+        train_args = ["train", "--profile", prof, "--out", model, "--seed", seed,
+                      "--posterior-draws", posterior_draws if kind == "calibrated" else 1]
         if n_per_class:
             train_args += ["--n-per-class", n_per_class]
         _, t_train = _inkdiag(*train_args, log=log)
@@ -150,6 +151,8 @@ def main(argv=None) -> int:
     ap.add_argument("--per-class", type=int, default=150, help="test traces per class and head")
     ap.add_argument("--n-per-class", type=int, default=0, help="training traces per class (0: train's default)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--posterior-draws", type=int, default=1,
+                    help="inkdiag train --posterior-draws for the calibrated profiles (default: %(default)s)")
     ap.add_argument("--keep", action="store_true", help="keep the work files under reports/heads_work/")
     args = ap.parse_args(argv)
     unknown = [h for h in args.heads if h not in fh.FOREIGN_HEADS]
@@ -164,6 +167,7 @@ def main(argv=None) -> int:
         for name in args.heads:
             print(f"head {name} ...", file=sys.stderr, flush=True)
             results[name] = run_head(name, work, per_class=args.per_class, n_per_class=args.n_per_class,
+                                     posterior_draws=args.posterior_draws,
                                      seed=args.seed, log=log)
     finally:
         if args.keep:
@@ -187,7 +191,8 @@ def write_report(results, args, log, elapsed):
         "# inkdiag on other printheads",
         "",
         f"{today}. `scripts/report heads --heads {' '.join(args.heads)} --per-class {args.per_class} --seed "
-        f"{args.seed}` ({elapsed / 60:.1f} min on the shared 2-core machine). Traces come from the independent "
+        f"{args.seed}" + (f" --posterior-draws {args.posterior_draws}" if args.posterior_draws != 1 else "")
+        + f"` ({elapsed / 60:.1f} min on the shared 2-core machine). Traces come from the independent "
         "simulator `tests/foreign_head.py`, not from inkdiag's; each head is calibrated from 300 of its "
         "healthy traces and a nominal profile (sampling, drive, rho, mu, r_n, L_n, V_ch, c), then trained, "
         "labelled and estimated with the `inkdiag` command. *calibrated*: the profile `inkdiag calibrate` "

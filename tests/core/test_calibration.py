@@ -165,3 +165,30 @@ def test_a_spike_row_is_screened_out_not_fatal(recorded):
     r = calibrate(nominal_of(TRUE), y, TRUE.sample_rate_hz)
     assert r.report["n_traces"] == 59 and r.report["n_dropped_nonfinite"] == 1
     assert r.profile.healthy_mode()[0] == pytest.approx(TRUE.healthy_mode()[0], rel=0.01)
+
+
+def test_posterior_draws_keep_the_healthy_mode_and_vary_what_it_leaves_open(result, recorded, tmp_path):
+    """calibration.posterior (issue 14): training can spread its rows over what healthy traces hardly pin."""
+    from inkdiag_core.calibration import posterior_profiles
+    from inkdiag_core.training import train_detector
+
+    p = HeadProfile.load(result.profile.save(tmp_path / "fitted.yaml"))  # the posterior survives the YAML
+    post = p.calibration["posterior"]
+    cov = np.array(post["cov_log"])
+    assert post["parameters"] == ["B_act", "I_r", "R_r"] and cov.shape == (3, 3)
+    assert np.allclose(cov, cov.T) and np.linalg.eigvalsh(cov).min() > -1e-12
+    np.testing.assert_allclose(np.exp(post["mean_log"][0]), p.channel["B_act"], rtol=1e-12)
+    draws = posterior_profiles(p, 6, seed=1)
+    assert len(draws) == 6 and draws[0] is p
+    f0, z0 = p.healthy_mode()
+    for q in draws[1:]:
+        f, z = q.healthy_mode()
+        assert abs(f / f0 - 1) < 0.01 and abs(z / z0 - 1) < 0.05  # as consistent with the traces as the fit
+    l_r = np.array([q.channel["L_r"] for q in draws])
+    assert l_r.std() / l_r.mean() > 0.02  # ... while the restrictor moves
+    assert posterior_profiles(TRUE, 6) == [TRUE]  # no posterior recorded: the profile alone
+    assert posterior_profiles(p, 1) == [p]
+    det, info = train_detector(p, n_per_class=24, posterior_draws=3, unknown_rate=None, n_estimators=5)
+    assert info["posterior_draws"] == 3
+    with pytest.raises(ValueError, match="posterior_draws"):
+        train_detector(p, n_per_class=24, posterior_draws=0)

@@ -110,6 +110,8 @@ def test_label_uses_each_rows_nozzle_baseline(work, tmp_path):
     (["train", "--profile", "{d}/nominal.yaml", "--out", "{d}/x.joblib"], "inkdiag calibrate"),
     (["train", "--profile", "{d}/missing.yaml", "--out", "{d}/x.joblib"], "no such head profile"),
     (["train", "--profile", "{d}/head.yaml", "--out", "{d}/x.joblib", "--data", "{d}/rec10.npz"], "label"),
+    (["train", "--profile", "{d}/head.yaml", "--out", "{d}/x.joblib", "--posterior-draws", "0"],
+     "--posterior-draws must be >= 1"),
     (["label", "{d}/rec10.npz", "--model", "{d}/head.joblib", "--out", "{d}/l.csv"], "head 'foreign20'"),
     (["label", "{d}/missing.npz", "--model", "{d}/head.joblib", "--out", "{d}/l.csv"], "no such recording"),
     (["label", "{d}/rec.npz", "--model", "{d}/missing.joblib", "--out", "{d}/l.csv"], "does not exist"),
