@@ -190,5 +190,6 @@ def test_posterior_draws_keep_the_healthy_mode_and_vary_what_it_leaves_open(resu
     assert posterior_profiles(p, 1) == [p]
     det, info = train_detector(p, n_per_class=24, posterior_draws=3, unknown_rate=None, n_estimators=5)
     assert info["posterior_draws"] == 3
-    with pytest.raises(ValueError, match="posterior_draws"):
-        train_detector(p, n_per_class=24, posterior_draws=0)
+    for bad in (0, 25):
+        with pytest.raises(ValueError, match="posterior_draws"):
+            train_detector(p, n_per_class=24, posterior_draws=bad)
