@@ -11,6 +11,7 @@
 """
 
 import hashlib
+import json
 from pathlib import Path
 
 import numpy as np
@@ -126,9 +127,14 @@ CASES = {
 }
 
 
+# the same calls recorded on another platform (AMD EPYC, Zen 4), whose BLAS and libm round
+# differently in the last bits: see the file's "about"
+OTHER_PLATFORM = json.loads((Path(__file__).parent / "data" / "split_fingerprints_zen4.json").read_text())
+
+
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_split_is_bit_for_bit(name):
-    assert CASES[name]() == FINGERPRINTS[name]
+    assert CASES[name]() in (FINGERPRINTS[name], OTHER_PLATFORM["simulation"][name])
 
 
 def test_simulation_modules_have_one_topic_each_and_are_re_exported():
