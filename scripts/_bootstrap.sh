@@ -50,7 +50,8 @@ if [ "$(cat "$_inkdiag_stamp_file" 2>/dev/null)" != "$_inkdiag_stamp_want" ]; th
              -r requirements/ros.txt -r requirements/dev.txt &&
          "$INKDIAG_VENV/bin/python" -m pip install --disable-pip-version-check \
              --config-settings editable_mode=compat \
-             -e ./inkdiag_core -e ./msg_defs -e ./inkdiag_ros ) >"$_inkdiag_log" 2>&1; then
+             -e ./inkdiag_core -e ./msg_defs -e ./inkdiag_ros &&
+         "$INKDIAG_VENV/bin/python" -m inkdiag_core._kernels ) >"$_inkdiag_log" 2>&1; then  # kernels compiled at install
     grep -v "^WARNING: Location" "$_inkdiag_log" | tail -n 25 >&2
     _inkdiag_die "installing into .venv failed (full log: $_inkdiag_log)"
   fi

@@ -142,6 +142,11 @@ class FrameLabeller:
         self.sample_rate_hz = want_fs
         self.profile = profile
         self.max_abs_v = None if max_abs_v is None else float(max_abs_v)
+        _warm_up_kernels()
+
+    def __setstate__(self, state):  # unpickled in the labelling process's child: its kernels too
+        self.__dict__.update(state)
+        _warm_up_kernels()
 
     @property
     def model_id(self) -> str:
@@ -254,6 +259,13 @@ class FrameLabeller:
         cuts = np.cumsum([a.shape[0] for a in arrays])[:-1]
         cols = (classes, confidence, valid, reasons, with_base) + ((cleared,) if self.gate is not None else ())
         return [FrameLabels(*p) for p in zip(*(np.split(col, cuts) for col in cols))]
+
+
+def _warm_up_kernels() -> None:
+    """The screening and gate kernels compiled (or loaded from their cache) now, not on a first frame."""
+    from ._kernels import warm_up
+
+    warm_up()
 
 
 def load_labeller(model_path, baseline_path=None, **checks):

@@ -32,7 +32,8 @@ every fault class and held-out condition then clears at most 0.1 % of its rows
 (``reports/gate.md``). A head with another noise level or temperature spread needs
 its own numbers (its healthy rows' residual fractions and gains).
 
-Batch numpy only; no ROS.
+The three row sums are one compiled loop per row (:func:`inkdiag_core._kernels.row_sums`,
+accumulated in float64); no ROS.
 """
 
 from __future__ import annotations
@@ -142,7 +143,7 @@ class HealthyGate:
         Parameters
         ----------
         traces : array_like of float, shape (n, n_samples)
-            V; float32 is used as is (no copy), other dtypes are converted.
+            V; float32 and float64 are used as they are (no copy), other dtypes are converted to float32.
         nozzle_ids : int or array_like of int, shape (n,)
             Each row's nozzle id; an int: the first row's, the others consecutive.
 
@@ -169,44 +170,62 @@ class HealthyGate:
             ids = np.asarray(nozzle_ids, dtype=np.int64)
             if ids.shape != (n,):
                 raise ValueError(f"nozzle_ids must have shape ({n},), got {ids.shape}")
-        gain = np.full(n, np.nan)
-        frac = np.full(n, np.nan)
-        cleared = np.zeros(n, bool)
-        classes = np.full(n, "", dtype=object)
         if self._ref is None or n == 0:
-            return GateResult(cleared, classes, gain, frac)
+            return _nothing_cleared(n)
         has, pos = self.baselines.reference_rows(ids)
         has &= self._usable[pos]
-        at = np.flatnonzero(has)
-        if at.size == 0:
-            return GateResult(cleared, classes, gain, frac)
-        p = pos[at]
+        every = bool(has.all())
+        at = None if every else np.flatnonzero(has)
+        if not every and at.size == 0:
+            return _nothing_cleared(n)
+        p = pos if every else pos[at]
         # one contiguous, ascending nozzle range (the node's case): a view, no gather; repeated or
         # out-of-order ids with the same ends must gather, each row against its own nozzle's reference
-        if at.size == n and p[-1] - p[0] == n - 1 and (n == 1 or bool((np.diff(p) == 1).all())):
+        if every and p[-1] - p[0] == n - 1 and (n == 1 or bool((np.diff(p) == 1).all())):
             r = self._ref[p[0]:p[0] + n]
             xs = x
         else:
             r = self._ref[p]
-            xs = x[at]
-        r = r.astype(xs.dtype, copy=False)
-        # row-wise dot products as batched (1 x n_samples) @ (n_samples x 1) products: BLAS,
-        # faster than einsum here; float32 rows accumulate in float32 (decisions as float64's,
-        # tests/core/test_gate.py)
-        xr = np.matmul(xs[:, None, :], r[:, :, None]).reshape(-1).astype(np.float64)
-        xx = np.matmul(xs[:, None, :], xs[:, :, None]).reshape(-1).astype(np.float64)
-        x1 = xs.sum(axis=1).astype(np.float64)
+            xs = x if every else x[at]
+        x1, xx, xr = _row_sums(xs, r.astype(xs.dtype, copy=False))
         with np.errstate(invalid="ignore", divide="ignore"):
             g = xr / self._rr[p]
             var = xx - x1 * x1 / self.n_samples
             f = (var - g * xr) / var
-        f = np.where(var > 0, np.clip(f, 0.0, 1.0), np.nan)
-        gain[at] = g
-        frac[at] = f
+        f = np.where(var > 0, np.minimum(np.maximum(f, 0.0), 1.0), np.nan)
         ok = f <= self.max_residual_fraction  # NaN: False
         jet = ok & (g >= self.jetting_gain[0]) & (g <= self.jetting_gain[1])
         oks = ok & (g >= self.ok_gain[0]) & (g <= self.ok_gain[1])
+        code = jet.view(np.uint8) + 2 * oks.view(np.uint8)  # the bands do not overlap: 0, 1 or 2
+        if every:
+            return GateResult(jet | oks, _GATE_CLASSES[code], g, f)
+        gain, frac, cleared = np.full(n, np.nan), np.full(n, np.nan), np.zeros(n, bool)
+        classes = np.full(n, "", dtype=object)
+        gain[at] = g
+        frac[at] = f
         cleared[at] = jet | oks
-        classes[at[jet]] = FaultClass.HEALTHY_NOZZLE.value
-        classes[at[oks]] = FaultClass.OK_SIGNAL.value
+        classes[at] = _GATE_CLASSES[code]
         return GateResult(cleared, classes, gain, frac)
+
+
+#: A gate row's class by its code: not cleared, cleared jetting, cleared OK-check.
+_GATE_CLASSES = np.array(["", FaultClass.HEALTHY_NOZZLE.value, FaultClass.OK_SIGNAL.value], dtype=object)
+
+
+def _nothing_cleared(n: int) -> GateResult:
+    return GateResult(np.zeros(n, bool), np.full(n, "", dtype=object), np.full(n, np.nan), np.full(n, np.nan))
+
+
+def _row_sums(x, r):
+    """``sum(x)``, ``sum(x * x)``, ``sum(x * r)`` per row in float64: the compiled kernel (one loop per row)."""
+    from ._kernels import row_sums
+
+    return row_sums(x, r)
+
+
+def _row_sums_numpy(x, r):
+    """:func:`_row_sums` in numpy passes (the baseline ``scripts/bench fdi`` measures the kernel against):
+    row-wise dot products as batched (1 x m) @ (m x 1) BLAS products, float32 rows accumulated in float32."""
+    xr = np.matmul(x[:, None, :], r[:, :, None]).reshape(-1).astype(np.float64)
+    xx = np.matmul(x[:, None, :], x[:, :, None]).reshape(-1).astype(np.float64)
+    return x.sum(axis=1).astype(np.float64), xx, xr

@@ -26,6 +26,10 @@ MIN_CLIP_RUN = 3
 INVALID_REASONS = ("non_finite", "out_of_range", "flat", "clipped", "non_finite_features")
 
 
+#: A screened row's reason by its code (0: valid).
+_REASONS = np.array(("",) + INVALID_REASONS[:4], dtype=object)
+
+
 def clip_run_samples(sample_rate_hz: float = 10e6, clip_s: float = CLIP_S) -> int:
     """The clipped-run length in samples at a sample rate: ``max(3, ceil(clip_s * sample_rate_hz))``.
 
@@ -94,9 +98,28 @@ def screen_traces(traces, *, flat_tol: float = 1e-6, clip_run: int | None = None
     if max_abs_v is not None and not max_abs_v > 0:
         raise ValueError(f"max_abs_v must be > 0 V or None, got {max_abs_v!r}")
     n = x.shape[0]
-    reasons = np.full(n, "", dtype=object)
     if n == 0 or x.shape[1] == 0:
-        return np.ones(n, bool), reasons
+        return np.ones(n, bool), np.full(n, "", dtype=object)
+    code = _screen_codes(x, flat_tol, max_abs_v, clip_run)
+    return code == 0, _REASONS[code]
+
+
+def _screen_codes(x, flat_tol, max_abs_v, clip_run):
+    """Each row's reason code (0 valid, else 1 + its index in :data:`INVALID_REASONS`).
+
+    The compiled kernel (:func:`inkdiag_core._kernels.screen_codes`: two loops per row) for
+    float32/float64 rows, :func:`_screen_codes_numpy` (numpy passes) for any other dtype
+    (ADC counts); the same codes.
+    """
+    if x.dtype in (np.float32, np.float64):
+        from ._kernels import screen_codes
+
+        return screen_codes(x, flat_tol, np.inf if max_abs_v is None else max_abs_v, clip_run)
+    return _screen_codes_numpy(x, flat_tol, max_abs_v, clip_run)
+
+
+def _screen_codes_numpy(x, flat_tol, max_abs_v, clip_run):
+    """:func:`_screen_codes` in numpy passes, for any numeric dtype of a non-empty ``x`` (n, m >= 1)."""
     # One max and one min pass find the non-finite rows too: NaN propagates through both,
     # +Inf is a row's max and -Inf its min.
     hi = x.max(axis=1)
@@ -107,7 +130,7 @@ def screen_traces(traces, *, flat_tol: float = 1e-6, clip_run: int | None = None
     hi64, lo64 = hi.astype(np.float64), lo.astype(np.float64)
     with np.errstate(invalid="ignore", over="ignore"):
         flat = finite & ((hi64 - lo64) <= flat_tol)
-    out = np.zeros(n, bool)
+    out = np.zeros(x.shape[0], bool)
     if max_abs_v is not None:
         out = finite & ((hi64 > max_abs_v) | (lo64 < -max_abs_v))
     if not finite.all():
@@ -118,13 +141,10 @@ def screen_traces(traces, *, flat_tol: float = 1e-6, clip_run: int | None = None
     count = np.uint16 if x.shape[1] < 2**16 else np.intp
     cand = np.flatnonzero((np.add.reduce(at_hi.view(np.uint8), axis=1, dtype=count) >= clip_run)
                           | (np.add.reduce(at_lo.view(np.uint8), axis=1, dtype=count) >= clip_run))
-    clipped = np.zeros(n, bool)
+    clipped = np.zeros(x.shape[0], bool)
     clipped[cand] = _has_run(at_hi[cand], clip_run) | _has_run(at_lo[cand], clip_run)
-    reasons[clipped] = "clipped"
-    reasons[flat] = "flat"
-    reasons[out] = "out_of_range"
-    reasons[~finite] = "non_finite"
-    return reasons == "", reasons
+    # each row's first reason in INVALID_REASONS' order of precedence
+    return np.where(~finite, 1, np.where(out, 2, np.where(flat, 3, np.where(clipped, 4, 0)))).astype(np.uint8)
 
 
 def _has_run(mask: np.ndarray, run: int) -> np.ndarray:

@@ -21,11 +21,14 @@ healthy rows OK-check; references recorded by ``BaselineRecorder`` from 8 health
 frames) against one ``max`` pass over the same frame, and ``FrameLabeller.label``
 end to end on that frame in 200-nozzle messages (the default detector
 ``models/fdi_default.joblib``, trained if missing) with the baselines' references
-(gate on) and without (gate off). Prints traces/s and ratios; run it on one core
+(gate on) and without (gate off), and that per-row stage (screening and the gate) with
+the compiled kernels against the numpy passes they replace, on one message and on eight.
+Prints traces/s and ratios; run it on one core
 (``scripts/bench`` sets the thread variables). ``--gate-only`` skips all but the gate.
 """
 
 import argparse
+import contextlib
 import time
 
 import numpy as np
@@ -184,6 +187,47 @@ def gate_bench(n: int, seed: int, faulty: float = 0.02, repeats: int = 5):
     same = all((g.classes == w.classes).all()
                for g, w in zip(with_ref.label(msgs, firsts), without.label(msgs, firsts)))
     print(f"labels with the gate == without: {same}")
+    kernel_bench(frame, gate, repeats)
+
+
+@contextlib.contextmanager
+def numpy_passes():
+    """Screening and the gate's row sums as numpy passes instead of the compiled kernels."""
+    from inkdiag_core import gate, screening
+
+    saved = screening._screen_codes, gate._row_sums
+    screening._screen_codes, gate._row_sums = screening._screen_codes_numpy, gate._row_sums_numpy
+    try:
+        yield
+    finally:
+        screening._screen_codes, gate._row_sums = saved
+
+
+def kernel_bench(frame, gate, repeats: int = 5, rounds: int = 20):
+    """The labeller's per-row stage (screen_traces + HealthyGate.screen on every row) with the compiled
+    kernels (inkdiag_core._kernels) against the numpy passes they replace, in turns, same rows."""
+    rows = {"one message (200 rows)": frame[:200], "a classifier pass (1,600 rows)": frame[:1600]}
+    print(f"\nper-row stage, screen_traces + HealthyGate.screen: compiled kernels against numpy passes "
+          f"(best of {repeats} x {rounds} calls, in turns)")
+    for name, x in rows.items():
+        x = np.ascontiguousarray(x)
+
+        def stage():
+            for _ in range(rounds):
+                screen_traces(x, max_abs_v=10.0)
+                gate.screen(x, 0)
+
+        with numpy_passes():
+            ref = (screen_traces(x, max_abs_v=10.0)[1], gate.screen(x, 0).cleared)
+        got = (screen_traces(x, max_abs_v=10.0)[1], gate.screen(x, 0).cleared)
+        t_np, t_k = float("inf"), float("inf")
+        for _ in range(repeats):
+            with numpy_passes():
+                t_np = min(t_np, best_of(stage, 1))
+            t_k = min(t_k, best_of(stage, 1))
+        same = bool((ref[0] == got[0]).all() and (ref[1] == got[1]).all())
+        print(f"  {name:<32}: numpy {1e3 * t_np / rounds:7.3f} ms, kernels {1e3 * t_k / rounds:7.3f} ms, "
+              f"ratio {t_np / t_k:.2f}x faster; same reasons and cleared rows: {same}")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,155 @@
+"""The compiled per-row kernels give what the numpy passes they replace give (inkdiag_core._kernels)."""
+
+import numpy as np
+import pytest
+
+from inkdiag_core import _kernels, gate, screening
+
+
+def _adversarial(dtype, m=64, seed=0):
+    """Rows a sensor or a transfer can produce, each kind several times, in random order."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(m)
+    rows = []
+    for k in range(40):
+        a = rng.uniform(0.1, 2.0)
+        r = a * np.exp(-t / 20) * np.sin(0.6 * t + rng.uniform(0, 6)) + 0.01 * rng.standard_normal(m)
+        kind = k % 20
+        if kind == 1:
+            r[rng.integers(m)] = np.nan
+        elif kind == 2:
+            r[rng.integers(m)] = -np.nan  # the sign bit set: maps below -Inf
+        elif kind == 3:
+            r[rng.integers(m)] = np.inf
+        elif kind == 4:
+            r[rng.integers(m)] = -np.inf
+        elif kind == 5:
+            r[rng.integers(m)] = 1e30 if dtype == np.float64 else np.finfo(np.float32).max
+        elif kind == 6:
+            r[:] = 0.25  # flat
+        elif kind == 7:
+            r = np.clip(r * 3, -0.8, 0.8)  # clipped at both rails
+        elif kind == 8:
+            top = r.max()
+            r[10:14] = top + 1.0  # a plateau one sample short of the run (clip_run 5): not clipped
+        elif kind == 9:
+            r[20:25] = r.min() - 1.0  # exactly clip_run at the minimum
+        elif kind == 10:
+            r[:] = 0.0
+            r[3:9] = -0.0  # -0.0 == 0.0: one value
+            r[30] = 0.5
+        elif kind == 11:
+            r = np.round(r * 20) / 20  # coarse ADC codes: repeated values, short plateaus
+        elif kind == 12:
+            r[::7] = r.max()  # many samples at the max, no run
+        elif kind == 13:
+            r = -np.abs(r) - 3.0  # all negative
+        elif kind == 14:
+            r[5] = 3.0  # a sample beyond the range check (max_abs_v 2.5)
+        rows.append(r)
+    x = np.array(rows, dtype=dtype)
+    return x[rng.permutation(len(x))]
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("clip_run", [2, 3, 5])
+@pytest.mark.parametrize("max_abs_v", [None, 2.5])
+def test_screen_codes_equal_the_numpy_passes(dtype, clip_run, max_abs_v):
+    x = _adversarial(dtype)
+    want = screening._screen_codes_numpy(x, 1e-6, max_abs_v, clip_run)
+    got = screening._screen_codes(x, 1e-6, max_abs_v, clip_run)
+    np.testing.assert_array_equal(got, want)
+    assert set(want.tolist()) >= ({0, 1, 3, 4} | ({2} if max_abs_v else set())), "every code occurs"
+    # a strided view (every other row and sample) is read in place, with the same codes
+    v = x[::2, ::2]
+    np.testing.assert_array_equal(screening._screen_codes(v, 1e-6, max_abs_v, clip_run),
+                                  screening._screen_codes_numpy(v, 1e-6, max_abs_v, clip_run))
+
+
+def test_screen_traces_takes_the_kernel_for_floats_and_numpy_for_adc_counts(monkeypatch):
+    numpy_calls = []
+
+    def numpy_path(x, *args):
+        numpy_calls.append(x.dtype)
+        return screening_numpy(x, *args)
+
+    screening_numpy = screening._screen_codes_numpy
+    monkeypatch.setattr(screening, "_screen_codes_numpy", numpy_path)
+    x = _adversarial(np.float32)
+    valid, reasons = screening.screen_traces(x, max_abs_v=2.5)
+    assert numpy_calls == [], "float rows take the kernel"
+    assert reasons.tolist() == [screening._REASONS[c] for c in screening_numpy(x, 1e-6, 2.5, 5)]
+    assert (valid == (reasons == "")).all()
+    counts = np.tile(np.array([0, 900, 2047, 2047, 2047, 2047, 2047, 10, -2048], np.int16), (3, 1))
+    counts[1] = 7  # flat
+    counts[2, 2:] = np.arange(7)  # valid
+    _, why = screening.screen_traces(counts, flat_tol=0.5)
+    assert numpy_calls == [np.int16], "ADC counts take the numpy passes"
+    assert why.tolist() == ["clipped", "flat", ""]
+
+
+def test_row_sums_are_the_float64_sums_and_propagate_non_finite_samples():
+    rng = np.random.default_rng(1)
+    for dtype in (np.float32, np.float64):
+        x = rng.standard_normal((50, 300)).astype(dtype) + 0.3
+        r = rng.standard_normal((50, 300)).astype(dtype)
+        x1, xx, xr = _kernels.row_sums(x, r)
+        X, R = x.astype(np.float64), r.astype(np.float64)
+        np.testing.assert_allclose(x1, X.sum(axis=1), rtol=1e-12)
+        np.testing.assert_allclose(xx, (X * X).sum(axis=1), rtol=1e-12)
+        np.testing.assert_allclose(xr, (X * R).sum(axis=1), rtol=1e-10, atol=1e-10)
+        x[3, 4], x[7, 0] = np.nan, np.inf
+        x1, xx, xr = _kernels.row_sums(x, r)
+        assert np.isnan(x1[3]) and np.isnan(xx[3]) and np.isinf(xx[7]) and np.isfinite(np.delete(xx, [3, 7])).all()
+    with pytest.raises(ValueError, match="one dtype and shape"):
+        _kernels.row_sums(np.zeros((2, 3), np.float32), np.zeros((2, 3)))
+
+
+def test_gate_clears_the_same_rows_with_the_kernel_as_with_numpy_passes(monkeypatch):
+    from inkdiag_core import BaselineRecorder, FaultClass, HealthyGate, simulate_nozzles
+
+    rec = BaselineRecorder(n_frames=4)
+    for f in range(4):
+        rec.add(0, simulate_nozzles(["healthy_nozzle"] * 300, seed=5, frame_seed=[5, f]).traces)
+    classes = np.array([c.value for c in FaultClass], dtype=object)[np.arange(300) % len(FaultClass)]
+    frame = simulate_nozzles(classes, seed=5, frame_seed=[5, 99]).traces.astype(np.float32)
+    g = HealthyGate(rec.baselines())
+    got = g.screen(frame, 0)
+    monkeypatch.setattr(gate, "_row_sums", gate._row_sums_numpy)
+    want = g.screen(frame, 0)
+    assert got.cleared.any() and not got.cleared.all()
+    np.testing.assert_array_equal(got.cleared, want.cleared)
+    np.testing.assert_array_equal(got.classes, want.classes)
+    np.testing.assert_allclose(got.gain, want.gain, rtol=1e-5, atol=1e-5)  # numpy: float32 accumulation
+    np.testing.assert_allclose(got.residual_fraction, want.residual_fraction, rtol=1e-3, atol=1e-6)
+
+
+def test_after_warm_up_a_decoded_frame_and_a_batch_need_no_new_kernel_build():
+    """In a fresh process (what a node does): warm_up, then screen and gate a read-only frame decoded
+    from a message and a writable batch, float32 and float64; no kernel gains a signature."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent("""
+        import numpy as np
+        from inkdiag_core import BaselineRecorder, HealthyGate, _kernels, screen_traces, simulate_nozzles
+        from msg_defs import decode_traces, encode_traces
+        rec = BaselineRecorder(n_frames=2)
+        for f in range(2):
+            rec.add(0, simulate_nozzles(["healthy_nozzle"] * 8, seed=1, frame_seed=[1, f]).traces)
+        gate = HealthyGate(rec.baselines())
+        _kernels.warm_up()
+        kernels = (_kernels._ordered_extremes, _kernels._codes, _kernels._sums)
+        before = [len(k.signatures) for k in kernels]
+        x = simulate_nozzles(["healthy_nozzle"] * 8, seed=1, frame_seed=[1, 9]).traces.astype(np.float32)
+        frame = decode_traces(encode_traces(x, first_nozzle=0, frame_id=1, stamp=0.0)).traces
+        assert not frame.flags.writeable
+        for rows in (frame, np.concatenate([frame, frame]), x.astype(np.float64)):
+            screen_traces(rows)
+            gate.screen(rows[:8], 0)
+        assert [len(k.signatures) for k in kernels] == before, ([k.signatures for k in kernels], before)
+        print("ok")
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-3000:]
