@@ -18,14 +18,20 @@ the same run (issue 17: a compiled kernel goes in only where it wins >= 2x on it
   in float64 whatever the input precision. Only these sums may be reassociated
   (``fastmath={"reassoc", "contract"}``): no flag assumes finite values, so a NaN or Inf
   sample still propagates.
+- :func:`fit_windows`: the KPIs' damped-sinusoid fit on each trace's spectral window
+  (:func:`inkdiag_core.spectral_fit.fit_windows`, its numpy reference, has the method),
+  one trace at a time: in numpy about a hundred small array operations per call, a fixed
+  cost that dominates on the few rows the gate leaves to the detector. Same arithmetic,
+  sums in another order: within ~1e-11 relative of the numpy fit.
 
 The kernels compile on first use and are cached next to this file (numba's
 ``cache=True``; a read-only install falls back to numba's user-wide cache directory).
 :func:`warm_up` compiles or loads them for the rows a labeller sees (C-contiguous float32
 and float64, writable and read-only): the labeller calls it when it is built or
 unpickled (the labelling process's child), ``scripts/_bootstrap.sh`` at install, so no
-node stalls on its first frame. Importing this module imports numba (~0.35 s): the core imports it only
-when a kernel is first needed.
+node stalls on its first frame (a first compile takes a few seconds, a cache load ~0.2 s).
+Importing this module imports numba (~0.35 s): the core imports it only when a kernel is
+first needed.
 """
 
 from __future__ import annotations
@@ -33,7 +39,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["row_sums", "screen_codes", "warm_up"]
+__all__ = ["fit_windows", "row_sums", "screen_codes", "warm_up"]
 
 _SUMS_FASTMATH = {"reassoc", "contract"}  # reorder and fuse the sums only: no finite-math assumption
 
@@ -110,6 +116,204 @@ def _sums(x, r, s1, s2, sr):
         sr[i] = c
 
 
+@numba.njit(cache=True, nogil=True)
+def _solve2(a11, a12, a22, b1, b2):
+    """:func:`inkdiag_core.spectral_fit.solve2` of one system."""
+    det = a11 * a22 - a12 * a12
+    inv = 1.0 / det if det > 1e-14 * abs(a11 * a22) else 0.0
+    return (a22 * b1 - a12 * b2) * inv, (a11 * b2 - a12 * b1) * inv
+
+
+@numba.njit(cache=True, nogil=True)
+def _clip(v, lo, hi):
+    """``np.clip`` of one value (NaN stays NaN)."""
+    if v < lo:
+        return lo
+    if v > hi:
+        return hi
+    return v
+
+
+@numba.njit(cache=True, nogil=True)
+def _fit_windows(Yw, start, m_peak, n_samples, w, M, n_iter, sigma_min, sigma_max, omega_out, sigma_out, c_out):
+    """:func:`inkdiag_core.spectral_fit.fit_windows`, one row at a time (its docstring has the method)."""
+    n, n_bins = Yw.shape
+    bin_w = 2.0 * np.pi / n_samples
+    omega_lo, omega_hi = 0.5 * bin_w, np.pi - 0.5 * bin_w
+    V = np.empty((5, n_bins), dtype=np.complex128)
+    H = np.empty((5, 5), dtype=np.complex128)
+    t = np.empty(4, dtype=np.complex128)
+    s = np.empty(3, dtype=np.complex128)
+    m00, m01, m10, m11 = M[0, 0], M[0, 1], M[1, 0], M[1, 1]
+    w_inv, w2 = w ** -1, w ** 2
+    hv = np.empty(5, dtype=np.complex128)  # h(1,1), h(1,2), h(2,2), h(1,0), h(2,0)
+    pairs = ((1, 1), (1, 2), (2, 2), (1, 0), (2, 0))
+    for i in range(n):
+        e_s = np.exp((-2j * np.pi / n_samples) * start[i])
+        ok = False
+        omega = 0.0
+        sigma = 0.0
+        if n_bins >= 3:  # frequency-domain Prony (prony_init)
+            for p in range(4):
+                t[p] = 0.0
+            for p in range(3):
+                s[p] = 0.0
+            for j in range(n_bins):
+                y = Yw[i, j]
+                yy = y.real * y.real + y.imag * y.imag
+                t[0] += w_inv[j] * y
+                t[1] += y
+                t[2] += w[j] * y
+                t[3] += w2[j] * y
+                s[0] += yy
+                s[1] += w[j] * yy
+                s[2] += w2[j] * yy
+            for idx in range(5):
+                pp_, qq_ = pairs[idx]
+                k = qq_ - pp_
+                raw = s[k] if k >= 0 else np.conj(s[-k])
+                bp0, bp1 = np.conj(t[pp_ + 1]), np.conj(t[pp_])
+                bq0, bq1 = t[qq_ + 1], t[qq_]
+                hv[idx] = raw - (bp0 * (m00 * bq0 + m01 * bq1) + bp1 * (m10 * bq0 + m11 * bq1))
+            a1, a2 = _solve2(hv[0].real, (e_s * hv[1]).real, hv[2].real,
+                             -(np.conj(e_s) * hv[3]).real, -(np.conj(e_s) ** 2 * hv[4]).real)
+            re_z = -0.5 * a1
+            im2 = a2 - re_z * re_z
+            ok = a2 > 0.0 and im2 > 0.0
+            omega = np.arctan2(np.sqrt(im2 if ok else 1.0), re_z)
+            sigma = -0.5 * np.log(a2 if ok else 1.0)
+        iters = n_iter if n_bins >= 3 else 0
+        if not ok:
+            omega = bin_w * m_peak[i]
+            sigma = bin_w
+        omega = _clip(omega, omega_lo, omega_hi)
+        sigma = _clip(sigma, sigma_min, sigma_max)
+        for j in range(n_bins):
+            V[2, j] = Yw[i, j]
+        have_best = False
+        b_omega = b_sigma = b_rss = 0.0
+        b_c = 0j
+        for it in range(iters + 1):
+            lam = complex(-sigma, omega)
+            z = np.exp(lam)
+            zn = np.exp(n_samples * lam)
+            last = it == iters
+            kk = 3 if last else 5
+            for row in range(2):
+                zeta = (z if row == 0 else np.conj(z)) * e_s
+                for j in range(n_bins):
+                    q = 1.0 - zeta * w[j]  # |q| is O(1) here: 1 / q as conj(q) / |q|^2, no scaling needed
+                    r = 1.0 / (q.real * q.real + q.imag * q.imag)
+                    d = complex(q.real * r, -q.imag * r)
+                    V[row, j] = d
+                    if not last:
+                        V[row + 3, j] = d * d
+            for a in range(kk):  # Hermitian: the upper triangle, mirrored (conj(x) y = conj(conj(y) x) exactly)
+                for b in range(a, kk):
+                    acc = 0j
+                    for j in range(n_bins):
+                        acc += np.conj(V[a, j]) * V[b, j]
+                    H[a, b] = acc
+                    H[b, a] = np.conj(acc)
+            h00, h11, h22 = H[0, 0].real, H[1, 1].real, H[2, 2].real
+            h01, h02, h12 = H[0, 1], H[0, 2], H[1, 2]
+            alpha = 1.0 - zn
+            ca = np.conj(alpha)
+            aa = alpha.real ** 2 + alpha.imag ** 2
+            gg = aa * h00
+            hh = aa * h11
+            gh = ca * ca * h01
+            gy = ca * h02
+            hy = alpha * h12
+            pp = 0.25 * (gg + hh + 2.0 * gh.real)
+            qq = 0.25 * (gg + hh - 2.0 * gh.real)
+            pq_ = 0.5 * gh.imag
+            c1, c2 = _solve2(pp, pq_, qq, 0.5 * (gy + hy).real, 0.5 * (gy - hy).imag)
+            C = complex(c1, c2)
+            rss = h22 - (c1 * 0.5 * (gy + hy).real + c2 * 0.5 * (gy - hy).imag)
+            if not have_best or rss < b_rss:
+                have_best = True
+                b_omega, b_sigma, b_c, b_rss = omega, sigma, C, rss
+            if last:
+                break
+            h03, h04, h13, h14, h34 = H[0, 3], H[0, 4], H[1, 3], H[1, 4], H[3, 4]
+            h32, h42 = H[3, 2], H[4, 2]
+            h33, h44 = H[3, 3].real, H[4, 4].real
+            gamma = n_samples * zn
+            cC = np.conj(C)
+            u1 = -0.5j * C * (alpha + gamma)
+            u2 = 0.5j * C * alpha
+            v1 = 0.5j * cC * (ca + np.conj(gamma))
+            v2 = -0.5j * cC * ca
+            cu1, cu2, cv1, cv2 = np.conj(u1), np.conj(u2), np.conj(v1), np.conj(v2)
+            na = (u1.real ** 2 + u1.imag ** 2) * h00 + (u2.real ** 2 + u2.imag ** 2) * h33 \
+                + 2.0 * (cu1 * u2 * h03).real
+            nb = (v1.real ** 2 + v1.imag ** 2) * h11 + (v2.real ** 2 + v2.imag ** 2) * h44 \
+                + 2.0 * (cv1 * v2 * h14).real
+            nab = cu1 * (v1 * h01 + v2 * h04) + cu2 * (v1 * np.conj(h13) + v2 * h34)
+            g_a = ca * (u1 * h00 + u2 * h03)
+            h_a = alpha * (u1 * np.conj(h01) + u2 * h13)
+            g_b = ca * (v1 * h01 + v2 * h04)
+            h_b = alpha * (v1 * h11 + v2 * h14)
+            a_r = cu1 * h02 + cu2 * h32 - 0.5 * (C * np.conj(g_a) + cC * np.conj(h_a))
+            b_r = cv1 * h12 + cv2 * h42 - 0.5 * (C * np.conj(g_b) + cC * np.conj(h_b))
+            gj, hj = g_a + g_b, h_a + h_b
+            gw0, gw1 = 0.5 * (gj + hj).real, 0.5 * (gj - hj).imag
+            gj, hj = 1j * (g_a - g_b), 1j * (h_a - h_b)
+            gs0, gs1 = 0.5 * (gj + hj).real, 0.5 * (gj - hj).imag
+            iw0, iw1 = _solve2(pp, pq_, qq, gw0, gw1)
+            is0, is1 = _solve2(pp, pq_, qq, gs0, gs1)
+            nww = na + nb + 2.0 * nab.real - (gw0 * iw0 + gw1 * iw1)
+            nws = 2.0 * nab.imag - (gw0 * is0 + gw1 * is1)
+            nss = na + nb - 2.0 * nab.real - (gs0 * is0 + gs1 * is1)
+            d_omega, d_sigma = _solve2(nww, nws, nss, (a_r + b_r).real, (a_r - b_r).imag)
+            d_omega = _clip(d_omega, -2 * bin_w, 2 * bin_w)
+            d_sigma = _clip(d_sigma, -2 * bin_w - 0.5 * sigma, 2 * bin_w + sigma)
+            if rss > b_rss:  # a step from a point worse than the best one restarts halfway from the best
+                omega = 0.5 * (omega + b_omega)
+                sigma = 0.5 * (sigma + b_sigma)
+            else:
+                omega = omega + d_omega
+                sigma = sigma + d_sigma
+            omega = _clip(omega, omega_lo, omega_hi)
+            sigma = _clip(sigma, sigma_min, sigma_max)
+        omega_out[i] = b_omega
+        sigma_out[i] = b_sigma
+        c_out[i] = b_c
+
+
+def fit_windows(Yw, start, m_peak, n_samples):
+    """:func:`inkdiag_core.spectral_fit.fit_windows` compiled, one row at a time: the same fit, the
+    same returns (within float64 rounding: sums in another order; tests compare both).
+
+    Parameters
+    ----------
+    Yw : ndarray of complex128, shape (n, K)
+        Each trace's ``K`` window bins.
+    start, m_peak : ndarray of int, shape (n,)
+        First window bin and peak bin.
+    n_samples : int
+
+    Returns
+    -------
+    omega : ndarray, shape (n,)
+        rad/sample.
+    sigma : ndarray, shape (n,)
+        1/sample.
+    C : ndarray of complex128, shape (n,)
+    """
+    from .spectral_fit import N_ITER, SIGMA_MAX, SIGMA_MIN, window_projector
+
+    Yw = np.ascontiguousarray(Yw, dtype=np.complex128)
+    n, n_bins = Yw.shape
+    w, M, _, _ = window_projector(n_bins, n_samples)
+    omega, sigma, C = np.empty(n), np.empty(n), np.empty(n, np.complex128)
+    if n:
+        _fit_windows(Yw, np.asarray(start, np.int64), np.asarray(m_peak, np.int64), int(n_samples), w,
+                     M, N_ITER, SIGMA_MIN, SIGMA_MAX, omega, sigma, C)
+    return omega, sigma, C
+
+
 def screen_codes(x, flat_tol, max_abs_v, clip_run):
     """Each row's screening code: 0 valid, then the first that applies of 1 non-finite (a NaN or
     Inf sample), 2 out of range (a sample beyond ``+-max_abs_v``), 3 flat (``max - min <=
@@ -183,6 +387,7 @@ def warm_up() -> None:
             x.flags.writeable = writeable
             screen_codes(x, 1e-6, np.inf, 5)
             row_sums(x, np.zeros((1, 4), dtype))  # the gate's references: its own writable array
+    fit_windows(np.ones((1, 16), np.complex128), np.ones(1, np.int64), np.ones(1, np.int64), 64)
 
 
 if __name__ == "__main__":  # scripts/_bootstrap.sh: compile at install

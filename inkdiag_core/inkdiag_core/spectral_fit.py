@@ -5,7 +5,9 @@ Given the real FFT of a batch of traces and each trace's dominant bin, fit
 ``WINDOW_BINS`` bins around the peak: a frequency-domain Prony (equation-error)
 initialisation, then ``N_ITER`` Gauss-Newton steps of variable projection on the
 exact finite-DFT model. Vectorised over the batch. :mod:`inkdiag_core.kpis` turns the
-result into the seven KPIs; its module docstring explains the method.
+result into the seven KPIs; its module docstring explains the method. The KPIs run the
+same fit compiled (:func:`inkdiag_core._kernels.fit_windows`, one trace at a time, 2.6-6x
+this one on 1,800-72 traces); this numpy version is its reference (tests compare both).
 """
 
 import functools

@@ -125,22 +125,23 @@ def test_gate_clears_the_same_rows_with_the_kernel_as_with_numpy_passes(monkeypa
 
 
 def test_after_warm_up_a_decoded_frame_and_a_batch_need_no_new_kernel_build():
-    """In a fresh process (what a node does): warm_up, then screen and gate a read-only frame decoded
-    from a message and a writable batch, float32 and float64; no kernel gains a signature."""
+    """In a fresh process (what a node does): warm_up, then screen, gate and fit the KPIs of a read-only
+    frame decoded from a message and of a writable batch, float32 and float64; no kernel gains a signature."""
     import subprocess
     import sys
     import textwrap
 
     code = textwrap.dedent("""
         import numpy as np
-        from inkdiag_core import BaselineRecorder, HealthyGate, _kernels, screen_traces, simulate_nozzles
+        from inkdiag_core import (BaselineRecorder, HealthyGate, _kernels, extract_kpis, screen_traces,
+                                  simulate_nozzles)
         from msg_defs import decode_traces, encode_traces
         rec = BaselineRecorder(n_frames=2)
         for f in range(2):
             rec.add(0, simulate_nozzles(["healthy_nozzle"] * 8, seed=1, frame_seed=[1, f]).traces)
         gate = HealthyGate(rec.baselines())
         _kernels.warm_up()
-        kernels = (_kernels._ordered_extremes, _kernels._codes, _kernels._sums)
+        kernels = (_kernels._ordered_extremes, _kernels._codes, _kernels._sums, _kernels._fit_windows)
         before = [len(k.signatures) for k in kernels]
         x = simulate_nozzles(["healthy_nozzle"] * 8, seed=1, frame_seed=[1, 9]).traces.astype(np.float32)
         frame = decode_traces(encode_traces(x, first_nozzle=0, frame_id=1, stamp=0.0)).traces
@@ -148,8 +149,30 @@ def test_after_warm_up_a_decoded_frame_and_a_batch_need_no_new_kernel_build():
         for rows in (frame, np.concatenate([frame, frame]), x.astype(np.float64)):
             screen_traces(rows)
             gate.screen(rows[:8], 0)
+            extract_kpis(rows, 10e6)
         assert [len(k.signatures) for k in kernels] == before, ([k.signatures for k in kernels], before)
         print("ok")
     """)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-3000:]
+
+
+def test_the_compiled_window_fit_is_numpys_within_float64_rounding():
+    """Every class (noisy), float32 and float64, short traces (3 and 2 window bins), noise-free sinusoids."""
+    from inkdiag_core import FaultClass, simulate, spectral_fit
+    from inkdiag_core.kpis import WINDOW_BINS, _peak_spectrum
+
+    sim = simulate({c: 40 for c in FaultClass}, seed=7)
+    for y in (sim.traces, sim.traces.astype(np.float32), sim.traces[:, :7], sim.traces[:, :5],
+              np.exp(-0.01 * np.arange(512)) * np.cos(np.outer(np.linspace(0.1, 2.5, 30), np.arange(512)) + 0.3)):
+        spec, m_peak, peak_power, _ = _peak_spectrum(np.ascontiguousarray(y))
+        n_samples = y.shape[1]
+        half = n_samples // 2
+        n_bins = min(WINDOW_BINS, half)
+        start = np.clip(m_peak - n_bins // 2, 1, half - n_bins + 1)
+        Yw = np.take_along_axis(spec, start[:, None] + np.arange(n_bins), axis=1).astype(np.complex128)
+        want = spectral_fit.fit_windows(Yw, start, m_peak, n_samples)
+        got = _kernels.fit_windows(Yw, start, m_peak, n_samples)
+        for g, w, name in zip(got, want, ("omega", "sigma", "C")):
+            np.testing.assert_allclose(g, w, rtol=1e-8, atol=1e-12 * np.abs(w).max(), err_msg=f"{name}, {y.shape}")
+    assert all(a.shape == (0,) for a in _kernels.fit_windows(np.empty((0, 16), complex), [], [], 512))
