@@ -15,8 +15,8 @@ setup(
     install_requires=["numpy>=1.26", "scipy>=1.11", "scikit-learn>=1.6", "joblib>=1.3",
                       # PyYAML: head profiles are YAML files (inkdiag_core.head_profile)
                       "PyYAML>=6.0",
-                      # numba: the labeller's per-row screening and gate kernels (inkdiag_core._kernels),
-                      # 2.4-3.1x the numpy passes they replace on that stage (scripts/bench fdi)
+                      # numba: compiled kernels (inkdiag_core._kernels) for the labeller's screening and gate
+                      # (2.4-3.1x the numpy passes they replace) and the KPI window fit (scripts/bench fdi)
                       "numba==0.68.1"],
     zip_safe=True,
     maintainer="inkdiag developers",

@@ -1,4 +1,4 @@
-"""Compiled per-row kernels of the labeller's hot path (numba, cached on disk).
+"""Compiled per-row kernels of the labeller's hot path and of the KPIs (numba, cached on disk).
 
 Every row of every frame is screened (:func:`inkdiag_core.screen_traces`: its extremes
 and how many samples sit at them) and, where its nozzle has a healthy reference, fitted
@@ -22,7 +22,10 @@ the same run (issue 17: a compiled kernel goes in only where it wins >= 2x on it
   (:func:`inkdiag_core.spectral_fit.fit_windows`, its numpy reference, has the method),
   one trace at a time: in numpy about a hundred small array operations per call, a fixed
   cost that dominates on the few rows the gate leaves to the detector. Same arithmetic,
-  sums in another order: within ~1e-11 relative of the numpy fit.
+  sums in another order: within ~1e-11 relative of the numpy fit on the simulator's traces
+  (12,000 rows, 5 seeds); where the fit is ill-conditioned (a step, a window of noise, a
+  2-sample trace) both versions move as much under a 1e-15 change of their input. Every
+  KPI (``extract_kpis``: training and labelling alike) comes from this fit.
 
 The kernels compile on first use and are cached next to this file (numba's
 ``cache=True``; a read-only install falls back to numba's user-wide cache directory).
@@ -304,13 +307,15 @@ def fit_windows(Yw, start, m_peak, n_samples):
     """
     from .spectral_fit import N_ITER, SIGMA_MAX, SIGMA_MIN, window_projector
 
-    Yw = np.ascontiguousarray(Yw, dtype=np.complex128)
+    # the one signature warm_up compiles: writable C-contiguous arrays (a copy only where they are not)
+    Yw = np.require(Yw, np.complex128, ["C", "W"])
     n, n_bins = Yw.shape
+    start = np.require(np.broadcast_to(np.asarray(start), (n,)), np.int64, ["C", "W"])
+    m_peak = np.require(np.broadcast_to(np.asarray(m_peak), (n,)), np.int64, ["C", "W"])
     w, M, _, _ = window_projector(n_bins, n_samples)
     omega, sigma, C = np.empty(n), np.empty(n), np.empty(n, np.complex128)
     if n:
-        _fit_windows(Yw, np.asarray(start, np.int64), np.asarray(m_peak, np.int64), int(n_samples), w,
-                     M, N_ITER, SIGMA_MIN, SIGMA_MAX, omega, sigma, C)
+        _fit_windows(Yw, start, m_peak, int(n_samples), w, M, N_ITER, SIGMA_MIN, SIGMA_MAX, omega, sigma, C)
     return omega, sigma, C
 
 

@@ -34,7 +34,8 @@ fit, and means that on a multi-mode trace the KPIs describe the mode with the la
 peak. Every numpy step is vectorised over the batch; the window fit itself runs compiled, one
 trace at a time in one call (:func:`inkdiag_core._kernels.fit_windows`, numba), with
 :func:`inkdiag_core.spectral_fit.fit_windows` (numpy, batched) as its reference: the two agree to
-~1e-11 relative, and a trace's KPIs never depend on its batch.
+~1e-11 relative on the simulator's traces (an ill-conditioned fit, such as a step's, moves as
+much in either under a 1e-15 change of its input), and a trace's KPIs never depend on its batch.
 """
 
 import numbers
@@ -283,16 +284,7 @@ def _fit_chunk(y, fs, out, spec, m_peak, peak_power, ac_sumsq):
         nyq_scale[m_peak == half] = 1.0
     mean = spec[:, 0].real.astype(np.float64) / n_samples
 
-    # Window of K consecutive bins around the peak, inside 1 .. N/2.
-    n_bins = min(WINDOW_BINS, half)
-    start = np.clip(m_peak - n_bins // 2, 1, half - n_bins + 1)
-    idx = start[:, None] + np.arange(n_bins)
-    Yw = np.take_along_axis(spec, idx, axis=1).astype(np.complex128)
-    # Fit a window scaled by a power of two near its peak (exact, so the KPIs do not
-    # change) to keep the fit's products inside the float64 range at any amplitude.
-    _, exponent = np.frexp(np.sqrt(peak_power))
-    exponent = exponent[:, None]
-    Yw = np.ldexp(Yw.view(np.float64), -exponent).view(np.complex128)
+    Yw, start, exponent = _fit_window_inputs(spec, m_peak, peak_power, n_samples)
     omega, sigma, C = _fit_windows(Yw, start, m_peak, n_samples)
     C = np.ldexp(np.stack([C.real, C.imag], axis=1), exponent).view(np.complex128)[:, 0]
 
@@ -324,6 +316,34 @@ def _fit_chunk(y, fs, out, spec, m_peak, peak_power, ac_sumsq):
         out[bad, 2] = 0.0
         out[bad, 3] = out[bad, 6]
         out[bad, 4] = 0.0
+
+
+def _fit_window_inputs(spec, m_peak, peak_power, n_samples):
+    """The window fit's bins: ``K`` consecutive bins around each peak, inside ``1 .. N/2``, scaled.
+
+    Parameters
+    ----------
+    spec, m_peak, peak_power
+        :func:`_peak_spectrum`'s.
+    n_samples : int
+
+    Returns
+    -------
+    Yw : ndarray of complex128, shape (n, K)
+        The window, scaled by a power of two near its peak (exact, so the KPIs do not
+        change) to keep the fit's products inside the float64 range at any amplitude.
+    start : ndarray of int, shape (n,)
+        First bin of each window.
+    exponent : ndarray of int, shape (n, 1)
+        The scale: ``Yw = window * 2**-exponent``.
+    """
+    half = n_samples // 2
+    n_bins = min(WINDOW_BINS, half)
+    start = np.clip(m_peak - n_bins // 2, 1, half - n_bins + 1)
+    Yw = np.take_along_axis(spec, start[:, None] + np.arange(n_bins), axis=1).astype(np.complex128)
+    _, exponent = np.frexp(np.sqrt(peak_power))
+    exponent = exponent[:, None]
+    return np.ldexp(Yw.view(np.float64), -exponent).view(np.complex128), start, exponent
 
 
 def _fit_windows(Yw, start, m_peak, n_samples):

@@ -6,8 +6,8 @@ Given the real FFT of a batch of traces and each trace's dominant bin, fit
 initialisation, then ``N_ITER`` Gauss-Newton steps of variable projection on the
 exact finite-DFT model. Vectorised over the batch. :mod:`inkdiag_core.kpis` turns the
 result into the seven KPIs; its module docstring explains the method. The KPIs run the
-same fit compiled (:func:`inkdiag_core._kernels.fit_windows`, one trace at a time, 2.6-6x
-this one on 1,800-72 traces); this numpy version is its reference (tests compare both).
+same fit compiled (:func:`inkdiag_core._kernels.fit_windows`, one trace at a time;
+``scripts/bench fdi`` times both); this numpy version is its reference (tests compare both).
 """
 
 import functools

@@ -37,6 +37,7 @@ import scipy.fft
 
 from inkdiag_core import (FaultClass, FaultDetector, baseline_kpis, extract_kpis, healthy_twin_frames,
                           make_fdi_pipeline, simulate, with_baseline)
+from inkdiag_core import _kernels, spectral_fit
 from inkdiag_core.fdi import forest_predict_proba
 from inkdiag_core.kpis import kpis_of_checked
 from inkdiag_core.screening import screen_traces
@@ -248,6 +249,25 @@ def kernel_bench(frame, gate, repeats: int = 5, rounds: int = 20):
         rel = float(np.max(np.abs(got - ref) / np.maximum(np.abs(ref), 1e-300)))
         print(f"  {name:<32}: numpy {1e3 * t_np / rounds:7.3f} ms, kernel {1e3 * t_k / rounds:7.3f} ms, "
               f"ratio {t_np / t_k:.2f}x faster; largest relative KPI difference {rel:.1e}")
+    print(f"the window fit alone (spectral_fit.fit_windows against _kernels.fit_windows, same windows, "
+          f"best of {repeats} x {rounds} calls, in turns)")
+    for x in (left[:72], np.ascontiguousarray(frame[:200]), np.ascontiguousarray(frame[:1600])):
+        args = _windows(x)
+        t_np, t_k = float("inf"), float("inf")
+        for _ in range(repeats):
+            t_np = min(t_np, best_of(lambda: [spectral_fit.fit_windows(*args) for _ in range(rounds)], 1))
+            t_k = min(t_k, best_of(lambda: [_kernels.fit_windows(*args) for _ in range(rounds)], 1))
+        print(f"  {len(x):>5} rows{'':<22}: numpy {1e3 * t_np / rounds:7.3f} ms, kernel {1e3 * t_k / rounds:7.3f} ms, "
+              f"ratio {t_np / t_k:.2f}x faster")
+
+
+def _windows(x):
+    """The window fit's inputs for traces ``x``, as ``kpis._fit_chunk`` builds them."""
+    from inkdiag_core.kpis import _peak_spectrum, _fit_window_inputs
+
+    spec, m_peak, peak_power, _ = _peak_spectrum(x)
+    Yw, start, _ = _fit_window_inputs(spec, m_peak, peak_power, x.shape[1])
+    return Yw, start, m_peak, x.shape[1]
 
 
 if __name__ == "__main__":

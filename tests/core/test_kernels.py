@@ -160,19 +160,20 @@ def test_after_warm_up_a_decoded_frame_and_a_batch_need_no_new_kernel_build():
 def test_the_compiled_window_fit_is_numpys_within_float64_rounding():
     """Every class (noisy), float32 and float64, short traces (3 and 2 window bins), noise-free sinusoids."""
     from inkdiag_core import FaultClass, simulate, spectral_fit
-    from inkdiag_core.kpis import WINDOW_BINS, _peak_spectrum
+    from inkdiag_core.kpis import _peak_spectrum, _fit_window_inputs
 
     sim = simulate({c: 40 for c in FaultClass}, seed=7)
     for y in (sim.traces, sim.traces.astype(np.float32), sim.traces[:, :7], sim.traces[:, :5],
               np.exp(-0.01 * np.arange(512)) * np.cos(np.outer(np.linspace(0.1, 2.5, 30), np.arange(512)) + 0.3)):
         spec, m_peak, peak_power, _ = _peak_spectrum(np.ascontiguousarray(y))
         n_samples = y.shape[1]
-        half = n_samples // 2
-        n_bins = min(WINDOW_BINS, half)
-        start = np.clip(m_peak - n_bins // 2, 1, half - n_bins + 1)
-        Yw = np.take_along_axis(spec, start[:, None] + np.arange(n_bins), axis=1).astype(np.complex128)
+        Yw, start, _ = _fit_window_inputs(spec, m_peak, peak_power, n_samples)
         want = spectral_fit.fit_windows(Yw, start, m_peak, n_samples)
         got = _kernels.fit_windows(Yw, start, m_peak, n_samples)
         for g, w, name in zip(got, want, ("omega", "sigma", "C")):
             np.testing.assert_allclose(g, w, rtol=1e-8, atol=1e-12 * np.abs(w).max(), err_msg=f"{name}, {y.shape}")
     assert all(a.shape == (0,) for a in _kernels.fit_windows(np.empty((0, 16), complex), [], [], 512))
+    # a read-only window and a scalar first bin, as the numpy fit takes them
+    Yw.flags.writeable = False
+    np.testing.assert_allclose(_kernels.fit_windows(Yw[:3], 5, m_peak[:3], n_samples)[0],
+                               spectral_fit.fit_windows(Yw[:3], 5, m_peak[:3], n_samples)[0], rtol=1e-8)
