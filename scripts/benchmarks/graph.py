@@ -135,11 +135,15 @@ def realistic_head(n_nozzles, n_frames, seed, *, faulty=0.02, n_baseline_frames=
     return frames, rec.baselines(), n_faulty
 
 
-def replay(node, executor, pub, msgs, answered, seconds, window, lost_after_s=0.25, first_id=0):
-    """Closed-loop replay; returns (published, latencies s, lost ids, elapsed s).
+def replay(node, executor, pub, msgs, answered, seconds, window, lost_after_s=0.25, first_id=0,
+           scan_hz=0.0, scan_msgs=1):
+    """Replay; returns (published, latencies s, lost ids, elapsed s).
 
-    Frame ids start at ``first_id``: never reuse the ids of an earlier replay,
-    or its late answers would be taken for this one's.
+    Closed loop (``scan_hz`` 0): a message goes out whenever fewer than ``window`` are
+    unanswered. Paced (``scan_hz`` > 0): every ``1 / scan_hz`` s the next ``scan_msgs``
+    messages (one head scan) go out together, answered or not, as a head controller
+    sends them. Frame ids start at ``first_id``: never reuse the ids of an earlier
+    replay, or its late answers would be taken for this one's.
     """
     from msg_defs import restamp_traces
 
@@ -148,16 +152,25 @@ def replay(node, executor, pub, msgs, answered, seconds, window, lost_after_s=0.
     fid = first_id
     t0 = time.perf_counter()
     end = time.monotonic() + seconds
+    next_scan = time.monotonic()
     while time.monotonic() < end or in_flight:
-        if time.monotonic() < end and len(in_flight) < window:
-            msg = msgs[fid % len(msgs)]
-            now = time.time()
-            restamp_traces(msg, frame_id=fid, stamp=now)
-            pub.publish(msg)
-            in_flight[fid] = now
-            fid += 1
+        now_m = time.monotonic()
+        due = scan_msgs if scan_hz > 0 and now_m < end and now_m >= next_scan else 0
+        if scan_hz <= 0 and now_m < end and len(in_flight) < window:
+            due = 1
+        if due:
+            for _ in range(due):
+                msg = msgs[fid % len(msgs)]
+                now = time.time()
+                restamp_traces(msg, frame_id=fid, stamp=now)
+                pub.publish(msg)
+                in_flight[fid] = now
+                fid += 1
+            if scan_hz > 0:
+                next_scan += 1.0 / scan_hz
             continue
-        executor.spin_once(timeout_sec=0.005)
+        wait = 0.005 if scan_hz <= 0 else min(0.005, max(0.0, next_scan - time.monotonic()))
+        executor.spin_once(timeout_sec=wait)
         while answered:
             a_id, t_recv = answered.pop()
             if a_id in in_flight:

@@ -1,7 +1,7 @@
 """Aggregate throughput of N heads' fdi nodes in P processes (``inkdiag printer``), against a plain-subscriber ceiling.
 
     scripts/bench printer [--heads 1,2,4] [--processes 1,2] [--seconds 8] [--nozzles 2656] [--chunk 200]
-                          [--faulty 0.02] [--no-baselines] [--executor events|single]
+                          [--faulty 0.02] [--no-baselines] [--executor events|single] [--scan-hz 5]
 
 Per head, pre-generates frames of a realistic head (``graph.realistic_head``: 2,656 nozzles x 512
 samples, its own nozzle tolerances, 2 % faulty, the faults the same in every frame) and records every
@@ -15,7 +15,11 @@ commissioning does; the fdi nodes get them through ``--baselines``). Then, for e
 Each head has an independent publisher process (``graph.replay``'s closed loop on ``/head_ii/traces``:
 messages of ``--chunk`` nozzles, at most one head scan, ``ceil(nozzles / chunk)`` messages, in flight
 per head; a message unanswered for N x 10x the worst latency of a 1 s warm-up (>= N x 50 ms) is lost and its
-slot reused). All publishers start together once every one has matched and warmed up. Latency: the
+slot reused). ``--scan-hz F``: paced instead, as head controllers at F scans a second: each publisher
+sends a whole scan every 1/F s whether or not the last was answered (a message unanswered when
+the next scan is due, or later than the rule above, is lost): traces/s is then what the heads
+offered if nothing is lost, and the latencies are a box's at that load. All publishers start
+together once every one has matched and warmed up. Latency: the
 frame's publish time to its answer arriving at its publisher (one clock). The consumers' CPU
 (utime + stime of their processes from /proc/<pid>/stat, over the measured phase) per message answered
 says what a message costs the box. The publishers run on the same 2 cores: on a printer they are the
@@ -90,7 +94,8 @@ def sink_main(heads) -> int:
     return 0
 
 
-def pub_main(head: int, data: str, seconds: float, window: int, chunk: int, first_id: int, n_heads: int = 1) -> int:
+def pub_main(head: int, data: str, seconds: float, window: int, chunk: int, first_id: int, n_heads: int = 1,
+             scan_hz: float = 0.0) -> int:
     """One head's independent publisher: match, warm up, say ``ready``, wait for ``go`` on stdin, replay."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -126,8 +131,11 @@ def pub_main(head: int, data: str, seconds: float, window: int, chunk: int, firs
     lost_after = n_heads * (max(0.05, 10.0 * float(np.max(warm_lat))) if warm_lat.size else 0.25)
     print("ready", flush=True)
     sys.stdin.readline()
+    if scan_hz > 0:  # paced: a scan is late when the next one is due
+        lost_after = max(lost_after, 1.0 / scan_hz)
+    scan_msgs = -(-frames.shape[1] // chunk)
     sent, lat, lost, el = replay(node, ex, pub, msgs, answered, seconds, window, lost_after_s=lost_after,
-                                 first_id=first_id + warm)
+                                 first_id=first_id + warm, scan_hz=scan_hz, scan_msgs=scan_msgs)
     print(json.dumps({"sent": sent, "lat_ms": np.round(1e3 * lat, 3).tolist(), "lost": len(lost), "elapsed": el,
                       "traces_per_msg": float(np.mean([m.layout.dim[0].size for m in msgs])),
                       "lost_after_s": lost_after}), flush=True)
@@ -177,7 +185,7 @@ def phase(name, consumer_cmds, heads, ns, data_dir, first_id, log_path):
             pubs.append(subprocess.Popen(
                 [sys.executable, __file__, "--role", "pub", "--head", str(i), "--data", str(data_dir / f"frames_{i:02d}.npy"),
                  "--seconds", str(ns.seconds), "--window", str(ns.window), "--chunk", str(ns.chunk),
-                 "--first-id", str(first_id), "--n-heads", str(heads)], env=env, cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                 "--first-id", str(first_id), "--n-heads", str(heads), "--scan-hz", str(ns.scan_hz)], env=env, cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                 text=True))
         for p in pubs:
             line = p.stdout.readline()
@@ -215,6 +223,8 @@ def main() -> int:
     ap.add_argument("--nozzles", type=int, default=2656)
     ap.add_argument("--chunk", type=int, default=200, help="nozzles per message")
     ap.add_argument("--window", type=int, default=None, help="messages in flight per head (default one scan)")
+    ap.add_argument("--scan-hz", type=float, default=0.0,
+                    help="paced: each head sends one scan this many times a second, answered or not (0: closed loop)")
     ap.add_argument("--frames", type=int, default=4, help="distinct frames per head to cycle")
     ap.add_argument("--faulty", type=float, default=0.02, help="fraction of faulty nozzles")
     ap.add_argument("--no-baselines", action="store_true", help="run the fdi nodes without baselines")
@@ -233,7 +243,7 @@ def main() -> int:
     if ns.role == "sink":
         return sink_main([int(h) for h in ns.heads.split(",")])
     if ns.role == "pub":
-        return pub_main(ns.head, ns.data, ns.seconds, ns.window, ns.chunk, ns.first_id, ns.n_heads)
+        return pub_main(ns.head, ns.data, ns.seconds, ns.window, ns.chunk, ns.first_id, ns.n_heads, ns.scan_hz)
 
     from graph import realistic_head
     from inkdiag_core.model_cache import ensure_default_model
@@ -249,7 +259,9 @@ def main() -> int:
         baselines.save(tmp / f"head_{FIRST_HEAD + i:02d}.npz")
     print(f"printer benchmark: per head {ns.frames} frames of {ns.nozzles} nozzles x 512 samples, {n_faulty} faulty "
           f"({ns.faulty:.0%}), baselines of every nozzle ({time.perf_counter() - t:.0f} s for {max(n_list)} heads); "
-          f"messages of {ns.chunk} nozzles, {ns.window} in flight per head; {ns.seconds:g} s per phase; "
+          f"messages of {ns.chunk} nozzles, "
+          + (f"one scan per head every {1 / ns.scan_hz:g} s (paced)" if ns.scan_hz > 0 else f"{ns.window} in flight per head")
+          + f"; {ns.seconds:g} s per phase; "
           f"model {Path(model).name}; executor {ns.executor}"
           + ("; fdi WITHOUT baselines" if ns.no_baselines else "")
           + f"; load average {' '.join(Path('/proc/loadavg').read_text().split()[:3])}", flush=True)
