@@ -16,8 +16,8 @@ Each head has an independent publisher process (``graph.replay``'s closed loop o
 messages of ``--chunk`` nozzles, at most one head scan, ``ceil(nozzles / chunk)`` messages, in flight
 per head; a message unanswered for N x 10x the worst latency of a 1 s warm-up (>= N x 50 ms) is lost and its
 slot reused). ``--scan-hz F``: paced instead, as head controllers at F scans a second: each publisher
-sends a whole scan every 1/F s whether or not the last was answered (a message unanswered when
-the next scan is due, or later than the rule above, is lost): traces/s is then what the heads
+sends a whole scan every 1/F s whether or not the last was answered (a message unanswered after
+the longer of 1/F s and the rule above is lost): traces/s is then what the heads
 offered if nothing is lost, and the latencies are a box's at that load. All publishers start
 together once every one has matched and warmed up. Latency: the
 frame's publish time to its answer arriving at its publisher (one clock). The consumers' CPU
