@@ -141,9 +141,10 @@ def replay(node, executor, pub, msgs, answered, seconds, window, lost_after_s=0.
 
     Closed loop (``scan_hz`` 0): a message goes out whenever fewer than ``window`` are
     unanswered. Paced (``scan_hz`` > 0): every ``1 / scan_hz`` s the next ``scan_msgs``
-    messages (one head scan) go out together, answered or not, as a head controller
-    sends them. Frame ids start at ``first_id``: never reuse the ids of an earlier
-    replay, or its late answers would be taken for this one's.
+    messages (one head scan: ``msgs`` holds whole scans in order) go out together,
+    answered or not, as a head controller sends them; a publisher that falls behind sends
+    the next scan at once but never two at a time. Frame ids start at ``first_id``: never
+    reuse the ids of an earlier replay, or its late answers would be taken for this one's.
     """
     from msg_defs import restamp_traces
 
@@ -160,16 +161,17 @@ def replay(node, executor, pub, msgs, answered, seconds, window, lost_after_s=0.
             due = 1
         if due:
             for _ in range(due):
-                msg = msgs[fid % len(msgs)]
+                msg = msgs[(fid - first_id if scan_hz > 0 else fid) % len(msgs)]  # paced: scans whole
                 now = time.time()
                 restamp_traces(msg, frame_id=fid, stamp=now)
                 pub.publish(msg)
                 in_flight[fid] = now
                 fid += 1
             if scan_hz > 0:
-                next_scan += 1.0 / scan_hz
+                next_scan = max(next_scan + 1.0 / scan_hz, time.monotonic())
             continue
-        wait = 0.005 if scan_hz <= 0 else min(0.005, max(0.0, next_scan - time.monotonic()))
+        now_m = time.monotonic()
+        wait = 0.005 if scan_hz <= 0 or now_m >= end else min(0.005, max(0.0, next_scan - now_m))
         executor.spin_once(timeout_sec=wait)
         while answered:
             a_id, t_recv = answered.pop()

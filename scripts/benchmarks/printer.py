@@ -16,10 +16,12 @@ Each head has an independent publisher process (``graph.replay``'s closed loop o
 messages of ``--chunk`` nozzles, at most one head scan, ``ceil(nozzles / chunk)`` messages, in flight
 per head; a message unanswered for N x 10x the worst latency of a 1 s warm-up (>= N x 50 ms) is lost and its
 slot reused). ``--scan-hz F``: paced instead, as head controllers at F scans a second: each publisher
-sends a whole scan every 1/F s whether or not the last was answered (a message unanswered after
-the longer of 1/F s and the rule above is lost): traces/s is then what the heads
-offered if nothing is lost, and the latencies are a box's at that load. All publishers start
-together once every one has matched and warmed up. Latency: the
+sends a whole scan every 1/F s whether or not the last was answered (a message unanswered when
+its head's next scan is due, 1/F s later, is lost; a late answer is not counted); traces/s and
+msgs/s are the answered ones per second of the sending phase (the heads' offer when nothing is
+lost), each line also prints answered / sent, and the latencies are a box's at that load. All
+publishers start together (every head's scan in one burst) once every one has matched and
+warmed up. Latency: the
 frame's publish time to its answer arriving at its publisher (one clock). The consumers' CPU
 (utime + stime of their processes from /proc/<pid>/stat, over the measured phase) per message answered
 says what a message costs the box. The publishers run on the same 2 cores: on a printer they are the
@@ -131,8 +133,8 @@ def pub_main(head: int, data: str, seconds: float, window: int, chunk: int, firs
     lost_after = n_heads * (max(0.05, 10.0 * float(np.max(warm_lat))) if warm_lat.size else 0.25)
     print("ready", flush=True)
     sys.stdin.readline()
-    if scan_hz > 0:  # paced: a scan is late when the next one is due
-        lost_after = max(lost_after, 1.0 / scan_hz)
+    if scan_hz > 0:  # paced: a message unanswered when its head's next scan is due is lost
+        lost_after = 1.0 / scan_hz
     scan_msgs = -(-frames.shape[1] // chunk)
     sent, lat, lost, el = replay(node, ex, pub, msgs, answered, seconds, window, lost_after_s=lost_after,
                                  first_id=first_id + warm, scan_hz=scan_hz, scan_msgs=scan_msgs)
@@ -204,7 +206,9 @@ def phase(name, consumer_cmds, heads, ns, data_dir, first_id, log_path):
             _stop(c)
     lat = np.concatenate([np.asarray(r["lat_ms"]) for r in res]) if res else np.empty(0)
     answered = sum(len(r["lat_ms"]) for r in res)
-    el = max(r["elapsed"] for r in res)
+    # paced: per second of the sending phase (a closed loop's elapsed time is its sending time; a
+    # paced replay's also holds the wait for its last answers, which would dilute the rates)
+    el = ns.seconds if ns.scan_hz > 0 else max(r["elapsed"] for r in res)
     traces = sum(len(r["lat_ms"]) * r["traces_per_msg"] for r in res)
     return {"name": name, "heads": heads, "traces_per_s": traces / el, "msgs_per_s": answered / el,
             "sent": sum(r["sent"] for r in res), "answered": answered, "lost": sum(r["lost"] for r in res),
@@ -267,7 +271,7 @@ def main() -> int:
           + f"; load average {' '.join(Path('/proc/loadavg').read_text().split()[:3])}", flush=True)
     results, first_id = [], 0
     hdr = (f"{'phase':<28} {'traces/s':>10} {'per head':>9} {'msgs/s':>7} {'p50 ms':>7} {'p99 ms':>7} "
-           f"{'lost':>5} {'CPU ms/msg':>10} {'cores':>5}  / ceiling")
+           f"{'lost':>5} {'CPU ms/msg':>10} {'cores':>5}  / ceiling" + ("  answered / sent" if ns.scan_hz > 0 else ""))
     print(hdr, flush=True)
     for n in n_list:
         p_sink = min(n, 2)
@@ -293,7 +297,8 @@ def main() -> int:
             results.append(r)
             print(f"{name:<28} {r['traces_per_s']:>10,.0f} {r['traces_per_s'] / n:>9,.0f} {r['msgs_per_s']:>7.1f} "
                   f"{r['p50_ms']:>7.1f} {r['p99_ms']:>7.1f} {r['lost']:>5d} {r['cpu_ms_per_msg']:>10.2f} "
-                  f"{r['cores']:>5.2f}  {r['ratio']:.2f}x", flush=True)
+                  f"{r['cores']:>5.2f}  {r['ratio']:.2f}x"
+                  + (f"  {r['answered']} / {r['sent']}" if ns.scan_hz > 0 else ""), flush=True)
     print(f"load average at the end: {' '.join(Path('/proc/loadavg').read_text().split()[:3])}")
     if ns.json:
         Path(ns.json).write_text(json.dumps(results, indent=1))
