@@ -142,8 +142,8 @@ def replay(node, executor, pub, msgs, answered, seconds, window, lost_after_s=0.
     Closed loop (``scan_hz`` 0): a message goes out whenever fewer than ``window`` are
     unanswered. Paced (``scan_hz`` > 0): every ``1 / scan_hz`` s the next ``scan_msgs``
     messages (one head scan: ``msgs`` holds whole scans in order) go out together,
-    answered or not, as a head controller sends them; a publisher that falls behind sends
-    the next scan at once but never two at a time. Frame ids start at ``first_id``: never
+    answered or not, as a head controller sends them; a publisher that falls behind skips
+    the missed scan (never two at a time); an answer later than ``lost_after_s`` is lost. Frame ids start at ``first_id``: never
     reuse the ids of an earlier replay, or its late answers would be taken for this one's.
     """
     from msg_defs import restamp_traces
@@ -168,7 +168,9 @@ def replay(node, executor, pub, msgs, answered, seconds, window, lost_after_s=0.
                 in_flight[fid] = now
                 fid += 1
             if scan_hz > 0:
-                next_scan = max(next_scan + 1.0 / scan_hz, time.monotonic())
+                next_scan += 1.0 / scan_hz
+                if next_scan <= time.monotonic():  # behind: the missed scan is skipped, never two at once
+                    next_scan = time.monotonic() + 1.0 / scan_hz
             continue
         now_m = time.monotonic()
         wait = 0.005 if scan_hz <= 0 or now_m >= end else min(0.005, max(0.0, next_scan - now_m))
@@ -176,7 +178,11 @@ def replay(node, executor, pub, msgs, answered, seconds, window, lost_after_s=0.
         while answered:
             a_id, t_recv = answered.pop()
             if a_id in in_flight:
-                lat.append(t_recv - in_flight.pop(a_id))
+                d = t_recv - in_flight.pop(a_id)
+                if scan_hz > 0 and d > lost_after_s:  # paced: an answer later than the rule is a loss
+                    lost.append(a_id)
+                else:
+                    lat.append(d)
         t = time.time()
         for k in [k for k, v in in_flight.items() if t - v > lost_after_s]:
             in_flight.pop(k)
