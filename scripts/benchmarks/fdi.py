@@ -224,11 +224,7 @@ def kernel_bench(frame, gate, repeats: int = 5, rounds: int = 20):
         with numpy_passes():
             ref = (screen_traces(x, max_abs_v=10.0)[1], gate.screen(x, 0).cleared)
         got = (screen_traces(x, max_abs_v=10.0)[1], gate.screen(x, 0).cleared)
-        t_np, t_k = float("inf"), float("inf")
-        for _ in range(repeats):
-            with numpy_passes():
-                t_np = min(t_np, best_of(stage, 1))
-            t_k = min(t_k, best_of(stage, 1))
+        t_np, t_k = _in_turns(_with_numpy_passes(stage), stage, repeats)
         same = bool((ref[0] == got[0]).all() and (ref[1] == got[1]).all())
         print(f"  {name:<32}: numpy {1e3 * t_np / rounds:7.3f} ms, kernels {1e3 * t_k / rounds:7.3f} ms, "
               f"ratio {t_np / t_k:.2f}x faster; same reasons and cleared rows: {same}")
@@ -241,11 +237,12 @@ def kernel_bench(frame, gate, repeats: int = 5, rounds: int = 20):
         with numpy_passes():
             ref = kpis_of_checked(x, 10e6)
         got = kpis_of_checked(x, 10e6)
-        t_np, t_k = float("inf"), float("inf")
-        for _ in range(repeats):
-            with numpy_passes():
-                t_np = min(t_np, best_of(lambda: [kpis_of_checked(x, 10e6) for _ in range(rounds)], 1))
-            t_k = min(t_k, best_of(lambda: [kpis_of_checked(x, 10e6) for _ in range(rounds)], 1))
+
+        def kpis():
+            for _ in range(rounds):
+                kpis_of_checked(x, 10e6)
+
+        t_np, t_k = _in_turns(_with_numpy_passes(kpis), kpis, repeats)
         rel = float(np.max(np.abs(got - ref) / np.maximum(np.abs(ref), 1e-300)))
         print(f"  {name:<32}: numpy {1e3 * t_np / rounds:7.3f} ms, kernel {1e3 * t_k / rounds:7.3f} ms, "
               f"ratio {t_np / t_k:.2f}x faster; largest relative KPI difference {rel:.1e}")
@@ -253,12 +250,27 @@ def kernel_bench(frame, gate, repeats: int = 5, rounds: int = 20):
           f"best of {repeats} x {rounds} calls, in turns)")
     for x in (left[:72], np.ascontiguousarray(frame[:200]), np.ascontiguousarray(frame[:1600])):
         args = _windows(x)
-        t_np, t_k = float("inf"), float("inf")
-        for _ in range(repeats):
-            t_np = min(t_np, best_of(lambda: [spectral_fit.fit_windows(*args) for _ in range(rounds)], 1))
-            t_k = min(t_k, best_of(lambda: [_kernels.fit_windows(*args) for _ in range(rounds)], 1))
+        t_np, t_k = _in_turns(lambda: [spectral_fit.fit_windows(*args) for _ in range(rounds)],
+                              lambda: [_kernels.fit_windows(*args) for _ in range(rounds)], repeats)
         print(f"  {len(x):>5} rows{'':<22}: numpy {1e3 * t_np / rounds:7.3f} ms, kernel {1e3 * t_k / rounds:7.3f} ms, "
               f"ratio {t_np / t_k:.2f}x faster")
+
+
+def _with_numpy_passes(fn):
+    """``fn`` run under :func:`numpy_passes`."""
+    def run():
+        with numpy_passes():
+            fn()
+    return run
+
+
+def _in_turns(baseline, kernel, repeats):
+    """Best times (s) of two callables timed in turns, ``repeats`` times each."""
+    t_np, t_k = float("inf"), float("inf")
+    for _ in range(repeats):
+        t_np = min(t_np, best_of(baseline, 1))
+        t_k = min(t_k, best_of(kernel, 1))
+    return t_np, t_k
 
 
 def _windows(x):
