@@ -41,7 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import foreign_head as fh  # noqa: E402
 from _common import md_table, out_path  # noqa: E402
 
-from inkdiag_core import FaultClass, HeadProfile  # noqa: E402
+from inkdiag_core import FaultClass, HeadProfile, screen_traces  # noqa: E402
 from inkdiag_core.calibration import UNSEEN_PHYSICS_SPREADS  # noqa: E402
 from inkdiag_core.faults import DRIED_CLASSES  # noqa: E402
 from inkdiag_core.head_profile import SPREAD_KEYS  # noqa: E402
@@ -96,7 +96,8 @@ def _scores(labels_csv, truth):
 
 
 def _wrong_calls(pred, truth):
-    """Per class: its most frequent wrong label and that label's share of the class's rows."""
+    """Per class: its most frequent wrong label (``invalid`` included, as in the scores) and that label's
+    share of the class's rows."""
     out = {}
     for c in FaultClass:
         got = pred[truth == c.value]
@@ -113,10 +114,13 @@ MODE_CLASSES = ("healthy_nozzle", "partially_blocked", "slightly_dried", "interm
 
 
 def _class_modes(traces, labels, fs):
-    """Median dominant frequency (Hz) and damping ratio of each of :data:`MODE_CLASSES`' rows."""
-    k = extract_kpis(np.asarray(traces, dtype=np.float64), fs)
-    labels = np.asarray([getattr(v, "value", v) for v in labels], dtype=object)
-    return {c: (float(np.nanmedian(k[labels == c, 1])), float(np.nanmedian(k[labels == c, 2])))
+    """Median dominant frequency (Hz) and damping ratio of each of :data:`MODE_CLASSES`' rows that screening
+    accepts (a clipped or flat row has no mode to compare; labelling calls it invalid)."""
+    y = np.asarray(traces, dtype=np.float64)
+    ok, _ = screen_traces(y, sample_rate_hz=fs)
+    k = extract_kpis(y[ok], fs)
+    labels = np.asarray([getattr(v, "value", v) for v in labels], dtype=object)[ok]
+    return {c: (float(np.median(k[labels == c, 1])), float(np.median(k[labels == c, 2])))
             for c in MODE_CLASSES if (labels == c).any()}
 
 
@@ -162,8 +166,9 @@ def run_head(name, work, *, per_class, n_per_class, seed, log, posterior_draws=1
         fd, fi, per, n_invalid, unknown, wrong = _scores(head_dir / f"labels_{kind}.csv", test["labels"])
         med, p90, n_nan = _dmu_errors(head_dir / f"fm_{kind}.csv", d_mu_true)
         # the profile's own simulation of the classes (what its model was trained on), seed of its own
-        sim = HeadProfile.load(prof).simulate({c: per_class for c in MODE_CLASSES}, seed=seed + 3)
-        modes = _class_modes(sim.traces, sim.labels, float(test["sample_rate_hz"]))
+        profile = HeadProfile.load(prof)
+        sim = profile.simulate({c: per_class for c in MODE_CLASSES}, seed=seed + 3)
+        modes = _class_modes(sim.traces, sim.labels, profile.sample_rate_hz)
         out[kind] = {"fd": fd, "fi": fi, "per": per, "unknown": unknown, "wrong": wrong, "modes": modes,
                      "invalid": n_invalid, "dmu_median": med,
                      "dmu_p90": p90,
@@ -269,9 +274,10 @@ def write_report(results, args, log, elapsed):
         rows.append(["", "calibrate time (s)", "", f"{r['calibrate_s']:.1f}", ""])
     lines += [md_table(["head", "quantity", "true", "calibrated", "error %"], rows), ""]
     lines += ["## Where the errors go", "",
-              "Per class: its median dominant mode (frequency kHz / damping ratio, `extract_kpis`) in the head's "
-              "test recording and in the profile's own simulation of that class (what the model was trained on), "
-              "and the wrong label given most often, with its share of the class's rows.", ""]
+              "Per class: its median dominant mode (frequency kHz / damping ratio, `extract_kpis`, over the rows "
+              "screening accepts) in the head's test recording and in the profile's own simulation of that class "
+              "(what the model was trained on), and the wrong label given most often, with its share (%) of the "
+              "class's rows (`invalid` counts as wrong, as in the scores above).", ""]
     rows = []
     for name, r in results.items():
         for c in MODE_CLASSES:
@@ -286,14 +292,14 @@ def write_report(results, args, log, elapsed):
                         f"{wrong[0]} {_pct(wrong[1])}" if wrong else "-"]
             rows.append(row)
     lines += [md_table(["head", "class", "recorded", "simulated, true profile (freq. vs recorded)",
-                        "most frequent wrong label, true", "simulated, calibrated profile (freq. vs recorded)",
-                        "most frequent wrong label, calibrated"], rows), ""]
+                        "most frequent wrong label (%), true", "simulated, calibrated profile (freq. vs recorded)",
+                        "most frequent wrong label (%), calibrated"], rows), ""]
     lines += [
         "## Reading it",
         "",
         "- *invalid / not estimated*: rows screening refused (for instance a trace clipped at the ADC's rails, "
-        "which the 10-bit +-2 V sensor of h5 produces) or whose estimate is not finite; they are left out of "
-        "the scores above, not counted as right.",
+        "which the 10-bit +-2 V sensor of h5 produces) or whose estimate is not finite. In FD and FI an "
+        "invalid row counts as wrong; the d_mu errors leave out the rows not estimated.",
         "- *true*: the head's true channel, drive, sensor and spreads (`tests/foreign_head.py`), plus the "
         "spreads a calibrated profile trains over for the physics healthy traces cannot show (the empty "
         "channel's actuator, `calibration.UNSEEN_PHYSICS_SPREADS`): the two rows differ by calibration only. "
@@ -309,14 +315,15 @@ def write_report(results, args, log, elapsed):
         "`inkdiag label --baselines`) are the remedy where a head has them.",
         "- d_mu truth: each trace's nozzle viscosity over its own channel's ink viscosity (at its "
         "temperature).",
-        "- *Where the errors go*: what a calibrated profile gets wrong is the restrictor (healthy traces pin "
-        "the healthy mode, not how the restrictor and the nozzle share it: `reports/restrictor.md`). Its error "
-        "moves the modes of the blocked and dried classes, mostly in one direction per head; the fully "
-        "blocked mode (the restrictor ringing with the chamber) shows it most directly. partially_blocked and "
-        "the dried classes overlap, so they trade rows: where the calibrated deeply dried and partially "
-        "blocked modes sit below the recorded ones, recorded deeply dried traces fall between the two and "
-        "are often called partially_blocked; where they sit above, recorded partially blocked traces look "
-        "like the model's deeply dried. The *true* columns show the same classes without that shift.",
+        "- *Where the errors go*: partially_blocked and the dried classes overlap on these heads even with the "
+        "true profile (the *true* columns: each loses up to about a third of its rows to the other). What a "
+        "calibrated profile adds is its restrictor error (healthy traces pin the healthy mode, not how the "
+        "restrictor and the nozzle share it: `reports/restrictor.md`), which moves the modes of the blocked "
+        "and dried classes, mostly in one direction per head; the fully blocked mode (the restrictor ringing "
+        "with the chamber) shows it most directly. Where the calibrated deeply dried and partially blocked "
+        "modes sit below the recorded ones, recorded deeply dried traces fall between the two and are often "
+        "called partially_blocked; where they sit above, recorded partially blocked traces look like the "
+        "model's deeply dried, and the loss moves from one class to the other.",
         "",
         "## Commands run",
         "",
