@@ -9,11 +9,15 @@ import threading
 import time
 
 import rclpy
+import rclpy.signals
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
 from .allocator import PeriodicRelease, keep_freed_memory
 from .blas import limit_blas_threads
+from .exit_deadline import exit_deadline
+
+TEARDOWN_DEADLINE_S = 5.0  # a node process exits at the latest this long after its spin loop stopped
 
 
 def shutting_down(context, grace_s: float = 0.2) -> bool:
@@ -133,7 +137,51 @@ def freeze_startup_objects() -> int:
     return gc.get_freeze_count()
 
 
-def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, events: bool = False) -> int:
+def quiet_signal_handling() -> None:
+    """Uninstall rclpy's signal handlers (and join their thread) before any entity is destroyed.
+
+    On SIGINT/SIGTERM rclpy's own signal thread shuts every context down
+    (``rcl_shutdown``) at a moment of its choosing, while the main thread, woken
+    by the same signal, is already destroying the node's publishers and
+    services. The two racing in Fast DDS crashed a node now and then (SIGSEGV in
+    ``Service.destroy`` inside ``destroy_node``, about 1 Ctrl-C in 100 with
+    three node processes on two cores; once a hang in ``destroy_node``).
+    Uninstalling joins that thread, so nothing else touches the context from
+    here on: the nodes go first, then :func:`rclpy.try_shutdown`. A signal after
+    this reaches the Python handlers (:func:`stop_on_signals`) only.
+    """
+    rclpy.signals.uninstall_signal_handlers()
+
+
+def tear_down(executor, nodes, *, context_is_ours: bool = True, deadline_s: float | None = None,
+              deadline_status: int = 0) -> None:
+    """Take a node process down in the one safe order: signals, executor, nodes, context.
+
+    ``executor``: the executor (or ``None``); ``nodes``: the nodes to destroy
+    (``None`` entries skipped). ``context_is_ours``: this code initialised rclpy's
+    default context, so it uninstalls rclpy's signal handlers first
+    (:func:`quiet_signal_handling`) and shuts the context down last; ``False``
+    leaves both to the caller.
+
+    ``deadline_s``: a process entry point's bound on the rest, s: past it the process
+    exits with ``deadline_status`` (:func:`.exit_deadline.exit_deadline`: Fast DDS can
+    livelock deleting its participant). ``None`` (the default): no bound; never give one
+    from code that may run inside another program (a test runner).
+    """
+    if context_is_ours:
+        quiet_signal_handling()
+    bound = contextlib.nullcontext() if deadline_s is None else exit_deadline(deadline_s, deadline_status)
+    with bound:
+        if executor is not None:
+            executor.shutdown()
+        for node in nodes:
+            if node is not None:
+                node.destroy_node()
+        if context_is_ours:
+            rclpy.try_shutdown()
+
+def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, events: bool = False,
+              teardown_deadline_s: float | None = TEARDOWN_DEADLINE_S) -> int:
     """Init rclpy, spin one ``node_cls()`` until Ctrl-C / SIGTERM / shutdown, clean up.
 
     ``until(node)``: stop spinning once it is true (default: never). ``exit_code(node)``:
@@ -154,6 +202,11 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, eve
     take``: about 0.6 ms less CPU per taken 2 MB trace message here). It takes no guard
     condition: a signal reaches the loop through rclpy's shutdown, which wakes it, or its
     1 s timeout.
+
+    ``teardown_deadline_s``: once the loop has stopped, the process exits (with the status
+    it would have returned) at the latest this long after, whatever the middleware does
+    (:func:`tear_down`); ``None``: no bound. The default suits what this function is for,
+    a node process's entry point; it ends the whole process.
     """
     keep_freed_memory()
     release = PeriodicRelease()
@@ -192,11 +245,8 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, eve
             if node is None or not (stop.requested or shutting_down(node.context)):
                 raise
         finally:
-            if executor is not None:
-                executor.shutdown()
-            if node is not None:
-                node.destroy_node()
-            rclpy.try_shutdown()
+            status = 0 if exit_code is None or node is None else exit_code(node)  # if the deadline passes
+            tear_down(executor, [node], deadline_s=teardown_deadline_s, deadline_status=status)
     return 0 if exit_code is None else exit_code(node)
 
 

@@ -48,7 +48,7 @@ from msg_defs import (
     topics,
 )
 
-from ._spin import shutting_down, sigint_as_shutdown
+from ._spin import quiet_signal_handling, shutting_down, sigint_as_shutdown
 from .allocator import PeriodicRelease, keep_freed_memory
 from .blas import limit_blas_threads
 from .bags import HEAD_TOPICS, InProcessRecording, check_new_bag
@@ -232,6 +232,8 @@ def _run(duration_s, *, namespace, model_path, out, context, baseline, own, reco
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        if own:  # before anything is destroyed (_spin.quiet_signal_handling)
+            quiet_signal_handling()
         executor.shutdown()
         if bag is not None:  # a valid bag before any node goes
             bag.close()

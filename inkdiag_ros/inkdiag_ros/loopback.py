@@ -23,6 +23,8 @@ from rclpy.utilities import remove_ros_args
 from inkdiag_core import InkChannelModel
 from msg_defs import RELIABLE_QOS, TRACE_MSG_TYPE, decode_traces, encode_traces, topics
 
+from ._spin import tear_down
+
 
 def model_frame(n_nozzles: int, n_samples: int, sample_rate_hz: float, seed: int) -> np.ndarray:
     """Healthy-channel free responses with per-nozzle gain and noise, float32 (n, s)."""
@@ -92,10 +94,7 @@ def run(n_nozzles: int, n_samples: int, n_frames: int, sample_rate_hz: float = 1
     except (KeyboardInterrupt, ExternalShutdownException):
         elapsed = float("nan")
     finally:
-        executor.shutdown()
-        sender.destroy_node()
-        receiver.destroy_node()
-        rclpy.try_shutdown()
+        tear_down(executor, [sender, receiver])
     exact = all(np.array_equal(receiver.frames[i], frames[i]) for i in receiver.frames)
     return {
         "sent": sender.sent,

@@ -166,6 +166,47 @@ def test_spin_node_runs_the_events_executor_and_stops_on_a_signal(ros):
     assert "Events" in kind and int(ticks) >= 20 and code == "0", out.stdout
 
 
+
+_TEARDOWN_CHILD = """
+import signal, threading
+import rclpy.signals
+from rclpy.node import Node
+from std_msgs.msg import String
+from inkdiag_ros._spin import spin_node
+
+class Probe(Node):
+    def __init__(self):
+        super().__init__("teardown_probe")
+        self.ticks = 0
+        self.timer = self.create_timer(0.01, self._tick)
+        self.pub = self.create_publisher(String, "teardown_probe", 10)
+
+    def _tick(self):
+        self.ticks += 1
+        if self.ticks == 10:
+            threading.Thread(target=lambda: signal.raise_signal(signal.SIGINT)).start()
+
+    def destroy_node(self):
+        print("handlers at destroy:", rclpy.signals.get_current_signal_handlers_options().name, flush=True)
+        return super().destroy_node()
+
+print("exit", spin_node(Probe, ["teardown_probe"]))
+"""
+
+
+def test_a_signal_stops_rclpys_signal_thread_before_the_node_is_destroyed(ros):
+    """rclpy's signal thread shut the context down while the main thread destroyed the node's
+    services: a SIGSEGV in ``Service.destroy`` about once per 100 Ctrl-Cs (CI, 2026-11-24). The
+    handlers (and their thread) go first now (``_spin.tear_down``)."""
+    import subprocess
+
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    out = subprocess.run([sys.executable, "-c", _TEARDOWN_CHILD], env=env, capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "handlers at destroy: NO" in out.stdout and "exit 0" in out.stdout, out.stdout + out.stderr
+
+
 @pytest.mark.parametrize("module", ["inkdiag_ros.fdi_node", "inkdiag_ros.fe_node"])
 def test_the_trace_consuming_nodes_spin_the_events_executor(module, monkeypatch):
     """fdi and fe take every trace message: rclpy's Python executor rebuilt its wait set per message,

@@ -148,7 +148,7 @@ def _monitor(args, children) -> list:
 
     from msg_defs import DIAGNOSTICS_MSG_TYPE, DIAGNOSTICS_QOS, diagnostics_values
 
-    from .._spin import stop_on_signals
+    from .._spin import stop_on_signals, tear_down
 
     latest = {}  # head namespace -> (arrival time, values)
     wanted = {f"{i:02d}" for i in range(args.first_head, args.first_head + args.heads)}
@@ -182,9 +182,7 @@ def _monitor(args, children) -> list:
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         finally:
-            executor.shutdown()
-            node.destroy_node()
-            rclpy.try_shutdown()
+            tear_down(executor, [node])
     return []
 
 
@@ -232,7 +230,7 @@ def worker_main(argv=None) -> int:
     from rclpy.parameter import Parameter
     from rclpy.utilities import remove_ros_args
 
-    from .._spin import freeze_startup_objects, shutting_down, stop_on_signals
+    from .._spin import freeze_startup_objects, shutting_down, stop_on_signals, tear_down
     from ..allocator import PeriodicRelease, keep_freed_memory
     from ..blas import limit_blas_threads
     from ..graph import default_params_file
@@ -293,11 +291,7 @@ def worker_main(argv=None) -> int:
             if not (stop.requested or shutting_down(ctx)):
                 raise
         finally:
-            if executor is not None:
-                executor.shutdown()
-            for n in nodes:
-                n.destroy_node()
-            rclpy.try_shutdown()
+            tear_down(executor, nodes)
     return 0
 
 

@@ -40,7 +40,7 @@ def run(args) -> int:
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rosbags.rosbag2 import StoragePlugin, Writer
 
-    from .._spin import stop_on_signals
+    from .._spin import stop_on_signals, tear_down
     from ..bags import BagRecorder, check_new_bag, head_topics
 
     if args.duration is not None and not args.duration > 0:
@@ -69,11 +69,7 @@ def run(args) -> int:
             if rec is not None:
                 rec.finish()
             writer.close()  # metadata.yaml and the MCAP summary: a valid bag whatever stopped us
-            if executor is not None:
-                executor.shutdown()
-            if node is not None:
-                node.destroy_node()
-            rclpy.try_shutdown()
+            tear_down(executor, [node])
     counts = rec.counts if rec is not None else {}
     print(f"wrote {sum(counts.values())} messages to {bag}: "
           + ", ".join(f"{t} {n}" for t, n in counts.items()), file=sys.stderr)

@@ -64,7 +64,7 @@ def run(args) -> int:
     from msg_defs.qos import RELIABLE_QOS, TRACES_QOS
     from inkdiag_core.recording import RecordingError
 
-    from .._spin import stop_on_signals
+    from .._spin import stop_on_signals, tear_down
     from ..bags import TRACES_TYPE, is_bag, msg_class, qos_from_rosbags
 
     if not args.as_fast_as_possible and not args.rate > 0:
@@ -127,11 +127,7 @@ def run(args) -> int:
                     pub.wait_for_all_acked(rclpy.duration.Duration(seconds=5.0))
         finally:
             reader.close()
-            if executor is not None:
-                executor.shutdown()
-            if node is not None:
-                node.destroy_node()
-            rclpy.try_shutdown()
+            tear_down(executor, [node])
     print(f"replayed {n_sent} messages from {bag}", file=sys.stderr)
     return 0
 
