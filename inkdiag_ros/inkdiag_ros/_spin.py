@@ -50,16 +50,20 @@ def sigint_as_shutdown():
     and Python raises no ``KeyboardInterrupt``. A ``KeyboardInterrupt`` raised in
     the middle of rclpy's executor internals left entity handles half-released,
     and destroying the nodes afterwards crashed the process (SIGSEGV) in about
-    one Ctrl-C in twenty here. The previous handler is restored on exit.
+    one Ctrl-C in twenty here. SIGTERM gets the same no-op Python handler, so that once
+    rclpy's handlers are uninstalled for the teardown (:func:`quiet_signal_handling`) a
+    second SIGTERM cannot kill the process while it closes a bag. The previous handlers
+    are restored on exit.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    old = signal.signal(signal.SIGINT, _no_keyboard_interrupt)
+    old = {sig: signal.signal(sig, _no_keyboard_interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, old)
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
 
 
 class StopRequest:
@@ -155,30 +159,46 @@ def quiet_signal_handling() -> None:
 
 def tear_down(executor, nodes, *, context_is_ours: bool = True, deadline_s: float | None = None,
               deadline_status: int = 0) -> None:
-    """Take a node process down in the one safe order: signals, executor, nodes, context.
+    """Take a node process down in the one safe order: signals, executor, outputs, nodes, context.
 
     ``executor``: the executor (or ``None``); ``nodes``: the nodes to destroy
     (``None`` entries skipped). ``context_is_ours``: this code initialised rclpy's
     default context, so it uninstalls rclpy's signal handlers first
     (:func:`quiet_signal_handling`) and shuts the context down last; ``False``
-    leaves both to the caller.
+    leaves both to the caller. A node's ``close_outputs()``, if it has one (its last
+    results published, its files closed), runs once the executor is down, before any
+    node is destroyed.
 
-    ``deadline_s``: a process entry point's bound on the rest, s: past it the process
-    exits with ``deadline_status`` (:func:`.exit_deadline.exit_deadline`: Fast DDS can
-    livelock deleting its participant). ``None`` (the default): no bound; never give one
-    from code that may run inside another program (a test runner).
+    ``deadline_s``: a process entry point's bound on destroying the nodes and the
+    context, s: past it the process exits with ``deadline_status``
+    (:func:`.exit_deadline.exit_deadline`: Fast DDS can livelock deleting its
+    participant). The outputs are closed before the clock starts. ``None`` (the
+    default): no bound; never give one from code that may run inside another program
+    (a test runner).
     """
     if context_is_ours:
         quiet_signal_handling()
+    if executor is not None:
+        executor.shutdown()
+    nodes = [n for n in nodes if n is not None]
+    for node in nodes:
+        close = getattr(node, "close_outputs", None)
+        if close is not None:
+            close()
     bound = contextlib.nullcontext() if deadline_s is None else exit_deadline(deadline_s, deadline_status)
     with bound:
-        if executor is not None:
-            executor.shutdown()
         for node in nodes:
-            if node is not None:
-                node.destroy_node()
+            node.destroy_node()
         if context_is_ours:
             rclpy.try_shutdown()
+
+
+def check_deadline(seconds: float | None) -> float | None:
+    """``seconds`` if it is a usable teardown deadline (finite, > 0.5 s) or ``None``; else ``ValueError``."""
+    if seconds is not None and not (0.5 < seconds < float("inf")):
+        raise ValueError(f"teardown deadline must be None or a finite number of seconds > 0.5, got {seconds!r}")
+    return seconds
+
 
 def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, events: bool = False,
               teardown_deadline_s: float | None = TEARDOWN_DEADLINE_S) -> int:
@@ -208,6 +228,7 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, eve
     (:func:`tear_down`); ``None``: no bound. The default suits what this function is for,
     a node process's entry point; it ends the whole process.
     """
+    check_deadline(teardown_deadline_s)
     keep_freed_memory()
     release = PeriodicRelease()
     limit_blas_threads()
@@ -215,16 +236,19 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, eve
     with stop_on_signals() as stop:
         rclpy.init(args=args)
         node = executor = None
+        early = None  # the status of a stop before spinning
         try:
             try:
                 node = node_cls()
             except (ValueError, ParameterException) as exc:
                 print(f"{prog}: {exc}", file=sys.stderr)
-                return 2
+                early = 2
+                return early
             except Exception:  # a signal while it was built: rclpy invalidated its publishers
                 if not (stop.requested or shutting_down(rclpy.utilities.get_default_context())):
                     raise
-                return 0 if exit_code is None else 1
+                early = 0 if exit_code is None else 1
+                return early
             if not events:  # the EventsExecutor takes no guard condition; rclpy's shutdown wakes it
                 stop.attach(node)
             if events:
@@ -245,9 +269,25 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, eve
             if node is None or not (stop.requested or shutting_down(node.context)):
                 raise
         finally:
-            status = 0 if exit_code is None or node is None else exit_code(node)  # if the deadline passes
+            status = _deadline_status(early, exit_code, node)
             tear_down(executor, [node], deadline_s=teardown_deadline_s, deadline_status=status)
     return 0 if exit_code is None else exit_code(node)
+
+
+def _deadline_status(early, exit_code, node) -> int:
+    """The exit status if the teardown deadline passes: the one the process would return.
+
+    1 while an exception is on its way out (it would end the process with a traceback),
+    the early return's status, else ``exit_code(node)`` (0 without one).
+    """
+    if sys.exc_info()[1] is not None:
+        return 1
+    if early is not None:
+        return early
+    try:
+        return 0 if exit_code is None or node is None else int(exit_code(node))
+    except Exception:  # noqa: BLE001 - asked again, and raised, after the teardown
+        return 1
 
 
 def take_queued(subscription, at_most: int):

@@ -571,8 +571,9 @@ class InProcessRecording:
 def recording_node(node_cls, bag_dir, names=None):
     """A factory for :func:`inkdiag_ros._spin.spin_node`: ``node_cls()`` recording ``names`` into ``bag_dir``.
 
-    The bag is closed (and its summary logged) when the node is destroyed, which
-    ``spin_node`` does after Ctrl-C / SIGTERM as after a normal stop.
+    The bag is closed (and its summary logged) by the node's ``close_outputs()``, which
+    ``spin_node`` calls after Ctrl-C / SIGTERM as after a normal stop, before the node is
+    destroyed (or by ``destroy_node`` itself).
     """
     check_new_bag(bag_dir)
 
@@ -584,12 +585,18 @@ def recording_node(node_cls, bag_dir, names=None):
             node.destroy_node()
             raise
         destroy = node.destroy_node
+        closed = []
+
+        def close_outputs():  # tear_down calls it before any node is destroyed (and its deadline starts)
+            if not closed:
+                closed.append(rec.close())
+                print(rec.summary(), file=sys.stderr, flush=True)
 
         def destroy_node():
-            rec.close()
-            print(rec.summary(), file=sys.stderr, flush=True)
+            close_outputs()
             return destroy()
 
+        node.close_outputs = close_outputs
         node.destroy_node = destroy_node
         node.get_logger().info(f"recording {', '.join(rec.recorder.wanted)} into {rec.bag}")
         return node

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import ctypes.util
 import faulthandler
 import sys
 
@@ -48,7 +47,7 @@ class _Itimerspec(ctypes.Structure):
 def _libc():
     if not sys.platform.startswith("linux") or ctypes.sizeof(ctypes.c_void_p) != 8:
         return None
-    for name in (None, ctypes.util.find_library("rt")):  # glibc >= 2.34 has the timers in libc
+    for name in (None, "librt.so.1"):  # glibc >= 2.34 has the timers in libc itself
         try:
             lib = ctypes.CDLL(name, use_errno=True)
             lib.timer_create, lib.timer_settime, lib.timer_delete, lib._exit  # noqa: B018
@@ -93,13 +92,19 @@ def exit_deadline(seconds: float, status: int = 0):
     ------
     bool
         Whether the deadline is armed (Linux/glibc only). Leaving the block disarms it.
-        ``_exit`` flushes nothing: flush what must be written before entering.
+        ``sys.stdout`` and ``sys.stderr`` are flushed on entering; ``_exit`` flushes
+        nothing written after.
 
     Only a process's own entry point may use it: it ends the whole process, whatever else
     runs in it (a test runner included).
     """
-    if not seconds > 0.5:
-        raise ValueError(f"exit deadline must be > 0.5 s, got {seconds!r}")
+    if not 0.5 < seconds < float("inf"):
+        raise ValueError(f"exit deadline must be a finite number of seconds > 0.5, got {seconds!r}")
+    for stream in (sys.stdout, sys.stderr):  # _exit flushes nothing
+        try:
+            stream.flush()
+        except (AttributeError, OSError, ValueError):
+            pass
     armed = _arm(seconds, status)
     stacks = False
     if armed is not None:

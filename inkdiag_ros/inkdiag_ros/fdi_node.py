@@ -85,9 +85,14 @@ class FdiNode(Node):
         self.stats.misconfigured(why)
         self.get_logger().error(why)
 
+    def close_outputs(self) -> None:
+        """Publish the labels of the batches out and stop labelling (once; ``destroy_node`` calls it too)."""
+        pipeline, self._pipeline = getattr(self, "_pipeline", None), None  # absent if __init__ failed part-way
+        if pipeline is not None:
+            pipeline.close()
+
     def destroy_node(self):
-        if getattr(self, "_pipeline", None) is not None:  # absent if __init__ failed part-way; else
-            self._pipeline.close()  # the batches out are published first
+        self.close_outputs()  # the batches out are published first
         return super().destroy_node()
 
     def wait_idle(self, timeout: float | None = None) -> bool:  # for tests and tools

@@ -5,6 +5,7 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
 
 import numpy as np
 import pytest
@@ -100,6 +101,8 @@ def test_three_processes_on_localhost(ros, fdi_model):
     for pr, out in zip(procs, outs):
         assert pr.returncode == 0, out[-2000:]  # SIGINT: a clean shutdown
         assert "Traceback" not in out, out[-2000:]
+        if "Timeout (" in out:  # the teardown deadline ended a Fast DDS livelock (docs/nodes.md): visible, not a failure
+            warnings.warn(f"{pr.args[2]}: teardown deadline passed\n{out[-1500:]}", stacklevel=1)
 
 
 @pytest.fixture(scope="module")

@@ -230,7 +230,7 @@ def worker_main(argv=None) -> int:
     from rclpy.parameter import Parameter
     from rclpy.utilities import remove_ros_args
 
-    from .._spin import freeze_startup_objects, shutting_down, stop_on_signals, tear_down
+    from .._spin import TEARDOWN_DEADLINE_S, freeze_startup_objects, shutting_down, stop_on_signals, tear_down
     from ..allocator import PeriodicRelease, keep_freed_memory
     from ..blas import limit_blas_threads
     from ..graph import default_params_file
@@ -290,8 +290,8 @@ def worker_main(argv=None) -> int:
         except Exception:
             if not (stop.requested or shutting_down(ctx)):
                 raise
-        finally:
-            tear_down(executor, nodes)
+        finally:  # a process of its own (started by run_printer): bounded like every node process
+            tear_down(executor, nodes, deadline_s=TEARDOWN_DEADLINE_S)
     return 0
 
 
