@@ -181,16 +181,29 @@ def tear_down(executor, nodes, *, context_is_ours: bool = True, deadline_s: floa
     if executor is not None:
         executor.shutdown()
     nodes = [n for n in nodes if n is not None]
+    try:
+        close_outputs(nodes)
+    finally:  # a failed close (its error goes on up) never skips the bounded rest
+        bound = contextlib.nullcontext() if deadline_s is None else exit_deadline(deadline_s, deadline_status)
+        with bound:
+            for node in nodes:
+                node.destroy_node()
+            if context_is_ours:
+                rclpy.try_shutdown()
+
+
+def close_outputs(nodes) -> None:
+    """Call each node's ``close_outputs()`` (if it has one); one that raises does not stop the others."""
+    errors = []
     for node in nodes:
         close = getattr(node, "close_outputs", None)
         if close is not None:
-            close()
-    bound = contextlib.nullcontext() if deadline_s is None else exit_deadline(deadline_s, deadline_status)
-    with bound:
-        for node in nodes:
-            node.destroy_node()
-        if context_is_ours:
-            rclpy.try_shutdown()
+            try:
+                close()
+            except Exception as exc:  # noqa: BLE001 - raised below, after every node had its turn
+                errors.append(exc)
+    if errors:
+        raise errors[0]
 
 
 def check_deadline(seconds: float | None) -> float | None:

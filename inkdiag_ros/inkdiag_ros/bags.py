@@ -585,12 +585,18 @@ def recording_node(node_cls, bag_dir, names=None):
             node.destroy_node()
             raise
         destroy = node.destroy_node
+        inner = getattr(node, "close_outputs", None)
         closed = []
 
         def close_outputs():  # tear_down calls it before any node is destroyed (and its deadline starts)
             if not closed:
-                closed.append(rec.close())
-                print(rec.summary(), file=sys.stderr, flush=True)
+                closed.append(True)
+                try:
+                    if inner is not None:  # the node's own last outputs first: the bag may record them
+                        inner()
+                finally:
+                    rec.close()
+                    print(rec.summary(), file=sys.stderr, flush=True)
 
         def destroy_node():
             close_outputs()

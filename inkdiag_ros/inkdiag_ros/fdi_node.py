@@ -57,6 +57,7 @@ class FdiNode(Node):
         backend, why = make_backend(self.labeller, in_process=c["labelling_process"] and bool(self.labeller))
         if why:
             self._config_error(why)
+        self._outputs_closed = False
         self._pipeline = LabellingPipeline(
             backend, self._publish, on_batch=self._on_batch, on_drop=self._on_dropped, on_error=self._failed,
             max_queued=c["max_queued_frames"], max_batch_rows=c["max_batch_traces"], name="fdi-labeller")
@@ -87,9 +88,9 @@ class FdiNode(Node):
 
     def close_outputs(self) -> None:
         """Publish the labels of the batches out and stop labelling (once; ``destroy_node`` calls it too)."""
-        pipeline, self._pipeline = getattr(self, "_pipeline", None), None  # absent if __init__ failed part-way
-        if pipeline is not None:
-            pipeline.close()
+        if getattr(self, "_pipeline", None) is not None and not self._outputs_closed:  # absent if __init__ failed
+            self._outputs_closed = True
+            self._pipeline.close()
 
     def destroy_node(self):
         self.close_outputs()  # the batches out are published first

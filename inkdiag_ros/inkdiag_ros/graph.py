@@ -48,7 +48,7 @@ from msg_defs import (
     topics,
 )
 
-from ._spin import quiet_signal_handling, shutting_down, sigint_as_shutdown
+from ._spin import close_outputs, quiet_signal_handling, shutting_down, sigint_as_shutdown
 from .allocator import PeriodicRelease, keep_freed_memory
 from .blas import limit_blas_threads
 from .bags import HEAD_TOPICS, InProcessRecording, check_new_bag
@@ -235,6 +235,7 @@ def _run(duration_s, *, namespace, model_path, out, context, baseline, own, reco
         if own:  # before anything is destroyed (_spin.quiet_signal_handling)
             quiet_signal_handling()
         executor.shutdown()
+        close_outputs(nodes)  # fdi's last labels out before the bag closes
         if bag is not None:  # a valid bag before any node goes
             bag.close()
             out(bag.summary())

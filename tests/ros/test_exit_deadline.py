@@ -52,3 +52,29 @@ def test_a_deadline_too_short_to_print_the_stacks_is_refused(seconds):
     with pytest.raises(ValueError, match="exit deadline"):
         with exit_deadline(seconds):
             pass
+
+
+def test_tear_down_closes_every_nodes_outputs_and_destroys_them_even_when_one_close_fails():
+    from inkdiag_ros._spin import tear_down
+
+    calls = []
+
+    class Node:
+        def __init__(self, name, fail=False):
+            self.name, self.fail = name, fail
+
+        def close_outputs(self):
+            calls.append(("close", self.name))
+            if self.fail:
+                raise OSError(f"{self.name}: disk full")
+
+        def destroy_node(self):
+            calls.append(("destroy", self.name))
+
+    class Plain:  # no close_outputs: destroyed only
+        def destroy_node(self):
+            calls.append(("destroy", "plain"))
+
+    with pytest.raises(OSError, match="a: disk full"):
+        tear_down(None, [Node("a", fail=True), None, Node("b"), Plain()], context_is_ours=False)
+    assert calls == [("close", "a"), ("close", "b"), ("destroy", "a"), ("destroy", "b"), ("destroy", "plain")]

@@ -265,7 +265,7 @@ def worker_main(argv=None) -> int:
     with stop_on_signals() as stop:
         rclpy.init(args=[argv[0], "--ros-args", "--params-file", default_params_file(), *ros])
         ctx = rclpy.utilities.get_default_context()
-        nodes, executor = [], None
+        nodes, executor, status = [], None, 0
         try:
             for i in heads:
                 nodes.append(cls(namespace=f"/head_{i:02d}", parameter_overrides=overrides(i)))
@@ -284,15 +284,16 @@ def worker_main(argv=None) -> int:
         except (ValueError, ParameterException) as exc:
             if not (stop.requested or shutting_down(ctx)):
                 print(f"{prog}: {exc}", file=sys.stderr)
-                return 2
+                status = 2
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         except Exception:
             if not (stop.requested or shutting_down(ctx)):
                 raise
         finally:  # a process of its own (started by run_printer): bounded like every node process
-            tear_down(executor, nodes, deadline_s=TEARDOWN_DEADLINE_S)
-    return 0
+            tear_down(executor, nodes, deadline_s=TEARDOWN_DEADLINE_S,
+                      deadline_status=1 if sys.exc_info()[1] is not None else status)
+    return status
 
 
 if __name__ == "__main__":
