@@ -57,10 +57,10 @@ class FdiNode(Node):
         backend, why = make_backend(self.labeller, in_process=c["labelling_process"] and bool(self.labeller))
         if why:
             self._config_error(why)
-        self._outputs_closed = False
         self._pipeline = LabellingPipeline(
             backend, self._publish, on_batch=self._on_batch, on_drop=self._on_dropped, on_error=self._failed,
             max_queued=c["max_queued_frames"], max_batch_rows=c["max_batch_traces"], name="fdi-labeller")
+        self.close_outputs = self._pipeline.close  # _spin.tear_down: the batches out published before nodes go
         self._sub = self.create_subscription(TRACE_MSG_TYPE, topics.TRACES, self._on_traces, TRACES_QOS)
         self._diag_timer = self.create_timer(c["diagnostics_period_s"], self._on_diagnostics)
 
@@ -86,14 +86,9 @@ class FdiNode(Node):
         self.stats.misconfigured(why)
         self.get_logger().error(why)
 
-    def close_outputs(self) -> None:
-        """Publish the labels of the batches out and stop labelling (once; ``destroy_node`` calls it too)."""
-        if getattr(self, "_pipeline", None) is not None and not self._outputs_closed:  # absent if __init__ failed
-            self._outputs_closed = True
-            self._pipeline.close()
-
     def destroy_node(self):
-        self.close_outputs()  # the batches out are published first
+        if getattr(self, "_pipeline", None) is not None:  # absent if __init__ failed part-way; else
+            self._pipeline.close()  # the batches out are published first (once: tear_down may have)
         return super().destroy_node()
 
     def wait_idle(self, timeout: float | None = None) -> bool:  # for tests and tools
@@ -141,8 +136,7 @@ class FdiNode(Node):
         except Exception as exc:  # noqa: BLE001 - this frame failed; the batch's others go on
             self._failed(frame, exc)
             return
-        self.stats.labelled(report.counts, report.n_nozzles, int(np.count_nonzero(result.baseline)),
-                            report.gate_cleared)
+        self.stats.labelled(report.counts, report.n_nozzles, int(np.count_nonzero(result.baseline)), report.gate_cleared)
 
     def _failed(self, frame, exc) -> None:
         if self.context.ok():  # else shutting down: nothing left to publish to

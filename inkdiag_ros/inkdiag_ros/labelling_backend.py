@@ -213,6 +213,7 @@ class LabellingPipeline:
                                    max_in_flight=backend.depth)
         self._collector = threading.Thread(target=self._collect, name=f"{name}-collector", daemon=True)
         self._collector.start()
+        self._closed = False
 
     def submit(self, frame) -> None:
         """Queue one decoded frame (``.traces`` (n, n_samples), ``.first_nozzle``)."""
@@ -223,7 +224,10 @@ class LabellingPipeline:
         return self._worker.wait_idle(timeout)
 
     def close(self) -> None:
-        """Stop taking frames, hand out the results of the batches out, close the backend."""
+        """Stop taking frames, hand out the results of the batches out, close the backend (once; again: no-op)."""
+        if self._closed:
+            return
+        self._closed = True
         self._worker.stop()
         self._handed_on.put(None)  # after the batches out: their results are handed out first
         self._collector.join(10.0)

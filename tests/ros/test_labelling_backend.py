@@ -161,3 +161,21 @@ def test_pipeline_outlives_a_result_callback_that_raises(head):
     finally:
         pipe.close()
     assert seen == [0, 2, 3, 4, 5] and errors == [(1, "publishing failed")]
+
+
+def test_closing_a_pipeline_twice_closes_its_backend_once(head):
+    """tear_down closes fdi's outputs, then destroy_node closes them again: the second close is a no-op."""
+    from types import SimpleNamespace
+
+    from inkdiag_ros.labelling_backend import LabellingPipeline
+
+    det, _, frames, firsts = head
+    backend, seen, closes = ThreadBackend(FrameLabeller(det, max_abs_v=10.0)), [], []
+    close = backend.close
+    backend.close = lambda: closes.append(1) or close()
+    pipe = LabellingPipeline(backend, lambda frame, result: seen.append(frame.id))
+    pipe.submit(SimpleNamespace(id=0, traces=frames[0], first_nozzle=firsts[0]))
+    assert pipe.wait_idle(30.0)
+    pipe.close()
+    pipe.close()
+    assert seen == [0] and closes == [1]
