@@ -43,7 +43,7 @@ Method
 ------
 1. Drop the traces screening refuses (non-finite, beyond 5x the ADC range, flat, clipped; counted in the report).
 2. Fit the mean of the typical traces (the :data:`TYPICAL_FRACTION` nearest the median
-   dominant frequency and damping: averaging traces of different frequencies would
+   dominant frequency and damping, at least :data:`TYPICAL_MIN_SAMPLES` samples: averaging traces of different frequencies would
    damp the mean and bias the weakly identified direction; the per-trace gain and
    offset average out) with :func:`scipy.optimize.least_squares` (trust region reflective, bounds) on the
    log-parameters ``(B_act, I_r, R_r)``; amplitude and offset are solved by linear
@@ -104,8 +104,14 @@ least, the per-trace spreads of a real recording pull the fit further from the t
 than the design ratios are from it (a factor of 2 let ``I_r`` reach 1.8 times its
 true value on the default head simulated independently)."""
 
-TYPICAL_FRACTION = 0.2
-"""Fraction of the traces, nearest the median frequency and damping, whose mean is fitted."""
+TYPICAL_FRACTION = 0.05
+"""Fraction of the traces, nearest the median frequency and damping, whose mean is fitted (but see
+:data:`TYPICAL_MIN_SAMPLES`). Fewer traces dephase less: their frequencies are closer."""
+
+TYPICAL_MIN_SAMPLES = 16384
+"""The typical traces hold at least this many samples (traces x ``n_samples``): a head sampled more
+coarsely averages more traces, so that the noise left in their mean, not only its dephasing, stays
+small along the direction the data pin least (``docs/calibration.md``)."""
 
 MAX_RESIDUAL_REL = 0.15
 """A mean-trace fit whose RMS residual exceeds this fraction of the trace's RMS is refused."""
@@ -474,6 +480,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     report = {
         "n_traces": int(y.shape[0]),
         "n_dropped_nonfinite": n_dropped,
+        "n_typical": int(typical.size),
         "sample_rate_hz": fs,
         "n_samples": int(nominal.n_samples),
         "fitted": {**({} if fixed_restrictor else {"channel.r_r": r_r, "channel.L_r": L_r}),
@@ -653,7 +660,7 @@ def _typical_rows(y, fs, fraction):
     med = np.median(kp, axis=0)
     spread = 1.4826 * np.median(np.abs(kp - med), axis=0)
     z = (kp - med) / np.where(spread > 0, spread, 1.0)
-    k = max(MIN_TRACES, int(round(fraction * y.shape[0])))
+    k = max(MIN_TRACES, int(round(fraction * y.shape[0])), -(-TYPICAL_MIN_SAMPLES // y.shape[1]))
     return np.sort(np.argsort(np.hypot(z[:, 0], z[:, 1]), kind="stable")[:k])
 
 
