@@ -43,9 +43,10 @@ Method
 ------
 1. Drop the traces screening refuses (non-finite, beyond 5x the ADC range, flat, clipped; counted in the report).
 2. Fit the mean of the typical traces (the :data:`TYPICAL_FRACTION` nearest the median
-   dominant frequency and damping, but at least :data:`TYPICAL_MIN_SAMPLES` samples).
-   Averaging traces of different frequencies would damp the mean and bias the weakly
-   identified direction; the per-trace gain and offset average out. The mean is fitted
+   dominant frequency and damping, but at least :data:`TYPICAL_MIN_SAMPLES` samples and
+   :data:`MIN_TRACES` traces, or every trace where there are fewer). Averaging traces of
+   different frequencies would damp the mean and bias the weakly identified direction; the
+   per-trace gain and offset average out in the mean. The mean is fitted
    with :func:`scipy.optimize.least_squares` (trust region reflective, bounds) on the
    log-parameters ``(B_act, I_r, R_r)``; amplitude and offset are solved by linear
    least squares for each shape (variable projection). Data residuals are scaled by
@@ -104,7 +105,7 @@ Chosen on measurements (``docs/calibration.md``): along the direction the data p
 least, the per-trace spreads of a real recording pull the fit further from the truth
 than the design ratios are from it (a factor of 2 let ``I_r`` reach 1.8 times its
 true value on the default head simulated independently; measured with the mean of the
-typical 20 %, the method before :data:`TYPICAL_MIN_SAMPLES`)."""
+typical 20 % without a floor in samples, the method before 2026-11-25)."""
 
 TYPICAL_FRACTION = 0.05
 """Fraction of the traces, nearest the median frequency and damping, whose mean is fitted (but see

@@ -211,6 +211,9 @@ def test_the_typical_traces_are_few_but_hold_enough_samples(result):
     assert len(set(rows) & set(nearest[:64])) >= 60  # the rows nearest the median frequency
     assert calibration._typical_rows(np.tile(y, (7, 1)), fs, calibration.TYPICAL_FRACTION).size == 105  # 5 %
     assert calibration._typical_rows(y[:20], fs, calibration.TYPICAL_FRACTION).size == 20  # all there are
+    t_long = np.arange(2048) / fs
+    y_long = np.exp(-2e4 * t_long) * np.sin(2 * np.pi * f_hz[:100, None] * t_long)
+    assert calibration._typical_rows(y_long, fs, calibration.TYPICAL_FRACTION).size == calibration.MIN_TRACES
 
 
 def test_the_restrictor_split_of_an_independent_head_is_not_dephased():
