@@ -15,7 +15,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
 from .allocator import PeriodicRelease, keep_freed_memory
 from .blas import limit_blas_threads
-from .exit_deadline import exit_deadline
+from .exit_deadline import check_seconds, exit_deadline
 
 TEARDOWN_DEADLINE_S = 5.0  # a node process exits at the latest this long after its spin loop stopped
 
@@ -206,13 +206,6 @@ def close_outputs(nodes) -> None:
         raise errors[0]
 
 
-def check_deadline(seconds: float | None) -> float | None:
-    """``seconds`` if it is a usable teardown deadline (finite, > 0.5 s) or ``None``; else ``ValueError``."""
-    if seconds is not None and not (0.5 < seconds < float("inf")):
-        raise ValueError(f"teardown deadline must be None or a finite number of seconds > 0.5, got {seconds!r}")
-    return seconds
-
-
 def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, events: bool = False,
               teardown_deadline_s: float | None = TEARDOWN_DEADLINE_S) -> int:
     """Init rclpy, spin one ``node_cls()`` until Ctrl-C / SIGTERM / shutdown, clean up.
@@ -241,7 +234,8 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, eve
     (:func:`tear_down`); ``None``: no bound. The default suits what this function is for,
     a node process's entry point; it ends the whole process.
     """
-    check_deadline(teardown_deadline_s)
+    if teardown_deadline_s is not None:  # a bad one fails here, not at the teardown
+        check_seconds(teardown_deadline_s)
     keep_freed_memory()
     release = PeriodicRelease()
     limit_blas_threads()

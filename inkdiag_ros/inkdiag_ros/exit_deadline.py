@@ -76,6 +76,13 @@ def _arm(seconds: float, status: int):
     return lib, timer
 
 
+def check_seconds(seconds: float) -> float:
+    """``seconds`` if it is a usable deadline (finite, > 0.5 s); else ``ValueError``."""
+    if not 0.5 < seconds < float("inf"):
+        raise ValueError(f"exit deadline must be a finite number of seconds > 0.5, got {seconds!r}")
+    return seconds
+
+
 @contextlib.contextmanager
 def exit_deadline(seconds: float, status: int = 0):
     """Within the block, the process ends with exit status ``status`` once ``seconds`` have passed.
@@ -98,8 +105,7 @@ def exit_deadline(seconds: float, status: int = 0):
     Only a process's own entry point may use it: it ends the whole process, whatever else
     runs in it (a test runner included).
     """
-    if not 0.5 < seconds < float("inf"):
-        raise ValueError(f"exit deadline must be a finite number of seconds > 0.5, got {seconds!r}")
+    check_seconds(seconds)
     for stream in (sys.stdout, sys.stderr):  # _exit flushes nothing
         try:
             stream.flush()

@@ -166,7 +166,6 @@ def test_spin_node_runs_the_events_executor_and_stops_on_a_signal(ros):
     assert "Events" in kind and int(ticks) >= 20 and code == "0", out.stdout
 
 
-
 _TEARDOWN_CHILD = """
 import signal, threading
 import rclpy.signals
