@@ -1,12 +1,12 @@
 """A worker thread that processes queued items in adaptive batches (no ROS in here).
 
-The fdi node's subscription callback only decodes and validates a frame and
-hands it to a :class:`BatchWorker`; the worker thread takes *everything* that
-queued up while it was busy and labels it in one classifier pass. At a light
-load every batch is one frame (lowest latency); under load the batches grow,
-which amortises the classifier's fixed per-call cost, while the executor
-thread keeps receiving (numpy, scipy.fft and the forest release the GIL, so
-receiving and labelling overlap on two cores).
+With ``labelling_process``, the fdi node's subscription callback only decodes
+and validates a frame and hands it to a :class:`BatchWorker`; the worker thread
+takes *everything* that queued up while it was busy and hands it to the child
+as one batch. At a light load every batch is one frame (lowest latency); under
+load the batches grow, which amortises the classifier's fixed per-call cost,
+while the executor thread keeps receiving. (Without a child process the node
+labels on its executor thread: :class:`.labelling_backend.InlinePipeline`.)
 
 The queue is bounded: when it holds ``max_queued`` items the oldest one is
 dropped and reported to ``on_drop``, so an overloaded node sheds load it
@@ -24,6 +24,25 @@ from __future__ import annotations
 import threading
 from collections import deque
 from typing import Callable
+
+
+def push_bounded(queue: deque, item, rows: int, max_queued: int):
+    """Append ``(item, rows)`` to ``queue``; a queue already holding ``max_queued`` items
+    loses its oldest first. Returns the dropped item, or None."""
+    dropped = queue.popleft()[0] if len(queue) >= max_queued else None
+    queue.append((item, int(rows)))
+    return dropped
+
+
+def take_batch(queue: deque, max_rows: int) -> list:
+    """Pop the oldest items of ``queue`` (``(item, rows)`` pairs) while their rows stay within
+    ``max_rows``; one larger item is taken alone. Returns the items, oldest first."""
+    batch, rows = [], 0
+    while queue and (not batch or rows + queue[0][1] <= max_rows):
+        item, n = queue.popleft()
+        batch.append(item)
+        rows += n
+    return batch
 
 
 class BatchWorker:
@@ -71,13 +90,10 @@ class BatchWorker:
 
     def submit(self, item, rows: int = 1) -> None:
         """Queue ``item`` (of ``rows`` rows) for the next batch."""
-        dropped = None
         with self._cv:
             if self._stopping:
                 raise RuntimeError("BatchWorker is stopped")
-            if len(self._queue) >= self._max_queued:
-                dropped = self._queue.popleft()[0]
-            self._queue.append((item, int(rows)))
+            dropped = push_bounded(self._queue, item, rows, self._max_queued)
             self._cv.notify()
         if dropped is not None:
             self._on_drop(dropped)
@@ -112,12 +128,7 @@ class BatchWorker:
             self._thread.join(timeout)
 
     def _take(self) -> list:
-        batch, rows = [], 0
-        while self._queue and (not batch or rows + self._queue[0][1] <= self._max_rows):
-            item, n = self._queue.popleft()
-            batch.append(item)
-            rows += n
-        return batch
+        return take_batch(self._queue, self._max_rows)
 
     def _run(self) -> None:
         while True:

@@ -1,8 +1,7 @@
 """fdi: fault detection and isolation of every trace message of one printhead.
 
-``traces`` -> decode -> :class:`.labelling_backend.LabellingPipeline` (:class:`inkdiag_core.FrameLabeller`, thread or
-child process) -> ``labels``, ``drying_nozzles``; ``/diagnostics``. A model or baselines of another ``head_profile`` are
-refused at start. Parameters: docs/parameters.md; topics, counters: docs/controller.md; running it: docs/nodes.md."""
+``traces`` -> decode -> label (:mod:`.labelling_backend`) -> ``labels``, ``drying_nozzles``; ``/diagnostics``. A model or
+baselines of another ``head_profile``: refused. docs/parameters.md; topics, counters: docs/controller.md; docs/nodes.md."""
 
 from __future__ import annotations
 
@@ -19,7 +18,7 @@ from msg_defs import (DIAGNOSTICS_MSG_TYPE, DIAGNOSTICS_QOS, DRYING_MSG_TYPE, LA
 from . import _params
 from ._head import HEAD_PROFILE_PARAM, SAMPLING_PARAMS, head_from_parameters
 from ._spin import spin_node, take_queued
-from .labelling_backend import LabellingPipeline, make_backend
+from .labelling_backend import InlinePipeline, LabellingPipeline, ThreadBackend, make_backend
 from .stats import FdiStats
 
 PARAMS = (
@@ -34,12 +33,12 @@ PARAMS = (
      "branch; empty: none", str, None),
     ("max_abs_sample_v", 0.0, "largest sample magnitude a sensor can produce, V; a row beyond it is invalid "
      "('out_of_range'). 0: 5x the head profile's ADC range (10 V for the default head)", float, (0.0, 1e30)),
-    ("labelling_process", False, "label in a child process (a core and a GIL of its own), not a thread", bool, None),
+    ("labelling_process", False, "label in a child process (its own core and GIL), not on the executor thread", bool, None),
 )
 
 
 class FdiNode(Node):
-    """Decode (executor thread) -> label (pipeline's threads or child process) -> publish (its collector)."""
+    """Decode, label and publish on the executor thread; or decode there, label in a child, publish on a collector."""
 
     def __init__(self, **kwargs):
         super().__init__("fdi", **kwargs)
@@ -57,12 +56,12 @@ class FdiNode(Node):
         backend, why = make_backend(self.labeller, in_process=c["labelling_process"] and bool(self.labeller))
         if why:
             self._config_error(why)
-        self._pipeline = LabellingPipeline(
+        self._pipeline = (InlinePipeline if isinstance(backend, ThreadBackend) else LabellingPipeline)(
             backend, self._publish, on_batch=self._on_batch, on_drop=self._on_dropped, on_error=self._failed,
             max_queued=c["max_queued_frames"], max_batch_rows=c["max_batch_traces"], name="fdi-labeller")
         self.close_outputs = self._pipeline.close  # _spin.tear_down: the batches out published before nodes go
         self._sub = self.create_subscription(TRACE_MSG_TYPE, topics.TRACES, self._on_traces, TRACES_QOS)
-        self._diag_timer = self.create_timer(c["diagnostics_period_s"], self._on_diagnostics)
+        self._diag_timer = self.create_timer(c["diagnostics_period_s"], lambda: self._on_diagnostics(0.5))
 
     def _load_labeller(self):
         if not (c := self.config)["model_path"]:
@@ -91,13 +90,16 @@ class FdiNode(Node):
             self._pipeline.close()  # the batches out are published first (once: tear_down may have)
         return super().destroy_node()
 
-    def wait_idle(self, timeout: float | None = None) -> bool:  # for tests and tools
-        return self._pipeline.wait_idle(timeout)  # every received frame labelled and published
+    def wait_idle(self, timeout: float | None = None) -> bool:  # for tests and tools: all received labelled, published
+        return self._pipeline.wait_idle(timeout)
 
     def _on_traces(self, msg) -> None:
-        self._on_trace_msg(msg)
-        for taken in take_queued(self._sub, 64):  # one executor wake-up per burst, taken one by one
-            self._on_trace_msg(taken)
+        try:
+            for taken in (msg, *take_queued(self._sub, 64)):  # one executor wake-up per burst, taken one by one
+                self._on_trace_msg(taken)
+        finally:  # labelled and published here until a signal shuts the context (a child's pipeline: no-op)
+            self._pipeline.flush(self.context.ok)
+        self._on_diagnostics(1.0)  # under load the timer waits behind this callback: /diagnostics on time
 
     def _on_trace_msg(self, msg) -> None:
         self.stats.received()
@@ -118,8 +120,7 @@ class FdiNode(Node):
         self.get_logger().warning("labelling queue full: dropped the oldest frame", throttle_duration_sec=1.0)
 
     def _on_batch(self, n_frames: int, busy_s: float) -> None:
-        why = self._pipeline.backend.config_error
-        if why and self.stats.config_error != why:  # e.g. no labelling process could start
+        if (why := self._pipeline.backend.config_error) and self.stats.config_error != why:  # e.g. no child could start
             self._config_error(why)
         self.stats.batch(n_frames, busy_s)
 
@@ -134,21 +135,20 @@ class FdiNode(Node):
             self._labels_pub.publish(encode_labels(report))
             self._drying_pub.publish(encode_drying(DryingNozzles.from_labels(report)))
         except Exception as exc:  # noqa: BLE001 - this frame failed; the batch's others go on
-            self._failed(frame, exc)
-            return
+            return self._failed(frame, exc)
         self.stats.labelled(report.counts, report.n_nozzles, int(np.count_nonzero(result.baseline)), report.gate_cleared)
 
     def _failed(self, frame, exc) -> None:
         if self.context.ok():  # else shutting down: nothing left to publish to
-            why = f"{type(exc).__name__}: {exc}"
-            self.stats.failed(f"frame {frame.frame_id}: {why}")
+            self.stats.failed(f"frame {frame.frame_id}: {(why := f'{type(exc).__name__}: {exc}')}")
             self.get_logger().error(f"labelling frame {frame.frame_id} failed: {why}", throttle_duration_sec=1.0)
 
-    def _on_diagnostics(self) -> None:
-        level, message, values, counts, gate_cleared = self.stats.period(self.labeller is not None)
-        self._diag_pub.publish(build_diagnostics(
-            namespace=self.get_namespace(), level=level, message=message, values={"model_id": self.model_id, **values},
-            counts=counts, stamp=self.get_clock().now().to_msg(), gate_cleared=gate_cleared))
+    def _on_diagnostics(self, at_least: float) -> None:  # at least that many periods after the last one
+        if self.context.ok() and self.stats.since_period() >= at_least * self.config["diagnostics_period_s"]:
+            level, message, values, counts, gate_cleared = self.stats.period(self.labeller is not None)
+            self._diag_pub.publish(build_diagnostics(
+                namespace=self.get_namespace(), level=level, message=message, counts=counts, gate_cleared=gate_cleared,
+                values={"model_id": self.model_id, **values}, stamp=self.get_clock().now().to_msg()))
 
 
 def main(args=None) -> int:

@@ -1,4 +1,4 @@
-"""Where the fdi node's :class:`inkdiag_core.FrameLabeller` runs: one interface, two backends.
+"""Where the fdi node's :class:`inkdiag_core.FrameLabeller` runs: two backends, two pipelines.
 
 Both take a batch of frames with :meth:`submit` and give back, with
 :meth:`collect` (batches in the order submitted), a :class:`LabelledBatch`: the
@@ -15,6 +15,15 @@ hit; neither method raises for a batch.
   model fail) makes the backend label on the submitting thread from then on and
   say why in :attr:`ProcessBackend.config_error`.
 
+Two pipelines take decoded frames and hand each frame's result to the node:
+
+- :class:`InlinePipeline` (the node's default, with a :class:`ThreadBackend`): the executor
+  thread that took a burst of frames labels them in one pass and publishes their results
+  (:meth:`InlinePipeline.flush`) before it takes more. One Python thread does all of the
+  node's work, so no thread waits for another's GIL.
+- :class:`LabellingPipeline` (with a :class:`ProcessBackend`): a worker thread hands batches
+  to the child while the executor thread keeps receiving, and a collector thread publishes.
+
 No ROS in here.
 """
 
@@ -28,11 +37,11 @@ from typing import Callable, NamedTuple, Protocol
 
 from inkdiag_core import FrameFailure
 
-from .batching import BatchWorker
+from .batching import BatchWorker, push_bounded, take_batch
 from .labelling_process import LabellingProcess, LabellingProcessError
 
-__all__ = ["LabelledBatch", "LabellingBackend", "LabellingPipeline", "ProcessBackend", "ThreadBackend",
-           "make_backend"]
+__all__ = ["InlinePipeline", "LabelledBatch", "LabellingBackend", "LabellingPipeline", "ProcessBackend",
+           "ThreadBackend", "make_backend"]
 
 
 class LabelledBatch(NamedTuple):
@@ -219,6 +228,9 @@ class LabellingPipeline:
         """Queue one decoded frame (``.traces`` (n, n_samples), ``.first_nozzle``)."""
         self._worker.submit(frame, rows=frame.traces.shape[0])
 
+    def flush(self, keep_going: Callable | None = None) -> None:
+        """Nothing to do: the pipeline's own threads label and hand out every frame submitted."""
+
     def wait_idle(self, timeout: float | None = None) -> bool:
         """Block until every submitted frame's result was handed to ``on_result``."""
         return self._worker.wait_idle(timeout)
@@ -259,11 +271,120 @@ class LabellingPipeline:
             self._worker.finished()
 
     def _call(self, callback, frame, arg) -> None:
-        """``callback(frame, arg)``; what it raises goes to ``on_error``, never out of the collector."""
+        _hand_out(callback, self._on_error, frame, arg)
+
+
+def _hand_out(callback, on_error, frame, arg) -> None:
+    """``callback(frame, arg)``; what it raises goes to ``on_error``, never out of the pipeline."""
+    try:
+        callback(frame, arg)
+    except Exception as exc:  # noqa: BLE001 - the pipeline must outlive any one frame
         try:
-            callback(frame, arg)
-        except Exception as exc:  # noqa: BLE001 - the collector must outlive any one frame
-            try:
-                self._on_error(frame, exc)
-            except Exception:  # noqa: BLE001 - nothing more to do for this frame
-                pass
+            on_error(frame, exc)
+        except Exception:  # noqa: BLE001 - nothing more to do for this frame
+            pass
+
+
+class InlinePipeline:
+    """Frames labelled and handed out on the thread that queued them, when it calls :meth:`flush`.
+
+    The fdi node's subscription callback submits every frame it took in one executor
+    wake-up, then flushes: the queued frames are labelled in batches (at most
+    ``max_batch_rows`` rows each; one larger frame alone) and each frame's result goes to
+    ``on_result(frame, result)`` in order, then ``on_batch(n_frames, busy_s)``. No thread of
+    its own: taking, labelling and publishing take turns on one thread instead of three
+    threads contending for the GIL (the fdi node's throughput, reports/gate_bench.md). While
+    a batch is labelled, new messages wait in the subscription's DDS history (the traces
+    QoS's depth), not here. Same interface and arguments as :class:`LabellingPipeline`.
+
+    Parameters
+    ----------
+    backend : ThreadBackend
+    on_result, on_batch, on_drop, on_error
+        As for :class:`LabellingPipeline` (``on_result`` runs on the flushing thread).
+    max_queued : int
+        Frames queued at most between two flushes; submitting to a full queue drops the oldest.
+    max_batch_rows : int
+        Rows per labelling pass at most.
+    """
+
+    def __init__(self, backend, on_result: Callable, *, on_batch: Callable | None = None,
+                 on_drop: Callable | None = None, on_error: Callable | None = None, max_queued: int = 64,
+                 max_batch_rows: int = 16384, name: str = "labeller"):
+        if max_queued < 1 or max_batch_rows < 1:
+            raise ValueError(f"max_queued and max_batch_rows must be >= 1, got {max_queued}, {max_batch_rows}")
+        self.backend = backend
+        self._on_result, self._on_batch = on_result, on_batch or (lambda n, busy_s: None)
+        self._on_drop = on_drop or (lambda frame: None)
+        self._on_error = on_error or (lambda frame, exc: None)
+        self._max_queued, self._max_rows = int(max_queued), int(max_batch_rows)
+        self._queue: deque = deque()  # (frame, rows)
+        self._cv = threading.Condition()  # close() and wait_idle() may come from another thread
+        self._flushing = None  # the thread in flush(), or None
+        self._closed = False
+
+    def submit(self, frame) -> None:
+        """Queue one decoded frame (``.traces`` (n, n_samples), ``.first_nozzle``) for the next flush."""
+        with self._cv:
+            if self._closed:
+                raise RuntimeError("the labelling pipeline is closed")
+            dropped = push_bounded(self._queue, frame, frame.traces.shape[0], self._max_queued)
+        if dropped is not None:
+            self._on_drop(dropped)
+
+    def flush(self, keep_going: Callable | None = None) -> None:
+        """Label every queued frame and hand out its result, on this thread; returns when none is left.
+
+        ``keep_going()`` (optional) is asked before each batch: False stops the flush, and
+        what is still queued waits for the next one (or is dropped by :meth:`close`), as
+        when the node's context is shut down by a signal in the middle of a burst.
+        """
+        me = threading.current_thread()
+        with self._cv:
+            if self._flushing is not None:  # re-entered from a callback: the running flush takes them
+                return
+            self._flushing = me
+        try:
+            while (keep_going is None or keep_going()) and (batch := self._take()):
+                try:
+                    self.backend.submit([f.traces for f in batch], [f.first_nozzle for f in batch])
+                    results, busy_s = self.backend.collect()
+                except Exception as exc:  # noqa: BLE001 - the batch is lost: each of its frames fails
+                    results, busy_s = _all_failed(len(batch), exc), 0.0
+                for frame, result in zip(batch, results):
+                    _hand_out(self._on_result, self._on_error, frame, result)
+                try:
+                    self._on_batch(len(batch), busy_s)
+                except Exception:  # noqa: BLE001 - statistics only; the pipeline goes on
+                    pass
+        finally:
+            with self._cv:
+                if self._flushing is me:  # stopped early, or raised
+                    self._flushing = None
+                    self._cv.notify_all()
+
+    def _take(self) -> list:
+        """The next batch; none left: the flush ends in the same lock (a frame submitted after it finds none)."""
+        with self._cv:
+            batch = take_batch(self._queue, self._max_rows)
+            if not batch:
+                self._flushing = None
+                self._cv.notify_all()
+            return batch
+
+    def wait_idle(self, timeout: float | None = None) -> bool:
+        """Block until nothing is queued or being labelled; False on timeout (frames submitted
+        and never flushed stay queued; from ``on_result`` on the flushing thread: never idle)."""
+        with self._cv:
+            return self._cv.wait_for(lambda: not self._queue and self._flushing is None, timeout)
+
+    def close(self) -> None:
+        """Stop taking frames; a flush running on another thread hands out its batch first; close the backend."""
+        with self._cv:
+            if self._closed:
+                return
+            self._closed = True
+            self._queue.clear()  # unlabelled, as a LabellingPipeline's queue on close
+            if self._flushing not in (None, threading.current_thread()):
+                self._cv.wait_for(lambda: self._flushing is None, 10.0)
+        self.backend.close()

@@ -1,9 +1,8 @@
 """Labelling in a child process, so the fdi node's receiving and its classifier use two cores.
 
-In one Python process the executor thread (taking, decoding and publishing
-messages) and the labelling thread share one GIL, and the labelling runs many
-short numpy calls that hold it: the two threads together use about one core
-(``scripts/bench graph``). A :class:`LabellingProcess` keeps the FDI model in
+In one Python process taking, decoding, labelling and publishing share one
+GIL, and the labelling runs many short numpy calls that hold it: the node uses
+about one core (``scripts/bench graph``). A :class:`LabellingProcess` keeps the FDI model in
 a child process and labels each batch there with
 :meth:`inkdiag_core.FrameLabeller.label`: the parent copies the batch's traces into
 shared memory (one memcpy; the child labels them in place) and gets the

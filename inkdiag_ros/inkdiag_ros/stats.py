@@ -10,8 +10,9 @@ from collections import Counter
 class FdiStats:
     """What the FDI node has seen; :meth:`period` turns it into a diagnostics snapshot.
 
-    The node's executor thread and its labelling thread both update it; every
-    method holds one lock, so a snapshot never sees half an update.
+    The node's executor thread updates it, and with a labelling process its
+    collector thread too; every method holds one lock, so a snapshot never sees
+    half an update.
     """
 
     def __init__(self):
@@ -71,6 +72,11 @@ class FdiStats:
             self.rows_gate_cleared += n_gate_cleared
             self.counts.update(counts)
             self.rows_invalid += counts.get("invalid", 0)
+
+    def since_period(self) -> float:
+        """Seconds since the last :meth:`period` (or since this object was made)."""
+        with self._lock:
+            return time.monotonic() - self._mark[0]
 
     def period(self, model_loaded: bool):
         """``(level, message, values, counts, gate_cleared)`` over the time since the last call.

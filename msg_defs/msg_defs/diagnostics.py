@@ -17,8 +17,8 @@ Each FDI node publishes, every ``diagnostics_period_s``, an array with one
   classified against their nozzle's recorded baseline); over the last period:
   ``frames_per_s``, ``traces_per_s``, ``frames_per_batch`` (frames labelled per
   classifier pass) and ``labeller_busy`` (fraction of the time the classifier
-  was busy, on the labelling thread or in the labelling process: near 1, the
-  node is at its capacity); then
+  was busy: in the labelling process, near 1 is the node at its capacity; on
+  the executor thread, which also takes and publishes, capacity comes below 1); then
   ``last_error`` (the last malformed frame's reason), ``config_error`` (empty, or
   the setting the node runs without, and why) and then ``count.<class>``
   for each class value and ``count.invalid`` (cumulative rows per label;

@@ -14,7 +14,7 @@ nozzles each frame, no baselines). Then replays them from this process into a se
    (zero-copy header + view) and answers with a tiny ack carrying the frame id
    (with the allocator set as in every inkdiag node process, ``inkdiag_ros.allocator``);
 2. per case, fdi: the real fdi node (``python -m inkdiag_ros.fdi_node``) with the model
-   and the case's baselines, whose ``labels`` messages are the answers, labelling on its worker thread;
+   and the case's baselines, whose ``labels`` messages are the answers, labelling on its executor thread;
 3. per case, the same node with ``labelling_process:=true`` (the classifier in a child
    process: a third process on the same 2 cores; ``--no-process`` skips it).
 

@@ -54,7 +54,7 @@ def test_fdi_labels_a_foreign_heads_frames_with_its_model_and_refuses_other_samp
     sim = h.simulate({FaultClass.HEALTHY_NOZZLE: 12, FaultClass.FULLY_BLOCKED: 12}, seed=5)
     x = sim.traces.astype(np.float32)
     x[0, 3] = np.nan
-    fdi._on_trace_msg(encode_traces(x, sample_rate_hz=20e6, frame_id=1))
+    fdi._on_traces(encode_traces(x, sample_rate_hz=20e6, frame_id=1))  # as the executor calls it
     assert fdi.wait_idle(30)
     ros.spin_until(lambda: labels, 10, "labels")
     rep = labels[-1]
@@ -62,7 +62,7 @@ def test_fdi_labels_a_foreign_heads_frames_with_its_model_and_refuses_other_samp
     assert rep.counts.get("fully_blocked", 0) >= 10
     # a frame of the default head's sampling is malformed, and the message says the head
     d = HeadProfile.default().simulate({FaultClass.HEALTHY_NOZZLE: 4}, seed=1).traces
-    fdi._on_trace_msg(encode_traces(d.astype(np.float32), frame_id=2))
+    fdi._on_traces(encode_traces(d.astype(np.float32), frame_id=2))
     assert fdi.stats.frames_malformed == 1 and "foreign20" in fdi.stats.last_error
 
 

@@ -37,29 +37,40 @@ def _fdi(ros, model_path, **over):
 
 def test_a_failed_batch_counts_every_frame_it_held(ros, fdi_model, monkeypatch):
     import inkdiag_core
-    import inkdiag_ros.fdi_node as fdi_node
 
     calls = []
 
-    def fail_slowly(*args, **kwargs):  # the first batch holds the worker while the others queue up
-        calls.append(1)
-        time.sleep(0.5 if len(calls) == 1 else 0.0)
+    def fail(self, frames, *args, **kwargs):
+        calls.append(len(frames))
         raise RuntimeError("unexpected labelling error")
 
-    # the labelling call of the node, on this branch and before it (label_frames_isolated)
-    if hasattr(inkdiag_core, "FrameLabeller"):
-        monkeypatch.setattr(inkdiag_core.FrameLabeller, "label", fail_slowly)
-    monkeypatch.setattr(fdi_node, "label_frames_isolated", fail_slowly, raising=False)
+    monkeypatch.setattr(inkdiag_core.FrameLabeller, "label", fail)
     fdi = _fdi(ros, fdi_model)
     x = simulate({FaultClass.HEALTHY_NOZZLE: 4}, seed=1).traces.astype(np.float32)
-    for k in range(6):
+    for k in range(5):  # taken in one executor wake-up: labelled together when the callback flushes
         fdi._on_trace_msg(encode_traces(x, first_nozzle=0, frame_id=k))
-        time.sleep(0.05)
+    fdi._on_traces(encode_traces(x, first_nozzle=0, frame_id=5))
     assert fdi.wait_idle(10)
     s = fdi.stats
-    assert len(calls) < 6  # some frames were batched together
-    assert s.frames_failed == 6 and s.frames_labelled == 0, (s.frames_failed, len(calls))
+    assert calls == [6]  # one labelling pass for the six frames
+    assert s.frames_failed == 6 and s.frames_labelled == 0, (s.frames_failed, calls)
     assert "unexpected labelling error" in s.last_error
+
+
+def test_fdi_publishes_diagnostics_from_its_trace_callback_when_the_timer_cannot_run(ros, fdi_model):
+    """Under load the executor runs trace callbacks back to back (fdi labels in them) and the diagnostics
+    timer waits behind them: the callback itself publishes /diagnostics once a period has passed."""
+    fdi = _fdi(ros, fdi_model)  # diagnostics_period_s 0.2
+    x = simulate({FaultClass.HEALTHY_NOZZLE: 4}, seed=1).traces.astype(np.float32)
+    published, publish = [], fdi._diag_pub.publish
+    fdi._diag_pub.publish = lambda msg: published.append(time.monotonic()) or publish(msg)
+    t0, k = time.monotonic(), 0
+    while time.monotonic() - t0 < 0.9:  # never spun: only the trace callback can publish
+        fdi._on_traces(encode_traces(x, first_nozzle=0, frame_id=k))
+        k += 1
+        time.sleep(0.01)
+    assert fdi.stats.frames_labelled == k
+    assert 3 <= len(published) <= 5 and all(b - a >= 0.19 for a, b in zip(published, published[1:])), published
 
 
 def test_a_model_file_that_is_not_a_fault_detector_is_refused(ros, tmp_path):

@@ -179,3 +179,141 @@ def test_closing_a_pipeline_twice_closes_its_backend_once(head):
     pipe.close()
     pipe.close()
     assert seen == [0] and closes == [1]
+
+
+def _frame(i, frames, firsts):
+    from types import SimpleNamespace
+
+    return SimpleNamespace(id=i, traces=frames[i % 3], first_nozzle=firsts[i % 3])
+
+
+def test_inline_pipeline_labels_on_the_flushing_thread_in_bounded_batches_as_the_labeller_does(head):
+    """flush() labels what is queued, in batches of at most max_batch_rows rows, each frame's result in order,
+    on the calling thread; the results equal FrameLabeller.label's on the same frames."""
+    import threading
+
+    from inkdiag_ros.labelling_backend import InlinePipeline
+
+    det, _, frames, firsts = head
+    labeller = FrameLabeller(det, max_abs_v=10.0)
+    seen, batches, threads = [], [], set()
+
+    def on_result(frame, result):
+        threads.add(threading.current_thread())
+        seen.append((frame.id, result))
+
+    pipe = InlinePipeline(ThreadBackend(labeller), on_result, max_batch_rows=40,
+                          on_batch=lambda n, busy_s: batches.append((n, busy_s > 0)))
+    for i in range(6):  # 16, 24, 24, 16, 24, 24 rows
+        pipe.submit(_frame(i, frames, firsts))
+    assert seen == [] and not pipe.wait_idle(0.0)  # nothing before the flush
+    pipe.flush()
+    assert pipe.wait_idle(0.0) and threads == {threading.current_thread()}
+    assert [i for i, _ in seen] == list(range(6))
+    assert batches == [(2, True), (2, True), (1, True), (1, True)]  # 16+24, 24+16, 24, 24 rows: at most 40
+    want = labeller.label(frames, firsts)
+    for i, got in seen:
+        assert list(got.classes) == list(want[i % 3].classes) and list(got.reasons) == list(want[i % 3].reasons)
+    pipe.close()
+
+
+def test_inline_pipeline_drops_the_oldest_from_a_full_queue_and_outlives_a_raising_callback(head):
+    from inkdiag_ros.labelling_backend import InlinePipeline
+
+    det, _, frames, firsts = head
+    seen, errors, dropped = [], [], []
+
+    def on_result(frame, result):
+        if frame.id == 3:
+            raise RuntimeError("publishing failed")
+        seen.append(frame.id)
+
+    pipe = InlinePipeline(ThreadBackend(FrameLabeller(det, max_abs_v=10.0)), on_result, max_queued=3,
+                          on_drop=lambda frame: dropped.append(frame.id),
+                          on_error=lambda frame, exc: errors.append((frame.id, str(exc))))
+    for i in range(5):
+        pipe.submit(_frame(i, frames, firsts))
+    pipe.flush()
+    assert dropped == [0, 1] and seen == [2, 4] and errors == [(3, "publishing failed")]
+    pipe.close()
+    pipe.close()  # a second close is a no-op
+    with pytest.raises(RuntimeError, match="closed"):
+        pipe.submit(_frame(0, frames, firsts))
+
+
+def test_inline_pipeline_fails_every_frame_of_a_batch_its_backend_lost_and_goes_on(head):
+    from inkdiag_ros.labelling_backend import InlinePipeline
+
+    det, _, frames, firsts = head
+    backend = ThreadBackend(FrameLabeller(det, max_abs_v=10.0))
+    submit = backend.submit
+    calls = []
+
+    def lose_first(traces, first_nozzles):
+        calls.append(len(traces))
+        if len(calls) == 1:
+            raise OSError("gone")
+        submit(traces, first_nozzles)
+
+    backend.submit = lose_first
+    got = []
+    pipe = InlinePipeline(backend, lambda frame, result: got.append((frame.id, type(result).__name__)),
+                          max_batch_rows=40)
+    for i in range(4):
+        pipe.submit(_frame(i, frames, firsts))
+    pipe.flush()
+    assert calls == [2, 2]
+    assert got == [(0, "FrameFailure"), (1, "FrameFailure"), (2, "FrameLabels"), (3, "FrameLabels")]
+
+
+def test_closing_an_inline_pipeline_waits_for_the_batch_being_labelled_on_another_thread(head):
+    """The node's teardown (another thread) closes the pipeline while the executor thread flushes: the batch in
+    hand is handed out before the backend closes; what was still queued is not labelled."""
+    import threading
+
+    from inkdiag_ros.labelling_backend import InlinePipeline
+
+    det, _, frames, firsts = head
+    backend = ThreadBackend(FrameLabeller(det, max_abs_v=10.0))
+    started, release, events = threading.Event(), threading.Event(), []
+    label = backend.labeller.label
+
+    def slow_label(fr, fi, **kw):
+        started.set()
+        release.wait(10.0)
+        return label(fr, fi, **kw)
+
+    backend.labeller.label = slow_label
+    close = backend.close
+    backend.close = lambda: events.append("backend closed") or close()
+    pipe = InlinePipeline(backend, lambda frame, result: events.append(frame.id), max_batch_rows=16)
+    for i in range(3):  # 16-row bound: one frame per batch
+        pipe.submit(_frame(i, frames, firsts))
+    flusher = threading.Thread(target=pipe.flush)
+    flusher.start()
+    assert started.wait(10.0)
+    closer = threading.Thread(target=pipe.close)
+    closer.start()
+    closer.join(0.2)
+    assert closer.is_alive() and events == []  # close waits for the batch in hand
+    release.set()
+    closer.join(10.0)
+    flusher.join(10.0)
+    assert events == [0, "backend closed"]
+
+
+def test_an_inline_flush_stops_between_batches_when_told_and_the_rest_waits(head):
+    """fdi flushes with ``keep_going=context.ok``: a signal in the middle of a burst stops it after the batch in
+    hand; the frames left stay queued (the next flush takes them, or close drops them)."""
+    from inkdiag_ros.labelling_backend import InlinePipeline
+
+    det, _, frames, firsts = head
+    seen = []
+    pipe = InlinePipeline(ThreadBackend(FrameLabeller(det, max_abs_v=10.0)), lambda f, r: seen.append(f.id),
+                          max_batch_rows=16)
+    for i in range(3):  # one frame per batch
+        pipe.submit(_frame(i, frames, firsts))
+    pipe.flush(lambda: len(seen) < 1)
+    assert seen == [0] and not pipe.wait_idle(0.0)
+    pipe.flush()
+    assert seen == [0, 1, 2] and pipe.wait_idle(0.0)
