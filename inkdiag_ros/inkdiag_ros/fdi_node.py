@@ -95,7 +95,7 @@ class FdiNode(Node):
 
     def _on_traces(self, msg) -> None:
         try:
-            for taken in (msg, *take_queued(self._sub, 64)):  # one executor wake-up per burst, taken one by one
+            for taken in (msg, *take_queued(self._sub, min(64, self.config["max_queued_frames"] - 1))):  # a burst
                 self._on_trace_msg(taken)
         finally:  # labelled and published here until a signal shuts the context (a child's pipeline: no-op)
             self._pipeline.flush(self.context.ok)

@@ -51,7 +51,7 @@ PARAMS = (
      "nozzle range (lowest ids first); bounds the cost per trace message", int, (1, 100_000)),
     ("max_pending", 128, "trace messages (one frame's nozzle range), and drying lists, each held at most "
      "while waiting for their partner; the oldest is dropped beyond this. Keep it above fdi's "
-     "max_queued_frames (fdi lags by up to that many messages). Held traces keep their message's memory",
+     "max_queued_frames plus 32 (fdi lags by up to that many messages). Held traces keep their message's memory",
      int, (1, 10_000)),
     ("trend_accel_std", 5e3, "white acceleration noise of the f_m trend, 1/s^3", float, (1.0, 1e9)),
     ("trend_rel_floor", 0.05, "relative floor of one estimate's standard deviation", float, (0.0, 1.0)),

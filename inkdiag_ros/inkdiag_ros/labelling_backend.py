@@ -385,6 +385,7 @@ class InlinePipeline:
                 return
             self._closed = True
             self._queue.clear()  # unlabelled, as a LabellingPipeline's queue on close
+            self._cv.notify_all()  # a wait_idle elsewhere: nothing queued now
             if self._flushing not in (None, threading.current_thread()):
                 self._cv.wait_for(lambda: self._flushing is None, 10.0)
         self.backend.close()
