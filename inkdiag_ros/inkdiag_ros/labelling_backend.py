@@ -18,8 +18,8 @@ hit; neither method raises for a batch.
 Two pipelines take decoded frames and hand each frame's result to the node:
 
 - :class:`InlinePipeline` (the node's default, with a :class:`ThreadBackend`): the executor
-  thread that took a burst of frames labels them in one pass and publishes their results
-  (:meth:`InlinePipeline.flush`) before it takes more. One Python thread does all of the
+  thread that took a burst of frames labels them (in batches of at most ``max_batch_rows``
+  rows) and publishes their results (:meth:`InlinePipeline.flush`) before it takes more. One Python thread does all of the
   node's work, so no thread waits for another's GIL.
 - :class:`LabellingPipeline` (with a :class:`ProcessBackend`): a worker thread hands batches
   to the child while the executor thread keeps receiving, and a collector thread publishes.
@@ -306,6 +306,8 @@ class InlinePipeline:
         Frames queued at most between two flushes; submitting to a full queue drops the oldest.
     max_batch_rows : int
         Rows per labelling pass at most.
+    name : str
+        Unused (no thread to name); accepted as :class:`LabellingPipeline` takes it.
     """
 
     def __init__(self, backend, on_result: Callable, *, on_batch: Callable | None = None,
