@@ -163,6 +163,11 @@ def load_recording(path) -> Recording:
                                  "(the inkdiag verbs do)")
         raise RecordingError(f"{src}: is a directory; a recording is an .npz file or a rosbag2 bag directory")
     try:
+        with open(path, "rb") as f:
+            magic = f.read(6)
+        if not magic.startswith((b"PK\x03\x04", b"PK\x05\x06", b"\x93NUMPY")):  # a zip (.npz) or an .npy
+            raise RecordingError(f"{src}: not an .npz archive (a zip of numpy arrays): "
+                                 + (f"it starts with {magic!r}" if magic else "an empty file"))
         z = np.load(path, allow_pickle=False)
         if not isinstance(z, np.lib.npyio.NpzFile):
             raise RecordingError(f"{src}: not an .npz archive (a single .npy array?)")

@@ -14,15 +14,18 @@ Each subcommand is a module of :mod:`inkdiag_ros.verbs` with ``HELP`` (one
 line), ``DESCRIPTION``, ``add_arguments(parser)`` and ``run(args) -> int``; the
 modules import the core only inside ``run``, so ``--help`` is fast. Bad input
 (a missing file, another schema, a recording of another sampling, a profile
-calibration cannot fit) is one line on stderr, ``inkdiag VERB: error: ...``,
-and exit status 2; argparse's own usage errors are status 2 as well.
+calibration cannot fit, an ``--out`` in no writable directory) is one line on stderr,
+``inkdiag VERB: error: ...``, and exit status 2, checked before any work where it can be;
+so are argparse's own usage errors.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+from pathlib import Path
 
 __all__ = ["VERBS", "build_parser", "main"]
 
@@ -30,9 +33,16 @@ VERBS = ("calibrate", "train", "label", "estimate", "record", "replay", "printer
 """The subcommands, in the order ``inkdiag --help`` lists them."""
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser with its usage errors on one line (``inkdiag VERB: error: ...``), status 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``inkdiag`` parser with one subparser per verb."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="inkdiag", description="inkdiag: fault detection, isolation and estimation for piezo inkjet "
         "printheads. Offline tasks on a head profile and recordings; see docs/cli.md.")
     sub = parser.add_subparsers(dest="verb", metavar="VERB", required=True)
@@ -51,6 +61,7 @@ def main(argv=None) -> int:
     from inkdiag_core.checks import InputError
 
     try:
+        _check_out(args)
         return int(args._run(args) or 0)
     except KeyboardInterrupt:
         print(f"inkdiag {args.verb}: interrupted", file=sys.stderr)
@@ -59,6 +70,17 @@ def main(argv=None) -> int:
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         print(f"inkdiag {args.verb}: error: {msg}", file=sys.stderr)
         return 2
+
+
+def _check_out(args) -> None:
+    """A verb's ``--out`` must go into an existing, writable directory: said before any work is done."""
+    out = getattr(args, "out", None)
+    if out and out != "-":
+        parent = Path(out).expanduser().parent
+        if not parent.is_dir():
+            raise OSError(f"{parent}: no such directory for --out")
+        if not os.access(parent, os.W_OK):
+            raise OSError(f"{parent}: not writable, for --out")
 
 
 if __name__ == "__main__":

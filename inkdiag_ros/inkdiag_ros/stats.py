@@ -6,6 +6,8 @@ import threading
 import time
 from collections import Counter
 
+from msg_defs.labels import INVALID_KEY
+
 
 class FdiStats:
     """What the FDI node has seen; :meth:`period` turns it into a diagnostics snapshot.
@@ -81,11 +83,11 @@ class FdiStats:
     def period(self, model_loaded: bool):
         """``(level, message, values, counts, gate_cleared)`` over the time since the last call.
 
-        ``counts`` is a copy of the cumulative rows per label; ``gate_cleared`` the
-        cumulative rows the healthy gate cleared.
+        ``counts`` is a copy of the cumulative rows per label (``"invalid"`` always, 0 before
+        any labelled frame); ``gate_cleared`` the cumulative rows the healthy gate cleared.
         """
         with self._lock:
-            return self._period(model_loaded) + (dict(self.counts), self.rows_gate_cleared)
+            return self._period(model_loaded) + ({INVALID_KEY: 0, **self.counts}, self.rows_gate_cleared)
 
     def _period(self, model_loaded: bool):
         now = time.monotonic()

@@ -267,21 +267,21 @@ def _decode(dims, data_offset, data, *, max_nozzle_id, n_samples, sample_rate_hz
         )
     head = data[:HEADER_LEN].astype(np.float64)
     if head[0] != SCHEMA_VERSION:
-        raise FrameError(f"expected trace schema version {SCHEMA_VERSION}, got {head[0]:g}")
+        raise FrameError(f"expected trace schema version {SCHEMA_VERSION}, got {head[0]:.10g}")
     if not np.all(np.isfinite(head)) or np.any(head[[1, 2, 3, 5, 6, 7]] < 0) or np.any(
         head[[1, 2, 3, 5, 6, 7]] != np.floor(head[[1, 2, 3, 5, 6, 7]])
     ):
         raise FrameError(f"header values must be non-negative integers, got {head.tolist()}")
     if not head[4] > 0:
-        raise FrameError(f"expected a positive sample_rate_hz in the header, got {head[4]:g}")
+        raise FrameError(f"expected a positive sample_rate_hz in the header, got {head[4]:.10g}")
     for k, name in ((2, "frame_lo"), (3, "frame_hi"), (5, "stamp_s_lo"), (6, "stamp_s_hi")):
         if head[k] >= _EXACT:
-            raise FrameError(f"header {name} must be < 2**24 ({_EXACT}), got {head[k]:g}")
+            raise FrameError(f"header {name} must be < 2**24 ({_EXACT}), got {head[k]:.10g}")
     if head[7] > 999_999:
-        raise FrameError(f"header stamp_us (microseconds) must be < 1e6, got {head[7]:g}")
+        raise FrameError(f"header stamp_us (microseconds) must be < 1e6, got {head[7]:.10g}")
     first = int(head[1])
     if first + n > _EXACT:
-        raise FrameError(f"nozzle ids must stay below 2**24, got first_nozzle={first:g} with {n} rows")
+        raise FrameError(f"nozzle ids must stay below 2**24, got first_nozzle={first} with {n} rows")
     if max_nozzle_id is not None and first + n - 1 > max_nozzle_id:
         raise FrameError(
             f"nozzle range {first}..{first + n - 1} out of bounds: this head's nozzles are "
@@ -290,7 +290,7 @@ def _decode(dims, data_offset, data, *, max_nozzle_id, n_samples, sample_rate_hz
     if n_samples is not None and s != n_samples:
         raise FrameError(f"expected {n_samples} samples per trace, got {s}")
     if sample_rate_hz is not None and float(head[4]) != float(np.float32(sample_rate_hz)):
-        raise FrameError(f"expected sample_rate_hz {sample_rate_hz:g}, got {head[4]:g}")
+        raise FrameError(f"expected sample_rate_hz {sample_rate_hz:.10g}, got {head[4]:.10g}")
     traces = data[HEADER_LEN:].reshape(n, s)
     traces.flags.writeable = False  # a view into the message: never write through it
     return TraceFrame(

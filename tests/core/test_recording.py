@@ -54,8 +54,14 @@ def test_unreadable_files(tmp_path):
     with pytest.raises(RecordingError, match="no such recording"):
         load_recording(tmp_path / "none.npz")
     (tmp_path / "junk.npz").write_bytes(b"not a zip at all")
-    with pytest.raises(RecordingError, match="cannot read"):
+    with pytest.raises(RecordingError, match=r"not an .npz archive \(a zip of numpy arrays\): it starts with b'not a '"):
         load_recording(tmp_path / "junk.npz")
+    (tmp_path / "empty.npz").write_bytes(b"")
+    with pytest.raises(RecordingError, match="an empty file"):
+        load_recording(tmp_path / "empty.npz")
+    (tmp_path / "cut.npz").write_bytes(b"PK\x03\x04" + b"\x00" * 20)  # a zip cut short
+    with pytest.raises(RecordingError, match="cannot read the recording"):
+        load_recording(tmp_path / "cut.npz")
     np.save(tmp_path / "one.npy", np.zeros(3))
     with pytest.raises(RecordingError, match="not an .npz"):
         load_recording(tmp_path / "one.npy")

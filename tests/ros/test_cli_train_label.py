@@ -118,6 +118,10 @@ def test_label_uses_each_rows_nozzle_baseline(work, tmp_path):
     (["label", "{d}/rec.npz", "--model", "{d}/tampered.joblib", "--out", "{d}/l.csv"], "tampered"),
     (["label", "{d}/rec.npz", "--model", "{d}/head.joblib", "--baselines", "{d}/base10.npz", "--out",
       "{d}/l.csv"], "baseline"),
+    (["label", "{d}/notzip.npz", "--model", "{d}/head.joblib", "--out", "{d}/l.csv"],
+     "not an .npz archive (a zip of numpy arrays): it starts with b'row,no'"),
+    (["label", "{d}/rec.npz", "--model", "{d}/head.joblib", "--out", "{d}/nodir/l.csv"],
+     "nodir: no such directory for --out"),
 ])
 def test_bad_input_is_one_line_and_exit_status_2(work, trained, argv, match, capsys):
     d, _, _ = work
@@ -128,10 +132,23 @@ def test_bad_input_is_one_line_and_exit_status_2(work, trained, argv, match, cap
         rec = BaselineRecorder(n_frames=1)
         rec.add(0, HeadProfile.default().simulate({FaultClass.HEALTHY_NOZZLE: 3}, seed=0).traces)
         rec.baselines().save(d / "base10.npz")
+        (d / "notzip.npz").write_text("row,nozzle,class\n")  # a CSV given an .npz name
     capsys.readouterr()
     assert main([a.format(d=d) for a in argv]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"inkdiag {argv[0]}: error: ") and match in err[0], err
+
+
+@pytest.mark.parametrize(("argv", "match"), [
+    ([], "inkdiag: error: the following arguments are required: VERB (see inkdiag --help)"),
+    (["train", "--profile", "p.yaml", "--out", "m.joblib", "--n-per-class", "abc"],
+     "inkdiag train: error: argument --n-per-class: invalid int value: 'abc' (see inkdiag train --help)"),
+])
+def test_usage_errors_are_one_line_and_exit_status_2(argv, match, capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    assert stop.value.code == 2
+    assert capsys.readouterr().err.strip().splitlines() == [match]
 
 
 def test_a_rate_computed_as_one_over_dt_is_the_models(work, trained, tmp_path):

@@ -281,3 +281,14 @@ def test_fdi_labels_a_trace_unlike_every_class_unknown_and_counts_it(ros, tmp_pa
     ros.spin_until(lambda: rig.diag and rig.diag[-1]["inkdiag fdi: /h"]["frames_labelled"] == "1",
                    5, "diagnostics")
     assert rig.diag[-1]["inkdiag fdi: /h"]["count.unknown"] == str(len(unknown))
+
+
+def test_diagnostics_counts_invalid_from_the_start():
+    """``count.invalid`` (= ``rows_invalid``) is in /diagnostics before the first labelled frame too."""
+    from inkdiag_ros.stats import FdiStats
+
+    stats = FdiStats()
+    assert stats.period(True)[3] == {"invalid": 0}
+    stats.labelled({"healthy_nozzle": 3, "invalid": 1}, 4)
+    counts = stats.period(True)[3]
+    assert counts == {"healthy_nozzle": 3, "invalid": 1} and stats.rows_invalid == 1
