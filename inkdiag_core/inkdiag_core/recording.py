@@ -162,6 +162,8 @@ def load_recording(path) -> Recording:
             raise RecordingError(f"{src}: is a rosbag2 bag; read it with inkdiag_ros.bags.load_recording "
                                  "(the inkdiag verbs do)")
         raise RecordingError(f"{src}: is a directory; a recording is an .npz file or a rosbag2 bag directory")
+    if not path.is_file():  # a pipe or a device: np.load needs to seek, and the check below reads
+        raise RecordingError(f"{src}: not a regular file; a recording is an .npz file or a rosbag2 bag directory")
     try:
         with open(path, "rb") as f:
             magic = f.read(6)

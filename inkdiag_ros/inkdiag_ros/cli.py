@@ -73,10 +73,12 @@ def main(argv=None) -> int:
 
 
 def _check_out(args) -> None:
-    """A verb's ``--out`` must go into an existing, writable directory: said before any work is done."""
+    """A verb's ``--out`` must go into an existing, writable directory: said before any work is done.
+
+    Not ``train``'s: it creates its model's directory (:func:`inkdiag_core.save_detector`)."""
     out = getattr(args, "out", None)
-    if out and out != "-":
-        parent = Path(out).expanduser().parent
+    if out and out != "-" and args.verb != "train":
+        parent = Path(out).parent
         if not parent.is_dir():
             raise OSError(f"{parent}: no such directory for --out")
         if not os.access(parent, os.W_OK):

@@ -1,5 +1,7 @@
 """Recordings (.npz) for the offline verbs: round trip, defaults, and clear errors."""
 
+import os
+
 import numpy as np
 import pytest
 
@@ -62,6 +64,9 @@ def test_unreadable_files(tmp_path):
     (tmp_path / "cut.npz").write_bytes(b"PK\x03\x04" + b"\x00" * 20)  # a zip cut short
     with pytest.raises(RecordingError, match="cannot read the recording"):
         load_recording(tmp_path / "cut.npz")
+    os.mkfifo(tmp_path / "pipe.npz")  # np.load cannot seek in it, and opening it would wait for a writer
+    with pytest.raises(RecordingError, match="not a regular file"):
+        load_recording(tmp_path / "pipe.npz")
     np.save(tmp_path / "one.npy", np.zeros(3))
     with pytest.raises(RecordingError, match="not an .npz"):
         load_recording(tmp_path / "one.npy")

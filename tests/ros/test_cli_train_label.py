@@ -92,7 +92,8 @@ def test_train_then_label_a_foreign_head_end_to_end(work, trained):
 
 def test_label_uses_each_rows_nozzle_baseline(work, tmp_path):
     d, head, _ = work
-    assert main(["train", "--profile", str(d / "head.yaml"), "--out", str(tmp_path / "b.joblib"), "--baseline",
+    model = tmp_path / "models" / "b.joblib"  # train creates its model's directory (docs/cli.md)
+    assert main(["train", "--profile", str(d / "head.yaml"), "--out", str(model), "--baseline",
                  "--n-per-class", "24", "--quiet"]) == 0
     rec = BaselineRecorder(n_frames=2, profile=head)  # baselines of this head (its sha256 in the file)
     for k in range(2):
@@ -100,7 +101,7 @@ def test_label_uses_each_rows_nozzle_baseline(work, tmp_path):
     rec.baselines().save(tmp_path / "base.npz")  # nozzles 100..104
     x = head.simulate({FaultClass.HEALTHY_NOZZLE: 6}, seed=60).traces
     save_recording(tmp_path / "r.npz", Recording.from_arrays(x, 20e6, nozzle=[104, 7, 100, 8, 102, 9]))
-    assert main(["label", str(tmp_path / "r.npz"), "--model", str(tmp_path / "b.joblib"), "--baselines",
+    assert main(["label", str(tmp_path / "r.npz"), "--model", str(model), "--baselines",
                  str(tmp_path / "base.npz"), "--out", str(tmp_path / "l.csv")]) == 0
     _, rows = _read(tmp_path / "l.csv")
     assert [r["baseline"] for r in rows] == ["1", "0", "1", "0", "1", "0"]
