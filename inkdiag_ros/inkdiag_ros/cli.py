@@ -11,7 +11,8 @@
 A RECORDING is an .npz file or a rosbag2 bag directory (see docs/bags.md).
 
 Each subcommand is a module of :mod:`inkdiag_ros.verbs` with ``HELP`` (one
-line), ``DESCRIPTION``, ``add_arguments(parser)`` and ``run(args) -> int``; the
+line), ``DESCRIPTION``, ``add_arguments(parser)``, ``run(args) -> int`` and optionally
+``MAKES_OUT_DIR`` (True: ``run`` creates its ``--out``'s directory); the
 modules import the core only inside ``run``, so ``--help`` is fast. Bad input
 (a missing file, another schema, a recording of another sampling, a profile
 calibration cannot fit, an ``--out`` in no writable directory) is one line on stderr,
@@ -51,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
         p = sub.add_parser(verb, help=module.HELP, description=module.DESCRIPTION,
                            formatter_class=argparse.RawDescriptionHelpFormatter)
         module.add_arguments(p)
-        p.set_defaults(_run=module.run)
+        p.set_defaults(_run=module.run, _makes_out_dir=getattr(module, "MAKES_OUT_DIR", False))
     return parser
 
 
@@ -73,11 +74,10 @@ def main(argv=None) -> int:
 
 
 def _check_out(args) -> None:
-    """A verb's ``--out`` must go into an existing, writable directory: said before any work is done.
-
-    Not ``train``'s: it creates its model's directory (:func:`inkdiag_core.save_detector`)."""
+    """A verb's ``--out`` must go into an existing, writable directory: said before any work is done
+    (not for a verb whose module sets ``MAKES_OUT_DIR``: it creates the directory)."""
     out = getattr(args, "out", None)
-    if out and out != "-" and args.verb != "train":
+    if out and out != "-" and not args._makes_out_dir:
         parent = Path(out).parent
         if not parent.is_dir():
             raise OSError(f"{parent}: no such directory for --out")

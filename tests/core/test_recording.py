@@ -56,7 +56,7 @@ def test_unreadable_files(tmp_path):
     with pytest.raises(RecordingError, match="no such recording"):
         load_recording(tmp_path / "none.npz")
     (tmp_path / "junk.npz").write_bytes(b"not a zip at all")
-    with pytest.raises(RecordingError, match=r"not an .npz archive \(a zip of numpy arrays\): it starts with b'not a '"):
+    with pytest.raises(RecordingError, match=r"not an .npz archive \(a zip of numpy arrays\): it starts with b'not a"):
         load_recording(tmp_path / "junk.npz")
     (tmp_path / "empty.npz").write_bytes(b"")
     with pytest.raises(RecordingError, match="an empty file"):

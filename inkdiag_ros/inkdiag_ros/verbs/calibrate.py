@@ -137,8 +137,6 @@ def run(args) -> int:
         note = f"; {left_out} rows labelled otherwise left out" if left_out else ""
     out = Path(args.out)
     report_dir = Path(args.report_dir) if args.report_dir else out.parent
-    if not out.parent.is_dir():
-        raise OSError(f"{out.parent}: no such directory for --out")
     report_dir.mkdir(parents=True, exist_ok=True)
     result = calibrate(nominal, traces, fs, name=args.name, seed=args.seed)
     result.profile.save(out)

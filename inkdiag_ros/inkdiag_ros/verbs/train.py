@@ -1,6 +1,7 @@
 """``inkdiag train``: a FaultDetector for one head, from its complete profile (and labelled recordings)."""
 
 HELP = "train a fault detector for a head from its complete profile"
+MAKES_OUT_DIR = True  # save_detector creates the model's directory: cli does not require it to exist
 DESCRIPTION = """\
 Train a fault detector (FaultDetector .joblib + .manifest.json) for the head of
 a complete profile: every fault class is simulated on the head's calibrated
