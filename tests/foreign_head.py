@@ -61,7 +61,9 @@ empty_channel_1 / empty_channel_2
 Per-trace spreads (:data:`FOREIGN_SPREADS`): ink temperature (viscosity by Andrade's law),
 nozzle radius and length, restrictor radius, actuator compliance and coupling, drive
 amplitude, sense gain and offset; then white noise of the head's ``noise_std_v`` and the
-ADC. None depends on the class.
+ADC. None depends on the class. By default each row is its own nozzle; with ``nozzle_seed``
+the spreads of :data:`NOZZLE_SPREADS` belong to the row's nozzle id and stay with it from one
+recording to the next (a head's commissioning frames and its later faults).
 
 Heads (:data:`FOREIGN_HEADS`; modes measured as the peak of the zero-padded FFT of a
 noise-free healthy trace, see the test)
@@ -90,6 +92,7 @@ __all__ = [
     "FOREIGN_HEADS",
     "FOREIGN_PHYSICS",
     "FOREIGN_SPREADS",
+    "NOZZLE_SPREADS",
     "nominal_profile",
     "true_profile",
     "simulate_foreign",
@@ -361,7 +364,14 @@ def _sample_window(Phi, x, n_samples, block=32):
     return y[:, :n_samples]
 
 
-def simulate_foreign(name, counts, seed=0, *, ideal: bool = False, severity=None) -> dict:
+#: The spreads that belong to a nozzle (its geometry, actuator, driver and sense channel), in
+#: the order :func:`simulate_foreign` draws them; temperature and offset vary frame to frame.
+NOZZLE_SPREADS = ("nozzle_radius_rel", "nozzle_length_rel", "restrictor_radius_rel", "actuator_compliance_rel",
+                  "coupling_rel", "drive_rel", "gain_rel")
+
+
+def simulate_foreign(name, counts, seed=0, *, ideal: bool = False, severity=None, nozzles=None,
+                     nozzle_seed=None) -> dict:
     """Simulate self-sensing traces of a foreign head, class by class.
 
     Parameters
@@ -378,6 +388,15 @@ def simulate_foreign(name, counts, seed=0, *, ideal: bool = False, severity=None
         No spreads, no noise, no offset, no ADC (severities are still drawn).
     severity : mapping of class -> array_like, optional
         Fixed severities (one per trace of that class; units of the class's severity).
+    nozzles : array_like of int, shape (n,), optional
+        Nozzle id of each row (default ``0 .. n - 1``), >= 0.
+    nozzle_seed : int, optional
+        Give the nozzles persistent spreads: the :data:`NOZZLE_SPREADS` of nozzle ``k`` are
+        drawn from ``default_rng(nozzle_seed)`` for ids ``0 .. max(nozzles)``, so every
+        call with the same ``nozzle_seed`` simulates the same nozzles (a commissioning
+        recording and a later test recording of one head); temperature, offset, severity
+        and noise still come from ``seed``. Default: every spread drawn per row from
+        ``seed`` (each row its own nozzle).
 
     Returns
     -------
@@ -403,8 +422,15 @@ def simulate_foreign(name, counts, seed=0, *, ideal: bool = False, severity=None
     fs = float(head["sampling"]["sample_rate_hz"])
     n_samples = int(head["sampling"]["n_samples"])
     ch, dr, se = head["channel"], head["drive"], head["sensor"]
+    ids = np.arange(n, dtype=np.int64) if nozzles is None else np.asarray(nozzles)
+    if ids.shape != (n,) or not np.issubdtype(ids.dtype, np.integer) or (n and ids.min() < 0):
+        raise ValueError(f"nozzles must be {n} integer ids >= 0, got shape {ids.shape}, dtype {ids.dtype}")
     if n == 0:
         return _pack(np.zeros((0, n_samples), np.float32), labels, fs, *[np.zeros(0)] * 10, 0.0)
+    table = None
+    if nozzle_seed is not None:  # nozzle k's draws are row k: the same whatever the largest id
+        table = dict(zip(NOZZLE_SPREADS, np.random.default_rng(nozzle_seed).standard_normal(
+            (int(ids.max()) + 1, len(NOZZLE_SPREADS))).T))
 
     rng = np.random.default_rng(seed)
     kinds = np.array([_MECH[v][0] for v in labels])
@@ -412,18 +438,21 @@ def simulate_foreign(name, counts, seed=0, *, ideal: bool = False, severity=None
     hi = np.array([_MECH[v][2] for v in labels])
     factor = np.array([_MECH[v][3] for v in labels])
 
-    def spread(rel):
+    def spread(key):
         z = rng.standard_normal(n)  # drawn always: one fixed order of draws
+        if table is not None:
+            z = table[key][ids]
+        rel = spr[key]
         return np.ones(n) if ideal or rel <= 0 else np.exp(rel * z)
 
     dT = rng.standard_normal(n) * (0.0 if ideal else spr["temperature_std_k"])
-    r_n = ch["r_n"] * spread(spr["nozzle_radius_rel"])
-    L_n = ch["L_n"] * spread(spr["nozzle_length_rel"])
-    r_r = ch["r_r"] * spread(spr["restrictor_radius_rel"])
-    B_act = ch["B_act"] * spread(spr["actuator_compliance_rel"])
-    b = ch["b"] * spread(spr["coupling_rel"])
-    drive_v = dr["amplitude_v"] * factor * spread(spr["drive_rel"])
-    gain = se["gain_v_per_m3s"] * spread(spr["gain_rel"])
+    r_n = ch["r_n"] * spread("nozzle_radius_rel")
+    L_n = ch["L_n"] * spread("nozzle_length_rel")
+    r_r = ch["r_r"] * spread("restrictor_radius_rel")
+    B_act = ch["B_act"] * spread("actuator_compliance_rel")
+    b = ch["b"] * spread("coupling_rel")
+    drive_v = dr["amplitude_v"] * factor * spread("drive_rel")
+    gain = se["gain_v_per_m3s"] * spread("gain_rel")
     z_off = rng.standard_normal(n)
     offset = np.zeros(n) if ideal else float(se["offset_v"]) + spr["offset_std_v"] * z_off
     sev = lo + (hi - lo) * rng.random(n)
@@ -522,7 +551,7 @@ def simulate_foreign(name, counts, seed=0, *, ideal: bool = False, severity=None
     alpha = 8.0 * L_n / (rho * (L_n + math.pi * r_n / 4.0) * r_n**2)
     fm = -alpha * (mu_n - mu)
     return _pack(volts.astype(np.float32), labels, fs, mu, mu_n, fm, np.where(has_sev, sev, np.nan),
-                 freq, zeta, drive_v, gain, offset, np.arange(n), noise_std)
+                 freq, zeta, drive_v, gain, offset, ids, noise_std)
 
 
 def _pack(traces, labels, fs, mu, mu_n, fm, sev, freq, zeta, drive_v, gain, offset, nozzle=None, noise_std=0.0):

@@ -101,6 +101,27 @@ def test_noisy_run_is_deterministic_and_well_formed():
     np.testing.assert_array_equal(a["nozzle"], np.arange(8))
 
 
+def test_nozzle_seed_keeps_a_nozzles_spreads_from_one_recording_to_the_next():
+    ids = np.array([4, 0, 4, 9])
+    a = fh.simulate_foreign("h20", {"healthy_nozzle": 4}, seed=1, nozzles=ids, nozzle_seed=5)
+    b = fh.simulate_foreign("h20", {"deeply_dried": 2, "healthy_nozzle": 2}, seed=2, nozzles=ids[::-1],
+                            nozzle_seed=5)
+    np.testing.assert_array_equal(a["nozzle"], ids)
+    for key in ("gain", "drive_v"):  # the nozzle's own (drive: both classes at the full pulse)
+        np.testing.assert_array_equal(a[key][[0, 2]], a[key][0])  # nozzle 4 twice in one recording
+        np.testing.assert_array_equal(b[key][::-1], a[key])  # the same nozzles in another
+    assert not np.array_equal(a["offset_v"][[0]], a["offset_v"][[2]])  # the frame's own
+    assert a["gain"][0] != a["gain"][1]  # another nozzle
+    c = fh.simulate_foreign("h20", {"healthy_nozzle": 2}, seed=3, nozzles=[0, 4000], nozzle_seed=5)
+    assert c["gain"][0] == a["gain"][1]  # nozzle 0 is nozzle 0 in a head of any size
+    # the default: each row its own nozzle, drawn from seed alone (today's recordings unchanged)
+    plain = fh.simulate_foreign("h20", {"healthy_nozzle": 4}, seed=1)
+    np.testing.assert_array_equal(fh.simulate_foreign("h20", {"healthy_nozzle": 4}, seed=1,
+                                                      nozzles=np.arange(4))["traces"], plain["traces"])
+    with pytest.raises(ValueError, match="integer ids >= 0"):
+        fh.simulate_foreign("h20", {"healthy_nozzle": 2}, nozzles=[0, -1], nozzle_seed=5)
+
+
 def test_bad_input_is_a_clear_error():
     with pytest.raises(ValueError, match="unknown fault class"):
         fh.simulate_foreign("h20", {"wet": 1})
