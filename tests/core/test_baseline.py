@@ -153,7 +153,46 @@ def test_recorder_skips_invalid_and_excluded_rows_and_waits_for_enough_frames():
         rec2.baselines(min_frames=4)
 
 
+def test_add_rows_takes_a_recordings_rows_as_add_takes_its_frames():
+    """Rows of any nozzles in one call, repeated ids as later frames: the same baselines (KPIs,
+    f_m readings, references) as the frames given one message at a time, in the same order."""
+    frames = _head_frames(12, 5)
+    by_frame = BaselineRecorder(n_frames=4, fm_frames=2)
+    for f in frames:
+        by_frame.add(0, f)
+    x = np.concatenate(frames)  # frame by frame: nozzles 0..11, then 0..11 again, ...
+    ids = np.tile(np.arange(12), 5)
+    perm = np.random.default_rng(0).permutation(12)  # a shuffled nozzle order within each frame
+    rows = np.concatenate([k * 12 + perm for k in range(5)])
+    by_rows = BaselineRecorder(n_frames=4, fm_frames=2)
+    assert by_rows.add_rows(ids[rows[:30]], x[rows[:30]]) == 30  # two calls, one cutting a frame
+    assert by_rows.add_rows(ids[rows[30:]], x[rows[30:]]) == 48 - 30  # the 5th frame is beyond n_frames
+    assert by_rows.n_complete == by_rows.n_seen == 12
+    a, b = by_frame.baselines(), by_rows.baselines()
+    np.testing.assert_array_equal(a.nozzle_ids, b.nozzle_ids)
+    np.testing.assert_array_equal(a.kpis, b.kpis)
+    np.testing.assert_array_equal(a.fm, b.fm)
+    np.testing.assert_array_equal(a.reference, b.reference)
+
+
+def test_add_rows_skips_invalid_and_excluded_rows_and_counts_only_what_it_keeps():
+    frames = _head_frames(3, 3)
+    x = np.concatenate(frames)
+    x[0, 4] = np.nan  # nozzle 0's first frame: invalid, its later two frames are used
+    keep = np.ones(9, bool)
+    keep[1] = False  # nozzle 1's first frame excluded
+    rec = BaselineRecorder(n_frames=3)
+    assert rec.add_rows(np.tile([0, 1, 2], 3), x, keep=keep) == 7
+    assert rec.n_complete == 1 and rec.n_seen == 3
+    assert len(rec.baselines()) == 1 and len(rec.baselines(min_frames=2)) == 3
+
+
 @pytest.mark.parametrize(("call", "match"), [
+    (lambda r: r.add_rows([0, -1], np.zeros((2, 512))), ">= 0"),
+    (lambda r: r.add_rows([0, 1, 2], np.zeros((2, 512))), "3 ids for 2 rows"),
+    (lambda r: r.add_rows([0.5, 1], np.zeros((2, 512))), "integer"),
+    (lambda r: r.add_rows([[0, 1]], np.zeros((2, 512))), "1-d"),
+    (lambda r: r.add_rows([0, 2**24], np.zeros((2, 512))), "below"),
     (lambda r: r.add(-1, np.zeros((2, 512))), "first_nozzle"),
     (lambda r: r.add(0, np.zeros((2, 100))), "shape"),
     (lambda r: r.add(0, np.zeros(512)), "shape"),

@@ -132,47 +132,92 @@ class BaselineRecorder:
         if isinstance(first_nozzle, bool) or not isinstance(first_nozzle, (int, np.integer)) or first_nozzle < 0:
             raise ValueError(f"first_nozzle must be a non-negative integer, got {first_nozzle!r}")
         x = np.asarray(traces)
+        n = x.shape[0] if x.ndim == 2 else 0
+        return self._add(first_nozzle + np.arange(n, dtype=np.int64), x, keep, distinct=True)
+
+    def add_rows(self, nozzle_ids, traces, keep=None) -> int:
+        """Use rows of any nozzles, a nozzle any number of times (a recording's rows, in its order).
+
+        Parameters
+        ----------
+        nozzle_ids : array_like of int, shape (n,)
+            Each row's nozzle id, >= 0; repeated ids are that nozzle's later frames.
+        traces : array_like, shape (n, n_samples)
+            V.
+        keep : array_like of bool, shape (n,), optional
+            Rows to use.
+
+        Returns
+        -------
+        int
+            Rows used: for each nozzle its first valid rows, up to its ``n_frames`` in all.
+        """
+        ids = np.asarray(nozzle_ids)
+        if ids.ndim != 1 or not (np.issubdtype(ids.dtype, np.integer) or ids.size == 0):
+            raise ValueError(f"nozzle_ids must be a 1-d integer array, got shape {ids.shape}, dtype {ids.dtype}")
+        if ids.size and ids.min() < 0:
+            raise ValueError(f"nozzle ids must be >= 0, got {int(ids.min())}")
+        x = np.asarray(traces)
+        if x.ndim == 2 and x.shape[0] != ids.size:
+            raise ValueError(f"nozzle_ids has {ids.size} ids for {x.shape[0]} rows of traces")
+        return self._add(ids.astype(np.int64), x, keep, distinct=False)
+
+    def _add(self, all_ids, x, keep, *, distinct: bool) -> int:
         if x.ndim != 2 or x.shape[1] != self.n_samples:
             raise ValueError(f"traces must have shape (n, {self.n_samples}), got {x.shape}")
-        if first_nozzle + x.shape[0] > self.max_nozzles:
+        if all_ids.size and all_ids.max() >= self.max_nozzles:
             raise ValueError(f"nozzle ids must stay below {self.max_nozzles} (the recorder's max_nozzles, "
-                             f"a bound on its memory), got {first_nozzle}..{first_nozzle + x.shape[0] - 1}")
+                             f"a bound on its memory), got {int(all_ids.min())}..{int(all_ids.max())}")
         use, _ = screen_traces(x, sample_rate_hz=self.sample_rate_hz)
         if keep is not None:
             k = np.asarray(keep, dtype=bool)
             if k.shape != (x.shape[0],):
                 raise ValueError(f"keep must have shape ({x.shape[0]},), got {k.shape}")
             use &= k
-        ids = first_nozzle + np.flatnonzero(use)
-        # only nozzles still short of n_frames rows (at most their shortfall; the ids of
-        # one message are distinct)
-        if ids.size and ids[-1] >= self._count_of.size:
-            grown = np.zeros(max(int(ids[-1]) + 1, 2 * self._count_of.size), np.int32)
+        rows = np.flatnonzero(use)
+        ids = all_ids[rows]
+        if ids.size and ids.max() >= self._count_of.size:
+            grown = np.zeros(max(int(ids.max()) + 1, 2 * self._count_of.size), np.int32)
             grown[: self._count_of.size] = self._count_of
             self._count_of = grown
-        need = self._count_of[ids] < self.n_frames
+        # each row's place among its nozzle's rows so far: its count before this call plus
+        # its rank among the call's rows of that nozzle (0 when the ids are distinct)
+        place = self._count_of[ids].astype(np.int64)
+        if not distinct and ids.size:
+            order = np.argsort(ids, kind="stable")
+            s = ids[order]
+            first = np.r_[True, s[1:] != s[:-1]]
+            start = np.maximum.accumulate(np.where(first, np.arange(s.size), 0))
+            rank = np.empty(ids.size, np.int64)
+            rank[order] = np.arange(s.size) - start
+            place += rank
+        need = place < self.n_frames  # only nozzles still short of n_frames rows, at most their shortfall
         if not need.any():
             return 0
-        rows = np.flatnonzero(use)[need]
-        ids = ids[need]
+        rows, ids, place = rows[need], ids[need], place[need]
         y = checks.traces_2d(x[rows], min_samples=MIN_KPI_SAMPLES, error=InvalidTraceError)
         kpis = np.full((ids.size, N_KPIS + 1), np.nan)  # the last column: f_m, NaN where not taken
         kpis[:, :N_KPIS] = extract_kpis(y, self.sample_rate_hz)
         if self.fm_frames:
-            fm_rows = np.flatnonzero(self._count_of[ids] < self.fm_frames)
+            fm_rows = np.flatnonzero(place < self.fm_frames)
             if fm_rows.size:
                 kpis[fm_rows, N_KPIS] = estimate_fm_batch(y[fm_rows], self._model, self.sample_rate_hz).fm
         self._kpis.append(kpis)
         if self.reference:
             self._traces.append(y.astype(np.float32))
-        self._ids.append(ids.astype(np.int64))
-        self._count_of[ids] += 1  # the ids of one message are distinct
+        self._ids.append(ids)
+        np.add.at(self._count_of, ids, 1)
         return int(ids.size)
 
     @property
     def n_complete(self) -> int:
         """Nozzles with ``n_frames`` rows recorded."""
         return int(np.count_nonzero(self._count_of >= self.n_frames))
+
+    @property
+    def n_seen(self) -> int:
+        """Nozzles with at least one row recorded."""
+        return int(np.count_nonzero(self._count_of))
 
     def baselines(self, min_frames: int | None = None) -> NozzleBaselines:
         """The baselines of the nozzles with at least ``min_frames`` rows (default ``n_frames``).
