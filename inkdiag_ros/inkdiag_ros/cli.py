@@ -2,6 +2,7 @@
 
     inkdiag calibrate HEALTHY --nominal NOMINAL.yaml --out HEAD.yaml
     inkdiag train --profile HEAD.yaml --out MODEL.joblib [--features ...] [--baseline] [--data LABELLED]
+    inkdiag baseline HEALTHY --profile HEAD.yaml --out B.npz [--frames N] [--fm-frames N]
     inkdiag label RECORDING --model MODEL.joblib [--baselines B.npz] --out LABELS.csv
     inkdiag estimate RECORDING --profile HEAD.yaml [--rows ...] --out FM.csv
     inkdiag record BAG_DIR --namespace /head_00 [--topics ...] [--duration S]
@@ -30,7 +31,7 @@ from pathlib import Path
 
 __all__ = ["VERBS", "build_parser", "main"]
 
-VERBS = ("calibrate", "train", "label", "estimate", "record", "replay", "printer")
+VERBS = ("calibrate", "train", "baseline", "label", "estimate", "record", "replay", "printer")
 """The subcommands, in the order ``inkdiag --help`` lists them."""
 
 

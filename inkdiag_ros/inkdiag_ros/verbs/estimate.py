@@ -62,7 +62,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--method", default="vp_cal", choices=("vp_cal", "vp"),
                         help="estimator (default vp_cal, as the fe node; vp: without the mismatch correction)")
     parser.add_argument("--baselines", default=None, metavar="B.npz",
-                        help="per-nozzle baselines with healthy f_m (record_baseline): estimates relative to them")
+                        help="per-nozzle baselines with healthy f_m (inkdiag baseline, record_baseline): estimates relative to them")
     parser.add_argument("--max-abs-v", type=float, default=None, metavar="V",
                         help="a row with a sample beyond +-V is invalid, out_of_range (default: 5x the profile's "
                              "ADC range, as fdi)")

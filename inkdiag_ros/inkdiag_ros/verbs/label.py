@@ -44,7 +44,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--model", required=True, metavar="MODEL.joblib",
                         help="FaultDetector file from `inkdiag train` (its .manifest.json beside it)")
     parser.add_argument("--baselines", metavar="B.npz",
-                        help="the head's per-nozzle healthy baselines (from record_baseline)")
+                        help="the head's per-nozzle healthy baselines (from inkdiag baseline or record_baseline)")
     parser.add_argument("--out", required=True, metavar="LABELS.csv", help="CSV file to write ('-': stdout)")
     parser.add_argument("--max-abs-v", type=float, default=None, metavar="V",
                         help="largest sample magnitude a sensor can produce, V; a row beyond it is invalid "

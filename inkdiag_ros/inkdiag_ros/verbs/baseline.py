@@ -1,0 +1,85 @@
+"""``inkdiag baseline``: a head's per-nozzle healthy baselines from a recording, as record_baseline writes them."""
+
+HELP = "record per-nozzle healthy baselines from a recording of a healthy head (.npz)"
+DESCRIPTION = """\
+Build each nozzle's healthy baseline from a recording of the head while it jets
+well (after a purge, at commissioning): the same file the record_baseline node
+writes, by the same code (inkdiag_core.BaselineRecorder), for `inkdiag label
+--baselines`, `inkdiag estimate --baselines` and the nodes' baseline_path.
+
+Each row's nozzle id is the recording's `nozzle` column (a bag: each frame's
+first nozzle and its row); a nozzle's baseline is the median KPIs of its first
+--frames valid rows in recording order, plus its healthy reference trace (the
+sample-wise median of the same rows, for fdi's healthy gate) and, with
+--fm-frames > 0, its healthy f_m reading (the median over its first
+--fm-frames rows, for fe). Rows screening refuses (non-finite, out of range,
+flat, clipped) are skipped; if the recording has a label column, only its
+healthy_nozzle rows are used. Nozzles with fewer than --min-frames usable rows
+get no baseline (the message counts them): fdi and fe treat them as nozzles
+without one.
+
+The recording must have the profile's sampling (a complete profile, from
+`inkdiag calibrate`); the file records the profile's sha256, and models and
+profiles of another head refuse it.
+
+example:
+  inkdiag baseline commissioning.npz --profile head.yaml --out baselines.npz
+"""
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("recording", metavar="RECORDING",
+                        help="recording (.npz) or rosbag2 bag directory of the healthy head, several frames a nozzle")
+    parser.add_argument("--topic", default=None, metavar="TOPIC", help="traces topic of a bag (default: its one "
+                        "Float32MultiArray topic ending in /traces)")
+    parser.add_argument("--profile", required=True, metavar="HEAD.yaml", help="the head's complete profile")
+    parser.add_argument("--out", required=True, metavar="B.npz", help="baselines file to write")
+    parser.add_argument("--frames", type=int, default=8, metavar="N",
+                        help="valid rows per nozzle in its baseline, the median (default 8, as record_baseline)")
+    parser.add_argument("--min-frames", type=int, default=None, metavar="N",
+                        help="fewest usable rows a nozzle's baseline may rest on (default: --frames)")
+    parser.add_argument("--fm-frames", type=int, default=3, metavar="N",
+                        help="rows per nozzle for its healthy f_m reading, at most --frames; 0: none "
+                        "(about 1 ms of CPU per row; default 3, as record_baseline)")
+
+
+def run(args) -> int:
+    import sys
+
+    import numpy as np
+    from inkdiag_core import BaselineRecorder, HeadProfile
+
+    from ..bags import report_stats, stream_recording
+
+    if args.frames < 1:
+        raise ValueError(f"--frames must be >= 1, got {args.frames}")
+    if not 0 <= args.fm_frames <= args.frames:
+        raise ValueError(f"--fm-frames must be in 0..--frames ({args.frames}), got {args.fm_frames}")
+    min_frames = args.frames if args.min_frames is None else args.min_frames
+    if not 1 <= min_frames <= args.frames:
+        raise ValueError(f"--min-frames must be in 1..--frames ({args.frames}), got {min_frames}")
+    profile = HeadProfile.load(args.profile)
+    recorder = BaselineRecorder(n_frames=args.frames, fm_frames=args.fm_frames, profile=profile)  # nominal: refused
+    stats, chunks = stream_recording(args.recording, args.topic)
+    n_rows = n_used = n_other = 0
+    for _, rec in chunks:  # a bag with no trace frame: RecordingError
+        profile.check_traces(rec.traces, rec.sample_rate_hz, what=f"{args.recording}")
+        keep = None
+        if rec.label is not None:
+            keep = np.asarray(rec.label).astype(str) == "healthy_nozzle"
+            n_other += int(np.count_nonzero(~keep))
+        n_used += recorder.add_rows(rec.nozzle, rec.traces, keep=keep)
+        n_rows += rec.n_rows
+    report_stats(args.recording, stats)
+    baselines = recorder.baselines(min_frames=min_frames)
+    short = recorder.n_seen - len(baselines)
+    if not len(baselines):
+        raise ValueError(f"{args.recording}: no nozzle has {min_frames} usable healthy rows (of {n_rows} rows, "
+                         f"{n_used} usable{f', {n_other} not labelled healthy_nozzle' if n_other else ''}): "
+                         "record more frames of each nozzle, or lower --min-frames")
+    baselines.save(args.out)
+    print(f"baselines of {len(baselines)} nozzles (head {profile.name!r}) from {n_used} of {n_rows} rows"
+          + (f" ({n_other} not labelled healthy_nozzle)" if n_other else "")
+          + (f"; {short} nozzles with fewer than {min_frames} usable rows left out" if short else "")
+          + f"; wrote {args.out}", file=sys.stderr)
+    return 0

@@ -1,0 +1,111 @@
+"""``inkdiag baseline``: a head's per-nozzle healthy baselines from a recording (.npz or bag), the
+same file record_baseline writes (BaselineRecorder), by each row's nozzle id; rows not labelled
+healthy_nozzle left out; one-line errors, exit status 2."""
+
+import numpy as np
+import pytest
+from _bags import write_bag
+
+from inkdiag_core import (BaselineRecorder, FaultClass, HeadProfile, NozzleBaselines, Recording, save_recording,
+                          simulate_nozzles)
+from inkdiag_ros.cli import main
+
+N_NOZZLES, N_FRAMES = 6, 3
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    d = tmp_path_factory.mktemp("baseline")
+    head = HeadProfile.default()
+    head.save(d / "head.yaml")
+    head.replace(channel={"r_r": None, "L_r": None, "B_act": None, "b": None}).save(d / "nominal.yaml")
+    frames = [simulate_nozzles([FaultClass.HEALTHY_NOZZLE] * N_NOZZLES, seed=3, frame_seed=f).traces
+              for f in range(N_FRAMES)]
+    return d, head, frames
+
+
+def test_baselines_of_a_recording_are_record_baselines_of_its_frames(work, tmp_path, capsys):
+    d, head, frames = work
+    x = np.concatenate(frames)
+    ids = 100 + np.tile(np.arange(N_NOZZLES), N_FRAMES)
+    labels = np.full(x.shape[0], "healthy_nozzle", dtype=object)
+    labels[2] = "deeply_dried"  # nozzle 102's first frame: not used
+    x[7, 9] = np.nan  # nozzle 101's second frame: invalid, not used
+    save_recording(tmp_path / "c.npz", Recording.from_arrays(x, head.sample_rate_hz, nozzle=ids, label=labels))
+    capsys.readouterr()
+    assert main(["baseline", str(tmp_path / "c.npz"), "--profile", str(d / "head.yaml"), "--out",
+                 str(tmp_path / "b.npz"), "--frames", "2", "--fm-frames", "1"]) == 0
+    err = capsys.readouterr().err
+    assert "baselines of 6 nozzles (head 'default') from 12 of 18 rows (1 not labelled healthy_nozzle)" in err, err
+    got = NozzleBaselines.load(tmp_path / "b.npz")
+    want = BaselineRecorder(n_frames=2, fm_frames=1, profile=head)
+    for k, f in enumerate(frames):  # the same frames, one message each, as the node takes them
+        f = f.copy()
+        keep = np.ones(N_NOZZLES, bool)
+        if k == 0:
+            keep[2] = False
+        if k == 1:
+            f[1, 9] = np.nan
+        want.add(100, f, keep=keep)
+    want = want.baselines()
+    np.testing.assert_array_equal(got.nozzle_ids, 100 + np.arange(N_NOZZLES))
+    np.testing.assert_array_equal(got.kpis, want.kpis)
+    np.testing.assert_allclose(got.fm, want.fm, rtol=1e-6)  # f_m fits in batches of other sizes
+    np.testing.assert_array_equal(got.reference, want.reference)
+    assert got.head_sha256 == head.sha256 and got.n_frames == 2
+
+
+def test_a_bag_gives_the_same_baselines_as_its_npz(work, tmp_path):
+    d, head, frames = work
+    bag = write_bag(tmp_path / "bag", [(40, f) for f in frames])
+    x = np.concatenate(frames)
+    save_recording(tmp_path / "c.npz", Recording.from_arrays(x, head.sample_rate_hz,
+                                                             nozzle=40 + np.tile(np.arange(N_NOZZLES), N_FRAMES)))
+    for src, out in ((bag, "from_bag.npz"), (tmp_path / "c.npz", "from_npz.npz")):
+        assert main(["baseline", str(src), "--profile", str(d / "head.yaml"), "--out", str(tmp_path / out),
+                     "--frames", "3", "--fm-frames", "0"]) == 0
+    a, b = NozzleBaselines.load(tmp_path / "from_bag.npz"), NozzleBaselines.load(tmp_path / "from_npz.npz")
+    np.testing.assert_array_equal(a.nozzle_ids, 40 + np.arange(N_NOZZLES))
+    np.testing.assert_array_equal(a.kpis, b.kpis)
+    assert a.fm is None
+
+
+def test_nozzles_short_of_frames_are_left_out_and_said(work, tmp_path, capsys):
+    d, head, frames = work
+    x = np.concatenate([frames[0], frames[1][:2]])  # nozzles 0, 1 twice, the others once
+    save_recording(tmp_path / "c.npz", Recording.from_arrays(
+        x, head.sample_rate_hz, nozzle=np.r_[np.arange(N_NOZZLES), 0, 1]))
+    capsys.readouterr()
+    assert main(["baseline", str(tmp_path / "c.npz"), "--profile", str(d / "head.yaml"), "--out",
+                 str(tmp_path / "b.npz"), "--frames", "2", "--fm-frames", "0"]) == 0
+    assert "4 nozzles with fewer than 2 usable rows left out" in capsys.readouterr().err
+    np.testing.assert_array_equal(NozzleBaselines.load(tmp_path / "b.npz").nozzle_ids, [0, 1])
+
+
+@pytest.mark.parametrize(("argv", "match"), [
+    (["--profile", "{d}/nominal.yaml"], "inkdiag calibrate"),
+    (["--profile", "{d}/missing.yaml"], "no such head profile"),
+    (["--profile", "{d}/head.yaml", "--frames", "2", "--fm-frames", "3"], "--fm-frames must be in 0..--frames"),
+    (["--profile", "{d}/head.yaml", "--frames", "0"], "--frames must be >= 1"),
+    (["--profile", "{d}/head.yaml", "--frames", "2", "--fm-frames", "0", "--min-frames", "3"], "--min-frames must be in 1..--frames"),
+    (["--profile", "{d}/head.yaml", "--fm-frames", "0"], "no nozzle has 8 usable healthy rows"),
+    (["--profile", "{d}/head20.yaml"], "Hz"),
+])
+def test_bad_input_is_one_line_and_exit_status_2(work, tmp_path, argv, match, capsys):
+    d, head, frames = work
+    if not (d / "once.npz").exists():
+        save_recording(d / "once.npz", Recording.from_arrays(frames[0], head.sample_rate_hz))  # one frame a nozzle
+        head.replace(name="h20", sample_rate_hz=20e6, n_samples=1024).save(d / "head20.yaml")
+    capsys.readouterr()
+    args = ["baseline", str(d / "once.npz"), *[a.format(d=d) for a in argv], "--out", str(tmp_path / "b.npz")]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("inkdiag baseline: error: ") and match in err[0], err
+    assert not (tmp_path / "b.npz").exists()
+
+
+def test_help(capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(["baseline", "--help"])
+    out = capsys.readouterr().out
+    assert stop.value.code == 0 and "--profile" in out and "--fm-frames" in out and "record_baseline" in out
