@@ -14,7 +14,12 @@ with the documented commands:
 4. ``inkdiag estimate DRIED.npz --profile HEAD.yaml --out FM.csv`` on the dried classes.
 
 Steps 2-4 run twice per head: with the calibrated profile and with the head's
-true profile, so that the cost of calibration is visible. Writes
+true profile, so that the cost of calibration is visible. A third run uses what a
+commissioned head also has, each nozzle's healthy baseline: ``inkdiag baseline
+COMMISSION.npz --profile HEAD.yaml --out B.npz`` on 8 healthy frames of every
+nozzle (the test and dried recordings are later frames of the same nozzles:
+``simulate_foreign(..., nozzle_seed=...)``), ``inkdiag train --baseline``, and
+``label`` / ``estimate`` with ``--baselines B.npz``, all on the calibrated profile. Writes
 ``reports/heads.md`` (and keeps the work files under ``reports/heads_work/``
 only with ``--keep``).
 """
@@ -48,6 +53,11 @@ from inkdiag_core.head_profile import SPREAD_KEYS  # noqa: E402
 from inkdiag_core.kpis import extract_kpis  # noqa: E402
 
 HEALTHY = {FaultClass.OK_SIGNAL.value, FaultClass.HEALTHY_NOZZLE.value}
+BASELINES = "calibrated + baselines"
+KINDS = ("calibrated", "true", BASELINES)
+"""The runs per head, in the order the tables show them."""
+COMMISSION_FRAMES = 8
+"""Healthy frames of each nozzle in a head's commissioning recording (``inkdiag baseline``'s default)."""
 _WORK = [""]  # the work directory, shown as WORK in the report
 
 
@@ -141,10 +151,20 @@ def run_head(name, work, *, per_class, n_per_class, seed, log, posterior_draws=1
     fh.write_nominal_yaml(nominal, name)
     healthy = fh.simulate_foreign(name, {"healthy_nozzle": 300}, seed)
     fh.write_recording(head_dir / "healthy.npz", healthy)
-    test = fh.simulate_foreign(name, {c.value: per_class for c in FaultClass}, seed + 1)
+    # one head's nozzles (persistent spreads, nozzle_seed): the test rows are nozzles 0..n_test-1,
+    # the dried rows the next ones; the commissioning recording has 8 healthy frames of each
+    n_test, n_dried = per_class * len(FaultClass), per_class * len(DRIED_CLASSES)
+    test = fh.simulate_foreign(name, {c.value: per_class for c in FaultClass}, seed + 1,
+                               nozzles=np.arange(n_test), nozzle_seed=seed + 4)
     fh.write_recording(head_dir / "test.npz", test)
-    dried = fh.simulate_foreign(name, {c.value: per_class for c in DRIED_CLASSES}, seed + 2)
+    dried = fh.simulate_foreign(name, {c.value: per_class for c in DRIED_CLASSES}, seed + 2,
+                                nozzles=n_test + np.arange(n_dried), nozzle_seed=seed + 4)
     fh.write_recording(head_dir / "dried.npz", dried)
+    n_all = n_test + n_dried
+    commission = fh.simulate_foreign(name, {"healthy_nozzle": COMMISSION_FRAMES * n_all}, seed + 5,
+                                     nozzles=np.tile(np.arange(n_all), COMMISSION_FRAMES), nozzle_seed=seed + 4)
+    fh.write_recording(head_dir / "commission.npz", commission)
+    del commission
     # the truth: each trace's nozzle viscosity over its own channel's (its ink temperature's)
     d_mu_true = np.asarray(dried["mu_nozzle"], float) - np.asarray(dried["mu"], float)
 
@@ -173,6 +193,23 @@ def run_head(name, work, *, per_class, n_per_class, seed, log, posterior_draws=1
                      "invalid": n_invalid, "dmu_median": med,
                      "dmu_p90": p90,
                      "dmu_missing": n_nan, "train_s": t_train}
+    # the calibrated profile again, with each nozzle's commissioning baseline
+    prof, model, base = profiles["calibrated"], head_dir / "model_baselines.joblib", head_dir / "baselines.npz"
+    train_args = ["train", "--profile", prof, "--out", model, "--baseline", "--seed", seed,
+                  "--posterior-draws", posterior_draws]
+    if n_per_class:
+        train_args += ["--n-per-class", n_per_class]
+    _, t_train = _inkdiag(*train_args, log=log)
+    _, t_base = _inkdiag("baseline", head_dir / "commission.npz", "--profile", prof, "--out", base, log=log)
+    _inkdiag("label", head_dir / "test.npz", "--model", model, "--baselines", base,
+             "--out", head_dir / "labels_baselines.csv", log=log)
+    _inkdiag("estimate", head_dir / "dried.npz", "--profile", prof, "--baselines", base,
+             "--out", head_dir / "fm_baselines.csv", log=log)
+    fd, fi, per, n_invalid, unknown, wrong = _scores(head_dir / "labels_baselines.csv", test["labels"])
+    med, p90, n_nan = _dmu_errors(head_dir / "fm_baselines.csv", d_mu_true)
+    out[BASELINES] = {"fd": fd, "fi": fi, "per": per, "unknown": unknown, "wrong": wrong, "invalid": n_invalid,
+                      "dmu_median": med, "dmu_p90": p90, "dmu_missing": n_nan, "train_s": t_train,
+                      "baseline_s": t_base}
     cal = HeadProfile.load(profiles["calibrated"])
     true = HeadProfile.load(profiles["true"])
     out["mode"] = {"true": true.healthy_mode(), "calibrated": cal.healthy_mode()}
@@ -232,7 +269,10 @@ def write_report(results, args, log, elapsed):
         "simulator `tests/foreign_head.py`, not from inkdiag's; each head is calibrated from 300 of its "
         "healthy traces and a nominal profile (sampling, drive, rho, mu, r_n, L_n, V_ch, c), then trained, "
         "labelled and estimated with the `inkdiag` command. *calibrated*: the profile `inkdiag calibrate` "
-        "wrote; *true*: the head's real channel and sensor, to show what calibration costs.",
+        "wrote; *true*: the head's real channel and sensor, to show what calibration costs; *calibrated + "
+        "baselines*: the calibrated profile, each nozzle's healthy baseline from a commissioning recording (8 "
+        "healthy frames of every nozzle, `inkdiag baseline`; the test rows are later frames of the same nozzles), "
+        "a model trained with `--baseline`, and `--baselines` for label and estimate.",
         "",
         "Targets (issue 14) with the calibrated profile: FD >= 98 %, FI >= 90 % with every class >= 75 %, "
         "d_mu median relative error <= 10 %.",
@@ -243,7 +283,7 @@ def write_report(results, args, log, elapsed):
     rows = []
     for name, r in results.items():
         fs, n = r["sampling"]
-        for kind in ("calibrated", "true"):
+        for kind in KINDS:
             k = r[kind]
             worst = min(k["per"], key=k["per"].get)
             rows.append([name if kind == "calibrated" else "", f"{fs / 1e6:g} MHz x {n}" if kind == "calibrated" else "",
@@ -252,16 +292,16 @@ def write_report(results, args, log, elapsed):
     lines += [md_table(["head", "sampling", "profile", "FD %", "FI %", "weakest class %", "d_mu median err %",
                         "d_mu P90 err %", "invalid / not estimated"], rows), ""]
     lines += ["## FI per class (%)", ""]
-    header = ["class"] + [f"{name} {kind}" for name in results for kind in ("calibrated", "true")]
+    header = ["class"] + [f"{name} {kind}" for name in results for kind in KINDS]
     rows = [[c] + [_pct(results[name][kind]["per"].get(c, float("nan"))) for name in results
-                   for kind in ("calibrated", "true")] for c in classes]
+                   for kind in KINDS] for c in classes]
     lines += [md_table(header, rows), ""]
     lines += ["## Known classes called `unknown` (%)", "",
               "The open-set layer (`inkdiag train`'s default `--unknown-rate 0.01`) on these heads' known classes: "
               "traces of another generator than the one the layer was calibrated on (our simulator), so its "
               "guarantee (exchangeable rows) does not cover them; a class's rate here is what that shift costs.", ""]
     rows = [[c] + [_pct(results[name][kind]["unknown"].get(c, float("nan"))) for name in results
-                   for kind in ("calibrated", "true")] for c in classes]
+                   for kind in KINDS] for c in classes]
     lines += [md_table(header, rows), ""]
     lines += ["## Calibration: fitted against true", ""]
     rows = []
@@ -312,7 +352,10 @@ def write_report(results, args, log, elapsed):
         "a gradient-boosted classifier on the spectrum and waveform included) nor on h20's (59.0-73.2 %), and "
         "h5's FI stays at 87.6-87.8 %; without the spreads every class is 98.5-100 %; with each nozzle's own "
         "healthy baseline, 62.5 % (h5) and 83.0 % (h20). Per-nozzle baselines (`inkdiag train --baseline`, "
-        "`inkdiag label --baselines`) are the remedy where a head has them.",
+        "`inkdiag label --baselines`) are the remedy where a head has them: the *calibrated + baselines* rows "
+        "are that remedy as a user gets it, the baseline branch trained on inkdiag's simulation of the "
+        "calibrated head (a simulated nozzle against its simulated healthy twin), not on the head's own "
+        "traces, and applied to the foreign head's commissioning baselines.",
         "- d_mu truth: each trace's nozzle viscosity over its own channel's ink viscosity (at its "
         "temperature).",
         "- *Where the errors go*: partially_blocked and the dried classes overlap on these heads even with the "
