@@ -316,7 +316,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     nominal.check_traces(traces, sample_rate_hz, what="the recording")
     y = np.asarray(traces, dtype=np.float64)
     # rows labelling would refuse (non-finite, beyond 5x the ADC range, flat, clipped) are left out
-    finite, why = screen_traces(y, sample_rate_hz=sample_rate_hz, max_abs_v=5.0 * nominal.adc_range_v)
+    finite, why = screen_traces(y, sample_rate_hz=sample_rate_hz, max_abs_v=nominal.max_abs_v)
     n_dropped = int((~finite).sum())
     y = y[finite]
     if y.shape[0] < MIN_TRACES:

@@ -199,7 +199,7 @@ class DryingTracker:
         self.method = method
         # a sample no sensor can produce: the row is invalid ('out_of_range'), as fdi screens it
         self.max_abs_v = (float(max_abs_v) if max_abs_v is not None
-                          else 5.0 * (profile if profile is not None else _default_head()).adc_range_v)
+                          else (profile if profile is not None else _default_head()).max_abs_v)
         if not self.max_abs_v > 0:
             raise ValueError(f"max_abs_v must be > 0 V, got {max_abs_v!r}")
         self.vp_cal = None

@@ -481,6 +481,15 @@ class HeadProfile:
         return float(self.sensor.get("adc_range_v", _DEFAULT_SENSOR["adc_range_v"]))
 
     @property
+    def max_abs_v(self) -> float:
+        """Largest sample magnitude this head's sensor can produce, V: 5x :attr:`adc_range_v`.
+
+        A row with a sample beyond it is out of range (:func:`inkdiag_core.screen_traces`),
+        for fdi, training, calibration, baselines and the estimators alike.
+        """
+        return 5.0 * self.adc_range_v
+
+    @property
     def adc_bits(self):
         """ADC resolution (int), or None for no quantisation."""
         return self.sensor.get("adc_bits", _DEFAULT_SENSOR["adc_bits"])

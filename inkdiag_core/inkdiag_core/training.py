@@ -81,7 +81,7 @@ def _real_rows(data, profile, seed, validation_fraction, n_sim_per_class):
                              "class")
     profile.check_traces(data.traces, data.sample_rate_hz, what=data.source)
     # the rows labelling would judge (not invalid: non-finite, beyond 5x the ADC range, flat, clipped)
-    usable, _ = screen_traces(data.traces, max_abs_v=5.0 * profile.adc_range_v, sample_rate_hz=profile.sample_rate_hz)
+    usable, _ = screen_traces(data.traces, max_abs_v=profile.max_abs_v, sample_rate_hz=profile.sample_rate_hz)
     if not usable.any():
         raise RecordingError(f"{data.source}: no row is usable (every row is non-finite, out of range, flat or "
                              "clipped)")

@@ -2,7 +2,7 @@
 
     inkdiag calibrate HEALTHY --nominal NOMINAL.yaml --out HEAD.yaml
     inkdiag train --profile HEAD.yaml --out MODEL.joblib [--features ...] [--baseline] [--data LABELLED]
-    inkdiag baseline HEALTHY --profile HEAD.yaml --out B.npz [--frames N] [--fm-frames N]
+    inkdiag baseline RECORDING --profile HEAD.yaml --out B.npz [--frames N] [--min-frames N] [--fm-frames N]
     inkdiag label RECORDING --model MODEL.joblib [--baselines B.npz] --out LABELS.csv
     inkdiag estimate RECORDING --profile HEAD.yaml [--rows ...] --out FM.csv
     inkdiag record BAG_DIR --namespace /head_00 [--topics ...] [--duration S]

@@ -45,7 +45,7 @@ class FdiNode(Node):
         self.config = c = _params.declare_all(self, PARAMS)
         self.add_on_set_parameters_callback(lambda params: _params.fixed_at_start(params))
         self.head = head_from_parameters(c)  # a bad file or sampling: ValueError, exit 2 at start
-        c["max_abs_sample_v"] = c["max_abs_sample_v"] or 5.0 * self.head.adc_range_v
+        c["max_abs_sample_v"] = c["max_abs_sample_v"] or self.head.max_abs_v
         self.stats = FdiStats()
         self.labeller = self._load_labeller()
         self.model_id = self.labeller.model_id if self.labeller else "none"

@@ -200,7 +200,7 @@ def run_head(name, work, *, per_class, n_per_class, seed, log, posterior_draws=1
     if n_per_class:
         train_args += ["--n-per-class", n_per_class]
     _, t_train = _inkdiag(*train_args, log=log)
-    _, t_base = _inkdiag("baseline", head_dir / "commission.npz", "--profile", prof, "--out", base, log=log)
+    _inkdiag("baseline", head_dir / "commission.npz", "--profile", prof, "--out", base, log=log)
     _inkdiag("label", head_dir / "test.npz", "--model", model, "--baselines", base,
              "--out", head_dir / "labels_baselines.csv", log=log)
     _inkdiag("estimate", head_dir / "dried.npz", "--profile", prof, "--baselines", base,
@@ -208,8 +208,7 @@ def run_head(name, work, *, per_class, n_per_class, seed, log, posterior_draws=1
     fd, fi, per, n_invalid, unknown, wrong = _scores(head_dir / "labels_baselines.csv", test["labels"])
     med, p90, n_nan = _dmu_errors(head_dir / "fm_baselines.csv", d_mu_true)
     out[BASELINES] = {"fd": fd, "fi": fi, "per": per, "unknown": unknown, "wrong": wrong, "invalid": n_invalid,
-                      "dmu_median": med, "dmu_p90": p90, "dmu_missing": n_nan, "train_s": t_train,
-                      "baseline_s": t_base}
+                      "dmu_median": med, "dmu_p90": p90, "dmu_missing": n_nan, "train_s": t_train}
     cal = HeadProfile.load(profiles["calibrated"])
     true = HeadProfile.load(profiles["true"])
     out["mode"] = {"true": true.healthy_mode(), "calibrated": cal.healthy_mode()}

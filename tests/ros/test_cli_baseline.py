@@ -73,12 +73,15 @@ def test_a_bag_gives_the_same_baselines_as_its_npz(work, tmp_path):
 def test_nozzles_short_of_frames_are_left_out_and_said(work, tmp_path, capsys):
     d, head, frames = work
     x = np.concatenate([frames[0], frames[1][:2]])  # nozzles 0, 1 twice, the others once
+    x[5] = np.nan  # nozzle 5's one row unusable: a nozzle of the recording all the same
+    x[3] *= 1e3  # nozzle 3's one row beyond the sensor's range (5x the ADC's): not used
     save_recording(tmp_path / "c.npz", Recording.from_arrays(
         x, head.sample_rate_hz, nozzle=np.r_[np.arange(N_NOZZLES), 0, 1]))
     capsys.readouterr()
     assert main(["baseline", str(tmp_path / "c.npz"), "--profile", str(d / "head.yaml"), "--out",
                  str(tmp_path / "b.npz"), "--frames", "2", "--fm-frames", "0"]) == 0
-    assert "4 nozzles with fewer than 2 usable rows left out" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "from 6 of 8 rows" in err and "4 nozzles with fewer than 2 usable rows left out" in err, err
     np.testing.assert_array_equal(NozzleBaselines.load(tmp_path / "b.npz").nozzle_ids, [0, 1])
 
 
@@ -86,7 +89,9 @@ def test_nozzles_short_of_frames_are_left_out_and_said(work, tmp_path, capsys):
     (["--profile", "{d}/nominal.yaml"], "inkdiag calibrate"),
     (["--profile", "{d}/missing.yaml"], "no such head profile"),
     (["--profile", "{d}/head.yaml", "--frames", "2", "--fm-frames", "3"], "--fm-frames must be in 0..--frames"),
-    (["--profile", "{d}/head.yaml", "--frames", "0"], "--frames must be >= 1"),
+    (["--profile", "{d}/head.yaml", "--frames", "0"], "--frames must be in 1..1000"),
+    (["--profile", "{d}/head.yaml", "--frames", "1000000000000"], "--frames must be in 1..1000"),
+    (["--profile", "{d}/head.yaml", "--frames", "1", "--max-abs-v", "0"], "--max-abs-v must be > 0"),
     (["--profile", "{d}/head.yaml", "--frames", "2", "--fm-frames", "0", "--min-frames", "3"], "--min-frames must be in 1..--frames"),
     (["--profile", "{d}/head.yaml", "--fm-frames", "0"], "no nozzle has 8 usable healthy rows"),
     (["--profile", "{d}/head20.yaml"], "Hz"),
@@ -102,6 +107,16 @@ def test_bad_input_is_one_line_and_exit_status_2(work, tmp_path, argv, match, ca
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("inkdiag baseline: error: ") and match in err[0], err
     assert not (tmp_path / "b.npz").exists()
+
+
+def test_fewer_frames_than_the_default_fm_frames(work, tmp_path):
+    """--frames 1 alone (a one-frame recording): the f_m reading takes that frame, as record_baseline clamps."""
+    d, head, frames = work
+    save_recording(tmp_path / "c.npz", Recording.from_arrays(frames[0], head.sample_rate_hz))
+    assert main(["baseline", str(tmp_path / "c.npz"), "--profile", str(d / "head.yaml"), "--out",
+                 str(tmp_path / "b.npz"), "--frames", "1"]) == 0
+    got = NozzleBaselines.load(tmp_path / "b.npz")
+    assert len(got) == N_NOZZLES and np.isfinite(got.fm).all()
 
 
 def test_help(capsys):

@@ -62,6 +62,10 @@ class BaselineRecorder:
         as its KPI baseline. It keeps those rows (float32, ``n_frames`` rows of
         ``n_samples`` per nozzle) until :meth:`baselines`. Like the KPI baselines it
         assumes the recorded rows are healthy jetting-pulse traces (``healthy_nozzle``).
+    max_abs_v : float, optional
+        A row with a sample beyond +-``max_abs_v`` V is not used (out of the sensor's range:
+        :func:`inkdiag_core.screen_traces`); default: the profile's
+        :attr:`~inkdiag_core.HeadProfile.max_abs_v` (5x its ADC range), as fdi.
 
     Raises
     ------
@@ -71,7 +75,8 @@ class BaselineRecorder:
     """
 
     def __init__(self, *, n_frames: int = 8, sample_rate_hz: float | None = None, n_samples: int | None = None,
-                 fm_frames: int = 0, max_nozzles: int = DEFAULT_MAX_NOZZLES, profile=None, reference: bool = True):
+                 fm_frames: int = 0, max_nozzles: int = DEFAULT_MAX_NOZZLES, profile=None, reference: bool = True,
+                 max_abs_v: float | None = None):
         from ..head_profile import HeadProfile, ProfileError
 
         if profile is None:
@@ -101,6 +106,10 @@ class BaselineRecorder:
         if isinstance(max_nozzles, bool) or not isinstance(max_nozzles, (int, np.integer)) or max_nozzles < 1:
             raise ValueError(f"max_nozzles must be a positive integer, got {max_nozzles!r}")
         self.max_nozzles = int(max_nozzles)
+        if max_abs_v is not None and not (isinstance(max_abs_v, (int, float, np.floating, np.integer))
+                                          and not isinstance(max_abs_v, bool) and max_abs_v > 0):
+            raise ValueError(f"max_abs_v must be > 0 V or None (the profile's), got {max_abs_v!r}")
+        self.max_abs_v = profile.max_abs_v if max_abs_v is None else float(max_abs_v)
         self.n_frames = int(n_frames)
         self.sample_rate_hz = checks.sample_rate(sample_rate_hz, error=InvalidTraceError)
         self.n_samples = int(n_samples)
@@ -133,7 +142,9 @@ class BaselineRecorder:
             raise ValueError(f"first_nozzle must be a non-negative integer, got {first_nozzle!r}")
         x = np.asarray(traces)
         n = x.shape[0] if x.ndim == 2 else 0
-        return self._add(first_nozzle + np.arange(n, dtype=np.int64), x, keep, distinct=True)
+        if n:
+            self._check_below_max(int(first_nozzle), int(first_nozzle) + n - 1)  # Python ints: no int64 overflow
+        return self._add(int(first_nozzle) + np.arange(n, dtype=np.int64), x, keep, distinct=True)
 
     def add_rows(self, nozzle_ids, traces, keep=None) -> int:
         """Use rows of any nozzles, a nozzle any number of times (a recording's rows, in its order).
@@ -157,18 +168,22 @@ class BaselineRecorder:
             raise ValueError(f"nozzle_ids must be a 1-d integer array, got shape {ids.shape}, dtype {ids.dtype}")
         if ids.size and ids.min() < 0:
             raise ValueError(f"nozzle ids must be >= 0, got {int(ids.min())}")
+        if ids.size:
+            self._check_below_max(int(ids.min()), int(ids.max()))  # before the cast to int64 (uint64 ids wrap)
         x = np.asarray(traces)
         if x.ndim == 2 and x.shape[0] != ids.size:
             raise ValueError(f"nozzle_ids has {ids.size} ids for {x.shape[0]} rows of traces")
         return self._add(ids.astype(np.int64), x, keep, distinct=False)
 
+    def _check_below_max(self, lo: int, hi: int) -> None:
+        if hi >= self.max_nozzles:
+            raise ValueError(f"nozzle ids must stay below {self.max_nozzles} (the recorder's max_nozzles, "
+                             f"a bound on its memory), got {lo}..{hi}")
+
     def _add(self, all_ids, x, keep, *, distinct: bool) -> int:
         if x.ndim != 2 or x.shape[1] != self.n_samples:
             raise ValueError(f"traces must have shape (n, {self.n_samples}), got {x.shape}")
-        if all_ids.size and all_ids.max() >= self.max_nozzles:
-            raise ValueError(f"nozzle ids must stay below {self.max_nozzles} (the recorder's max_nozzles, "
-                             f"a bound on its memory), got {int(all_ids.min())}..{int(all_ids.max())}")
-        use, _ = screen_traces(x, sample_rate_hz=self.sample_rate_hz)
+        use, _ = screen_traces(x, sample_rate_hz=self.sample_rate_hz, max_abs_v=self.max_abs_v)
         if keep is not None:
             k = np.asarray(keep, dtype=bool)
             if k.shape != (x.shape[0],):

@@ -1,5 +1,8 @@
 """``inkdiag baseline``: a head's per-nozzle healthy baselines from a recording, as record_baseline writes them."""
 
+MAX_FRAMES = 1000
+"""Largest --frames (the record_baseline node's n_frames range)."""
+
 HELP = "record per-nozzle healthy baselines from a recording of a healthy head (.npz)"
 DESCRIPTION = """\
 Build each nozzle's healthy baseline from a recording of the head while it jets
@@ -12,8 +15,8 @@ first nozzle and its row); a nozzle's baseline is the median KPIs of its first
 --frames valid rows in recording order, plus its healthy reference trace (the
 sample-wise median of the same rows, for fdi's healthy gate) and, with
 --fm-frames > 0, its healthy f_m reading (the median over its first
---fm-frames rows, for fe). Rows screening refuses (non-finite, out of range,
-flat, clipped) are skipped; if the recording has a label column, only its
+--fm-frames rows, for fe). Rows screening refuses (non-finite, beyond
+--max-abs-v, flat, clipped) are skipped; if the recording has a label column, only its
 healthy_nozzle rows are used. Nozzles with fewer than --min-frames usable rows
 get no baseline (the message counts them): fdi and fe treat them as nozzles
 without one.
@@ -35,12 +38,15 @@ def add_arguments(parser) -> None:
     parser.add_argument("--profile", required=True, metavar="HEAD.yaml", help="the head's complete profile")
     parser.add_argument("--out", required=True, metavar="B.npz", help="baselines file to write")
     parser.add_argument("--frames", type=int, default=8, metavar="N",
-                        help="valid rows per nozzle in its baseline, the median (default 8, as record_baseline)")
+                        help=f"valid rows per nozzle in its baseline, the median, 1..{MAX_FRAMES} (default 8, as "
+                        "record_baseline)")
     parser.add_argument("--min-frames", type=int, default=None, metavar="N",
                         help="fewest usable rows a nozzle's baseline may rest on (default: --frames)")
-    parser.add_argument("--fm-frames", type=int, default=3, metavar="N",
-                        help="rows per nozzle for its healthy f_m reading, at most --frames; 0: none "
-                        "(about 1 ms of CPU per row; default 3, as record_baseline)")
+    parser.add_argument("--fm-frames", type=int, default=None, metavar="N",
+                        help="rows per nozzle for its healthy f_m reading, 0..--frames; 0: none "
+                        "(about 1 ms of CPU per row; default 3 or --frames if fewer, as record_baseline)")
+    parser.add_argument("--max-abs-v", type=float, default=None, metavar="V",
+                        help="a row with a sample beyond +-V is not used (default: 5x the profile's ADC range, as fdi)")
 
 
 def run(args) -> int:
@@ -51,17 +57,22 @@ def run(args) -> int:
 
     from ..bags import report_stats, stream_recording
 
-    if args.frames < 1:
-        raise ValueError(f"--frames must be >= 1, got {args.frames}")
-    if not 0 <= args.fm_frames <= args.frames:
-        raise ValueError(f"--fm-frames must be in 0..--frames ({args.frames}), got {args.fm_frames}")
+    if not 1 <= args.frames <= MAX_FRAMES:
+        raise ValueError(f"--frames must be in 1..{MAX_FRAMES}, got {args.frames}")
+    fm_frames = min(3, args.frames) if args.fm_frames is None else args.fm_frames
+    if not 0 <= fm_frames <= args.frames:
+        raise ValueError(f"--fm-frames must be in 0..--frames ({args.frames}), got {fm_frames}")
+    if args.max_abs_v is not None and not args.max_abs_v > 0:
+        raise ValueError(f"--max-abs-v must be > 0 V, got {args.max_abs_v!r}")
     min_frames = args.frames if args.min_frames is None else args.min_frames
     if not 1 <= min_frames <= args.frames:
         raise ValueError(f"--min-frames must be in 1..--frames ({args.frames}), got {min_frames}")
     profile = HeadProfile.load(args.profile)
-    recorder = BaselineRecorder(n_frames=args.frames, fm_frames=args.fm_frames, profile=profile)  # nominal: refused
+    recorder = BaselineRecorder(n_frames=args.frames, fm_frames=fm_frames, profile=profile,  # nominal: refused
+                                max_abs_v=args.max_abs_v)
     stats, chunks = stream_recording(args.recording, args.topic)
     n_rows = n_used = n_other = 0
+    nozzles = np.zeros(0, np.int64)  # every nozzle id the recording has, usable rows or not
     for _, rec in chunks:  # a bag with no trace frame: RecordingError
         profile.check_traces(rec.traces, rec.sample_rate_hz, what=f"{args.recording}")
         keep = None
@@ -69,10 +80,11 @@ def run(args) -> int:
             keep = np.asarray(rec.label).astype(str) == "healthy_nozzle"
             n_other += int(np.count_nonzero(~keep))
         n_used += recorder.add_rows(rec.nozzle, rec.traces, keep=keep)
+        nozzles = np.union1d(nozzles, rec.nozzle)
         n_rows += rec.n_rows
     report_stats(args.recording, stats)
     baselines = recorder.baselines(min_frames=min_frames)
-    short = recorder.n_seen - len(baselines)
+    short = nozzles.size - len(baselines)
     if not len(baselines):
         raise ValueError(f"{args.recording}: no nozzle has {min_frames} usable healthy rows (of {n_rows} rows, "
                          f"{n_used} usable{f', {n_other} not labelled healthy_nozzle' if n_other else ''}): "

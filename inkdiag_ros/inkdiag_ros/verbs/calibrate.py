@@ -84,7 +84,7 @@ def bag_sample(chunks, nominal, *, max_rows: int = MAX_BAG_ROWS, seed: int = 0):
     store = order = None
     n_seen = n_read = n_screened = 0
     for _, rec in chunks:
-        ok, _why = screen_traces(rec.traces, sample_rate_hz=rec.sample_rate_hz, max_abs_v=5.0 * nominal.adc_range_v)
+        ok, _why = screen_traces(rec.traces, sample_rate_hz=rec.sample_rate_hz, max_abs_v=nominal.max_abs_v)
         rows = rec.traces[ok]
         n_read += rec.n_rows
         n_screened += int((~ok).sum())

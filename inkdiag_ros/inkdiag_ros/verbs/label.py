@@ -154,7 +154,7 @@ def run(args) -> int:
             f"{args.recording} is sampled at {rec.sample_rate_hz:.10g} Hz x {rec.n_samples} samples; the model is for "
             f"head {head.name!r} at {detector.sample_rate_hz_:.10g} Hz x {detector.n_features_in_}: label recordings "
             "of the head the model was trained for")
-    max_abs_v = args.max_abs_v if args.max_abs_v is not None else 5.0 * head.adc_range_v
+    max_abs_v = args.max_abs_v if args.max_abs_v is not None else head.max_abs_v
     if not max_abs_v > 0:
         raise ValueError(f"--max-abs-v must be > 0 V, got {max_abs_v!r}")
     baselines = NozzleBaselines.load(args.baselines) if args.baselines else None
