@@ -3,7 +3,8 @@
 Run it while the head is known to jet (after a purge, at commissioning): it
 subscribes to ``traces`` (sensor-data QoS) in the head's namespace, keeps each
 nozzle's first ``n_frames`` valid rows (:class:`inkdiag_core.BaselineRecorder`:
-any nozzle ranges, in any order; invalid rows are skipped) and, once
+any nozzle ranges, in any order; invalid rows, and rows beyond 5x the head's
+ADC range (fdi's default ``max_abs_sample_v``), are skipped) and, once
 ``n_nozzles`` nozzles are complete, writes their baselines (median KPIs) to
 ``output_path`` (:class:`inkdiag_core.NozzleBaselines`, a checked ``.npz``) and
 exits. With ``fm_frames`` > 0 (the default) the file also holds each nozzle's

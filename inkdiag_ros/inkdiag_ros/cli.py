@@ -3,6 +3,7 @@
     inkdiag calibrate HEALTHY --nominal NOMINAL.yaml --out HEAD.yaml
     inkdiag train --profile HEAD.yaml --out MODEL.joblib [--features ...] [--baseline] [--data LABELLED]
     inkdiag baseline RECORDING --profile HEAD.yaml --out B.npz [--frames N] [--min-frames N] [--fm-frames N]
+                     [--max-abs-v V] [--topic T]
     inkdiag label RECORDING --model MODEL.joblib [--baselines B.npz] --out LABELS.csv
     inkdiag estimate RECORDING --profile HEAD.yaml [--rows ...] --out FM.csv
     inkdiag record BAG_DIR --namespace /head_00 [--topics ...] [--duration S]

@@ -199,6 +199,7 @@ def test_add_rows_skips_invalid_and_excluded_rows_and_counts_only_what_it_keeps(
     (lambda r: r.add(0, np.zeros((2, 512)), keep=[True]), "keep"),
     (lambda r: r.add(2**24 - 1, np.zeros((2, 512))), "below"),
     (lambda r: r.add(2**63, np.zeros((2, 512))), "below"),  # no int64 overflow
+    (lambda r: r.add(2**63, np.zeros((0, 512))), "below"),  # nor with no rows
     (lambda r: r.add_rows(np.array([2**64 - 1, 0], np.uint64), np.zeros((2, 512))), "below"),  # checked before a cast
 ])
 def test_recorder_rejects_bad_input(call, match):
@@ -214,8 +215,9 @@ def test_rows_beyond_the_sensors_range_are_not_used():
     for rec, used in ((BaselineRecorder(n_frames=2), 5), (BaselineRecorder(n_frames=2, max_abs_v=1e6), 6)):
         assert rec.max_abs_v == (10.0 if used == 5 else 1e6)  # the default head: +-2 V ADC
         assert rec.add_rows(np.tile([0, 1, 2], 2), x) == used
-    with pytest.raises(ValueError, match="max_abs_v"):
-        BaselineRecorder(max_abs_v=0.0)
+    for bad in (0.0, np.inf, np.nan, True):
+        with pytest.raises(ValueError, match="max_abs_v"):
+            BaselineRecorder(max_abs_v=bad)
 
 
 def test_lookup_finds_the_nozzles_that_have_a_baseline():

@@ -107,8 +107,8 @@ class BaselineRecorder:
             raise ValueError(f"max_nozzles must be a positive integer, got {max_nozzles!r}")
         self.max_nozzles = int(max_nozzles)
         if max_abs_v is not None and not (isinstance(max_abs_v, (int, float, np.floating, np.integer))
-                                          and not isinstance(max_abs_v, bool) and max_abs_v > 0):
-            raise ValueError(f"max_abs_v must be > 0 V or None (the profile's), got {max_abs_v!r}")
+                                          and not isinstance(max_abs_v, bool) and 0 < max_abs_v < np.inf):
+            raise ValueError(f"max_abs_v must be a finite number > 0 V or None (the profile's), got {max_abs_v!r}")
         self.max_abs_v = profile.max_abs_v if max_abs_v is None else float(max_abs_v)
         self.n_frames = int(n_frames)
         self.sample_rate_hz = checks.sample_rate(sample_rate_hz, error=InvalidTraceError)
@@ -142,8 +142,7 @@ class BaselineRecorder:
             raise ValueError(f"first_nozzle must be a non-negative integer, got {first_nozzle!r}")
         x = np.asarray(traces)
         n = x.shape[0] if x.ndim == 2 else 0
-        if n:
-            self._check_below_max(int(first_nozzle), int(first_nozzle) + n - 1)  # Python ints: no int64 overflow
+        self._check_below_max(int(first_nozzle), int(first_nozzle) + max(n, 1) - 1)  # Python ints: no int64 overflow
         return self._add(int(first_nozzle) + np.arange(n, dtype=np.int64), x, keep, distinct=True)
 
     def add_rows(self, nozzle_ids, traces, keep=None) -> int:
