@@ -53,7 +53,7 @@ def run(args) -> int:
     import sys
 
     import numpy as np
-    from inkdiag_core import BaselineRecorder, HeadProfile
+    from inkdiag_core import BaselineRecorder, FaultClass, HeadProfile
 
     from ..bags import report_stats, stream_recording
 
@@ -77,7 +77,7 @@ def run(args) -> int:
         profile.check_traces(rec.traces, rec.sample_rate_hz, what=f"{args.recording}")
         keep = None
         if rec.label is not None:
-            keep = np.asarray(rec.label).astype(str) == "healthy_nozzle"
+            keep = np.asarray(rec.label).astype(str) == FaultClass.HEALTHY_NOZZLE.value
             n_other += int(np.count_nonzero(~keep))
         n_used += recorder.add_rows(rec.nozzle, rec.traces, keep=keep)
         nozzles = np.union1d(nozzles, rec.nozzle)
