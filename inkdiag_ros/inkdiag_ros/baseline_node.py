@@ -9,8 +9,9 @@ ADC range (fdi's default ``max_abs_sample_v``), are skipped) and, once
 ``output_path`` (:class:`inkdiag_core.NozzleBaselines`, a checked ``.npz``) and
 exits. With ``fm_frames`` > 0 (the default) the file also holds each nozzle's
 healthy f_m reading, the median over its first ``fm_frames`` valid rows, which
-the fe node subtracts (its ``baseline_path``); it costs about 1 ms of CPU per
-row (a 2,656-nozzle head: about 10 s for 3 frames). The file also holds each
+the fe node subtracts (its ``baseline_path``), read by fe's own estimator (``vp_cal``
+with the head's constants, fitted at start for a head whose profile does not store
+them); it costs about 1 ms of CPU per row (a 2,656-nozzle head: about 10 s for 3 frames). The file also holds each
 nozzle's healthy reference trace (the sample-wise median of the same rows), which
 the fdi node's healthy gate (:class:`inkdiag_core.HealthyGate`) fits each new row to;
 the node keeps those rows until it writes (float32: a 2,656-nozzle head at

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from inkdiag_core import DryingTracker, HeadProfile, InkChannelModel, estimate_fm_batch, fm_to_viscosity
+from inkdiag_core import BaselineRecorder, DryingTracker, HeadProfile, InkChannelModel, estimate_fm_batch, fm_to_viscosity
 from inkdiag_core.estimation import VP_CAL, calibrate_vp_cal, vp_cal_for, vp_calibration
 from inkdiag_core.trend import deeply_dried_fm
 
@@ -138,3 +138,18 @@ def test_a_5_mhz_head_of_256_samples():
     d_mu_true = fm_to_viscosity(p.channel_params(), r.fm)[0]
     assert np.median(np.abs(out.columns["d_mu"] - d_mu_true) / d_mu_true) <= 0.10
     assert t.trends.fm_deep == deeply_dried_fm(p.channel_params())
+
+
+def test_a_baselines_healthy_fm_is_the_trackers_own_reading(head_cal):
+    """record_baseline / inkdiag baseline read a nozzle's healthy f_m with the estimator fe subtracts it
+    from (the head's model and vp_cal constants): the same healthy rows estimated against it read 0."""
+    p, _ = head_cal
+    rows = p.simulate({"healthy_nozzle": 6}, seed=5).traces
+    rec = BaselineRecorder(n_frames=1, fm_frames=1, profile=p)
+    rec.add(10, rows)
+    t = DryingTracker(profile=p, baselines=rec.baselines())
+    est = t.estimate_rows(rows, 10 + np.arange(6), stamp=0.0, sample_rate_hz=p.sample_rate_hz)
+    assert t.estimates_with_baseline == 6
+    np.testing.assert_allclose(est.columns["fm"], 0.0, atol=1.0)  # 1/s; healthy readings are ~1e4-1e5
+    plain = DryingTracker(profile=p).estimate_rows(rows, 10 + np.arange(6), stamp=0.0, sample_rate_hz=p.sample_rate_hz)
+    assert np.all(np.abs(plain.columns["fm"]) > 100.0)  # what the baseline removes is not nothing

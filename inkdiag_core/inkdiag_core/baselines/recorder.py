@@ -7,7 +7,7 @@ import warnings
 import numpy as np
 
 from .. import checks
-from ..estimation import estimate_fm_batch
+from ..estimation import estimate_fm_batch, vp_cal_for
 from ..kpis import MIN_KPI_SAMPLES, InvalidTraceError, extract_kpis
 from ..screening import screen_traces
 from .features import N_KPIS
@@ -43,7 +43,8 @@ class BaselineRecorder:
         it must be the profile's).
     fm_frames : int
         Also record each nozzle's healthy f_m reading (:attr:`NozzleBaselines.fm`),
-        the median of ``estimate_fm_batch(rows, profile.model(), sample_rate_hz).fm``
+        the median of ``estimate_fm_batch(rows, profile, sample_rate_hz, method="vp_cal").fm``
+        (the head's model and its own ``vp_cal`` constants, as :class:`inkdiag_core.DryingTracker`)
         over its first ``fm_frames`` rows (at most ``n_frames``); 0: none. It costs
         about a millisecond per row, so it is taken on fewer rows than the KPIs.
     max_nozzles : int
@@ -114,11 +115,13 @@ class BaselineRecorder:
         self.sample_rate_hz = checks.sample_rate(sample_rate_hz, error=InvalidTraceError)
         self.n_samples = int(n_samples)
         self.profile = profile
-        self._model = profile.model() if self.fm_frames else None
         self._ids = []  # chunks of the rows kept so far, in arrival order
         self._kpis = []
         self.reference = bool(reference)
         self._traces = []  # the kept rows (float32), when recording references
+        self._vp_cal = None
+        if self.fm_frames:  # fitted now for a new head (seconds), not at the first frame
+            self._vp_cal = vp_cal_for(profile)
         self._count_of = np.zeros(0, np.int32)  # rows kept per nozzle id (dense, grown on demand)
 
     def add(self, first_nozzle: int, traces, keep=None) -> int:
@@ -215,7 +218,11 @@ class BaselineRecorder:
         if self.fm_frames:
             fm_rows = np.flatnonzero(place < self.fm_frames)
             if fm_rows.size:
-                kpis[fm_rows, N_KPIS] = estimate_fm_batch(y[fm_rows], self._model, self.sample_rate_hz).fm
+                # the profile: its model and its own "vp_cal" constants, the estimator fe and
+                # DryingTracker subtract this reading from (the default head's constants would
+                # read another head's healthy nozzle as a fault)
+                kpis[fm_rows, N_KPIS] = estimate_fm_batch(y[fm_rows], self.profile, self.sample_rate_hz,
+                                                          method="vp_cal", cal=self._vp_cal).fm
         self._kpis.append(kpis)
         if self.reference:
             self._traces.append(y.astype(np.float32))
