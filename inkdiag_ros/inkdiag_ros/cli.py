@@ -76,9 +76,15 @@ def main(argv=None) -> int:
 
 
 def _check_out(args) -> None:
-    """A verb's ``--out`` must go into an existing, writable directory: said before any work is done
-    (not for a verb whose module sets ``MAKES_OUT_DIR``: it creates the directory)."""
+    """A verb's ``--out`` must go into an existing, writable directory (not for a verb whose module sets
+    ``MAKES_OUT_DIR``: it creates the directory) and must not be one of its inputs: said before any work is done."""
     out = getattr(args, "out", None)
+    if out and out != "-":
+        target = Path(out).resolve()
+        for name, value in vars(args).items():
+            if name != "out" and isinstance(value, str) and value and Path(value).resolve() == target:
+                what = name.upper() if name in ("recording", "healthy") else "--" + name.replace("_", "-")
+                raise OSError(f"--out {out} is also the {what} input: writing it would destroy that input")
     if out and out != "-" and not args._makes_out_dir:
         parent = Path(out).parent
         if not parent.is_dir():

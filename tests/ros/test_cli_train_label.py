@@ -123,6 +123,11 @@ def test_label_uses_each_rows_nozzle_baseline(work, tmp_path):
      "not an .npz archive (a zip of numpy arrays): it starts with b'row,no'"),
     (["label", "{d}/rec.npz", "--model", "{d}/head.joblib", "--out", "{d}/nodir/l.csv"],
      "nodir: no such directory for --out"),
+    # an --out that is one of the inputs: refused before it is written over
+    (["label", "{d}/rec.npz", "--model", "{d}/head.joblib", "--out", "{d}/rec.npz"], "also the RECORDING input"),
+    (["label", "{d}/rec.npz", "--model", "{d}/head.joblib", "--out", "{d}/../{n}/head.joblib"],
+     "also the --model input"),
+    (["train", "--profile", "{d}/head.yaml", "--out", "{d}/head.yaml"], "also the --profile input"),
 ])
 def test_bad_input_is_one_line_and_exit_status_2(work, trained, argv, match, capsys):
     d, _, _ = work
@@ -135,9 +140,11 @@ def test_bad_input_is_one_line_and_exit_status_2(work, trained, argv, match, cap
         rec.baselines().save(d / "base10.npz")
         (d / "notzip.npz").write_text("row,nozzle,class\n")  # a CSV given an .npz name
     capsys.readouterr()
-    assert main([a.format(d=d) for a in argv]) == 2
+    inputs = {p: p.read_bytes() for p in (d / "rec.npz", d / "head.yaml", trained[0])}
+    assert main([a.format(d=d, n=d.name) for a in argv]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"inkdiag {argv[0]}: error: ") and match in err[0], err
+    assert all(p.read_bytes() == data for p, data in inputs.items())  # bad input loses nothing
 
 
 @pytest.mark.parametrize(("argv", "match"), [
