@@ -90,7 +90,7 @@ def test_train_then_label_a_foreign_head_end_to_end(work, trained):
     assert acc > 0.8, acc
 
 
-def test_label_uses_each_rows_nozzle_baseline(work, tmp_path):
+def test_label_uses_each_rows_nozzle_baseline(work, tmp_path, capsys):
     d, head, _ = work
     model = tmp_path / "models" / "b.joblib"  # train creates its model's directory (docs/cli.md)
     assert main(["train", "--profile", str(d / "head.yaml"), "--out", str(model), "--baseline",
@@ -105,6 +105,8 @@ def test_label_uses_each_rows_nozzle_baseline(work, tmp_path):
                  str(tmp_path / "base.npz"), "--out", str(tmp_path / "l.csv")]) == 0
     _, rows = _read(tmp_path / "l.csv")
     assert [r["baseline"] for r in rows] == ["1", "0", "1", "0", "1", "0"]
+    # rows of nozzles without a baseline are said (a nozzle column that does not match is not silent)
+    assert "3 against their nozzle's baseline, 3 without one" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(("argv", "match"), [

@@ -161,7 +161,7 @@ def run(args) -> int:
     labeller = FrameLabeller(detector, baselines, sample_rate_hz=detector.sample_rate_hz_, n_samples=rec.n_samples,
                              max_abs_v=max_abs_v)
     del rec
-    n_rows = n_invalid = n_failed = 0
+    n_rows = n_invalid = n_failed = n_base = 0
     out = sys.stdout if args.out == "-" else open(args.out, "w", newline="", encoding="utf-8")
     try:
         w = csv.writer(out, lineterminator="\n")
@@ -172,11 +172,18 @@ def run(args) -> int:
                 n_failed += reason == "labelling_failed"
             w.writerow((row, nozzle, fid, cls, "" if conf != conf else f"{conf:.6f}", reason, int(base)))
             n_rows += 1
+            n_base += bool(base)
     finally:
         if out is not sys.stdout:
             out.close()
     report_stats(args.recording, stats)
+    against = ""
+    if baselines is not None:  # a nozzle column that does not match the baselines' ids is said, not silent
+        n_plain = n_rows - n_invalid - n_base
+        against = (f"; {n_base} against their nozzle's baseline, {n_plain} without one (no baseline for that nozzle "
+                   "id: check the recording's nozzle column)" if n_plain else f"; all {n_base} against their nozzle's "
+                   "baseline")
     print(f"labelled {n_rows - n_invalid} of {n_rows} rows with {detector.model_id} (head {head.name!r}); "
-          f"{n_invalid} invalid" + (f", {n_failed} in frames whose labelling failed" if n_failed else "")
+          f"{n_invalid} invalid" + (f", {n_failed} in frames whose labelling failed" if n_failed else "") + against
           + (f"; wrote {args.out}" if args.out != "-" else ""), file=sys.stderr)
     return 1 if n_failed else 0
