@@ -133,7 +133,8 @@ class FrameLabeller:
                                           f"for {want_fs:g} Hz x {want_n}")
             if len(baselines) and detector.baseline_pipeline_ is None:
                 raise LabellerConfigError(f"{detector.model_id} has no baseline branch: per-nozzle baselines "
-                                          "need a detector trained with baseline=True")
+                                          "need a detector trained with baselines (`inkdiag train --baseline`, "
+                                          "train_detector(baseline=True))")
         self.detector = detector
         self.baselines = baselines if baselines is not None and len(baselines) else None
         gate = HealthyGate(self.baselines) if self.baselines is not None and self.baselines.has_reference else None
