@@ -20,7 +20,7 @@ Estimate the drying-nozzle fault f_m (1/s), its standard deviation and the
 nozzle's viscosity increase and viscosity (Pa s) of each selected row of a
 recording, on the head of a complete profile (its model, sampling and
 "vp_cal" constants; a head other than the default one gets its constants
-fitted once, a minute or so, unless the profile's calibration: section holds
+fitted once, a few seconds, unless the profile's calibration: section holds
 them). The same code as the fe node.
 
 Output CSV, one line per selected row, columns:
