@@ -162,7 +162,9 @@ class DryingTracker:
     baselines : NozzleBaselines, optional
         The head's baselines with healthy f_m (``baselines.fm``): each estimate is
         taken relative to its nozzle's reading (``estimate_fm_batch(baseline_fm=)``)
-        when the frame's sample rate and trace length are the baselines'.
+        when the frame's sample rate and trace length are the baselines' and the method
+        is ``"vp_cal"``, the estimator the readings were taken with
+        (:class:`~inkdiag_core.BaselineRecorder`).
     trend_accel_std, trend_rel_floor : float
         :class:`~inkdiag_core.FmTrend`'s ``accel_std`` (1/s^3) and ``rel_floor``.
     method : {"auto", "vp", "vp_cal"}
@@ -420,6 +422,8 @@ class DryingTracker:
         b = self.baselines
         if b is None or b.fm is None:
             return None, ""
+        if self.method == "vp":
+            return None, "the f_m baselines are vp_cal readings, not vp's: estimated without them"
         if (sample_rate_hz, n_samples) != (b.sample_rate_hz, b.n_samples):
             return None, (f"traces of {sample_rate_hz:g} Hz x {n_samples} samples, the f_m baselines "
                           f"{b.sample_rate_hz:g} Hz x {b.n_samples}: estimated without them")

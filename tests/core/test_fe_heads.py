@@ -153,3 +153,17 @@ def test_a_baselines_healthy_fm_is_the_trackers_own_reading(head_cal):
     np.testing.assert_allclose(est.columns["fm"], 0.0, atol=1.0)  # 1/s; healthy readings are ~1e4-1e5
     plain = DryingTracker(profile=p).estimate_rows(rows, 10 + np.arange(6), stamp=0.0, sample_rate_hz=p.sample_rate_hz)
     assert np.all(np.abs(plain.columns["fm"]) > 100.0)  # what the baseline removes is not nothing
+
+
+def test_vp_estimates_do_not_subtract_vp_cal_readings(head_cal):
+    """The baselines' healthy f_m are vp_cal readings: method "vp" leaves them out and says so."""
+    p, _ = head_cal
+    rows = p.simulate({"healthy_nozzle": 3}, seed=6).traces
+    rec = BaselineRecorder(n_frames=1, fm_frames=1, profile=p)
+    rec.add(0, rows)
+    t = DryingTracker(profile=p, baselines=rec.baselines(), method="vp")
+    est = t.estimate_rows(rows, np.arange(3), stamp=0.0, sample_rate_hz=p.sample_rate_hz)
+    plain = DryingTracker(profile=p, method="vp").estimate_rows(rows, np.arange(3), stamp=0.0,
+                                                                  sample_rate_hz=p.sample_rate_hz)
+    np.testing.assert_array_equal(est.columns["fm"], plain.columns["fm"])
+    assert t.estimates_with_baseline == 0 and "vp_cal readings" in est.note
