@@ -30,7 +30,10 @@ import os
 import sys
 from pathlib import Path
 
-__all__ = ["VERBS", "build_parser", "main"]
+__all__ = ["INPUT_ARGS", "VERBS", "build_parser", "main"]
+
+INPUT_ARGS = ("recording", "healthy", "model", "baselines", "profile", "nominal", "data")
+"""The verbs' arguments that name files they read: an ``--out`` that is one of them is refused."""
 
 VERBS = ("calibrate", "train", "baseline", "label", "estimate", "record", "replay", "printer")
 """The subcommands, in the order ``inkdiag --help`` lists them."""
@@ -75,15 +78,23 @@ def main(argv=None) -> int:
         return 2
 
 
+def _same_path(a: str, b: str) -> bool:
+    """The same file (a hard link or symlink too) or, where one does not exist yet, the same resolved path."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # one of them does not exist
+        return Path(a).resolve() == Path(b).resolve()
+
+
 def _check_out(args) -> None:
     """A verb's ``--out`` must go into an existing, writable directory (not for a verb whose module sets
     ``MAKES_OUT_DIR``: it creates the directory) and must not be one of its inputs: said before any work is done."""
     out = getattr(args, "out", None)
     if out and out != "-":
-        target = Path(out).resolve()
-        for name, value in vars(args).items():
-            if name != "out" and isinstance(value, str) and value and Path(value).resolve() == target:
-                what = name.upper() if name in ("recording", "healthy") else "--" + name.replace("_", "-")
+        for name in INPUT_ARGS:
+            value = getattr(args, name, None)
+            if value and _same_path(value, out):
+                what = name.upper() if name in ("recording", "healthy") else "--" + name
                 raise OSError(f"--out {out} is also the {what} input: writing it would destroy that input")
     if out and out != "-" and not args._makes_out_dir:
         parent = Path(out).parent

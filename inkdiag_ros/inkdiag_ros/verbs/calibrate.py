@@ -115,8 +115,8 @@ def run(args) -> int:
     from inkdiag_core.head_profile import HeadProfile
     from ..bags import is_bag, report_stats, stream_recording
 
-    if args.seed < 0:
-        raise ValueError(f"--seed must be >= 0, got {args.seed}")
+    if not 0 <= args.seed < 2**32:
+        raise ValueError(f"--seed must be in 0..2**32-1, got {args.seed}")
     nominal = HeadProfile.load(args.nominal)
     stats, chunks = stream_recording(args.healthy, args.topic)
     _, rec = next(chunks)  # a bag with no trace frame: RecordingError

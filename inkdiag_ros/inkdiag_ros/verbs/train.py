@@ -106,8 +106,8 @@ def run(args) -> int:
         raise ValueError(f"--posterior-draws must be >= 1, got {args.posterior_draws}")
     if not 0 <= args.unknown_rate < 1:
         raise ValueError(f"--unknown-rate must be in [0, 1) (0: no 'unknown'), got {args.unknown_rate!r}")
-    if args.seed < 0:
-        raise ValueError(f"--seed must be >= 0, got {args.seed}")
+    if not 0 <= args.seed < 2**32:
+        raise ValueError(f"--seed must be in 0..2**32-1, got {args.seed}")
     if args.data and is_bag(args.data):  # refused before reading it: a bag's rows have no class to train on
         raise ValueError(f"{args.data}: a rosbag2 bag has no per-row labels: --data needs a labelled .npz "
                          "(a 'label' per row); label the bag first and save it as one")
