@@ -38,6 +38,7 @@ from pathlib import Path
 from rclpy.node import Node
 
 from inkdiag_core import BaselineRecorder
+from inkdiag_core.estimation import vp_cal_needs_fit
 from msg_defs import TRACE_MSG_TYPE, TRACES_QOS, FrameError, decode_traces, topics
 
 from . import _params
@@ -70,6 +71,9 @@ class BaselineRecorderNode(Node):
             raise ValueError("output_path is required (-p output_path:=baselines/head.npz)")
         c = self.config
         self.profile = head_from_parameters(c)  # bad, nominal or contradicting: ValueError, exit 2 at start
+        if c["fm_frames"] and self.profile.is_complete and vp_cal_needs_fit(self.profile):
+            self.get_logger().info(f"fitting the vp_cal constants of head {self.profile.name!r} for its healthy "
+                                   "f_m readings (a few seconds)")
         self.recorder = BaselineRecorder(n_frames=c["n_frames"], sample_rate_hz=c["sample_rate_hz"],
                                          n_samples=c["n_samples"], profile=self.profile,
                                          fm_frames=min(c["fm_frames"], c["n_frames"]), reference=True)

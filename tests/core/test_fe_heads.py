@@ -167,3 +167,15 @@ def test_vp_estimates_do_not_subtract_vp_cal_readings(head_cal):
                                                                   sample_rate_hz=p.sample_rate_hz)
     np.testing.assert_array_equal(est.columns["fm"], plain.columns["fm"])
     assert t.estimates_with_baseline == 0 and "vp_cal readings" in est.note
+
+
+def test_vp_cal_needs_fit_says_when_vp_cal_for_would_fit(head_cal, monkeypatch):
+    from inkdiag_core.estimation import vp_cal_needs_fit
+
+    monkeypatch.setattr(vp_calibration, "_CACHE", {})
+    p, _ = head_cal
+    assert not vp_cal_needs_fit(HeadProfile.default()) and not vp_cal_needs_fit(p)  # default; stored constants
+    bare = foreign_head()  # the same head, no constants stored
+    assert vp_cal_needs_fit(bare)
+    monkeypatch.setitem(vp_calibration._CACHE, bare.sha256, VP_CAL)  # fitted once in this process
+    assert not vp_cal_needs_fit(bare)

@@ -36,6 +36,7 @@ __all__ = [
     "HEAD_SEEDS",
     "HEAD_N_PER_CLASS",
     "calibrate_vp_cal",
+    "vp_cal_needs_fit",
     "vp_cal_features",
     "vp_cal_for",
 ]
@@ -180,6 +181,17 @@ def _stored(profile):
         return {**cal, **{k: float(cal[k]) for k in _KEYS}}
     except (KeyError, TypeError, ValueError):
         return None
+
+
+def vp_cal_needs_fit(profile) -> bool:
+    """Whether :func:`vp_cal_for` would fit ``profile``'s constants now (seconds): not the default
+    head, none stored in the profile for this head, none fitted yet in this process."""
+    from ..head_profile import HeadProfile
+
+    if profile.sha256 == HeadProfile.default().sha256 or _stored(profile) is not None:
+        return False
+    with _LOCK:
+        return profile.sha256 not in _CACHE
 
 
 def vp_cal_for(profile) -> dict:

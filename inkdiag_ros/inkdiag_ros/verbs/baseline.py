@@ -50,12 +50,14 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    import itertools
     import sys
 
     import numpy as np
     from inkdiag_core import BaselineRecorder, FaultClass, HeadProfile
 
     from ..bags import report_stats, stream_recording
+    from ._vp_cal import fit_vp_cal_said
 
     if not 1 <= args.frames <= MAX_FRAMES:
         raise ValueError(f"--frames must be in 1..{MAX_FRAMES}, got {args.frames}")
@@ -68,12 +70,16 @@ def run(args) -> int:
     if not 1 <= min_frames <= args.frames:
         raise ValueError(f"--min-frames must be in 1..--frames ({args.frames}), got {min_frames}")
     profile = HeadProfile.load(args.profile)
+    stats, chunks = stream_recording(args.recording, args.topic)
+    first = next(chunks)  # a bag with no trace frame: RecordingError
+    profile.check_traces(first[1].traces, first[1].sample_rate_hz, what=f"{args.recording}")  # before any fit
+    if fm_frames and profile.is_complete:  # the healthy f_m readings' estimator (a nominal one: refused below)
+        fit_vp_cal_said(profile, "baseline")
     recorder = BaselineRecorder(n_frames=args.frames, fm_frames=fm_frames, profile=profile,  # nominal: refused
                                 max_abs_v=args.max_abs_v)
-    stats, chunks = stream_recording(args.recording, args.topic)
     n_rows = n_used = n_other = 0
     nozzles = np.zeros(0, np.int64)  # every nozzle id the recording has, usable rows or not
-    for _, rec in chunks:  # a bag with no trace frame: RecordingError
+    for _, rec in itertools.chain([first], chunks):
         profile.check_traces(rec.traces, rec.sample_rate_hz, what=f"{args.recording}")
         keep = None
         if rec.label is not None:

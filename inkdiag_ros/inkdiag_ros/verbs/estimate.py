@@ -125,10 +125,11 @@ def run(args) -> int:
     import numpy as np
     from inkdiag_core import DryingTracker, HeadProfile
 
-    from ..bags import is_bag, stream_recording
     from inkdiag_core import BaselineFileError, NozzleBaselines
-    from inkdiag_core.estimation import vp_cal_for
     from inkdiag_core.head_profile import ProfileError
+
+    from ..bags import is_bag, stream_recording
+    from ._vp_cal import fit_vp_cal_said
 
     profile = HeadProfile.load(args.profile)
     if not profile.is_complete:
@@ -147,14 +148,8 @@ def run(args) -> int:
             baselines.check_head(profile)
         except BaselineFileError as exc:
             raise ProfileError(str(exc)) from None
-    if (args.method == "vp_cal" and profile.sha256 != HeadProfile.default().sha256
-            and "vp_cal" not in (profile.calibration or {})):
-        print(f"inkdiag estimate: fitting the vp_cal constants of head {profile.name!r} (first use of this head "
-              "in this process)...", file=sys.stderr, flush=True)
-        cal = vp_cal_for(profile)
-        if "seconds" in cal:
-            print(f"inkdiag estimate: vp_cal fitted in {cal['seconds']:.1f} s on {cal['n_traces']} simulated traces",
-                  file=sys.stderr, flush=True)
+    if args.method == "vp_cal":
+        fit_vp_cal_said(profile, "estimate")
     tracker = DryingTracker(profile=profile, baselines=baselines, method=args.method, max_abs_v=args.max_abs_v)
     if bag:
         return _estimate_bag(args, tracker, profile, pick, itertools.chain([(first_row, rec)], chunks), stats)
