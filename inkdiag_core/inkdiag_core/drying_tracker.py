@@ -97,6 +97,15 @@ class RangeEstimates:
         return self.columns["nozzle"]
 
 
+
+def _same_cal(a, b) -> bool:
+    """The same ``vp_cal`` constants (None: the default head's, :data:`~inkdiag_core.estimation.VP_CAL`)."""
+    from .estimation import VP_CAL
+
+    a, b = VP_CAL if a is None else a, VP_CAL if b is None else b
+    return all(math.isclose(float(a[k]), float(b[k]), rel_tol=1e-12, abs_tol=0.0)
+               for k in ("a_sigma", "b_sigma", "a_omega", "b_omega"))
+
 @dataclass(frozen=True)
 class RowEstimates:
     """The estimates of some rows of one frame, valid or not (:meth:`DryingTracker.estimate_rows`).
@@ -163,8 +172,8 @@ class DryingTracker:
         The head's baselines with healthy f_m (``baselines.fm``): each estimate is
         taken relative to its nozzle's reading (``estimate_fm_batch(baseline_fm=)``)
         when the frame's sample rate and trace length are the baselines' and the method
-        is ``"vp_cal"``, the estimator the readings were taken with
-        (:class:`~inkdiag_core.BaselineRecorder`).
+        is ``"vp_cal"`` with the constants the readings were taken with
+        (:attr:`~inkdiag_core.NozzleBaselines.fm_cal`, :class:`~inkdiag_core.BaselineRecorder`).
     trend_accel_std, trend_rel_floor : float
         :class:`~inkdiag_core.FmTrend`'s ``accel_std`` (1/s^3) and ``rel_floor``.
     method : {"auto", "vp", "vp_cal"}
@@ -424,6 +433,10 @@ class DryingTracker:
             return None, ""
         if self.method == "vp":
             return None, "the f_m baselines are vp_cal readings, not vp's: estimated without them"
+        if not _same_cal(b.fm_cal, self.vp_cal):
+            return None, ("the f_m baselines were read with other vp_cal constants than this head's (a file "
+                          "recorded before inkdiag read them with the head's own): estimated without them; "
+                          "record the baselines again")
         if (sample_rate_hz, n_samples) != (b.sample_rate_hz, b.n_samples):
             return None, (f"traces of {sample_rate_hz:g} Hz x {n_samples} samples, the f_m baselines "
                           f"{b.sample_rate_hz:g} Hz x {b.n_samples}: estimated without them")

@@ -1,9 +1,12 @@
 """Fault estimation on a head profile: the head's model, its own vp_cal constants, its sampling."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
-from inkdiag_core import BaselineRecorder, DryingTracker, HeadProfile, InkChannelModel, estimate_fm_batch, fm_to_viscosity
+from inkdiag_core import (BaselineRecorder, DryingTracker, HeadProfile, InkChannelModel, NozzleBaselines,
+                          estimate_fm_batch, fm_to_viscosity)
 from inkdiag_core.estimation import VP_CAL, calibrate_vp_cal, vp_cal_for, vp_calibration
 from inkdiag_core.trend import deeply_dried_fm
 
@@ -179,3 +182,28 @@ def test_vp_cal_needs_fit_says_when_vp_cal_for_would_fit(head_cal, monkeypatch):
     assert vp_cal_needs_fit(bare)
     monkeypatch.setitem(vp_calibration._CACHE, bare.sha256, VP_CAL)  # fitted once in this process
     assert not vp_cal_needs_fit(bare)
+
+
+def test_f_m_baselines_read_with_other_constants_are_not_subtracted(head_cal, tmp_path):
+    """A baselines file carries the vp_cal constants of its f_m readings (fm_cal); one without them (before
+    format 5: the default head's constants, whatever the head) is not used on another head, and says so."""
+    p, cal = head_cal
+    rows = p.simulate({"healthy_nozzle": 3}, seed=7).traces
+    rec = BaselineRecorder(n_frames=1, fm_frames=1, profile=p)
+    rec.add(0, rows)
+    new = NozzleBaselines.load(rec.baselines().save(tmp_path / "b.npz"))
+    assert new.fm_cal == {k: cal[k] for k in ("a_sigma", "b_sigma", "a_omega", "b_omega")}
+    old = dataclasses.replace(new, fm_cal=None)
+    t = DryingTracker(profile=p, baselines=old)
+    est = t.estimate_rows(rows, np.arange(3), stamp=0.0, sample_rate_hz=p.sample_rate_hz)
+    assert t.estimates_with_baseline == 0 and "other vp_cal constants" in est.note
+    t = DryingTracker(profile=p, baselines=new)
+    t.estimate_rows(rows, np.arange(3), stamp=0.0, sample_rate_hz=p.sample_rate_hz)
+    assert t.estimates_with_baseline == 3
+    # the default head: a file without fm_cal is the default constants' reading, used as before
+    d = HeadProfile.default()
+    rec = BaselineRecorder(n_frames=1, fm_frames=1, profile=d)
+    rec.add(0, d.simulate({"healthy_nozzle": 3}, seed=7).traces)
+    t = DryingTracker(profile=d, baselines=dataclasses.replace(rec.baselines(), fm_cal=None))
+    t.estimate_rows(rec.baselines().reference, np.arange(3), stamp=0.0, sample_rate_hz=d.sample_rate_hz)
+    assert t.estimates_with_baseline == 3

@@ -112,7 +112,7 @@ def test_references_round_trip_and_are_checked(recorded, tmp_path):
     np.savez(tmp_path / "gone.npz", **arrays)
     with pytest.raises(BaselineFileError, match="reference"):
         NozzleBaselines.load(tmp_path / "gone.npz")
-    assert json.loads(str(arrays["meta"]))["format_version"] == 4
+    assert json.loads(str(arrays["meta"]))["format_version"] == 5
     with pytest.raises(ValueError, match="reference"):
         NozzleBaselines(recorded.nozzle_ids, recorded.kpis, 10e6, 512, 4, reference=np.zeros((N, 100)))
 
@@ -135,7 +135,7 @@ def test_version_3_files_load_without_references_and_gate_nothing(recorded, tmp_
     with np.load(p) as z:
         arrays = {k: z[k] for k in z.files}
     meta = json.loads(str(arrays["meta"]))
-    old = {k: v for k, v in meta.items() if k not in ("sha256", "has_reference")}
+    old = {k: v for k, v in meta.items() if k not in ("sha256", "has_reference", "fm_cal")}
     old["format_version"] = 3
     old["sha256"] = _content_sha256(recorded.nozzle_ids, recorded.kpis, {k: v for k, v in old.items() if k != "sha256"})
     arrays["meta"] = np.array(json.dumps(old, sort_keys=True))
