@@ -6,6 +6,7 @@ from .baselines import (  # noqa: F401
     BASELINE_FORMAT,
     BASELINE_FORMAT_VERSION,
     DEFAULT_MAX_NOZZLES,
+    FM_METHOD,
     N_KPIS,
     RELATIVE_NAMES,
     BaselineFileError,
@@ -18,6 +19,6 @@ from .baselines import (  # noqa: F401
     with_baseline,
 )
 
-__all__ = ["BASELINE_FORMAT", "BASELINE_FORMAT_VERSION", "DEFAULT_MAX_NOZZLES", "N_KPIS", "RELATIVE_NAMES",
-           "BaselineFileError", "BaselineKpis", "BaselineRecorder", "NozzleBaselines", "baseline_kpis",
+__all__ = ["BASELINE_FORMAT", "BASELINE_FORMAT_VERSION", "DEFAULT_MAX_NOZZLES", "FM_METHOD", "N_KPIS",
+           "RELATIVE_NAMES", "BaselineFileError", "BaselineKpis", "BaselineRecorder", "NozzleBaselines", "baseline_kpis",
            "baseline_training_kpis", "baseline_training_rows", "with_baseline"]

@@ -98,13 +98,11 @@ class RangeEstimates:
 
 
 
-def _same_cal(a, b) -> bool:
-    """The same ``vp_cal`` constants (None: the default head's, :data:`~inkdiag_core.estimation.VP_CAL`)."""
+def _default_constants(cal) -> bool:
+    """``cal`` is the default head's ``vp_cal`` constants (None: they are)."""
     from .estimation import VP_CAL
 
-    a, b = VP_CAL if a is None else a, VP_CAL if b is None else b
-    return all(math.isclose(float(a[k]), float(b[k]), rel_tol=1e-12, abs_tol=0.0)
-               for k in ("a_sigma", "b_sigma", "a_omega", "b_omega"))
+    return cal is None or all(float(cal[k]) == float(VP_CAL[k]) for k in ("a_sigma", "b_sigma", "a_omega", "b_omega"))
 
 @dataclass(frozen=True)
 class RowEstimates:
@@ -172,8 +170,9 @@ class DryingTracker:
         The head's baselines with healthy f_m (``baselines.fm``): each estimate is
         taken relative to its nozzle's reading (``estimate_fm_batch(baseline_fm=)``)
         when the frame's sample rate and trace length are the baselines' and the method
-        is ``"vp_cal"`` with the constants the readings were taken with
-        (:attr:`~inkdiag_core.NozzleBaselines.fm_cal`, :class:`~inkdiag_core.BaselineRecorder`).
+        readings are the raw ``"vp"`` estimate (:attr:`~inkdiag_core.NozzleBaselines.fm_method`,
+        :class:`~inkdiag_core.BaselineRecorder`), taken off ``"vp"`` and ``"vp_cal"`` estimates
+        alike; the ``"vp_cal"`` readings of older files only on the default head, as they were.
     trend_accel_std, trend_rel_floor : float
         :class:`~inkdiag_core.FmTrend`'s ``accel_std`` (1/s^3) and ``rel_floor``.
     method : {"auto", "vp", "vp_cal"}
@@ -431,12 +430,10 @@ class DryingTracker:
         b = self.baselines
         if b is None or b.fm is None:
             return None, ""
-        if self.method == "vp":
-            return None, "the f_m baselines are vp_cal readings, not vp's: estimated without them"
-        if not _same_cal(b.fm_cal, self.vp_cal):
-            return None, ("the f_m baselines were read with other vp_cal constants than this head's (a file "
-                          "recorded before inkdiag read them with the head's own): estimated without them; "
-                          "record the baselines again")
+        if b.fm_method is None and (self.method == "vp" or not _default_constants(self.vp_cal)):
+            # a file before format 5: default-head vp_cal readings, another estimator's on this head
+            return None, ("the f_m baselines are vp_cal readings with the default head's constants (a file "
+                          "recorded before format 5): estimated without them; record the baselines again")
         if (sample_rate_hz, n_samples) != (b.sample_rate_hz, b.n_samples):
             return None, (f"traces of {sample_rate_hz:g} Hz x {n_samples} samples, the f_m baselines "
                           f"{b.sample_rate_hz:g} Hz x {b.n_samples}: estimated without them")

@@ -9,9 +9,9 @@ ADC range (fdi's default ``max_abs_sample_v``), are skipped) and, once
 ``output_path`` (:class:`inkdiag_core.NozzleBaselines`, a checked ``.npz``) and
 exits. With ``fm_frames`` > 0 (the default) the file also holds each nozzle's
 healthy f_m reading, the median over its first ``fm_frames`` valid rows, which
-the fe node subtracts (its ``baseline_path``), read by fe's own estimator (``vp_cal``
-with the head's constants, fitted at start for a head whose profile does not store
-them); it costs about 1 ms of CPU per row (a 2,656-nozzle head: about 10 s for 3 frames). The file also holds each
+the fe node subtracts (its ``baseline_path``; the raw ``vp`` reading,
+:data:`inkdiag_core.baselines.FM_METHOD`); it costs about 1 ms of CPU per row (a
+2,656-nozzle head: about 10 s for 3 frames). The file also holds each
 nozzle's healthy reference trace (the sample-wise median of the same rows), which
 the fdi node's healthy gate (:class:`inkdiag_core.HealthyGate`) fits each new row to;
 the node keeps those rows until it writes (float32: a 2,656-nozzle head at
@@ -38,7 +38,6 @@ from pathlib import Path
 from rclpy.node import Node
 
 from inkdiag_core import BaselineRecorder
-from inkdiag_core.estimation import vp_cal_needs_fit
 from msg_defs import TRACE_MSG_TYPE, TRACES_QOS, FrameError, decode_traces, topics
 
 from . import _params
@@ -71,9 +70,6 @@ class BaselineRecorderNode(Node):
             raise ValueError("output_path is required (-p output_path:=baselines/head.npz)")
         c = self.config
         self.profile = head_from_parameters(c)  # bad, nominal or contradicting: ValueError, exit 2 at start
-        if c["fm_frames"] and self.profile.is_complete and vp_cal_needs_fit(self.profile):
-            self.get_logger().info(f"fitting the vp_cal constants of head {self.profile.name!r} for its healthy "
-                                   "f_m readings (a few seconds)")
         self.recorder = BaselineRecorder(n_frames=c["n_frames"], sample_rate_hz=c["sample_rate_hz"],
                                          n_samples=c["n_samples"], profile=self.profile,
                                          fm_frames=min(c["fm_frames"], c["n_frames"]), reference=True)

@@ -143,33 +143,27 @@ def test_a_5_mhz_head_of_256_samples():
     assert t.trends.fm_deep == deeply_dried_fm(p.channel_params())
 
 
-def test_a_baselines_healthy_fm_is_the_trackers_own_reading(head_cal):
-    """record_baseline / inkdiag baseline read a nozzle's healthy f_m with the estimator fe subtracts it
-    from (the head's model and vp_cal constants): the same healthy rows estimated against it read 0."""
+def test_a_baselines_healthy_fm_is_the_nozzles_raw_vp_reading_taken_off_every_estimate(head_cal):
+    """record_baseline / inkdiag baseline keep a nozzle's healthy raw "vp" reading (its own offset on this
+    head's model); fe takes it off its "vp_cal" and "vp" estimates alike: the same healthy rows read 0 by
+    "vp", and by "vp_cal" their correction alone."""
     p, _ = head_cal
     rows = p.simulate({"healthy_nozzle": 6}, seed=5).traces
     rec = BaselineRecorder(n_frames=1, fm_frames=1, profile=p)
     rec.add(10, rows)
-    t = DryingTracker(profile=p, baselines=rec.baselines())
-    est = t.estimate_rows(rows, 10 + np.arange(6), stamp=0.0, sample_rate_hz=p.sample_rate_hz)
-    assert t.estimates_with_baseline == 6
-    np.testing.assert_allclose(est.columns["fm"], 0.0, atol=1.0)  # 1/s; healthy readings are ~1e4-1e5
-    plain = DryingTracker(profile=p).estimate_rows(rows, 10 + np.arange(6), stamp=0.0, sample_rate_hz=p.sample_rate_hz)
-    assert np.all(np.abs(plain.columns["fm"]) > 100.0)  # what the baseline removes is not nothing
-
-
-def test_vp_estimates_do_not_subtract_vp_cal_readings(head_cal):
-    """The baselines' healthy f_m are vp_cal readings: method "vp" leaves them out and says so."""
-    p, _ = head_cal
-    rows = p.simulate({"healthy_nozzle": 3}, seed=6).traces
-    rec = BaselineRecorder(n_frames=1, fm_frames=1, profile=p)
-    rec.add(0, rows)
-    t = DryingTracker(profile=p, baselines=rec.baselines(), method="vp")
-    est = t.estimate_rows(rows, np.arange(3), stamp=0.0, sample_rate_hz=p.sample_rate_hz)
-    plain = DryingTracker(profile=p, method="vp").estimate_rows(rows, np.arange(3), stamp=0.0,
-                                                                  sample_rate_hz=p.sample_rate_hz)
-    np.testing.assert_array_equal(est.columns["fm"], plain.columns["fm"])
-    assert t.estimates_with_baseline == 0 and "vp_cal readings" in est.note
+    b = rec.baselines()
+    assert b.fm_method == "vp"
+    raw = estimate_fm_batch(rows, p, p.sample_rate_hz, method="vp").fm
+    np.testing.assert_allclose(b.fm, raw, rtol=1e-9)
+    assert np.all(np.abs(raw) > 100.0)  # what the baseline removes is not nothing (1/s)
+    ids = 10 + np.arange(6)
+    for method in ("vp", "vp_cal"):
+        t = DryingTracker(profile=p, baselines=b, method=method)
+        est = t.estimate_rows(rows, ids, stamp=0.0, sample_rate_hz=p.sample_rate_hz)
+        plain = DryingTracker(profile=p, method=method).estimate_rows(rows, ids, stamp=0.0,
+                                                                     sample_rate_hz=p.sample_rate_hz)
+        assert t.estimates_with_baseline == 6 and est.note == ""
+        np.testing.assert_allclose(est.columns["fm"], plain.columns["fm"] - raw, rtol=1e-9, atol=1e-6)
 
 
 def test_vp_cal_needs_fit_says_when_vp_cal_for_would_fit(head_cal, monkeypatch):
@@ -184,26 +178,25 @@ def test_vp_cal_needs_fit_says_when_vp_cal_for_would_fit(head_cal, monkeypatch):
     assert not vp_cal_needs_fit(bare)
 
 
-def test_f_m_baselines_read_with_other_constants_are_not_subtracted(head_cal, tmp_path):
-    """A baselines file carries the vp_cal constants of its f_m readings (fm_cal); one without them (before
-    format 5: the default head's constants, whatever the head) is not used on another head, and says so."""
-    p, cal = head_cal
+def test_vp_cal_readings_of_files_before_format_5_are_used_on_the_default_head_only(head_cal, tmp_path):
+    """A file before format 5 (fm_method None) holds vp_cal readings with the default head's constants: on
+    another head they are another estimator's reading, left out with a note; on the default head, as before."""
+    p, _ = head_cal
     rows = p.simulate({"healthy_nozzle": 3}, seed=7).traces
     rec = BaselineRecorder(n_frames=1, fm_frames=1, profile=p)
     rec.add(0, rows)
     new = NozzleBaselines.load(rec.baselines().save(tmp_path / "b.npz"))
-    assert new.fm_cal == {k: cal[k] for k in ("a_sigma", "b_sigma", "a_omega", "b_omega")}
-    old = dataclasses.replace(new, fm_cal=None)
+    assert new.fm_method == "vp"
+    old = dataclasses.replace(new, fm_method=None)
     t = DryingTracker(profile=p, baselines=old)
     est = t.estimate_rows(rows, np.arange(3), stamp=0.0, sample_rate_hz=p.sample_rate_hz)
-    assert t.estimates_with_baseline == 0 and "other vp_cal constants" in est.note
-    t = DryingTracker(profile=p, baselines=new)
-    t.estimate_rows(rows, np.arange(3), stamp=0.0, sample_rate_hz=p.sample_rate_hz)
-    assert t.estimates_with_baseline == 3
-    # the default head: a file without fm_cal is the default constants' reading, used as before
+    assert t.estimates_with_baseline == 0 and "before format 5" in est.note
     d = HeadProfile.default()
     rec = BaselineRecorder(n_frames=1, fm_frames=1, profile=d)
     rec.add(0, d.simulate({"healthy_nozzle": 3}, seed=7).traces)
-    t = DryingTracker(profile=d, baselines=dataclasses.replace(rec.baselines(), fm_cal=None))
-    t.estimate_rows(rec.baselines().reference, np.arange(3), stamp=0.0, sample_rate_hz=d.sample_rate_hz)
-    assert t.estimates_with_baseline == 3
+    for method, used in (("vp_cal", 3), ("vp", 0)):
+        t = DryingTracker(profile=d, baselines=dataclasses.replace(rec.baselines(), fm_method=None), method=method)
+        t.estimate_rows(rec.baselines().reference, np.arange(3), stamp=0.0, sample_rate_hz=d.sample_rate_hz)
+        assert t.estimates_with_baseline == used
+    with pytest.raises(ValueError, match="fm_method"):
+        dataclasses.replace(new, fm_method="vp_cal")

@@ -135,7 +135,7 @@ def test_version_3_files_load_without_references_and_gate_nothing(recorded, tmp_
     with np.load(p) as z:
         arrays = {k: z[k] for k in z.files}
     meta = json.loads(str(arrays["meta"]))
-    old = {k: v for k, v in meta.items() if k not in ("sha256", "has_reference", "fm_cal")}
+    old = {k: v for k, v in meta.items() if k not in ("sha256", "has_reference", "fm_method")}
     old["format_version"] = 3
     old["sha256"] = _content_sha256(recorded.nozzle_ids, recorded.kpis, {k: v for k, v in old.items() if k != "sha256"})
     arrays["meta"] = np.array(json.dumps(old, sort_keys=True))

@@ -114,10 +114,10 @@ def test_baseline_recorder_on_a_profile_records_its_hash_and_uses_its_model(tmp_
         rec.add(10, f)
     b = rec.baselines()
     assert b.head_sha256 == prof.sha256 != HeadProfile.default().sha256
-    fm = np.stack([estimate_fm_batch(f, prof, 20e6).fm for f in frames])  # the head's model and vp_cal constants
+    fm = np.stack([estimate_fm_batch(f, prof, 20e6, method="vp").fm for f in frames])  # raw, on the head's model
     np.testing.assert_allclose(b.fm, np.median(fm, axis=0), rtol=1e-6)
     back = NozzleBaselines.load(b.save(tmp_path / "b.npz"))
-    assert back.head_sha256 == prof.sha256 and back.fm_cal == b.fm_cal is not None
+    assert back.head_sha256 == prof.sha256 and back.fm_method == b.fm_method == "vp"
     back.check_head(prof)
     with pytest.raises(BaselineFileError, match="another head"):
         back.check_head(HeadProfile.default())
@@ -141,7 +141,7 @@ def test_baselines_without_a_head_are_the_default_heads(tmp_path):
     assert meta["format_version"] == 5 and meta["head_sha256"] == b.head_sha256
     from inkdiag_core.baselines.store import _content_sha256
 
-    old = {k: v for k, v in meta.items() if k not in ("head_sha256", "sha256", "has_reference", "fm_cal")}
+    old = {k: v for k, v in meta.items() if k not in ("head_sha256", "sha256", "has_reference", "fm_method")}
     old["format_version"] = 2
     old["sha256"] = _content_sha256(b.nozzle_ids, b.kpis, {k: v for k, v in old.items() if k != "sha256"})
     arrays["meta"] = np.array(json.dumps(old, sort_keys=True))

@@ -76,7 +76,7 @@ def test_record_baseline_writes_every_nozzles_median_and_finishes(ros, tmp_path)
     # and each nozzle's healthy f_m, the median over its first fm_frames (3) rows, for the fe node
     from inkdiag_core import InkChannelModel, estimate_fm_batch
 
-    fm = np.stack([estimate_fm_batch(f, InkChannelModel(), 10e6).fm for f in frames])
+    fm = np.stack([estimate_fm_batch(f, InkChannelModel(), 10e6, method="vp").fm for f in frames])  # the raw reading
     np.testing.assert_allclose(b.fm, np.median(fm, axis=0), rtol=1e-5)
     # and each nozzle's healthy reference trace, for the fdi node's healthy gate
     assert b.has_reference
@@ -286,5 +286,5 @@ def test_record_baseline_on_a_head_profile_stores_its_hash(ros, tmp_path):
     ros.spin_until(lambda: rec.done, 5, "the recorder to finish")
     b = NozzleBaselines.load(rec.written)
     assert b.head_sha256 == prof.sha256 and (b.sample_rate_hz, b.n_samples) == (20e6, 1024)
-    fm = np.stack([estimate_fm_batch(f, prof, 20e6).fm for f in frames])  # the head's own vp_cal constants, as fe
+    fm = np.stack([estimate_fm_batch(f, prof, 20e6, method="vp").fm for f in frames])  # the raw reading fe takes off
     np.testing.assert_allclose(b.fm, np.median(fm, axis=0), rtol=1e-5)

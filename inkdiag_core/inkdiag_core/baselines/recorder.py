@@ -7,13 +7,19 @@ import warnings
 import numpy as np
 
 from .. import checks
-from ..estimation import estimate_fm_batch, vp_cal_for
+from ..estimation import estimate_fm_batch
 from ..kpis import MIN_KPI_SAMPLES, InvalidTraceError, extract_kpis
 from ..screening import screen_traces
 from .features import N_KPIS
 from .store import NozzleBaselines
 
-__all__ = ["DEFAULT_MAX_NOZZLES", "BaselineRecorder"]
+__all__ = ["DEFAULT_MAX_NOZZLES", "FM_METHOD", "BaselineRecorder"]
+
+#: The estimator of a nozzle's healthy f_m reading (:attr:`NozzleBaselines.fm_method`): the raw
+#: ``"vp"`` estimate. Subtracted from ``"vp_cal"`` estimates too: on the heads of
+#: ``reports/heads.md`` a nozzle's offset is in the raw estimate, and taking its ``"vp_cal"``
+#: reading off instead made the dried rows' d_mu errors larger than no baseline at all.
+FM_METHOD = "vp"
 
 #: Default bound on the nozzle ids a :class:`BaselineRecorder` accepts (ids are below it).
 #: It bounds memory: the recorder counts rows per nozzle id in a dense int32 array,
@@ -43,8 +49,9 @@ class BaselineRecorder:
         it must be the profile's).
     fm_frames : int
         Also record each nozzle's healthy f_m reading (:attr:`NozzleBaselines.fm`),
-        the median of ``estimate_fm_batch(rows, profile, sample_rate_hz, method="vp_cal").fm``
-        (the head's model and its own ``vp_cal`` constants, as :class:`inkdiag_core.DryingTracker`)
+        the median of ``estimate_fm_batch(rows, profile, sample_rate_hz, method="vp").fm`` (the
+        raw estimate on the head's model, :data:`FM_METHOD`: the nozzle's own offset, which
+        :class:`inkdiag_core.DryingTracker` takes off its ``"vp"`` and ``"vp_cal"`` estimates)
         over its first ``fm_frames`` rows (at most ``n_frames``); 0: none. It costs
         about a millisecond per row, so it is taken on fewer rows than the KPIs.
     max_nozzles : int
@@ -119,9 +126,6 @@ class BaselineRecorder:
         self._kpis = []
         self.reference = bool(reference)
         self._traces = []  # the kept rows (float32), when recording references
-        self._vp_cal = None
-        if self.fm_frames:  # fitted now for a new head (seconds), not at the first frame
-            self._vp_cal = vp_cal_for(profile)
         self._count_of = np.zeros(0, np.int32)  # rows kept per nozzle id (dense, grown on demand)
 
     def add(self, first_nozzle: int, traces, keep=None) -> int:
@@ -218,11 +222,10 @@ class BaselineRecorder:
         if self.fm_frames:
             fm_rows = np.flatnonzero(place < self.fm_frames)
             if fm_rows.size:
-                # the profile: its model and its own "vp_cal" constants, the estimator fe and
-                # DryingTracker subtract this reading from (the default head's constants would
-                # read another head's healthy nozzle as a fault)
+                # the raw "vp" reading on the head's model: the nozzle's own offset, which
+                # DryingTracker takes off its estimates (vp_cal's correction is not the nozzle's)
                 kpis[fm_rows, N_KPIS] = estimate_fm_batch(y[fm_rows], self.profile, self.sample_rate_hz,
-                                                          method="vp_cal", cal=self._vp_cal).fm
+                                                          method=FM_METHOD).fm
         self._kpis.append(kpis)
         if self.reference:
             self._traces.append(y.astype(np.float32))
@@ -276,4 +279,4 @@ class BaselineRecorder:
                     reference[sel] = np.median(rows[idx[sel, :c]], axis=1)
         return NozzleBaselines(ids[ok], med[:, :N_KPIS], self.sample_rate_hz, self.n_samples, self.n_frames,
                                fm=med[:, N_KPIS] if self.fm_frames else None, head_sha256=self.profile.sha256,
-                               reference=reference, fm_cal=self._vp_cal)
+                               reference=reference, fm_method=FM_METHOD if self.fm_frames else None)

@@ -8,8 +8,8 @@ were recorded on) and the sha256 of the content; :meth:`NozzleBaselines.load` ch
 them all and says what is wrong (:class:`BaselineFileError`). Files of versions 1
 and 2 (before head profiles) read as baselines of the default head; files of versions
 1 to 3 (before reference traces) read with no references (no healthy gate); files of
-versions 2 to 4 read with ``fm_cal`` None (their f_m readings took the default head's
-``vp_cal`` constants, whatever the head).
+versions 2 to 4 read with ``fm_method`` None (their f_m readings are ``"vp_cal"``'s with the
+default head's constants, whatever the head).
 """
 
 from __future__ import annotations
@@ -32,10 +32,10 @@ from .features import N_KPIS
 __all__ = ["BASELINE_FORMAT", "BASELINE_FORMAT_VERSION", "BaselineFileError", "NozzleBaselines"]
 
 BASELINE_FORMAT = "inkdiag-nozzle-baselines"
-BASELINE_FORMAT_VERSION = 5  # 5: the vp_cal constants of the f_m readings ("fm_cal"); 4: optional reference
+BASELINE_FORMAT_VERSION = 5  # 5: the estimator of the f_m readings ("fm_method"); 4: optional reference
 # trace per nozzle ("reference"); 3: head_sha256; 2: optional healthy f_m per nozzle ("fm"); 1: KPIs only
 _READABLE_VERSIONS = (1, 2, 3, 4, 5)
-_FM_CAL_KEYS = ("a_sigma", "b_sigma", "a_omega", "b_omega")
+_FM_METHODS = ("vp",)
 
 
 def _default_head_sha256() -> str:
@@ -79,7 +79,7 @@ class NozzleBaselines:
         Healthy frames per nozzle the median was taken over (at most).
     fm : array_like of float, shape (m,), optional
         Each nozzle's healthy f_m reading, 1/s: the median of
-        ``estimate_fm_batch(rows, profile, sample_rate_hz, method="vp_cal").fm`` over
+        ``estimate_fm_batch(rows, profile, sample_rate_hz, method=fm_method).fm`` over
         its first healthy rows (:class:`BaselineRecorder` ``fm_frames``), for
         ``estimate_fm_batch(..., baseline_fm=...)``; NaN where a nozzle has
         none. None: no f_m baselines at all.
@@ -91,11 +91,10 @@ class NozzleBaselines:
         median of its recorded healthy rows (:class:`BaselineRecorder`), what
         :class:`inkdiag_core.HealthyGate` fits each new trace to; a row of NaN
         where a nozzle has none. None: no references (no gate).
-    fm_cal : mapping, optional
-        The ``vp_cal`` constants (``a_sigma, b_sigma, a_omega, b_omega``) the ``fm``
-        readings were taken with; :class:`inkdiag_core.DryingTracker` subtracts them
-        only from estimates with the same constants. None: the default head's
-        (:data:`inkdiag_core.estimation.VP_CAL`, what files before version 5 used).
+    fm_method : {"vp"}, optional
+        The estimator the ``fm`` readings were taken with (:data:`inkdiag_core.baselines.FM_METHOD`).
+        None: ``"vp_cal"`` with the default head's constants, what files before version 5
+        hold; :class:`inkdiag_core.DryingTracker` uses those on the default head only.
 
     Raises
     ------
@@ -111,7 +110,7 @@ class NozzleBaselines:
     fm: np.ndarray | None = None
     head_sha256: str | None = None
     reference: np.ndarray | None = None
-    fm_cal: dict | None = None
+    fm_method: str | None = None
 
     def __post_init__(self):
         ids = np.asarray(self.nozzle_ids)
@@ -147,15 +146,8 @@ class NozzleBaselines:
                 raise ValueError("reference must be finite, or a whole row of NaN where a nozzle has none")
             ref.flags.writeable = False
         object.__setattr__(self, "reference", ref)
-        cal = None
-        if self.fm_cal is not None:
-            try:
-                cal = {k: float(self.fm_cal[k]) for k in _FM_CAL_KEYS}
-            except (KeyError, TypeError, ValueError):
-                raise ValueError(f"fm_cal must map {', '.join(_FM_CAL_KEYS)} to numbers, got {self.fm_cal!r}") from None
-            if not all(np.isfinite(v) for v in cal.values()):
-                raise ValueError(f"fm_cal must be finite, got {cal}")
-        object.__setattr__(self, "fm_cal", cal)
+        if self.fm_method is not None and self.fm_method not in _FM_METHODS:
+            raise ValueError(f"fm_method must be one of {', '.join(_FM_METHODS)} or None, got {self.fm_method!r}")
         for arr in (ids, kpis):
             arr.flags.writeable = False
         object.__setattr__(self, "nozzle_ids", ids)
@@ -267,7 +259,7 @@ class NozzleBaselines:
                 "kpi_names": list(KPI_NAMES), "sample_rate_hz": self.sample_rate_hz,
                 "n_samples": self.n_samples, "n_frames": self.n_frames, "has_fm": self.fm is not None,
                 "has_reference": self.reference is not None, "head_sha256": self.head_sha256,
-                "fm_cal": self.fm_cal}
+                "fm_method": self.fm_method}
 
     def save(self, path) -> Path:
         """Write an ``.npz`` (no pickle) with the arrays, the settings and their sha256.
@@ -346,6 +338,6 @@ class NozzleBaselines:
             return cls(ids, kpis, meta["sample_rate_hz"], meta["n_samples"], meta["n_frames"], fm,
                        head_sha256=meta.get("head_sha256"),  # None (versions 1, 2): the default head
                        reference=reference,  # None (versions 1-3): no references
-                       fm_cal=meta.get("fm_cal"))  # None (versions 1-4): the default head's constants
+                       fm_method=meta.get("fm_method"))  # None (versions 1-4): default-head vp_cal readings
         except (KeyError, ValueError) as exc:
             raise BaselineFileError(f"{path}: inconsistent baselines ({exc})") from None

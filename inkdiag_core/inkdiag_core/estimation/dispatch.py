@@ -99,14 +99,18 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, basel
         Initial state (SI) for "dt", "dt_exact" and "ct" (required there); ignored by
         "vp" and "vp_cal".
     baseline_fm : float or array_like, shape (n_traces,), optional
-        The same method's estimate for the same nozzle while it was healthy, 1/s
-        (for instance the mean over a few healthy frames; 0 = none). It is
-        subtracted from ``.fm``, ``.trace`` and ``.ci``. A real nozzle differs
-        from the nominal model (nozzle geometry, piezo compliance and coupling,
-        within their tolerances), and the estimator reads that difference as a
-        fault; it is a property of the nozzle, so its healthy reading removes the
-        part that acts as an offset on f_m (e.g. its own R_n / I_n), though not a
-        part that scales f_m (``reports/fe.md``). ``.std`` stays the fit's own.
+        The same nozzle's estimate while it was healthy, 1/s (for instance the
+        median over a few healthy frames; 0 = none). It is subtracted from
+        ``.fm``, ``.trace`` and ``.ci``. A real nozzle differs from the nominal
+        model (nozzle geometry, piezo compliance and coupling, within their
+        tolerances), and the estimator reads that difference as a fault; it is a
+        property of the nozzle, so its healthy reading removes the part that acts
+        as an offset on f_m (e.g. its own R_n / I_n), though not a part that
+        scales f_m (``reports/fe.md``). :class:`~inkdiag_core.BaselineRecorder`
+        records the raw "vp" reading (:data:`inkdiag_core.baselines.FM_METHOD`),
+        which :class:`~inkdiag_core.DryingTracker` subtracts from "vp" and "vp_cal"
+        estimates alike: "vp_cal"'s correction is not the nozzle's own.
+        ``.std`` stays the fit's own.
     options : DtOptions, DtExactOptions, CtOptions or VpOptions, optional
         The chosen method's options (:data:`OPTIONS`); default: that class's defaults.
     **kwargs

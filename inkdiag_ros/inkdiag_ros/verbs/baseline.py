@@ -57,7 +57,6 @@ def run(args) -> int:
     from inkdiag_core import BaselineRecorder, FaultClass, HeadProfile
 
     from ..bags import report_stats, stream_recording
-    from ._vp_cal import fit_vp_cal_said
 
     if not 1 <= args.frames <= MAX_FRAMES:
         raise ValueError(f"--frames must be in 1..{MAX_FRAMES}, got {args.frames}")
@@ -72,9 +71,7 @@ def run(args) -> int:
     profile = HeadProfile.load(args.profile)
     stats, chunks = stream_recording(args.recording, args.topic)
     first = next(chunks)  # a bag with no trace frame: RecordingError
-    profile.check_traces(first[1].traces, first[1].sample_rate_hz, what=f"{args.recording}")  # before any fit
-    if fm_frames and profile.is_complete:  # the healthy f_m readings' estimator (a nominal one: refused below)
-        fit_vp_cal_said(profile, "baseline")
+    profile.check_traces(first[1].traces, first[1].sample_rate_hz, what=f"{args.recording}")
     recorder = BaselineRecorder(n_frames=args.frames, fm_frames=fm_frames, profile=profile,  # nominal: refused
                                 max_abs_v=args.max_abs_v)
     n_rows = n_used = n_other = 0
