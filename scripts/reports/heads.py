@@ -355,13 +355,12 @@ def write_report(results, args, log, elapsed):
         "are that remedy as a user gets it, the baseline branch trained on inkdiag's simulation of the "
         "calibrated head (a simulated nozzle against its simulated healthy twin), not on the head's own "
         "traces, and applied to the foreign head's commissioning baselines.",
-        "- d_mu with baselines: `estimate --baselines` subtracts each nozzle's healthy f_m reading, taken "
-        "by the same estimator (`vp_cal` with the head's own constants), so a healthy nozzle reads about 0. "
-        "That removes an offset; on these heads the nozzle-to-nozzle part of `vp_cal`'s reading is not one: "
-        "its correction (the free pole pair's distance from the model's curve, weighted by constants fitted "
-        "on the dried classes) moves a nozzle's reading differently when healthy and when dried, so the "
-        "dried rows' errors change little at the median and can grow at P90 (the *calibrated + baselines* "
-        "rows).",
+        "- d_mu with baselines: `estimate --baselines` takes each nozzle's healthy f_m reading (the raw `vp` "
+        "estimate, `inkdiag_core.baselines.FM_METHOD`: the nozzle's own offset) off its `vp_cal` estimate. "
+        "d_mu median / P90 error (%), calibrated -> calibrated + baselines: " + "; ".join(
+            f"{name} {r['calibrated']['dmu_median'] * 100:.1f} / {r['calibrated']['dmu_p90'] * 100:.1f} -> "
+            f"{r[BASELINES]['dmu_median'] * 100:.1f} / {r[BASELINES]['dmu_p90'] * 100:.1f}"
+            for name, r in results.items()) + ".",
         "- d_mu truth: each trace's nozzle viscosity over its own channel's ink viscosity (at its "
         "temperature).",
         "- *Where the errors go*: partially_blocked and the dried classes overlap on these heads even with the "
