@@ -169,10 +169,11 @@ class DryingTracker:
     baselines : NozzleBaselines, optional
         The head's baselines with healthy f_m (``baselines.fm``): each estimate is
         taken relative to its nozzle's reading (``estimate_fm_batch(baseline_fm=)``)
-        when the frame's sample rate and trace length are the baselines' and the method
-        readings are the raw ``"vp"`` estimate (:attr:`~inkdiag_core.NozzleBaselines.fm_method`,
-        :class:`~inkdiag_core.BaselineRecorder`), taken off ``"vp"`` and ``"vp_cal"`` estimates
-        alike; the ``"vp_cal"`` readings of older files only on the default head, as they were.
+        when the frame's sample rate and trace length are the baselines'. The readings
+        (:attr:`~inkdiag_core.NozzleBaselines.fm_method`, :class:`~inkdiag_core.BaselineRecorder`)
+        are the raw ``"vp"`` estimate, taken off ``"vp"`` and ``"vp_cal"`` estimates alike;
+        the ``"vp_cal"`` readings of files before format 5 only from ``"vp_cal"`` estimates
+        with the default head's constants, as they were taken.
     trend_accel_std, trend_rel_floor : float
         :class:`~inkdiag_core.FmTrend`'s ``accel_std`` (1/s^3) and ``rel_floor``.
     method : {"auto", "vp", "vp_cal"}

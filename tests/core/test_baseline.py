@@ -383,3 +383,30 @@ def test_label_frames_uses_each_nozzles_baseline_where_it_has_one(tmp_path):
     np.testing.assert_array_equal(got[10:20], ref_p)
     with pytest.raises(ValueError, match="first_nozzles"):
         label_frames(plain, [frame], baseline=model)
+
+
+def test_f_m_readings_say_their_estimator(tmp_path):
+    """Baselines with f_m are the raw vp readings unless said otherwise (None: a file before format 5);
+    a format-5 file whose readings name no estimator is refused, not read as an old file's."""
+    import json
+
+    from inkdiag_core.baselines import FM_METHOD
+
+    b = NozzleBaselines(np.arange(3), np.ones((3, 7)), FS, 512, 4, fm=np.zeros(3))
+    assert b.fm_method == FM_METHOD == "vp"
+    assert NozzleBaselines(np.arange(3), np.ones((3, 7)), FS, 512, 4).fm_method is None  # no f_m, no estimator
+    assert NozzleBaselines.load(b.save(tmp_path / "b.npz")).fm_method == "vp"
+    with np.load(tmp_path / "b.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(str(arrays["meta"]))
+    from inkdiag_core.baselines.store import _content_sha256
+
+    meta = {k: v for k, v in meta.items() if k != "sha256"}
+    meta["fm_method"] = None
+    meta["sha256"] = _content_sha256(b.nozzle_ids, b.kpis, {k: v for k, v in meta.items() if k != "sha256"}, b.fm)
+    arrays["meta"] = np.array(json.dumps(meta, sort_keys=True))
+    np.savez(tmp_path / "unsaid.npz", **arrays)
+    with pytest.raises(BaselineFileError, match="fm_method None"):
+        NozzleBaselines.load(tmp_path / "unsaid.npz")
+    with pytest.raises(ValueError, match="fm_method"):
+        NozzleBaselines(np.arange(3), np.ones((3, 7)), FS, 512, 4, fm=np.zeros(3), fm_method="vp_cal")

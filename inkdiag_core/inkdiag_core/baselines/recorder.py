@@ -11,15 +11,11 @@ from ..estimation import estimate_fm_batch
 from ..kpis import MIN_KPI_SAMPLES, InvalidTraceError, extract_kpis
 from ..screening import screen_traces
 from .features import N_KPIS
-from .store import NozzleBaselines
+from .store import FM_METHOD, NozzleBaselines
 
 __all__ = ["DEFAULT_MAX_NOZZLES", "FM_METHOD", "BaselineRecorder"]
 
-#: The estimator of a nozzle's healthy f_m reading (:attr:`NozzleBaselines.fm_method`): the raw
-#: ``"vp"`` estimate. Subtracted from ``"vp_cal"`` estimates too: on the heads of
-#: ``reports/heads.md`` a nozzle's offset is in the raw estimate, and taking its ``"vp_cal"``
-#: reading off instead made the dried rows' d_mu errors larger than no baseline at all.
-FM_METHOD = "vp"
+
 
 #: Default bound on the nozzle ids a :class:`BaselineRecorder` accepts (ids are below it).
 #: It bounds memory: the recorder counts rows per nozzle id in a dense int32 array,

@@ -29,13 +29,17 @@ from .. import checks
 from ..kpis import KPI_NAMES, InvalidTraceError
 from .features import N_KPIS
 
-__all__ = ["BASELINE_FORMAT", "BASELINE_FORMAT_VERSION", "BaselineFileError", "NozzleBaselines"]
+__all__ = ["BASELINE_FORMAT", "BASELINE_FORMAT_VERSION", "FM_METHOD", "BaselineFileError", "NozzleBaselines"]
 
 BASELINE_FORMAT = "inkdiag-nozzle-baselines"
 BASELINE_FORMAT_VERSION = 5  # 5: the estimator of the f_m readings ("fm_method"); 4: optional reference
 # trace per nozzle ("reference"); 3: head_sha256; 2: optional healthy f_m per nozzle ("fm"); 1: KPIs only
 _READABLE_VERSIONS = (1, 2, 3, 4, 5)
-_FM_METHODS = ("vp",)
+#: The estimator of a nozzle's healthy f_m reading (:attr:`NozzleBaselines.fm_method`): the raw
+#: ``"vp"`` estimate. Subtracted from ``"vp_cal"`` estimates too: on the heads of
+#: ``reports/heads.md`` a nozzle's offset is in the raw estimate, and taking its ``"vp_cal"``
+#: reading off instead made the dried rows' d_mu errors larger than no baseline at all.
+FM_METHOD = "vp"
 
 
 def _default_head_sha256() -> str:
@@ -91,10 +95,11 @@ class NozzleBaselines:
         median of its recorded healthy rows (:class:`BaselineRecorder`), what
         :class:`inkdiag_core.HealthyGate` fits each new trace to; a row of NaN
         where a nozzle has none. None: no references (no gate).
-    fm_method : {"vp"}, optional
-        The estimator the ``fm`` readings were taken with (:data:`inkdiag_core.baselines.FM_METHOD`).
-        None: ``"vp_cal"`` with the default head's constants, what files before version 5
-        hold; :class:`inkdiag_core.DryingTracker` uses those on the default head only.
+    fm_method : {"vp", None}
+        The estimator the ``fm`` readings were taken with (default :data:`FM_METHOD`; set to
+        None when there is no ``fm``). None with ``fm``: ``"vp_cal"`` readings with the
+        default head's constants, what files before version 5 hold;
+        :class:`inkdiag_core.DryingTracker` uses those on the default head with ``"vp_cal"`` only.
 
     Raises
     ------
@@ -110,7 +115,7 @@ class NozzleBaselines:
     fm: np.ndarray | None = None
     head_sha256: str | None = None
     reference: np.ndarray | None = None
-    fm_method: str | None = None
+    fm_method: str | None = FM_METHOD
 
     def __post_init__(self):
         ids = np.asarray(self.nozzle_ids)
@@ -146,8 +151,9 @@ class NozzleBaselines:
                 raise ValueError("reference must be finite, or a whole row of NaN where a nozzle has none")
             ref.flags.writeable = False
         object.__setattr__(self, "reference", ref)
-        if self.fm_method is not None and self.fm_method not in _FM_METHODS:
-            raise ValueError(f"fm_method must be one of {', '.join(_FM_METHODS)} or None, got {self.fm_method!r}")
+        if self.fm_method not in (FM_METHOD, None):
+            raise ValueError(f"fm_method must be {FM_METHOD!r} or None, got {self.fm_method!r}")
+        object.__setattr__(self, "fm_method", self.fm_method if fm is not None else None)
         for arr in (ids, kpis):
             arr.flags.writeable = False
         object.__setattr__(self, "nozzle_ids", ids)
@@ -322,6 +328,9 @@ class NozzleBaselines:
                                     "corrupted); record the baselines again")
         if meta.get("kpi_names") != list(KPI_NAMES):
             raise BaselineFileError(f"{path}: KPI columns {meta.get('kpi_names')!r} are not {list(KPI_NAMES)}")
+        if meta.get("format_version") >= 5 and fm is not None and meta.get("fm_method") != FM_METHOD:
+            raise BaselineFileError(f"{path}: its f_m readings name no estimator this inkdiag takes "
+                                    f"(fm_method {meta.get('fm_method')!r}); record the baselines again")
         if meta.get("format_version") >= 3 and not isinstance(meta.get("head_sha256"), str):
             raise BaselineFileError(f"{path}: its header names no head profile (head_sha256); record the "
                                     "baselines again")
@@ -338,6 +347,6 @@ class NozzleBaselines:
             return cls(ids, kpis, meta["sample_rate_hz"], meta["n_samples"], meta["n_frames"], fm,
                        head_sha256=meta.get("head_sha256"),  # None (versions 1, 2): the default head
                        reference=reference,  # None (versions 1-3): no references
-                       fm_method=meta.get("fm_method"))  # None (versions 1-4): default-head vp_cal readings
+                       fm_method=meta.get("fm_method"))  # absent (versions 1-4): default-head vp_cal readings
         except (KeyError, ValueError) as exc:
             raise BaselineFileError(f"{path}: inconsistent baselines ({exc})") from None
