@@ -53,6 +53,10 @@ def steady_mask(y_clean, n_win=42):
     return mask
 
 
+VP_CAL_VP_BASE = "vp_cal, vp reading as baseline"
+"""The baseline row of what the fe node does: the nozzle's healthy raw vp reading taken off its vp_cal estimate."""
+
+
 def accuracy(est, ds):
     """Per trace: 100 (1 - mean over the steady-state part of |f_hat(k) - f| / |f|)."""
     m = steady_mask(ds.y_clean) & np.isfinite(est.trace)
@@ -137,11 +141,14 @@ def main(argv=None):
                f"baseline ({N_BASELINE} frames)")
     results[PH_BASE, "vp"] = (est_b, accuracy(est_b, ph), fm_accuracy(est_b, ph))
     cover_b = np.mean((est_b.ci[:, 0] <= ph.fm) & (ph.fm <= est_b.ci[:, 1])) * 100
-    # the same per-nozzle baseline with vp_cal (its own healthy readings)
+    # the same per-nozzle baseline with vp_cal: its own healthy readings, and the raw vp readings
+    # taken off it (what the fe node does: inkdiag_core.baselines.FM_METHOD)
     base_c = run(dataclasses.replace(ph, y=ph.y_healthy.reshape(-1, n_s)), "vp_cal", None,
                  vp_trace_points=0).fm.reshape(n_ph, N_BASELINE).mean(axis=1)
     est_bc = run(ph, "vp_cal", None, baseline_fm=base_c)
     results[PH_BASE, "vp_cal"] = (est_bc, accuracy(est_bc, ph), fm_accuracy(est_bc, ph))
+    est_bv = run(ph, "vp_cal", None, baseline_fm=base)
+    results[PH_BASE, VP_CAL_VP_BASE] = (est_bv, accuracy(est_bv, ph), fm_accuracy(est_bv, ph))
     # why vp alone stops near 95 %: the set re-drawn with one kind of spread switched off
     from inkdiag_core import FaultClass
     from inkdiag_core.nonlinear import simulate_nonlinear
@@ -304,7 +311,7 @@ def main(argv=None):
             xg = "none" if m in VP_METHODS else x0_given[name][0]
             P(f"| {name} | {m} | {xg} | {np.nanmedian(a):.2f} | {lo:.2f} | "
               f"{np.nanmedian(afm):.2f} | {th} |")
-    for m in VP_METHODS:
+    for m in (*VP_METHODS, VP_CAL_VP_BASE):
         _, a_m, afm_m = results[PH_BASE, m]
         P(f"| {PH_BASE} | {m} (ours) | none | {np.nanmedian(a_m):.2f} | "
           f"{np.nanpercentile(a_m, 10):.2f} | {np.nanmedian(afm_m):.2f} | n/a |")
@@ -419,6 +426,7 @@ def main(argv=None):
     a_c30 = results[s30, "vp_cal"][1]
     z_c = (results[s30, "vp_cal"][0].fm - sets[s30].fm) / results[s30, "vp_cal"][0].std
     _, a_cb, afm_cb = results[PH_BASE, "vp_cal"]
+    _, a_cv, _ = results[PH_BASE, VP_CAL_VP_BASE]
     P("* **vp_cal: vp with a learned correction of the model mismatch, no x0, no healthy "
       "history.** vp's only free parameter is f_m, so it forces the nominal model's damping-"
       "frequency relation on the ring-down; a real nozzle's pair (decay rate sigma, frequency "
@@ -443,7 +451,9 @@ def main(argv=None):
       f"{np.nanmedian(afm_c):.2f} %) against the uncalibrated vp's {np.nanmedian(a_v):.2f} % "
       f"(P10 {np.nanpercentile(a_v, 10):.2f} %, `.fm` {np.nanmedian(afm_v):.2f} %); noise-free "
       f"`.fm` median {np.nanmedian(a_c0):.2f} %. With the per-nozzle healthy baseline as well: "
-      f"median {np.nanmedian(a_cb):.2f} % (P10 {np.nanpercentile(a_cb, 10):.2f} %). Its `.std` "
+      f"median {np.nanmedian(a_cb):.2f} % (P10 {np.nanpercentile(a_cb, 10):.2f} %) with its own vp_cal "
+      f"readings, {np.nanmedian(a_cv):.2f} % (P10 {np.nanpercentile(a_cv, 10):.2f} %) with the raw vp "
+      "readings taken off, what the fe node does (`inkdiag_core.baselines.FM_METHOD`). Its `.std` "
       "propagates the pair's noise covariance through the correction; it does not contain the "
       "mismatch the correction leaves (about 6 % of f_m rms on the calibration set), so its 95 % "
       f"CI covers the truth for {cover_c:.0f} % of the physics-based signals. Tried first and "
