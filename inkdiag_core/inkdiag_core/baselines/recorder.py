@@ -15,8 +15,6 @@ from .store import FM_METHOD, NozzleBaselines
 
 __all__ = ["DEFAULT_MAX_NOZZLES", "FM_METHOD", "BaselineRecorder"]
 
-
-
 #: Default bound on the nozzle ids a :class:`BaselineRecorder` accepts (ids are below it).
 #: It bounds memory: the recorder counts rows per nozzle id in a dense int32 array,
 #: grown on demand by doubling, so ids up to this bound cost at most 4 bytes times
