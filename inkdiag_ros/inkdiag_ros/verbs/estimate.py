@@ -117,19 +117,32 @@ def _fmt(v) -> str:
     return repr(v) if math.isfinite(v) else ""
 
 
+def _fit_vp_cal_said(profile) -> None:
+    """Fit the head's ``vp_cal`` constants now if they need a fit (seconds), saying so on stderr before and after."""
+    import sys
+
+    from inkdiag_core.estimation import vp_cal_for, vp_cal_needs_fit
+
+    if not vp_cal_needs_fit(profile):
+        return
+    print(f"inkdiag estimate: fitting the vp_cal constants of head {profile.name!r} (first use of this head "
+          "in this process)...", file=sys.stderr, flush=True)
+    cal = vp_cal_for(profile)
+    if "seconds" in cal:
+        print(f"inkdiag estimate: vp_cal fitted in {cal['seconds']:.1f} s on {cal['n_traces']} simulated traces",
+              file=sys.stderr, flush=True)
+
+
 def run(args) -> int:
     import csv
     import itertools
     import sys
 
     import numpy as np
-    from inkdiag_core import DryingTracker, HeadProfile
-
-    from inkdiag_core import BaselineFileError, NozzleBaselines
+    from inkdiag_core import BaselineFileError, DryingTracker, HeadProfile, NozzleBaselines
     from inkdiag_core.head_profile import ProfileError
 
     from ..bags import is_bag, stream_recording
-    from ._vp_cal import fit_vp_cal_said
 
     profile = HeadProfile.load(args.profile)
     if not profile.is_complete:
@@ -149,7 +162,7 @@ def run(args) -> int:
         except BaselineFileError as exc:
             raise ProfileError(str(exc)) from None
     if args.method == "vp_cal":
-        fit_vp_cal_said(profile, "estimate")
+        _fit_vp_cal_said(profile)
     tracker = DryingTracker(profile=profile, baselines=baselines, method=args.method, max_abs_v=args.max_abs_v)
     if bag:
         return _estimate_bag(args, tracker, profile, pick, itertools.chain([(first_row, rec)], chunks), stats)
