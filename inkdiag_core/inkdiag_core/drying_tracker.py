@@ -102,7 +102,8 @@ def _default_constants(cal) -> bool:
     """``cal`` is the default head's ``vp_cal`` constants (None: they are)."""
     from .estimation import VP_CAL
 
-    return cal is None or all(float(cal[k]) == float(VP_CAL[k]) for k in ("a_sigma", "b_sigma", "a_omega", "b_omega"))
+    keys = ("a_sigma", "b_sigma", "a_omega", "b_omega")
+    return cal is None or all(float(cal[k]) == float(VP_CAL[k]) for k in keys)
 
 @dataclass(frozen=True)
 class RowEstimates:

@@ -273,4 +273,4 @@ class BaselineRecorder:
                     reference[sel] = np.median(rows[idx[sel, :c]], axis=1)
         return NozzleBaselines(ids[ok], med[:, :N_KPIS], self.sample_rate_hz, self.n_samples, self.n_frames,
                                fm=med[:, N_KPIS] if self.fm_frames else None, head_sha256=self.profile.sha256,
-                               reference=reference, fm_method=FM_METHOD if self.fm_frames else None)
+                               reference=reference)  # fm_method: FM_METHOD with fm, else None

@@ -3,7 +3,7 @@
 MAX_FRAMES = 1000
 """Largest --frames (the record_baseline node's n_frames range)."""
 
-HELP = "record per-nozzle healthy baselines from a recording of a healthy head (.npz)"
+HELP = "record per-nozzle healthy baselines from a recording of a healthy head (.npz or bag)"
 DESCRIPTION = """\
 Build each nozzle's healthy baseline from a recording of the head while it jets
 well (after a purge, at commissioning): the same file the record_baseline node
@@ -50,7 +50,6 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    import itertools
     import sys
 
     import numpy as np
@@ -69,14 +68,12 @@ def run(args) -> int:
     if not 1 <= min_frames <= args.frames:
         raise ValueError(f"--min-frames must be in 1..--frames ({args.frames}), got {min_frames}")
     profile = HeadProfile.load(args.profile)
-    stats, chunks = stream_recording(args.recording, args.topic)
-    first = next(chunks)  # a bag with no trace frame: RecordingError
-    profile.check_traces(first[1].traces, first[1].sample_rate_hz, what=f"{args.recording}")
     recorder = BaselineRecorder(n_frames=args.frames, fm_frames=fm_frames, profile=profile,  # nominal: refused
                                 max_abs_v=args.max_abs_v)
+    stats, chunks = stream_recording(args.recording, args.topic)
     n_rows = n_used = n_other = 0
     nozzles = np.zeros(0, np.int64)  # every nozzle id the recording has, usable rows or not
-    for _, rec in itertools.chain([first], chunks):
+    for _, rec in chunks:  # a bag with no trace frame: RecordingError
         profile.check_traces(rec.traces, rec.sample_rate_hz, what=f"{args.recording}")
         keep = None
         if rec.label is not None:
