@@ -26,6 +26,12 @@ the same run (issue 17: a compiled kernel goes in only where it wins >= 2x on it
   (12,000 rows, 5 seeds); where the fit is ill-conditioned (a step, a window of noise, a
   2-sample trace) both versions move as much under a 1e-15 change of their input. Every
   KPI (``extract_kpis``: training and labelling alike) comes from this fit.
+- :func:`forest_proba`: a Random Forest's class probabilities, every tree walked per row in
+  one call (:func:`inkdiag_core.fdi.forest_predict_proba` flattens the forest once). In
+  numpy each tree is a call of its own (``tree_.predict``, ~8 us each, 50 per forest) and
+  an ``(n, k)`` sum: the forest's fixed cost on the few rows the gate leaves. The same
+  comparisons (the float32 feature against the float64 threshold) and the same sums in
+  the same order per row: bit-identical to scikit-learn's ``predict_proba``.
 
 The kernels compile on first use and are cached next to this file (numba's
 ``cache=True``; a read-only install falls back to numba's user-wide cache directory).
@@ -42,7 +48,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["fit_windows", "row_sums", "screen_codes", "warm_up"]
+__all__ = ["fit_windows", "forest_proba", "row_sums", "screen_codes", "warm_up"]
 
 _SUMS_FASTMATH = {"reassoc", "contract"}  # reorder and fuse the sums only: no finite-math assumption
 
@@ -285,6 +291,52 @@ def _fit_windows(Yw, start, m_peak, n_samples, w, M, n_iter, sigma_min, sigma_ma
         c_out[i] = b_c
 
 
+@numba.njit(cache=True, nogil=True)
+def _forest_sums(X, roots, nodes, threshold, value, out):
+    n_classes = value.shape[1]
+    for t in range(roots.shape[0]):  # tree by tree (its nodes stay in cache); each row's sum in tree order
+        root = roots[t]
+        for i in range(X.shape[0]):
+            node = root
+            left = nodes[node, 0]
+            while left >= 0:
+                if X[i, nodes[node, 2]] <= threshold[node]:
+                    node = left
+                else:
+                    node = nodes[node, 1]
+                left = nodes[node, 0]
+            for c in range(n_classes):
+                out[i, c] += value[node, c]
+
+
+def forest_proba(X, roots, nodes, threshold, value):
+    """Mean over the trees of each row's leaf values: a flattened forest's ``predict_proba``.
+
+    Parameters
+    ----------
+    X : ndarray of float32, shape (n, n_features)
+        Finite feature rows (C-contiguous; another layout is copied).
+    roots : ndarray of int64, shape (n_trees,)
+        Each tree's root node.
+    nodes : ndarray of int32, shape (n_nodes, 4)
+        Per node: left child, right child, feature, 0 (one row of 16 bytes); the left child
+        is -1 at a leaf. Go left where ``X[i, feature] <= threshold``.
+    threshold : ndarray of float64, shape (n_nodes,)
+    value : ndarray of float64, shape (n_nodes, n_classes)
+        Each leaf's class probabilities.
+
+    Returns
+    -------
+    ndarray of float64, shape (n, n_classes)
+    """
+    X = np.require(X, np.float32, ["C", "W"])  # the one signature warm_up compiles
+    out = np.zeros((X.shape[0], value.shape[1]))
+    if X.shape[0]:
+        _forest_sums(X, roots, nodes, threshold, value, out)
+    out /= roots.shape[0]
+    return out
+
+
 def fit_windows(Yw, start, m_peak, n_samples):
     """:func:`inkdiag_core.spectral_fit.fit_windows` compiled, one row at a time: the same fit, the
     same returns (within float64 rounding: sums in another order; tests compare both).
@@ -393,6 +445,8 @@ def warm_up() -> None:
             screen_codes(x, 1e-6, np.inf, 5)
             row_sums(x, np.zeros((1, 4), dtype))  # the gate's references: its own writable array
     fit_windows(np.ones((1, 16), np.complex128), np.ones(1, np.int64), np.ones(1, np.int64), 64)
+    forest_proba(np.zeros((1, 1), np.float32), np.zeros(1, np.int64), np.full((1, 4), -1, np.int32), np.zeros(1),
+                 np.ones((1, 1)))
 
 
 if __name__ == "__main__":  # scripts/_bootstrap.sh: compile at install

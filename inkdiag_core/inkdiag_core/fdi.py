@@ -30,6 +30,8 @@ both healthy classes counting as healthy (:func:`fd_labels`).
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 import scipy.fft
 from sklearn.base import BaseEstimator, TransformerMixin
@@ -290,11 +292,14 @@ def forest_predict_proba(forest, X) -> np.ndarray:
     """``RandomForestClassifier.predict_proba`` without its per-tree call overhead.
 
     scikit-learn calls each tree through joblib with input checks per tree,
-    about 50 us per tree and call: for a 100-tree forest on a 200-trace frame
-    that is most of the classification time. Here every tree's ``tree_`` is
-    evaluated directly on one validated float32 copy and the probabilities
-    are summed in the same order, so the result is bit-identical to
-    ``forest.predict_proba(X)`` (a test checks it).
+    about 50 us per tree and call, and even each tree's bare ``tree_.predict``
+    costs ~3 us a call: on the few rows the healthy gate leaves, about half the
+    forest's time. Up to ``_KERNEL_MAX_ROWS`` rows the forest is flattened once
+    (its node arrays, kept while the forest's trees stay the same) and a compiled
+    kernel (:func:`inkdiag_core._kernels.forest_proba`) walks every tree for each
+    row in one call; beyond, each tree's ``tree_.predict`` runs. Either way on one
+    validated float32 copy, summing the probabilities in the same order, so the
+    result is bit-identical to ``forest.predict_proba(X)`` (a test checks it).
 
     Parameters
     ----------
@@ -314,12 +319,55 @@ def forest_predict_proba(forest, X) -> np.ndarray:
         raise ValueError(f"X must be (n, {forest.n_features_in_}) features, got shape {X.shape}")
     if not np.isfinite(X).all():
         raise ValueError("X must be finite")
+    if X.shape[0] > _KERNEL_MAX_ROWS:  # tree by tree: scikit-learn's own traversal, as fast on many rows
+        return _per_tree_proba(forest, X)
+    from ._kernels import forest_proba
+
+    return forest_proba(X, *_flat_forest(forest))
+
+
+def _per_tree_proba(forest, X):
+    """A single-output forest's probabilities of finite float32 rows ``X``, one ``tree_.predict`` call per tree."""
     n_classes = int(forest.n_classes_)
     proba = np.zeros((X.shape[0], n_classes))
     for tree in forest.estimators_:
         proba += tree.tree_.predict(X)[:, :n_classes]
     proba /= len(forest.estimators_)
     return proba
+
+
+#: Rows up to which :func:`forest_predict_proba` walks the trees in one compiled call; beyond,
+#: scikit-learn's per-tree calls cost little per row and its traversal is as fast
+#: (``scripts/bench fdi``, the default detector: the kernel 1.8-2.3x on the gate's ~70 leftover rows, 1.0-1.2x
+#: at 200, 0.8x at 1,600).
+_KERNEL_MAX_ROWS = 256
+
+_FLAT_FORESTS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _flat_forest(forest) -> tuple:
+    """A single-output forest's trees as one set of node arrays (for :func:`_kernels.forest_proba`).
+
+    Kept per forest object while its ``estimators_`` list is the same one (a refit makes a new
+    list). Returns ``(roots, nodes, threshold, value)``.
+    """
+    got = _FLAT_FORESTS.get(forest)
+    if got is not None and got[0] is forest.estimators_:
+        return got[1]
+    n_classes = int(forest.n_classes_)
+    trees = [e.tree_ for e in forest.estimators_]
+    roots = np.cumsum([0] + [t.node_count for t in trees[:-1]], dtype=np.int64)
+    nodes = np.zeros((int(sum(t.node_count for t in trees)), 4), np.int32)
+    for t, r in zip(trees, roots):
+        leaf = t.children_left < 0
+        rows = nodes[r:r + t.node_count]
+        rows[:, 0] = np.where(leaf, -1, t.children_left + r)
+        rows[:, 1] = np.where(leaf, -1, t.children_right + r)
+        rows[:, 2] = np.where(leaf, 0, t.feature)
+    flat = (roots, nodes, np.concatenate([t.threshold for t in trees]).astype(np.float64),
+            np.ascontiguousarray(np.concatenate([t.value[:, 0, :n_classes] for t in trees]), dtype=np.float64))
+    _FLAT_FORESTS[forest] = (forest.estimators_, flat)
+    return flat
 
 
 def pipeline_predict_proba(pipeline, traces):

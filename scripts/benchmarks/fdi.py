@@ -23,7 +23,8 @@ end to end on that frame in 200-nozzle messages (the default detector
 ``models/fdi_default.joblib``, trained if missing) with the baselines' references
 (gate on) and without (gate off), and that per-row stage (screening and the gate) with
 the compiled kernels against the numpy passes they replace, on one message and on eight, and
-the KPIs with the compiled window fit against numpy's, on the gate's leftovers and on 1,600 rows.
+the KPIs with the compiled window fit against numpy's, on the gate's leftovers and on 1,600 rows,
+and the detector's forests walked by the compiled kernel against one ``tree_.predict`` per tree.
 Prints traces/s and ratios; run it on one core
 (``scripts/bench`` sets the thread variables). ``--gate-only`` skips all but the gate.
 """
@@ -191,6 +192,7 @@ def gate_bench(n: int, seed: int, faulty: float = 0.02, repeats: int = 5):
                for g, w in zip(with_ref.label(msgs, firsts), without.label(msgs, firsts)))
     print(f"labels with the gate == without: {same}")
     kernel_bench(frame, gate, repeats)
+    forest_bench(det, base, frame, gate, repeats)
 
 
 @contextlib.contextmanager
@@ -254,6 +256,31 @@ def kernel_bench(frame, gate, repeats: int = 5, rounds: int = 20):
                               lambda: [_kernels.fit_windows(*args) for _ in range(rounds)], repeats)
         print(f"  {len(x):>5} rows{'':<22}: numpy {1e3 * t_np / rounds:7.3f} ms, kernel {1e3 * t_k / rounds:7.3f} ms, "
               f"ratio {t_np / t_k:.2f}x faster")
+
+
+def forest_bench(det, base, frame, gate, repeats: int = 5, rounds: int = 20):
+    """The detector's forests (plain and baseline branch) in one compiled call (``_kernels.forest_proba``)
+    against one ``tree_.predict`` call per tree (what ``forest_predict_proba`` did before), in turns, same rows."""
+    from inkdiag_core.fdi import _flat_forest, _per_tree_proba as _per_tree
+
+    left = np.flatnonzero(~gate.screen(frame, 0).cleared)
+    branches = [("plain", det.pipeline_, frame)]
+    if det.baseline_pipeline_ is not None:
+        _, kp = base.lookup(np.arange(frame.shape[0]))
+        branches.append(("baseline", det.baseline_pipeline_, with_baseline(frame, kp.astype(np.float32))))
+    print(f"the forest (forest_predict_proba's compiled walk of every tree against one tree_.predict per tree, "
+          f"bit-identical, best of {repeats} x {rounds} calls, in turns)")
+    for branch, pipe, rows in branches:
+        clf = pipe[-1]
+        for name, at in ((f"the gate's leftovers ({min(72, left.size)} rows)", left[:72]),
+                         ("one message (200 rows)", np.arange(200)), ("a classifier pass (1,600 rows)", np.arange(1600))):
+            F = np.ascontiguousarray(pipe[:-1].transform(rows[at]), dtype=np.float32)
+            flat = _flat_forest(clf)
+            same = np.array_equal(_kernels.forest_proba(F, *flat), _per_tree(clf, F))
+            t_np, t_k = _in_turns(lambda: [_per_tree(clf, F) for _ in range(rounds)],
+                                  lambda: [_kernels.forest_proba(F, *flat) for _ in range(rounds)], repeats)
+            print(f"  {branch:<8} {name:<32}: per tree {1e3 * t_np / rounds:7.3f} ms, kernel {1e3 * t_k / rounds:7.3f} "
+                  f"ms, ratio {t_np / t_k:.2f}x faster; bit-identical: {same}")
 
 
 def _with_numpy_passes(fn):

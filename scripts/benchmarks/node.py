@@ -1,6 +1,6 @@
 """CPU per message of the fdi node's own work, without DDS: this tree against an older commit, same run.
 
-    scripts/bench node [--ref REF] [--rounds 3] [--nozzles 2656] [--chunk 200] [--case realistic|worst]
+    scripts/bench node [--ref HEAD] [--rounds 3] [--nozzles 2656] [--chunk 200] [--case realistic|worst]
 
 What the fdi node does with each 200-nozzle trace message once rclpy has taken it:
 ``decode_traces`` -> ``FrameLabeller.label`` (screening, the healthy gate, the detector on
@@ -94,8 +94,9 @@ def extract(ref: str, tmp: Path) -> Path:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--ref", default="06a66b8", help="the older commit to compare with (default: main before "
-                    "the issue-17 per-message cuts)")
+    ap.add_argument("--ref", default="HEAD", help="the older commit to compare with (default: HEAD, so a change in "
+                    "the work tree is measured against the last commit; the commit must read this tree's baselines "
+                    "file, format 5 since 9bd8aec)")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--nozzles", type=int, default=2656)
     ap.add_argument("--chunk", type=int, default=200)

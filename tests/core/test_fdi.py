@@ -103,3 +103,25 @@ def test_forest_predict_proba_is_bit_identical_to_sklearn_and_checks_input():
     pipe = make_fdi_pipeline("rf", "kpi_y", n_estimators=10).fit(sim.traces, sim.label_values())
     proba, _ = fault_probability(pipe, sim.traces[:9])
     np.testing.assert_array_equal(proba, pipe.predict_proba(sim.traces[:9]))
+
+
+def test_forest_predict_proba_compiled_and_per_tree_paths_are_sklearns_and_a_refit_is_seen():
+    """Both paths (the compiled walk up to _KERNEL_MAX_ROWS rows, one tree_.predict per tree beyond) give
+    predict_proba bit for bit, with integer and string classes and deep trees; a refit forest is re-flattened."""
+    from sklearn.ensemble import RandomForestClassifier
+
+    from inkdiag_core import fdi
+
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(2000, 9)).astype(np.float32)
+    y = (X[:, 0] * 3 + X[:, 1] ** 2 + rng.normal(size=2000)).round().astype(int) % 5
+    rf = RandomForestClassifier(n_estimators=23, min_samples_leaf=1, random_state=0).fit(X, y)
+    for n in (1, 7, fdi._KERNEL_MAX_ROWS, fdi._KERNEL_MAX_ROWS + 1, 1500):
+        Xt = rng.normal(size=(n, 9))  # float64 in: the forest sees float32, as scikit-learn's
+        np.testing.assert_array_equal(fdi.forest_predict_proba(rf, Xt), rf.predict_proba(Xt), err_msg=f"{n} rows")
+    assert fdi.forest_predict_proba(rf, np.empty((0, 9))).shape == (0, 5)
+    flat = fdi._flat_forest(rf)
+    rf.fit(X[:500], np.array(["p", "q", "r"])[y[:500] % 3])  # the same object, new trees and classes
+    assert fdi._flat_forest(rf) is not flat
+    Xt = rng.normal(size=(40, 9))
+    np.testing.assert_array_equal(fdi.forest_predict_proba(rf, Xt), rf.predict_proba(Xt))

@@ -126,7 +126,8 @@ def test_gate_clears_the_same_rows_with_the_kernel_as_with_numpy_passes(monkeypa
 
 def test_after_warm_up_a_decoded_frame_and_a_batch_need_no_new_kernel_build():
     """In a fresh process (what a node does): warm_up, then screen, gate and fit the KPIs of a read-only
-    frame decoded from a message and of a writable batch, float32 and float64; no kernel gains a signature."""
+    frame decoded from a message and of a writable batch, float32 and float64, and walk a forest; no kernel
+    gains a signature."""
     import subprocess
     import sys
     import textwrap
@@ -141,7 +142,8 @@ def test_after_warm_up_a_decoded_frame_and_a_batch_need_no_new_kernel_build():
             rec.add(0, simulate_nozzles(["healthy_nozzle"] * 8, seed=1, frame_seed=[1, f]).traces)
         gate = HealthyGate(rec.baselines())
         _kernels.warm_up()
-        kernels = (_kernels._ordered_extremes, _kernels._codes, _kernels._sums, _kernels._fit_windows)
+        kernels = (_kernels._ordered_extremes, _kernels._codes, _kernels._sums, _kernels._fit_windows,
+                   _kernels._forest_sums)
         before = [len(k.signatures) for k in kernels]
         x = simulate_nozzles(["healthy_nozzle"] * 8, seed=1, frame_seed=[1, 9]).traces.astype(np.float32)
         frame = decode_traces(encode_traces(x, first_nozzle=0, frame_id=1, stamp=0.0)).traces
@@ -150,6 +152,10 @@ def test_after_warm_up_a_decoded_frame_and_a_batch_need_no_new_kernel_build():
             screen_traces(rows)
             gate.screen(rows[:8], 0)
             extract_kpis(rows, 10e6)
+        from sklearn.ensemble import RandomForestClassifier
+        from inkdiag_core.fdi import forest_predict_proba
+        rf = RandomForestClassifier(n_estimators=3, random_state=0).fit(extract_kpis(x, 10e6), [0, 1] * 4)
+        forest_predict_proba(rf, extract_kpis(frame, 10e6))
         assert [len(k.signatures) for k in kernels] == before, ([k.signatures for k in kernels], before)
         print("ok")
     """)
