@@ -348,11 +348,12 @@ _FLAT_FORESTS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 def _flat_forest(forest) -> tuple:
     """A single-output forest's trees as one set of node arrays (for :func:`_kernels.forest_proba`).
 
-    Kept per forest object while its ``estimators_`` list is the same one (a refit makes a new
-    list). Returns ``(roots, nodes, threshold, value)``.
+    Kept per forest object while it holds the same trees (a refit makes new ones; ``warm_start``
+    appends to the same list). Returns ``(roots, nodes, threshold, value)``.
     """
     got = _FLAT_FORESTS.get(forest)
-    if got is not None and got[0] is forest.estimators_:
+    if got is not None and len(got[0]) == len(forest.estimators_) and all(
+            a is b for a, b in zip(got[0], forest.estimators_)):
         return got[1]
     n_classes = int(forest.n_classes_)
     trees = [e.tree_ for e in forest.estimators_]
@@ -366,7 +367,7 @@ def _flat_forest(forest) -> tuple:
         rows[:, 2] = np.where(leaf, 0, t.feature)
     flat = (roots, nodes, np.concatenate([t.threshold for t in trees]).astype(np.float64),
             np.ascontiguousarray(np.concatenate([t.value[:, 0, :n_classes] for t in trees]), dtype=np.float64))
-    _FLAT_FORESTS[forest] = (forest.estimators_, flat)
+    _FLAT_FORESTS[forest] = (tuple(forest.estimators_), flat)
     return flat
 
 

@@ -107,7 +107,8 @@ def test_forest_predict_proba_is_bit_identical_to_sklearn_and_checks_input():
 
 def test_forest_predict_proba_compiled_and_per_tree_paths_are_sklearns_and_a_refit_is_seen():
     """Both paths (the compiled walk up to _KERNEL_MAX_ROWS rows, one tree_.predict per tree beyond) give
-    predict_proba bit for bit, with integer and string classes and deep trees; a refit forest is re-flattened."""
+    predict_proba bit for bit, with integer and string classes and deep trees; a refit forest (and one grown by
+    warm_start, whose list of trees stays the same object) is flattened again."""
     from sklearn.ensemble import RandomForestClassifier
 
     from inkdiag_core import fdi
@@ -124,4 +125,7 @@ def test_forest_predict_proba_compiled_and_per_tree_paths_are_sklearns_and_a_ref
     rf.fit(X[:500], np.array(["p", "q", "r"])[y[:500] % 3])  # the same object, new trees and classes
     assert fdi._flat_forest(rf) is not flat
     Xt = rng.normal(size=(40, 9))
+    np.testing.assert_array_equal(fdi.forest_predict_proba(rf, Xt), rf.predict_proba(Xt))
+    rf.set_params(warm_start=True, n_estimators=30).fit(X[:500], np.array(["p", "q", "r"])[y[:500] % 3])
+    assert len(fdi._flat_forest(rf)[0]) == 30  # trees appended to the same list: flattened again
     np.testing.assert_array_equal(fdi.forest_predict_proba(rf, Xt), rf.predict_proba(Xt))
