@@ -28,7 +28,7 @@ the same run (issue 17: a compiled kernel goes in only where it wins >= 2x on it
   KPI (``extract_kpis``: training and labelling alike) comes from this fit.
 - :func:`forest_proba`: a Random Forest's class probabilities, every tree walked per row in
   one call (:func:`inkdiag_core.fdi.forest_predict_proba` flattens the forest once). In
-  numpy each tree is a call of its own (``tree_.predict``, ~8 us each, 50 per forest) and
+  numpy each tree is a call of its own (``tree_.predict``, a few us each, 50 per forest) and
   an ``(n, k)`` sum: the forest's fixed cost on the few rows the gate leaves. The same
   comparisons (the float32 feature against the float64 threshold) and the same sums in
   the same order per row: bit-identical to scikit-learn's ``predict_proba``.

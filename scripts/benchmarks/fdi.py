@@ -260,7 +260,8 @@ def kernel_bench(frame, gate, repeats: int = 5, rounds: int = 20):
 
 def forest_bench(det, base, frame, gate, repeats: int = 5, rounds: int = 20):
     """The detector's forests (plain and baseline branch) in one compiled call (``_kernels.forest_proba``)
-    against one ``tree_.predict`` call per tree (what ``forest_predict_proba`` did before), in turns, same rows."""
+    against one ``tree_.predict`` call per tree (what ``forest_predict_proba`` did before), in turns, same rows;
+    bit-identical: the kernel's against scikit-learn's ``predict_proba``."""
     from inkdiag_core.fdi import _flat_forest, _per_tree_proba as _per_tree
 
     left = np.flatnonzero(~gate.screen(frame, 0).cleared)
@@ -273,10 +274,11 @@ def forest_bench(det, base, frame, gate, repeats: int = 5, rounds: int = 20):
     for branch, pipe, rows in branches:
         clf = pipe[-1]
         for name, at in ((f"the gate's leftovers ({min(72, left.size)} rows)", left[:72]),
-                         ("one message (200 rows)", np.arange(200)), ("a classifier pass (1,600 rows)", np.arange(1600))):
+                         ("one message (200 rows)", np.arange(min(200, len(rows)))),
+                         ("a classifier pass (1,600 rows)", np.arange(min(1600, len(rows))))):
             F = np.ascontiguousarray(pipe[:-1].transform(rows[at]), dtype=np.float32)
             flat = _flat_forest(clf)
-            same = np.array_equal(_kernels.forest_proba(F, *flat), _per_tree(clf, F))
+            same = np.array_equal(_kernels.forest_proba(F, *flat), clf.predict_proba(F))
             t_np, t_k = _in_turns(lambda: [_per_tree(clf, F) for _ in range(rounds)],
                                   lambda: [_kernels.forest_proba(F, *flat) for _ in range(rounds)], repeats)
             print(f"  {branch:<8} {name:<32}: per tree {1e3 * t_np / rounds:7.3f} ms, kernel {1e3 * t_k / rounds:7.3f} "
