@@ -1,6 +1,7 @@
 """Heads report: inkdiag on printheads other than its own, through the `inkdiag` command.
 
     scripts/report heads [--heads default h20 h5] [--per-class 150] [--n-per-class N] [--seed 0] [--posterior-draws K]
+                         [--other-seeds S [S ...]]
 
 For each head, traces come from the independent simulator ``tests/foreign_head.py``
 (its own code, not inkdiag's simulator). The workflow is the one a user runs,
@@ -22,6 +23,10 @@ nozzle (the test and dried recordings are later frames of the same nozzles:
 ``label`` / ``estimate`` with ``--baselines B.npz``, all on the calibrated profile. Writes
 ``reports/heads.md`` (and keeps the work files under ``reports/heads_work/``
 only with ``--keep``).
+
+With ``--other-seeds``, the calibrated workflow (steps 1-3) runs again per head for each of
+those seeds (other healthy and test recordings, another training seed): how much the
+weakest classes move from one calibration to the next.
 """
 
 from __future__ import annotations
@@ -123,6 +128,10 @@ MODE_CLASSES = ("healthy_nozzle", "partially_blocked", "slightly_dried", "interm
 """Classes whose dominant mode the report compares between the recording and the profiles' simulations."""
 
 
+SPLIT_CLASSES = ("partially_blocked", "intermediately_dried", "deeply_dried")
+"""The classes whose accuracy the seed-by-seed table shows (those the restrictor split moves)."""
+
+
 def _class_modes(traces, labels, fs):
     """Median dominant frequency (Hz) and damping ratio of each of :data:`MODE_CLASSES`' rows that screening
     accepts (a clipped or flat row has no mode to compare; labelling calls it invalid)."""
@@ -213,8 +222,34 @@ def run_head(name, work, *, per_class, n_per_class, seed, log, posterior_draws=1
     true = HeadProfile.load(profiles["true"])
     out["mode"] = {"true": true.healthy_mode(), "calibrated": cal.healthy_mode()}
     out["params"] = {k: (true.channel.get(k), cal.channel.get(k)) for k in ("r_r", "L_r", "B_act", "b")}
+    out["calibrated_split"] = _split_errors(cal.channel, fh.FOREIGN_HEADS[name]["channel"])
     out["sampling"] = (true.sample_rate_hz, true.n_samples)
     return out
+
+
+def run_seed(name, work, *, per_class, n_per_class, seed, log):
+    """The calibrated workflow alone (calibrate, train, label) on recordings and training of ``seed``."""
+    d = work / f"{name}_seed{seed}"
+    d.mkdir(parents=True, exist_ok=True)
+    fh.write_nominal_yaml(d / "nominal.yaml", name)
+    fh.write_recording(d / "healthy.npz", fh.simulate_foreign(name, {"healthy_nozzle": 300}, seed))
+    test = fh.simulate_foreign(name, {c.value: per_class for c in FaultClass}, seed + 1)
+    fh.write_recording(d / "test.npz", test)
+    _inkdiag("calibrate", d / "healthy.npz", "--nominal", d / "nominal.yaml", "--out", d / "calibrated.yaml", log=log)
+    train_args = ["train", "--profile", d / "calibrated.yaml", "--out", d / "model.joblib", "--seed", seed]
+    if n_per_class:
+        train_args += ["--n-per-class", n_per_class]
+    _inkdiag(*train_args, log=log)
+    _inkdiag("label", d / "test.npz", "--model", d / "model.joblib", "--out", d / "labels.csv", log=log)
+    fd, fi, per, n_invalid, _, wrong = _scores(d / "labels.csv", test["labels"])
+    return {"fd": fd, "fi": fi, "per": per, "wrong": wrong, "invalid": n_invalid,
+            **_split_errors(HeadProfile.load(d / "calibrated.yaml").channel, fh.FOREIGN_HEADS[name]["channel"])}
+
+
+def _split_errors(cal, true):
+    """Relative errors of the calibrated restrictor inertance (rho L_r / (pi r_r^2)) and actuator compliance."""
+    return {"I_r_err": (cal["L_r"] / true["L_r"]) / (cal["r_r"] / true["r_r"]) ** 2 - 1,
+            "B_act_err": cal["B_act"] / true["B_act"] - 1}
 
 
 def main(argv=None) -> int:
@@ -225,6 +260,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--posterior-draws", type=int, default=1,
                     help="inkdiag train --posterior-draws for the calibrated profiles (default: %(default)s)")
+    ap.add_argument("--other-seeds", type=int, nargs="*", default=[],
+                    help="seeds of further calibrated runs per head (calibrate, train, label only)")
     ap.add_argument("--keep", action="store_true", help="keep the work files under reports/heads_work/")
     args = ap.parse_args(argv)
     unknown = [h for h in args.heads if h not in fh.FOREIGN_HEADS]
@@ -241,6 +278,8 @@ def main(argv=None) -> int:
             results[name] = run_head(name, work, per_class=args.per_class, n_per_class=args.n_per_class,
                                      posterior_draws=args.posterior_draws,
                                      seed=args.seed, log=log)
+            results[name]["seeds"] = {s: run_seed(name, work, per_class=args.per_class, n_per_class=args.n_per_class,
+                                                  seed=s, log=log) for s in args.other_seeds}
     finally:
         if args.keep:
             dest = out_path("heads_work")
@@ -264,6 +303,7 @@ def write_report(results, args, log, elapsed):
         "",
         f"{today}. `scripts/report heads --heads {' '.join(args.heads)} --per-class {args.per_class} --seed "
         f"{args.seed}" + (f" --posterior-draws {args.posterior_draws}" if args.posterior_draws != 1 else "")
+        + (f" --other-seeds {' '.join(map(str, args.other_seeds))}" if args.other_seeds else "")
         + f"` ({elapsed / 60:.1f} min on the shared 2-core machine). Traces come from the independent "
         "simulator `tests/foreign_head.py`, not from inkdiag's; each head is calibrated from 300 of its "
         "healthy traces and a nominal profile (sampling, drive, rho, mu, r_n, L_n, V_ch, c), then trained, "
@@ -302,6 +342,32 @@ def write_report(results, args, log, elapsed):
     rows = [[c] + [_pct(results[name][kind]["unknown"].get(c, float("nan"))) for name in results
                    for kind in KINDS] for c in classes]
     lines += [md_table(header, rows), ""]
+    if args.other_seeds:
+        lines += ["## The calibrated profile, seed by seed", "",
+                  "The calibrated workflow (calibrate on 300 healthy traces, train, label) on other recordings of "
+                  "each head and another training seed (`--other-seeds`; each test row its own nozzle). The "
+                  "restrictor inertance (rho L_r / (pi r_r^2)) and the actuator compliance B_act calibration fitted, "
+                  "against the true head's: healthy traces pin their combination (the healthy mode), not each "
+                  "(`reports/restrictor.md`).", ""]
+        rows = []
+        for name, r in results.items():
+            runs = {args.seed: {**r["calibrated"], **r["calibrated_split"]}, **r["seeds"]}
+            for seed, k in runs.items():
+                worst = min(k["per"], key=k["per"].get)
+                rows.append([name if seed == args.seed else "", seed, _pct(k["fd"]), _pct(k["fi"]),
+                             f"{worst} {_pct(k['per'][worst])}",
+                             *[_pct(k["per"][c]) for c in SPLIT_CLASSES],
+                             f"{100 * k['I_r_err']:+.1f}", f"{100 * k['B_act_err']:+.1f}"])
+        lines += [md_table(["head", "seed", "FD %", "FI %", "weakest class %", *SPLIT_CLASSES,
+                            "I_r error %", "B_act error %"], rows), ""]
+        lines += ["Which of these classes loses rows follows the sign of the fitted restrictor inertance's error: "
+                  "too small, and recorded partially blocked traces look like the model's deeply dried ones; too "
+                  "large, and recorded dried traces look like the model's partially blocked ones. " + "; ".join(
+                      f"{name}: I_r error {min(ks):+.1f} to {max(ks):+.1f} %, weakest class {min(ws):.1f} to "
+                      f"{max(ws):.1f} %" for name, r in results.items()
+                      for runs in [[{**r["calibrated"], **r["calibrated_split"]}, *r["seeds"].values()]]
+                      for ks, ws in [([100 * k["I_r_err"] for k in runs], [100 * min(k["per"].values()) for k in runs])])
+                  + ".", ""]
     lines += ["## Calibration: fitted against true", ""]
     rows = []
     for name, r in results.items():
