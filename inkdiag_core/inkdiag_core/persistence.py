@@ -27,7 +27,6 @@ import hashlib
 import json
 import os
 import platform
-import tempfile
 from pathlib import Path
 
 import joblib
@@ -35,10 +34,11 @@ import numpy
 import scipy
 import sklearn
 
+from ._fileio import temp_beside
 from ._version import __version__
 
 __all__ = ["ModelFileError", "save_model", "load_model", "save_detector", "load_detector", "read_manifest",
-           "library_versions", "model_head_sha256"]
+           "library_versions", "manifest_path", "model_head_sha256"]
 
 FORMAT = "inkdiag-model"
 FORMAT_VERSION = 1
@@ -64,7 +64,9 @@ def library_versions() -> dict:
     }
 
 
-def _manifest_path(path: Path) -> Path:
+def manifest_path(path) -> Path:
+    """The manifest file beside model file ``path``: ``<name>.joblib.manifest.json``."""
+    path = Path(path)
     return path.with_name(path.name + ".manifest.json")
 
 
@@ -108,13 +110,13 @@ def _save(model, path, *, config, scores):
         "scores": scores or {},
     }
     json.dumps(manifest)  # fail before writing anything if config/scores are not JSON
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+    fd, tmp = temp_beside(path)
     os.close(fd)
     try:
         joblib.dump(model, tmp)
         manifest["sha256"] = _sha256(Path(tmp))
         manifest["size_bytes"] = os.path.getsize(tmp)
-        mpath = _manifest_path(path)
+        mpath = manifest_path(path)
         mtmp = str(mpath) + ".tmp"
         with open(mtmp, "w") as f:
             json.dump(manifest, f, indent=2, sort_keys=True)
@@ -129,7 +131,7 @@ def _save(model, path, *, config, scores):
 def read_manifest(path) -> dict:
     """Read and check the manifest of ``path`` (the model file itself is not read)."""
     path = Path(path)
-    mpath = _manifest_path(path)
+    mpath = manifest_path(path)
     if not path.is_file():
         raise ModelFileError(f"model file {path} does not exist")
     if not mpath.is_file():

@@ -5,19 +5,20 @@ A recording is an ``.npz`` file:
 =================  ==========================  ===========================================
 key                shape, type                 meaning
 =================  ==========================  ===========================================
-``traces``         (n, n_samples) float32      sensed traces, V (required)
+``traces``         (n, n_samples) float32      sensed traces, V (required; float64 is taken too)
 ``sample_rate_hz`` scalar float                their sample rate, Hz (required)
 ``nozzle``         (n,) int                    nozzle id of each row (default 0..n-1)
 ``frame_id``       (n,) int                    measurement (frame) of each row (default 0)
 ``stamp``          (n,) float                  time of each row's frame, s (default NaN)
-``label``          (n,) str                    class of each row (a FaultClass value), if known
+``label``          (n,) str                    class of each row (a FaultClass value), if known;
+                                               ``invalid`` or ``unknown`` (from ``inkdiag label``): none
 =================  ==========================  ===========================================
 
 Rows are independent: a row with a non-finite or out-of-range sample is
 loaded as it is and becomes an ``invalid`` row where it is labelled, it never
 costs the other rows. What makes the whole file unusable (no ``traces``, a
-sample rate that is not a positive number, arrays of another length, an
-unknown class name) is a :class:`RecordingError` naming the file and the key.
+sample rate that is not a positive number, traces that are not floating-point
+volts, arrays of another length, an unknown class name) is a :class:`RecordingError` naming the file and the key.
 """
 
 from __future__ import annotations
@@ -35,7 +36,12 @@ from .faults import FaultClass
 
 __all__ = ["Recording", "RecordingError", "load_recording", "save_recording"]
 
-_CLASS_VALUES = frozenset(c.value for c in FaultClass)
+#: Labels that name no class: what ``inkdiag label`` writes for a row it could not judge and for one
+#: unlike every class. A recording may carry them (a label column from ``inkdiag label``); training
+#: leaves their rows out.
+NOT_CLASSES = ("invalid", "unknown")
+#: Every value a recording's ``label`` may hold.
+LABEL_VALUES = frozenset(c.value for c in FaultClass) | frozenset(NOT_CLASSES)
 
 
 class RecordingError(InputError):
@@ -94,8 +100,10 @@ class Recording:
         if t.ndim != 2 or t.shape[0] < 1 or t.shape[1] < 2:
             raise RecordingError(f"{source}: traces must be a 2-D array (n, n_samples) with at least one row, "
                                  f"got shape {t.shape}")
-        if t.dtype.kind not in "fiu":
-            raise RecordingError(f"{source}: traces must be numbers (float32 volts), got dtype {t.dtype}")
+        if t.dtype.kind != "f":
+            raise RecordingError(f"{source}: traces must be floating-point volts (float32), got dtype {t.dtype}"
+                                 + (": convert ADC counts or millivolts to volts first" if t.dtype.kind in "iu"
+                                    else ""))
         t = np.ascontiguousarray(t, dtype=np.float32)
         fs = sample_rate_hz
         if isinstance(fs, np.ndarray):
@@ -133,10 +141,11 @@ class Recording:
                 raise RecordingError(f"{source}: label must have one entry per trace, shape ({n},), got {lab.shape}")
             lab = np.array([v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v) for v in lab.tolist()],
                            dtype=object)  # bytes (an 'S' array, as h5py or MATLAB write) are UTF-8 text
-            bad = sorted(set(lab.tolist()) - _CLASS_VALUES)
+            bad = sorted(set(lab.tolist()) - LABEL_VALUES)
             if bad:
-                raise RecordingError(f"{source}: label {bad[0]!r} is not a class (expected one of "
-                                     f"{', '.join(c.value for c in FaultClass)})")
+                raise RecordingError(f"{source}: label {', '.join(map(repr, bad[:5]))} "
+                                     f"{'is not a class' if len(bad) == 1 else 'are not classes'} (expected one of "
+                                     f"{', '.join(c.value for c in FaultClass)}, or {', '.join(NOT_CLASSES)})")
         return cls(t, float(fs), nozzle, frame, st, lab, source)
 
 

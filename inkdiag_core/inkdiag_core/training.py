@@ -73,18 +73,19 @@ def _share(n_per_class, n_draws, k):
 
 def _real_rows(data, profile, seed, validation_fraction, n_sim_per_class):
     """Recorded rows split per class, the training part replicated: (X_fit, y_fit, X_val, y_val)."""
-    from .recording import RecordingError
+    from .recording import NOT_CLASSES, RecordingError
     from .screening import screen_traces
 
     if data.label is None:
         raise RecordingError(f"{data.source}: the recording has no 'label' array: training data needs each row's "
                              "class")
     profile.check_traces(data.traces, data.sample_rate_hz, what=data.source)
-    # the rows labelling would judge (not invalid: non-finite, beyond 5x the ADC range, flat, clipped)
+    # the rows labelling would judge (not invalid: non-finite, beyond 5x the ADC range, flat, clipped), of a class
     usable, _ = screen_traces(data.traces, max_abs_v=profile.max_abs_v, sample_rate_hz=profile.sample_rate_hz)
+    usable &= ~np.isin(np.asarray(data.label).astype(str), NOT_CLASSES)
     if not usable.any():
         raise RecordingError(f"{data.source}: no row is usable (every row is non-finite, out of range, flat or "
-                             "clipped)")
+                             f"clipped, or labelled {' or '.join(NOT_CLASSES)})")
     X, y = data.traces[usable], np.asarray(data.label[usable]).astype(str)
     rng = np.random.default_rng([int(seed), 14])
     fit_x, fit_y, val_x, val_y = [], [], [], []

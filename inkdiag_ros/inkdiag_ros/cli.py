@@ -62,7 +62,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    """Run ``inkdiag``; returns the exit status (0 done, 1 failed, 2 bad input, 130 interrupted)."""
+    """Run ``inkdiag``; returns the exit status (0 done, 1 failed or its output's reader gone, 2 bad input,
+    130 interrupted)."""
     args = build_parser().parse_args(argv)
     from inkdiag_core.checks import InputError
 
@@ -72,6 +73,9 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print(f"inkdiag {args.verb}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `--out -` read by a reader that stopped early (`| head`): no more to say
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # nor at exit, when Python flushes
+        return 1
     except (InputError, ValueError, OSError) as exc:  # bad input: one line, status 2
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         print(f"inkdiag {args.verb}: error: {msg}", file=sys.stderr)
@@ -91,11 +95,18 @@ def _check_out(args) -> None:
     ``MAKES_OUT_DIR``: it creates the directory) and must not be one of its inputs: said before any work is done."""
     out = getattr(args, "out", None)
     if out and out != "-":
-        for name in INPUT_ARGS:
-            value = getattr(args, name, None)
+        inputs = [(name, getattr(args, name, None)) for name in INPUT_ARGS]
+        if getattr(args, "model", None):  # the model's manifest is read with it
+            from inkdiag_core.persistence import manifest_path
+
+            inputs.append(("model", str(manifest_path(args.model))))
+        for name, value in inputs:
             if value and _same_path(value, out):
                 what = name.upper() if name in ("recording", "healthy") else "--" + name
-                raise OSError(f"--out {out} is also the {what} input: writing it would destroy that input")
+                extra = "'s manifest" if value != getattr(args, name, None) else ""
+                raise OSError(f"--out {out} is also the {what} input{extra}: writing it would destroy that input")
+        if Path(out).is_dir() and not args._makes_out_dir:
+            raise OSError(f"--out {out} is a directory; give the output file's name")
     if out and out != "-" and not args._makes_out_dir:
         parent = Path(out).parent
         if not parent.is_dir():

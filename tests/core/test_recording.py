@@ -45,7 +45,9 @@ def test_non_finite_rows_load_as_they_are(tmp_path):
     ({"traces": np.zeros((2, 8)), "sample_rate_hz": 1e6, "nozzle": [1, 2, 3]}, r"nozzle must have one entry"),
     ({"traces": np.zeros((2, 8)), "sample_rate_hz": 1e6, "frame_id": [0.5, 1]}, "frame_id must be integers"),
     ({"traces": np.zeros((2, 8)), "sample_rate_hz": 1e6, "label": ["healthy_nozzle", "wet"]}, "'wet' is not a class"),
-    ({"traces": np.array([["a", "b"]]), "sample_rate_hz": 1e6}, "must be numbers"),
+    ({"traces": np.array([["a", "b"]]), "sample_rate_hz": 1e6}, "must be floating-point volts"),
+    ({"traces": np.zeros((2, 8), np.int16), "sample_rate_hz": 1e6}, "convert ADC counts or millivolts to volts"),
+    ({"traces": np.zeros((2, 8)), "sample_rate_hz": 1e6, "label": ["wet", "dry"]}, "'dry', 'wet' are not classes"),
 ])
 def test_bad_recordings_name_the_key(tmp_path, arrays, match):
     with pytest.raises(RecordingError, match=match):
@@ -79,3 +81,21 @@ def test_labels_stored_as_bytes_are_text(tmp_path):
     rec = load_recording(_save(tmp_path / "b.npz", traces=np.zeros((2, 8)), sample_rate_hz=1e6,
                                label=np.array(["healthy_nozzle", "deeply_dried"]).astype("S")))
     assert list(rec.label) == ["healthy_nozzle", "deeply_dried"]
+
+
+def test_labels_from_inkdiag_label_load_and_training_leaves_their_rows_out(tmp_path):
+    """A label column copied from `inkdiag label` holds `invalid` and `unknown`: they load (estimate
+    --rows dried and baseline take such a recording), and training data leaves those rows out."""
+    from inkdiag_core import HeadProfile, simulate
+    from inkdiag_core.training import _real_rows
+
+    profile = HeadProfile.default()
+    sim = simulate({"healthy_nozzle": 6, "deeply_dried": 6}, seed=2)
+    label = sim.label_values().astype(object)
+    label[[0, 7]] = ["invalid", "unknown"]
+    rec = load_recording(_save(tmp_path / "l.npz", traces=sim.traces.astype(np.float32), sample_rate_hz=10e6,
+                               label=label.astype(str)))
+    assert list(rec.label[[0, 7]]) == ["invalid", "unknown"]
+    fit_x, fit_y, val_x, val_y, n_used, n_left_out = _real_rows(rec, profile, 0, 0.25, 8)
+    assert (n_used, n_left_out) == (10, 2)
+    assert set(fit_y) | set(val_y) == {"healthy_nozzle", "deeply_dried"}

@@ -2,6 +2,8 @@
 same file record_baseline writes (BaselineRecorder), by each row's nozzle id; rows not labelled
 healthy_nozzle left out; one-line errors, exit status 2."""
 
+import os
+
 import numpy as np
 import pytest
 from _bags import write_bag
@@ -38,6 +40,9 @@ def test_baselines_of_a_recording_are_record_baselines_of_its_frames(work, tmp_p
     err = capsys.readouterr().err
     assert "baselines of 6 nozzles (head 'default') from 12 of 18 rows (1 not labelled healthy_nozzle)" in err, err
     got = NozzleBaselines.load(tmp_path / "b.npz")
+    mask = os.umask(0o022)
+    os.umask(mask)
+    assert (tmp_path / "b.npz").stat().st_mode & 0o777 == 0o666 & ~mask  # readable as the CSVs beside it
     want = BaselineRecorder(n_frames=2, fm_frames=1, profile=head)
     for k, f in enumerate(frames):  # the same frames, one message each, as the node takes them
         f = f.copy()
@@ -94,7 +99,8 @@ def test_nozzles_short_of_frames_are_left_out_and_said(work, tmp_path, capsys):
     (["--profile", "{d}/head.yaml", "--frames", "1", "--max-abs-v", "0"], "--max-abs-v must be a finite number > 0"),
     (["--profile", "{d}/head.yaml", "--frames", "1", "--max-abs-v", "inf"], "--max-abs-v must be a finite number > 0"),
     (["--profile", "{d}/head.yaml", "--frames", "2", "--fm-frames", "0", "--min-frames", "3"], "--min-frames must be in 1..--frames"),
-    (["--profile", "{d}/head.yaml", "--fm-frames", "0"], "no nozzle has 8 usable healthy rows"),
+    (["--profile", "{d}/head.yaml", "--fm-frames", "0"], "no nozzle has 8 usable healthy rows (of 6 rows, 6 usable): "
+     "no nozzle id comes twice (a recording without a 'nozzle' column numbers its rows 0..n-1)"),
     (["--profile", "{d}/head20.yaml"], "Hz"),
 ])
 def test_bad_input_is_one_line_and_exit_status_2(work, tmp_path, argv, match, capsys):

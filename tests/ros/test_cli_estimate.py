@@ -89,6 +89,16 @@ def test_estimate_selects_rows(head):
     res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--out", out, "--rows", "dried")
     assert res.returncode == 0, res.stderr
     assert [int(x["row"]) for x in read_csv(out)[1]] == list(range(4, 16))
+    # a label column from `inkdiag label` (it writes 'invalid' and 'unknown'), CSV to standard output
+    z = dict(np.load(d / "rec.npz"))
+    z["label"] = z["label"].astype(object)
+    z["label"][[0, 5]] = ["invalid", "unknown"]
+    np.savez(d / "relabelled.npz", **dict(z, label=z["label"].astype(str)))
+    res = run_cli(d / "relabelled.npz", "--profile", d / "head.yaml", "--out", "-", "--rows", "dried")
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    assert lines[0] == ",".join(COLUMNS) and [int(x.split(",")[0]) for x in lines[1:]] == [4, *range(6, 16)]
+    assert "11 of 11 rows estimated" in res.stderr and " -> " not in res.stderr
 
 
 def test_estimate_bad_input_is_one_line_and_status_2(head, tmp_path):
@@ -107,6 +117,8 @@ def test_estimate_bad_input_is_one_line_and_status_2(head, tmp_path):
         ((tmp_path / "missing.npz", "--profile", d / "head.yaml"), "no such recording"),
         ((d / "rec.npz", "--profile", tmp_path / "missing.yaml"), "no such head profile"),
         ((d / "rec.npz", "--profile", d / "head.yaml", "--rows", "40"), "no such row"),
+        ((d / "rec.npz", "--profile", d / "head.yaml", "--rows", "5:2"), "START 5 is after STOP 2"),
+        ((d / "rec.npz", "--profile", d / "head.yaml", "--max-abs-v", "nan"), "--max-abs-v must be a number > 0 V"),
     ]
     for args, message in cases:
         res = run_cli(*args, "--out", out)

@@ -64,6 +64,9 @@ def _read(path):
 def test_train_then_label_a_foreign_head_end_to_end(work, trained):
     d, head, sim = work
     model, out = trained
+    mask = os.umask(0o022)  # what the files got is what a new file gets under the umask (not mkstemp's 0600)
+    os.umask(mask)
+    assert model.stat().st_mode & 0o777 == 0o666 & ~mask
     assert "validation" in out.stdout and "FI accuracy" in out.stdout
     m = json.loads((d / "head.joblib.manifest.json").read_text())
     assert m["config"]["profile_sha256"] == head.sha256 and m["config"]["n_per_class"] == 40
@@ -135,6 +138,11 @@ def test_label_uses_each_rows_nozzle_baseline(work, tmp_path, capsys):
     (["label", "{d}/rec.npz", "--model", "{d}/head.joblib", "--out", "{d}/../{n}/head.joblib"],
      "also the --model input"),
     (["train", "--profile", "{d}/head.yaml", "--out", "{d}/head.yaml"], "also the --profile input"),
+    (["label", "{d}/rec.npz", "--model", "{d}/head.joblib", "--out", "{d}/head.joblib.manifest.json"],
+     "also the --model input's manifest"),
+    (["label", "{d}/rec.npz", "--model", "{d}/head.joblib", "--out", "{d}"], "is a directory; give the output file"),
+    (["label", "{d}/int.npz", "--model", "{d}/head.joblib", "--out", "{d}/l.csv"],
+     "got dtype int16: convert ADC counts or millivolts to volts first"),
     (["train", "--profile", "{d}/head.yaml", "--out", "{d}/x.joblib", "--seed", str(2**32)], "--seed must be in"),
 ])
 def test_bad_input_is_one_line_and_exit_status_2(work, trained, argv, match, capsys):
@@ -147,8 +155,11 @@ def test_bad_input_is_one_line_and_exit_status_2(work, trained, argv, match, cap
         rec.add(0, HeadProfile.default().simulate({FaultClass.HEALTHY_NOZZLE: 3}, seed=0).traces)
         rec.baselines().save(d / "base10.npz")
         (d / "notzip.npz").write_text("row,nozzle,class\n")  # a CSV given an .npz name
+        z = dict(np.load(d / "rec.npz"))
+        np.savez(d / "int.npz", **dict(z, traces=(z["traces"] * 1e3).astype(np.int16)))  # millivolts as integers
     capsys.readouterr()
-    inputs = {p: p.read_bytes() for p in (d / "rec.npz", d / "head.yaml", trained[0])}
+    inputs = {p: p.read_bytes() for p in (d / "rec.npz", d / "head.yaml", trained[0],
+                                          d / "head.joblib.manifest.json")}
     assert main([a.format(d=d, n=d.name) for a in argv]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"inkdiag {argv[0]}: error: ") and match in err[0], err

@@ -17,7 +17,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
 import zipfile
 import zlib
 from dataclasses import dataclass
@@ -26,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import checks
+from .._fileio import temp_beside
 from ..kpis import KPI_NAMES, InvalidTraceError
 from .features import N_KPIS
 
@@ -281,7 +281,7 @@ class NozzleBaselines:
             arrays["fm"] = self.fm
         if self.reference is not None:
             arrays["reference"] = self.reference
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+        fd, tmp = temp_beside(path)
         try:
             with os.fdopen(fd, "wb") as f:
                 np.savez(f, **arrays, meta=np.array(json.dumps(meta, sort_keys=True)))

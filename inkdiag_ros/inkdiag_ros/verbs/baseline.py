@@ -88,7 +88,10 @@ def run(args) -> int:
     if not len(baselines):
         raise ValueError(f"{args.recording}: no nozzle has {min_frames} usable healthy rows (of {n_rows} rows, "
                          f"{n_used} usable{f', {n_other} not labelled healthy_nozzle' if n_other else ''}): "
-                         "record more frames of each nozzle, or lower --min-frames")
+                         + ("no nozzle id comes twice (a recording without a 'nozzle' column numbers its rows "
+                            "0..n-1): give each row's nozzle id, or --frames 1 for one frame"
+                            if nozzles.size == n_rows > 1 else
+                            "record more frames of each nozzle, or lower --min-frames"))
     baselines.save(args.out)
     print(f"baselines of {len(baselines)} nozzles (head {profile.name!r}) from {n_used} of {n_rows} rows"
           + (f" ({n_other} not labelled healthy_nozzle)" if n_other else "")

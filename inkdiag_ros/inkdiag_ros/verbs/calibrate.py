@@ -159,7 +159,7 @@ def run(args) -> int:
           f"healthy mode {hm['frequency_hz'] / 1e3:.1f} kHz, damping {hm['damping_ratio']:.3f}; mean trace "
           f"recorded/fitted {mt['dominant_frequency_hz'][0] / 1e3:.1f}/{mt['dominant_frequency_hz'][1] / 1e3:.1f} kHz; "
           f"residual {100 * rr['per_trace_median']:.1f} % of the trace RMS (noise alone "
-          f"{100 * rr['noise_floor']:.1f} %); report {stem.name}.fit.md", file=sys.stdout)
+          f"{100 * rr['noise_floor']:.1f} %); report {stem}.fit.md", file=sys.stdout)
     if report["figure"] is None:
         print(f"inkdiag calibrate: {report['figure_note']}", file=sys.stderr)
     return 0

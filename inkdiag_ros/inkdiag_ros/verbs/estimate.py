@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import re
 
+from . import open_csv_out, summary_stream
+
 HELP = "estimate the drying fault f_m and the nozzle viscosity of recorded traces"
 DESCRIPTION = """\
 Estimate the drying-nozzle fault f_m (1/s), its standard deviation and the
@@ -28,7 +30,7 @@ Output CSV, one line per selected row, columns:
   frame_id, stamp, fm_trend, fm_rate, eta_deeply_dried_s, method, reason
 Units: fm, fm_std, fm_trend 1/s; fm_rate 1/s^2; d_mu, viscosity Pa s;
 stamp, eta_deeply_dried_s s. A row that cannot be estimated (non-finite,
-flat or clipped samples; an estimate that is not finite) has empty values
+out-of-range, flat or clipped samples; an estimate that is not finite) has empty values
 and its reason; the others are estimated all the same. fm_trend and fm_rate
 are filled when the recording has stamps (several frames per nozzle).
 
@@ -56,7 +58,7 @@ def add_arguments(parser) -> None:
                         "Float32MultiArray topic ending in /traces)")
     parser.add_argument("--profile", required=True, metavar="HEAD.yaml",
                         help="complete head profile (from inkdiag calibrate, or the shipped default)")
-    parser.add_argument("--out", required=True, metavar="FM.csv", help="output CSV")
+    parser.add_argument("--out", required=True, metavar="FM.csv", help="CSV file to write ('-': stdout)")
     parser.add_argument("--rows", default=None, metavar="ROWS",
                         help="rows to estimate: 0:100, 3,7,9, dried or a class name (default: all)")
     parser.add_argument("--method", default="vp_cal", choices=("vp_cal", "vp"),
@@ -96,8 +98,10 @@ def select_rows(spec, n: int, labels=None):
         if m:
             lo = int(m.group(1)) if m.group(1) else 0
             hi = int(m.group(2)) if m.group(2) else n
-            if not (0 <= lo <= n and 0 <= hi <= n) or lo > hi:
+            if not (0 <= lo <= n and 0 <= hi <= n):
                 raise InputError(f"--rows {part}: outside 0:{n} (the recording has {n} rows)")
+            if lo > hi:
+                raise InputError(f"--rows {part}: START {lo} is after STOP {hi} (START:STOP, STOP excluded)")
             out.append(np.arange(lo, hi, dtype=np.int64))
         elif re.fullmatch(r"\d+", part):
             i = int(part)
@@ -108,6 +112,11 @@ def select_rows(spec, n: int, labels=None):
             raise InputError(f"--rows {spec!r}: expected indices and ranges such as 0:100 or 3,7,9, "
                              f"'dried' or a class name ({', '.join(sorted(classes))})")
     return np.concatenate(out) if out else np.empty(0, dtype=np.int64)
+
+
+def _to(out: str) -> str:
+    """The summary line's tail naming where the CSV went."""
+    return "" if out == "-" else f" -> {out}"
 
 
 def _fmt(v) -> str:
@@ -144,6 +153,8 @@ def run(args) -> int:
 
     from ..bags import is_bag, stream_recording
 
+    if args.max_abs_v is not None and not args.max_abs_v > 0:
+        raise ValueError(f"--max-abs-v must be a number > 0 V, got {args.max_abs_v!r}")
     profile = HeadProfile.load(args.profile)
     if not profile.is_complete:
         raise ProfileError(f"{args.profile}: a nominal profile ({', '.join(profile.missing)} missing): run "
@@ -196,7 +207,7 @@ def run(args) -> int:
             t, rate, eta = tracker.trends.update(float(stamps[grp[0]]), cols["nozzle"][grp], cols["fm"][grp],
                                                  cols["fm_std"][grp])
             cols["fm_trend"][grp], cols["fm_rate"][grp], cols["eta_deeply_dried_s"][grp] = t, rate, eta
-    with open(args.out, "w", newline="", encoding="utf-8") as f:
+    with open_csv_out(args.out) as f:
         w = csv.writer(f)
         w.writerow(["row", "nozzle", "fm", "fm_std", "d_mu", "viscosity", "frame_id", "stamp", "fm_trend",
                     "fm_rate", "eta_deeply_dried_s", "method", "reason"])
@@ -208,7 +219,7 @@ def run(args) -> int:
     bad = reasons != ""
     why = ", ".join(f"{k} {int(np.sum(reasons == k))}" for k in sorted(set(reasons[bad].tolist())))
     print(f"inkdiag estimate: {n - int(bad.sum())} of {n} rows estimated ({method}, head {profile.name!r})"
-          + (f"; not estimated: {why}" if bad.any() else "") + f" -> {args.out}")
+          + (f"; not estimated: {why}" if bad.any() else "") + _to(args.out), file=summary_stream(args.out))
     for note in sorted(notes):
         print(f"inkdiag estimate: note: {note}", file=sys.stderr)
     return 0
@@ -280,7 +291,7 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
     method = "vp" if args.method == "vp" else "vp_cal"
     n = n_bad = n_seen = 0
     why, notes = {}, set()
-    with open(args.out, "w", newline="", encoding="utf-8") as f:
+    with open_csv_out(args.out) as f:
         w = csv.writer(f)
         w.writerow(HEADER)
         for first_row, rec in chunks:
@@ -319,10 +330,10 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
     report_stats(args.recording, stats)
     if pick.max_index >= n_seen:
         raise InputError(f"--rows {args.rows}: row {pick.max_index} is beyond the bag's {n_seen} rows "
-                         f"({n} rows estimated into {args.out})")
+                         f"({n} rows estimated into {'stdout' if args.out == '-' else args.out})")
     print(f"inkdiag estimate: {n - n_bad} of {n} rows estimated ({method}, head {profile.name!r})"
           + (f"; not estimated: {', '.join(f'{k} {v}' for k, v in sorted(why.items()))}" if n_bad else "")
-          + f" -> {args.out}")
+          + _to(args.out), file=summary_stream(args.out))
     for note in sorted(notes):
         print(f"inkdiag estimate: note: {note}", file=sys.stderr)
     return 0

@@ -17,7 +17,8 @@ model's head; another is refused (exit status 2), as is a model file that is
 missing, tampered with or from other library versions.
 
 CSV columns: row, nozzle, frame_id, class, confidence, reason, baseline
-  class       a FaultClass value (healthy_nozzle, ...) or 'invalid'
+  class       a FaultClass value (healthy_nozzle, ...), 'unknown' (unlike every
+              class the model knows) or 'invalid'
   confidence  probability of that class (empty for invalid rows)
   reason      why a row is invalid (non_finite, out_of_range, flat, clipped,
               non_finite_features, labelling_failed); empty for classified rows
@@ -142,6 +143,7 @@ def run(args) -> int:
     from inkdiag_core import FrameLabeller, LabellerConfigError, NozzleBaselines, load_detector
     from inkdiag_core.head_profile import HeadProfile
     from ..bags import report_stats, stream_recording
+    from . import open_csv_out
 
     detector = load_detector(args.model)  # ModelFileError (a ValueError): missing, tampered, other versions
     head = detector.profile if detector.profile is not None else HeadProfile.default()
@@ -162,8 +164,7 @@ def run(args) -> int:
                              max_abs_v=max_abs_v)
     del rec
     n_rows = n_invalid = n_failed = n_base = 0
-    out = sys.stdout if args.out == "-" else open(args.out, "w", newline="", encoding="utf-8")
-    try:
+    with open_csv_out(args.out) as out:
         w = csv.writer(out, lineterminator="\n")
         w.writerow(COLUMNS)
         for row, nozzle, fid, cls, conf, reason, base in label_stream(labeller, itertools.chain([first], chunks)):
@@ -173,15 +174,12 @@ def run(args) -> int:
             w.writerow((row, nozzle, fid, cls, "" if conf != conf else f"{conf:.6f}", reason, int(base)))
             n_rows += 1
             n_base += bool(base)
-    finally:
-        if out is not sys.stdout:
-            out.close()
     report_stats(args.recording, stats)
     against = ""
     if baselines is not None:  # a nozzle column that does not match the baselines' ids is said, not silent
         n_plain = n_rows - n_invalid - n_base
         against = (f"; {n_base} against their nozzle's baseline, {n_plain} without one (no baseline for that nozzle "
-                   "id: check the recording's nozzle column)" if n_plain else f"; all {n_base} against their nozzle's "
+                   "id: check the recording's nozzle ids, its 'nozzle' column; without one its rows are numbered 0..n-1)" if n_plain else f"; all {n_base} against their nozzle's "
                    "baseline")
     print(f"labelled {n_rows - n_invalid} of {n_rows} rows with {detector.model_id} (head {head.name!r}); "
           f"{n_invalid} invalid" + (f", {n_failed} in frames whose labelling failed" if n_failed else "") + against

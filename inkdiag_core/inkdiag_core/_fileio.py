@@ -1,0 +1,44 @@
+"""Temporary files for atomic writes (written, then renamed over the target), with a new file's mode."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+__all__ = ["temp_beside"]
+
+
+def temp_beside(path) -> tuple[int, str]:
+    """An open temporary file in ``path``'s directory, for ``os.replace(tmp, path)`` once written.
+
+    ``tempfile.mkstemp`` makes it owner-only (0600); it gets the mode a new file gets here
+    instead (0666 less the umask), so that a model or baselines file written by one user can
+    be read by a node running as another, as the CSV and YAML files beside it can.
+
+    Returns
+    -------
+    fd : int
+        Open for writing (the caller closes it).
+    tmp : str
+        Its path.
+    """
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+    os.fchmod(fd, 0o666 & ~_umask())
+    return fd, tmp
+
+
+def _umask() -> int:
+    """The process's umask, read from ``/proc`` where the kernel shows it (setting it to read it, the
+    fallback, races with other threads creating files)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
