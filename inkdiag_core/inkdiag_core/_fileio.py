@@ -12,9 +12,10 @@ __all__ = ["temp_beside"]
 def temp_beside(path) -> tuple[int, str]:
     """An open temporary file in ``path``'s directory, for ``os.replace(tmp, path)`` once written.
 
-    ``tempfile.mkstemp`` makes it owner-only (0600); it gets the mode a new file gets here
+    ``tempfile.mkstemp`` makes it owner-only (0600); it gets the mode ``open`` gives a new file
     instead (0666 less the umask), so that a model or baselines file written by one user can
-    be read by a node running as another, as the CSV and YAML files beside it can.
+    be read by a node running as another, as the CSV and YAML files beside it can. Where the
+    filesystem refuses the change (some network and FUSE mounts), it stays 0600.
 
     Returns
     -------
@@ -25,7 +26,10 @@ def temp_beside(path) -> tuple[int, str]:
     """
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    os.fchmod(fd, 0o666 & ~_umask())
+    try:
+        os.fchmod(fd, 0o666 & ~_umask())
+    except OSError:  # a filesystem without modes: the file is written all the same
+        pass
     return fd, tmp
 
 

@@ -143,7 +143,7 @@ class Recording:
                            dtype=object)  # bytes (an 'S' array, as h5py or MATLAB write) are UTF-8 text
             bad = sorted(set(lab.tolist()) - LABEL_VALUES)
             if bad:
-                raise RecordingError(f"{source}: label {', '.join(map(repr, bad[:5]))} "
+                raise RecordingError(f"{source}: label {', '.join(map(repr, bad[:5]))}{', ...' if len(bad) > 5 else ''} "
                                      f"{'is not a class' if len(bad) == 1 else 'are not classes'} (expected one of "
                                      f"{', '.join(c.value for c in FaultClass)}, or {', '.join(NOT_CLASSES)})")
         return cls(t, float(fs), nozzle, frame, st, lab, source)

@@ -14,12 +14,14 @@ A RECORDING is an .npz file or a rosbag2 bag directory (see docs/bags.md).
 
 Each subcommand is a module of :mod:`inkdiag_ros.verbs` with ``HELP`` (one
 line), ``DESCRIPTION``, ``add_arguments(parser)``, ``run(args) -> int`` and optionally
-``MAKES_OUT_DIR`` (True: ``run`` creates its ``--out``'s directory); the
+``MAKES_OUT_DIR`` (True: ``run`` creates its ``--out``'s directory) and ``OUT_STDOUT``
+(True: ``--out -`` is standard output; elsewhere ``-`` is refused); the
 modules import the core only inside ``run``, so ``--help`` is fast. Bad input
 (a missing file, another schema, a recording of another sampling, a profile
 calibration cannot fit, an ``--out`` in no writable directory) is one line on stderr,
 ``inkdiag VERB: error: ...``, and exit status 2, checked before any work where it can be;
-so are argparse's own usage errors.
+so are argparse's own usage errors. A reader of the output that stops early (``| head``) is
+one line too, exit status 1.
 """
 
 from __future__ import annotations
@@ -57,24 +59,30 @@ def build_parser() -> argparse.ArgumentParser:
         p = sub.add_parser(verb, help=module.HELP, description=module.DESCRIPTION,
                            formatter_class=argparse.RawDescriptionHelpFormatter)
         module.add_arguments(p)
-        p.set_defaults(_run=module.run, _makes_out_dir=getattr(module, "MAKES_OUT_DIR", False))
+        p.set_defaults(_run=module.run, _makes_out_dir=getattr(module, "MAKES_OUT_DIR", False),
+                       _out_stdout=getattr(module, "OUT_STDOUT", False))
     return parser
 
 
 def main(argv=None) -> int:
-    """Run ``inkdiag``; returns the exit status (0 done, 1 failed or its output's reader gone, 2 bad input,
+    """Run ``inkdiag``; returns the exit status (0 done, 1 failed, or its output's reader gone, 2 bad input,
     130 interrupted)."""
     args = build_parser().parse_args(argv)
     from inkdiag_core.checks import InputError
 
     try:
         _check_out(args)
-        return int(args._run(args) or 0)
+        status = int(args._run(args) or 0)
+        if sys.stdout is not None:
+            sys.stdout.flush()  # here, not at exit: a reader that stopped early is said like any other error
+        return status
     except KeyboardInterrupt:
         print(f"inkdiag {args.verb}: interrupted", file=sys.stderr)
         return 130
-    except BrokenPipeError:  # `--out -` read by a reader that stopped early (`| head`): no more to say
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # nor at exit, when Python flushes
+    except BrokenPipeError as exc:  # a reader that stopped early (`| head`), or an --out pipe's
+        if sys.stdout is not None:  # what is left in stdout's buffer goes nowhere, not to a traceback at exit
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        print(f"inkdiag {args.verb}: error: its output's reader is gone ({exc.strerror})", file=sys.stderr)
         return 1
     except (InputError, ValueError, OSError) as exc:  # bad input: one line, status 2
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
@@ -94,6 +102,10 @@ def _check_out(args) -> None:
     """A verb's ``--out`` must go into an existing, writable directory (not for a verb whose module sets
     ``MAKES_OUT_DIR``: it creates the directory) and must not be one of its inputs: said before any work is done."""
     out = getattr(args, "out", None)
+    if out == "-" and not args._out_stdout:
+        raise OSError(f"--out -: inkdiag {args.verb} writes a file, not standard output: give the file's name")
+    if out == "-" and sys.stdout is None:
+        raise OSError("--out -: standard output is closed")
     if out and out != "-":
         inputs = [(name, getattr(args, name, None)) for name in INPUT_ARGS]
         if getattr(args, "model", None):  # the model's manifest is read with it

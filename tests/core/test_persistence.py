@@ -1,6 +1,7 @@
 """Model files are verified before unpickling."""
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -81,3 +82,34 @@ def test_manifest_whose_sections_are_not_objects_is_refused(saved, key):
     mpath.write_text(json.dumps(manifest))
     with pytest.raises(ModelFileError, match=f"'{key}' must be an object"):
         load_model(path)
+
+
+@pytest.mark.parametrize("mask", [0o022, 0o077, 0o002])
+def test_a_saved_model_and_baselines_get_a_new_files_mode(tmp_path, mask):
+    """Not mkstemp's owner-only 0600: what open() gives a new file under the umask, for a node of another
+    user to read (the model file and a baselines file; their manifest and CSVs were always so)."""
+    from inkdiag_core import BaselineRecorder, simulate_nozzles
+    from inkdiag_core._fileio import _umask
+
+    old = os.umask(mask)
+    try:
+        assert _umask() == mask  # /proc/self/status's Umask line, read without setting it
+        save_model(LogisticRegression().fit([[0.0], [1.0]], [0, 1]), tmp_path / "m.joblib")
+        rec = BaselineRecorder(n_frames=1, fm_frames=0)
+        rec.add(0, simulate_nozzles(["healthy_nozzle"] * 2, seed=1).traces)
+        rec.baselines().save(tmp_path / "b.npz")
+    finally:
+        os.umask(old)
+    for p in (tmp_path / "m.joblib", tmp_path / "b.npz"):
+        assert p.stat().st_mode & 0o777 == 0o666 & ~mask, (p, oct(p.stat().st_mode))
+
+
+def test_a_filesystem_that_refuses_modes_still_gets_the_files(tmp_path, monkeypatch):
+    """Some network and FUSE mounts refuse chmod: the file is written all the same (mkstemp's mode)."""
+    def refuse(fd, mode):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "fchmod", refuse)
+    save_model(LogisticRegression().fit([[0.0], [1.0]], [0, 1]), tmp_path / "m.joblib")
+    assert load_model(tmp_path / "m.joblib") is not None
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.joblib", "m.joblib.manifest.json"]

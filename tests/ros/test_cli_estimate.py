@@ -125,3 +125,30 @@ def test_estimate_bad_input_is_one_line_and_status_2(head, tmp_path):
         assert res.returncode == 2, (args, res.stderr)
         assert res.stderr.startswith("inkdiag estimate: error: ") and message in res.stderr, res.stderr
         assert len(res.stderr.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_a_reader_that_stops_early_is_one_line_and_status_1(head):
+    """`inkdiag estimate ... --out - | head`: the CSV's reader is gone before it is written; one line, status 1,
+    no traceback (buffered stdout too: the summary flushed at exit must not fail either)."""
+    d, p, r = head
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
+    env.pop("PYTHONUNBUFFERED", None)
+    for out in ("-", str(d / "piped.csv")):
+        proc = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.cli", "estimate", str(d / "rec.npz"), "--profile",
+                                 str(d / "head.yaml"), "--out", out], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True, env=env)
+        proc.stdout.close()  # the reader is gone before the command writes anything
+        err = proc.stderr.read()
+        assert proc.wait(timeout=300) == 1, err
+        assert err.strip().splitlines()[-1] == "inkdiag estimate: error: its output's reader is gone (Broken pipe)", err
+        assert "Traceback" not in err and "Exception ignored" not in err, err
+
+
+def test_out_dash_is_for_the_csv_verbs_only(head, tmp_path, monkeypatch):
+    from inkdiag_ros.cli import main
+
+    d, p, r = head
+    monkeypatch.chdir(tmp_path)
+    assert main(["baseline", str(d / "rec.npz"), "--profile", str(d / "head.yaml"), "--out", "-"]) == 2
+    assert main(["train", "--profile", str(d / "head.yaml"), "--out", "-"]) == 2
+    assert not (tmp_path / "-").exists()

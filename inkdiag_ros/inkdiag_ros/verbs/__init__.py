@@ -9,7 +9,7 @@ import sys
 @contextlib.contextmanager
 def open_csv_out(path: str):
     """The text stream a verb writes its CSV to: standard output for ``-``, else the file (closed after)."""
-    if path == "-":
+    if path == "-":  # (cli refuses it where stdout is closed)
         yield sys.stdout
         sys.stdout.flush()
         return

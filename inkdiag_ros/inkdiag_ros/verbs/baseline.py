@@ -90,7 +90,7 @@ def run(args) -> int:
                          f"{n_used} usable{f', {n_other} not labelled healthy_nozzle' if n_other else ''}): "
                          + ("no nozzle id comes twice (a recording without a 'nozzle' column numbers its rows "
                             "0..n-1): give each row's nozzle id, or --frames 1 for one frame"
-                            if nozzles.size == n_rows > 1 else
+                            if nozzles.size == n_rows > 1 and min_frames > 1 and n_used else
                             "record more frames of each nozzle, or lower --min-frames"))
     baselines.save(args.out)
     print(f"baselines of {len(baselines)} nozzles (head {profile.name!r}) from {n_used} of {n_rows} rows"

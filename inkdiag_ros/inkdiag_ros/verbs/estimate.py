@@ -16,6 +16,7 @@ import re
 
 from . import open_csv_out, summary_stream
 
+OUT_STDOUT = True  # --out - writes the CSV to standard output
 HELP = "estimate the drying fault f_m and the nozzle viscosity of recorded traces"
 DESCRIPTION = """\
 Estimate the drying-nozzle fault f_m (1/s), its standard deviation and the

@@ -1,5 +1,6 @@
 """``inkdiag label``: classify every row of a recording with a fault detector, as the fdi node does."""
 
+OUT_STDOUT = True  # --out - writes the CSV to standard output
 HELP = "label every trace of a recording with a trained fault detector (CSV)"
 DESCRIPTION = """\
 Label every row of a recording (.npz: traces, sample_rate_hz, optional nozzle,
