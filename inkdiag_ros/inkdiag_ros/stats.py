@@ -6,7 +6,16 @@ import threading
 import time
 from collections import Counter
 
-from msg_defs.labels import INVALID_KEY
+from msg_defs.labels import HEALTHY_CLASSES, INVALID_KEY
+
+
+#: A diagnostics period whose rows are more than this fraction faults or ``unknown`` is a warning:
+#: a working head has a few faulty nozzles; most of them at once is a failing head, or a model or
+#: baselines of another head (the healthy gate then clears nothing and every nozzle looks unlike
+#: its baseline).
+MOSTLY_FAULTY = 0.5
+#: Rows a period needs before :data:`MOSTLY_FAULTY` is judged (a small head's one frame is not enough).
+MOSTLY_FAULTY_MIN_ROWS = 1000
 
 
 class FdiStats:
@@ -30,10 +39,11 @@ class FdiStats:
         self.traces_labelled = 0
         self.rows_with_baseline = 0
         self.rows_gate_cleared = 0
+        self.rows_faulty = 0  # valid rows of a fault class or unknown
         self.counts = Counter()
         self.last_error = ""
         self.config_error = ""  # a setting the node could not honour (it runs without it)
-        self._mark = (time.monotonic(), 0, 0, 0, 0, 0, 0, 0.0)
+        self._mark = (time.monotonic(), 0, 0, 0, 0, 0, 0, 0.0, 0)
 
     def malformed(self, reason: str) -> None:
         with self._lock:
@@ -73,7 +83,8 @@ class FdiStats:
             self.rows_with_baseline += n_baseline
             self.rows_gate_cleared += n_gate_cleared
             self.counts.update(counts)
-            self.rows_invalid += counts.get("invalid", 0)
+            self.rows_invalid += counts.get(INVALID_KEY, 0)
+            self.rows_faulty += n_rows - counts.get(INVALID_KEY, 0) - sum(counts.get(c, 0) for c in HEALTHY_CLASSES)
 
     def since_period(self) -> float:
         """Seconds since the last :meth:`period` (or since this object was made)."""
@@ -91,7 +102,7 @@ class FdiStats:
 
     def _period(self, model_loaded: bool):
         now = time.monotonic()
-        t0, f0, n0, m0, i0, b0, lf0, busy0 = self._mark
+        t0, f0, n0, m0, i0, b0, lf0, busy0, q0 = self._mark
         dt = max(now - t0, 1e-9)
         d_frames = self.frames_labelled - f0
         d_bad = self.frames_malformed + self.frames_failed + self.frames_dropped - m0
@@ -104,6 +115,7 @@ class FdiStats:
             "frames_dropped": self.frames_dropped,
             "rows_invalid": self.rows_invalid,
             "rows_with_baseline": self.rows_with_baseline,
+            "rows_faulty": self.rows_faulty,
             "frames_per_s": d_frames / dt,
             "traces_per_s": (self.traces_labelled - n0) / dt,
             "frames_per_batch": (self.frames_labelled - lf0) / max(self.batches - b0, 1),
@@ -119,6 +131,12 @@ class FdiStats:
             level, message = "warn", f"{d_bad} malformed, failed or dropped frame(s) in the last {dt:.1f} s"
         elif d_invalid:
             level, message = "warn", f"{d_invalid} invalid row(s) in the last {dt:.1f} s"
+        elif (d_rows := self.traces_labelled - n0) >= MOSTLY_FAULTY_MIN_ROWS and (
+                self.rows_faulty - q0) > MOSTLY_FAULTY * d_rows:
+            level, message = "warn", (
+                f"{100 * (self.rows_faulty - q0) / d_rows:.0f} % of the {d_rows} rows of the last {dt:.1f} s were "
+                "faults or unknown: a failing head, or a model or baselines that are not this head's (another "
+                "head, renumbered nozzles: record the baselines again)")
         elif self.frames_received == 0:
             level, message = "stale", "no trace frame received yet"
         elif d_frames == 0:
@@ -127,5 +145,5 @@ class FdiStats:
             level, message = "ok", f"{d_frames} frame(s) labelled in the last {dt:.1f} s"
         self._mark = (now, self.frames_labelled, self.traces_labelled,
                       self.frames_malformed + self.frames_failed + self.frames_dropped, self.rows_invalid,
-                      self.batches, self.frames_labelled, self.busy_s)
+                      self.batches, self.frames_labelled, self.busy_s, self.rows_faulty)
         return level, message, values

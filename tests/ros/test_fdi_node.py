@@ -292,3 +292,25 @@ def test_diagnostics_counts_invalid_from_the_start():
     stats.labelled({"healthy_nozzle": 3, "invalid": 1}, 4)
     counts = stats.period(True)[3]
     assert counts == {"healthy_nozzle": 3, "invalid": 1} and stats.rows_invalid == 1
+
+
+def test_diagnostics_warn_when_most_rows_are_faults():
+    """A period whose rows are mostly faults or unknown (baselines of another head make every nozzle look
+    unlike its own) is WARN, saying so; a working head's few faults, or too few rows to judge, are not."""
+    from inkdiag_ros.stats import FdiStats
+
+    stats = FdiStats()
+    stats.period(True)
+    for _ in range(10):  # 2,000 rows, 2 % faulty
+        stats.received()
+        stats.labelled({"healthy_nozzle": 196, "deeply_dried": 2, "unknown": 2}, 200)
+    level, message, values, _, _ = stats.period(True)
+    assert level == "ok" and values["rows_faulty"] == 40, message
+    for _ in range(10):  # 2,000 rows, 60 % unknown
+        stats.received()
+        stats.labelled({"healthy_nozzle": 80, "unknown": 120}, 200)
+    level, message, values, _, _ = stats.period(True)
+    assert level == "warn" and message.startswith("60 % of the 2000 rows of the last") and "baselines" in message
+    stats.received()
+    stats.labelled({"unknown": 200}, 200)  # 200 rows: too few to judge
+    assert stats.period(True)[0] == "ok"
