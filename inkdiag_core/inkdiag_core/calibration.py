@@ -275,8 +275,40 @@ def _rms_ac(x):
     return np.sqrt(np.mean((x - x.mean(axis=-1, keepdims=True)) ** 2, axis=-1))
 
 
+def _blocked_mode(known: _Known, theta):
+    """Damped frequency (Hz) of a fully blocked channel: the restrictor ringing with the chamber (no nozzle
+    flow), ``s**2 + (R_r / I_r) s + 1 / (I_r B_t) = 0``, for log-parameters ``theta`` (3,); 0 if overdamped."""
+    c = _coefficients(known, theta)
+    w2 = float(c.k_r[0] - (c.d_r[0] / 2.0) ** 2)
+    return math.sqrt(w2) / (2.0 * math.pi) if w2 > 0 else 0.0
+
+
+def _blocked_measurement(nominal, blocked, sample_rate_hz, f_healthy):
+    """Median dominant frequency (Hz) of recorded fully blocked traces, and its standard error with a floor."""
+    nominal.check_traces(blocked, sample_rate_hz, what="the blocked recording")
+    b = np.asarray(blocked, dtype=np.float64)
+    ok, _ = screen_traces(b, sample_rate_hz=sample_rate_hz, max_abs_v=nominal.max_abs_v)
+    f = extract_kpis(b[ok], nominal.sample_rate_hz)[:, 1] if ok.any() else np.zeros(0)
+    f = f[np.isfinite(f) & (f > 0)]
+    if f.size < MIN_BLOCKED_TRACES:
+        raise CalibrationError(f"{f.size} usable fully blocked traces (of {b.shape[0]}); the blocked mode needs at "
+                               f"least {MIN_BLOCKED_TRACES}")
+    f_med = float(np.median(f))
+    if not f_med < 0.98 * f_healthy:
+        raise CalibrationError(f"the blocked traces ring at {f_med / 1e3:.1f} kHz, not below the healthy mode "
+                               f"({f_healthy / 1e3:.1f} kHz): are they fully blocked nozzles of this head?")
+    se = 1.2533 * _mad_std(f) / math.sqrt(f.size)  # the median's standard error
+    return f_med, max(se, BLOCKED_MODE_FLOOR * f_med), int(f.size)
+
+
+MIN_BLOCKED_TRACES = 10
+"""Fewest usable fully blocked traces ``calibrate(blocked=...)`` takes."""
+BLOCKED_MODE_FLOOR = 0.002
+"""Smallest relative standard error the fit gives the blocked mode (the model's own error)."""
+
+
 def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None = None, seed: int = 0,
-              n_examples: int = 4) -> CalibrationResult:
+              n_examples: int = 4, blocked=None) -> CalibrationResult:
     """Fit a complete head profile to recorded healthy traces (see the module docstring).
 
     Parameters
@@ -297,6 +329,12 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
         Seed of the simulation that separates the gain and offset spreads from the others.
     n_examples : int
         Recorded traces kept for the report's overlay.
+    blocked : array_like, shape (k, n_samples), optional
+        Recorded traces of fully blocked nozzles of the head (at least
+        :data:`MIN_BLOCKED_TRACES` usable), V. Their ringing is the restrictor with the
+        chamber alone, so their median mode pins how the restrictor and the nozzle share
+        the healthy mode, which healthy traces alone leave to the prior: the fit matches it
+        as one more measurement (its standard error, floored at :data:`BLOCKED_MODE_FLOOR`).
 
     Returns
     -------
@@ -340,6 +378,8 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
             f"({reach[0] / 1e3:.1f}-{reach[1] / 1e3:.1f} kHz with its nozzle, ink and chamber): check "
             "channel.r_n, L_n, V_ch, c, rho and the sampling")
 
+    fb = None if blocked is None else _blocked_measurement(nominal, blocked, sample_rate_hz, f_rec)
+
     # -- 2. the mean trace ------------------------------------------------------------------
     noise0, _ = _noise_std(y - mean, f_rec, fs)
     sigma_d = max(noise0 / math.sqrt(typical.size), 1e-3 * mean_rms)
@@ -367,6 +407,8 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
         theta = theta_of(x)
         s = _response(known, theta)[0]
         r = (_project(mean[None, :], s)[2][0] - mean) / sigma_d
+        if fb is not None:  # the blocked traces' mode: one more measurement
+            r = np.append(r, (_blocked_mode(known, theta) - fb[0]) / fb[1])
         return r if fixed_restrictor else np.concatenate([r, (theta[1:] - prior) / PRIOR_SD_LOG])
 
     fits = []
@@ -395,7 +437,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
         raise CalibrationError(f"cannot calibrate: {why}")
 
     # -- identifiability --------------------------------------------------------------------
-    m = mean.size
+    m = mean.size  # the data rows at the misfit's own scale; the blocked mode and the prior after them
     J = best.jac
     chi2 = float(np.sum(best.fun[:m] ** 2))
     s2 = max(1.0, chi2 / max(1, m - len(_PARAMS)))
@@ -515,6 +557,9 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
         "identifiability": {"parameters": pinned, "data_singular_values": [float(v) for v in sv],
                             "residual_scale": math.sqrt(s2)},
         "prior": {**PRIOR_RATIOS, "sd_log": PRIOR_SD_LOG},
+        "blocked_mode": None if fb is None else {
+            "n_traces": fb[2], "frequency_hz_recorded": fb[0], "frequency_hz_std_error": fb[1],
+            "frequency_hz_fitted": _blocked_mode(known, theta)},
         "optimiser": {"method": "scipy.optimize.least_squares (trf, bounds, variable projection)",
                       "starts_I_r_over_I_n": list(_STARTS), "nfev": int(best.nfev), "status": int(best.status),
                       "message": str(best.message), "costs": [float(f.cost) for f in fits]},
@@ -524,6 +569,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
                   "amplitude_convention": convention, "residual_rel_mean_trace": resid_rel,
                   "residual_rel_per_trace_median": report["residual_rel"]["per_trace_median"],
                   "determined_by": {p: pinned[p]["determined_by"] for p in _PARAMS},
+                  **({} if fb is None else {"n_blocked_traces": fb[2], "blocked_mode_hz": fb[0]}),
                   "posterior": {"parameters": list(_PARAMS), "units": ["m^3/Pa", "kg/m^4", "Pa s/m^3"],
                                 "mean_log": [float(v) for v in theta], "cov_log": cov_post.tolist()},
                   "nominal_sha256": nominal.sha256}

@@ -234,3 +234,42 @@ def test_the_restrictor_split_of_an_independent_head_is_not_dephased():
     split = (ch["L_r"] / ch["r_r"] ** 2) / (true["L_r"] / true["r_r"] ** 2)  # I_r over the true I_r
     assert abs(split - 1) < 0.06, split
     assert abs(math.log(ch["B_act"] / true["B_act"])) < 0.1
+
+
+@pytest.mark.parametrize("seed", [0, 11])
+def test_fully_blocked_traces_pin_the_restrictor_that_healthy_ones_leave_to_the_prior(seed):
+    """Independent code's h5 head (tests/foreign_head.py), where healthy traces alone put the restrictor's
+    inertance 7-12 % low (reports/heads.md): 50 fully blocked traces (their mode is the restrictor ringing
+    with the chamber) bring it within 3 %, and the calibrated channel rings blocked as they do."""
+    import foreign_head as fh
+
+    nominal = HeadProfile.from_dict({"schema": "inkdiag.head_profile", "schema_version": 1,
+                                     **fh.nominal_profile("h5")})
+    healthy = fh.simulate_foreign("h5", {"healthy_nozzle": 300}, seed=seed)
+    blocked = fh.simulate_foreign("h5", {"fully_blocked": 50}, seed=seed + 500)["traces"]
+    true = fh.FOREIGN_HEADS["h5"]["channel"]
+
+    def inertance_error(p):
+        ch = p.channel
+        return (ch["L_r"] / ch["r_r"] ** 2) / (true["L_r"] / true["r_r"] ** 2) - 1
+
+    plain = calibrate(nominal, healthy["traces"], healthy["sample_rate_hz"])
+    pinned = calibrate(nominal, healthy["traces"], healthy["sample_rate_hz"], blocked=blocked)
+    assert inertance_error(plain.profile) < -0.06  # what the prior leaves (the reason for blocked traces)
+    assert abs(inertance_error(pinned.profile)) < 0.03, inertance_error(pinned.profile)
+    fb = pinned.report["blocked_mode"]
+    assert 45 <= fb["n_traces"] <= 50  # h5's 10-bit ADC clips a few: screened out
+    assert abs(fb["frequency_hz_fitted"] / fb["frequency_hz_recorded"] - 1) < 0.005
+    assert pinned.profile.calibration["determined_by"]["I_r"] == "data"
+    assert pinned.profile.calibration["n_blocked_traces"] == fb["n_traces"]
+
+
+def test_blocked_traces_that_are_not_blocked_or_too_few_are_refused(recorded):
+    nominal = nominal_of(TRUE)
+    with pytest.raises(CalibrationError, match="not below the healthy mode"):
+        calibrate(nominal, recorded.traces, TRUE.sample_rate_hz, blocked=recorded.traces[:20])
+    blocked = TRUE.simulate({"fully_blocked": 5}, seed=4).traces
+    with pytest.raises(CalibrationError, match="5 usable fully blocked traces"):
+        calibrate(nominal, recorded.traces, TRUE.sample_rate_hz, blocked=blocked)
+    with pytest.raises(ProfileError):
+        calibrate(nominal, recorded.traces, TRUE.sample_rate_hz, blocked=blocked[:, :100])

@@ -144,3 +144,27 @@ def test_a_foreign_head_through_the_cli(tmp_path, capsys, head, tol_dried):
         f_true = np.median(true.simulate({cls: 100}, seed=5).frequency_hz)
         f_cal = np.median(p.simulate({cls: 100}, seed=5).frequency_hz)
         assert abs(f_cal / f_true - 1) < tol_dried, cls
+
+
+def test_blocked_traces_through_the_cli(files, tmp_path, capsys):
+    """--blocked: a labelled recording gives its fully_blocked rows; the fit report and the summary say the
+    blocked mode recorded and fitted; a recording with no such row, or the same file as --out, is refused."""
+    sim = TRUE.simulate({"healthy_nozzle": 5, "fully_blocked": 30}, seed=6)
+    save_recording(tmp_path / "b.npz", Recording.from_arrays(sim.traces, TRUE.sample_rate_hz, label=sim.labels))
+    args = ["calibrate", str(files / "healthy.npz"), "--nominal", str(files / "nominal.yaml")]
+    assert cli.main([*args, "--blocked", str(tmp_path / "b.npz"), "--out", str(tmp_path / "head.yaml")]) == 0
+    assert "blocked mode recorded/fitted" in capsys.readouterr().out
+    p = HeadProfile.load(tmp_path / "head.yaml")
+    assert p.calibration["n_blocked_traces"] == 30 and p.calibration["determined_by"]["I_r"] == "data"
+    true_ir, got_ir = (q.channel["L_r"] / q.channel["r_r"] ** 2 for q in (TRUE, p))
+    assert abs(got_ir / true_ir - 1) < 0.03
+    assert "Fully blocked nozzles" in (tmp_path / "head.fit.md").read_text()
+    assert json.loads((tmp_path / "head.fit.json").read_text())["blocked_mode"]["n_traces"] == 30
+    for blocked, message in ((files / "healthy.npz", "not below the healthy mode"),
+                             (tmp_path / "b.npz", "also the --blocked input")):
+        out = tmp_path / "b.npz" if blocked == tmp_path / "b.npz" else tmp_path / "x.yaml"
+        assert cli.main([*args, "--blocked", str(blocked), "--out", str(out)]) == 2
+        assert message in capsys.readouterr().err
+    save_recording(tmp_path / "h.npz", Recording.from_arrays(sim.traces[:5], TRUE.sample_rate_hz, label=sim.labels[:5]))
+    assert cli.main([*args, "--blocked", str(tmp_path / "h.npz"), "--out", str(tmp_path / "x.yaml")]) == 2
+    assert "no fully_blocked row" in capsys.readouterr().err

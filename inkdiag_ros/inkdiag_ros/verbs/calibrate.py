@@ -1,6 +1,7 @@
 """``inkdiag calibrate``: a complete head profile from a nominal one and recorded healthy traces.
 
-    inkdiag calibrate HEALTHY --nominal NOMINAL.yaml --out HEAD.yaml [--report-dir DIR] [--name NAME]
+    inkdiag calibrate HEALTHY --nominal NOMINAL.yaml --out HEAD.yaml [--blocked BLOCKED] [--report-dir DIR]
+                      [--name NAME]
 
 Reads the recording (:func:`inkdiag_core.load_recording`), fits what the nominal
 profile leaves out (:func:`inkdiag_core.calibration.calibrate`), writes the
@@ -26,6 +27,13 @@ The recording (.npz) must have the nominal profile's sample rate and trace lengt
 Traces screening refuses (non-finite, out of range, flat, clipped) are dropped and counted; if the recording has a label
 column, only its healthy_nozzle rows are used. See docs/calibration.md.
 
+Healthy traces pin the healthy mode, not how the restrictor and the nozzle share it
+(the prior does, within +-12 % on the heads of reports/heads.md). --blocked gives
+traces of fully blocked nozzles of the head (at least 10; a labelled recording: its
+fully_blocked rows, e.g. the label column `inkdiag label` wrote): their ringing is the
+restrictor with the chamber alone, and the fit matches their median mode too, which
+pins the split (within +-3 % from 50 traces on those heads).
+
 A rosbag2 bag is streamed: its rows screening accepts are sampled uniformly, at most
 10000 (reservoir sampling, seeded by --seed), so memory stays bounded whatever the
 bag's length; the message says how many rows were read, screened out and sampled.
@@ -43,6 +51,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--nominal", metavar="NOMINAL.yaml", required=True,
                         help="nominal head profile: sampling, drive, channel rho, mu, r_n, L_n, V_ch, c")
     parser.add_argument("--out", metavar="HEAD.yaml", required=True, help="complete head profile to write")
+    parser.add_argument("--blocked", metavar="BLOCKED", default=None,
+                        help="recording (.npz) of fully blocked nozzles of the head: pins the restrictor")
     parser.add_argument("--report-dir", metavar="DIR", default=None,
                         help="where to write the fit report (default: beside --out)")
     parser.add_argument("--name", default=None, help="name of the calibrated profile (default: the nominal's)")
@@ -105,6 +115,19 @@ def bag_sample(chunks, nominal, *, max_rows: int = MAX_BAG_ROWS, seed: int = 0):
     return store[:m][keep], n_read, n_screened
 
 
+def _blocked_rows(path):
+    """The recording at ``path`` (an .npz), its rows labelled ``fully_blocked`` where it has labels."""
+    from inkdiag_core import FaultClass, load_recording
+
+    rec = load_recording(path)
+    if rec.label is not None:
+        keep = rec.label == FaultClass.FULLY_BLOCKED.value
+        if not keep.any():
+            raise ValueError(f"{path}: its label column has no fully_blocked row")
+        rec = type(rec).from_arrays(rec.traces[keep], rec.sample_rate_hz, source=rec.source)
+    return rec
+
+
 def run(args) -> int:
     import itertools
     import json
@@ -137,14 +160,19 @@ def run(args) -> int:
         traces = rec.traces[keep]
         left_out = int((~keep).sum())
         note = f"; {left_out} rows labelled otherwise left out" if left_out else ""
+    blocked = _blocked_rows(args.blocked) if args.blocked else None
+    if blocked is not None:
+        nominal.check_traces(blocked.traces, blocked.sample_rate_hz, what=f"{args.blocked}")
     out = Path(args.out)
     report_dir = Path(args.report_dir) if args.report_dir else out.parent
     report_dir.mkdir(parents=True, exist_ok=True)
-    result = calibrate(nominal, traces, fs, name=args.name, seed=args.seed)
+    result = calibrate(nominal, traces, fs, name=args.name, seed=args.seed,
+                       blocked=None if blocked is None else blocked.traces)
     result.profile.save(out)
     stem = report_dir / out.name.removesuffix(".yaml").removesuffix(".yml")
     png = stem.with_name(stem.name + ".fit.png")
     report = dict(result.report, recording=str(args.healthy), nominal=str(args.nominal), profile=str(out),
+                  blocked=None if blocked is None else str(args.blocked),
                   profile_sha256=result.profile.sha256, n_rows_left_out_by_label=left_out)
     try:
         _plot(result, png)
@@ -159,7 +187,10 @@ def run(args) -> int:
           f"healthy mode {hm['frequency_hz'] / 1e3:.1f} kHz, damping {hm['damping_ratio']:.3f}; mean trace "
           f"recorded/fitted {mt['dominant_frequency_hz'][0] / 1e3:.1f}/{mt['dominant_frequency_hz'][1] / 1e3:.1f} kHz; "
           f"residual {100 * rr['per_trace_median']:.1f} % of the trace RMS (noise alone "
-          f"{100 * rr['noise_floor']:.1f} %); report {stem}.fit.md", file=sys.stdout)
+          f"{100 * rr['noise_floor']:.1f} %)" + ("" if not (fb := report["blocked_mode"]) else
+          f"; blocked mode recorded/fitted {fb['frequency_hz_recorded'] / 1e3:.1f}/"
+          f"{fb['frequency_hz_fitted'] / 1e3:.1f} kHz ({fb['n_traces']} traces)")
+          + f"; report {stem}.fit.md", file=sys.stdout)
     if report["figure"] is None:
         print(f"inkdiag calibrate: {report['figure_note']}", file=sys.stderr)
     return 0
@@ -217,6 +248,10 @@ def _markdown(r) -> str:
         f"Healthy mode of the calibrated channel: {hm['frequency_hz'] / 1e3:.2f} kHz, damping ratio "
         f"{hm['damping_ratio']:.4f}.",
         "",
+        *([] if not (fb := r.get("blocked_mode")) else [
+            f"Fully blocked nozzles (`{r.get('blocked')}`, {fb['n_traces']} traces): their mode recorded "
+            f"{fb['frequency_hz_recorded'] / 1e3:.2f} kHz (standard error {fb['frequency_hz_std_error'] / 1e3:.2f} kHz), "
+            f"the calibrated channel's {fb['frequency_hz_fitted'] / 1e3:.2f} kHz: it pins the restrictor.", ""]),
         f"RMS residual relative to the trace RMS: mean trace {100 * rr['mean_trace']:.2f} %, per trace median "
         f"{100 * rr['per_trace_median']:.2f} % (P90 {100 * rr['per_trace_p90']:.2f} %); the white noise alone is "
         f"{100 * rr['noise_floor']:.2f} %.",
