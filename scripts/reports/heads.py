@@ -14,8 +14,10 @@ with the documented commands:
 3. ``inkdiag label TEST.npz --model MODEL.joblib --out LABELS.csv`` on every class;
 4. ``inkdiag estimate DRIED.npz --profile HEAD.yaml --out FM.csv`` on the dried classes.
 
-Steps 2-4 run twice per head: with the calibrated profile and with the head's
-true profile, so that the cost of calibration is visible. A third run uses what a
+Steps 2-4 run three times per head: with the calibrated profile, with a profile
+calibrated with 50 traces of fully blocked nozzles as well (``inkdiag calibrate
+--blocked``: they pin the restrictor), and with the head's true profile, so that
+the cost of calibration is visible. A third run uses what a
 commissioned head also has, each nozzle's healthy baseline: ``inkdiag baseline
 COMMISSION.npz --profile HEAD.yaml --out B.npz`` on 8 healthy frames of every
 nozzle (the test and dried recordings are later frames of the same nozzles:
@@ -59,10 +61,13 @@ from inkdiag_core.kpis import extract_kpis  # noqa: E402
 
 HEALTHY = {FaultClass.OK_SIGNAL.value, FaultClass.HEALTHY_NOZZLE.value}
 BASELINES = "calibrated + baselines"
-KINDS = ("calibrated", "true", BASELINES)
+BLOCKED = "calibrated + blocked"
+KINDS = ("calibrated", BLOCKED, "true", BASELINES)
 """The runs per head, in the order the tables show them."""
 COMMISSION_FRAMES = 8
 """Healthy frames of each nozzle in a head's commissioning recording (``inkdiag baseline``'s default)."""
+N_BLOCKED = 50
+"""Fully blocked traces given to ``inkdiag calibrate --blocked`` (the *calibrated + blocked* run)."""
 _WORK = [""]  # the work directory, shown as WORK in the report
 
 
@@ -179,21 +184,25 @@ def run_head(name, work, *, per_class, n_per_class, seed, log, posterior_draws=1
 
     _, t_cal = _inkdiag("calibrate", head_dir / "healthy.npz", "--nominal", nominal,
                         "--out", head_dir / "calibrated.yaml", log=log)
-    profiles = {"calibrated": head_dir / "calibrated.yaml",
+    fh.write_recording(head_dir / "blocked.npz", fh.simulate_foreign(name, {"fully_blocked": N_BLOCKED}, seed + 6))
+    _inkdiag("calibrate", head_dir / "healthy.npz", "--nominal", nominal, "--blocked", head_dir / "blocked.npz",
+             "--out", head_dir / "calibrated_blocked.yaml", log=log)
+    profiles = {"calibrated": head_dir / "calibrated.yaml", BLOCKED: head_dir / "calibrated_blocked.yaml",
                 "true": _true_profile_yaml(name, head_dir / "true.yaml")}
     out = {"calibrate_s": t_cal,
            "recorded_modes": _class_modes(test["traces"], test["labels"], float(test["sample_rate_hz"]))}
     for kind, prof in profiles.items():
-        model = head_dir / f"model_{kind}.joblib"
+        tag = kind.replace("calibrated + ", "calibrated_")
+        model = head_dir / f"model_{tag}.joblib"
         train_args = ["train", "--profile", prof, "--out", model, "--seed", seed,
-                      "--posterior-draws", posterior_draws if kind == "calibrated" else 1]
+                      "--posterior-draws", posterior_draws if kind != "true" else 1]
         if n_per_class:
             train_args += ["--n-per-class", n_per_class]
         _, t_train = _inkdiag(*train_args, log=log)
-        _inkdiag("label", head_dir / "test.npz", "--model", model, "--out", head_dir / f"labels_{kind}.csv", log=log)
-        _inkdiag("estimate", head_dir / "dried.npz", "--profile", prof, "--out", head_dir / f"fm_{kind}.csv", log=log)
-        fd, fi, per, n_invalid, unknown, wrong = _scores(head_dir / f"labels_{kind}.csv", test["labels"])
-        med, p90, n_nan = _dmu_errors(head_dir / f"fm_{kind}.csv", d_mu_true)
+        _inkdiag("label", head_dir / "test.npz", "--model", model, "--out", head_dir / f"labels_{tag}.csv", log=log)
+        _inkdiag("estimate", head_dir / "dried.npz", "--profile", prof, "--out", head_dir / f"fm_{tag}.csv", log=log)
+        fd, fi, per, n_invalid, unknown, wrong = _scores(head_dir / f"labels_{tag}.csv", test["labels"])
+        med, p90, n_nan = _dmu_errors(head_dir / f"fm_{tag}.csv", d_mu_true)
         # the profile's own simulation of the classes (what its model was trained on), seed of its own
         profile = HeadProfile.load(prof)
         sim = profile.simulate({c: per_class for c in MODE_CLASSES}, seed=seed + 3)
@@ -223,6 +232,7 @@ def run_head(name, work, *, per_class, n_per_class, seed, log, posterior_draws=1
     out["mode"] = {"true": true.healthy_mode(), "calibrated": cal.healthy_mode()}
     out["params"] = {k: (true.channel.get(k), cal.channel.get(k)) for k in ("r_r", "L_r", "B_act", "b")}
     out["calibrated_split"] = _split_errors(cal.channel, fh.FOREIGN_HEADS[name]["channel"])
+    out["blocked_split"] = _split_errors(HeadProfile.load(profiles[BLOCKED]).channel, fh.FOREIGN_HEADS[name]["channel"])
     out["sampling"] = (true.sample_rate_hz, true.n_samples)
     return out
 
@@ -235,15 +245,28 @@ def run_seed(name, work, *, per_class, n_per_class, seed, log):
     fh.write_recording(d / "healthy.npz", fh.simulate_foreign(name, {"healthy_nozzle": 300}, seed))
     test = fh.simulate_foreign(name, {c.value: per_class for c in FaultClass}, seed + 1)
     fh.write_recording(d / "test.npz", test)
-    _inkdiag("calibrate", d / "healthy.npz", "--nominal", d / "nominal.yaml", "--out", d / "calibrated.yaml", log=log)
-    train_args = ["train", "--profile", d / "calibrated.yaml", "--out", d / "model.joblib", "--seed", seed]
-    if n_per_class:
-        train_args += ["--n-per-class", n_per_class]
-    _inkdiag(*train_args, log=log)
-    _inkdiag("label", d / "test.npz", "--model", d / "model.joblib", "--out", d / "labels.csv", log=log)
-    fd, fi, per, n_invalid, _, wrong = _scores(d / "labels.csv", test["labels"])
-    return {"fd": fd, "fi": fi, "per": per, "wrong": wrong, "invalid": n_invalid,
-            **_split_errors(HeadProfile.load(d / "calibrated.yaml").channel, fh.FOREIGN_HEADS[name]["channel"])}
+    fh.write_recording(d / "blocked.npz", fh.simulate_foreign(name, {"fully_blocked": N_BLOCKED}, seed + 6))
+    out = {}
+    for kind, extra in (("calibrated", ()), (BLOCKED, ("--blocked", d / "blocked.npz"))):
+        tag = kind.replace("calibrated + ", "calibrated_")
+        _inkdiag("calibrate", d / "healthy.npz", "--nominal", d / "nominal.yaml", *extra, "--out", d / f"{tag}.yaml",
+                 log=log)
+        train_args = ["train", "--profile", d / f"{tag}.yaml", "--out", d / f"{tag}.joblib", "--seed", seed]
+        if n_per_class:
+            train_args += ["--n-per-class", n_per_class]
+        _inkdiag(*train_args, log=log)
+        _inkdiag("label", d / "test.npz", "--model", d / f"{tag}.joblib", "--out", d / f"{tag}.csv", log=log)
+        fd, fi, per, n_invalid, _, wrong = _scores(d / f"{tag}.csv", test["labels"])
+        out[kind] = {"fd": fd, "fi": fi, "per": per, "wrong": wrong, "invalid": n_invalid,
+                     **_split_errors(HeadProfile.load(d / f"{tag}.yaml").channel, fh.FOREIGN_HEADS[name]["channel"])}
+    return out
+
+
+def _seed_runs(r, seed):
+    """Per seed (the main run's first), ``{"calibrated": ..., BLOCKED: ...}``: scores with the split errors."""
+    main = {kind: {**r[kind], **r[split]} for kind, split in (("calibrated", "calibrated_split"),
+                                                              (BLOCKED, "blocked_split"))}
+    return {seed: main, **r["seeds"]}
 
 
 def _split_errors(cal, true):
@@ -308,7 +331,9 @@ def write_report(results, args, log, elapsed):
         "simulator `tests/foreign_head.py`, not from inkdiag's; each head is calibrated from 300 of its "
         "healthy traces and a nominal profile (sampling, drive, rho, mu, r_n, L_n, V_ch, c), then trained, "
         "labelled and estimated with the `inkdiag` command. *calibrated*: the profile `inkdiag calibrate` "
-        "wrote; *true*: the head's real channel and sensor, to show what calibration costs; *calibrated + "
+        "wrote; *calibrated + blocked*: `inkdiag calibrate --blocked` with 50 recorded traces of the head's fully "
+        "blocked nozzles as well, which pin the restrictor; *true*: the head's real channel and sensor, to show what "
+        "calibration costs; *calibrated + "
         "baselines*: the calibrated profile, each nozzle's healthy baseline from a commissioning recording (8 "
         "healthy frames of every nozzle, `inkdiag baseline`; the test rows are later frames of the same nozzles), "
         "a model trained with `--baseline`, and `--baselines` for label and estimate.",
@@ -351,23 +376,28 @@ def write_report(results, args, log, elapsed):
                   "(`reports/restrictor.md`).", ""]
         rows = []
         for name, r in results.items():
-            runs = {args.seed: {**r["calibrated"], **r["calibrated_split"]}, **r["seeds"]}
-            for seed, k in runs.items():
-                worst = min(k["per"], key=k["per"].get)
-                rows.append([name if seed == args.seed else "", seed, _pct(k["fd"]), _pct(k["fi"]),
-                             f"{worst} {_pct(k['per'][worst])}",
-                             *[_pct(k["per"][c]) for c in SPLIT_CLASSES],
-                             f"{100 * k['I_r_err']:+.1f}", f"{100 * k['B_act_err']:+.1f}"])
-        lines += [md_table(["head", "seed", "FD %", "FI %", "weakest class %", *SPLIT_CLASSES,
+            for seed, runs in _seed_runs(r, args.seed).items():
+                for kind, k in runs.items():
+                    worst = min(k["per"], key=k["per"].get)
+                    rows.append([name if seed == args.seed and kind == "calibrated" else "",
+                                 seed if kind == "calibrated" else "", kind, _pct(k["fd"]), _pct(k["fi"]),
+                                 f"{worst} {_pct(k['per'][worst])}", *[_pct(k["per"][c]) for c in SPLIT_CLASSES],
+                                 f"{100 * k['I_r_err']:+.1f}", f"{100 * k['B_act_err']:+.1f}"])
+        lines += [md_table(["head", "seed", "profile", "FD %", "FI %", "weakest class %", *SPLIT_CLASSES,
                             "I_r error %", "B_act error %"], rows), ""]
         lines += ["Which of these classes loses rows follows the sign of the fitted restrictor inertance's error: "
                   "too small, and recorded partially blocked traces look like the model's deeply dried ones; too "
                   "large, and recorded dried traces look like the model's partially blocked ones. " + "; ".join(
                       f"{name}: I_r error {min(ks):+.1f} to {max(ks):+.1f} %, weakest class {min(ws):.1f} to "
                       f"{max(ws):.1f} %" for name, r in results.items()
-                      for runs in [[{**r["calibrated"], **r["calibrated_split"]}, *r["seeds"].values()]]
+                      for runs in [[v["calibrated"] for v in _seed_runs(r, args.seed).values()]]
                       for ks, ws in [([100 * k["I_r_err"] for k in runs], [100 * min(k["per"].values()) for k in runs])])
-                  + ".", ""]
+                  + ". With 50 fully blocked traces (`inkdiag calibrate --blocked`): " + "; ".join(
+                      f"{name}: I_r error {min(ks):+.1f} to {max(ks):+.1f} %, weakest class {min(ws):.1f} to "
+                      f"{max(ws):.1f} %, FI {min(fs):.1f} to {max(fs):.1f} %" for name, r in results.items()
+                      for runs in [[v[BLOCKED] for v in _seed_runs(r, args.seed).values()]]
+                      for ks, ws, fs in [([100 * k["I_r_err"] for k in runs], [100 * min(k["per"].values()) for k in runs],
+                                          [100 * k["fi"] for k in runs])]) + ".", ""]
     lines += ["## Calibration: fitted against true", ""]
     rows = []
     for name, r in results.items():
