@@ -30,7 +30,10 @@ the drive) carry the third, weakly. So ``B_act`` is pinned by the data, ``I_r`` 
 (``I_r = 1.03 I_n``, ``R_r = R_n / 2``, a log-normal of standard deviation
 ``ln 1.25``, see :data:`PRIOR_SD_LOG`) regularises the direction the data leave
 open. A nominal profile that gives the restrictor (``r_r`` and ``L_r``) keeps it, and
-only ``B_act`` is fitted to the shape. The report says, per parameter, whether the
+only ``B_act`` is fitted to the shape. Traces of fully blocked nozzles (``blocked=``)
+pin it from the data instead: a blocked nozzle rings with the restrictor and the
+chamber alone, at ``sqrt(1 / (I_r B_t) - (R_r / 2 I_r)**2) / 2 pi``, and their median
+mode is fitted as one more residual row beside the mean healthy trace. The report says, per parameter, whether the
 data or the prior fixed it (its posterior standard error against the prior's).
 
 The amplitude gives only the product ``b * gain``: one of the two is fixed by a
