@@ -278,36 +278,96 @@ def _rms_ac(x):
     return np.sqrt(np.mean((x - x.mean(axis=-1, keepdims=True)) ** 2, axis=-1))
 
 
-def _blocked_mode(known: _Known, theta):
+def _blocked_mode(known: _Known, theta, damping: bool = False):
     """Damped frequency (Hz) of a fully blocked channel: the restrictor ringing with the chamber (no nozzle
-    flow), ``s**2 + (R_r / I_r) s + 1 / (I_r B_t) = 0``, for log-parameters ``theta`` (3,); 0 if overdamped."""
+    flow), ``s**2 + (R_r / I_r) s + 1 / (I_r B_t) = 0``, for log-parameters ``theta`` (3,); 0 if overdamped.
+    With ``damping``, ``(frequency, damping ratio)``."""
     c = _coefficients(known, theta)
     w2 = float(c.k_r[0] - (c.d_r[0] / 2.0) ** 2)
-    return math.sqrt(w2) / (2.0 * math.pi) if w2 > 0 else 0.0
+    f = math.sqrt(w2) / (2.0 * math.pi) if w2 > 0 else 0.0
+    return (f, float(c.d_r[0] / (2.0 * math.sqrt(c.k_r[0])))) if damping else f
 
 
-def _blocked_measurement(nominal, blocked, sample_rate_hz, f_healthy):
-    """Median dominant frequency (Hz) of recorded fully blocked traces, and its standard error with a floor."""
+def _relative_spread(f):
+    """Robust relative standard deviation (MAD-based) of positive values ``f``."""
+    return _mad_std(f) / float(np.median(f))
+
+
+def _blocked_measurement(nominal, blocked, sample_rate_hz, f_healthy, healthy_spread):
+    """Median dominant frequency (Hz) of recorded fully blocked traces, its standard error with a floor, the
+    number of traces and their median damping ratio. ``healthy_spread``: the healthy traces' relative spread
+    of frequency (the head's tolerances, which spread the blocked ones about as much)."""
     nominal.check_traces(blocked, sample_rate_hz, what="the blocked recording")
     b = np.asarray(blocked, dtype=np.float64)
     ok, _ = screen_traces(b, sample_rate_hz=sample_rate_hz, max_abs_v=nominal.max_abs_v)
-    f = extract_kpis(b[ok], nominal.sample_rate_hz)[:, 1] if ok.any() else np.zeros(0)
-    f = f[np.isfinite(f) & (f > 0)]
+    k = extract_kpis(b[ok], nominal.sample_rate_hz) if ok.any() else np.zeros((0, 7))
+    k = k[np.isfinite(k[:, 1]) & (k[:, 1] > 0) & np.isfinite(k[:, 2])]
+    f = k[:, 1]
     if f.size < MIN_BLOCKED_TRACES:
         raise CalibrationError(f"{f.size} usable fully blocked traces (of {b.shape[0]}); the blocked mode needs at "
                                f"least {MIN_BLOCKED_TRACES}")
-    f_med = float(np.median(f))
+    f_med, z_med = float(np.median(f)), float(np.median(k[:, 2]))
     if not f_med < 0.98 * f_healthy:
         raise CalibrationError(f"the blocked traces ring at {f_med / 1e3:.1f} kHz, not below the healthy mode "
                                f"({f_healthy / 1e3:.1f} kHz): are they fully blocked nozzles of this head?")
+    if z_med > BLOCKED_MAX_DAMPING:
+        raise CalibrationError(f"the blocked traces are damped too much (damping ratio {z_med:.2f}, above "
+                               f"{BLOCKED_MAX_DAMPING}) for their frequency to be the restrictor's mode: calibrate "
+                               "without them, or give the restrictor (channel.r_r, L_r) in the nominal profile")
+    spread = _relative_spread(f)
+    if spread > BLOCKED_MAX_SPREAD * healthy_spread:
+        raise CalibrationError(
+            f"the blocked traces' frequencies spread {100 * spread:.1f} %, {spread / healthy_spread:.1f} times the "
+            f"healthy traces' {100 * healthy_spread:.1f} %: a fault of varying size (a bubble, a dried or partially "
+            "blocked nozzle) rather than fully blocked nozzles?")
     se = 1.2533 * _mad_std(f) / math.sqrt(f.size)  # the median's standard error
-    return f_med, max(se, BLOCKED_MODE_FLOOR * f_med), int(f.size)
+    return f_med, max(se, BLOCKED_MODE_FLOOR * f_med), int(f.size), z_med
+
+
+def _check_blocked_fit(fb, known, theta, fixed_restrictor):
+    """The calibrated channel must ring blocked as the blocked traces do, in frequency and damping, with a
+    restrictor inertance within a factor :data:`BLOCKED_MAX_RATIO` of the design ratio's."""
+    f_fit, z_fit = _blocked_mode(known, theta, damping=True)
+    ratio = math.exp(theta[1]) / known.I_n
+    if not fixed_restrictor and abs(math.log(ratio / PRIOR_RATIOS["I_r/I_n"])) > math.log(BLOCKED_MAX_RATIO):
+        raise CalibrationError(
+            f"the blocked traces put the restrictor's inertance at {ratio:.2f} times the nozzle's, beyond a factor "
+            f"{BLOCKED_MAX_RATIO} of the design ratio {PRIOR_RATIOS['I_r/I_n']}: are they fully blocked nozzles? (a "
+            "bubble in the chamber also rings below the healthy mode); a head built so: give its restrictor "
+            "(channel.r_r, L_r) in the nominal profile")
+    misfit = abs(f_fit - fb[0]) / fb[1]
+    if misfit > BLOCKED_MAX_MISFIT:
+        why = ("the nominal profile's restrictor (channel.r_r, channel.L_r) contradicts them: drop it, or the "
+               "blocked traces" if fixed_restrictor else "no channel that rings healthy as the healthy traces do "
+               "rings blocked as they do: are they fully blocked nozzles of this head?")
+        raise CalibrationError(f"the calibrated channel rings blocked at {f_fit / 1e3:.2f} kHz, the blocked traces "
+                               f"at {fb[0] / 1e3:.2f} kHz ({misfit:.1f} standard errors): {why}")
+    if not 1 / BLOCKED_DAMPING_FACTOR <= fb[3] / z_fit <= BLOCKED_DAMPING_FACTOR:
+        raise CalibrationError(
+            f"the blocked traces' damping ratio {fb[3]:.3f} is not the calibrated channel's blocked damping "
+            f"{z_fit:.3f}: are they fully blocked nozzles? (a partially blocked, dried or bubbled nozzle also rings "
+            "below the healthy mode, damped otherwise)")
+    return f_fit, z_fit
 
 
 MIN_BLOCKED_TRACES = 10
 """Fewest usable fully blocked traces ``calibrate(blocked=...)`` takes."""
 BLOCKED_MODE_FLOOR = 0.002
 """Smallest relative standard error the fit gives the blocked mode (the model's own error)."""
+BLOCKED_MAX_DAMPING = 0.3
+"""Largest median damping ratio of blocked traces taken: above, a trace's fitted frequency is no longer the
+damped mode (the KPIs' fit of a strongly damped ring reads it several % high)."""
+BLOCKED_MAX_MISFIT = 3.0
+"""Standard errors by which the calibrated channel's blocked mode may miss the traces' before calibration refuses."""
+BLOCKED_MAX_RATIO = 2.5
+"""Factor by which blocked traces may move the restrictor's inertance from the design ratio (4.1 of the prior's
+standard deviations); the heads of ``tests/foreign_head.py`` are within 1.3."""
+BLOCKED_DAMPING_FACTOR = 1.3
+"""Factor by which the blocked traces' median damping ratio may differ from the calibrated channel's (0.91-1.02
+of it on the heads of ``tests/foreign_head.py``; their partially blocked and dried nozzles 2.8-3.2)."""
+BLOCKED_MAX_SPREAD = 1.8
+"""Largest relative spread of the blocked traces' frequencies, in units of the healthy traces' (0.8-1.4 on the
+heads of ``tests/foreign_head.py``; their small chamber bubbles 1.0-3.8, slightly dried nozzles 1.3-2.3)."""
 
 
 def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None = None, seed: int = 0,
@@ -381,7 +441,11 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
             f"({reach[0] / 1e3:.1f}-{reach[1] / 1e3:.1f} kHz with its nozzle, ink and chamber): check "
             "channel.r_n, L_n, V_ch, c, rho and the sampling")
 
-    fb = None if blocked is None else _blocked_measurement(nominal, blocked, sample_rate_hz, f_rec)
+    fb = None
+    if blocked is not None:
+        f_h = extract_kpis(y, fs)[:, 1]
+        fb = _blocked_measurement(nominal, blocked, sample_rate_hz, f_rec,
+                                  _relative_spread(f_h[np.isfinite(f_h) & (f_h > 0)]))
 
     # -- 2. the mean trace ------------------------------------------------------------------
     noise0, _ = _noise_std(y - mean, f_rec, fs)
@@ -438,6 +502,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
                f"(recorded mode {f_rec / 1e3:.1f} kHz, damping {kp_mean[2]:.3f}; fitted {f_fit / 1e3:.1f} kHz, "
                f"damping {z_fit:.3f}): the traces are not what the nominal channel and drive give")
         raise CalibrationError(f"cannot calibrate: {why}")
+    fb_fit = None if fb is None else _check_blocked_fit(fb, known, theta, fixed_restrictor)
 
     # -- identifiability --------------------------------------------------------------------
     m = mean.size  # the data rows at the misfit's own scale; the blocked mode and the prior after them
@@ -562,7 +627,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
         "prior": {**PRIOR_RATIOS, "sd_log": PRIOR_SD_LOG},
         "blocked_mode": None if fb is None else {
             "n_traces": fb[2], "frequency_hz_recorded": fb[0], "frequency_hz_std_error": fb[1],
-            "frequency_hz_fitted": _blocked_mode(known, theta)},
+            "frequency_hz_fitted": fb_fit[0], "damping_ratio_recorded": fb[3], "damping_ratio_fitted": fb_fit[1]},
         "optimiser": {"method": "scipy.optimize.least_squares (trf, bounds, variable projection)",
                       "starts_I_r_over_I_n": list(_STARTS), "nfev": int(best.nfev), "status": int(best.status),
                       "message": str(best.message), "costs": [float(f.cost) for f in fits]},

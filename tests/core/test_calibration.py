@@ -273,3 +273,31 @@ def test_blocked_traces_that_are_not_blocked_or_too_few_are_refused(recorded):
         calibrate(nominal, recorded.traces, TRUE.sample_rate_hz, blocked=blocked)
     with pytest.raises(ProfileError):
         calibrate(nominal, recorded.traces, TRUE.sample_rate_hz, blocked=blocked[:, :100])
+
+
+def test_blocked_traces_of_another_class_or_against_a_given_restrictor_are_refused():
+    """Partially blocked, dried and bubbled nozzles also ring below the healthy mode: their damping, their spread
+    or the restrictor they would give refuses them (fitted, they put it 14-70 % off). A nominal restrictor 15 %
+    off is contradicted by true fully blocked traces; the true one is not."""
+    import foreign_head as fh
+
+    nominal = HeadProfile.from_dict({"schema": "inkdiag.head_profile", "schema_version": 1,
+                                     **fh.nominal_profile("h20")})
+    healthy = fh.simulate_foreign("h20", {"healthy_nozzle": 300}, seed=0)
+    for cls, why in (("partially_blocked", "spread|damping ratio"), ("deeply_dried", "spread|damping ratio"),
+                     ("small_air_bubble", "spread"), ("mature_air_bubble", "not below the healthy mode")):
+        traces = fh.simulate_foreign("h20", {cls: 50}, seed=500)["traces"]
+        with pytest.raises(CalibrationError, match=why):
+            calibrate(nominal, healthy["traces"], healthy["sample_rate_hz"], blocked=traces)
+    blocked = fh.simulate_foreign("h20", {"fully_blocked": 50}, seed=500)["traces"]
+    true = fh.FOREIGN_HEADS["h20"]["channel"]
+    for factor in (1.0, 1.15):
+        doc = nominal.to_dict()
+        doc["channel"].update(r_r=true["r_r"], L_r=true["L_r"] * factor)
+        given = HeadProfile.from_dict(doc)
+        if factor == 1.0:
+            p = calibrate(given, healthy["traces"], healthy["sample_rate_hz"], blocked=blocked).profile
+            assert p.calibration["determined_by"]["I_r"].startswith("nominal profile")
+        else:
+            with pytest.raises(CalibrationError, match="the nominal profile's restrictor"):
+                calibrate(given, healthy["traces"], healthy["sample_rate_hz"], blocked=blocked)

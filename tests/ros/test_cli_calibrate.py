@@ -168,3 +168,7 @@ def test_blocked_traces_through_the_cli(files, tmp_path, capsys):
     save_recording(tmp_path / "h.npz", Recording.from_arrays(sim.traces[:5], TRUE.sample_rate_hz, label=sim.labels[:5]))
     assert cli.main([*args, "--blocked", str(tmp_path / "h.npz"), "--out", str(tmp_path / "x.yaml")]) == 2
     assert "no fully_blocked row" in capsys.readouterr().err
+    (tmp_path / "bag").mkdir()
+    (tmp_path / "bag" / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    assert cli.main([*args, "--blocked", str(tmp_path / "bag"), "--out", str(tmp_path / "x.yaml")]) == 2
+    assert "--blocked takes an .npz recording" in capsys.readouterr().err

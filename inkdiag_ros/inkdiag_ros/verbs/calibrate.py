@@ -29,10 +29,12 @@ column, only its healthy_nozzle rows are used. See docs/calibration.md.
 
 Healthy traces pin the healthy mode, not how the restrictor and the nozzle share it
 (the prior does, within +-12 % on the heads of reports/heads.md). --blocked gives
-traces of fully blocked nozzles of the head (at least 10; a labelled recording: its
-fully_blocked rows, e.g. the label column `inkdiag label` wrote): their ringing is the
-restrictor with the chamber alone, and the fit matches their median mode too, which
-pins the split (within +-3 % from 50 traces on those heads).
+traces of fully blocked nozzles of the head (an .npz of at least 10; with a label
+column, its fully_blocked rows): their ringing is the restrictor with the chamber alone,
+and the fit matches their median mode too, which pins the split (-3.6 to +0.2 % from 50
+traces on those heads). Traces that are not fully blocked nozzles are refused (their
+damping, their spread or the restrictor they would give says so), as are blocked traces
+that contradict a restrictor the nominal profile gives.
 
 A rosbag2 bag is streamed: its rows screening accepts are sampled uniformly, at most
 10000 (reservoir sampling, seeded by --seed), so memory stays bounded whatever the
@@ -119,6 +121,10 @@ def _blocked_rows(path):
     """The recording at ``path`` (an .npz), its rows labelled ``fully_blocked`` where it has labels."""
     from inkdiag_core import FaultClass, load_recording
 
+    from ..bags import is_bag
+
+    if is_bag(path):
+        raise ValueError(f"--blocked {path}: a rosbag2 bag; --blocked takes an .npz recording (a few dozen traces)")
     rec = load_recording(path)
     if rec.label is not None:
         keep = rec.label == FaultClass.FULLY_BLOCKED.value
@@ -141,6 +147,9 @@ def run(args) -> int:
     if not 0 <= args.seed < 2**32:
         raise ValueError(f"--seed must be in 0..2**32-1, got {args.seed}")
     nominal = HeadProfile.load(args.nominal)
+    blocked = _blocked_rows(args.blocked) if args.blocked else None  # before a long bag is read
+    if blocked is not None:
+        nominal.check_traces(blocked.traces, blocked.sample_rate_hz, what=f"{args.blocked}")
     stats, chunks = stream_recording(args.healthy, args.topic)
     _, rec = next(chunks)  # a bag with no trace frame: RecordingError
     nominal.check_traces(rec.traces, rec.sample_rate_hz, what=f"{args.healthy}")
@@ -160,9 +169,6 @@ def run(args) -> int:
         traces = rec.traces[keep]
         left_out = int((~keep).sum())
         note = f"; {left_out} rows labelled otherwise left out" if left_out else ""
-    blocked = _blocked_rows(args.blocked) if args.blocked else None
-    if blocked is not None:
-        nominal.check_traces(blocked.traces, blocked.sample_rate_hz, what=f"{args.blocked}")
     out = Path(args.out)
     report_dir = Path(args.report_dir) if args.report_dir else out.parent
     report_dir.mkdir(parents=True, exist_ok=True)
