@@ -14,7 +14,9 @@ from msg_defs.labels import HEALTHY_CLASSES, INVALID_KEY
 #: baselines of another head (the healthy gate then clears nothing and every nozzle looks unlike
 #: its baseline).
 MOSTLY_FAULTY = 0.5
-#: Rows a period needs before :data:`MOSTLY_FAULTY` is judged (a small head's one frame is not enough).
+#: Rows :data:`MOSTLY_FAULTY` is judged on: the rows since the last judgement, over as many periods as a
+#: small head needs to label them (a 64-nozzle head at 5 frames/s: about 3 s); the verdict holds until the
+#: next judgement.
 MOSTLY_FAULTY_MIN_ROWS = 1000
 
 
@@ -43,7 +45,9 @@ class FdiStats:
         self.counts = Counter()
         self.last_error = ""
         self.config_error = ""  # a setting the node could not honour (it runs without it)
-        self._mark = (time.monotonic(), 0, 0, 0, 0, 0, 0, 0.0, 0)
+        self._mark = (time.monotonic(), 0, 0, 0, 0, 0, 0, 0.0)
+        self._fault_window = (0, 0)  # traces_labelled, rows_faulty at the last mostly-faulty judgement
+        self._mostly_faulty = ""  # that judgement's warning, or ""
 
     def malformed(self, reason: str) -> None:
         with self._lock:
@@ -102,7 +106,7 @@ class FdiStats:
 
     def _period(self, model_loaded: bool):
         now = time.monotonic()
-        t0, f0, n0, m0, i0, b0, lf0, busy0, q0 = self._mark
+        t0, f0, n0, m0, i0, b0, lf0, busy0 = self._mark
         dt = max(now - t0, 1e-9)
         d_frames = self.frames_labelled - f0
         d_bad = self.frames_malformed + self.frames_failed + self.frames_dropped - m0
@@ -123,20 +127,22 @@ class FdiStats:
             "last_error": self.last_error,
             "config_error": self.config_error,
         }
+        w_rows, w_faulty = self.traces_labelled - self._fault_window[0], self.rows_faulty - self._fault_window[1]
+        if w_rows >= MOSTLY_FAULTY_MIN_ROWS:  # judged on the rows since the last judgement; held until the next
+            self._mostly_faulty = "" if w_faulty <= MOSTLY_FAULTY * w_rows else (
+                f"{100 * w_faulty / w_rows:.0f} % of the last {w_rows} rows were faults or unknown: a failing head, "
+                "or a model or baselines that are not this head's (another head, renumbered nozzles: record the "
+                "baselines again)")
+            self._fault_window = (self.traces_labelled, self.rows_faulty)
+        warnings = [w for w in (
+            self.config_error,
+            d_bad and f"{d_bad} malformed, failed or dropped frame(s) in the last {dt:.1f} s",
+            self._mostly_faulty,
+            d_invalid and f"{d_invalid} invalid row(s) in the last {dt:.1f} s") if w]
         if not model_loaded:
             level, message = "error", "no FDI model loaded: frames are not labelled"
-        elif self.config_error:
-            level, message = "warn", self.config_error
-        elif d_bad:
-            level, message = "warn", f"{d_bad} malformed, failed or dropped frame(s) in the last {dt:.1f} s"
-        elif d_invalid:
-            level, message = "warn", f"{d_invalid} invalid row(s) in the last {dt:.1f} s"
-        elif (d_rows := self.traces_labelled - n0) >= MOSTLY_FAULTY_MIN_ROWS and (
-                self.rows_faulty - q0) > MOSTLY_FAULTY * d_rows:
-            level, message = "warn", (
-                f"{100 * (self.rows_faulty - q0) / d_rows:.0f} % of the {d_rows} rows of the last {dt:.1f} s were "
-                "faults or unknown: a failing head, or a model or baselines that are not this head's (another "
-                "head, renumbered nozzles: record the baselines again)")
+        elif warnings:
+            level, message = "warn", "; ".join(warnings)
         elif self.frames_received == 0:
             level, message = "stale", "no trace frame received yet"
         elif d_frames == 0:
@@ -145,5 +151,5 @@ class FdiStats:
             level, message = "ok", f"{d_frames} frame(s) labelled in the last {dt:.1f} s"
         self._mark = (now, self.frames_labelled, self.traces_labelled,
                       self.frames_malformed + self.frames_failed + self.frames_dropped, self.rows_invalid,
-                      self.batches, self.frames_labelled, self.busy_s, self.rows_faulty)
+                      self.batches, self.frames_labelled, self.busy_s)
         return level, message, values

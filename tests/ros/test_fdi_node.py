@@ -295,22 +295,31 @@ def test_diagnostics_counts_invalid_from_the_start():
 
 
 def test_diagnostics_warn_when_most_rows_are_faults():
-    """A period whose rows are mostly faults or unknown (baselines of another head make every nozzle look
-    unlike its own) is WARN, saying so; a working head's few faults, or too few rows to judge, are not."""
+    """Rows mostly faults or unknown (baselines of another head make every nozzle look unlike its own) are WARN,
+    judged on the rows since the last judgement (a small head's over several periods) and held until the next;
+    a working head's few faults are not; the warning joins the others of the period."""
     from inkdiag_ros.stats import FdiStats
 
     stats = FdiStats()
     stats.period(True)
-    for _ in range(10):  # 2,000 rows, 2 % faulty
-        stats.received()
-        stats.labelled({"healthy_nozzle": 196, "deeply_dried": 2, "unknown": 2}, 200)
+
+    def frames(n, counts):
+        for _ in range(n):
+            stats.received()
+            stats.labelled(counts, sum(counts.values()))
+
+    frames(10, {"healthy_nozzle": 196, "deeply_dried": 2, "unknown": 2})  # 2,000 rows, 2 % faulty
     level, message, values, _, _ = stats.period(True)
     assert level == "ok" and values["rows_faulty"] == 40, message
-    for _ in range(10):  # 2,000 rows, 60 % unknown
-        stats.received()
-        stats.labelled({"healthy_nozzle": 80, "unknown": 120}, 200)
-    level, message, values, _, _ = stats.period(True)
-    assert level == "warn" and message.startswith("60 % of the 2000 rows of the last") and "baselines" in message
-    stats.received()
-    stats.labelled({"unknown": 200}, 200)  # 200 rows: too few to judge
+    for k in range(4):  # a 64-nozzle head, all unknown: 320 rows a period, judged once 1,000 are in
+        frames(5, {"unknown": 64})
+        level, message = stats.period(True)[:2]
+        assert (level == "warn") == (k >= 3), (k, message)
+    assert message.startswith("100 % of the last 1280 rows were faults or unknown") and "baselines" in message
+    frames(5, {"healthy_nozzle": 64})  # not judged yet: the warning holds
+    assert stats.period(True)[0] == "warn"
+    frames(1, {"unknown": 60, "invalid": 4})  # with invalid rows: both said
+    message = stats.period(True)[1]
+    assert "invalid row(s)" in message and "were faults or unknown" in message
+    frames(20, {"healthy_nozzle": 64})  # judged again on healthy rows: OK
     assert stats.period(True)[0] == "ok"

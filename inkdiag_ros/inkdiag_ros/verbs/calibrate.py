@@ -31,8 +31,8 @@ Healthy traces pin the healthy mode, not how the restrictor and the nozzle share
 (the prior does, within +-12 % on the heads of reports/heads.md). --blocked gives
 traces of fully blocked nozzles of the head (an .npz of at least 10; with a label
 column, its fully_blocked rows): their ringing is the restrictor with the chamber alone,
-and the fit matches their median mode too, which pins the split (-3.6 to +0.2 % from 50
-traces on those heads). Traces that are not fully blocked nozzles are refused (their
+and the fit matches their median mode too, which pins the split (within 3.6 % from 50
+traces on those heads; record them at the healthy traces' ink temperature). Traces that are not fully blocked nozzles are refused (their
 damping, their spread or the restrictor they would give says so), as are blocked traces
 that contradict a restrictor the nominal profile gives.
 
