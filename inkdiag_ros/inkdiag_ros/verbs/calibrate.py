@@ -32,9 +32,10 @@ Healthy traces pin the healthy mode, not how the restrictor and the nozzle share
 traces of fully blocked nozzles of the head (an .npz of at least 10; with a label
 column, its fully_blocked rows): their ringing is the restrictor with the chamber alone,
 and the fit matches their median mode too, which pins the split (within 3.6 % from 50
-traces on those heads; record them at the healthy traces' ink temperature). Traces that are not fully blocked nozzles are refused (their
-damping, their spread or the restrictor they would give says so), as are blocked traces
-that contradict a restrictor the nominal profile gives.
+traces on those heads; record them at the healthy traces' ink temperature). Traces
+that are not fully blocked nozzles are refused (their damping, their spread or the
+restrictor they would give says so), as are blocked traces that contradict a
+restrictor the nominal profile gives.
 
 A rosbag2 bag is streamed: its rows screening accepts are sampled uniformly, at most
 10000 (reservoir sampling, seeded by --seed), so memory stays bounded whatever the
@@ -256,8 +257,10 @@ def _markdown(r) -> str:
         "",
         *([] if not (fb := r.get("blocked_mode")) else [
             f"Fully blocked nozzles (`{r.get('blocked')}`, {fb['n_traces']} traces): their mode recorded "
-            f"{fb['frequency_hz_recorded'] / 1e3:.2f} kHz (standard error {fb['frequency_hz_std_error'] / 1e3:.2f} kHz), "
-            f"the calibrated channel's {fb['frequency_hz_fitted'] / 1e3:.2f} kHz: it pins the restrictor.", ""]),
+            f"{fb['frequency_hz_recorded'] / 1e3:.2f} kHz (standard error "
+            f"{fb['frequency_hz_std_error'] / 1e3:.2f} kHz, damping ratio {fb['damping_ratio_recorded']:.3f}), "
+            f"the calibrated channel's {fb['frequency_hz_fitted'] / 1e3:.2f} kHz (damping ratio "
+            f"{fb['damping_ratio_fitted']:.3f}): it pins the restrictor.", ""]),
         f"RMS residual relative to the trace RMS: mean trace {100 * rr['mean_trace']:.2f} %, per trace median "
         f"{100 * rr['per_trace_median']:.2f} % (P90 {100 * rr['per_trace_p90']:.2f} %); the white noise alone is "
         f"{100 * rr['noise_floor']:.2f} %.",

@@ -180,7 +180,8 @@ def run(args) -> int:
     if baselines is not None:  # a nozzle column that does not match the baselines' ids is said, not silent
         n_plain = n_rows - n_invalid - n_base
         against = (f"; {n_base} against their nozzle's baseline, {n_plain} without one (no baseline for that nozzle "
-                   "id: check the recording's nozzle ids, its 'nozzle' column; without one its rows are numbered 0..n-1)" if n_plain else f"; all {n_base} against their nozzle's "
+                   "id: check the recording's nozzle ids, its 'nozzle' column; without one its rows are numbered "
+                   "0..n-1)" if n_plain else f"; all {n_base} against their nozzle's "
                    "baseline")
     print(f"labelled {n_rows - n_invalid} of {n_rows} rows with {detector.model_id} (head {head.name!r}); "
           f"{n_invalid} invalid" + (f", {n_failed} in frames whose labelling failed" if n_failed else "") + against
