@@ -152,3 +152,20 @@ def test_out_dash_is_for_the_csv_verbs_only(head, tmp_path, monkeypatch):
     assert main(["baseline", str(d / "rec.npz"), "--profile", str(d / "head.yaml"), "--out", "-"]) == 2
     assert main(["train", "--profile", str(d / "head.yaml"), "--out", "-"]) == 2
     assert not (tmp_path / "-").exists()
+
+
+def test_estimate_says_how_many_rows_were_relative_to_their_nozzles_baseline(head, tmp_path):
+    """--baselines of nozzles 0..3 on a recording of nozzles 0..7: the summary counts the rows taken relative
+    to their nozzle's healthy f_m and the rows without one, and says where the ids come from."""
+    from inkdiag_core import BaselineRecorder
+
+    d, p, r = head
+    rec = BaselineRecorder(n_frames=1, fm_frames=1, profile=p)
+    rec.add(0, p.simulate({"healthy_nozzle": 4}, seed=21).traces)
+    rec.baselines().save(tmp_path / "b.npz")
+    res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--baselines", tmp_path / "b.npz",
+                  "--out", tmp_path / "fm.csv")
+    assert res.returncode == 0, res.stderr
+    assert "13 of 16 rows estimated" in res.stdout
+    # rows 0..3 and 8..11 are nozzles 0..3; rows 1, 2, 3 are not estimated (non-finite, flat, clipped)
+    assert "; 5 relative to their nozzle's healthy f_m, 8 without one (no baseline for that nozzle id" in res.stdout

@@ -115,6 +115,20 @@ def select_rows(spec, n: int, labels=None):
     return np.concatenate(out) if out else np.empty(0, dtype=np.int64)
 
 
+def _against(tracker, n_estimated: int, notes) -> str:
+    """With f_m baselines in use: how many estimates took their nozzle's healthy reading off (a nozzle
+    column that does not match the baselines' ids is said, not silent)."""
+    b = tracker.baselines
+    if b is None or b.fm is None or notes:  # none given, or not used (a note says why)
+        return ""
+    k = min(tracker.estimates_with_baseline, n_estimated)
+    if k == n_estimated:
+        return f"; all {k} relative to their nozzle's healthy f_m"
+    return (f"; {k} relative to their nozzle's healthy f_m, {n_estimated - k} without one (no baseline for that "
+            "nozzle id: check the recording's nozzle ids, its 'nozzle' column; without one its rows are numbered "
+            "0..n-1)")
+
+
 def _to(out: str) -> str:
     """The summary line's tail naming where the CSV went."""
     return "" if out == "-" else f" -> {out}"
@@ -220,7 +234,8 @@ def run(args) -> int:
     bad = reasons != ""
     why = ", ".join(f"{k} {int(np.sum(reasons == k))}" for k in sorted(set(reasons[bad].tolist())))
     print(f"inkdiag estimate: {n - int(bad.sum())} of {n} rows estimated ({method}, head {profile.name!r})"
-          + (f"; not estimated: {why}" if bad.any() else "") + _to(args.out), file=summary_stream(args.out))
+          + (f"; not estimated: {why}" if bad.any() else "") + _against(tracker, n - int(bad.sum()), notes)
+          + _to(args.out), file=summary_stream(args.out))
     for note in sorted(notes):
         print(f"inkdiag estimate: note: {note}", file=sys.stderr)
     return 0
@@ -334,7 +349,7 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
                          f"({n} rows estimated into {'stdout' if args.out == '-' else args.out})")
     print(f"inkdiag estimate: {n - n_bad} of {n} rows estimated ({method}, head {profile.name!r})"
           + (f"; not estimated: {', '.join(f'{k} {v}' for k, v in sorted(why.items()))}" if n_bad else "")
-          + _to(args.out), file=summary_stream(args.out))
+          + _against(tracker, n - n_bad, notes) + _to(args.out), file=summary_stream(args.out))
     for note in sorted(notes):
         print(f"inkdiag estimate: note: {note}", file=sys.stderr)
     return 0
