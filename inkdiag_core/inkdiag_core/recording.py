@@ -33,13 +33,14 @@ import numpy as np
 
 from .checks import InputError
 from .faults import FaultClass
+from .openset import UNKNOWN
 
 __all__ = ["Recording", "RecordingError", "load_recording", "save_recording"]
 
 #: Labels that name no class: what ``inkdiag label`` writes for a row it could not judge and for one
 #: unlike every class. A recording may carry them (a label column from ``inkdiag label``); training
 #: leaves their rows out.
-NOT_CLASSES = ("invalid", "unknown")
+NOT_CLASSES = ("invalid", UNKNOWN)
 #: Every value a recording's ``label`` may hold.
 LABEL_VALUES = frozenset(c.value for c in FaultClass) | frozenset(NOT_CLASSES)
 

@@ -5,6 +5,10 @@ from __future__ import annotations
 import contextlib
 import sys
 
+#: What a summary line adds where rows had no baseline for their nozzle id (label, estimate).
+NO_BASELINE_HINT = ("no baseline for that nozzle id: check the recording's nozzle ids, its 'nozzle' column; "
+                    "without one its rows are numbered 0..n-1")
+
 
 @contextlib.contextmanager
 def open_csv_out(path: str):

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import re
 
-from . import open_csv_out, summary_stream
+from . import NO_BASELINE_HINT, open_csv_out, summary_stream
 
 OUT_STDOUT = True  # --out - writes the CSV to standard output
 HELP = "estimate the drying fault f_m and the nozzle viscosity of recorded traces"
@@ -124,9 +124,7 @@ def _against(tracker, n_estimated: int, notes) -> str:
     k = min(tracker.estimates_with_baseline, n_estimated)
     if k == n_estimated:
         return f"; all {k} relative to their nozzle's healthy f_m"
-    return (f"; {k} relative to their nozzle's healthy f_m, {n_estimated - k} without one (no baseline for that "
-            "nozzle id: check the recording's nozzle ids, its 'nozzle' column; without one its rows are numbered "
-            "0..n-1)")
+    return f"; {k} relative to their nozzle's healthy f_m, {n_estimated - k} without one ({NO_BASELINE_HINT})"
 
 
 def _to(out: str) -> str:

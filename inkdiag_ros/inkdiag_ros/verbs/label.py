@@ -144,7 +144,7 @@ def run(args) -> int:
     from inkdiag_core import FrameLabeller, LabellerConfigError, NozzleBaselines, load_detector
     from inkdiag_core.head_profile import HeadProfile
     from ..bags import report_stats, stream_recording
-    from . import open_csv_out
+    from . import NO_BASELINE_HINT, open_csv_out
 
     detector = load_detector(args.model)  # ModelFileError (a ValueError): missing, tampered, other versions
     head = detector.profile if detector.profile is not None else HeadProfile.default()
@@ -179,10 +179,8 @@ def run(args) -> int:
     against = ""
     if baselines is not None:  # a nozzle column that does not match the baselines' ids is said, not silent
         n_plain = n_rows - n_invalid - n_base
-        against = (f"; {n_base} against their nozzle's baseline, {n_plain} without one (no baseline for that nozzle "
-                   "id: check the recording's nozzle ids, its 'nozzle' column; without one its rows are numbered "
-                   "0..n-1)" if n_plain else f"; all {n_base} against their nozzle's "
-                   "baseline")
+        against = (f"; {n_base} against their nozzle's baseline, {n_plain} without one ({NO_BASELINE_HINT})"
+                   if n_plain else f"; all {n_base} against their nozzle's baseline")
     print(f"labelled {n_rows - n_invalid} of {n_rows} rows with {detector.model_id} (head {head.name!r}); "
           f"{n_invalid} invalid" + (f", {n_failed} in frames whose labelling failed" if n_failed else "") + against
           + (f"; wrote {args.out}" if args.out != "-" else ""), file=sys.stderr)
