@@ -241,7 +241,7 @@ def _features(features: str, fs: float, profile=None):
 def make_fdi_pipeline(kind: str = "rf", features: str = "kpi_y", *, sample_rate_hz: float | None = None,
                       random_state: int | None = 0, n_estimators: int = 100,
                       min_samples_leaf: int = 1, n_neighbors: int = 5,
-                      n_jobs: int | None = None, profile=None) -> Pipeline:
+                      n_jobs: int | None = None, profile=None, max_features="sqrt") -> Pipeline:
     """Build an unfitted FDI pipeline: features -> (scaling) -> classifier.
 
     Parameters
@@ -266,6 +266,10 @@ def make_fdi_pipeline(kind: str = "rf", features: str = "kpi_y", *, sample_rate_
         (:meth:`~inkdiag_core.HeadProfile.channel_params`) and its bands
         (:func:`inkdiag_core.residual.head_bands_hz`), the band energies its edges
         (:func:`head_band_edges_hz`). None: the default head.
+    max_features : {"sqrt", "log2"}, int, float or None
+        Features each split of the Random Forest may choose from (scikit-learn's
+        ``max_features``; default ``"sqrt"``, scikit-learn's). :class:`inkdiag_core.FaultDetector`
+        uses None (every feature).
 
     Returns
     -------
@@ -282,7 +286,7 @@ def make_fdi_pipeline(kind: str = "rf", features: str = "kpi_y", *, sample_rate_
     feats = _features(features, float(sample_rate_hz), profile)
     if kind == "rf":
         clf = RandomForestClassifier(n_estimators=n_estimators, min_samples_leaf=min_samples_leaf,
-                                     random_state=random_state, n_jobs=n_jobs)
+                                     max_features=max_features, random_state=random_state, n_jobs=n_jobs)
         return Pipeline([("features", feats), ("classifier", clf)])
     clf = KNeighborsClassifier(n_neighbors=n_neighbors)
     return Pipeline([("features", feats), ("scale", StandardScaler()), ("classifier", clf)])
@@ -577,7 +581,7 @@ def fnr_threshold(p_faulty_of_faults, fnr_target: float = 0.005) -> float:
 
 def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: str = "rf",
                         features: str = "kpi_y", n_estimators: int = 50, min_samples_leaf: int = 3,
-                        fnr_target: float = 0.005, baseline: bool = False, unknown_rate: float | None = 0.01,
+                        max_features=None, fnr_target: float = 0.005, baseline: bool = False, unknown_rate: float | None = 0.01,
                         progress=None):
     """Train the FDI model the nodes load by default, and save it with its manifest.
 
@@ -633,13 +637,15 @@ def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: st
     data = {"n_per_class": int(n_per_class), "seed": int(seed)}
     if features == "kpi_y+baseline":
         return _train_baseline_pipeline(path, sim, y, data, kind=kind, n_estimators=n_estimators,
-                                        min_samples_leaf=min_samples_leaf, fnr_target=fnr_target, report=report)
+                                        min_samples_leaf=min_samples_leaf, max_features=max_features,
+                                        fnr_target=fnr_target, report=report)
     from .baselines import baseline_training_kpis
     from .detector import FaultDetector
 
     det = FaultDetector(kind=kind, features=features, sample_rate_hz=float(sim.sample_rate_hz),
                         n_estimators=int(n_estimators), min_samples_leaf=int(min_samples_leaf),
-                        fnr_target=float(fnr_target), unknown_rate=unknown_rate, random_state=int(seed))
+                        max_features=max_features, fnr_target=float(fnr_target), unknown_rate=unknown_rate,
+                        random_state=int(seed))
     det.fit(sim.traces, y, baseline_kpis=baseline_training_kpis(sim, seed) if baseline else None)
     report(2, total, f"fitted {kind} on {features} features" + (" and baselines" if baseline else ""))
     report(3, total, f"validation FI accuracy {100 * det.scores_['validation_fi_accuracy']:.1f}%")
@@ -648,7 +654,8 @@ def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: st
     return manifest
 
 
-def _train_baseline_pipeline(path, sim, y, data, *, kind, n_estimators, min_samples_leaf, fnr_target, report):
+def _train_baseline_pipeline(path, sim, y, data, *, kind, n_estimators, min_samples_leaf, max_features, fnr_target,
+                             report):
     """The previous ``"kpi_y+baseline"`` route of :func:`train_default_model` (a plain pipeline file)."""
     from sklearn.model_selection import train_test_split
 
@@ -659,13 +666,13 @@ def _train_baseline_pipeline(path, sim, y, data, *, kind, n_estimators, min_samp
     X = baseline_training_rows(sim, seed)
     Xtr, Xval, ytr, yval = train_test_split(X, y, test_size=0.25, random_state=seed, stratify=y)
     pipe = make_fdi_pipeline(kind, "kpi_y+baseline", random_state=seed, n_estimators=n_estimators,
-                             min_samples_leaf=min_samples_leaf).fit(Xtr, ytr)
+                             min_samples_leaf=min_samples_leaf, max_features=max_features).fit(Xtr, ytr)
     report(2, 4, f"fitted {kind} on kpi_y+baseline features")
     threshold, scores = threshold_and_scores(pipe, Xval, yval, fnr_target)
     report(3, 4, f"validation FI accuracy {100 * scores['validation_fi_accuracy']:.1f}%")
     config = {"kind": kind, "features": "kpi_y+baseline", **data,
               "n_estimators": int(n_estimators), "min_samples_leaf": int(min_samples_leaf),
-              "sample_rate_hz": float(sim.sample_rate_hz), "n_samples": int(sim.traces.shape[1]),
+              "max_features": max_features, "sample_rate_hz": float(sim.sample_rate_hz), "n_samples": int(sim.traces.shape[1]),
               "fd_threshold": threshold, "fnr_target": float(fnr_target),
               "classes": [str(c) for c in pipe.classes_]}
     manifest = save_model(pipe, path, config=config, scores=scores)

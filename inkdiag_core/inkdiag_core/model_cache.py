@@ -32,8 +32,10 @@ DEFAULT_MODEL = Path("models") / "fdi_default.joblib"
 #: Feature set of each default file name.
 DEFAULT_FEATURES = {DEFAULT_MODEL.name: "kpi_y"}
 #: Training settings that define the default model; a cached file trained otherwise is stale.
-DEFAULT_SETTINGS = ("kind", "features", "n_per_class", "seed", "n_estimators", "min_samples_leaf", "fnr_target",
-                    "baseline", "unknown_rate")
+DEFAULT_SETTINGS = ("kind", "features", "n_per_class", "seed", "n_estimators", "min_samples_leaf", "max_features",
+                    "fnr_target", "baseline", "unknown_rate")
+#: What a file whose manifest predates a setting was trained with.
+_SETTINGS_BEFORE = {"max_features": "sqrt"}
 
 
 def default_config(name: str = DEFAULT_MODEL.name) -> dict:
@@ -90,8 +92,8 @@ def ensure_default_model(path=DEFAULT_MODEL, *, progress=True, log=print):
         try:
             obj, manifest = load_model(path, as_pipeline=False)
             cfg = manifest.get("config", {})
-            stale = {k: (cfg.get(k), v) for k, v in want.items()
-                     if path.name in DEFAULT_FEATURES and cfg.get(k) != v}
+            had = {k: cfg.get(k, _SETTINGS_BEFORE.get(k)) for k in want}
+            stale = {k: (had[k], v) for k, v in want.items() if path.name in DEFAULT_FEATURES and had[k] != v}
             layers = [getattr(obj, a, None) for a in ("openset_", "baseline_openset_")]
             versions = {getattr(x, "features_version_", 1) for x in layers if x is not None}
             if versions - {OPENSET_FEATURES_VERSION}:

@@ -105,7 +105,8 @@ def _real_rows(data, profile, seed, validation_fraction, n_sim_per_class):
 
 def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseline: bool = False,
                    n_per_class: int = 1000, data=None, seed: int = 0, n_estimators: int = 50,
-                   min_samples_leaf: int = 3, fnr_target: float = 0.005, validation_fraction: float = 0.25,
+                   min_samples_leaf: int = 3, max_features=None, fnr_target: float = 0.005,
+                   validation_fraction: float = 0.25,
                    unknown_rate: float | None = 0.01, posterior_draws: int = 1, progress=None,
                    return_data: bool = False):
     """Fit a :class:`inkdiag_core.FaultDetector` for the head of ``profile``.
@@ -142,7 +143,7 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
         Labelled recordings of this head (``label`` required, the profile's sampling).
     seed : int
         Seed of the simulation, the split and the forest.
-    n_estimators, min_samples_leaf, fnr_target, validation_fraction, unknown_rate
+    n_estimators, min_samples_leaf, max_features, fnr_target, validation_fraction, unknown_rate
         As :class:`inkdiag_core.FaultDetector` (``unknown_rate``: the open-set layer's
         false-unknown bound, default 0.01; None or 0: no ``unknown``).
     posterior_draws : int
@@ -201,8 +202,9 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
     info = {"n_per_class": int(n_per_class), "seed": int(seed),
             "training_data": "simulated", "n_real_rows": 0, "posterior_draws": len(heads)}
     det = FaultDetector(kind=kind, features=features, profile=profile, n_estimators=int(n_estimators),
-                        min_samples_leaf=int(min_samples_leaf), fnr_target=float(fnr_target),
-                        validation_fraction=float(validation_fraction), unknown_rate=unknown_rate,
+                        min_samples_leaf=int(min_samples_leaf), max_features=max_features,
+                        fnr_target=float(fnr_target), validation_fraction=float(validation_fraction),
+                        unknown_rate=unknown_rate,
                         random_state=int(seed))
     real = np.zeros(len(y), dtype=bool)
     if data is None:

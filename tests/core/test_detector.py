@@ -48,9 +48,11 @@ def new():
 
 
 def _old_route(X, y, seed, features="kpi_y"):
-    """train_default_model before FaultDetector: split, pipeline, threshold (as it was written)."""
+    """train_default_model before FaultDetector: split, pipeline, threshold (as it was written; the
+    forest's splits choose from every feature, as the detector's do since max_features)."""
     Xtr, Xval, ytr, yval = train_test_split(X, y, test_size=0.25, random_state=seed, stratify=y)
-    pipe = make_fdi_pipeline("rf", features, random_state=seed, n_estimators=50, min_samples_leaf=3).fit(Xtr, ytr)
+    pipe = make_fdi_pipeline("rf", features, random_state=seed, n_estimators=50, min_samples_leaf=3,
+                             max_features=None).fit(Xtr, ytr)
     labels0, _, p_faulty = classify(pipe, Xval, fd_threshold=0.5)
     is_fault = fd_labels(yval) == 1
     threshold = fnr_threshold(p_faulty[is_fault], 0.005)
