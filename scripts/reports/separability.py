@@ -9,13 +9,16 @@ trained on the foreign head's OWN labelled traces (``tests/foreign_head.py``, se
 + 100, tested on seed + 101), with everything about the head known, what per-class accuracy
 is possible at all? Per head:
 
-- **kpi_y**, **rich**, **kpi_y+r_modified**: inkdiag's feature sets with its 50-tree forest
-  (``make_fdi_pipeline``; the residual filters from the head's true profile);
+- **kpi_y**, **rich**, **kpi_y+r_modified**: inkdiag's feature sets with its detector's forest
+  (``make_fdi_pipeline``, 50 trees, >= 3 traces per leaf, every feature at each split as
+  ``FaultDetector``'s ``max_features=None``; the residual filters from the head's true profile);
+- **kpi_y, 2 KPIs per split**: the same forest with scikit-learn's default ``max_features="sqrt"``;
+- **kpi_y, gradient boosting**: ``HistGradientBoostingClassifier`` (300 iterations) on the KPIs;
 - **spectrum + waveform, gradient boosting**: a stronger learner on more of the trace (the
   7 KPIs, log of the first 80 normalised FFT magnitudes, the peak-normalised waveform at
   128 points; scikit-learn's ``HistGradientBoostingClassifier``, 300 iterations), on the
   four classes that overlap (partially_blocked and the dried classes) and healthy, 1,500
-  traces per class (``--no-hgb`` skips it: ~1 min per head);
+  traces per class (``--no-hgb`` skips both boosting columns: ~1 min per head);
 - **kpi_y + nozzle baseline**: each trace with its own nozzle's healthy KPIs (a healthy
   twin with the same per-nozzle spreads: ``simulate_foreign`` draws every spread per row in
   a fixed order, so the same seed and row count give the same nozzles), inkdiag's
@@ -48,6 +51,7 @@ from _common import md_table  # noqa: E402
 from inkdiag_core import FaultClass, HeadProfile, extract_kpis, make_fdi_pipeline, with_baseline  # noqa: E402
 
 CLASSES = [c.value for c in FaultClass]
+SPECTRUM = "spectrum + waveform, gradient boosting (5 classes)"
 OVERLAP = ["healthy_nozzle", "partially_blocked", "slightly_dried", "intermediately_dried", "deeply_dried"]
 
 
@@ -60,14 +64,30 @@ def _per_class(pred, y, classes):
     return {c: float(np.mean(pred[y == c] == c)) for c in classes}
 
 
-def _forest(head_spec, features, classes, n_train, n_test, seed, profile=None):
+#: The detector's forest (``FaultDetector``'s defaults).
+FOREST = {"n_estimators": 50, "min_samples_leaf": 3, "max_features": None}
+
+
+def _forest(head_spec, features, classes, n_train, n_test, seed, profile=None, **forest):
     tr = fh.simulate_foreign(head_spec, {c: n_train for c in classes}, seed + 100)
     te = fh.simulate_foreign(head_spec, {c: n_test for c in classes}, seed + 101)
     fs = float(tr["sample_rate_hz"])
-    pipe = make_fdi_pipeline("rf", features, sample_rate_hz=fs, n_estimators=50, profile=profile)
+    pipe = make_fdi_pipeline("rf", features, sample_rate_hz=fs, profile=profile, **{**FOREST, **forest})
     pipe.fit(np.asarray(tr["traces"]), np.asarray(tr["labels"]).astype(str))
     y = np.asarray(te["labels"]).astype(str)
     return _per_class(pipe.predict(np.asarray(te["traces"])), y, classes)
+
+
+def _kpi_boosting(head, classes, n_train, n_test, seed):
+    from sklearn.ensemble import HistGradientBoostingClassifier
+
+    tr = fh.simulate_foreign(head, {c: n_train for c in classes}, seed + 100)
+    te = fh.simulate_foreign(head, {c: n_test for c in classes}, seed + 101)
+    fs = float(tr["sample_rate_hz"])
+    clf = HistGradientBoostingClassifier(max_iter=300, random_state=seed)
+    clf.fit(extract_kpis(np.asarray(tr["traces"]), fs), np.asarray(tr["labels"]).astype(str))
+    y = np.asarray(te["labels"]).astype(str)
+    return _per_class(clf.predict(extract_kpis(np.asarray(te["traces"]), fs)), y, classes)
 
 
 def _with_twins(head, classes, n, seed):
@@ -83,7 +103,7 @@ def _with_twins(head, classes, n, seed):
 def _baseline_forest(head, classes, n_train, n_test, seed):
     Xtr, ytr, fs = _with_twins(head, classes, n_train, seed + 100)
     Xte, yte, _ = _with_twins(head, classes, n_test, seed + 101)
-    pipe = make_fdi_pipeline("rf", "kpi_y+baseline", sample_rate_hz=fs, n_estimators=50).fit(Xtr, ytr)
+    pipe = make_fdi_pipeline("rf", "kpi_y+baseline", sample_rate_hz=fs, **FOREST).fit(Xtr, ytr)
     return _per_class(pipe.predict(Xte), yte, classes)
 
 
@@ -114,23 +134,28 @@ def main() -> int:
     ap.add_argument("--train", type=int, default=400, help="training traces per class (the forests)")
     ap.add_argument("--test", type=int, default=200, help="test traces per class")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--no-hgb", action="store_true", help="skip the gradient-boosting column")
+    ap.add_argument("--no-hgb", action="store_true", help="skip the gradient-boosting columns")
     ns = ap.parse_args()
     unknown = [h for h in ns.heads if h not in fh.FOREIGN_HEADS]
     if unknown:
         ap.error(f"unknown head {unknown[0]!r}; tests/foreign_head.py has {', '.join(fh.FOREIGN_HEADS)}")
     t0 = time.perf_counter()
-    cols = ["kpi_y", "rich", "kpi_y+r_modified", "kpi_y + nozzle baseline", "kpi_y, no spreads"]
+    cols = ["kpi_y", "kpi_y, 2 KPIs per split", "rich", "kpi_y+r_modified", "kpi_y + nozzle baseline",
+            "kpi_y, no spreads"]
     if not ns.no_hgb:
-        cols.insert(3, "spectrum + waveform, gradient boosting (5 classes)")
+        cols[2:2] = ["kpi_y, gradient boosting"]
+        cols.insert(5, SPECTRUM)
     results = {}
     for head in ns.heads:
         prof = _true_profile(head)
-        r = {"kpi_y": _forest(head, "kpi_y", CLASSES, ns.train, ns.test, ns.seed)}
+        r = {"kpi_y": _forest(head, "kpi_y", CLASSES, ns.train, ns.test, ns.seed),
+             "kpi_y, 2 KPIs per split": _forest(head, "kpi_y", CLASSES, ns.train, ns.test, ns.seed,
+                                                max_features="sqrt")}
         for feats in ("rich", "kpi_y+r_modified"):
             r[feats] = _forest(head, feats, CLASSES, ns.train, ns.test, ns.seed, profile=prof)
         if not ns.no_hgb:
-            r[cols[3]] = _boosting(head, 1500, 2 * ns.test, ns.seed)
+            r["kpi_y, gradient boosting"] = _kpi_boosting(head, CLASSES, ns.train, ns.test, ns.seed)
+            r[SPECTRUM] = _boosting(head, 1500, 2 * ns.test, ns.seed)
         r["kpi_y + nozzle baseline"] = _baseline_forest(head, CLASSES, ns.train, ns.test, ns.seed)
         still = copy.deepcopy(fh.FOREIGN_HEADS[head])
         still["spreads"] = {k: 0.0 for k in fh.FOREIGN_SPREADS}
@@ -147,8 +172,10 @@ def main() -> int:
              "(`tests/foreign_head.py`), not on inkdiag's simulation: what any classifier with these inputs "
              "can reach on that head, against which `reports/heads.md` (inkdiag's calibrate -> train on "
              "simulation -> label workflow) can be read. Per-class accuracy, %.", "",
-             "Columns: inkdiag's feature sets with its 50-tree forest (the residual filters from the head's "
-             "true profile); a gradient-boosted classifier on the 7 KPIs, the first 80 log-normalised FFT "
+             "Columns: inkdiag's feature sets with its detector's forest (50 trees, at least 3 traces per leaf, "
+             "every feature at each split; the residual filters from the head's true profile); the same forest "
+             "on kpi_y with scikit-learn's default of 2 of the 7 KPIs per split; a gradient-boosted classifier "
+             "(300 iterations) on kpi_y; one on the 7 KPIs, the first 80 log-normalised FFT "
              "magnitudes and the normalised waveform at 128 points, on the five classes that overlap (1,500 "
              "training traces each); each trace with its own nozzle's healthy KPIs (one frame of a healthy twin of "
              "the same nozzle at the same temperature; a commissioning baseline is the median of 8 frames, at "

@@ -126,7 +126,8 @@ def one_seed(seed, n, n_train, n_bench):
     # throughput, same batch, same run: scripts/bench fdi's rf/kpi_y (100 trees) is the reference
     X = simulate({c: n_bench for c in FaultClass}, seed=2000 + seed).traces
     ref = make_fdi_pipeline("rf", "kpi_y").fit(sim.traces, y_train)
-    det100 = FaultDetector(n_estimators=100, min_samples_leaf=1, random_state=0).fit(sim.traces, y_train)
+    det100 = FaultDetector(n_estimators=100, min_samples_leaf=1, max_features="sqrt", random_state=0).fit(
+        sim.traces, y_train)
     closed50 = FaultDetector(**{**det.get_params(), "unknown_rate": None}).fit(sim.traces, y_train)
     t = best_of({"ref": lambda: ref.predict_proba(X), "open100": lambda: det100.label(X),
                  "open50": lambda: det.label(X), "closed50": lambda: closed50.label(X)})
