@@ -153,12 +153,16 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
     max_features : {"sqrt", "log2"}, int, float or None
         Features each split of the forest may choose from (scikit-learn's
         ``max_features``). Default None: every feature. On KPI_Y (7 features) that
-        tells partially blocked from dried nozzles on other heads better than
-        scikit-learn's ``"sqrt"`` (2 per split): on the 20 MHz head of
-        ``reports/heads.md``, trained on inkdiag's simulation of its true profile,
-        partially_blocked 78.0 % against 70.5 %, and the weakest class over three
-        calibrated runs 67.5-78.0 % against 65.0-73.5 %. Files from before this
-        parameter read as ``"sqrt"``, what they were fitted with.
+        tells partially blocked from dried nozzles better than scikit-learn's
+        ``"sqrt"`` (2 per split): trained on a head's own traces, partially_blocked
+        71.0 against 63.5 % on the 20 MHz head and 49.5 against 42.0 % on the 5 MHz
+        head of ``reports/separability.md``; trained on inkdiag's simulation of the
+        20 MHz head (``reports/heads.md``), 78.0 against 70.5 % with its true profile
+        and a weakest class of 67.5-78.0 against 65.0-73.5 % over three calibrated
+        runs (on the 5 MHz head's calibrated profile, whose restrictor is 7-12 % off,
+        partially_blocked fell from 19.5-28.5 to 17.0-22.0 %). Measured on KPI_Y only;
+        a fit takes 2.5x longer on KPI_Y and 5x on the 36 ``rich`` features. Files from before
+        this parameter read as ``"sqrt"``, what they were fitted with.
     n_neighbors : int
         Neighbours (``kind="knn"``).
     fnr_target : float in [0, 1)

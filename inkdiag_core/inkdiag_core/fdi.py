@@ -586,12 +586,14 @@ def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: st
     """Train the FDI model the nodes load by default, and save it with its manifest.
 
     The default is a Random Forest on KPI_Y: on its validation split it isolates
-    faults as well as the rich feature set (96.4% vs 96.3% FI accuracy, seed 0,
-    400 traces per class; ``reports/fdi.md`` finds the same within one standard
-    deviation over 5 seeds) at about 6x its throughput (``scripts/bench fdi``).
-    50 trees with at least 3 traces per leaf classify as well as scikit-learn's
-    100 fully grown trees (validation FI 96.17 +- 0.41% vs 96.11 +- 0.27%, seeds
-    0-2) in half the time; the forest is about half of the node's labelling time.
+    faults as well as the rich feature set (95.92 +- 0.45 % vs 95.42 +- 0.48 % FI
+    accuracy, seeds 0-2, 400 traces per class, no open-set layer; ``reports/fdi.md``
+    finds the same within one standard deviation over 5 seeds) at about 6x its
+    throughput (``scripts/bench fdi``). 50 trees with at least 3 traces per leaf and
+    every KPI at each split classify as well as scikit-learn's 100 fully grown trees
+    of 2 KPIs per split (95.72 +- 0.28 %; 95.69 +- 0.57 % with 50 such trees, same
+    seeds; 2026-11-26) in half the time; the forest is about half of the node's
+    labelling time.
 
     Simulates ``n_per_class`` traces of each of the 12 classes and fits a
     :class:`inkdiag_core.FaultDetector` (``random_state=seed``: 75% fit the

@@ -261,7 +261,8 @@ def save_detector(detector, path, *, config: dict | None = None) -> Path:
     if not isinstance(detector, FaultDetector):
         raise TypeError(f"save_detector takes a FaultDetector, got {type(detector).__name__}")
     check_is_fitted(detector)
-    own = {**detector.get_params(), "estimator": DETECTOR_ESTIMATOR,
+    params = {k: v.item() if isinstance(v, numpy.generic) else v for k, v in detector.get_params().items()}
+    own = {**params, "estimator": DETECTOR_ESTIMATOR,
            "baseline": detector.baseline_pipeline_ is not None,
            "fd_threshold": float(detector.fd_threshold_),
            "baseline_fd_threshold": (None if detector.baseline_fd_threshold_ is None

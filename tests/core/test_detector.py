@@ -226,3 +226,17 @@ def test_label_skips_sklearn_checks_for_checked_arrays_with_the_same_result(new,
         fitted.label(bad)
     with pytest.raises(ValueError, match="features"):
         fitted.label(X[:, :-1])
+
+
+def test_a_file_from_before_max_features_reads_as_sqrt_and_numpy_settings_save(tmp_path, sim, new, fitted):
+    state = fitted.__getstate__()
+    state.pop("max_features")  # pickled before the parameter: its forests chose from sqrt(n) features
+    old = FaultDetector.__new__(FaultDetector)
+    old.__setstate__(state)
+    assert old.get_params()["max_features"] == "sqrt" and fitted.get_params()["max_features"] is None
+    np.testing.assert_array_equal(old.label(new.traces).classes, fitted.label(new.traces).classes)
+    det = FaultDetector(n_estimators=3, max_features=np.int64(3), min_samples_leaf=np.int64(3), unknown_rate=None,
+                        sample_rate_hz=sim.sample_rate_hz).fit(sim.traces, sim.label_values())
+    cfg = json.loads(save_detector(det, tmp_path / "np.joblib").read_text())["config"]
+    assert (cfg["max_features"], cfg["min_samples_leaf"]) == (3, 3)
+    assert {t.max_features_ for t in det.pipeline_[-1].estimators_} == {3}

@@ -36,3 +36,19 @@ def test_stale_default_is_retrained_a_users_model_is_not(tmp_path):
     ensure_default_model(default, progress=False, log=logs.append)
     assert "unusable" in logs[-1] and "tampered" in logs[-1]
     assert ensure_default_model(default, progress=False, log=logs.append) == default  # verifies again
+
+
+def test_a_default_from_before_max_features_is_retrained(tmp_path, monkeypatch):
+    import inkdiag_core.model_cache as cache
+
+    default = tmp_path / "fdi_default.joblib"
+    train_default_model(default, n_per_class=30)
+    manifest = json.loads(open(str(default) + ".manifest.json").read())
+    manifest["config"] = {**manifest["config"], **{k: v for k, v in default_config().items() if k != "max_features"}}
+    del manifest["config"]["max_features"]  # written before the setting: its forests used sqrt(7) KPIs per split
+    open(str(default) + ".manifest.json", "w").write(json.dumps(manifest))
+    calls, logs = [], []
+    monkeypatch.setattr(cache, "train_default_model", lambda path, **kw: calls.append((path, kw)))
+    ensure_default_model(default, progress=False, log=logs.append)
+    assert len(calls) == 1 and logs == [
+        "inkdiag: cached model trained with other settings than the default (max_features='sqrt', now None); retraining"]
