@@ -581,8 +581,8 @@ def fnr_threshold(p_faulty_of_faults, fnr_target: float = 0.005) -> float:
 
 def train_default_model(path, *, n_per_class: int = 400, seed: int = 0, kind: str = "rf",
                         features: str = "kpi_y", n_estimators: int = 50, min_samples_leaf: int = 3,
-                        max_features=None, fnr_target: float = 0.005, baseline: bool = False, unknown_rate: float | None = 0.01,
-                        progress=None):
+                        max_features=None, fnr_target: float = 0.005, baseline: bool = False,
+                        unknown_rate: float | None = 0.01, progress=None):
     """Train the FDI model the nodes load by default, and save it with its manifest.
 
     The default is a Random Forest on KPI_Y: on its validation split it isolates
@@ -674,7 +674,8 @@ def _train_baseline_pipeline(path, sim, y, data, *, kind, n_estimators, min_samp
     report(3, 4, f"validation FI accuracy {100 * scores['validation_fi_accuracy']:.1f}%")
     config = {"kind": kind, "features": "kpi_y+baseline", **data,
               "n_estimators": int(n_estimators), "min_samples_leaf": int(min_samples_leaf),
-              "max_features": max_features, "sample_rate_hz": float(sim.sample_rate_hz), "n_samples": int(sim.traces.shape[1]),
+              "max_features": max_features,
+              "sample_rate_hz": float(sim.sample_rate_hz), "n_samples": int(sim.traces.shape[1]),
               "fd_threshold": threshold, "fnr_target": float(fnr_target),
               "classes": [str(c) for c in pipe.classes_]}
     manifest = save_model(pipe, path, config=config, scores=scores)

@@ -204,8 +204,7 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
     det = FaultDetector(kind=kind, features=features, profile=profile, n_estimators=int(n_estimators),
                         min_samples_leaf=int(min_samples_leaf), max_features=max_features,
                         fnr_target=float(fnr_target), validation_fraction=float(validation_fraction),
-                        unknown_rate=unknown_rate,
-                        random_state=int(seed))
+                        unknown_rate=unknown_rate, random_state=int(seed))
     real = np.zeros(len(y), dtype=bool)
     if data is None:
         base = None

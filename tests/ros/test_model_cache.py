@@ -50,5 +50,5 @@ def test_a_default_from_before_max_features_is_retrained(tmp_path, monkeypatch):
     calls, logs = [], []
     monkeypatch.setattr(cache, "train_default_model", lambda path, **kw: calls.append((path, kw)))
     ensure_default_model(default, progress=False, log=logs.append)
-    assert len(calls) == 1 and logs == [
-        "inkdiag: cached model trained with other settings than the default (max_features='sqrt', now None); retraining"]
+    assert len(calls) == 1 and logs == ["inkdiag: cached model trained with other settings than the default "
+                                        "(max_features='sqrt', now None); retraining"]
