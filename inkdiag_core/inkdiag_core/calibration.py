@@ -443,7 +443,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
         raise CalibrationError(
             f"the recorded traces' dominant mode {f_rec / 1e3:.1f} kHz is outside what the nominal channel can reach "
             f"({reach[0] / 1e3:.1f}-{reach[1] / 1e3:.1f} kHz with its nozzle, ink and chamber): check "
-            "channel.r_n, L_n, V_ch, c, rho and the sampling")
+            "channel.r_n, L_n, V_ch, c, rho, mu (SI units: m, m^3, m/s, kg/m^3, Pa s) and the sampling")
 
     fb = None
     if blocked is not None:

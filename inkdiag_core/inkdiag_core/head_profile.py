@@ -550,9 +550,10 @@ class HeadProfile:
             Their sample rate, Hz.
         """
         shape = np.shape(traces)
+        length = f" x {shape[1]} samples" if len(shape) == 2 else ""
         if not math.isclose(float(sample_rate_hz), self.sample_rate_hz, rel_tol=1e-9):
-            raise ProfileError(f"{what} is sampled at {float(sample_rate_hz):g} Hz; profile {self.name!r} is "
-                               f"{self.sample_rate_hz:g} Hz")
+            raise ProfileError(f"{what} is sampled at {float(sample_rate_hz):.10g} Hz{length}; profile {self.name!r} "
+                               f"is {self.sample_rate_hz:.10g} Hz x {self.n_samples} samples")
         if len(shape) != 2 or shape[1] != self.n_samples:
             got = shape[1] if len(shape) == 2 else f"shape {shape}"
             raise ProfileError(f"{what} has traces of {got} samples; profile {self.name!r} has {self.n_samples}")

@@ -60,14 +60,16 @@ def build_parser() -> argparse.ArgumentParser:
                            formatter_class=argparse.RawDescriptionHelpFormatter)
         module.add_arguments(p)
         p.set_defaults(_run=module.run, _makes_out_dir=getattr(module, "MAKES_OUT_DIR", False),
-                       _out_stdout=getattr(module, "OUT_STDOUT", False))
+                       _out_stdout=getattr(module, "OUT_STDOUT", False), _parser=p)
     return parser
 
 
 def main(argv=None) -> int:
     """Run ``inkdiag``; returns the exit status (0 done, 1 failed, or its output's reader gone, 2 bad input,
     130 interrupted)."""
-    args = build_parser().parse_args(argv)
+    args, extra = build_parser().parse_known_args(argv)
+    if extra:  # said by the verb's parser: "inkdiag VERB: error: ...", as every other usage error
+        args._parser.error(f"unrecognized arguments: {' '.join(extra)}")
     from inkdiag_core.checks import InputError
 
     try:

@@ -55,6 +55,12 @@ def test_calibrate_end_to_end(files, tmp_path):
     assert "dominant frequency" in md and "damping ratio" in md and "determined by" in md
     png = tmp_path / "head.fit.png"
     assert report["figure"] == "head.fit.png" and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "restrictor" not in r.stdout
+    # the profile it wrote as the nominal of another run: its restrictor is kept, and the run says so
+    again = inkdiag("calibrate", files / "healthy.npz", "--nominal", out, "--out", tmp_path / "again.yaml")
+    assert again.returncode == 0, again.stderr
+    assert "the restrictor (channel.r_r, channel.L_r) is the nominal profile's, not fitted" in again.stdout
+    assert HeadProfile.load(tmp_path / "again.yaml").channel["L_r"] == p.channel["L_r"]
 
 
 def test_help():
@@ -66,7 +72,7 @@ def test_wrong_sampling_is_one_line_and_status_2(files, tmp_path):
     r = inkdiag("calibrate", files / "10mhz.npz", "--nominal", files / "nominal.yaml", "--out", tmp_path / "h.yaml")
     assert r.returncode == 2
     assert r.stderr.count("\n") == 1 and r.stderr.startswith("inkdiag calibrate: error: ")
-    assert "sampled at 1e+07 Hz" in r.stderr and "5e+06 Hz" in r.stderr
+    assert "sampled at 10000000 Hz x 256 samples; profile 'h5x' is 5000000 Hz x 256 samples" in r.stderr
     assert not (tmp_path / "h.yaml").exists()
 
 

@@ -112,7 +112,8 @@ def test_estimate_bad_input_is_one_line_and_status_2(head, tmp_path):
                         sensor={"gain_v_per_m3s": None}, calibration={"vp_cal": None})
     nominal.save(tmp_path / "nominal.yaml")
     cases = [
-        ((tmp_path / "10mhz.npz", "--profile", d / "head.yaml"), "is sampled at 1e+07 Hz; profile 'foreign20' is 2e+07 Hz"),
+        ((tmp_path / "10mhz.npz", "--profile", d / "head.yaml"),
+         "is sampled at 10000000 Hz x 512 samples; profile 'foreign20' is 20000000 Hz x "),
         ((d / "rec.npz", "--profile", tmp_path / "nominal.yaml"), "run inkdiag calibrate first"),
         ((tmp_path / "missing.npz", "--profile", d / "head.yaml"), "no such recording"),
         ((d / "rec.npz", "--profile", tmp_path / "missing.yaml"), "no such head profile"),

@@ -170,6 +170,8 @@ def test_bad_input_is_one_line_and_exit_status_2(work, trained, argv, match, cap
     ([], "inkdiag: error: the following arguments are required: VERB (see inkdiag --help)"),
     (["train", "--profile", "p.yaml", "--out", "m.joblib", "--n-per-class", "abc"],
      "inkdiag train: error: argument --n-per-class: invalid int value: 'abc' (see inkdiag train --help)"),
+    (["estimate", "r.npz", "--profile", "p.yaml", "--out", "f.csv", "--model", "m.joblib"],  # another verb's option
+     "inkdiag estimate: error: unrecognized arguments: --model m.joblib (see inkdiag estimate --help)"),
 ])
 def test_usage_errors_are_one_line_and_exit_status_2(argv, match, capsys):
     with pytest.raises(SystemExit) as stop:
