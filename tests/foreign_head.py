@@ -139,6 +139,19 @@ FOREIGN_HEADS = {
         "sensor": {"gain_v_per_m3s": 1.0e10, "offset_v": 0.0, "noise_std_v": 0.012,
                    "adc_range_v": 2.5, "adc_bits": 12},
     },
+    # chosen for an independent walkthrough of the documented workflow (2026-11-26), before any result
+    "h16": {
+        "sampling": {"sample_rate_hz": 16.0e6, "n_samples": 768},
+        "channel": {
+            "rho": 1060.0, "mu": 7.0e-3, "r_n": 12.0e-6, "L_n": 40.0e-6,
+            "r_r": 26.0e-6, "L_r": 210.0e-6, "V_ch": 9.0e-12, "c": 1300.0,
+            "B_act": 1.0e-20, "b": 2.5e-18,
+        },
+        "drive": {"amplitude_v": 25.0, "rise_s": 0.7e-6, "dwell_s": 2.8e-6,
+                  "fall_s": 0.8e-6, "switch_delay_s": 1.2e-6},
+        "sensor": {"gain_v_per_m3s": 1.2e10, "offset_v": 0.0, "noise_std_v": 0.010,
+                   "adc_range_v": 2.5, "adc_bits": 12},
+    },
     "h5": {
         "sampling": {"sample_rate_hz": 5.0e6, "n_samples": 256},
         "channel": {
@@ -188,6 +201,7 @@ FOREIGN_PHYSICS = {
     "default": dict(T_ref_k=303.15, visc_temp_coeff_per_k=0.03, p0_pa=1.0e5, sigma_n_per_m=0.030,
                     kappa_gas=1.2, f_act_hz=2.175e6, zeta_act=0.03, film_loss_factor=1.5),
     "h20": dict(_DEFAULT_PHYSICS),
+    "h16": dict(_DEFAULT_PHYSICS),
     "h5": dict(_DEFAULT_PHYSICS, T_ref_k=313.15, visc_temp_coeff_per_k=0.03,
                sigma_n_per_m=0.032, f_act_hz=1.05e6, zeta_act=0.05, film_loss_factor=1.0),
 }

@@ -1,6 +1,6 @@
 """Heads report: inkdiag on printheads other than its own, through the `inkdiag` command.
 
-    scripts/report heads [--heads default h20 h5] [--per-class 150] [--n-per-class N] [--seed 0] [--posterior-draws K]
+    scripts/report heads [--heads default h20 h16 h5] [--per-class 150] [--n-per-class N] [--seed 0] [--posterior-draws K]
                          [--other-seeds S [S ...]]
 
 For each head, traces come from the independent simulator ``tests/foreign_head.py``
@@ -277,7 +277,7 @@ def _split_errors(cal, true):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--heads", nargs="+", default=["default", "h20", "h5"])
+    ap.add_argument("--heads", nargs="+", default=["default", "h20", "h16", "h5"])
     ap.add_argument("--per-class", type=int, default=150, help="test traces per class and head")
     ap.add_argument("--n-per-class", type=int, default=0, help="training traces per class (0: train's default)")
     ap.add_argument("--seed", type=int, default=0)
