@@ -72,6 +72,10 @@ noise-free healthy trace, see the test)
     1100 kg/m^3, 6 mPa s ink, 11 um x 45 um nozzle, 24 um x 200 um restrictor
     (``I_r ~ 0.78 I_n``), 20 MHz x 1024 samples, 28 V pulse; healthy mode about 169 kHz,
     damping ratio 0.08; fully blocked about 128 kHz, empty channels 0.99-1.6 MHz.
+``h16``
+    1060 kg/m^3, 7 mPa s ink, 12 um x 40 um nozzle, 26 um x 210 um restrictor
+    (``I_r ~ 0.91 I_n``), 16 MHz x 768 samples, 25 V pulse; healthy mode about 174 kHz,
+    damping ratio 0.08; fully blocked about 127 kHz, empty channels 1.0-1.6 MHz.
 ``h5``
     1040 kg/m^3, 8 mPa s ink, 13 um x 50 um nozzle, 36 um x 360 um restrictor
     (``I_r ~ 0.78 I_n``), 5 MHz x 256 samples, 22 V pulse; healthy mode about 135 kHz,

@@ -119,7 +119,8 @@ class FrameLabeller:
         want_fs = float(detector.sample_rate_hz_)
         want_n = int(detector.n_features_in_)
         if sample_rate_hz is not None and float(sample_rate_hz) != want_fs:
-            raise LabellerConfigError(f"the model is for {want_fs:g} Hz, the frames are {float(sample_rate_hz):g} Hz")
+            raise LabellerConfigError(f"the model is for {want_fs:.10g} Hz, the frames are "
+                                      f"{float(sample_rate_hz):.10g} Hz")
         if n_samples is not None and int(n_samples) != want_n:
             raise LabellerConfigError(f"the model is for {want_n} samples per trace, the frames have {int(n_samples)}")
         if baselines is not None:
@@ -129,8 +130,8 @@ class FrameLabeller:
                     f"the model's {detector.head_name!r} ({detector.head_sha256[:12]}): record them on this head")
             got = (float(baselines.sample_rate_hz), int(baselines.n_samples))
             if got != (want_fs, want_n):
-                raise LabellerConfigError(f"the baselines are for {got[0]:g} Hz x {got[1]} samples, the model "
-                                          f"for {want_fs:g} Hz x {want_n}")
+                raise LabellerConfigError(f"the baselines are for {got[0]:.10g} Hz x {got[1]} samples, the model "
+                                          f"for {want_fs:.10g} Hz x {want_n}")
             if len(baselines) and detector.baseline_pipeline_ is None:
                 raise LabellerConfigError(f"{detector.model_id} has no baseline branch: per-nozzle baselines "
                                           "need a detector trained with baselines (`inkdiag train --baseline`, "

@@ -373,8 +373,8 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
             if fs is None:
                 fs, n_s = frame.sample_rate_hz, frame.n_samples
             elif frame.sample_rate_hz != fs or frame.n_samples != n_s:
-                stats.skip(stats.n_messages - 1, f"sampled at {frame.sample_rate_hz:g} Hz x {frame.n_samples}, "
-                           f"the bag's first frame at {fs:g} Hz x {n_s}", frame.frame_id)
+                stats.skip(stats.n_messages - 1, f"sampled at {frame.sample_rate_hz:.10g} Hz x {frame.n_samples}, "
+                           f"the bag's first frame at {fs:.10g} Hz x {n_s}", frame.frame_id)
                 continue
             if blocks and n_rows + frame.n_nozzles > max_rows:
                 yield first_row, chunk()

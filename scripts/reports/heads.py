@@ -1,6 +1,7 @@
 """Heads report: inkdiag on printheads other than its own, through the `inkdiag` command.
 
-    scripts/report heads [--heads default h20 h16 h5] [--per-class 150] [--n-per-class N] [--seed 0] [--posterior-draws K]
+    scripts/report heads [--heads default h20 h16 h5] [--per-class 150] [--n-per-class N] [--seed 0]
+                         [--posterior-draws K]
                          [--other-seeds S [S ...]]
 
 For each head, traces come from the independent simulator ``tests/foreign_head.py``

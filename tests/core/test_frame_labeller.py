@@ -118,7 +118,7 @@ def test_a_row_whose_features_overflow_is_invalid_not_its_frame(detector):
 
 def test_compatibility_rules_are_typed_errors(detector, fdi_model, baselines):
     plain = load_detector(fdi_model)
-    with pytest.raises(LabellerConfigError, match="5e\\+06 Hz"):
+    with pytest.raises(LabellerConfigError, match="the frames are 5000000 Hz"):
         FrameLabeller(detector, sample_rate_hz=5e6)
     with pytest.raises(LabellerConfigError, match="256"):
         FrameLabeller(detector, n_samples=256)

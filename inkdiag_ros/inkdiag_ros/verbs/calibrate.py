@@ -198,7 +198,7 @@ def run(args) -> int:
           f"; blocked mode recorded/fitted {fb['frequency_hz_recorded'] / 1e3:.1f}/"
           f"{fb['frequency_hz_fitted'] / 1e3:.1f} kHz ({fb['n_traces']} traces)")
           + f"; report {stem}.fit.md", file=sys.stdout)
-    if report["identifiability"]["parameters"]["I_r"]["determined_by"].startswith("nominal"):
+    if "channel.r_r" not in report["fitted"]:  # the nominal profile's restrictor, kept
         print(f"inkdiag calibrate: the restrictor (channel.r_r, channel.L_r) is the nominal profile's, not "
               f"fitted: leave both out of {args.nominal} to fit them (a profile inkdiag calibrate wrote keeps its "
               "earlier fit)", file=sys.stdout)
