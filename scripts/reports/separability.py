@@ -1,6 +1,6 @@
 """Separability report: how well ANY classifier can tell the classes apart on a head's own traces.
 
-    scripts/report separability [--heads default h20 h5] [--train 400] [--test 200] [--seed 0] [--no-hgb]
+    scripts/report separability [--heads default h20 h16 h5] [--train 400] [--test 200] [--seed 0] [--no-hgb]
 
 Issue 14 asks for FI >= 90 % with every class >= 75 % on independent heads. ``scripts/report
 heads`` measures inkdiag's workflow (calibrate on healthy traces, train on simulation, label).
@@ -130,7 +130,7 @@ def _boosting(head, n_train, n_test, seed):
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--heads", nargs="+", default=["default", "h20", "h5"])
+    ap.add_argument("--heads", nargs="+", default=["default", "h20", "h16", "h5"])
     ap.add_argument("--train", type=int, default=400, help="training traces per class (the forests)")
     ap.add_argument("--test", type=int, default=200, help="test traces per class")
     ap.add_argument("--seed", type=int, default=0)
