@@ -115,10 +115,13 @@ def _check_out(args) -> None:
 
             inputs.append(("model", str(manifest_path(args.model))))
         for name, value in inputs:
+            what = name.upper() if name in ("recording", "healthy") else "--" + name
             if value and _same_path(value, out):
-                what = name.upper() if name in ("recording", "healthy") else "--" + name
                 extra = "'s manifest" if value != getattr(args, name, None) else ""
                 raise OSError(f"--out {out} is also the {what} input{extra}: writing it would destroy that input")
+            if value and Path(value).is_dir() and Path(value).resolve() in Path(out).resolve().parents:
+                raise OSError(f"--out {out} is inside the {what} input {value} (a bag directory): writing there "
+                              "would change or destroy the recording; write it elsewhere")
         if Path(out).is_dir() and not args._makes_out_dir:
             raise OSError(f"--out {out} is a directory; give the output file's name")
     if out and out != "-" and not args._makes_out_dir:

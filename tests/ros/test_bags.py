@@ -117,6 +117,28 @@ def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim, fdi_model):
         f"inkdiag label: error: {msg}"], r.stderr  # the frames before it were labelled and written
     with open(tmp_path / "c.csv") as f:
         assert sum(1 for _ in f) == 1 + 8 * n_ok
+    # a bag whose recorder died before it wrote metadata.yaml: said so
+    nometa = tmp_path / "nometa"
+    nometa.mkdir()
+    (nometa / mcap.name).write_bytes(next(bag.glob("*.mcap")).read_bytes())
+    _one_line_error(nometa, "a bag directory without its metadata.yaml")
+
+
+def test_an_out_inside_the_bag_is_refused_and_the_bag_kept(tmp_path, sim, fdi_model):
+    bag = write_bag(tmp_path / "ok", [(0, sim.traces[:8].astype(np.float32))] * 3)
+    before = {f: f.read_bytes() for f in bag.iterdir()}
+    for out in (next(bag.glob("*.mcap")), bag / "metadata.yaml", bag / "labels.csv"):
+        r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "label", str(bag), "--model", str(fdi_model),
+                            "--out", str(out)], capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+            f"inkdiag label: error: --out {out} is inside the RECORDING input {bag} (a bag directory): writing "
+            "there would change or destroy the recording; write it elsewhere"], r.stderr
+    assert {f: f.read_bytes() for f in bag.iterdir()} == before
+    # replay of a topic the bag does not have: one line naming the ones it has (not a traceback)
+    r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "replay", str(bag), "--topics", "/nope"],
+                       capture_output=True, text=True, timeout=60, env=_env(os.environ.get("ROS_DOMAIN_ID", "0")))
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        f"inkdiag replay: error: {bag}: no topic to replay (it has {NS}/labels, {NS}/traces)"], r.stderr
 
 
 def _env(domain_id):

@@ -79,8 +79,9 @@ def run(args) -> int:
         raise RecordingError(f"{bag}: cannot open the bag: {str(exc).strip().splitlines()[0]}") from None
     conns = [c for c in reader.connections if _selected(c.topic, args.topics)]
     if not conns:
-        reader.close()
-        raise RecordingError(f"{bag}: no topic to replay (it has {', '.join(c.topic for c in reader.connections)})")
+        has = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
+        reader.close()  # its connections are gone once closed: listed before
+        raise RecordingError(f"{bag}: no topic to replay (it has {has})")
     n_sent = 0
     with stop_on_signals() as stop:
         rclpy.init()
