@@ -236,6 +236,13 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, eve
     """
     if teardown_deadline_s is not None:  # a bad one fails here, not at the teardown
         check_seconds(teardown_deadline_s)
+    argv = list(sys.argv if args is None else args)
+    own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+    if "-h" in own or "--help" in own:  # before rclpy: a node started for its help would join the graph
+        from .paramdoc import node_help
+
+        print(node_help(node_cls, prog or os.path.basename(argv[0] if argv else "node")))
+        return 0
     keep_freed_memory()
     release = PeriodicRelease()
     limit_blas_threads()

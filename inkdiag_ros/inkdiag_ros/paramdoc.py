@@ -58,6 +58,26 @@ def _range(kind, rng) -> str:
     return f"{_fmt(kind(lo))} .. {_fmt(kind(hi))}"
 
 
+def node_help(node_cls, prog: str) -> str:
+    """What ``NODE --help`` prints: the node module's docstring and its parameters (plain text).
+
+    ``prog`` names the node (a :data:`NODES` name, else the module of ``node_cls`` is used).
+    """
+    import inspect
+
+    module = next((m for name, m, _ in NODES if name == prog), node_cls.__module__)
+    mod = importlib.import_module(module)
+    shipped = shipped_config().get(next((name for name, m, _ in NODES if m == module), ""), {})
+    out = [f"usage: {prog} [--ros-args -r __ns:=/NAMESPACE -p NAME:=VALUE ... --params-file FILE]", "",
+           inspect.cleandoc(mod.__doc__ or ""), "", "parameters (type, default[, shipped config]; range):"]
+    for name, default, desc, kind, rng in mod.PARAMS:
+        ship = f", shipped {_fmt(shipped[name])}" if name in shipped else ""
+        span = f"; {_range(kind, rng)}" if rng is not None else ""
+        out += [f"  {name} ({_KIND[kind]}, {_fmt(default)}{ship}{span})", f"      {desc}"]
+    out += ["", "Reference: docs/parameters.md; topics and counters: docs/controller.md."]
+    return "\n".join(out)
+
+
 def render() -> str:
     """The Markdown parameter reference of every node."""
     shipped = shipped_config()

@@ -7,6 +7,7 @@ before it wrote anything), no traceback. One busy-loop process per core runs
 throughout (the fe node missed about one stop in three that way).
 """
 
+import importlib
 import importlib.util
 import os
 import signal
@@ -217,3 +218,22 @@ def test_the_trace_consuming_nodes_spin_the_events_executor(module, monkeypatch)
     monkeypatch.setattr(mod, "spin_node", lambda node_cls, args=None, **kw: calls.append(kw) or 0)
     assert mod.main([]) == 0
     assert calls == [{"events": True}]
+
+
+@pytest.mark.parametrize(("module", "name", "extra"), [
+    ("inkdiag_ros.fdi_node", "fdi", []), ("inkdiag_ros.fe_node", "fe", []),
+    ("inkdiag_ros.baseline_node", "record_baseline", []),
+    ("inkdiag_ros.printhead_sim", "printhead_sim", ["--record", "B"]),
+])
+def test_a_node_asked_for_help_prints_its_parameters_and_does_not_start(tmp_path, module, name, extra):
+    import subprocess
+
+    from inkdiag_ros.paramdoc import NODES
+
+    params = importlib.import_module(module).PARAMS
+    r = subprocess.run([sys.executable, "-m", module, *extra, "--help"], capture_output=True, text=True, timeout=60,
+                       cwd=tmp_path, env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
+    assert r.returncode == 0 and r.stderr == "", r.stderr
+    assert all(f"  {p[0]} (" in r.stdout for p in params) and "docs/parameters.md" in r.stdout
+    assert dict((n, m) for n, m, _ in NODES)[name] == module
+    assert not (tmp_path / "B").exists()  # printhead_sim --record: no bag begun
