@@ -17,6 +17,7 @@ header carries. A nominal profile or a bad file stops the node at start (one lin
 from __future__ import annotations
 
 import sys
+import time
 
 import numpy as np
 from rclpy.node import Node
@@ -62,8 +63,13 @@ PARAMS = (
     ("drying_duration_s", 20.0, "time of the linear rise from start to end factor, s", float, (0.1, 1e6)),
     ("faults_start_s", 0.0, "every nozzle is healthy before this time (to record baselines); the faults "
      "appear and the drying starts then, s", float, (0.0, 1e6)),
-    ("max_frames", 0, "stop publishing after this many frames (0: never)", int, (0, 2**31 - 1)),
+    ("max_frames", 0, "publish this many frames, then end the process (after a linger of 1 s for the "
+     "subscribers and a bag to receive the last ones); 0: never stop", int, (0, 2**31 - 1)),
 )
+
+
+LINGER_S = 1.0
+"""Seconds the node process keeps spinning after its last frame (``max_frames``) before it ends."""
 
 
 class PrintheadSim(Node):
@@ -87,6 +93,7 @@ class PrintheadSim(Node):
         self._truth_pub = self.create_publisher(TRUTH_MSG_TYPE, topics.GROUND_TRUTH, RELIABLE_QOS)
         self._t0 = None
         self.frames_published = 0
+        self._last_at = None  # monotonic time of the last frame of max_frames
         self._timer = self.create_timer(1.0 / p["frame_rate_hz"], self._on_timer)
         self.get_logger().info(
             f"simulating {p['n_nozzles']} nozzles from {p['first_nozzle']} at {p['frame_rate_hz']:g} Hz on head "
@@ -108,6 +115,10 @@ class PrintheadSim(Node):
     def scenario(self) -> HeadScenario:
         return self._scenario
 
+    def finished(self) -> bool:
+        """Whether ``max_frames`` frames went out at least :data:`LINGER_S` ago (the process may end)."""
+        return self._last_at is not None and time.monotonic() - self._last_at >= LINGER_S
+
     def _on_timer(self) -> None:
         p = self.config
         if p["max_frames"] and self.frames_published >= p["max_frames"]:
@@ -122,6 +133,10 @@ class PrintheadSim(Node):
             frame_id=fid, stamp=now, first_nozzle=p["first_nozzle"], classes=labels, fm=fm,
             mu_nozzle=mu_true)))
         self.frames_published += 1
+        if p["max_frames"] and self.frames_published >= p["max_frames"]:
+            self._timer.cancel()
+            self._last_at = time.monotonic()
+            self.get_logger().info(f"published {self.frames_published} frames (max_frames): ending in {LINGER_S:g} s")
 
 
 def main(args=None) -> int:
@@ -132,7 +147,7 @@ def main(args=None) -> int:
     except ValueError as exc:
         print(f"printhead_sim: {exc}", file=sys.stderr)
         return 2
-    return spin_node(make, argv, prog="printhead_sim")
+    return spin_node(make, argv, prog="printhead_sim", until=PrintheadSim.finished)
 
 
 if __name__ == "__main__":

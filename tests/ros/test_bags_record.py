@@ -101,6 +101,18 @@ def test_printhead_sim_records_what_it_publishes_and_a_sigterm_closes_a_valid_ba
     assert r.returncode == 2 and "exists already" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
+def test_printhead_sim_with_max_frames_ends_on_its_own_with_every_frame_recorded(tmp_path):
+    bag = tmp_path / "sim"
+    r = subprocess.run([sys.executable, "-m", "inkdiag_ros.printhead_sim", "--record", str(bag), "--ros-args",
+                        "-r", f"__ns:={NS}", "-p", "frame_rate_hz:=20.0", "-p", "n_nozzles:=48", "-p", "max_frames:=4"],
+                       env=_env(next_domain_id()), capture_output=True, text=True, timeout=90)
+    assert r.returncode == 0, r.stderr[-1500:]
+    assert "published 4 frames (max_frames): ending in 1 s" in r.stderr
+    got = _read(bag)
+    ids = [int(round(float(m.data[2]))) for _, m in got[f"{NS}/traces"]]
+    assert ids == [0, 1, 2, 3] and len(got[f"{NS}/ground_truth"]) == 4
+
+
 def _labels_by_frame(docs):
     """frame_id -> the labels JSON without its stamps (the frame's time, not the labelling's)."""
     out = {}
