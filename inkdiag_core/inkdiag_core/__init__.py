@@ -129,9 +129,9 @@ from .head_profile import HeadProfile, ProfileError  # noqa: E402
 
 __all__ += ["HeadProfile", "ProfileError"]
 
-from .recording import Recording, RecordingError, load_recording, save_recording  # noqa: E402
+from .recording import Recording, RecordingError, labels_from_csv, load_recording, save_recording  # noqa: E402
 
-__all__ += ["Recording", "RecordingError", "load_recording", "save_recording"]
+__all__ += ["Recording", "RecordingError", "labels_from_csv", "load_recording", "save_recording"]
 
 from .gate import GateResult, HealthyGate  # noqa: E402
 

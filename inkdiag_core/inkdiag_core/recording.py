@@ -23,6 +23,7 @@ volts, arrays of another length, an unknown class name) is a :class:`RecordingEr
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import math
 import numbers
@@ -35,7 +36,7 @@ from .checks import InputError
 from .faults import FaultClass
 from .openset import UNKNOWN
 
-__all__ = ["Recording", "RecordingError", "load_recording", "save_recording"]
+__all__ = ["Recording", "RecordingError", "labels_from_csv", "load_recording", "save_recording"]
 
 #: Labels that name no class: what ``inkdiag label`` writes for a row it could not judge and for one
 #: unlike every class. A recording may carry them (a label column from ``inkdiag label``); training
@@ -209,3 +210,101 @@ def save_recording(path, recording: Recording) -> Path:
     with open(path, "wb") as f:
         np.savez(f, **arrays)
     return path
+
+
+def labels_from_csv(recording: Recording, path) -> tuple:
+    """The recording with each row's class read from a CSV file (hand labels, or ``inkdiag label``'s corrected).
+
+    The CSV has a header line and a ``class`` column (a FaultClass value, or ``invalid`` /
+    ``unknown``: no class) and names the rows by one of:
+
+    - ``row``: the recording's row index (0-based, as ``inkdiag label`` numbers them); a
+      ``nozzle`` or ``frame_id`` column beside it must agree with the recording's (a CSV of
+      another recording is refused);
+    - ``nozzle`` (no ``row``): every row of that nozzle, or with a ``frame_id`` column every
+      row of that nozzle in that frame (an inspection's "nozzle 17 is blocked").
+
+    A row may be named once; rows the CSV does not name are labelled ``unknown`` (training
+    leaves them out). Other columns are ignored.
+
+    Parameters
+    ----------
+    recording : Recording
+    path : str or os.PathLike
+
+    Returns
+    -------
+    recording : Recording
+        A copy with ``label`` set, shape (n,), the CSV's classes.
+    n_named : int
+        Rows the CSV named.
+
+    Raises
+    ------
+    RecordingError
+        A missing or unreadable file, no ``class`` column or no ``row``/``nozzle`` column, a
+        class that is not one, a row out of range, named twice, or not the CSV's nozzle or
+        frame; the message names the file and its line.
+    """
+    path = Path(path)
+    src = str(path)
+    if not path.is_file():
+        raise RecordingError(f"{src}: no such labels file" + (" (a directory)" if path.is_dir() else ""))
+    n = recording.n_rows
+    label = np.full(n, UNKNOWN, dtype=object)
+    named = np.zeros(n, dtype=bool)
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            reader = csv.DictReader(f)
+            cols = [c.strip() for c in (reader.fieldnames or [])]
+            reader.fieldnames = cols
+            if "class" not in cols or not ({"row", "nozzle"} & set(cols)):
+                raise RecordingError(f"{src}: a labels CSV needs a header with a 'class' column and a 'row' or "
+                                     f"'nozzle' column (as `inkdiag label` writes), got {cols or 'no header'}")
+            by_row = "row" in cols
+            with_frame = "frame_id" in cols
+            index = None
+            if not by_row:  # (nozzle, frame) -> rows, or nozzle -> rows
+                keys = (zip(recording.nozzle.tolist(), recording.frame_id.tolist()) if with_frame
+                        else recording.nozzle.tolist())
+                index = {}
+                for i, k in enumerate(keys):
+                    index.setdefault(k, []).append(i)
+            for rec in reader:
+                line = reader.line_num
+
+                def integer(name):
+                    v = (rec.get(name) or "").strip()
+                    try:
+                        return int(v)
+                    except ValueError:
+                        raise RecordingError(f"{src}:{line}: {name} {v!r} is not an integer") from None
+
+                cls = (rec.get("class") or "").strip()
+                if cls not in LABEL_VALUES:
+                    raise RecordingError(f"{src}:{line}: class {cls!r} is not a class (expected one of "
+                                         f"{', '.join(c.value for c in FaultClass)}, or {', '.join(NOT_CLASSES)})")
+                if by_row:
+                    r = integer("row")
+                    if not 0 <= r < n:
+                        raise RecordingError(f"{src}:{line}: row {r} is not a row of {recording.source} "
+                                             f"(0..{n - 1})")
+                    for name, have in (("nozzle", recording.nozzle), ("frame_id", recording.frame_id)):
+                        if name in cols and (rec.get(name) or "").strip() != "" and integer(name) != int(have[r]):
+                            raise RecordingError(
+                                f"{src}:{line}: row {r} is {name} {int(have[r])} in {recording.source}, the CSV "
+                                f"says {integer(name)}: labels of another recording?")
+                    rows = [r]
+                else:
+                    key = (integer("nozzle"), integer("frame_id")) if with_frame else integer("nozzle")
+                    rows = index.get(key)
+                    if rows is None:
+                        what = (f"nozzle {key[0]} in frame {key[1]}" if with_frame else f"nozzle {key}")
+                        raise RecordingError(f"{src}:{line}: {recording.source} has no row of {what}")
+                if named[rows].any():
+                    raise RecordingError(f"{src}:{line}: row {rows[int(np.argmax(named[rows]))]} is named twice")
+                named[rows] = True
+                label[rows] = cls
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise RecordingError(f"{src}: cannot read the labels CSV: {exc}") from None
+    return dataclasses.replace(recording, label=label), int(named.sum())

@@ -34,7 +34,7 @@ from pathlib import Path
 
 __all__ = ["INPUT_ARGS", "VERBS", "build_parser", "main"]
 
-INPUT_ARGS = ("recording", "healthy", "model", "baselines", "profile", "nominal", "data", "blocked")
+INPUT_ARGS = ("recording", "healthy", "model", "baselines", "profile", "nominal", "data", "blocked", "labels")
 """The verbs' arguments that name files they read: an ``--out`` that is one of them is refused."""
 
 VERBS = ("calibrate", "train", "baseline", "label", "estimate", "record", "replay", "printer")

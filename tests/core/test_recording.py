@@ -1,6 +1,7 @@
 """Recordings (.npz) for the offline verbs: round trip, defaults, and clear errors."""
 
 import os
+import re
 
 import numpy as np
 import pytest
@@ -99,3 +100,50 @@ def test_labels_from_inkdiag_label_load_and_training_leaves_their_rows_out(tmp_p
     fit_x, fit_y, val_x, val_y, n_used, n_left_out = _real_rows(rec, profile, 0, 0.25, 8)
     assert (n_used, n_left_out) == (10, 2)
     assert set(fit_y) | set(val_y) == {"healthy_nozzle", "deeply_dried"}
+
+
+def _csv(path, text):
+    path.write_text(text)
+    return path
+
+
+def test_labels_from_csv_by_row_by_nozzle_and_by_nozzle_and_frame(tmp_path):
+    from inkdiag_core import labels_from_csv
+
+    t = np.random.default_rng(0).normal(size=(6, 64)).astype(np.float32)
+    rec = Recording.from_arrays(t, 10e6, nozzle=[7, 8, 9, 7, 8, 9], frame_id=[0, 0, 0, 1, 1, 1])
+    got, n = labels_from_csv(rec, _csv(tmp_path / "r.csv", "row, nozzle ,class,confidence\n"
+                                       "4,8,fully_blocked,0.9\n0,,healthy_nozzle,\n"))
+    assert n == 2 and list(got.label) == ["healthy_nozzle", "unknown", "unknown", "unknown", "fully_blocked", "unknown"]
+    assert rec.label is None and got.traces is rec.traces  # a copy with labels; the recording is untouched
+    got, n = labels_from_csv(rec, _csv(tmp_path / "n.csv", "nozzle,class\n9,deeply_dried\n"))
+    assert n == 2 and list(got.label) == ["unknown", "unknown", "deeply_dried"] * 2
+    got, n = labels_from_csv(rec, _csv(tmp_path / "nf.csv", "frame_id,nozzle,class\n1,9,deeply_dried\n"))
+    assert n == 1 and list(got.label) == ["unknown"] * 5 + ["deeply_dried"]
+
+
+@pytest.mark.parametrize("text, message", [
+    ("row;class\n0;ok_signal\n", "needs a header with a 'class' column and a 'row' or 'nozzle' column"),
+    ("", "needs a header"),
+    ("row,class\n0,clogged\n", "l.csv:2: class 'clogged' is not a class"),
+    ("row,class\n0,ok_signal\n6,ok_signal\n", "l.csv:3: row 6 is not a row of recording (0..5)"),
+    ("row,class\n-1,ok_signal\n", "l.csv:2: row -1 is not a row"),
+    ("row,class\n1.5,ok_signal\n", "l.csv:2: row '1.5' is not an integer"),
+    ("row,frame_id,class\n3,0,ok_signal\n", "l.csv:2: row 3 is frame_id 1 in recording, the CSV says 0"),
+    ("row,class\n2,ok_signal\n2,ok_signal\n", "l.csv:3: row 2 is named twice"),
+    ("nozzle,class\n7,ok_signal\n7,ok_signal\n", "l.csv:3: row 0 is named twice"),
+    ("nozzle,class\n5,ok_signal\n", "l.csv:2: recording has no row of nozzle 5"),
+    ("nozzle,frame_id,class\n7,2,ok_signal\n", "l.csv:2: recording has no row of nozzle 7 in frame 2"),
+])
+def test_labels_from_csv_refuses_what_it_cannot_use_naming_the_line(tmp_path, text, message):
+    from inkdiag_core import labels_from_csv
+
+    t = np.random.default_rng(0).normal(size=(6, 64)).astype(np.float32)
+    rec = Recording.from_arrays(t, 10e6, nozzle=[7, 8, 9, 7, 8, 9], frame_id=[0, 0, 0, 1, 1, 1])
+    with pytest.raises(RecordingError, match=re.escape(message)):
+        labels_from_csv(rec, _csv(tmp_path / "l.csv", text))
+    with pytest.raises(RecordingError, match="no such labels file"):
+        labels_from_csv(rec, tmp_path / "missing.csv")
+    (tmp_path / "b.csv").write_bytes(b"\xff\xfe\x00r")  # not UTF-8 text
+    with pytest.raises(RecordingError, match="cannot read the labels CSV"):
+        labels_from_csv(rec, tmp_path / "b.csv")

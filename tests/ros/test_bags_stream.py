@@ -2,7 +2,8 @@
 the next chunk is read, its memory does not grow with the bag's length (tracemalloc peak, in a
 subprocess), a bad frame is reported on stderr with its message index and reason and costs no
 other frame; ``inkdiag estimate`` on a bag gives the rows the same recording as an .npz gives;
-``calibrate``'s bounded sample of a bag; ``train --data`` refuses a bag before reading it."""
+``calibrate``'s bounded sample of a bag; ``train --data`` refuses a bag without ``--labels`` before reading
+it, and trains on one with them."""
 
 import csv
 import subprocess
@@ -147,6 +148,41 @@ def test_train_refuses_a_bag_as_data_before_reading_it(tmp_path):
     HeadProfile.default().save(tmp_path / "head.yaml")
     r = _cli("train", "--profile", tmp_path / "head.yaml", "--out", tmp_path / "m.joblib", "--data", bag, "--quiet")
     assert r.returncode == 2 and "has no per-row labels" in r.stderr, r.stderr
+
+
+def test_train_on_a_bag_with_the_labels_csv_that_label_wrote_and_a_user_corrected(tmp_path, sim, fdi_model):
+    import json
+
+    HeadProfile.default().save(tmp_path / "head.yaml")
+    x = sim.traces.astype(np.float32)  # 72 rows, 6 of each class, as 3 frames of 24
+    bag = write_bag(tmp_path / "bag", [(24 * k, x[24 * k:24 * k + 24]) for k in range(3)])
+    r = _cli("label", bag, "--model", fdi_model, "--out", tmp_path / "labels.csv")
+    assert r.returncode == 0, r.stderr
+    with open(tmp_path / "labels.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    truth = np.asarray(sim.label_values() if callable(sim.label_values) else sim.label_values)
+    for row in rows:  # the user's check: the true class of every row but the first ten
+        row["class"] = truth[int(row["row"])] if int(row["row"]) >= 10 else "unknown"
+    with open(tmp_path / "checked.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    r = _cli("train", "--profile", tmp_path / "head.yaml", "--out", tmp_path / "m.joblib", "--data", bag,
+             "--labels", tmp_path / "checked.csv", "--n-per-class", 40, "--unknown-rate", 0, "--quiet")
+    assert r.returncode == 0, r.stderr
+    assert f"classes of 72 of the 72 rows of {bag}" in r.stdout
+    info = json.loads((tmp_path / "m.joblib.manifest.json").read_text())["config"]
+    assert info["n_real_rows"] == 62 and info["labels_file"] == str(tmp_path / "checked.csv")
+    # the labels of another recording (its nozzles differ) are refused, naming the line
+    rows[3]["nozzle"] = "999"
+    with open(tmp_path / "other.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    r = _cli("train", "--profile", tmp_path / "head.yaml", "--out", tmp_path / "m2.joblib", "--data", bag,
+             "--labels", tmp_path / "other.csv", "--quiet")
+    assert r.returncode == 2 and "other.csv:5: row 3 is nozzle 3" in r.stderr and "another recording" in r.stderr
+    assert not (tmp_path / "m2.joblib").exists()
 
 
 def test_calibrate_on_a_bag_fits_a_bounded_sample_of_its_healthy_rows(tmp_path, capsys, monkeypatch):

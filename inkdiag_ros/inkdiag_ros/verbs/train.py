@@ -15,8 +15,10 @@ at most that rate, for the model this run trains, with 90 % confidence
 (1 - R)**n <= 0.1 calibration rows n, 230 for the default rate: the training
 three quarters of --n-per-class >= 307).
 
-With --data, the head's own labelled recordings (.npz with a 'label' array)
-join the simulated rows: a quarter of each recorded class is held out for
+With --data, the head's own labelled recordings join the simulated rows: an
+.npz with a 'label' array, or any recording (.npz or rosbag2 bag) with
+--labels LABELS.csv (a 'class' per 'row', as `inkdiag label` writes it and you
+corrected it, or per 'nozzle' from an inspection): a quarter of each recorded class is held out for
 validation; the rest is replicated up to the simulated rows of its class, so a
 recorded class weighs as much as its simulated one.
 
@@ -31,6 +33,7 @@ example:
   inkdiag train --profile head.yaml --out models/head.joblib
   inkdiag train --profile head.yaml --out models/head.joblib --baseline --n-per-class 600
   inkdiag train --profile head.yaml --out models/head.joblib --unknown-rate 0.005
+  inkdiag train --profile head.yaml --out models/head.joblib --data bags/run3 --labels run3_checked.csv
 """
 
 FEATURES = ("kpi_y", "kpi_r", "kpi_r_modified", "kpi_y+r_modified", "rich")
@@ -46,10 +49,15 @@ def add_arguments(parser) -> None:
                         help="classifier: random forest or k-nearest neighbours (default: %(default)s)")
     parser.add_argument("--baseline", action="store_true",
                         help="also train the per-nozzle baseline branch (for fdi's / label's --baselines)")
-    parser.add_argument("--data", metavar="LABELLED.npz",
-                        help="labelled recordings of this head to train on as well (a 'label' per row)")
+    parser.add_argument("--data", metavar="RECORDING",
+                        help="a labelled recording of this head to train on as well: an .npz with a 'label' per "
+                        "row, or an .npz or rosbag2 bag with --labels")
+    parser.add_argument("--labels", metavar="LABELS.csv",
+                        help="each --data row's class: a CSV with 'class' and 'row' (as `inkdiag label` writes) or "
+                        "'nozzle' (every row of it; with 'frame_id', of that frame) columns; rows it does not name "
+                        "are left out")
     parser.add_argument("--topic", default=None, metavar="TOPIC",
-                        help="traces topic of a bag (a bag is refused as --data for now: its rows have no labels)")
+                        help="traces topic of a bag given as --data (default: the one trace topic it has)")
     parser.add_argument("--n-per-class", type=int, default=1000, metavar="N",
                         help="simulated traces per class (default: %(default)s; >= 8)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulation, split and forest "
@@ -91,6 +99,7 @@ def run(args) -> int:
     import math
     from pathlib import Path
 
+    from inkdiag_core import labels_from_csv
     from inkdiag_core.head_profile import HeadProfile, ProfileError
     from inkdiag_core.persistence import save_detector
     from ..bags import is_bag, load_and_report
@@ -108,13 +117,23 @@ def run(args) -> int:
         raise ValueError(f"--unknown-rate must be in [0, 1) (0: no 'unknown'), got {args.unknown_rate!r}")
     if not 0 <= args.seed < 2**32:
         raise ValueError(f"--seed must be in 0..2**32-1, got {args.seed}")
-    if args.data and is_bag(args.data):  # refused before reading it: a bag's rows have no class to train on
-        raise ValueError(f"{args.data}: a rosbag2 bag has no per-row labels: --data needs a labelled .npz "
-                         "(a 'label' per row); label the bag first and save it as one")
+    if args.labels and not args.data:
+        raise ValueError("--labels names the classes of --data's rows: give --data RECORDING too")
+    if args.data and is_bag(args.data) and not args.labels:  # refused before reading it
+        raise ValueError(f"{args.data}: a rosbag2 bag has no per-row labels: give each row's class with "
+                         "--labels LABELS.csv (columns row, class, as `inkdiag label` writes them)")
+    if args.labels and not Path(args.labels).is_file():  # before reading a large recording
+        raise FileNotFoundError(f"--labels {args.labels}: no such file")
     data = load_and_report(args.data, args.topic) if args.data else None
     if data is not None:
+        if args.labels:
+            had = data.label is not None
+            data, n_named = labels_from_csv(data, args.labels)
+            print(f"{args.labels}: classes of {n_named} of the {data.n_rows} rows of {args.data}"
+                  + (" (in place of the recording's own 'label')" if had else ""))
         if data.label is None:
-            raise ValueError(f"{args.data}: no 'label' array: --data needs each row's class")
+            raise ValueError(f"{args.data}: no 'label' array: --data needs each row's class (or give them with "
+                             "--labels LABELS.csv)")
         profile.check_traces(data.traces, data.sample_rate_hz, what=args.data)
     out = Path(args.out)
     if out.is_dir():
@@ -128,6 +147,8 @@ def run(args) -> int:
         info["profile_file"] = str(args.profile)
         if args.data:
             info["data_file"] = str(args.data)
+        if args.labels:
+            info["labels_file"] = str(args.labels)
         mpath = save_detector(det, out, config=info)
         report(4, 4, f"saved {out}")
     finally:
