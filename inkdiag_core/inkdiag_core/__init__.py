@@ -129,9 +129,18 @@ from .head_profile import HeadProfile, ProfileError  # noqa: E402
 
 __all__ += ["HeadProfile", "ProfileError"]
 
-from .recording import Recording, RecordingError, labels_from_csv, load_recording, save_recording  # noqa: E402
+from .recording import (  # noqa: E402
+    LabelTable,
+    Recording,
+    RecordingError,
+    labels_from_csv,
+    load_recording,
+    read_labels_csv,
+    save_recording,
+)
 
-__all__ += ["Recording", "RecordingError", "labels_from_csv", "load_recording", "save_recording"]
+__all__ += ["LabelTable", "Recording", "RecordingError", "labels_from_csv", "load_recording", "read_labels_csv",
+            "save_recording"]
 
 from .gate import GateResult, HealthyGate  # noqa: E402
 

@@ -27,6 +27,7 @@ import csv
 import dataclasses
 import math
 import numbers
+import re
 import zipfile
 from pathlib import Path
 
@@ -36,7 +37,8 @@ from .checks import InputError
 from .faults import FaultClass
 from .openset import UNKNOWN
 
-__all__ = ["Recording", "RecordingError", "labels_from_csv", "load_recording", "save_recording"]
+__all__ = ["LabelTable", "Recording", "RecordingError", "labels_from_csv", "load_recording", "read_labels_csv",
+           "save_recording"]
 
 #: Labels that name no class: what ``inkdiag label`` writes for a row it could not judge and for one
 #: unlike every class. A recording may carry them (a label column from ``inkdiag label``); training
@@ -212,7 +214,124 @@ def save_recording(path, recording: Recording) -> Path:
     return path
 
 
-def labels_from_csv(recording: Recording, path) -> tuple:
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class LabelTable:
+    """A labels CSV, read and checked on its own (:func:`read_labels_csv`), before any recording is read.
+
+    Attributes
+    ----------
+    source : str
+        The file.
+    key : str
+        ``"row"``, ``"nozzle"`` or ``"nozzle+frame_id"``: what names a row.
+    row, nozzle, frame_id : ndarray of int64, shape (m,), or None
+        Each line's values of the columns it has (None: no such column; the int64 minimum: a
+        cell left empty beside ``row``).
+    classes : ndarray of object, shape (m,)
+        Each line's class.
+    lines : ndarray of int64, shape (m,)
+        Each entry's line in the file (the header is line 1).
+    """
+
+    source: str
+    key: str
+    row: np.ndarray | None
+    nozzle: np.ndarray | None
+    frame_id: np.ndarray | None
+    classes: np.ndarray
+    lines: np.ndarray
+
+
+_INTEGER = re.compile(r"[+-]?[0-9]+")
+_EMPTY = np.iinfo(np.int64).min  # an empty nozzle or frame_id cell beside a row
+
+
+def read_labels_csv(path) -> LabelTable:
+    """Read and check a labels CSV (see :func:`labels_from_csv` for its columns).
+
+    Header names are matched without case or surrounding blanks (a UTF-8 byte-order mark, as
+    spreadsheets write, is dropped); lines whose cells are all blank are skipped; other columns
+    are ignored.
+
+    Raises
+    ------
+    RecordingError
+        A missing or unreadable file, a header without ``class`` or without ``row`` and
+        ``nozzle``, a column named twice, a class that is not one, a value that is not an
+        integer, or a row (nozzle, nozzle in a frame) named twice; naming the file and line.
+    """
+    path = Path(path)
+    src = str(path)
+    if not path.exists():
+        raise RecordingError(f"{src}: no such labels file")
+    if path.is_dir():
+        raise RecordingError(f"{src}: is a directory, not a labels CSV")
+    ints = {"row": [], "nozzle": [], "frame_id": []}
+    classes, lines = [], []
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            reader = csv.reader(f)
+            header = next(reader, None)
+            cols = [c.strip().lower() for c in (header or [])]
+            twice = sorted({c for c in cols if c and cols.count(c) > 1})
+            if twice:
+                raise RecordingError(f"{src}: the header names {', '.join(map(repr, twice))} twice")
+            if "class" not in cols or not ({"row", "nozzle"} & set(cols)):
+                raise RecordingError(f"{src}: a labels CSV needs a header with a 'class' column and a 'row' or "
+                                     f"'nozzle' column (as `inkdiag label` writes), got {header or 'no header'}")
+            at = {c: cols.index(c) for c in ("class", *ints) if c in cols}
+            for cells in reader:
+                if not any(c.strip() for c in cells):
+                    continue
+                line = reader.line_num
+                get = {c: (cells[j].strip() if j < len(cells) else "") for c, j in at.items()}
+                cls = get["class"]
+                if cls not in LABEL_VALUES:
+                    raise RecordingError(f"{src}:{line}: class {cls!r} is not a class (expected one of "
+                                         f"{', '.join(c.value for c in FaultClass)}, or {', '.join(NOT_CLASSES)})")
+                for name, out in ints.items():
+                    if name not in at:
+                        continue
+                    v = get[name]
+                    if v == "" and not (name == "row" or (name == "nozzle" and "row" not in at)
+                                        or (name == "frame_id" and "row" not in at)):
+                        out.append(_EMPTY)  # a cell left empty beside the row that names the line: not checked
+                        continue
+                    if not _INTEGER.fullmatch(v):
+                        raise RecordingError(f"{src}:{line}: {name} {v!r} is not an integer")
+                    out.append(int(v))
+                classes.append(cls)
+                lines.append(line)
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise RecordingError(f"{src}: cannot read the labels CSV: {exc}") from None
+    key = "row" if "row" in at else ("nozzle+frame_id" if "frame_id" in at else "nozzle")
+    arrays = {name: (np.asarray(v, dtype=np.int64) if name in at else None) for name, v in ints.items()}
+    table = LabelTable(src, key, arrays["row"], arrays["nozzle"], arrays["frame_id"],
+                       np.asarray(classes, dtype=object), np.asarray(lines, dtype=np.int64))
+    keys = _table_keys(table)
+    if keys.size:
+        order = np.lexsort(keys.T[::-1])
+        k = keys[order]
+        dup = np.flatnonzero((k[1:] == k[:-1]).all(axis=1))
+        if dup.size:
+            a, b = np.sort(order[dup[0]:dup[0] + 2])
+            what = {"row": "row {}", "nozzle": "nozzle {}", "nozzle+frame_id": "nozzle {} in frame {}"}[key]
+            raise RecordingError(f"{src}:{table.lines[b]}: {what.format(*keys[b])} is named twice (first on line "
+                                 f"{table.lines[a]})")
+    return table
+
+
+def _table_keys(table: LabelTable) -> np.ndarray:
+    """(m, 1) or (m, 2) int64: each entry's key."""
+    if table.key == "row":
+        return table.row[:, None]
+    if table.key == "nozzle":
+        return table.nozzle[:, None]
+    return np.column_stack([table.nozzle, table.frame_id])
+
+
+def labels_from_csv(recording: Recording, labels) -> tuple:
     """The recording with each row's class read from a CSV file (hand labels, or ``inkdiag label``'s corrected).
 
     The CSV has a header line and a ``class`` column (a FaultClass value, or ``invalid`` /
@@ -230,7 +349,8 @@ def labels_from_csv(recording: Recording, path) -> tuple:
     Parameters
     ----------
     recording : Recording
-    path : str or os.PathLike
+    labels : str, os.PathLike or LabelTable
+        The CSV file, or the table :func:`read_labels_csv` read from it.
 
     Returns
     -------
@@ -242,69 +362,50 @@ def labels_from_csv(recording: Recording, path) -> tuple:
     Raises
     ------
     RecordingError
-        A missing or unreadable file, no ``class`` column or no ``row``/``nozzle`` column, a
-        class that is not one, a row out of range, named twice, or not the CSV's nozzle or
-        frame; the message names the file and its line.
+        As :func:`read_labels_csv`; and a row out of range, not the CSV's nozzle or frame, or
+        a nozzle (in a frame) the recording lacks, naming the file and its line.
     """
-    path = Path(path)
-    src = str(path)
-    if not path.is_file():
-        raise RecordingError(f"{src}: no such labels file" + (" (a directory)" if path.is_dir() else ""))
+    t = labels if isinstance(labels, LabelTable) else read_labels_csv(labels)
+    src = t.source
     n = recording.n_rows
     label = np.full(n, UNKNOWN, dtype=object)
     named = np.zeros(n, dtype=bool)
-    try:
-        with open(path, newline="", encoding="utf-8") as f:
-            reader = csv.DictReader(f)
-            cols = [c.strip() for c in (reader.fieldnames or [])]
-            reader.fieldnames = cols
-            if "class" not in cols or not ({"row", "nozzle"} & set(cols)):
-                raise RecordingError(f"{src}: a labels CSV needs a header with a 'class' column and a 'row' or "
-                                     f"'nozzle' column (as `inkdiag label` writes), got {cols or 'no header'}")
-            by_row = "row" in cols
-            with_frame = "frame_id" in cols
-            index = None
-            if not by_row:  # (nozzle, frame) -> rows, or nozzle -> rows
-                keys = (zip(recording.nozzle.tolist(), recording.frame_id.tolist()) if with_frame
-                        else recording.nozzle.tolist())
-                index = {}
-                for i, k in enumerate(keys):
-                    index.setdefault(k, []).append(i)
-            for rec in reader:
-                line = reader.line_num
-
-                def integer(name):
-                    v = (rec.get(name) or "").strip()
-                    try:
-                        return int(v)
-                    except ValueError:
-                        raise RecordingError(f"{src}:{line}: {name} {v!r} is not an integer") from None
-
-                cls = (rec.get("class") or "").strip()
-                if cls not in LABEL_VALUES:
-                    raise RecordingError(f"{src}:{line}: class {cls!r} is not a class (expected one of "
-                                         f"{', '.join(c.value for c in FaultClass)}, or {', '.join(NOT_CLASSES)})")
-                if by_row:
-                    r = integer("row")
-                    if not 0 <= r < n:
-                        raise RecordingError(f"{src}:{line}: row {r} is not a row of {recording.source} "
-                                             f"(0..{n - 1})")
-                    for name, have in (("nozzle", recording.nozzle), ("frame_id", recording.frame_id)):
-                        if name in cols and (rec.get(name) or "").strip() != "" and integer(name) != int(have[r]):
-                            raise RecordingError(
-                                f"{src}:{line}: row {r} is {name} {int(have[r])} in {recording.source}, the CSV "
-                                f"says {integer(name)}: labels of another recording?")
-                    rows = [r]
-                else:
-                    key = (integer("nozzle"), integer("frame_id")) if with_frame else integer("nozzle")
-                    rows = index.get(key)
-                    if rows is None:
-                        what = (f"nozzle {key[0]} in frame {key[1]}" if with_frame else f"nozzle {key}")
-                        raise RecordingError(f"{src}:{line}: {recording.source} has no row of {what}")
-                if named[rows].any():
-                    raise RecordingError(f"{src}:{line}: row {rows[int(np.argmax(named[rows]))]} is named twice")
-                named[rows] = True
-                label[rows] = cls
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise RecordingError(f"{src}: cannot read the labels CSV: {exc}") from None
+    if t.key == "row":
+        out = np.flatnonzero((t.row < 0) | (t.row >= n))
+        if out.size:
+            j = out[0]
+            raise RecordingError(f"{src}:{t.lines[j]}: row {t.row[j]} is not a row of {recording.source} "
+                                 f"(0..{n - 1})")
+        for name, have in (("nozzle", recording.nozzle), ("frame_id", recording.frame_id)):
+            col = getattr(t, name)
+            if col is None:
+                continue
+            bad = np.flatnonzero((col != _EMPTY) & (col != have[t.row]))
+            if bad.size:
+                j = bad[0]
+                raise RecordingError(f"{src}:{t.lines[j]}: row {t.row[j]} is {name} {have[t.row[j]]} in "
+                                     f"{recording.source}, the CSV says {col[j]}: labels of another recording?")
+        label[t.row] = t.classes
+        named[t.row] = True
+    else:
+        have = (recording.nozzle[:, None] if t.key == "nozzle"
+                else np.column_stack([recording.nozzle, recording.frame_id]))
+        keys = _table_keys(t)
+        # each recording row's entry in the table (its keys are distinct), through the distinct keys of both
+        _, inv = np.unique(np.concatenate([keys, have]), axis=0, return_inverse=True)
+        inv = inv.reshape(-1)
+        lookup = np.full(int(inv.max()) + 1, -1, dtype=np.int64)
+        lookup[inv[:len(keys)]] = np.arange(len(keys))
+        entry_of_row = lookup[inv[len(keys):]]
+        hit = entry_of_row >= 0
+        entry = entry_of_row[hit]
+        label[hit] = t.classes[entry]
+        named[hit] = True
+        used = np.zeros(len(keys), dtype=bool)
+        used[entry] = True
+        if not used.all():
+            j = int(np.flatnonzero(~used)[0])
+            what = (f"nozzle {keys[j, 0]}" if t.key == "nozzle" else f"nozzle {keys[j, 0]} in frame {keys[j, 1]}")
+            raise RecordingError(f"{src}:{t.lines[j]}: {recording.source} has no row of {what}")
     return dataclasses.replace(recording, label=label), int(named.sum())
+

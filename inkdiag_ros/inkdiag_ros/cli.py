@@ -35,6 +35,7 @@ from pathlib import Path
 __all__ = ["INPUT_ARGS", "VERBS", "build_parser", "main"]
 
 INPUT_ARGS = ("recording", "healthy", "model", "baselines", "profile", "nominal", "data", "blocked", "labels")
+RECORDING_ARGS = ("recording", "healthy", "data", "blocked")  # inputs that may be a bag directory
 """The verbs' arguments that name files they read: an ``--out`` that is one of them is refused."""
 
 VERBS = ("calibrate", "train", "baseline", "label", "estimate", "record", "replay", "printer")
@@ -120,8 +121,9 @@ def _check_out(args) -> None:
                 extra = "'s manifest" if value != getattr(args, name, None) else ""
                 raise OSError(f"--out {out} is also the {what} input{extra}: writing it would destroy that input")
             if value and Path(value).is_dir() and Path(value).resolve() in Path(out).resolve().parents:
-                raise OSError(f"--out {out} is inside the {what} input {value} (a bag directory): writing there "
-                              "would change or destroy the recording; write it elsewhere")
+                kind = ("a bag directory", "the recording") if name in RECORDING_ARGS else ("a directory", "that input")
+                raise OSError(f"--out {out} is inside the {what} input {value} ({kind[0]}): writing there "
+                              f"would change or destroy {kind[1]}; write it elsewhere")
         if Path(out).is_dir() and not args._makes_out_dir:
             raise OSError(f"--out {out} is a directory; give the output file's name")
     if out and out != "-" and not args._makes_out_dir:

@@ -120,6 +120,11 @@ def test_labels_from_csv_by_row_by_nozzle_and_by_nozzle_and_frame(tmp_path):
     assert n == 2 and list(got.label) == ["unknown", "unknown", "deeply_dried"] * 2
     got, n = labels_from_csv(rec, _csv(tmp_path / "nf.csv", "frame_id,nozzle,class\n1,9,deeply_dried\n"))
     assert n == 1 and list(got.label) == ["unknown"] * 5 + ["deeply_dried"]
+    # a spreadsheet's CSV: byte-order mark, Windows line ends, capitalised headers, blank and comma-only lines
+    (tmp_path / "x.csv").write_bytes("\ufeffRow,Nozzle,Class\r\n1,8,small_air_bubble\r\n\r\n,,\r\n5,9,ok_signal\r\n"
+                                     .encode("utf-8"))
+    got, n = labels_from_csv(rec, tmp_path / "x.csv")
+    assert n == 2 and list(got.label) == ["unknown", "small_air_bubble"] + ["unknown"] * 3 + ["ok_signal"]
 
 
 @pytest.mark.parametrize("text, message", [
@@ -130,8 +135,14 @@ def test_labels_from_csv_by_row_by_nozzle_and_by_nozzle_and_frame(tmp_path):
     ("row,class\n-1,ok_signal\n", "l.csv:2: row -1 is not a row"),
     ("row,class\n1.5,ok_signal\n", "l.csv:2: row '1.5' is not an integer"),
     ("row,frame_id,class\n3,0,ok_signal\n", "l.csv:2: row 3 is frame_id 1 in recording, the CSV says 0"),
-    ("row,class\n2,ok_signal\n2,ok_signal\n", "l.csv:3: row 2 is named twice"),
-    ("nozzle,class\n7,ok_signal\n7,ok_signal\n", "l.csv:3: row 0 is named twice"),
+    ("row,class\n2,ok_signal\n2,ok_signal\n", "l.csv:3: row 2 is named twice (first on line 2)"),
+    ("nozzle,class\n7,ok_signal\n7,ok_signal\n", "l.csv:3: nozzle 7 is named twice (first on line 2)"),
+    ("nozzle,frame_id,class\n7,1,ok_signal\n8,1,ok_signal\n7,1,ok_signal\n",
+     "l.csv:4: nozzle 7 in frame 1 is named twice (first on line 2)"),
+    ("row,class,Class\n0,ok_signal,ok_signal\n", "the header names 'class' twice"),
+    ("row,class\n0_3,ok_signal\n", "l.csv:2: row '0_3' is not an integer"),
+    ("row,nozzle,class\n3,-1,ok_signal\n", "l.csv:2: row 3 is nozzle 7 in recording, the CSV says -1"),
+    ("nozzle,class\n,ok_signal\n", "l.csv:2: nozzle '' is not an integer"),
     ("nozzle,class\n5,ok_signal\n", "l.csv:2: recording has no row of nozzle 5"),
     ("nozzle,frame_id,class\n7,2,ok_signal\n", "l.csv:2: recording has no row of nozzle 7 in frame 2"),
 ])
@@ -142,8 +153,16 @@ def test_labels_from_csv_refuses_what_it_cannot_use_naming_the_line(tmp_path, te
     rec = Recording.from_arrays(t, 10e6, nozzle=[7, 8, 9, 7, 8, 9], frame_id=[0, 0, 0, 1, 1, 1])
     with pytest.raises(RecordingError, match=re.escape(message)):
         labels_from_csv(rec, _csv(tmp_path / "l.csv", text))
+
+
+def test_labels_from_csv_refuses_a_missing_file_a_directory_and_bytes_that_are_not_text(tmp_path):
+    from inkdiag_core import labels_from_csv
+
+    rec = Recording.from_arrays(np.zeros((2, 64), np.float32), 10e6)
     with pytest.raises(RecordingError, match="no such labels file"):
         labels_from_csv(rec, tmp_path / "missing.csv")
+    with pytest.raises(RecordingError, match="is a directory, not a labels CSV"):
+        labels_from_csv(rec, tmp_path)
     (tmp_path / "b.csv").write_bytes(b"\xff\xfe\x00r")  # not UTF-8 text
     with pytest.raises(RecordingError, match="cannot read the labels CSV"):
         labels_from_csv(rec, tmp_path / "b.csv")

@@ -170,9 +170,20 @@ def test_train_on_a_bag_with_the_labels_csv_that_label_wrote_and_a_user_correcte
     r = _cli("train", "--profile", tmp_path / "head.yaml", "--out", tmp_path / "m.joblib", "--data", bag,
              "--labels", tmp_path / "checked.csv", "--n-per-class", 40, "--unknown-rate", 0, "--quiet")
     assert r.returncode == 0, r.stderr
-    assert f"classes of 72 of the 72 rows of {bag}" in r.stdout
+    assert f"72 of the 72 rows of {bag} named, 62 with a class" in r.stdout
     info = json.loads((tmp_path / "m.joblib.manifest.json").read_text())["config"]
     assert info["n_real_rows"] == 62 and info["labels_file"] == str(tmp_path / "checked.csv")
+    # what training read: each bag row (in label's numbering) with its own true class
+    from inkdiag_core import labels_from_csv
+    from inkdiag_ros.bags import read_bag_recording
+
+    got, _ = labels_from_csv(read_bag_recording(bag), tmp_path / "checked.csv")
+    assert list(got.label[10:]) == list(truth[10:]) and set(got.label[:10]) == {"unknown"}
+    np.testing.assert_array_equal(got.traces, x)
+    # --baseline with --data: refused before the recording is read
+    r = _cli("train", "--profile", tmp_path / "head.yaml", "--out", tmp_path / "m3.joblib", "--data", bag,
+             "--labels", tmp_path / "checked.csv", "--baseline", "--quiet")
+    assert r.returncode == 2 and "--baseline with --data" in r.stderr and "named" not in r.stdout
     # the labels of another recording (its nozzles differ) are refused, naming the line
     rows[3]["nozzle"] = "999"
     with open(tmp_path / "other.csv", "w", newline="") as f:

@@ -99,7 +99,10 @@ def run(args) -> int:
     import math
     from pathlib import Path
 
-    from inkdiag_core import labels_from_csv
+    import numpy as np
+
+    from inkdiag_core import labels_from_csv, read_labels_csv
+    from inkdiag_core.recording import NOT_CLASSES
     from inkdiag_core.head_profile import HeadProfile, ProfileError
     from inkdiag_core.persistence import save_detector
     from ..bags import is_bag, load_and_report
@@ -122,14 +125,17 @@ def run(args) -> int:
     if args.data and is_bag(args.data) and not args.labels:  # refused before reading it
         raise ValueError(f"{args.data}: a rosbag2 bag has no per-row labels: give each row's class with "
                          "--labels LABELS.csv (columns row, class, as `inkdiag label` writes them)")
-    if args.labels and not Path(args.labels).is_file():  # before reading a large recording
-        raise FileNotFoundError(f"--labels {args.labels}: no such file")
+    if args.data and args.baseline:
+        raise ValueError("--baseline with --data: recorded rows have no per-nozzle baselines; train the baseline "
+                         "branch on simulated rows only (leave out --data) or train without --baseline")
+    table = read_labels_csv(args.labels) if args.labels else None  # checked before a large recording is read
     data = load_and_report(args.data, args.topic) if args.data else None
     if data is not None:
-        if args.labels:
+        if table is not None:
             had = data.label is not None
-            data, n_named = labels_from_csv(data, args.labels)
-            print(f"{args.labels}: classes of {n_named} of the {data.n_rows} rows of {args.data}"
+            data, n_named = labels_from_csv(data, table)
+            n_class = int(np.isin(data.label, NOT_CLASSES, invert=True).sum())
+            print(f"{args.labels}: {n_named} of the {data.n_rows} rows of {args.data} named, {n_class} with a class"
                   + (" (in place of the recording's own 'label')" if had else ""))
         if data.label is None:
             raise ValueError(f"{args.data}: no 'label' array: --data needs each row's class (or give them with "
