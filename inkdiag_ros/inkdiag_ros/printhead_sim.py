@@ -16,6 +16,7 @@ header carries. A nominal profile or a bad file stops the node at start (one lin
 
 from __future__ import annotations
 
+import functools
 import sys
 import time
 
@@ -63,8 +64,8 @@ PARAMS = (
     ("drying_duration_s", 20.0, "time of the linear rise from start to end factor, s", float, (0.1, 1e6)),
     ("faults_start_s", 0.0, "every nozzle is healthy before this time (to record baselines); the faults "
      "appear and the drying starts then, s", float, (0.0, 1e6)),
-    ("max_frames", 0, "publish this many frames, then end the process (after a linger of 1 s for the "
-     "subscribers and a bag to receive the last ones); 0: never stop", int, (0, 2**31 - 1)),
+    ("max_frames", 0, "publish this many frames, then stop; a printhead_sim process then ends 1 s later (the "
+     "subscribers and its bag receive the last ones); 0: never stop", int, (0, 2**31 - 1)),
 )
 
 
@@ -75,8 +76,11 @@ LINGER_S = 1.0
 class PrintheadSim(Node):
     """Simulated printhead: timer -> scenario -> simulator -> encode -> publish."""
 
-    def __init__(self, **kwargs):
+    def __init__(self, *, ends_process: bool = False, **kwargs):
+        """``ends_process``: this node is its process's only one, which ends once :meth:`finished` (the
+        console entry point); in a graph or printer process it only stops publishing."""
         super().__init__("printhead_sim", **kwargs)
+        self._ends_process = ends_process
         p = _params.declare_all(self, PARAMS)
         self.config = p
         self.profile = self._load_profile(p)
@@ -136,14 +140,16 @@ class PrintheadSim(Node):
         if p["max_frames"] and self.frames_published >= p["max_frames"]:
             self._timer.cancel()
             self._last_at = time.monotonic()
-            self.get_logger().info(f"published {self.frames_published} frames (max_frames): ending in {LINGER_S:g} s")
+            then = f"ending in {LINGER_S:g} s" if self._ends_process else "publishing no more"
+            self.get_logger().info(f"published {self.frames_published} frames (max_frames): {then}")
 
 
 def main(args=None) -> int:
     """``--record BAG_DIR`` (before ``--ros-args``): a rosbag2 bag of traces and ground_truth (inkdiag_ros.bags)."""
     try:
         argv, bag = pop_record_arg(sys.argv if args is None else args)
-        make = PrintheadSim if bag is None else recording_node(PrintheadSim, bag, (topics.TRACES, topics.GROUND_TRUTH))
+        sim = functools.partial(PrintheadSim, ends_process=True)
+        make = sim if bag is None else recording_node(sim, bag, (topics.TRACES, topics.GROUND_TRUTH))
     except ValueError as exc:
         print(f"printhead_sim: {exc}", file=sys.stderr)
         return 2
