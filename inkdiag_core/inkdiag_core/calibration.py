@@ -65,6 +65,12 @@ Method
    less what the simulator's other spreads and the noise give on the calibrated head
    (simulated with no gain or offset spread, projected the same way), is the gain
    and offset spread.
+5. Physical spreads: the simulator's geometry and temperature spreads, each scaled by
+   one factor, fitted to the recording's spread of dominant frequency and damping. Step 4
+   is then redone against them, the gain spread on the dominant mode's amplitude (its
+   log's robust spread, recorded against the calibrated head simulated with no gain
+   spread): what the fitted physical spreads already give in amplitude is not counted
+   again as gain spread.
 """
 
 from __future__ import annotations
@@ -569,6 +575,15 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     spread_scale = _fit_spread_scales(calibrated.replace(
         spreads_overrides={"gain_rel": gain_rel, "offset_std_v": offset_std}), kp_rec, fs, seed)
     physical = _scaled_spreads(calibrated.spreads(), *spread_scale)
+    # the gain and offset spreads again, less what the fitted physical spreads give (not the defaults')
+    sim = calibrated.replace(spreads_overrides={**physical, "gain_rel": 0.0, "offset_std_v": 0.0}
+                             ).simulate({"healthy_nozzle": n_sim}, seed=seed).traces.astype(np.float64)
+    _, o_s, _ = _project(sim, shape, deriv)
+    offset_std = math.sqrt(max(_mad_std(o) ** 2 - _mad_std(o_s) ** 2, 0.0))
+    # the gain spread on the dominant mode's amplitude (the KPI the detector reads), recorded against simulated
+    amp_rec, amp_phys = kp_rec[:, 3], extract_kpis(sim, fs)[:, 3]
+    amp_rec, amp_phys = np.log(amp_rec[amp_rec > 0]), np.log(amp_phys[amp_phys > 0])
+    gain_rel = math.sqrt(max(_mad_std(amp_rec) ** 2 - _mad_std(amp_phys) ** 2, 0.0))
     sim = calibrated.replace(spreads_overrides={**physical, "gain_rel": gain_rel, "offset_std_v": offset_std}
                              ).simulate({"healthy_nozzle": n_sim}, seed=seed).traces.astype(np.float64)
 
@@ -620,6 +635,8 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
             "amplitude_v": [med(kp_rec, 3), med(kp_fit, 3)],
             "frequency_std_hz": [_mad_std(kp_rec[:, 1]), _mad_std(kp_sim[:, 1])],
             "damping_std": [_mad_std(kp_rec[:, 2]), _mad_std(kp_sim[:, 2])],
+            "amplitude_log_std": [_mad_std(np.log(kp_rec[kp_rec[:, 3] > 0, 3])),
+                                  _mad_std(np.log(kp_sim[kp_sim[:, 3] > 0, 3]))],
         },
         "healthy_mode": {"frequency_hz": f_prof, "damping_ratio": z_prof},
         "residual_rel": {"mean_trace": resid_rel, "per_trace_median": float(np.median(rel)),

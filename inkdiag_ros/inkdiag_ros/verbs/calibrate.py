@@ -255,6 +255,8 @@ def _markdown(r) -> str:
         f"| frequency spread (robust std, kHz; fitted = calibrated head simulated) | "
         f"{rv['frequency_std_hz'][0] / 1e3:.2f} | {rv['frequency_std_hz'][1] / 1e3:.2f} |",
         f"| damping spread (robust std) | {rv['damping_std'][0]:.4f} | {rv['damping_std'][1]:.4f} |",
+        f"| amplitude spread (robust std of log amplitude) | {rv['amplitude_log_std'][0]:.4f} | "
+        f"{rv['amplitude_log_std'][1]:.4f} |",
         "",
         f"Healthy mode of the calibrated channel: {hm['frequency_hz'] / 1e3:.2f} kHz, damping ratio "
         f"{hm['damping_ratio']:.4f}.",
