@@ -301,3 +301,21 @@ def test_blocked_traces_of_another_class_or_against_a_given_restrictor_are_refus
         else:
             with pytest.raises(CalibrationError, match="the nominal profile's restrictor"):
                 calibrate(given, healthy["traces"], healthy["sample_rate_hz"], blocked=blocked)
+
+
+def test_the_gain_spread_is_what_the_fitted_physical_spreads_leave_of_the_amplitude_spread(tmp_path):
+    """A head twice as spread as the simulator's default in geometry and temperature (and gain): the gain
+    spread is fitted after the physical ones, so it is not counted twice (it came out 0.31-0.39 against a true
+    0.12 before), and the calibrated head's amplitude spread is the recording's."""
+    import copy
+
+    import foreign_head as fh
+
+    head = copy.deepcopy(fh.FOREIGN_HEADS["h16"])
+    head["spreads"] = {k: (v if k == "offset_std_v" else 2 * v) for k, v in fh.FOREIGN_SPREADS.items()}
+    fh.write_nominal_yaml(tmp_path / "nominal.yaml", head)
+    rec = fh.simulate_foreign(head, {"healthy_nozzle": 300}, 101)
+    res = calibrate(HeadProfile.load(tmp_path / "nominal.yaml"), rec["traces"], rec["sample_rate_hz"])
+    assert 0.08 < res.profile.spreads().gain_rel < 0.18, res.profile.spreads().gain_rel
+    rec_std, sim_std = res.report["recorded_vs_fitted"]["amplitude_log_std"]
+    assert abs(sim_std / rec_std - 1) < 0.15, (rec_std, sim_std)
