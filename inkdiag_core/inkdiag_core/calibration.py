@@ -357,6 +357,48 @@ def _check_blocked_fit(fb, known, theta, fixed_restrictor):
     return f_fit, z_fit
 
 
+def _empty_measurement(nominal, empty, sample_rate_hz, f_healthy):
+    """The median mode of recorded empty-channel traces: ``{"n_traces", "frequency_hz", "damping_ratio",
+    "frequency_spread_rel"}`` (Hz, 1, 1), refused with the reason when they are not the actuator ringing alone."""
+    nominal.check_traces(empty, sample_rate_hz, what="the empty-channel recording")
+    e = np.asarray(empty, dtype=np.float64)
+    ok, _ = screen_traces(e, sample_rate_hz=sample_rate_hz, max_abs_v=nominal.max_abs_v)
+    k = extract_kpis(e[ok], nominal.sample_rate_hz) if ok.any() else np.zeros((0, 7))
+    k = k[np.isfinite(k[:, 1]) & (k[:, 1] > 0) & np.isfinite(k[:, 2])]
+    if k.shape[0] < MIN_EMPTY_TRACES:
+        raise CalibrationError(f"{k.shape[0]} usable empty-channel traces (of {e.shape[0]}); the actuator's "
+                               f"resonance needs at least {MIN_EMPTY_TRACES}")
+    f, z = float(np.median(k[:, 1])), float(np.median(k[:, 2]))
+    if not f > EMPTY_MIN_RATIO * f_healthy:
+        raise CalibrationError(
+            f"the empty-channel traces ring at {f / 1e3:.1f} kHz, not above {EMPTY_MIN_RATIO:g} times the healthy "
+            f"mode ({f_healthy / 1e3:.1f} kHz): an empty channel rings with the actuator alone, far above it; are "
+            "they channels with no ink (the head purged dry)?")
+    if not z < EMPTY_MAX_DAMPING:
+        raise CalibrationError(f"the empty-channel traces are damped too much (damping ratio {z:.2f}, above "
+                               f"{EMPTY_MAX_DAMPING}) for the actuator's own resonance: are they channels with no ink?")
+    spread = _relative_spread(k[:, 1])
+    if spread > EMPTY_MAX_SPREAD:
+        raise CalibrationError(
+            f"the empty-channel traces' frequencies spread {100 * spread:.1f} % (more than "
+            f"{100 * EMPTY_MAX_SPREAD:g} %): channels with ink films of different sizes, or not all empty?")
+    return {"n_traces": int(k.shape[0]), "frequency_hz": f, "damping_ratio": z, "frequency_spread_rel": spread}
+
+
+MIN_EMPTY_TRACES = 10
+"""Fewest usable empty-channel traces ``calibrate(empty=...)`` takes."""
+EMPTY_MIN_RATIO = 2.5
+"""An empty channel's mode must be at least this many times the healthy mode (the actuator alone rings far above
+the ink channel: 7.5-9.6 times on the heads of ``tests/foreign_head.py`` and the walkthrough's h12; 5.0-6.3 with a
+heavy ink film, the ``empty_channel_2`` class, which is not what ``empty=`` takes and which this does not catch)."""
+EMPTY_MAX_DAMPING = 0.3
+"""Largest median damping ratio of empty-channel traces taken (the actuator alone is lightly damped)."""
+EMPTY_MAX_SPREAD = 0.08
+"""Largest relative (robust) spread of the empty-channel traces' frequencies: 2.2 % on the heads of
+``tests/foreign_head.py`` (a dry channel's film mass ratio 0-0.1 and the actuator's tolerances), 4.9 % with their
+tolerances doubled; dry and film-loaded channels mixed 30 %."""
+
+
 MIN_BLOCKED_TRACES = 10
 """Fewest usable fully blocked traces ``calibrate(blocked=...)`` takes."""
 BLOCKED_MODE_FLOOR = 0.002
@@ -381,7 +423,7 @@ fully blocked traces on the heads of ``tests/foreign_head.py`` (up to 2.13 from 
 
 
 def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None = None, seed: int = 0,
-              n_examples: int = 4, blocked=None) -> CalibrationResult:
+              n_examples: int = 4, blocked=None, empty=None) -> CalibrationResult:
     """Fit a complete head profile to recorded healthy traces (see the module docstring).
 
     Parameters
@@ -408,6 +450,13 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
         chamber alone, so their median mode pins how the restrictor and the nozzle share
         the healthy mode, which healthy traces alone leave to the prior: the fit matches it
         as one more measurement (its standard error, floored at :data:`BLOCKED_MODE_FLOOR`).
+    empty : array_like, shape (k, n_samples), optional
+        Recorded traces of empty channels of the head (no ink, no ink film: the head
+        purged dry; at least :data:`MIN_EMPTY_TRACES` usable), V. They ring with the
+        actuator alone, which healthy traces never show: their median mode becomes the
+        profile's ``channel.f_act`` and ``channel.zeta_act``, which the empty-channel
+        classes are simulated from (else the default head's actuator, scaled to the
+        fitted ``B_act``).
 
     Returns
     -------
@@ -451,6 +500,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
             f"({reach[0] / 1e3:.1f}-{reach[1] / 1e3:.1f} kHz with its nozzle, ink and chamber): check "
             "channel.r_n, L_n, V_ch, c, rho, mu (SI units: m, m^3, m/s, kg/m^3, Pa s) and the sampling")
 
+    fe = None if empty is None else _empty_measurement(nominal, empty, sample_rate_hz, f_rec)
     fb = None
     if blocked is not None:
         f_h = extract_kpis(y, fs)[:, 1]
@@ -557,7 +607,8 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     sensor = {"gain_v_per_m3s": gain, "offset_v": float(np.median(o)), "noise_std_v": noise}
     calibrated = nominal.replace(
         name=name or nominal.name,
-        channel={"r_r": r_r, "L_r": L_r, "B_act": float(B_act), "b": b},
+        channel={"r_r": r_r, "L_r": L_r, "B_act": float(B_act), "b": b,
+                 **({} if fe is None else {"f_act": fe["frequency_hz"], "zeta_act": fe["damping_ratio"]})},
         sensor={**sensor, "snr_db": None},
         spreads_overrides={"gain_rel": 0.0, "offset_std_v": 0.0},
         calibration={})
@@ -617,6 +668,8 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
         "n_samples": int(nominal.n_samples),
         "fitted": {**({} if fixed_restrictor else {"channel.r_r": r_r, "channel.L_r": L_r}),
                    "channel.B_act": float(B_act), "channel.b": b,
+                   **({} if fe is None else {"channel.f_act": fe["frequency_hz"],
+                                             "channel.zeta_act": fe["damping_ratio"]}),
                    "sensor.gain_v_per_m3s": gain, "sensor.offset_v": sensor["offset_v"],
                    "sensor.noise_std_v": noise, "spreads.gain_rel": gain_rel,
                    "spreads.offset_std_v": offset_std,
@@ -646,6 +699,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
         "identifiability": {"parameters": pinned, "data_singular_values": [float(v) for v in sv],
                             "residual_scale": math.sqrt(s2)},
         "prior": {**PRIOR_RATIOS, "sd_log": PRIOR_SD_LOG},
+        "empty_mode": fe,
         "blocked_mode": None if fb is None else {
             "n_traces": fb[2], "frequency_hz_recorded": fb[0], "frequency_hz_std_error": fb[1],
             "frequency_hz_fitted": fb_fit[0], "damping_ratio_recorded": fb[3], "damping_ratio_fitted": fb_fit[1]},
@@ -659,6 +713,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
                   "residual_rel_per_trace_median": report["residual_rel"]["per_trace_median"],
                   "determined_by": {p: pinned[p]["determined_by"] for p in _PARAMS},
                   **({} if fb is None else {"n_blocked_traces": fb[2], "blocked_mode_hz": fb[0]}),
+                  **({} if fe is None else {"n_empty_traces": fe["n_traces"]}),
                   "posterior": {"parameters": list(_PARAMS), "units": ["m^3/Pa", "kg/m^4", "Pa s/m^3"],
                                 "mean_log": [float(v) for v in theta], "cov_log": cov_post.tolist()},
                   "nominal_sha256": nominal.sha256}
@@ -733,9 +788,10 @@ def posterior_profiles(profile, n_draws: int = POSTERIOR_DRAWS, *, seed: int = 0
 UNSEEN_PHYSICS_SPREADS = {"actuator_resonance_rel": 0.05, "actuator_damping_rel": 0.35, "film_loss_rel": 0.35}
 """Spreads a calibrated profile gets for the fault physics healthy traces cannot show.
 
-The empty channel is the actuator alone: its resonance (here the default head's
-actuator inertance with the head's compliance), damping ratio and ink-film loss are
-the default head's constants, unknown for another head. Training over these
+The empty channel is the actuator alone: its resonance (the profile's ``channel.f_act``
+if calibration measured it on empty channels or the nominal profile gives it, else the
+default head's actuator inertance with the head's compliance), damping ratio and
+ink-film loss are the default head's constants, unknown for another head. Training over these
 log-normal spreads keeps a detector from leaning on their exact values (written
 into the profile's ``spreads``; edit them there if the head's values are known).
 """

@@ -23,6 +23,8 @@ The file (YAML, SI units)::
       L_r: ...           # m      } calibration (``inkdiag calibrate``)
       B_act: ...         # m^3/Pa } fits them to recorded healthy traces
       b: ...             # m^3/V  }
+      f_act: 1.6e+6      # Hz, optional: the actuator's own resonance (an empty channel; from
+      zeta_act: 0.03     #     its datasheet, or `inkdiag calibrate --empty`), and its damping ratio
     drive:     # DriveWaveform field names
       {amplitude_v: 25.0, rise_s: 1.0e-6, dwell_s: 2.0e-6, fall_s: 1.0e-6, switch_delay_s: 1.0e-6}
     sensor:
@@ -84,13 +86,14 @@ SCHEMA_VERSION = 1
 CHANNEL_UNITS = {
     "rho": "kg/m^3", "mu": "Pa s", "mu_nozzle": "Pa s", "r_n": "m", "L_n": "m", "r_r": "m",
     "L_r": "m", "V_ch": "m^3", "c": "m/s", "B_act": "m^3/Pa", "b": "m^3/V", "B_extra": "m^3/Pa",
+    "f_act": "Hz", "zeta_act": "1",
 }
 """The ``channel`` keys (the :class:`InkChannelParams` fields) and their SI units."""
 
 NOMINAL_CHANNEL_KEYS = ("rho", "mu", "r_n", "L_n", "V_ch", "c")
 """Channel keys a nominal profile must give (a datasheet's nozzle, chamber and ink)."""
 
-_OPTIONAL_CHANNEL_KEYS = ("mu_nozzle", "B_extra")
+_OPTIONAL_CHANNEL_KEYS = ("mu_nozzle", "B_extra", "f_act", "zeta_act")
 
 DRIVE_UNITS = {"amplitude_v": "V", "rise_s": "s", "dwell_s": "s", "fall_s": "s", "switch_delay_s": "s"}
 """The ``drive`` keys (the :class:`DriveWaveform` fields) and their SI units."""
@@ -260,6 +263,12 @@ class HeadProfile:
             channel[k] = _number(f"{source}: channel", k, v, CHANNEL_UNITS[k], positive=k != "B_extra")
             if k == "B_extra" and channel[k] < 0:
                 raise ProfileError(f"{source}: channel.B_extra: expected a number >= 0 in m^3/Pa, got {v!r}")
+            if k == "zeta_act" and not channel[k] < 1:
+                raise ProfileError(f"{source}: channel.zeta_act: the actuator's damping ratio must be below 1 (an "
+                                   f"oscillating resonance), got {v!r}")
+        if "f_act" in channel and not channel["f_act"] < fs / 2:
+            raise ProfileError(f"{source}: channel.f_act: the actuator's resonance {channel['f_act'] / 1e3:.1f} kHz is "
+                               f"not below the Nyquist frequency {fs / 2e3:.1f} kHz of sampling.sample_rate_hz (Hz)")
         dr = _section(doc, "drive", DRIVE_UNITS, source, required=tuple(DRIVE_UNITS))
         drive = DriveWaveform(**{k: _number(f"{source}: drive", k, v, DRIVE_UNITS[k]) for k, v in dr.items()})
         se = _section(doc, "sensor", SENSOR_UNITS, source)

@@ -96,6 +96,13 @@ class InkChannelParams:
         Actuator coupling: volume displaced per volt, m^3/V.
     B_extra : float
         Extra compliance in the chamber (for instance entrained gas), m^3/Pa.
+    f_act : float or None
+        Structural resonance of the actuator alone (an empty channel, no ink film), Hz.
+        Only the empty-channel fault classes use it (healthy traces do not show it).
+        ``None``: the default head's actuator (2.175 MHz at its ``B_act``) with this
+        ``B_act``, ``2.175 MHz * sqrt(5.198e-21 / B_act)``.
+    zeta_act : float or None
+        Damping ratio of that resonance; ``None``: the default head's, 0.03.
     """
 
     rho: float = 1000.0
@@ -110,11 +117,13 @@ class InkChannelParams:
     B_act: float = 5.198e-21
     b: float = 2.0e-18
     B_extra: float = 0.0
+    f_act: float | None = None
+    zeta_act: float | None = None
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
-            if f.name == "mu_nozzle" and value is None:
+            if f.name in ("mu_nozzle", "f_act", "zeta_act") and value is None:
                 continue
             if f.name == "B_extra":
                 checks.nonnegative_float(f.name, value)

@@ -68,6 +68,10 @@ def test_nominal_profile_loads_and_says_what_is_missing():
     (lambda d: d.update(sensor={"noise_std_v": 0.01, "snr_db": 30.0}), "not both"),
     (lambda d: d.update(sensor="x"), "sensor: expected a mapping"),
     (lambda d: d.update(extra=1), "extra: unknown key"),
+    (lambda d: d["channel"].update(f_act=6e6), r"channel\.f_act: the actuator's resonance 6000\.0 kHz is not below "
+     r"the Nyquist frequency 5000\.0 kHz"),
+    (lambda d: d["channel"].update(f_act=-1.0), r"channel\.f_act: expected a positive number in Hz"),
+    (lambda d: d["channel"].update(zeta_act=1.2), r"channel\.zeta_act: the actuator's damping ratio must be below 1"),
 ])
 def test_bad_profiles_name_the_key_and_the_unit(edit, match):
     doc = HeadProfile.default().to_dict()
@@ -123,3 +127,19 @@ def test_a_duplicate_key_is_an_error_not_the_last_value():
     text = HeadProfile.default().dumps().replace("rho: 1000.0", "rho: 1000.0\n  rho: 900.0")
     with pytest.raises(ProfileError, match="duplicate key 'rho'"):
         HeadProfile.loads(text, source="p.yaml")
+
+
+def test_the_actuator_resonance_of_a_profile_reaches_the_empty_channel_classes(tmp_path):
+    """channel.f_act / zeta_act (optional): the empty channel rings at f_act without a film; without them, the
+    default head's actuator scaled to the profile's B_act (the default head itself: unchanged)."""
+    import numpy as np
+
+    p = HeadProfile.default()
+    q = HeadProfile.load(p.replace(channel={"f_act": 1.5e6, "zeta_act": 0.05}).save(tmp_path / "q.yaml"))
+    assert q.channel["f_act"] == 1.5e6 and q.channel_params().zeta_act == 0.05 and p.channel_params().f_act is None
+    assert q.sha256 != p.sha256
+    counts = {"empty_channel_1": 60}
+    f_p, f_q = (np.median(h.simulate(counts, seed=1, severity={"empty_channel_1": np.zeros(60)}).frequency_hz) for h in (p, q))
+    assert abs(f_p / 2.175e6 - 1) < 0.01 and abs(f_q / 1.5e6 - 1) < 0.01
+    z_q = np.median(q.simulate(counts, seed=1, severity={"empty_channel_1": np.zeros(60)}).damping_ratio)
+    assert abs(z_q / 0.05 - 1) < 0.05

@@ -178,3 +178,42 @@ def test_blocked_traces_through_the_cli(files, tmp_path, capsys):
     (tmp_path / "bag" / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
     assert cli.main([*args, "--blocked", str(tmp_path / "bag"), "--out", str(tmp_path / "x.yaml")]) == 2
     assert "--blocked takes an .npz recording" in capsys.readouterr().err
+
+
+def test_empty_channel_traces_through_the_cli(tmp_path, capsys):
+    """--empty: a head whose actuator rings 17 % below what the default head's actuator scaled to its B_act
+    gives; the empty channels' median mode becomes channel.f_act, and the calibrated head's simulated
+    empty_channel_1 rings where the recorded ones do (without --empty it does not); traces that are not
+    empty channels are refused."""
+    import copy
+
+    import foreign_head as fh
+
+    head = copy.deepcopy(fh.FOREIGN_HEADS["h16"])
+    head["physics"] = {"f_act_hz": 1.3e6}
+    fh.write_recording(tmp_path / "healthy.npz", fh.simulate_foreign(head, {"healthy_nozzle": 300}, 1))
+    fh.write_nominal_yaml(tmp_path / "nominal.yaml", head)
+    empty = fh.simulate_foreign(head, {"healthy_nozzle": 10, "empty_channel_1": 40, "empty_channel_2": 40}, 2)
+    fh.write_recording(tmp_path / "empty.npz", empty)  # labelled: its empty_channel_1 rows are taken
+    f_rec = np.median(np.asarray(empty["frequency_hz"])[np.asarray(empty["labels"]) == "empty_channel_1"])
+    args = ["calibrate", str(tmp_path / "healthy.npz"), "--nominal", str(tmp_path / "nominal.yaml")]
+    assert cli.main([*args, "--out", str(tmp_path / "plain.yaml")]) == 0
+    assert cli.main([*args, "--empty", str(tmp_path / "empty.npz"), "--out", str(tmp_path / "head.yaml")]) == 0
+    assert "actuator (empty channels)" in capsys.readouterr().out
+    plain, p = HeadProfile.load(tmp_path / "plain.yaml"), HeadProfile.load(tmp_path / "head.yaml")
+    assert "f_act" not in plain.channel and p.calibration["n_empty_traces"] == 40
+    assert abs(p.channel["f_act"] / f_rec - 1) < 0.03 and 0 < p.channel["zeta_act"] < 0.1
+    f_plain, f_cal = (np.median(q.simulate({"empty_channel_1": 100}, seed=5).frequency_hz) for q in (plain, p))
+    assert abs(f_cal / f_rec - 1) < 0.04 and f_plain / f_rec > 1.12, (f_rec, f_cal, f_plain)
+    assert "Empty channels" in (tmp_path / "head.fit.md").read_text()
+    assert json.loads((tmp_path / "head.fit.json").read_text())["empty_mode"]["n_traces"] == 40
+    # not empty channels (unlabelled): healthy traces; dry and film-loaded channels mixed; a labelled recording
+    # with no empty_channel_1 row
+    h = np.load(tmp_path / "healthy.npz")
+    np.savez(tmp_path / "h.npz", traces=h["traces"][:40], sample_rate_hz=h["sample_rate_hz"])
+    np.savez(tmp_path / "mixed.npz", traces=np.asarray(empty["traces"])[10:], sample_rate_hz=empty["sample_rate_hz"])
+    for bad, message in (("h.npz", "not above 2.5 times the healthy mode"), ("mixed.npz", "frequencies spread"),
+                         ("healthy.npz", "its label column has no empty_channel_1 row")):
+        assert cli.main([*args, "--empty", str(tmp_path / bad), "--out", str(tmp_path / "x.yaml")]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "x.yaml").exists()

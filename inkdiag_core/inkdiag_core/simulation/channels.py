@@ -385,8 +385,11 @@ def draw_channels(classes, base: InkChannelParams, spreads: Spreads, rng, severi
     empty = kinds == "empty"
     if empty.any():
         c = PHYSICAL_CONSTANTS
-        I_act = 1.0 / ((2 * np.pi * c["f_act_hz"] * f_act_factor[empty]) ** 2 * c["f_act_ref_b_act"])
-        R_act0 = 2.0 * c["zeta_act"] * zeta_act_factor[empty] * np.sqrt(I_act / base.B_act)
+        # the actuator's modal inertance: the head's own resonance at its B_act, else the default head's
+        f_act, b_ref = ((base.f_act, base.B_act) if base.f_act is not None else (c["f_act_hz"], c["f_act_ref_b_act"]))
+        zeta_act = c["zeta_act"] if base.zeta_act is None else base.zeta_act
+        I_act = 1.0 / ((2 * np.pi * f_act * f_act_factor[empty]) ** 2 * b_ref)
+        R_act0 = 2.0 * zeta_act * zeta_act_factor[empty] * np.sqrt(I_act / base.B_act)
         m = severity[empty]
         I_e = I_act * (1.0 + m)
         R_e = R_act0 * (1.0 + c["film_loss_factor"] * film_factor[empty] * m * mu[empty] / base.mu)

@@ -1,7 +1,7 @@
 """``inkdiag calibrate``: a complete head profile from a nominal one and recorded healthy traces.
 
-    inkdiag calibrate HEALTHY --nominal NOMINAL.yaml --out HEAD.yaml [--blocked BLOCKED] [--report-dir DIR]
-                      [--name NAME]
+    inkdiag calibrate HEALTHY --nominal NOMINAL.yaml --out HEAD.yaml [--blocked BLOCKED] [--empty EMPTY]
+                      [--report-dir DIR] [--name NAME]
 
 Reads the recording (:func:`inkdiag_core.load_recording`), fits what the nominal
 profile leaves out (:func:`inkdiag_core.calibration.calibrate`), writes the
@@ -37,6 +37,15 @@ that are not fully blocked nozzles are refused (their damping, their spread or t
 restrictor they would give says so), as are blocked traces that contradict a
 restrictor the nominal profile gives.
 
+Healthy traces never show the actuator alone, which the empty-channel classes
+ring with: without more, its resonance is the default head's actuator scaled to the
+fitted B_act, which another head's actuator need not follow (a head whose actuator
+rang 15 % below that lost half its empty_channel_1 rows to empty_channel_2).
+--empty gives traces of empty channels of the head (an .npz of at least 10, no ink
+and no ink film: the head purged dry; with a label column, its empty_channel_1 rows):
+their median mode becomes the profile's channel.f_act and channel.zeta_act. A
+datasheet's value can go in the nominal profile as channel.f_act (Hz) instead.
+
 A rosbag2 bag is streamed: its rows screening accepts are sampled uniformly, at most
 10000 (reservoir sampling, seeded by --seed), so memory stays bounded whatever the
 bag's length; the message says how many rows were read, screened out and sampled.
@@ -44,6 +53,7 @@ A message that is not a valid trace frame is reported on stderr and skipped.
 
 example:
   inkdiag calibrate healthy.npz --nominal nominal.yaml --out head.yaml
+  inkdiag calibrate healthy.npz --nominal nominal.yaml --out head.yaml --empty dry.npz
 """
 
 
@@ -56,6 +66,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--out", metavar="HEAD.yaml", required=True, help="complete head profile to write")
     parser.add_argument("--blocked", metavar="BLOCKED", default=None,
                         help="recording (.npz) of fully blocked nozzles of the head: pins the restrictor")
+    parser.add_argument("--empty", metavar="EMPTY", default=None,
+                        help="recording (.npz) of empty channels of the head (no ink: purged dry): the actuator's own "
+                        "resonance, which the empty-channel classes are simulated from")
     parser.add_argument("--report-dir", metavar="DIR", default=None,
                         help="where to write the fit report (default: beside --out)")
     parser.add_argument("--name", default=None, help="name of the calibrated profile (default: the nominal's)")
@@ -118,19 +131,19 @@ def bag_sample(chunks, nominal, *, max_rows: int = MAX_BAG_ROWS, seed: int = 0):
     return store[:m][keep], n_read, n_screened
 
 
-def _blocked_rows(path):
-    """The recording at ``path`` (an .npz), its rows labelled ``fully_blocked`` where it has labels."""
-    from inkdiag_core import FaultClass, load_recording
+def _fault_rows(path, option, cls):
+    """The recording at ``path`` (an .npz) given as ``option``, its rows labelled ``cls`` where it has labels."""
+    from inkdiag_core import load_recording
 
     from ..bags import is_bag
 
     if is_bag(path):
-        raise ValueError(f"--blocked {path}: a rosbag2 bag; --blocked takes an .npz recording (a few dozen traces)")
+        raise ValueError(f"{option} {path}: a rosbag2 bag; {option} takes an .npz recording (a few dozen traces)")
     rec = load_recording(path)
     if rec.label is not None:
-        keep = rec.label == FaultClass.FULLY_BLOCKED.value
+        keep = rec.label == cls
         if not keep.any():
-            raise ValueError(f"{path}: its label column has no fully_blocked row")
+            raise ValueError(f"{path}: its label column has no {cls} row")
         rec = type(rec).from_arrays(rec.traces[keep], rec.sample_rate_hz, source=rec.source)
     return rec
 
@@ -148,9 +161,13 @@ def run(args) -> int:
     if not 0 <= args.seed < 2**32:
         raise ValueError(f"--seed must be in 0..2**32-1, got {args.seed}")
     nominal = HeadProfile.load(args.nominal)
-    blocked = _blocked_rows(args.blocked) if args.blocked else None  # before a long bag is read
+    # before a long bag is read
+    blocked = _fault_rows(args.blocked, "--blocked", "fully_blocked") if args.blocked else None
     if blocked is not None:
         nominal.check_traces(blocked.traces, blocked.sample_rate_hz, what=f"{args.blocked}")
+    empty = _fault_rows(args.empty, "--empty", "empty_channel_1") if args.empty else None
+    if empty is not None:
+        nominal.check_traces(empty.traces, empty.sample_rate_hz, what=f"{args.empty}")
     stats, chunks = stream_recording(args.healthy, args.topic)
     _, rec = next(chunks)  # a bag with no trace frame: RecordingError
     nominal.check_traces(rec.traces, rec.sample_rate_hz, what=f"{args.healthy}")
@@ -174,12 +191,14 @@ def run(args) -> int:
     report_dir = Path(args.report_dir) if args.report_dir else out.parent
     report_dir.mkdir(parents=True, exist_ok=True)
     result = calibrate(nominal, traces, fs, name=args.name, seed=args.seed,
-                       blocked=None if blocked is None else blocked.traces)
+                       blocked=None if blocked is None else blocked.traces,
+                       empty=None if empty is None else empty.traces)
     result.profile.save(out)
     stem = report_dir / out.name.removesuffix(".yaml").removesuffix(".yml")
     png = stem.with_name(stem.name + ".fit.png")
     report = dict(result.report, recording=str(args.healthy), nominal=str(args.nominal), profile=str(out),
                   blocked=None if blocked is None else str(args.blocked),
+                  empty=None if empty is None else str(args.empty),
                   profile_sha256=result.profile.sha256, n_rows_left_out_by_label=left_out)
     try:
         _plot(result, png)
@@ -197,6 +216,9 @@ def run(args) -> int:
           f"{100 * rr['noise_floor']:.1f} %)" + ("" if not (fb := report["blocked_mode"]) else
           f"; blocked mode recorded/fitted {fb['frequency_hz_recorded'] / 1e3:.1f}/"
           f"{fb['frequency_hz_fitted'] / 1e3:.1f} kHz ({fb['n_traces']} traces)")
+          + ("" if not (fe := report["empty_mode"]) else
+             f"; actuator (empty channels) {fe['frequency_hz'] / 1e3:.1f} kHz, damping {fe['damping_ratio']:.3f} "
+             f"({fe['n_traces']} traces)")
           + f"; report {stem}.fit.md", file=sys.stdout)
     if "channel.r_r" not in report["fitted"]:  # the nominal profile's restrictor, kept
         print(f"inkdiag calibrate: the restrictor (channel.r_r, channel.L_r) is the nominal profile's, not "
@@ -267,6 +289,11 @@ def _markdown(r) -> str:
             f"{fb['frequency_hz_std_error'] / 1e3:.2f} kHz, damping ratio {fb['damping_ratio_recorded']:.3f}), "
             f"the calibrated channel's {fb['frequency_hz_fitted'] / 1e3:.2f} kHz (damping ratio "
             f"{fb['damping_ratio_fitted']:.3f}): it pins the restrictor.", ""]),
+        *([] if not (fe := r.get("empty_mode")) else [
+            f"Empty channels (`{r.get('empty')}`, {fe['n_traces']} traces): the actuator alone rings at "
+            f"{fe['frequency_hz'] / 1e3:.1f} kHz (median; robust spread {100 * fe['frequency_spread_rel']:.1f} %), "
+            f"damping ratio {fe['damping_ratio']:.3f}: the profile's channel.f_act and channel.zeta_act, which the "
+            "empty-channel classes are simulated from.", ""]),
         f"RMS residual relative to the trace RMS: mean trace {100 * rr['mean_trace']:.2f} %, per trace median "
         f"{100 * rr['per_trace_median']:.2f} % (P90 {100 * rr['per_trace_p90']:.2f} %); the white noise alone is "
         f"{100 * rr['noise_floor']:.2f} %.",
