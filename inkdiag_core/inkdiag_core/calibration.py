@@ -385,6 +385,11 @@ def _empty_measurement(nominal, empty, sample_rate_hz, f_healthy):
     return {"n_traces": int(k.shape[0]), "frequency_hz": f, "damping_ratio": z, "frequency_spread_rel": spread}
 
 
+_PLAUSIBLE = {"rho": (500.0, 3000.0, "kg/m^3"), "mu": (1e-4, 0.5, "Pa s"), "r_n": (1e-6, 1e-4, "m"),
+              "L_n": (1e-6, 1e-3, "m"), "V_ch": (1e-15, 1e-9, "m^3"), "c": (300.0, 3000.0, "m/s")}
+# ranges of an inkjet head's nominal values, SI: a value outside is named when the fit cannot reach the traces
+
+
 MIN_EMPTY_TRACES = 10
 """Fewest usable empty-channel traces ``calibrate(empty=...)`` takes."""
 EMPTY_MIN_RATIO = 2.5
@@ -495,10 +500,13 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
                                "nozzles fired with the profile's drive?")
     reach = _reachable(known)
     if not (reach[0] * 0.98 <= f_rec <= reach[1] * 1.02):
+        odd = [f"channel.{k} {nominal.channel[k]:g} {unit} (an inkjet head's: {lo:g} to {hi:g} {unit})"
+               for k, (lo, hi, unit) in _PLAUSIBLE.items() if not lo <= nominal.channel[k] <= hi]
         raise CalibrationError(
             f"the recorded traces' dominant mode {f_rec / 1e3:.1f} kHz is outside what the nominal channel can reach "
-            f"({reach[0] / 1e3:.1f}-{reach[1] / 1e3:.1f} kHz with its nozzle, ink and chamber): check "
-            "channel.r_n, L_n, V_ch, c, rho, mu (SI units: m, m^3, m/s, kg/m^3, Pa s) and the sampling")
+            f"({reach[0] / 1e3:.1f}-{reach[1] / 1e3:.1f} kHz with its nozzle, ink and chamber): "
+            + (f"implausible: {'; '.join(odd)}, a value in other units? " if odd else "")
+            + "check channel.r_n, L_n, V_ch, c, rho, mu (SI units: m, m^3, m/s, kg/m^3, Pa s) and the sampling")
 
     fe = None if empty is None else _empty_measurement(nominal, empty, sample_rate_hz, f_rec)
     fb = None

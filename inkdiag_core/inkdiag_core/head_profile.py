@@ -324,7 +324,10 @@ class HeadProfile:
             text = path.read_text(encoding="utf-8")
         except FileNotFoundError:
             raise ProfileError(f"{path}: no such head profile file") from None
-        except (OSError, UnicodeDecodeError) as exc:
+        except UnicodeDecodeError:
+            raise ProfileError(f"{path}: not a head profile: a binary file, not YAML text (a model file? a profile "
+                               "is the head's YAML file)") from None
+        except OSError as exc:
             raise ProfileError(f"{path}: cannot read the head profile: {exc}") from None
         return cls.loads(text, source=str(path))
 

@@ -128,6 +128,16 @@ def _save(model, path, *, config, scores):
     return mpath, manifest
 
 
+def _looks_like_a_profile(path: Path) -> bool:
+    """Whether ``path`` starts like a head profile's YAML (its schema line), read without unpickling anything."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return False
+    return b"inkdiag.head_profile" in head
+
+
 def read_manifest(path) -> dict:
     """Read and check the manifest of ``path`` (the model file itself is not read)."""
     path = Path(path)
@@ -135,6 +145,9 @@ def read_manifest(path) -> dict:
     if not path.is_file():
         raise ModelFileError(f"model file {path} does not exist")
     if not mpath.is_file():
+        if _looks_like_a_profile(path):
+            raise ModelFileError(f"model file {path} is a head profile (YAML), not a model: a model is the "
+                                 "MODEL.joblib `inkdiag train` writes (with its manifest beside it)")
         raise ModelFileError(
             f"model file {path} has no manifest {mpath.name}: refusing to unpickle an unverified file"
         )

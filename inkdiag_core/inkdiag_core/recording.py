@@ -122,6 +122,9 @@ class Recording:
             if value is None:
                 return default
             a = np.asarray(value)
+            if a.shape == (t.shape[1],) and t.shape[1] != n:
+                raise RecordingError(f"{source}: {name} has {t.shape[1]} entries, one per column of traces {t.shape}: "
+                                     "are the traces transposed? (one row per trace: shape (n, n_samples))")
             if a.shape != (n,):
                 raise RecordingError(f"{source}: {name} must have one entry per trace, shape ({n},), got {a.shape}")
             if kind == "int":
@@ -141,6 +144,9 @@ class Recording:
         lab = None
         if label is not None:
             lab = np.asarray(label)
+            if lab.shape == (t.shape[1],) and t.shape[1] != n:
+                raise RecordingError(f"{source}: label has {t.shape[1]} entries, one per column of traces {t.shape}: "
+                                     "are the traces transposed? (one row per trace: shape (n, n_samples))")
             if lab.shape != (n,):
                 raise RecordingError(f"{source}: label must have one entry per trace, shape ({n},), got {lab.shape}")
             lab = np.array([v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v) for v in lab.tolist()],

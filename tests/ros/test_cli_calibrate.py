@@ -217,3 +217,20 @@ def test_empty_channel_traces_through_the_cli(tmp_path, capsys):
         assert cli.main([*args, "--empty", str(tmp_path / bad), "--out", str(tmp_path / "x.yaml")]) == 2
         assert message in capsys.readouterr().err
     assert not (tmp_path / "x.yaml").exists()
+
+
+def test_a_recording_of_every_class_is_calibrated_with_a_warning(tmp_path, capsys):
+    """An unlabelled recording of faulty and healthy nozzles alike (the independent h16 head): the fit cannot
+    explain most traces, and the run says so on stderr (exit 0: a head beyond the model's physics would be
+    refused otherwise); its healthy traces alone give no warning."""
+    import foreign_head as fh
+
+    fh.write_nominal_yaml(tmp_path / "nominal.yaml", "h16")
+    for name, counts in (("mixed", {c: 25 for c in fh.CLASS_VALUES}), ("healthy", {"healthy_nozzle": 300})):
+        sim = fh.simulate_foreign("h16", counts, 11)
+        np.savez(tmp_path / f"{name}.npz", traces=sim["traces"], sample_rate_hz=sim["sample_rate_hz"])
+    args = ["--nominal", str(tmp_path / "nominal.yaml"), "--out", str(tmp_path / "h.yaml")]
+    assert cli.main(["calibrate", str(tmp_path / "mixed.npz"), *args]) == 0
+    assert "warning: the median trace leaves" in capsys.readouterr().err
+    assert cli.main(["calibrate", str(tmp_path / "healthy.npz"), *args]) == 0
+    assert "warning" not in capsys.readouterr().err

@@ -144,6 +144,15 @@ def test_label_uses_each_rows_nozzle_baseline(work, tmp_path, capsys):
     (["label", "{d}/int.npz", "--model", "{d}/head.joblib", "--out", "{d}/l.csv"],
      "got dtype int16: convert ADC counts or millivolts to volts first"),
     (["train", "--profile", "{d}/head.yaml", "--out", "{d}/x.joblib", "--seed", str(2**32)], "--seed must be in"),
+    # one input given for another
+    (["label", "{d}/rec.npz", "--model", "{d}/head.yaml", "--out", "{d}/l.csv"],
+     "is a head profile (YAML), not a model"),
+    (["estimate", "{d}/rec.npz", "--profile", "{d}/head.joblib", "--out", "{d}/f.csv"],
+     "not a head profile: a binary file, not YAML text"),
+    (["label", "{d}/transposed.npz", "--model", "{d}/head.joblib", "--out", "{d}/l.csv"],
+     "are the traces transposed?"),
+    (["calibrate", "{d}/rec.npz", "--nominal", "{d}/nominal_mpas.yaml", "--out", "{d}/c.yaml"],
+     "implausible: channel.mu 6 Pa s (an inkjet head's: 0.0001 to 0.5 Pa s), a value in other units?"),
 ])
 def test_bad_input_is_one_line_and_exit_status_2(work, trained, argv, match, capsys):
     d, _, _ = work
@@ -157,6 +166,9 @@ def test_bad_input_is_one_line_and_exit_status_2(work, trained, argv, match, cap
         (d / "notzip.npz").write_text("row,nozzle,class\n")  # a CSV given an .npz name
         z = dict(np.load(d / "rec.npz"))
         np.savez(d / "int.npz", **dict(z, traces=(z["traces"] * 1e3).astype(np.int16)))  # millivolts as integers
+        np.savez(d / "transposed.npz", **dict(z, traces=z["traces"].T.copy()))
+        nominal = HeadProfile.load(d / "nominal.yaml")
+        nominal.replace(channel={"mu": 1e3 * nominal.channel["mu"]}).save(d / "nominal_mpas.yaml")  # mPa s
     capsys.readouterr()
     inputs = {p: p.read_bytes() for p in (d / "rec.npz", d / "head.yaml", trained[0],
                                           d / "head.joblib.manifest.json")}
@@ -197,6 +209,19 @@ def test_a_rate_computed_as_one_over_dt_is_the_models(work, trained, tmp_path):
     out = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "label", str(tmp_path / "dt.npz"), "--model",
                           str(trained[0]), "--out", str(tmp_path / "l.csv")], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
+
+
+def test_a_recording_in_millivolts_is_labelled_invalid_with_a_hint_about_units(work, trained, tmp_path, capsys):
+    d, head, sim = work
+    save_recording(tmp_path / "mv.npz", Recording.from_arrays(sim.traces[:20] * 1e3, head.sample_rate_hz))
+    assert main(["label", str(tmp_path / "mv.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "l.csv")]) == 0
+    err = capsys.readouterr().err
+    assert "20 invalid" in err and "are the traces in volts (not millivolts or ADC counts)?" in err
+    _, rows = _read(tmp_path / "l.csv")
+    assert {r["reason"] for r in rows} == {"out_of_range"}
+    # a recording with one such row is not told about units
+    assert main(["label", str(d / "rec.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "r.csv")]) == 0
+    assert "in volts" not in capsys.readouterr().err
 
 
 def test_label_csv_says_unknown_for_a_trace_unlike_every_class(work, tmp_path, capsys):

@@ -75,6 +75,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the spread-separating simulation (default 0)")
 
 
+#: A median per-trace residual above this many times the noise alone is warned about: healthy recordings of the
+#: heads of tests/foreign_head.py give 1.02-1.30 (10 % of the rows faulty: 1.04-1.47), a recording of every class
+#: in equal numbers 5.9-9.4.
+MISFIT_WARNING = 2.5
+
 #: Healthy rows of a bag calibration uses at most (a uniform sample: 20 MB at 512 samples a row).
 MAX_BAG_ROWS = 10000
 
@@ -224,6 +229,12 @@ def run(args) -> int:
         print(f"inkdiag calibrate: the restrictor (channel.r_r, channel.L_r) is the nominal profile's, not "
               f"fitted: leave both out of {args.nominal} to fit them (a profile inkdiag calibrate wrote keeps its "
               "earlier fit)", file=sys.stdout)
+    if rr["per_trace_median"] > MISFIT_WARNING * rr["noise_floor"]:
+        print(f"inkdiag calibrate: warning: the median trace leaves {100 * rr['per_trace_median']:.1f} % of its RMS "
+              f"unexplained, {rr['per_trace_median'] / rr['noise_floor']:.1f} times the noise alone: most traces are "
+              "not what one healthy channel fired with the profile's drive gives. Are they all healthy nozzles (not a "
+              "recording of mixed or faulty ones)? The profile is written; check the fit report before training on "
+              "it", file=sys.stderr)
     if report["figure"] is None:
         print(f"inkdiag calibrate: {report['figure_note']}", file=sys.stderr)
     return 0

@@ -164,7 +164,7 @@ def run(args) -> int:
     labeller = FrameLabeller(detector, baselines, sample_rate_hz=detector.sample_rate_hz_, n_samples=rec.n_samples,
                              max_abs_v=max_abs_v)
     del rec
-    n_rows = n_invalid = n_failed = n_base = 0
+    n_rows = n_invalid = n_failed = n_base = n_out_of_range = 0
     with open_csv_out(args.out) as out:
         w = csv.writer(out, lineterminator="\n")
         w.writerow(COLUMNS)
@@ -172,6 +172,7 @@ def run(args) -> int:
             if cls == "invalid":
                 n_invalid += 1
                 n_failed += reason == "labelling_failed"
+                n_out_of_range += reason == "out_of_range"
             w.writerow((row, nozzle, fid, cls, "" if conf != conf else f"{conf:.6f}", reason, int(base)))
             n_rows += 1
             n_base += bool(base)
@@ -184,4 +185,7 @@ def run(args) -> int:
     print(f"labelled {n_rows - n_invalid} of {n_rows} rows with {detector.model_id} (head {head.name!r}); "
           f"{n_invalid} invalid" + (f", {n_failed} in frames whose labelling failed" if n_failed else "") + against
           + (f"; wrote {args.out}" if args.out != "-" else ""), file=sys.stderr)
+    if n_rows and n_out_of_range >= n_rows / 2:  # a recording in other units, not a head whose sensor broke
+        print(f"{n_out_of_range} of {n_rows} rows have a sample beyond {max_abs_v:g} V, more than the head's sensor can produce: "
+              "are the traces in volts (not millivolts or ADC counts)?", file=sys.stderr)
     return 1 if n_failed else 0
