@@ -76,6 +76,12 @@ noise-free healthy trace, see the test)
     1060 kg/m^3, 7 mPa s ink, 12 um x 40 um nozzle, 26 um x 210 um restrictor
     (``I_r ~ 0.91 I_n``), 16 MHz x 768 samples, 25 V pulse; healthy mode about 174 kHz,
     damping ratio 0.08; fully blocked about 127 kHz, empty channels 1.0-1.6 MHz.
+``h12``
+    1080 kg/m^3, 5 mPa s ink, 10.5 um x 38 um nozzle, 22 um x 170 um restrictor
+    (``I_r ~ 0.84 I_n``), 12.5 MHz x 640 samples, 24 V pulse; healthy mode about 191 kHz,
+    damping ratio 0.07; fully blocked about 142 kHz, empty channels 1.0-1.6 MHz: its actuator
+    rings 15 % below what inkdiag assumes for an actuator it was not told about (``inkdiag
+    calibrate --empty``).
 ``h5``
     1040 kg/m^3, 8 mPa s ink, 13 um x 50 um nozzle, 36 um x 360 um restrictor
     (``I_r ~ 0.78 I_n``), 5 MHz x 256 samples, 22 V pulse; healthy mode about 135 kHz,
@@ -156,6 +162,20 @@ FOREIGN_HEADS = {
         "sensor": {"gain_v_per_m3s": 1.2e10, "offset_v": 0.0, "noise_std_v": 0.010,
                    "adc_range_v": 2.5, "adc_bits": 12},
     },
+    # chosen for a blind walkthrough of the documented workflow (2026-11-26), before any result; its
+    # actuator (this module's default 1.6 MHz) rings 15 % below inkdiag's rule for an unknown actuator
+    "h12": {
+        "sampling": {"sample_rate_hz": 12.5e6, "n_samples": 640},
+        "channel": {
+            "rho": 1080.0, "mu": 5.0e-3, "r_n": 10.5e-6, "L_n": 38.0e-6,
+            "r_r": 22.0e-6, "L_r": 170.0e-6, "V_ch": 6.5e-12, "c": 1320.0,
+            "B_act": 7.0e-21, "b": 2.2e-18,
+        },
+        "drive": {"amplitude_v": 24.0, "rise_s": 0.7e-6, "dwell_s": 2.0e-6,
+                  "fall_s": 0.7e-6, "switch_delay_s": 1.3e-6},
+        "sensor": {"gain_v_per_m3s": 1.1e10, "offset_v": 0.02, "noise_std_v": 0.009,
+                   "adc_range_v": 2.5, "adc_bits": 12},
+    },
     "h5": {
         "sampling": {"sample_rate_hz": 5.0e6, "n_samples": 256},
         "channel": {
@@ -206,6 +226,7 @@ FOREIGN_PHYSICS = {
                     kappa_gas=1.2, f_act_hz=2.175e6, zeta_act=0.03, film_loss_factor=1.5),
     "h20": dict(_DEFAULT_PHYSICS),
     "h16": dict(_DEFAULT_PHYSICS),
+    "h12": dict(_DEFAULT_PHYSICS),
     "h5": dict(_DEFAULT_PHYSICS, T_ref_k=313.15, visc_temp_coeff_per_k=0.03,
                sigma_n_per_m=0.032, f_act_hz=1.05e6, zeta_act=0.05, film_loss_factor=1.0),
 }

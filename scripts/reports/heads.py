@@ -1,6 +1,6 @@
 """Heads report: inkdiag on printheads other than its own, through the `inkdiag` command.
 
-    scripts/report heads [--heads default h20 h16 h5] [--per-class 150] [--n-per-class N] [--seed 0]
+    scripts/report heads [--heads default h20 h16 h12 h5] [--per-class 150] [--n-per-class N] [--seed 0]
                          [--posterior-draws K]
                          [--other-seeds S [S ...]]
 
@@ -15,10 +15,11 @@ with the documented commands:
 3. ``inkdiag label TEST.npz --model MODEL.joblib --out LABELS.csv`` on every class;
 4. ``inkdiag estimate DRIED.npz --profile HEAD.yaml --out FM.csv`` on the dried classes.
 
-Steps 2-4 run three times per head: with the calibrated profile, with a profile
+Steps 2-4 run four times per head: with the calibrated profile, with a profile
 calibrated with 50 traces of fully blocked nozzles as well (``inkdiag calibrate
---blocked``: they pin the restrictor), and with the head's true profile, so that
-the cost of calibration is visible. A third run uses what a
+--blocked``: they pin the restrictor), with one calibrated with 50 traces of empty
+channels as well (``inkdiag calibrate --empty``: the actuator's own resonance), and
+with the head's true profile, so that the cost of calibration is visible. A fifth run uses what a
 commissioned head also has, each nozzle's healthy baseline: ``inkdiag baseline
 COMMISSION.npz --profile HEAD.yaml --out B.npz`` on 8 healthy frames of every
 nozzle (the test and dried recordings are later frames of the same nozzles:
@@ -63,12 +64,15 @@ from inkdiag_core.kpis import extract_kpis  # noqa: E402
 HEALTHY = {FaultClass.OK_SIGNAL.value, FaultClass.HEALTHY_NOZZLE.value}
 BASELINES = "calibrated + baselines"
 BLOCKED = "calibrated + blocked"
-KINDS = ("calibrated", BLOCKED, "true", BASELINES)
+EMPTY = "calibrated + empty"
+KINDS = ("calibrated", BLOCKED, EMPTY, "true", BASELINES)
 """The runs per head, in the order the tables show them."""
 COMMISSION_FRAMES = 8
 """Healthy frames of each nozzle in a head's commissioning recording (``inkdiag baseline``'s default)."""
 N_BLOCKED = 50
 """Fully blocked traces given to ``inkdiag calibrate --blocked`` (the *calibrated + blocked* run)."""
+N_EMPTY = 50
+"""Empty-channel traces given to ``inkdiag calibrate --empty`` (the *calibrated + empty* run)."""
 _WORK = [""]  # the work directory, shown as WORK in the report
 
 
@@ -95,9 +99,11 @@ def _true_profile_yaml(name, path):
     # physics healthy traces cannot show as a calibrated profile gets, so that the two rows
     # differ by calibration only
     spreads = {k: v for k, v in fh.FOREIGN_SPREADS.items() if k in SPREAD_KEYS}
+    physics = fh.FOREIGN_PHYSICS[name]  # the actuator alone: the empty channels' resonance and damping
     doc = {"schema": "inkdiag.head_profile", "schema_version": 1, "name": f"{name}_true", **{
         k: dict(head[k]) for k in ("sampling", "channel", "drive", "sensor")},
         "spreads": {**spreads, **UNSEEN_PHYSICS_SPREADS}}
+    doc["channel"].update(f_act=physics["f_act_hz"], zeta_act=physics["zeta_act"])
     HeadProfile.from_dict(doc, source=f"{name} true profile").save(path)
     return path
 
@@ -188,8 +194,11 @@ def run_head(name, work, *, per_class, n_per_class, seed, log, posterior_draws=1
     fh.write_recording(head_dir / "blocked.npz", fh.simulate_foreign(name, {"fully_blocked": N_BLOCKED}, seed + 6))
     _inkdiag("calibrate", head_dir / "healthy.npz", "--nominal", nominal, "--blocked", head_dir / "blocked.npz",
              "--out", head_dir / "calibrated_blocked.yaml", log=log)
+    fh.write_recording(head_dir / "empty.npz", fh.simulate_foreign(name, {"empty_channel_1": N_EMPTY}, seed + 7))
+    _inkdiag("calibrate", head_dir / "healthy.npz", "--nominal", nominal, "--empty", head_dir / "empty.npz",
+             "--out", head_dir / "calibrated_empty.yaml", log=log)
     profiles = {"calibrated": head_dir / "calibrated.yaml", BLOCKED: head_dir / "calibrated_blocked.yaml",
-                "true": _true_profile_yaml(name, head_dir / "true.yaml")}
+                EMPTY: head_dir / "calibrated_empty.yaml", "true": _true_profile_yaml(name, head_dir / "true.yaml")}
     out = {"calibrate_s": t_cal,
            "recorded_modes": _class_modes(test["traces"], test["labels"], float(test["sample_rate_hz"]))}
     for kind, prof in profiles.items():
@@ -278,7 +287,7 @@ def _split_errors(cal, true):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--heads", nargs="+", default=["default", "h20", "h16", "h5"])
+    ap.add_argument("--heads", nargs="+", default=["default", "h20", "h16", "h12", "h5"])
     ap.add_argument("--per-class", type=int, default=150, help="test traces per class and head")
     ap.add_argument("--n-per-class", type=int, default=0, help="training traces per class (0: train's default)")
     ap.add_argument("--seed", type=int, default=0)
@@ -333,7 +342,9 @@ def write_report(results, args, log, elapsed):
         "healthy traces and a nominal profile (sampling, drive, rho, mu, r_n, L_n, V_ch, c), then trained, "
         "labelled and estimated with the `inkdiag` command. *calibrated*: the profile `inkdiag calibrate` "
         "wrote; *calibrated + blocked*: `inkdiag calibrate --blocked` with 50 recorded traces of the head's fully "
-        "blocked nozzles as well, which pin the restrictor; *true*: the head's real channel and sensor, to show what "
+        "blocked nozzles as well, which pin the restrictor; *calibrated + empty*: `inkdiag calibrate --empty` with 50 "
+        "recorded traces of the head's empty (dry) channels as well, which give the actuator's own resonance (the "
+        "empty-channel classes); *true*: the head's real channel and sensor, to show what "
         "calibration costs; *calibrated + "
         "baselines*: the calibrated profile, each nozzle's healthy baseline from a commissioning recording (8 "
         "healthy frames of every nozzle, `inkdiag baseline`; the test rows are later frames of the same nozzles), "
@@ -438,9 +449,9 @@ def write_report(results, args, log, elapsed):
         "invalid row counts as wrong; the d_mu errors leave out the rows not estimated.",
         "- *true*: the head's true channel, drive, sensor and spreads (`tests/foreign_head.py`), plus the "
         "spreads a calibrated profile trains over for the physics healthy traces cannot show (the empty "
-        "channel's actuator, `calibration.UNSEEN_PHYSICS_SPREADS`): the two rows differ by calibration only. "
-        "The foreign simulator's own fault constants (actuator resonance and damping, ink-temperature law) "
-        "stay unknown to both.",
+        "channel's actuator, `calibration.UNSEEN_PHYSICS_SPREADS`), and the head's actuator resonance and "
+        "damping (`channel.f_act`, `zeta_act`): the two rows differ by calibration only. The foreign "
+        "simulator's other fault constants (the ink film's loss, the ink-temperature law) stay unknown to both.",
         "- partially_blocked (a particle in the bore: resistance and inertance) and the dried classes "
         "(resistance only) overlap in frequency and damping where the head's spreads between nozzles and "
         "frames are wide. `reports/separability.md` (`scripts/report separability`) trains classifiers on "

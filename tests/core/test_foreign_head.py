@@ -18,7 +18,7 @@ from inkdiag_core.simulation import PHYSICAL_CONSTANTS, DriveWaveform, Spreads
 TESTS_DIR = Path(__file__).resolve().parents[1]
 
 # healthy modes stated in foreign_head's docstring
-STATED_HEALTHY_HZ = {"h20": 169e3, "h16": 174e3, "h5": 135e3}
+STATED_HEALTHY_HZ = {"h20": 169e3, "h16": 174e3, "h12": 191e3, "h5": 135e3}
 
 
 def fft_peak_hz(traces, fs):
