@@ -83,6 +83,7 @@ import numpy as np
 from scipy.optimize import brentq, least_squares
 
 from .checks import InputError
+from .faults import MECHANISMS, FaultClass
 from .head_profile import NOMINAL_CHANNEL_KEYS, HeadProfile, ProfileError
 from .kpis import extract_kpis
 from .screening import screen_traces
@@ -382,7 +383,18 @@ def _empty_measurement(nominal, empty, sample_rate_hz, f_healthy):
         raise CalibrationError(
             f"the empty-channel traces' frequencies spread {100 * spread:.1f} % (more than "
             f"{100 * EMPTY_MAX_SPREAD:g} %): channels with ink films of different sizes, or not all empty?")
-    return {"n_traces": int(k.shape[0]), "frequency_hz": f, "damping_ratio": z, "frequency_spread_rel": spread}
+    # the actuator without the film the empty_channel_1 class carries (mass ratio m, its range's middle):
+    # the simulator rings it at f_act / sqrt(1 + m), damped by (1 + film_loss m) / sqrt(1 + m)
+    mech = MECHANISMS[FaultClass.EMPTY_CHANNEL_1]
+    m = 0.5 * (mech.low + mech.high)
+    f_act = f * math.sqrt(1.0 + m)
+    z_act = z * math.sqrt(1.0 + m) / (1.0 + PHYSICAL_CONSTANTS["film_loss_factor"] * m)
+    if not f_act < nominal.sample_rate_hz / 2:
+        raise CalibrationError(f"the empty-channel traces put the actuator's resonance at {f_act / 1e3:.1f} kHz, not "
+                               f"below the Nyquist frequency {nominal.sample_rate_hz / 2e3:.1f} kHz of the sampling")
+    return {"n_traces": int(k.shape[0]), "frequency_hz": f_act, "damping_ratio": z_act,
+            "frequency_hz_recorded": f, "damping_ratio_recorded": z, "film_mass_ratio": m,
+            "frequency_spread_rel": spread}
 
 
 _PLAUSIBLE = {"rho": (500.0, 3000.0, "kg/m^3"), "mu": (1e-4, 0.5, "Pa s"), "r_n": (1e-6, 1e-4, "m"),
@@ -458,10 +470,11 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     empty : array_like, shape (k, n_samples), optional
         Recorded traces of empty channels of the head (no ink, no ink film: the head
         purged dry; at least :data:`MIN_EMPTY_TRACES` usable), V. They ring with the
-        actuator alone, which healthy traces never show: their median mode becomes the
-        profile's ``channel.f_act`` and ``channel.zeta_act``, which the empty-channel
-        classes are simulated from (else the default head's actuator, scaled to the
-        fitted ``B_act``).
+        actuator alone, which healthy traces never show: their median mode, taken as the
+        ``empty_channel_1`` class's middle film (mass ratio 0.05) and corrected for it,
+        becomes the profile's ``channel.f_act`` and ``channel.zeta_act``, which the
+        empty-channel classes are simulated from (else the default head's actuator,
+        scaled to the fitted ``B_act``).
 
     Returns
     -------
@@ -646,6 +659,10 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     sim = calibrated.replace(spreads_overrides={**physical, "gain_rel": gain_rel, "offset_std_v": offset_std}
                              ).simulate({"healthy_nozzle": n_sim}, seed=seed).traces.astype(np.float64)
 
+    # what the fit leaves of the calibrated head's own simulated traces: the reference a recording's misfit is
+    # judged against (the noise, and the model's first-order shape terms)
+    res_sim = sim - _project(sim, shape, deriv)[2]
+    rel_sim = np.sqrt(np.mean(res_sim**2, axis=1)) / np.maximum(_rms_ac(sim), 1e-300)
     kp_mean_fit = extract_kpis(mean_fit, fs)[0]
     kp_fit = extract_kpis(fitted, fs)
     kp_sim = extract_kpis(sim, fs)
@@ -702,6 +719,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
         "healthy_mode": {"frequency_hz": f_prof, "damping_ratio": z_prof},
         "residual_rel": {"mean_trace": resid_rel, "per_trace_median": float(np.median(rel)),
                          "per_trace_p90": float(np.percentile(rel, 90)),
+                         "simulated_per_trace_median": float(np.median(rel_sim)),
                          "noise_floor": float(noise_raw / np.median(_rms_ac(y)))},
         "noise": {"difference_order": k_diff, "adc_lsb_v": lsb, "residual_std_v": noise_raw},
         "identifiability": {"parameters": pinned, "data_singular_values": [float(v) for v in sv],
@@ -796,10 +814,11 @@ def posterior_profiles(profile, n_draws: int = POSTERIOR_DRAWS, *, seed: int = 0
 UNSEEN_PHYSICS_SPREADS = {"actuator_resonance_rel": 0.05, "actuator_damping_rel": 0.35, "film_loss_rel": 0.35}
 """Spreads a calibrated profile gets for the fault physics healthy traces cannot show.
 
-The empty channel is the actuator alone: its resonance (the profile's ``channel.f_act``
-if calibration measured it on empty channels or the nominal profile gives it, else the
-default head's actuator inertance with the head's compliance), damping ratio and
-ink-film loss are the default head's constants, unknown for another head. Training over these
+The empty channel is the actuator alone: its resonance and damping ratio (the profile's
+``channel.f_act`` and ``zeta_act`` if calibration measured them on empty channels or the
+nominal profile gives them, else the default head's actuator inertance with the head's
+compliance, and its damping) and the ink film's loss (the default head's constant) are
+unknown for another head. Training over these
 log-normal spreads keeps a detector from leaning on their exact values (written
 into the profile's ``spreads``; edit them there if the head's values are known).
 """

@@ -125,6 +125,8 @@ class InkChannelParams:
             value = getattr(self, f.name)
             if f.name in ("mu_nozzle", "f_act", "zeta_act") and value is None:
                 continue
+            if f.name == "zeta_act" and not (isinstance(value, (int, float)) and 0 < value < 1):
+                raise ValueError(f"zeta_act must be a damping ratio in (0, 1), got {value!r}")
             if f.name == "B_extra":
                 checks.nonnegative_float(f.name, value)
                 continue

@@ -34,8 +34,8 @@ from pathlib import Path
 
 __all__ = ["INPUT_ARGS", "VERBS", "build_parser", "main"]
 
-INPUT_ARGS = ("recording", "healthy", "model", "baselines", "profile", "nominal", "data", "blocked", "labels")
-RECORDING_ARGS = ("recording", "healthy", "data", "blocked")  # inputs that may be a bag directory
+INPUT_ARGS = ("recording", "healthy", "model", "baselines", "profile", "nominal", "data", "blocked", "empty", "labels")
+RECORDING_ARGS = ("recording", "healthy", "data", "blocked", "empty")  # inputs that may be a bag directory
 """The verbs' arguments that name files they read: an ``--out`` that is one of them is refused."""
 
 VERBS = ("calibrate", "train", "baseline", "label", "estimate", "record", "replay", "printer")

@@ -317,5 +317,11 @@ def test_the_gain_spread_is_what_the_fitted_physical_spreads_leave_of_the_amplit
     rec = fh.simulate_foreign(head, {"healthy_nozzle": 300}, 101)
     res = calibrate(HeadProfile.load(tmp_path / "nominal.yaml"), rec["traces"], rec["sample_rate_hz"])
     assert 0.08 < res.profile.spreads().gain_rel < 0.18, res.profile.spreads().gain_rel
-    rec_std, sim_std = res.report["recorded_vs_fitted"]["amplitude_log_std"]
-    assert abs(sim_std / rec_std - 1) < 0.15, (rec_std, sim_std)
+    # another recording of the head against another simulation of the calibrated one
+    from inkdiag_core.kpis import extract_kpis
+
+    other = fh.simulate_foreign(head, {"healthy_nozzle": 300}, 202)
+    amp = [extract_kpis(np.asarray(x, float), rec["sample_rate_hz"])[:, 3] for x in
+           (other["traces"], res.profile.simulate({"healthy_nozzle": 300}, seed=17).traces)]
+    rec_std, sim_std = (1.4826 * np.median(np.abs(np.log(a) - np.median(np.log(a)))) for a in amp)
+    assert abs(sim_std / rec_std - 1) < 0.2, (rec_std, sim_std)

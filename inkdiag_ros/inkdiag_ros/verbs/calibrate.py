@@ -43,7 +43,8 @@ fitted B_act, which another head's actuator need not follow (a head whose actuat
 rang 15 % below that lost half its empty_channel_1 rows to empty_channel_2).
 --empty gives traces of empty channels of the head (an .npz of at least 10, no ink
 and no ink film: the head purged dry; with a label column, its empty_channel_1 rows):
-their median mode becomes the profile's channel.f_act and channel.zeta_act. A
+their median mode, corrected for the thin film of that class, becomes the profile's
+channel.f_act and channel.zeta_act. A
 datasheet's value can go in the nominal profile as channel.f_act (Hz) instead.
 
 A rosbag2 bag is streamed: its rows screening accepts are sampled uniformly, at most
@@ -75,9 +76,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the spread-separating simulation (default 0)")
 
 
-#: A median per-trace residual above this many times the noise alone is warned about: healthy recordings of the
-#: heads of tests/foreign_head.py give 1.02-1.30 (10 % of the rows faulty: 1.04-1.47), a recording of every class
-#: in equal numbers 5.9-9.4.
+#: A median per-trace residual above this many times the larger of the noise alone and the calibrated head's own
+#: simulated traces' residual is warned about: healthy recordings of the heads of tests/foreign_head.py (with 10 % of
+#: the rows faulty, doubled spreads, or 0.1 mV noise and a 16-bit ADC) give 0.92-1.01, a recording of every class in
+#: equal numbers 5.5-9.6.
 MISFIT_WARNING = 2.5
 
 #: Healthy rows of a bag calibration uses at most (a uniform sample: 20 MB at 512 samples a row).
@@ -229,12 +231,13 @@ def run(args) -> int:
         print(f"inkdiag calibrate: the restrictor (channel.r_r, channel.L_r) is the nominal profile's, not "
               f"fitted: leave both out of {args.nominal} to fit them (a profile inkdiag calibrate wrote keeps its "
               "earlier fit)", file=sys.stdout)
-    if rr["per_trace_median"] > MISFIT_WARNING * rr["noise_floor"]:
+    ref = max(rr["noise_floor"], rr["simulated_per_trace_median"])  # what a healthy trace of this head leaves
+    if rr["per_trace_median"] > MISFIT_WARNING * ref:
         print(f"inkdiag calibrate: warning: the median trace leaves {100 * rr['per_trace_median']:.1f} % of its RMS "
-              f"unexplained, {rr['per_trace_median'] / rr['noise_floor']:.1f} times the noise alone: most traces are "
-              "not what one healthy channel fired with the profile's drive gives. Are they all healthy nozzles (not a "
-              "recording of mixed or faulty ones)? The profile is written; check the fit report before training on "
-              "it", file=sys.stderr)
+              f"unexplained, {rr['per_trace_median'] / ref:.1f} times what the calibrated head's own simulated traces "
+              "leave: most traces are not what one healthy channel fired with the profile's drive gives. Are they all "
+              "healthy nozzles (not a recording of mixed or faulty ones)? The profile is written; check the fit report "
+              "before training on it", file=sys.stderr)
     if report["figure"] is None:
         print(f"inkdiag calibrate: {report['figure_note']}", file=sys.stderr)
     return 0
@@ -301,9 +304,11 @@ def _markdown(r) -> str:
             f"the calibrated channel's {fb['frequency_hz_fitted'] / 1e3:.2f} kHz (damping ratio "
             f"{fb['damping_ratio_fitted']:.3f}): it pins the restrictor.", ""]),
         *([] if not (fe := r.get("empty_mode")) else [
-            f"Empty channels (`{r.get('empty')}`, {fe['n_traces']} traces): the actuator alone rings at "
-            f"{fe['frequency_hz'] / 1e3:.1f} kHz (median; robust spread {100 * fe['frequency_spread_rel']:.1f} %), "
-            f"damping ratio {fe['damping_ratio']:.3f}: the profile's channel.f_act and channel.zeta_act, which the "
+            f"Empty channels (`{r.get('empty')}`, {fe['n_traces']} traces): their median mode "
+            f"{fe['frequency_hz_recorded'] / 1e3:.1f} kHz (robust spread {100 * fe['frequency_spread_rel']:.1f} %), "
+            f"damping ratio {fe['damping_ratio_recorded']:.3f}; without the ink film of mass ratio "
+            f"{fe['film_mass_ratio']:g} they are taken to carry, the actuator alone: {fe['frequency_hz'] / 1e3:.1f} kHz, "
+            f"damping ratio {fe['damping_ratio']:.3f}, the profile's channel.f_act and channel.zeta_act, which the "
             "empty-channel classes are simulated from.", ""]),
         f"RMS residual relative to the trace RMS: mean trace {100 * rr['mean_trace']:.2f} %, per trace median "
         f"{100 * rr['per_trace_median']:.2f} % (P90 {100 * rr['per_trace_p90']:.2f} %); the white noise alone is "
