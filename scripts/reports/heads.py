@@ -243,6 +243,7 @@ def run_head(name, work, *, per_class, n_per_class, seed, log, posterior_draws=1
     out["params"] = {k: (true.channel.get(k), cal.channel.get(k)) for k in ("r_r", "L_r", "B_act", "b")}
     out["calibrated_split"] = _split_errors(cal.channel, fh.FOREIGN_HEADS[name]["channel"])
     out["blocked_split"] = _split_errors(HeadProfile.load(profiles[BLOCKED]).channel, fh.FOREIGN_HEADS[name]["channel"])
+    out["empty_split"] = _split_errors(HeadProfile.load(profiles[EMPTY]).channel, fh.FOREIGN_HEADS[name]["channel"])
     out["sampling"] = (true.sample_rate_hz, true.n_samples)
     return out
 
@@ -256,8 +257,10 @@ def run_seed(name, work, *, per_class, n_per_class, seed, log):
     test = fh.simulate_foreign(name, {c.value: per_class for c in FaultClass}, seed + 1)
     fh.write_recording(d / "test.npz", test)
     fh.write_recording(d / "blocked.npz", fh.simulate_foreign(name, {"fully_blocked": N_BLOCKED}, seed + 6))
+    fh.write_recording(d / "empty.npz", fh.simulate_foreign(name, {"empty_channel_1": N_EMPTY}, seed + 7))
     out = {}
-    for kind, extra in (("calibrated", ()), (BLOCKED, ("--blocked", d / "blocked.npz"))):
+    for kind, extra in (("calibrated", ()), (BLOCKED, ("--blocked", d / "blocked.npz")),
+                        (EMPTY, ("--empty", d / "empty.npz"))):
         tag = kind.replace("calibrated + ", "calibrated_")
         _inkdiag("calibrate", d / "healthy.npz", "--nominal", d / "nominal.yaml", *extra, "--out", d / f"{tag}.yaml",
                  log=log)
@@ -273,9 +276,10 @@ def run_seed(name, work, *, per_class, n_per_class, seed, log):
 
 
 def _seed_runs(r, seed):
-    """Per seed (the main run's first), ``{"calibrated": ..., BLOCKED: ...}``: scores with the split errors."""
+    """Per seed (the main run's first), ``{"calibrated": ..., BLOCKED: ..., EMPTY: ...}``: scores with the split
+    errors."""
     main = {kind: {**r[kind], **r[split]} for kind, split in (("calibrated", "calibrated_split"),
-                                                              (BLOCKED, "blocked_split"))}
+                                                              (BLOCKED, "blocked_split"), (EMPTY, "empty_split"))}
     return {seed: main, **r["seeds"]}
 
 
@@ -409,7 +413,16 @@ def write_report(results, args, log, elapsed):
                       f"{max(ws):.1f} %, FI {min(fs):.1f} to {max(fs):.1f} %" for name, r in results.items()
                       for runs in [[v[BLOCKED] for v in _seed_runs(r, args.seed).values()]]
                       for ks, ws, fs in [([100 * k["I_r_err"] for k in runs], [100 * min(k["per"].values()) for k in runs],
-                                          [100 * k["fi"] for k in runs])]) + ".", ""]
+                                          [100 * k["fi"] for k in runs])])
+                  + ". With 50 empty-channel traces (`inkdiag calibrate --empty`): " + "; ".join(
+                      f"{name}: empty_channel_1 {min(es):.1f} to {max(es):.1f} % (calibrated alone: {min(cs):.1f} to "
+                      f"{max(cs):.1f} %), weakest class {min(ws):.1f} to {max(ws):.1f} %, FI {min(fs):.1f} to "
+                      f"{max(fs):.1f} %" for name, r in results.items()
+                      for seeds in [list(_seed_runs(r, args.seed).values())]
+                      for es, cs, ws, fs in [([100 * v[EMPTY]["per"]["empty_channel_1"] for v in seeds],
+                                              [100 * v["calibrated"]["per"]["empty_channel_1"] for v in seeds],
+                                              [100 * min(v[EMPTY]["per"].values()) for v in seeds],
+                                              [100 * v[EMPTY]["fi"] for v in seeds])]) + ".", ""]
     lines += ["## Calibration: fitted against true", ""]
     rows = []
     for name, r in results.items():
