@@ -402,6 +402,36 @@ _PLAUSIBLE = {"rho": (500.0, 3000.0, "kg/m^3"), "mu": (1e-4, 0.5, "Pa s"), "r_n"
 # ranges of an inkjet head's nominal values, SI: a value outside is named when the fit cannot reach the traces
 
 
+def _actuator(nominal, fe, B_act):
+    """Where the empty channels' actuator comes from: ``{"f_act_hz", "zeta_act", "source", "rule_f_act_hz",
+    "warning"}`` (Hz, 1); the rule is the default head's actuator at this ``B_act``."""
+    c = PHYSICAL_CONSTANTS
+    rule = c["f_act_hz"] * math.sqrt(c["f_act_ref_b_act"] / B_act)
+    out = {"rule_f_act_hz": rule, "warning": None}
+    if fe is not None:
+        out.update(f_act_hz=fe["frequency_hz"], zeta_act=fe["damping_ratio"], source="measured on empty channels")
+        if fe["frequency_hz"] < EMPTY_LOW_RATIO * rule:
+            out["warning"] = (
+                f"the empty channels put the actuator at {fe['frequency_hz'] / 1e3:.1f} kHz (damping ratio "
+                f"{fe['damping_ratio']:.3f}), {fe['frequency_hz'] / rule:.2f} times what an actuator like the default "
+                f"head's would give at this B_act ({rule / 1e3:.1f} kHz): if they still carry an ink film (not purged "
+                "dry: the empty_channel_2 class), the profile's actuator is a third too low and empty_channel_2 will "
+                "be labelled empty_channel_1")
+    elif "f_act" in nominal.channel:
+        out.update(f_act_hz=float(nominal.channel["f_act"]), zeta_act=nominal.channel.get("zeta_act", c["zeta_act"]),
+                   source="nominal profile (channel.f_act)")
+    else:
+        out.update(f_act_hz=rule, zeta_act=c["zeta_act"],
+                   source="assumed: the default head's actuator at this B_act (not measured: calibrate --empty)")
+    return out
+
+
+EMPTY_LOW_RATIO = 0.7
+"""Empty channels whose actuator comes out below this fraction of the default-head rule are warned about: dry
+channels of the heads of ``tests/foreign_head.py`` and a walkthrough's gave 0.80-1.0 (h12 0.85), film-loaded ones
+(``empty_channel_2``) 0.53-0.57."""
+
+
 MIN_EMPTY_TRACES = 10
 """Fewest usable empty-channel traces ``calibrate(empty=...)`` takes."""
 EMPTY_MIN_RATIO = 2.5
@@ -726,6 +756,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
                             "residual_scale": math.sqrt(s2)},
         "prior": {**PRIOR_RATIOS, "sd_log": PRIOR_SD_LOG},
         "empty_mode": fe,
+        "actuator": _actuator(nominal, fe, float(B_act)),
         "blocked_mode": None if fb is None else {
             "n_traces": fb[2], "frequency_hz_recorded": fb[0], "frequency_hz_std_error": fb[1],
             "frequency_hz_fitted": fb_fit[0], "damping_ratio_recorded": fb[3], "damping_ratio_fitted": fb_fit[1]},

@@ -238,6 +238,8 @@ class LabelTable:
         Each line's class.
     lines : ndarray of int64, shape (m,)
         Each entry's line in the file (the header is line 1).
+    columns : tuple of str
+        The header's column names (lower case).
     """
 
     source: str
@@ -247,6 +249,7 @@ class LabelTable:
     frame_id: np.ndarray | None
     classes: np.ndarray
     lines: np.ndarray
+    columns: tuple = ()
 
 
 _INTEGER = re.compile(r"[+-]?[0-9]+")
@@ -276,6 +279,10 @@ def read_labels_csv(path) -> LabelTable:
     ints = {"row": [], "nozzle": [], "frame_id": []}
     classes, lines = [], []
     try:
+        with open(path, "rb") as f:
+            if f.read(2) in (b"\xff\xfe", b"\xfe\xff"):
+                raise RecordingError(f"{src}: UTF-16 text (a spreadsheet's 'Unicode text' export): save the labels "
+                                     "as a UTF-8 CSV")
         with open(path, newline="", encoding="utf-8-sig") as f:
             reader = csv.reader(f)
             header = next(reader, None)
@@ -292,7 +299,7 @@ def read_labels_csv(path) -> LabelTable:
                     continue
                 line = reader.line_num
                 get = {c: (cells[j].strip() if j < len(cells) else "") for c, j in at.items()}
-                cls = get["class"]
+                cls = get["class"].lower()  # class names are lower case; a spreadsheet may have capitalised them
                 if cls not in LABEL_VALUES:
                     raise RecordingError(f"{src}:{line}: class {cls!r} is not a class (expected one of "
                                          f"{', '.join(c.value for c in FaultClass)}, or {', '.join(NOT_CLASSES)})")
@@ -314,7 +321,7 @@ def read_labels_csv(path) -> LabelTable:
     key = "row" if "row" in at else ("nozzle+frame_id" if "frame_id" in at else "nozzle")
     arrays = {name: (np.asarray(v, dtype=np.int64) if name in at else None) for name, v in ints.items()}
     table = LabelTable(src, key, arrays["row"], arrays["nozzle"], arrays["frame_id"],
-                       np.asarray(classes, dtype=object), np.asarray(lines, dtype=np.int64))
+                       np.asarray(classes, dtype=object), np.asarray(lines, dtype=np.int64), tuple(cols))
     keys = _table_keys(table)
     if keys.size:
         order = np.lexsort(keys.T[::-1])

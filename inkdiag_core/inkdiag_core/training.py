@@ -72,7 +72,12 @@ def _share(n_per_class, n_draws, k):
 
 
 def _real_rows(data, profile, seed, validation_fraction, n_sim_per_class):
-    """Recorded rows split per class, the training part replicated: (X_fit, y_fit, X_val, y_val)."""
+    """Recorded rows split per class, the training part replicated: (X_fit, y_fit, X_val, y_val, counts).
+
+    ``counts``: ``n_real_rows`` (used), ``n_real_rows_invalid`` (left out: the sum of
+    ``n_real_rows_screened_out``, rows screening refuses, and ``n_real_rows_without_class``,
+    rows labelled ``invalid`` or ``unknown``), ``real_rows_per_class``.
+    """
     from .recording import NOT_CLASSES, RecordingError
     from .screening import screen_traces
 
@@ -82,6 +87,7 @@ def _real_rows(data, profile, seed, validation_fraction, n_sim_per_class):
     profile.check_traces(data.traces, data.sample_rate_hz, what=data.source)
     # the rows labelling would judge (not invalid: non-finite, beyond 5x the ADC range, flat, clipped), of a class
     usable, _ = screen_traces(data.traces, max_abs_v=profile.max_abs_v, sample_rate_hz=profile.sample_rate_hz)
+    n_screened = int((~usable).sum())
     usable &= ~np.isin(np.asarray(data.label).astype(str), NOT_CLASSES)
     if not usable.any():
         raise RecordingError(f"{data.source}: no row is usable (every row is non-finite, out of range, flat or "
@@ -99,8 +105,11 @@ def _real_rows(data, profile, seed, validation_fraction, n_sim_per_class):
         fit_y.append(y[reps])
         val_x.append(X[val])
         val_y.append(y[val])
-    return (np.concatenate(fit_x), np.concatenate(fit_y), np.concatenate(val_x), np.concatenate(val_y),
-            int(usable.sum()), int((~usable).sum()))
+    per_class = {str(c): int((y == c).sum()) for c in np.unique(y)}
+    counts = {"n_real_rows": int(usable.sum()), "n_real_rows_invalid": int((~usable).sum()),
+              "n_real_rows_screened_out": n_screened,
+              "n_real_rows_without_class": int((~usable).sum()) - n_screened, "real_rows_per_class": per_class}
+    return np.concatenate(fit_x), np.concatenate(fit_y), np.concatenate(val_x), np.concatenate(val_y), counts
 
 
 def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseline: bool = False,
@@ -216,9 +225,9 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
                 sensor_offset_v=head.sensor_offset_v)[1], profile.sample_rate_hz) for head, sim, sim_seed in sims])
         det.fit(X, y, baseline_kpis=base)
     else:
-        Xr_fit, yr_fit, Xr_val, yr_val, n_real, n_dropped = _real_rows(
+        Xr_fit, yr_fit, Xr_val, yr_val, counts = _real_rows(
             data, profile, seed, float(validation_fraction), int(n_per_class))
-        info.update(training_data="simulated+recorded", n_real_rows=n_real, n_real_rows_invalid=n_dropped,
+        info.update(training_data="simulated+recorded", **counts,
                     real_rows_weighting="per class: recorded training rows replicated up to the simulated count; "
                     "a quarter of each recorded class held out for validation, once")
         from sklearn.model_selection import train_test_split

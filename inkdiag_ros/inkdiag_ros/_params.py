@@ -34,10 +34,24 @@ def declare(node, name, default, description, *, kind=None, range_=None, read_on
 
 
 def declare_all(node, params) -> dict:
-    """Declare every ``(name, default, description, kind, range)`` of ``params``; their values."""
+    """Declare every ``(name, default, description, kind, range)`` of ``params``; their values.
+
+    An array parameter given as an empty list on the command line (``-p NAME:=[]``, which
+    rclpy cannot type and leaves uninitialised) is the empty list.
+    """
+    from rclpy.exceptions import ParameterUninitializedException
+
     for name, default, desc, kind, rng in params:
         declare(node, name, default, desc, kind=kind, range_=rng)
-    return values(node, [p[0] for p in params])
+    out = {}
+    for name, _, _, kind, _ in params:
+        try:
+            out[name] = node.get_parameter(name).value
+        except ParameterUninitializedException:
+            if kind not in ("int[]", "str[]"):
+                raise
+            out[name] = []
+    return out
 
 
 def values(node, names) -> dict:

@@ -115,15 +115,22 @@ def _check_out(args) -> None:
             from inkdiag_core.persistence import manifest_path
 
             inputs.append(("model", str(manifest_path(args.model))))
+        outs = [out]
+        if args.verb == "train":  # the model's manifest is written beside it
+            from inkdiag_core.persistence import manifest_path
+
+            outs.append(str(manifest_path(out)))
         for name, value in inputs:
             what = name.upper() if name in ("recording", "healthy") else "--" + name
-            if value and _same_path(value, out):
-                extra = "'s manifest" if value != getattr(args, name, None) else ""
-                raise OSError(f"--out {out} is also the {what} input{extra}: writing it would destroy that input")
-            if value and Path(value).is_dir() and Path(value).resolve() in Path(out).resolve().parents:
-                kind = ("a bag directory", "the recording") if name in RECORDING_ARGS else ("a directory", "that input")
-                raise OSError(f"--out {out} is inside the {what} input {value} ({kind[0]}): writing there "
-                              f"would change or destroy {kind[1]}; write it elsewhere")
+            for o in outs:
+                if value and _same_path(value, o):
+                    extra = "'s manifest" if value != getattr(args, name, None) else ""
+                    written = f"--out {out}" + (f" writes {o}, which" if o != out else "")
+                    raise OSError(f"{written} is also the {what} input{extra}: writing it would destroy that input")
+            if (value and name in RECORDING_ARGS and Path(value).is_dir()
+                    and Path(value).resolve() in Path(out).resolve().parents):
+                raise OSError(f"--out {out} is inside the {what} input {value} (a bag directory): writing there "
+                              "would change or destroy the recording; write it elsewhere")
         if Path(out).is_dir() and not args._makes_out_dir:
             raise OSError(f"--out {out} is a directory; give the output file's name")
     if out and out != "-" and not args._makes_out_dir:

@@ -231,6 +231,8 @@ def test_training_with_recorded_rows_weighs_each_recorded_class_as_its_simulated
     data = Recording.from_arrays(x, head.sample_rate_hz, label=rec_sim.label_values())
     det, info, td = train_detector(head, n_per_class=16, seed=3, data=data, return_data=True)
     assert info["n_real_rows"] == 12 and info["n_real_rows_invalid"] == 2
+    assert info["n_real_rows_screened_out"] == 2 and info["real_rows_per_class"] == {"fully_blocked": 4,
+                                                                                        "healthy_nozzle": 8}
     assert info["training_data"] == "simulated+recorded" and np.isfinite(td.traces).all()
     real = td.labels[td.real]
     # fitted part: replicated up to 12 rows (16 * 0.75) per class; validation part: 2 and 1 rows once

@@ -97,8 +97,10 @@ def test_labels_from_inkdiag_label_load_and_training_leaves_their_rows_out(tmp_p
     rec = load_recording(_save(tmp_path / "l.npz", traces=sim.traces.astype(np.float32), sample_rate_hz=10e6,
                                label=label.astype(str)))
     assert list(rec.label[[0, 7]]) == ["invalid", "unknown"]
-    fit_x, fit_y, val_x, val_y, n_used, n_left_out = _real_rows(rec, profile, 0, 0.25, 8)
-    assert (n_used, n_left_out) == (10, 2)
+    fit_x, fit_y, val_x, val_y, counts = _real_rows(rec, profile, 0, 0.25, 8)
+    assert (counts["n_real_rows"], counts["n_real_rows_invalid"]) == (10, 2)
+    assert (counts["n_real_rows_screened_out"], counts["n_real_rows_without_class"]) == (0, 2)
+    assert counts["real_rows_per_class"] == {"deeply_dried": 5, "healthy_nozzle": 5}
     assert set(fit_y) | set(val_y) == {"healthy_nozzle", "deeply_dried"}
 
 
@@ -125,6 +127,8 @@ def test_labels_from_csv_by_row_by_nozzle_and_by_nozzle_and_frame(tmp_path):
                                      .encode("utf-8"))
     got, n = labels_from_csv(rec, tmp_path / "x.csv")
     assert n == 2 and list(got.label) == ["unknown", "small_air_bubble"] + ["unknown"] * 3 + ["ok_signal"]
+    got, n = labels_from_csv(rec, _csv(tmp_path / "c.csv", "row,class\n2,Fully_Blocked\n"))  # capitalised
+    assert n == 1 and got.label[2] == "fully_blocked"
 
 
 @pytest.mark.parametrize("text, message", [
@@ -163,6 +167,9 @@ def test_labels_from_csv_refuses_a_missing_file_a_directory_and_bytes_that_are_n
         labels_from_csv(rec, tmp_path / "missing.csv")
     with pytest.raises(RecordingError, match="is a directory, not a labels CSV"):
         labels_from_csv(rec, tmp_path)
-    (tmp_path / "b.csv").write_bytes(b"\xff\xfe\x00r")  # not UTF-8 text
+    (tmp_path / "u.csv").write_bytes("row,class\n0,ok_signal\n".encode("utf-16"))  # a spreadsheet's export
+    with pytest.raises(RecordingError, match="UTF-16 text .*: save the labels as a UTF-8 CSV"):
+        labels_from_csv(rec, tmp_path / "u.csv")
+    (tmp_path / "b.csv").write_bytes(b"\x80\x81\x00r")  # not UTF-8 text
     with pytest.raises(RecordingError, match="cannot read the labels CSV"):
         labels_from_csv(rec, tmp_path / "b.csv")

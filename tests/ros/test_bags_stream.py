@@ -170,7 +170,8 @@ def test_train_on_a_bag_with_the_labels_csv_that_label_wrote_and_a_user_correcte
     r = _cli("train", "--profile", tmp_path / "head.yaml", "--out", tmp_path / "m.joblib", "--data", bag,
              "--labels", tmp_path / "checked.csv", "--n-per-class", 40, "--unknown-rate", 0, "--quiet")
     assert r.returncode == 0, r.stderr
-    assert f"72 of the 72 rows of {bag} named, 62 with a class" in r.stdout
+    assert f"72 of the 72 rows of {bag} named, 62 with a class" in r.stdout and "warning" not in r.stderr
+    assert "recorded rows: 62 trained on (" in r.stdout and "0 screened out" in r.stdout
     info = json.loads((tmp_path / "m.joblib.manifest.json").read_text())["config"]
     assert info["n_real_rows"] == 62 and info["labels_file"] == str(tmp_path / "checked.csv")
     # what training read: each bag row (in label's numbering) with its own true class
@@ -184,6 +185,20 @@ def test_train_on_a_bag_with_the_labels_csv_that_label_wrote_and_a_user_correcte
     r = _cli("train", "--profile", tmp_path / "head.yaml", "--out", tmp_path / "m3.joblib", "--data", bag,
              "--labels", tmp_path / "checked.csv", "--baseline", "--quiet")
     assert r.returncode == 2 and "--baseline with --data" in r.stderr and "named" not in r.stdout
+    # label's CSV cut short (the labels of another, shorter recording?): trained on, with a warning
+    with open(tmp_path / "short.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows[:30])
+    r = _cli("train", "--profile", tmp_path / "head.yaml", "--out", tmp_path / "s.joblib", "--data", bag,
+             "--labels", tmp_path / "short.csv", "--n-per-class", 40, "--unknown-rate", 0, "--quiet")
+    assert r.returncode == 0 and "names 30 of the 72 rows" in r.stderr and "another recording?" in r.stderr
+    # an --out whose manifest would be written over the labels: refused before any work
+    (tmp_path / "m4.joblib.manifest.json").write_bytes((tmp_path / "short.csv").read_bytes())
+    r = _cli("train", "--profile", tmp_path / "head.yaml", "--out", tmp_path / "m4.joblib", "--data", bag,
+             "--labels", tmp_path / "m4.joblib.manifest.json", "--quiet")
+    assert r.returncode == 2 and "which is also the --labels input" in r.stderr
+    assert (tmp_path / "m4.joblib.manifest.json").read_bytes() == (tmp_path / "short.csv").read_bytes()
     # the labels of another recording (its nozzles differ) are refused, naming the line
     rows[3]["nozzle"] = "999"
     with open(tmp_path / "other.csv", "w", newline="") as f:

@@ -198,8 +198,16 @@ def test_empty_channel_traces_through_the_cli(tmp_path, capsys):
     f_rec = np.median(np.asarray(empty["frequency_hz"])[np.asarray(empty["labels"]) == "empty_channel_1"])
     args = ["calibrate", str(tmp_path / "healthy.npz"), "--nominal", str(tmp_path / "nominal.yaml")]
     assert cli.main([*args, "--out", str(tmp_path / "plain.yaml")]) == 0
+    assert "note: the empty channels' actuator is assumed like the default head's" in capsys.readouterr().out
     assert cli.main([*args, "--empty", str(tmp_path / "empty.npz"), "--out", str(tmp_path / "head.yaml")]) == 0
-    assert "actuator (empty channels)" in capsys.readouterr().out
+    out = capsys.readouterr()
+    assert "actuator (empty channels)" in out.out and "assumed" not in out.out and "warning" not in out.err
+    assert "(measured on empty channels)" in (tmp_path / "head.fit.md").read_text()
+    # film-loaded channels (empty_channel_2) given as dry ones: calibrated, with a warning
+    film = fh.simulate_foreign(head, {"empty_channel_2": 40}, 4)
+    np.savez(tmp_path / "film.npz", traces=film["traces"], sample_rate_hz=film["sample_rate_hz"])
+    assert cli.main([*args, "--empty", str(tmp_path / "film.npz"), "--out", str(tmp_path / "film.yaml")]) == 0
+    assert "warning: the empty channels put the actuator at" in capsys.readouterr().err
     plain, p = HeadProfile.load(tmp_path / "plain.yaml"), HeadProfile.load(tmp_path / "head.yaml")
     assert "f_act" not in plain.channel and p.calibration["n_empty_traces"] == 40
     assert abs(p.channel["f_act"] / 1.3e6 - 1) < 0.01 and abs(p.channel["zeta_act"] / 0.04 - 1) < 0.1

@@ -129,3 +129,19 @@ def test_printhead_sim_refuses_a_bad_head_profile_in_one_line(ros, tmp_path, cas
     assert out.returncode == 2, out.stderr[-2000:]
     lines = out.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("printhead_sim: ") and match in lines[0], out.stderr[-2000:]
+
+
+def test_an_empty_list_on_the_command_line_is_an_empty_list(ros):
+    """`-p drying_nozzles:=[]` (rclpy cannot type an empty list and leaves the parameter uninitialised): no drying
+    nozzle, no fixed fault; a 12-nozzle head then runs (with the defaults its nozzle ids were out of range)."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    out = subprocess.run([sys.executable, "-m", "inkdiag_ros.printhead_sim", "--ros-args", "-p", "n_nozzles:=12",
+                          "-p", "drying_nozzles:=[]", "-p", "fault_nozzles:=[]", "-p", "fault_classes:=[]",
+                          "-p", "max_frames:=1", "-p", "frame_rate_hz:=20.0"],
+                         env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "faults {}, drying []" in out.stderr and "published 1 frames" in out.stderr

@@ -231,6 +231,13 @@ def run(args) -> int:
         print(f"inkdiag calibrate: the restrictor (channel.r_r, channel.L_r) is the nominal profile's, not "
               f"fitted: leave both out of {args.nominal} to fit them (a profile inkdiag calibrate wrote keeps its "
               "earlier fit)", file=sys.stdout)
+    act = report["actuator"]
+    if act["warning"]:
+        print(f"inkdiag calibrate: warning: {act['warning']}", file=sys.stderr)
+    elif not report["empty_mode"] and act["source"].startswith("assumed"):
+        print(f"inkdiag calibrate: note: the empty channels' actuator is assumed like the default head's, "
+              f"{act['f_act_hz'] / 1e3:.0f} kHz at this B_act (another head's may differ: give --empty DRY.npz, or "
+              "channel.f_act from a datasheet)", file=sys.stdout)
     ref = max(rr["noise_floor"], rr["simulated_per_trace_median"])  # what a healthy trace of this head leaves
     if rr["per_trace_median"] > MISFIT_WARNING * ref:
         print(f"inkdiag calibrate: warning: the median trace leaves {100 * rr['per_trace_median']:.1f} % of its RMS "
@@ -295,7 +302,8 @@ def _markdown(r) -> str:
         f"{rv['amplitude_log_std'][1]:.4f} |",
         "",
         f"Healthy mode of the calibrated channel: {hm['frequency_hz'] / 1e3:.2f} kHz, damping ratio "
-        f"{hm['damping_ratio']:.4f}.",
+        f"{hm['damping_ratio']:.4f}. The empty channels' actuator: {r['actuator']['f_act_hz'] / 1e3:.1f} kHz, "
+        f"damping ratio {r['actuator']['zeta_act']:.3f} ({r['actuator']['source']}).",
         "",
         *([] if not (fb := r.get("blocked_mode")) else [
             f"Fully blocked nozzles (`{r.get('blocked')}`, {fb['n_traces']} traces): their mode recorded "

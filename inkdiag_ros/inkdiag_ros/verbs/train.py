@@ -97,6 +97,7 @@ def _progress(quiet):
 
 def run(args) -> int:
     import math
+    import sys
     from pathlib import Path
 
     import numpy as np
@@ -131,16 +132,21 @@ def run(args) -> int:
     table = read_labels_csv(args.labels) if args.labels else None  # checked before a large recording is read
     data = load_and_report(args.data, args.topic) if args.data else None
     if data is not None:
+        profile.check_traces(data.traces, data.sample_rate_hz, what=args.data)
         if table is not None:
             had = data.label is not None
             data, n_named = labels_from_csv(data, table)
             n_class = int(np.isin(data.label, NOT_CLASSES, invert=True).sum())
             print(f"{args.labels}: {n_named} of the {data.n_rows} rows of {args.data} named, {n_class} with a class"
                   + (" (in place of the recording's own 'label')" if had else ""))
+            if table.key == "row" and {"confidence", "reason"} <= set(table.columns) and n_named < data.n_rows:
+                print(f"inkdiag train: warning: {args.labels} looks like `inkdiag label`'s CSV, which names every row of "
+                      f"the recording it labelled, but it names {n_named} of the {data.n_rows} rows of {args.data} "
+                      f"(rows {int(table.row.min())}..{int(table.row.max())}): the labels of another recording?",
+                      file=sys.stderr)
         if data.label is None:
             raise ValueError(f"{args.data}: no 'label' array: --data needs each row's class (or give them with "
                              "--labels LABELS.csv)")
-        profile.check_traces(data.traces, data.sample_rate_hz, what=args.data)
     out = Path(args.out)
     if out.is_dir():
         raise IsADirectoryError(f"--out {out} is a directory; give the model file's name")
@@ -164,6 +170,10 @@ def run(args) -> int:
     print(f"validation ({s['n_validation']} rows): FI accuracy {100 * s['validation_fi_accuracy']:.1f} %, "
           f"at the FD threshold {det.fd_threshold_:.3f}: FI {100 * s['validation_fi_accuracy_at_threshold']:.1f} %, "
           f"faults missed {100 * s['validation_fd_fnr']:.2f} %, false alarms {100 * s['validation_fd_fpr']:.2f} %")
+    if data is not None:
+        per = ", ".join(f"{c} {k}" for c, k in sorted(info["real_rows_per_class"].items()))
+        print(f"recorded rows: {info['n_real_rows']} trained on ({per}); {info['n_real_rows_screened_out']} screened "
+              f"out (non-finite, out of range, flat, clipped), {info['n_real_rows_without_class']} without a class")
     if det.baseline_scores_:
         b = det.baseline_scores_
         print(f"baseline branch: FI accuracy {100 * b['validation_fi_accuracy']:.1f} %, faults missed "
