@@ -421,7 +421,7 @@ def _actuator(nominal, fe, B_act):
         out.update(f_act_hz=float(nominal.channel["f_act"]), zeta_act=nominal.channel.get("zeta_act", c["zeta_act"]),
                    source="nominal profile (channel.f_act)")
     else:
-        out.update(f_act_hz=rule, zeta_act=c["zeta_act"],
+        out.update(f_act_hz=rule, zeta_act=nominal.channel.get("zeta_act", c["zeta_act"]),
                    source="assumed: the default head's actuator at this B_act (not measured: calibrate --empty)")
     return out
 

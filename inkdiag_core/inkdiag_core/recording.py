@@ -301,7 +301,7 @@ def read_labels_csv(path) -> LabelTable:
                 get = {c: (cells[j].strip() if j < len(cells) else "") for c, j in at.items()}
                 cls = get["class"].lower()  # class names are lower case; a spreadsheet may have capitalised them
                 if cls not in LABEL_VALUES:
-                    raise RecordingError(f"{src}:{line}: class {cls!r} is not a class (expected one of "
+                    raise RecordingError(f"{src}:{line}: class {get['class']!r} is not a class (expected one of "
                                          f"{', '.join(c.value for c in FaultClass)}, or {', '.join(NOT_CLASSES)})")
                 for name, out in ints.items():
                     if name not in at:

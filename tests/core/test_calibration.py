@@ -325,3 +325,14 @@ def test_the_gain_spread_is_what_the_fitted_physical_spreads_leave_of_the_amplit
            (other["traces"], res.profile.simulate({"healthy_nozzle": 300}, seed=17).traces)]
     rec_std, sim_std = (1.4826 * np.median(np.abs(np.log(a) - np.median(np.log(a)))) for a in amp)
     assert abs(sim_std / rec_std - 1) < 0.2, (rec_std, sim_std)
+
+
+def test_the_reported_actuator_is_the_one_the_profile_simulates():
+    from inkdiag_core.calibration import _actuator
+
+    a = _actuator(HeadProfile.default().replace(channel={"zeta_act": 0.08}), None, 5.198e-21)
+    assert a["source"].startswith("assumed") and a["zeta_act"] == 0.08 and abs(a["f_act_hz"] / 2.175e6 - 1) < 1e-9
+    a = _actuator(HeadProfile.default().replace(channel={"f_act": 1.5e6}), None, 5.198e-21)
+    assert a["source"] == "nominal profile (channel.f_act)" and a["f_act_hz"] == 1.5e6 and a["warning"] is None
+    fe = {"frequency_hz": 1.1e6, "damping_ratio": 0.06}
+    assert "a third too low" in _actuator(HeadProfile.default(), fe, 5.198e-21)["warning"]

@@ -193,6 +193,11 @@ def test_train_on_a_bag_with_the_labels_csv_that_label_wrote_and_a_user_correcte
     r = _cli("train", "--profile", tmp_path / "head.yaml", "--out", tmp_path / "s.joblib", "--data", bag,
              "--labels", tmp_path / "short.csv", "--n-per-class", 40, "--unknown-rate", 0, "--quiet")
     assert r.returncode == 0 and "names 30 of the 72 rows" in r.stderr and "another recording?" in r.stderr
+    # label's header alone: no usable row, said as such
+    (tmp_path / "header.csv").write_text(",".join(rows[0]) + "\n")
+    r = _cli("train", "--profile", tmp_path / "head.yaml", "--out", tmp_path / "h.joblib", "--data", bag,
+             "--labels", tmp_path / "header.csv", "--quiet")
+    assert r.returncode == 2 and "no row is usable" in r.stderr, r.stderr
     # an --out whose manifest would be written over the labels: refused before any work
     (tmp_path / "m4.joblib.manifest.json").write_bytes((tmp_path / "short.csv").read_bytes())
     r = _cli("train", "--profile", tmp_path / "head.yaml", "--out", tmp_path / "m4.joblib", "--data", bag,
