@@ -244,3 +244,15 @@ def test_a_recording_of_every_class_is_calibrated_with_a_warning(tmp_path, capsy
     assert "warning: the median trace leaves" in capsys.readouterr().err
     assert cli.main(["calibrate", str(tmp_path / "healthy.npz"), *args]) == 0
     assert "warning" not in capsys.readouterr().err
+
+
+def test_the_fit_report_is_never_written_over_an_input(files, tmp_path, capsys):
+    """A recording named like the report calibrate writes beside the profile: refused before any work."""
+    import shutil
+
+    shutil.copy(files / "healthy.npz", tmp_path / "head.fit.png")  # a recording under the report's PNG name
+    before = (tmp_path / "head.fit.png").read_bytes()
+    assert cli.main(["calibrate", str(files / "healthy.npz"), "--nominal", str(files / "nominal.yaml"),
+                     "--empty", str(tmp_path / "head.fit.png"), "--out", str(tmp_path / "head.yaml")]) == 2
+    assert "would be written over the --empty input" in capsys.readouterr().err
+    assert (tmp_path / "head.fit.png").read_bytes() == before and not (tmp_path / "head.yaml").exists()
