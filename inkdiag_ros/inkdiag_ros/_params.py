@@ -54,10 +54,6 @@ def declare_all(node, params) -> dict:
     return out
 
 
-def values(node, names) -> dict:
-    return {n: node.get_parameter(n).value for n in names}
-
-
 def result(ok: bool, reason: str = "") -> SetParametersResult:
     return SetParametersResult(successful=ok, reason=reason)
 
