@@ -118,15 +118,18 @@ class Recording:
             raise RecordingError(f"{source}: sample_rate_hz must be a positive number of Hz, got {fs!r}")
         n = t.shape[0]
 
-        def column(name, value, kind, default):
-            if value is None:
-                return default
-            a = np.asarray(value)
+        def per_trace(name, a):
             if a.shape == (t.shape[1],) and t.shape[1] != n:
                 raise RecordingError(f"{source}: {name} has {t.shape[1]} entries, one per column of traces {t.shape}: "
                                      "are the traces transposed? (one row per trace: shape (n, n_samples))")
             if a.shape != (n,):
                 raise RecordingError(f"{source}: {name} must have one entry per trace, shape ({n},), got {a.shape}")
+
+        def column(name, value, kind, default):
+            if value is None:
+                return default
+            a = np.asarray(value)
+            per_trace(name, a)
             if kind == "int":
                 if a.dtype.kind not in "iu" and not (a.dtype.kind == "f" and np.all(np.isfinite(a))
                                                      and np.all(a == np.round(a))):
@@ -144,11 +147,7 @@ class Recording:
         lab = None
         if label is not None:
             lab = np.asarray(label)
-            if lab.shape == (t.shape[1],) and t.shape[1] != n:
-                raise RecordingError(f"{source}: label has {t.shape[1]} entries, one per column of traces {t.shape}: "
-                                     "are the traces transposed? (one row per trace: shape (n, n_samples))")
-            if lab.shape != (n,):
-                raise RecordingError(f"{source}: label must have one entry per trace, shape ({n},), got {lab.shape}")
+            per_trace("label", lab)
             lab = np.array([v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v) for v in lab.tolist()],
                            dtype=object)  # bytes (an 'S' array, as h5py or MATLAB write) are UTF-8 text
             bad = sorted(set(lab.tolist()) - LABEL_VALUES)
@@ -307,8 +306,7 @@ def read_labels_csv(path) -> LabelTable:
                     if name not in at:
                         continue
                     v = get[name]
-                    if v == "" and not (name == "row" or (name == "nozzle" and "row" not in at)
-                                        or (name == "frame_id" and "row" not in at)):
+                    if v == "" and name != "row" and "row" in at:
                         out.append(_EMPTY)  # a cell left empty beside the row that names the line: not checked
                         continue
                     if not _INTEGER.fullmatch(v):

@@ -14,8 +14,9 @@ A RECORDING is an .npz file or a rosbag2 bag directory (see docs/bags.md).
 
 Each subcommand is a module of :mod:`inkdiag_ros.verbs` with ``HELP`` (one
 line), ``DESCRIPTION``, ``add_arguments(parser)``, ``run(args) -> int`` and optionally
-``MAKES_OUT_DIR`` (True: ``run`` creates its ``--out``'s directory) and ``OUT_STDOUT``
-(True: ``--out -`` is standard output; elsewhere ``-`` is refused); the
+``MAKES_OUT_DIR`` (True: ``run`` creates its ``--out``'s directory), ``OUT_STDOUT``
+(True: ``--out -`` is standard output; elsewhere ``-`` is refused) and
+``extra_outputs(args)`` (the files ``run`` writes beside ``--out``, never over an input); the
 modules import the core only inside ``run``, so ``--help`` is fast. Bad input
 (a missing file, another schema, a recording of another sampling, a profile
 calibration cannot fit, an ``--out`` in no writable directory) is one line on stderr,
@@ -61,7 +62,8 @@ def build_parser() -> argparse.ArgumentParser:
                            formatter_class=argparse.RawDescriptionHelpFormatter)
         module.add_arguments(p)
         p.set_defaults(_run=module.run, _makes_out_dir=getattr(module, "MAKES_OUT_DIR", False),
-                       _out_stdout=getattr(module, "OUT_STDOUT", False), _parser=p)
+                       _out_stdout=getattr(module, "OUT_STDOUT", False),
+                       _extra_outputs=getattr(module, "extra_outputs", None), _parser=p)
     return parser
 
 
@@ -115,18 +117,18 @@ def _check_out(args) -> None:
             from inkdiag_core.persistence import manifest_path
 
             inputs.append(("model", str(manifest_path(args.model))))
-        outs = [out]
-        if args.verb == "train":  # the model's manifest is written beside it
-            from inkdiag_core.persistence import manifest_path
-
-            outs.append(str(manifest_path(out)))
+        extra_outputs = getattr(args, "_extra_outputs", None)  # a manifest, a fit report, written beside --out
+        outs = [out] + ([str(o) for o in extra_outputs(args)] if extra_outputs else [])
         for name, value in inputs:
             what = name.upper() if name in ("recording", "healthy") else "--" + name
             for o in outs:
                 if value and _same_path(value, o):
                     extra = "'s manifest" if value != getattr(args, name, None) else ""
-                    written = f"--out {out}" + (f" writes {o}, which" if o != out else "")
-                    raise OSError(f"{written} is also the {what} input{extra}: writing it would destroy that input")
+                    if o == out:
+                        raise OSError(f"--out {out} is also the {what} input{extra}: writing it would destroy that "
+                                      "input")
+                    raise OSError(f"--out {out} writes {o}, which is also the {what} input{extra}: it would be "
+                                  f"written over the {what} input")
             if (value and name in RECORDING_ARGS and Path(value).is_dir()
                     and Path(value).resolve() in Path(out).resolve().parents):
                 raise OSError(f"--out {out} is inside the {what} input {value} (a bag directory): writing there "

@@ -155,8 +155,9 @@ def _fault_rows(path, option, cls):
     return rec
 
 
-def report_paths(args) -> list:
-    """The fit report's files (``.fit.json``, ``.fit.md``, ``.fit.png``) for ``--out`` and ``--report-dir``."""
+def extra_outputs(args) -> list:
+    """The fit report's files (``.fit.json``, ``.fit.md``, ``.fit.png``) for ``--out`` and ``--report-dir`` (cli
+    refuses them over an input)."""
     from pathlib import Path
 
     out = Path(args.out)
@@ -206,12 +207,6 @@ def run(args) -> int:
         note = f"; {left_out} rows labelled otherwise left out" if left_out else ""
     out = Path(args.out)
     report_dir = Path(args.report_dir) if args.report_dir else out.parent
-    for path in report_paths(args):  # the report beside the profile: never over an input
-        for name, value in (("HEALTHY", args.healthy), ("--nominal", args.nominal), ("--blocked", args.blocked),
-                            ("--empty", args.empty)):
-            if value and Path(value).exists() and Path(value).resolve() == path.resolve():
-                raise OSError(f"the fit report {path} would be written over the {name} input: choose another --out "
-                              "or --report-dir")
     report_dir.mkdir(parents=True, exist_ok=True)
     result = calibrate(nominal, traces, fs, name=args.name, seed=args.seed,
                        blocked=None if blocked is None else blocked.traces,

@@ -72,6 +72,13 @@ def add_arguments(parser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+def extra_outputs(args) -> list:
+    """The model's manifest, written beside ``--out`` (cli refuses it over an input)."""
+    from inkdiag_core.persistence import manifest_path
+
+    return [manifest_path(args.out)]
+
+
 def _progress(quiet):
     """A progress callable and a close function: tqdm on stderr if available, else a plain line per stage."""
     import sys
