@@ -139,7 +139,8 @@ def test_the_actuator_resonance_of_a_profile_reaches_the_empty_channel_classes(t
     assert q.channel["f_act"] == 1.5e6 and q.channel_params().zeta_act == 0.05 and p.channel_params().f_act is None
     assert q.sha256 != p.sha256
     counts = {"empty_channel_1": 60}
-    f_p, f_q = (np.median(h.simulate(counts, seed=1, severity={"empty_channel_1": np.zeros(60)}).frequency_hz) for h in (p, q))
+    sev = {"empty_channel_1": np.zeros(60)}
+    f_p, f_q = (np.median(h.simulate(counts, seed=1, severity=sev).frequency_hz) for h in (p, q))
     assert abs(f_p / 2.175e6 - 1) < 0.01 and abs(f_q / 1.5e6 - 1) < 0.01
-    z_q = np.median(q.simulate(counts, seed=1, severity={"empty_channel_1": np.zeros(60)}).damping_ratio)
+    z_q = np.median(q.simulate(counts, seed=1, severity=sev).damping_ratio)
     assert abs(z_q / 0.05 - 1) < 0.05

@@ -115,7 +115,8 @@ def test_label_uses_each_rows_nozzle_baseline(work, tmp_path, capsys):
 @pytest.mark.parametrize(("argv", "match"), [
     (["train", "--profile", "{d}/nominal.yaml", "--out", "{d}/x.joblib"], "inkdiag calibrate"),
     (["train", "--profile", "{d}/missing.yaml", "--out", "{d}/x.joblib"], "no such head profile"),
-    (["train", "--profile", "{d}/head.yaml", "--out", "{d}/x.joblib", "--data", "{d}/rec10.npz"], "is sampled at 10000000 Hz"),
+    (["train", "--profile", "{d}/head.yaml", "--out", "{d}/x.joblib", "--data", "{d}/rec10.npz"],
+     "is sampled at 10000000 Hz"),
     (["train", "--profile", "{d}/head.yaml", "--out", "{d}/x.joblib", "--posterior-draws", "0"],
      "--posterior-draws must be >= 1"),
     (["train", "--profile", "{d}/head.yaml", "--out", "{d}/x.joblib", "--unknown-rate", "1.5"],

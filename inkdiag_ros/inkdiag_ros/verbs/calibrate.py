@@ -326,7 +326,8 @@ def _markdown(r) -> str:
             f"Empty channels (`{r.get('empty')}`, {fe['n_traces']} traces): their median mode "
             f"{fe['frequency_hz_recorded'] / 1e3:.1f} kHz (robust spread {100 * fe['frequency_spread_rel']:.1f} %), "
             f"damping ratio {fe['damping_ratio_recorded']:.3f}; without the ink film of mass ratio "
-            f"{fe['film_mass_ratio']:g} they are taken to carry, the actuator alone: {fe['frequency_hz'] / 1e3:.1f} kHz, "
+            f"{fe['film_mass_ratio']:g} they are taken to carry, the actuator alone: "
+            f"{fe['frequency_hz'] / 1e3:.1f} kHz, "
             f"damping ratio {fe['damping_ratio']:.3f}, the profile's channel.f_act and channel.zeta_act, which the "
             "empty-channel classes are simulated from.", ""]),
         f"RMS residual relative to the trace RMS: mean trace {100 * rr['mean_trace']:.2f} %, per trace median "

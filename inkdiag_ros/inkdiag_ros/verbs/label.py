@@ -186,6 +186,7 @@ def run(args) -> int:
           f"{n_invalid} invalid" + (f", {n_failed} in frames whose labelling failed" if n_failed else "") + against
           + (f"; wrote {args.out}" if args.out != "-" else ""), file=sys.stderr)
     if n_rows and n_out_of_range >= n_rows / 2:  # a recording in other units, not a head whose sensor broke
-        print(f"{n_out_of_range} of {n_rows} rows have a sample beyond {max_abs_v:g} V, more than the head's sensor can produce: "
+        print(f"{n_out_of_range} of {n_rows} rows have a sample beyond {max_abs_v:g} V, more than the head's sensor "
+              "can produce: "
               "are the traces in volts (not millivolts or ADC counts)?", file=sys.stderr)
     return 1 if n_failed else 0

@@ -148,8 +148,9 @@ def run(args) -> int:
                   + (" (in place of the recording's own 'label')" if had else ""))
             if (table.key == "row" and {"confidence", "reason"} <= set(table.columns)
                     and 0 < n_named < data.n_rows):
-                print(f"inkdiag train: warning: {args.labels} looks like `inkdiag label`'s CSV, which names every row of "
-                      f"the recording it labelled, but it names {n_named} of the {data.n_rows} rows of {args.data} "
+                print(f"inkdiag train: warning: {args.labels} looks like `inkdiag label`'s CSV, which names every "
+                      f"row of the recording it labelled, but it names {n_named} of the {data.n_rows} rows of "
+                      f"{args.data} "
                       f"(rows {int(table.row.min())}..{int(table.row.max())}): the labels of another recording?",
                       file=sys.stderr)
         if data.label is None:
