@@ -98,6 +98,12 @@ _OPTIONAL_CHANNEL_KEYS = ("mu_nozzle", "B_extra", "f_act", "zeta_act")
 DRIVE_UNITS = {"amplitude_v": "V", "rise_s": "s", "dwell_s": "s", "fall_s": "s", "switch_delay_s": "s"}
 """The ``drive`` keys (the :class:`DriveWaveform` fields) and their SI units."""
 
+MAX_DRIVE_TIME_S = 1e-3
+"""Longest ``drive.rise_s``, ``dwell_s``, ``fall_s`` or ``switch_delay_s`` a profile accepts, s. A head fired at
+1 kHz or faster has a period of at most 1 ms, and a piezo drive's segments last microseconds: a longer
+one is a time in other units (microseconds written as seconds), which calibration would otherwise fit
+without complaint (a 1 s rise only scales the trace's amplitude, which the fit absorbs)."""
+
 SAMPLING_UNITS = {"sample_rate_hz": "Hz", "n_samples": "samples"}
 
 SENSOR_UNITS = {
@@ -271,6 +277,12 @@ class HeadProfile:
                                f"not below the Nyquist frequency {fs / 2e3:.1f} kHz of sampling.sample_rate_hz (Hz)")
         dr = _section(doc, "drive", DRIVE_UNITS, source, required=tuple(DRIVE_UNITS))
         drive = DriveWaveform(**{k: _number(f"{source}: drive", k, v, DRIVE_UNITS[k]) for k, v in dr.items()})
+        for k in ("rise_s", "dwell_s", "fall_s", "switch_delay_s"):
+            if getattr(drive, k) > MAX_DRIVE_TIME_S:
+                raise ProfileError(
+                    f"{source}: drive.{k}: {getattr(drive, k):g} s is longer than any piezo drive's segment (at most "
+                    f"{MAX_DRIVE_TIME_S * 1e3:g} ms; they last about 0.5-20 us): the profile's times are in seconds, "
+                    "1 us = 1.0e-6")
         se = _section(doc, "sensor", SENSOR_UNITS, source)
         sensor = {}
         for k, v in se.items():
