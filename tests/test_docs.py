@@ -29,7 +29,8 @@ def test_shipped_params_file_sets_only_declared_parameters(tmp_path):
     paramdoc.render()  # raises on a parameter the node does not declare
 
 
-@pytest.mark.parametrize("page", ["README.md", "docs/controller.md", "docs/nodes.md", "docs/core.md"])
+@pytest.mark.parametrize("page", ["README.md", "docs/controller.md", "docs/nodes.md", "docs/core.md",
+                                  "docs/classes.md"])
 def test_relative_links_resolve(page):
     path = ROOT / page
     for target in re.findall(r"\]\(([^)#:]+)(?:#[^)]*)?\)", path.read_text()):
@@ -41,3 +42,25 @@ def test_readme_is_a_newcomers_page():
     assert len(lines) <= 300
     text = "\n".join(lines)
     assert "scripts/run" in text and "scripts/test" in text
+
+
+def test_class_page_gives_every_class_its_simulated_range():
+    """docs/classes.md's table is MECHANISMS': a user labelling by it labels what the model learns."""
+    from inkdiag_core.faults import MECHANISMS, OK_SIGNAL_DRIVE_FACTOR, PARTICLE_LENGTH_FRACTION
+
+    rows = {}
+    for line in (ROOT / "docs" / "classes.md").read_text().splitlines():
+        m = re.match(r"\| `(\w+)` \| (.*?) \| (.*?) \|", line)
+        if m:
+            rows[m.group(1)] = (m.group(2), m.group(3))
+    assert set(rows) == {c.value for c in MECHANISMS}
+    for cls, mech in MECHANISMS.items():
+        state, severity = rows[cls.value]
+        if mech.severity:
+            scale = 1e6 if mech.kind == "chamber_bubble" else 1.0  # r_b in um on the page
+            lo, hi = (float(x) for x in re.search(r"([\d.]+)-([\d.]+)", severity).groups())
+            assert (lo, hi) == pytest.approx((mech.low * scale, mech.high * scale)), cls
+        else:
+            assert severity == "-", cls
+    assert f"x {OK_SIGNAL_DRIVE_FACTOR:g}" in rows["ok_signal"][0]
+    assert f"{PARTICLE_LENGTH_FRACTION:g} L_n" in rows["partially_blocked"][0]

@@ -1,10 +1,12 @@
 """Train a :class:`inkdiag_core.FaultDetector` for one head: :func:`train_detector`.
 
 The faults are simulated on the head's own (calibrated) model by
-:meth:`inkdiag_core.HeadProfile.simulate`: the same physical mechanisms as for
-the default head (air bubbles, blockage, drying, an empty channel, ...), each
-scaled to the head's geometry, ink, drive and sampling by the simulator
-itself. Optionally the user's own labelled recordings join them.
+:meth:`inkdiag_core.HeadProfile.simulate`: the same physical mechanisms and
+severity ranges as for the default head (air bubbles, blockage, drying, an empty
+channel, ...; :data:`inkdiag_core.faults.MECHANISMS`) on the head's own geometry,
+ink, drive and sampling. The ranges are relative to the head's nozzle and ink (a
+viscosity ratio, fractions of the nozzle bore, an ink-film mass ratio) but for the
+chamber bubble's absolute radius. Optionally the user's own labelled recordings join them.
 
 How real and simulated rows are combined
 ----------------------------------------
