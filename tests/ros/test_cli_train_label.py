@@ -6,6 +6,7 @@ labelled; per-nozzle baselines by the recording's nozzle ids; one-line errors, e
 import csv
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -223,6 +224,25 @@ def test_a_recording_in_millivolts_is_labelled_invalid_with_a_hint_about_units(w
     # a recording with one such row is not told about units
     assert main(["label", str(d / "rec.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "r.csv")]) == 0
     assert "in volts" not in capsys.readouterr().err
+
+
+def test_another_heads_recording_of_the_same_sampling_is_labelled_with_a_warning(work, trained, tmp_path, capsys):
+    # a head with twice the actuator compliance (181 kHz against 213): its healthy traces look like one fault
+    d, head, sim = work
+    other = head.replace(name="other", channel={"B_act": head.channel["B_act"] * 1.6})
+    x = other.simulate({FaultClass.HEALTHY_NOZZLE: 30}, seed=5).traces
+    save_recording(tmp_path / "other.npz", Recording.from_arrays(x, head.sample_rate_hz))
+    assert main(["label", str(tmp_path / "other.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "o.csv")]) == 0
+    err = capsys.readouterr().err
+    assert re.search(r"(\d+) of 30 labelled rows \(\d+ %\) are small_air_bubble: a working head has few faulty "
+                     r"nozzles\. If this recording is of a working head, is the model for this head\? It was trained "
+                     r"for head 'foreign20', healthy mode 213\.0 kHz", err), err
+    # every class in equal numbers (a test recording), or too few rows: no warning
+    assert main(["label", str(d / "rec.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "r.csv")]) == 0
+    assert "a working head" not in capsys.readouterr().err
+    save_recording(tmp_path / "few.npz", Recording.from_arrays(x[:19], head.sample_rate_hz))
+    assert main(["label", str(tmp_path / "few.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "f.csv")]) == 0
+    assert "a working head" not in capsys.readouterr().err
 
 
 def test_label_csv_says_unknown_for_a_trace_unlike_every_class(work, tmp_path, capsys):

@@ -136,6 +136,7 @@ def label_stream(labeller, chunks):
 
 
 def run(args) -> int:
+    import collections
     import csv
     import itertools
     import math
@@ -165,6 +166,7 @@ def run(args) -> int:
                              max_abs_v=max_abs_v)
     del rec
     n_rows = n_invalid = n_failed = n_base = n_out_of_range = 0
+    per_class = collections.Counter()
     with open_csv_out(args.out) as out:
         w = csv.writer(out, lineterminator="\n")
         w.writerow(COLUMNS)
@@ -173,6 +175,8 @@ def run(args) -> int:
                 n_invalid += 1
                 n_failed += reason == "labelling_failed"
                 n_out_of_range += reason == "out_of_range"
+            else:
+                per_class[cls] += 1
             w.writerow((row, nozzle, fid, cls, "" if conf != conf else f"{conf:.6f}", reason, int(base)))
             n_rows += 1
             n_base += bool(base)
@@ -189,4 +193,37 @@ def run(args) -> int:
         print(f"{n_out_of_range} of {n_rows} rows have a sample beyond {max_abs_v:g} V, more than the head's sensor "
               "can produce: "
               "are the traces in volts (not millivolts or ADC counts)?", file=sys.stderr)
+    said = _one_fault_class_dominates(per_class, head)
+    if said:
+        print(said, file=sys.stderr)
     return 1 if n_failed else 0
+
+
+#: ``inkdiag label`` warns when one fault class (or ``unknown``) is more than this share of the labelled rows.
+DOMINANT_SHARE = 0.5
+#: ... and at least this many rows.
+DOMINANT_MIN_ROWS = 20
+
+
+def _one_fault_class_dominates(per_class, head) -> str:
+    """A warning when one fault class or ``unknown`` is most of the labelled rows, else "".
+
+    A working head has few faulty nozzles, and faulty ones of several kinds; a model of another
+    head with the same sampling labels every healthy trace as one fault (a 213 kHz head's healthy
+    traces all came out intermediate_air_bubble with a 169 kHz head's model). A recording of every
+    class in equal numbers, or a head failing in several ways, is not warned about.
+    """
+    from inkdiag_core.faults import HEALTHY_VALUES
+
+    n = sum(per_class.values())
+    faults = [(k, c) for c, k in per_class.items() if c not in HEALTHY_VALUES]
+    if n < DOMINANT_MIN_ROWS or not faults:
+        return ""
+    k, cls = max(faults)
+    if k <= DOMINANT_SHARE * n:
+        return ""
+    f_hz, _ = head.healthy_mode()
+    return (f"{k} of {n} labelled rows ({100 * k / n:.0f} %) are {cls}: a working head has few faulty nozzles. "
+            f"If this recording is of a working head, is the model for this head? It was trained for head "
+            f"{head.name!r}, healthy mode {f_hz / 1e3:.1f} kHz; another head's model with the same sampling labels "
+            "its healthy traces as one fault")
