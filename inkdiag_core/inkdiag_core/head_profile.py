@@ -98,11 +98,12 @@ _OPTIONAL_CHANNEL_KEYS = ("mu_nozzle", "B_extra", "f_act", "zeta_act")
 DRIVE_UNITS = {"amplitude_v": "V", "rise_s": "s", "dwell_s": "s", "fall_s": "s", "switch_delay_s": "s"}
 """The ``drive`` keys (the :class:`DriveWaveform` fields) and their SI units."""
 
-MAX_DRIVE_TIME_S = 1e-3
-"""Longest ``drive.rise_s``, ``dwell_s``, ``fall_s`` or ``switch_delay_s`` a profile accepts, s. A head fired at
-1 kHz or faster has a period of at most 1 ms, and a piezo drive's segments last microseconds: a longer
-one is a time in other units (microseconds written as seconds), which calibration would otherwise fit
-without complaint (a 1 s rise only scales the trace's amplitude, which the fit absorbs)."""
+MAX_DRIVE_TIME_S = 1e-4
+"""Longest ``drive.rise_s``, ``dwell_s``, ``fall_s`` or ``switch_delay_s`` a profile accepts, s. A piezo
+drive's rise, dwell and fall and the switch-over delay to sensing last about 0.5-20 us (every shipped
+profile 0.6-3.2 us): a longer one is a time in other units (microseconds written as seconds or as
+milliseconds), which calibration would otherwise fit without complaint (a slow rise only scales the
+trace's amplitude, which the fit absorbs)."""
 
 SAMPLING_UNITS = {"sample_rate_hz": "Hz", "n_samples": "samples"}
 
@@ -280,9 +281,9 @@ class HeadProfile:
         for k in ("rise_s", "dwell_s", "fall_s", "switch_delay_s"):
             if getattr(drive, k) > MAX_DRIVE_TIME_S:
                 raise ProfileError(
-                    f"{source}: drive.{k}: {getattr(drive, k):g} s is longer than any piezo drive's segment (at most "
-                    f"{MAX_DRIVE_TIME_S * 1e3:g} ms; they last about 0.5-20 us): the profile's times are in seconds, "
-                    "1 us = 1.0e-6")
+                    f"{source}: drive.{k}: {getattr(drive, k):g} s is longer than {MAX_DRIVE_TIME_S * 1e6:g} us: a "
+                    "drive's rise, dwell and fall and the switch delay last microseconds (about 0.5-20 us); the "
+                    "profile's times are in seconds, 1 us = 1.0e-6")
         se = _section(doc, "sensor", SENSOR_UNITS, source)
         sensor = {}
         for k, v in se.items():

@@ -73,8 +73,10 @@ def test_nominal_profile_loads_and_says_what_is_missing():
     (lambda d: d["channel"].update(f_act=-1.0), r"channel\.f_act: expected a positive number in Hz"),
     (lambda d: d["channel"].update(zeta_act=1.2), r"channel\.zeta_act: the actuator's damping ratio must be below 1"),
     # microseconds written as seconds (a blind walkthrough's profile, accepted and fitted before)
-    (lambda d: d["drive"].update(rise_s=1.0), r"drive\.rise_s: 1 s is longer than any piezo drive's segment \(at most "
-     r"1 ms; .*in seconds, 1 us = 1\.0e-6"),
+    (lambda d: d["drive"].update(rise_s=1.0), r"drive\.rise_s: 1 s is longer than 100 us: a drive's rise, dwell "
+     r"and fall and the switch delay last microseconds \(about 0\.5-20 us\); the profile's times are in seconds, "
+     r"1 us = 1\.0e-6"),
+    (lambda d: d["drive"].update(dwell_s=0.9e-3), r"drive\.dwell_s: 0\.0009 s is longer than 100 us"),  # us as ms
     (lambda d: d["drive"].update(switch_delay_s=2e-3), r"drive\.switch_delay_s: 0\.002 s is longer"),
 ])
 def test_bad_profiles_name_the_key_and_the_unit(edit, match):
@@ -86,8 +88,8 @@ def test_bad_profiles_name_the_key_and_the_unit(edit, match):
 
 def test_the_longest_drive_segment_is_accepted():
     doc = HeadProfile.default().to_dict()
-    doc["drive"].update(dwell_s=1e-3)  # at the bound
-    assert HeadProfile.from_dict(doc).drive.dwell_s == 1e-3
+    doc["drive"].update(dwell_s=1e-4)  # at the bound
+    assert HeadProfile.from_dict(doc).drive.dwell_s == 1e-4
 
 
 def test_physics_checks_of_a_complete_profile():
