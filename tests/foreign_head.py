@@ -49,8 +49,8 @@ small_air_bubble
     a gas bubble of radius ``r_b`` (4.6-6.0 um) in the chamber adds the compliance
     ``V_b / (kappa p_g - 2 sigma / (3 r_b))``, ``p_g = p0 + 2 sigma / r_b``.
 intermediate / mature air bubble
-    a bubble in the bore at the fraction ``phi`` (0.72-0.82 / 0.82-0.91) of ``L_n`` from
-    the chamber is a pressure release at the channel's resonance: only the inner ink
+    a bubble in the bore at the fraction ``phi`` (0.72-0.82 / 0.82-0.91) of ``L_n`` in from
+    the outlet is a pressure release at the channel's resonance: only the inner ink
     column ``(1 - phi) L_n`` still moves with the chamber (``I_n``, ``R_n`` of that column).
 empty_channel_1 / empty_channel_2
     no ink: the actuator's own structural resonance (``f_act``, damping ``zeta_act``, the

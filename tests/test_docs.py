@@ -45,22 +45,39 @@ def test_readme_is_a_newcomers_page():
 
 
 def test_class_page_gives_every_class_its_simulated_range():
-    """docs/classes.md's table is MECHANISMS': a user labelling by it labels what the model learns."""
+    """docs/classes.md's table is MECHANISMS' (and reports/sim.md's frequencies): a user labelling by it
+    labels what the model learns."""
     from inkdiag_core.faults import MECHANISMS, OK_SIGNAL_DRIVE_FACTOR, PARTICLE_LENGTH_FRACTION
 
     rows = {}
     for line in (ROOT / "docs" / "classes.md").read_text().splitlines():
-        m = re.match(r"\| `(\w+)` \| (.*?) \| (.*?) \|", line)
-        if m:
-            rows[m.group(1)] = (m.group(2), m.group(3))
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == 5 and re.fullmatch(r"`\w+`", cells[0]):
+            rows[cells[0].strip("`")] = cells[1:]
     assert set(rows) == {c.value for c in MECHANISMS}
+    sim = {}  # the default head's mean dominant frequency per class ("ours" column), kHz
+    for line in (ROOT / "reports" / "sim.md").read_text().splitlines():
+        m = re.match(r"\| (\w+) \| [\d.]+ \| ([\d.]+) \+-", line)
+        if m:
+            sim[m.group(1)] = float(m.group(2))
+    assert set(sim) == set(rows)
+    symbols = {"empty": "m", "nozzle_bubble": "phi", "chamber_bubble": "r_b", "particle": "beta", "dried": "k"}
     for cls, mech in MECHANISMS.items():
-        state, severity = rows[cls.value]
+        state, severity, scales, freq = rows[cls.value]
         if mech.severity:
+            m = re.fullmatch(r"(\w+) ([\d.]+)-([\d.]+)( um)?", severity)
+            assert m, (cls, severity)
+            assert m.group(1) == symbols[mech.kind] and f" {m.group(1)} " in f" {mech.severity} ", cls
             scale = 1e6 if mech.kind == "chamber_bubble" else 1.0  # r_b in um on the page
-            lo, hi = (float(x) for x in re.search(r"([\d.]+)-([\d.]+)", severity).groups())
-            assert (lo, hi) == pytest.approx((mech.low * scale, mech.high * scale)), cls
+            assert bool(m.group(4)) == (mech.kind == "chamber_bubble"), cls
+            assert (float(m.group(2)), float(m.group(3))) == pytest.approx((mech.low * scale, mech.high * scale)), cls
         else:
             assert severity == "-", cls
-    assert f"x {OK_SIGNAL_DRIVE_FACTOR:g}" in rows["ok_signal"][0]
-    assert f"{PARTICLE_LENGTH_FRACTION:g} L_n" in rows["partially_blocked"][0]
+        # the one mechanism whose severity is absolute, not relative to the head
+        assert scales.startswith("**no") == (mech.kind == "chamber_bubble"), cls
+        f = re.fullmatch(r"([\d.]+) (kHz|MHz)", freq)
+        assert f, (cls, freq)
+        khz = float(f.group(1)) * (1e3 if f.group(2) == "MHz" else 1.0)
+        assert khz == pytest.approx(sim[cls.value], abs=5.0 if f.group(2) == "MHz" else 0.5), cls
+    assert re.search(r"drive amplitude x ([\d.]+)", rows["ok_signal"][0]).group(1) == f"{OK_SIGNAL_DRIVE_FACTOR:g}"
+    assert re.search(r"over ([\d.]+) L_n", rows["partially_blocked"][0]).group(1) == f"{PARTICLE_LENGTH_FRACTION:g}"

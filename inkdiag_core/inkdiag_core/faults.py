@@ -34,7 +34,7 @@ empty_channel_1, empty_channel_2
     ``f = f_act / sqrt(1 + m)``) and viscous loss.
 mature_air_bubble, intermediate_air_bubble
     A bubble sucked in through the nozzle sits in the nozzle bore, a fraction
-    ``phi`` of the bore's length away from the chamber. Its gas is far softer
+    ``phi`` of the bore's length in from the outlet (``(1 - phi) L_n`` from the chamber). Its gas is far softer
     than the ink (``B_b = V_b / (kappa p_g)`` is tens of times ``B_t``), so at
     the channel's resonance it is a pressure release: only the ink column
     between the chamber and the bubble, length ``(1 - phi) L_n``, still moves
@@ -274,10 +274,10 @@ MECHANISMS = {
         "empty", "ink-film mass ratio m (-)", 1.1, 1.6, 1.0,
         "partially empty: residual ink film mass-loads the actuator"),
     FaultClass.MATURE_AIR_BUBBLE: Mechanism(
-        "nozzle_bubble", "bubble position phi (fraction of L_n)", 0.82, 0.91, 1.0,
+        "nozzle_bubble", "bubble position phi (fraction of L_n in from the outlet)", 0.82, 0.91, 1.0,
         "bubble in the nozzle bore decouples the outer ink column"),
     FaultClass.INTERMEDIATE_AIR_BUBBLE: Mechanism(
-        "nozzle_bubble", "bubble position phi (fraction of L_n)", 0.72, 0.82, 1.0,
+        "nozzle_bubble", "bubble position phi (fraction of L_n in from the outlet)", 0.72, 0.82, 1.0,
         "smaller/less advanced nozzle bubble"),
     FaultClass.SMALL_AIR_BUBBLE: Mechanism(
         "chamber_bubble", "bubble radius r_b (m)", 4.6e-6, 6.0e-6, 1.0,
