@@ -227,7 +227,7 @@ def test_a_recording_in_millivolts_is_labelled_invalid_with_a_hint_about_units(w
 
 
 def test_another_heads_recording_of_the_same_sampling_is_labelled_with_a_warning(work, trained, tmp_path, capsys):
-    # a head with twice the actuator compliance (181 kHz against 213): its healthy traces look like one fault
+    # a head with 1.6 times the actuator compliance (181 kHz against 213): its healthy traces look like one fault
     d, head, sim = work
     other = head.replace(name="other", channel={"B_act": head.channel["B_act"] * 1.6})
     x = other.simulate({FaultClass.HEALTHY_NOZZLE: 30}, seed=5).traces
@@ -243,6 +243,17 @@ def test_another_heads_recording_of_the_same_sampling_is_labelled_with_a_warning
     save_recording(tmp_path / "few.npz", Recording.from_arrays(x[:19], head.sample_rate_hz))
     assert main(["label", str(tmp_path / "few.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "f.csv")]) == 0
     assert "a working head" not in capsys.readouterr().err
+    # the head's own healthy traces: no warning
+    own = head.simulate({FaultClass.HEALTHY_NOZZLE: 30}, seed=5).traces
+    save_recording(tmp_path / "own.npz", Recording.from_arrays(own, head.sample_rate_hz))
+    assert main(["label", str(tmp_path / "own.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "h.csv")]) == 0
+    assert "a working head" not in capsys.readouterr().err
+    # invalid rows are not a class: 20 of them among 30 rows are said as invalid, not warned about
+    own[:20, 3] = np.nan
+    save_recording(tmp_path / "bad.npz", Recording.from_arrays(own, head.sample_rate_hz))
+    assert main(["label", str(tmp_path / "bad.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "b.csv")]) == 0
+    err = capsys.readouterr().err
+    assert "20 invalid" in err and "a working head" not in err
 
 
 def test_label_csv_says_unknown_for_a_trace_unlike_every_class(work, tmp_path, capsys):

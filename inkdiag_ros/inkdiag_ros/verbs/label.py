@@ -226,4 +226,4 @@ def _one_fault_class_dominates(per_class, head) -> str:
     return (f"{k} of {n} labelled rows ({100 * k / n:.0f} %) are {cls}: a working head has few faulty nozzles. "
             f"If this recording is of a working head, is the model for this head? It was trained for head "
             f"{head.name!r}, healthy mode {f_hz / 1e3:.1f} kHz; another head's model with the same sampling labels "
-            "its healthy traces as one fault")
+            "its healthy traces as one fault (a recording of faulty nozzles made on purpose can ignore this)")
