@@ -18,7 +18,9 @@ traces are calibrated by :func:`inkdiag_core.calibration.calibrate` in four cond
 - **joint fit, as recorded**: an experiment, not inkdiag's method: every trace fitted at
   once with the shared ``(B_act, I_r, R_r)`` and a compliance and a viscosity scale of its
   own (each trace's frequency and damping), started from ``calibrate``'s result, with the
-  same prior (``scipy.optimize.least_squares`` with a sparse Jacobian).
+  same prior (``scipy.optimize.least_squares`` with a sparse Jacobian);
+- **as recorded + 50 blocked**: the same healthy traces with 50 traces of the head's fully
+  blocked nozzles (``inkdiag calibrate --blocked``; their own draw per seed).
 
 Prints and writes ``reports/restrictor.md``: the fitted ``I_r / I_n`` (median and range
 over seeds) against the true one, and the fully blocked mode (the restrictor branch with the
@@ -52,7 +54,9 @@ from inkdiag_core import calibration as cal  # noqa: E402
 from inkdiag_core.calibration import calibrate  # noqa: E402
 from inkdiag_core.simulation.modal import modal_solution  # noqa: E402
 
-CONDITIONS = ("as recorded", "noise only", "spreads only", "joint fit, as recorded")
+CONDITIONS = ("as recorded", "noise only", "spreads only", "joint fit, as recorded", "as recorded + 50 blocked")
+N_BLOCKED = 50
+"""Fully blocked traces given to ``calibrate(blocked=...)`` in the last condition (``inkdiag calibrate --blocked``)."""
 
 
 def _blocked_mode_hz(B_act, B_liq, I_r, R_r) -> float:
@@ -136,6 +140,9 @@ def run_head(name: str, seeds, n: int) -> dict:
                 thetas[CONDITIONS[3]], converged = joint_fit(known, sim["traces"].astype(np.float64), thetas[cond],
                                                              float(res.profile.sensor["noise_std_v"]))
                 out["joint_converged"].append(converged)
+                blocked = fh.simulate_foreign(head, {"fully_blocked": N_BLOCKED}, seed=seed + 1000)["traces"]
+                thetas[CONDITIONS[4]] = _theta(calibrate(nominal, sim["traces"], sim["sample_rate_hz"], seed=seed,
+                                                         blocked=blocked).profile, known)
             for c, th in thetas.items():
                 B_act, I_r, R_r = np.exp(th)
                 out[c]["ratio"].append(I_r / known.I_n)
@@ -170,11 +177,16 @@ def main(argv=None) -> int:
     def err(r, c):  # median relative error of the split, %
         return 100.0 * (np.median(r[c]["ratio"]) / r["true_ratio"] - 1.0)
 
+    def rms(r, c):  # root-mean-square relative error of the split over the seeds, %
+        return 100.0 * float(np.sqrt(np.mean((np.asarray(r[c]["ratio"]) / r["true_ratio"] - 1.0) ** 2)))
+
     reading = "\n".join(
         f"- {h}: as recorded {err(r, 'as recorded'):+.0f} %, noise only (spreads off) {err(r, 'noise only'):+.0f} %, "
         f"spreads only (noise off, ADC kept) {err(r, 'spreads only'):+.0f} % (median errors of `I_r / I_n`); the fully "
         f"blocked mode as recorded {np.median(r['as recorded']['blocked_err']):+.1f} %, the shift the dried and "
         "blocked classes carry on the calibrated profile." for h, r in results.items())
+    blocked = "; ".join(f"{h} {err(r, CONDITIONS[4]):+.1f} % (RMS {rms(r, CONDITIONS[4]):.1f} %, healthy traces alone "
+                        f"{err(r, CONDITIONS[0]):+.1f} %, RMS {rms(r, CONDITIONS[0]):.1f} %)" for h, r in results.items())
     joint_shift = ", ".join(
         f"{h} {np.median(r[CONDITIONS[3]]['ratio']) - np.median(r['as recorded']['ratio']):+.3f}"
         for h, r in results.items())
@@ -197,9 +209,12 @@ The fully blocked mode is the restrictor branch ringing with the chamber, from t
 - The joint fit (every trace with its own frequency and damping instead of the mean of the
   typical traces; the optimiser converged in {joint_ok}) moves the median by {joint_shift}: a
   better fit of the same traces does not pin the split. It is not used by `inkdiag calibrate`.
+- With {N_BLOCKED} traces of fully blocked nozzles as well (`inkdiag calibrate --blocked`), the median error of
+  `I_r / I_n` over the seeds: {blocked}.
 - *spreads only* switches the noise off, not the ADC's quantisation.
 - What pins the split is the restrictor itself: a nominal profile with `channel.r_r` and
-  `channel.L_r` (a datasheet's), which `inkdiag calibrate` keeps (`docs/calibration.md`).
+  `channel.L_r` (a datasheet's), which `inkdiag calibrate` keeps (`docs/calibration.md`), or
+  traces of fully blocked nozzles, which ring with it alone.
 """
     path = out_path("restrictor.md")
     path.write_text(text)
