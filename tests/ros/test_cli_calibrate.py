@@ -55,11 +55,17 @@ def test_calibrate_end_to_end(files, tmp_path):
     assert "dominant frequency" in md and "damping ratio" in md and "determined by" in md
     png = tmp_path / "head.fit.png"
     assert report["figure"] == "head.fit.png" and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert "restrictor" not in r.stdout
+    assert "is the nominal profile's" not in r.stdout
+    # healthy traces alone leave the restrictor's split to the prior: said, with what pins it
+    by = p.calibration["determined_by"]["I_r"]
+    ratio = report["identifiability"]["parameters"]["I_r"]["ratio_to_I_n"]
+    assert f"the restrictor's share of the channel's inertance (I_r = {ratio:.2f} I_n) is set by the {by}" in r.stdout
+    assert by != "data" and "50 traces of fully blocked nozzles (--blocked BLOCKED.npz) pin it" in r.stdout
     # the profile it wrote as the nominal of another run: its restrictor is kept, and the run says so
     again = inkdiag("calibrate", files / "healthy.npz", "--nominal", out, "--out", tmp_path / "again.yaml")
     assert again.returncode == 0, again.stderr
     assert "the restrictor (channel.r_r, channel.L_r) is the nominal profile's, not fitted" in again.stdout
+    assert "pin it" not in again.stdout
     assert HeadProfile.load(tmp_path / "again.yaml").channel["L_r"] == p.channel["L_r"]
 
 
@@ -159,7 +165,8 @@ def test_blocked_traces_through_the_cli(files, tmp_path, capsys):
     save_recording(tmp_path / "b.npz", Recording.from_arrays(sim.traces, TRUE.sample_rate_hz, label=sim.labels))
     args = ["calibrate", str(files / "healthy.npz"), "--nominal", str(files / "nominal.yaml")]
     assert cli.main([*args, "--blocked", str(tmp_path / "b.npz"), "--out", str(tmp_path / "head.yaml")]) == 0
-    assert "blocked mode recorded/fitted" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "blocked mode recorded/fitted" in out and "pin it" not in out  # no advice to do what was done
     p = HeadProfile.load(tmp_path / "head.yaml")
     assert p.calibration["n_blocked_traces"] == 30 and p.calibration["determined_by"]["I_r"] == "data"
     true_ir, got_ir = (q.channel["L_r"] / q.channel["r_r"] ** 2 for q in (TRUE, p))
