@@ -69,6 +69,7 @@ def test_train_then_label_a_foreign_head_end_to_end(work, trained):
     os.umask(mask)
     assert model.stat().st_mode & 0o777 == 0o666 & ~mask
     assert "validation" in out.stdout and "FI accuracy" in out.stdout
+    assert "the validation rows are simulated on this profile" in out.stdout  # simulated rows only: said
     m = json.loads((d / "head.joblib.manifest.json").read_text())
     assert m["config"]["profile_sha256"] == head.sha256 and m["config"]["n_per_class"] == 40
     assert 0 < m["scores"]["validation_fi_accuracy"] <= 1

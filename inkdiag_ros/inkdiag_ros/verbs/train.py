@@ -179,7 +179,10 @@ def run(args) -> int:
     print(f"validation ({s['n_validation']} rows): FI accuracy {100 * s['validation_fi_accuracy']:.1f} %, "
           f"at the FD threshold {det.fd_threshold_:.3f}: FI {100 * s['validation_fi_accuracy_at_threshold']:.1f} %, "
           f"faults missed {100 * s['validation_fd_fnr']:.2f} %, false alarms {100 * s['validation_fd_fpr']:.2f} %")
-    if data is not None:
+    if data is None:
+        print("note: the validation rows are simulated on this profile, so these scores leave out how far the "
+              "profile is from the head; labelling a recording of nozzles of known classes measures that")
+    else:
         per = ", ".join(f"{c} {k}" for c, k in sorted(info["real_rows_per_class"].items()))
         print(f"recorded rows: {info['n_real_rows']} trained on ({per}); {info['n_real_rows_screened_out']} screened "
               f"out (non-finite, out of range, flat, clipped), {info['n_real_rows_without_class']} without a class")
