@@ -34,11 +34,11 @@ empty_channel_1, empty_channel_2
     ``f = f_act / sqrt(1 + m)``) and viscous loss.
 mature_air_bubble, intermediate_air_bubble
     A bubble sucked in through the nozzle sits in the nozzle bore, a fraction
-    ``phi`` of the bore's length in from the outlet (``(1 - phi) L_n`` from the chamber). Its gas is far softer
-    than the ink (``B_b = V_b / (kappa p_g)`` is tens of times ``B_t``), so at
-    the channel's resonance it is a pressure release: only the ink column
-    between the chamber and the bubble, length ``(1 - phi) L_n``, still moves
-    with the chamber. The nozzle branch's inertance and resistance shrink to
+    ``phi`` of the bore's length in from the outlet (``(1 - phi) L_n`` from the
+    chamber). Its gas is far softer than the ink (``B_b = V_b / (kappa p_g)``
+    is tens of times ``B_t``), so at the channel's resonance it is a pressure
+    release: only the ink column between the chamber and the bubble, length
+    ``(1 - phi) L_n``, still moves with the chamber. The nozzle branch's inertance and resistance shrink to
     that column (``I_n -> rho ((1 - phi) L_n + pi r_n / 4) / (pi r_n^2)``,
     ``R_n -> (1 - phi) R_n``) and the resonance rises (330-360 kHz). The
     ink beyond the bubble and the bubble's spring form a separate, slow

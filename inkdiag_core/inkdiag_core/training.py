@@ -6,7 +6,8 @@ severity ranges as for the default head (air bubbles, blockage, drying, an empty
 channel, ...; :data:`inkdiag_core.faults.MECHANISMS`) on the head's own geometry,
 ink, drive and sampling. The ranges are relative to the head's nozzle and ink (a
 viscosity ratio, fractions of the nozzle bore, an ink-film mass ratio) but for the
-chamber bubble's absolute radius. Optionally the user's own labelled recordings join them.
+chamber bubble's absolute radius. Optionally the user's own labelled recordings join
+them.
 
 How real and simulated rows are combined
 ----------------------------------------
