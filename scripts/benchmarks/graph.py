@@ -11,8 +11,9 @@ faulty); ``--case mixed`` is the earlier benchmark's data (10 % faulty, ``simula
 nozzles each frame, no baselines). Then replays them from this process into a second process:
 
 1. ceiling: a plain subscriber in the second process that decodes each frame
-   (zero-copy header + view) and answers with a tiny ack carrying the frame id
-   (with the allocator set as in every inkdiag node process, ``inkdiag_ros.allocator``);
+   (zero-copy header + view) and answers with a tiny ack carrying the frame id, spun
+   as the fdi node is (``spin_node(..., events=True)``: the allocator setting of every
+   inkdiag node process, ``inkdiag_ros.allocator``, and rclpy's ``EventsExecutor``);
 2. per case, fdi: the real fdi node (``python -m inkdiag_ros.fdi_node``) with the model
    and the case's baselines, whose ``labels`` messages are the answers, labelling on its executor thread;
 3. per case, the same node with ``labelling_process:=true`` (the classifier in a child
@@ -57,34 +58,32 @@ CEILING = "ceiling: plain subscriber"
 
 
 def sink_main(namespace: str = "/") -> int:
-    """Second process of the ceiling run: decode each frame, ack its id."""
-    import rclpy
-    from rclpy.executors import ExternalShutdownException
+    """Second process of the ceiling run: decode each frame, ack its id; spun as the fdi node is spun.
+
+    ``inkdiag_ros._spin.spin_node(..., events=True)``, fdi's own entry point: the allocator setting,
+    one BLAS thread and rclpy's C++ ``EventsExecutor``. (Until 2026-11-26 the sink spun the Python
+    ``SingleThreadedExecutor`` while fdi spun the ``EventsExecutor``: the ceiling read 0.5-0.6 of
+    what the transport takes, and fdi / ceiling about twice the fair ratio; ``reports/bench.md``.)
+    """
     from rclpy.node import Node
     from std_msgs.msg import String
 
-    from inkdiag_ros.allocator import keep_freed_memory
+    from inkdiag_ros._spin import spin_node
     from msg_defs import RELIABLE_QOS, TRACE_MSG_TYPE, TRACES_QOS, decode_traces, topics
 
-    keep_freed_memory()  # as every inkdiag node process: the same footing as the fdi node
-    rclpy.init()
-    node = Node("bench_sink", namespace=namespace)
-    pub = node.create_publisher(String, ACK, RELIABLE_QOS)
+    class Sink(Node):
+        def __init__(self):
+            super().__init__("bench_sink", namespace=namespace)
+            pub = self.create_publisher(String, ACK, RELIABLE_QOS)
 
-    def on_frame(msg):
-        f = decode_traces(msg)
-        float(f.traces[0, 0])  # touch the data
-        pub.publish(String(data=f"{f.frame_id}"))
+            def on_frame(msg):
+                f = decode_traces(msg)
+                float(f.traces[0, 0])  # touch the data
+                pub.publish(String(data=f"{f.frame_id}"))
 
-    node.create_subscription(TRACE_MSG_TYPE, topics.TRACES, on_frame, TRACES_QOS)
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+            self.create_subscription(TRACE_MSG_TYPE, topics.TRACES, on_frame, TRACES_QOS)
+
+    return spin_node(Sink, ["bench_sink"], events=True)
 
 
 def make_frames(n_nozzles, n_frames, seed):
@@ -263,7 +262,7 @@ def main() -> int:
     import tempfile
 
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.experimental import EventsExecutor
     from rclpy.node import Node
     from std_msgs.msg import String
 
@@ -318,7 +317,7 @@ def main() -> int:
     # a namespace of its own: another process on this domain (a test elsewhere) is not taken for ours
     bench_ns = f"/bench_graph_{os.getpid()}"
     node = Node("bench_replayer", namespace=bench_ns)
-    ex = SingleThreadedExecutor()
+    ex = EventsExecutor(context=node.context)  # the C++ executor: the publisher keeps up with the ceiling
     ex.add_node(node)
     pub = node.create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
     answered, diag = [], {}

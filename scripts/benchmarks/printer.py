@@ -58,10 +58,16 @@ def _ns(i: int) -> str:
     return f"/head_{FIRST_HEAD + i:02d}"
 
 
-def sink_main(heads) -> int:
-    """Plain subscribers of ``heads`` in this process: decode each frame, touch it, ack its id."""
+def sink_main(heads, executor: str = "events") -> int:
+    """Plain subscribers of ``heads`` in this process: decode each frame, touch it, ack its id.
+
+    Spun on the executor ``inkdiag printer`` is given (``--executor``; until 2026-11-26 always the
+    Python ``SingleThreadedExecutor``, a ceiling below what the transport takes with the default
+    ``EventsExecutor``).
+    """
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.experimental import EventsExecutor
     from rclpy.node import Node
     from std_msgs.msg import String
 
@@ -70,7 +76,6 @@ def sink_main(heads) -> int:
 
     keep_freed_memory()
     rclpy.init()
-    ex = SingleThreadedExecutor()
     nodes = []
     for i in heads:
         node = Node("bench_sink", namespace=_ns(i))
@@ -82,10 +87,14 @@ def sink_main(heads) -> int:
             pub.publish(String(data=f"{f.frame_id}"))
 
         node.create_subscription(TRACE_MSG_TYPE, topics.TRACES, on_frame, TRACES_QOS)
-        ex.add_node(node)
         nodes.append(node)
+    ctx = nodes[0].context  # as inkdiag printer builds its executor
+    ex = EventsExecutor(context=ctx) if executor == "events" else SingleThreadedExecutor(context=ctx)
+    for node in nodes:
+        ex.add_node(node)
     try:
-        ex.spin()
+        while rclpy.ok():  # as inkdiag printer spins its executor
+            ex.spin_once(timeout_sec=0.5)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
@@ -100,7 +109,7 @@ def pub_main(head: int, data: str, seconds: float, window: int, chunk: int, firs
              scan_hz: float = 0.0) -> int:
     """One head's independent publisher: match, warm up, say ``ready``, wait for ``go`` on stdin, replay."""
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.experimental import EventsExecutor
     from rclpy.node import Node
     from std_msgs.msg import String
 
@@ -113,7 +122,7 @@ def pub_main(head: int, data: str, seconds: float, window: int, chunk: int, firs
     signal.signal(signal.SIGINT, signal.SIG_DFL)
     rclpy.init()
     node = Node("bench_publisher", namespace=_ns(head))
-    ex = SingleThreadedExecutor()
+    ex = EventsExecutor(context=node.context)  # the C++ executor, as graph's replayer: it keeps up with the ceiling
     ex.add_node(node)
     pub = node.create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
     answered = []
@@ -245,7 +254,7 @@ def main() -> int:
     if ns.window is None:
         ns.window = -(-ns.nozzles // ns.chunk)
     if ns.role == "sink":
-        return sink_main([int(h) for h in ns.heads.split(",")])
+        return sink_main([int(h) for h in ns.heads.split(",")], ns.executor)
     if ns.role == "pub":
         return pub_main(ns.head, ns.data, ns.seconds, ns.window, ns.chunk, ns.first_id, ns.n_heads, ns.scan_hz)
 
@@ -276,7 +285,8 @@ def main() -> int:
     for n in n_list:
         p_sink = min(n, 2)
         phases = [(f"ceiling N={n} ({p_sink} procs)", [
-            [sys.executable, __file__, "--role", "sink", "--heads", ",".join(str(i) for i in range(k, n, p_sink))]
+            [sys.executable, __file__, "--role", "sink", "--heads", ",".join(str(i) for i in range(k, n, p_sink)),
+             "--executor", ns.executor]
             for k in range(p_sink)])]
         for p in p_list:
             if p > n:
