@@ -81,3 +81,21 @@ def test_class_page_gives_every_class_its_simulated_range():
         assert khz == pytest.approx(sim[cls.value], abs=5.0 if f.group(2) == "MHz" else 0.5), cls
     assert re.search(r"drive amplitude x ([\d.]+)", rows["ok_signal"][0]).group(1) == f"{OK_SIGNAL_DRIVE_FACTOR:g}"
     assert re.search(r"over ([\d.]+) L_n", rows["partially_blocked"][0]).group(1) == f"{PARTICLE_LENGTH_FRACTION:g}"
+
+
+def test_restrictor_figures_quoted_in_the_docs_are_the_reports():
+    """docs/cli.md and docs/calibration.md quote reports/restrictor.md's medians with and without blocked traces."""
+    text = (ROOT / "reports" / "restrictor.md").read_text()
+    found = re.findall(r"\w+ ([+-]\d+\.\d) % \(RMS (\d+\.\d) %, healthy traces alone ([+-]\d+\.\d) %, RMS (\d+\.\d) %\)",
+                       text)
+    assert len(found) == 5, found
+    blocked, blocked_rms, alone, alone_rms = ([float(row[i]) for row in found] for i in range(4))
+
+    def span(v, signed=True):
+        return f"{min(v):+.1f} to {max(v):+.1f} %" if signed else f"{min(v):.1f}-{max(v):.1f} %"
+
+    cli = " ".join((ROOT / "docs" / "cli.md").read_text().split())
+    assert f"healthy traces alone {span(alone)}, with 50 blocked traces {span(blocked)}" in cli
+    cal = " ".join((ROOT / "docs" / "calibration.md").read_text().split())
+    assert (f"median error {span(blocked)} on the five heads, RMS {span(blocked_rms, False)}, against healthy traces "
+            f"alone {span(alone)}, RMS {span(alone_rms, False)}") in cal

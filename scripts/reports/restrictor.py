@@ -10,7 +10,7 @@ blocked classes ring (a fully blocked nozzle rings with the restrictor alone), s
 is what ``reports/heads.md`` shows as the calibrated profiles' dried-class losses.
 
 Per head of ``tests/foreign_head.py`` (an independent simulator) and seed, 300 healthy
-traces are calibrated by :func:`inkdiag_core.calibration.calibrate` in four conditions:
+traces are calibrated by :func:`inkdiag_core.calibration.calibrate` in five conditions:
 
 - **as recorded**: the head's spreads and noise;
 - **noise only**: every per-trace spread off (``FOREIGN_SPREADS`` all 0), noise and ADC kept;
@@ -20,7 +20,8 @@ traces are calibrated by :func:`inkdiag_core.calibration.calibrate` in four cond
   own (each trace's frequency and damping), started from ``calibrate``'s result, with the
   same prior (``scipy.optimize.least_squares`` with a sparse Jacobian);
 - **as recorded + 50 blocked**: the same healthy traces with 50 traces of the head's fully
-  blocked nozzles (``inkdiag calibrate --blocked``; their own draw per seed).
+  blocked nozzles (``inkdiag calibrate --blocked``; a draw of their own per head and seed, so
+  that the heads' errors are independent).
 
 Prints and writes ``reports/restrictor.md``: the fitted ``I_r / I_n`` (median and range
 over seeds) against the true one, and the fully blocked mode (the restrictor branch with the
@@ -140,7 +141,9 @@ def run_head(name: str, seeds, n: int) -> dict:
                 thetas[CONDITIONS[3]], converged = joint_fit(known, sim["traces"].astype(np.float64), thetas[cond],
                                                              float(res.profile.sensor["noise_std_v"]))
                 out["joint_converged"].append(converged)
-                blocked = fh.simulate_foreign(head, {"fully_blocked": N_BLOCKED}, seed=seed + 1000)["traces"]
+                # a draw per head and seed: the same seed gives every head the same random numbers
+                draw = 1000 + 100 * sorted(fh.FOREIGN_HEADS).index(name) + seed
+                blocked = fh.simulate_foreign(head, {"fully_blocked": N_BLOCKED}, seed=draw)["traces"]
                 thetas[CONDITIONS[4]] = _theta(calibrate(nominal, sim["traces"], sim["sample_rate_hz"], seed=seed,
                                                          blocked=blocked).profile, known)
             for c, th in thetas.items():

@@ -248,8 +248,8 @@ def run(args) -> int:
             print(f"inkdiag calibrate: note: the restrictor's share of the channel's inertance (I_r = "
                   f"{ir['ratio_to_I_n']:.2f} I_n) is set by the {ir['determined_by']}: healthy traces pin it weakly, "
                   "and it decides where partially blocked and dried nozzles ring. 50 traces of fully blocked nozzles "
-                  "(--blocked BLOCKED.npz) pin it: on five simulated heads its median error over 12 seeds went from "
-                  "-11.4 to +4.2 % to -0.7 to -0.1 % (reports/restrictor.md)", file=sys.stdout)
+                  "(--blocked BLOCKED.npz) pin it from the data (reports/restrictor.md measures both ways)",
+                  file=sys.stdout)
     act = report["actuator"]
     if act["warning"]:
         print(f"inkdiag calibrate: warning: {act['warning']}", file=sys.stderr)
