@@ -62,8 +62,8 @@ def sink_main(namespace: str = "/") -> int:
 
     ``inkdiag_ros._spin.spin_node(..., events=True)``, fdi's own entry point: the allocator setting,
     one BLAS thread and rclpy's C++ ``EventsExecutor``. (Until 2026-11-26 the sink spun the Python
-    ``SingleThreadedExecutor`` while fdi spun the ``EventsExecutor``: the ceiling read 0.5-0.6 of
-    what the transport takes, and fdi / ceiling about twice the fair ratio; ``reports/bench.md``.)
+    ``SingleThreadedExecutor`` while fdi spun the ``EventsExecutor``: the ceiling read below what
+    the transport takes, and fdi / ceiling overstated the fair ratio roughly 1.5-2x; ``reports/bench.md``.)
     """
     from rclpy.node import Node
     from std_msgs.msg import String

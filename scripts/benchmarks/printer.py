@@ -9,7 +9,9 @@ nozzle's healthy baseline from 8 healthy frames of the same nozzles (``BaselineR
 commissioning does; the fdi nodes get them through ``--baselines``). Then, for each N of ``--heads``:
 
 1. ceiling: plain subscribers (decode the frame, touch it, answer a tiny ack), the N heads' in
-   ``min(N, 2)`` processes round-robin, with the allocator set as in every inkdiag node;
+   ``min(N, 2)`` processes round-robin, spun as ``inkdiag printer``'s workers spin (the executor
+   ``--executor`` names, the allocator set as in every inkdiag node); each publisher spins the
+   ``EventsExecutor``;
 2. ``inkdiag printer --heads N --processes P`` for each P of ``--processes`` (P <= N).
 
 Each head has an independent publisher process (``graph.replay``'s closed loop on ``/head_ii/traces``:
@@ -61,9 +63,11 @@ def _ns(i: int) -> str:
 def sink_main(heads, executor: str = "events") -> int:
     """Plain subscribers of ``heads`` in this process: decode each frame, touch it, ack its id.
 
-    Spun on the executor ``inkdiag printer`` is given (``--executor``; until 2026-11-26 always the
-    Python ``SingleThreadedExecutor``, a ceiling below what the transport takes with the default
-    ``EventsExecutor``).
+    Spun as ``inkdiag printer`` spins its fdi processes (its worker's loop): the executor
+    ``--executor`` names, the allocator setting with its periodic release, one BLAS thread, the
+    startup objects frozen out of the garbage collector, a signal ending the loop. Until 2026-11-26
+    the sinks always spun the Python ``SingleThreadedExecutor``: with fdi on the default
+    ``EventsExecutor`` the ceiling read below what the transport takes (``reports/printer.md``).
     """
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -71,37 +75,48 @@ def sink_main(heads, executor: str = "events") -> int:
     from rclpy.node import Node
     from std_msgs.msg import String
 
-    from inkdiag_ros.allocator import keep_freed_memory
+    from inkdiag_ros._spin import freeze_startup_objects, stop_on_signals
+    from inkdiag_ros.allocator import PeriodicRelease, keep_freed_memory
+    from inkdiag_ros.blas import limit_blas_threads
     from msg_defs import RELIABLE_QOS, TRACE_MSG_TYPE, TRACES_QOS, decode_traces, topics
 
     keep_freed_memory()
-    rclpy.init()
-    nodes = []
-    for i in heads:
-        node = Node("bench_sink", namespace=_ns(i))
-        pub = node.create_publisher(String, ACK, RELIABLE_QOS)
+    limit_blas_threads()
+    with stop_on_signals() as stop:  # entered before rclpy.init, as inkdiag printer's worker: rclpy's handlers chain
+        rclpy.init()
+        nodes = []
+        for i in heads:
+            node = Node("bench_sink", namespace=_ns(i))
+            pub = node.create_publisher(String, ACK, RELIABLE_QOS)
 
-        def on_frame(msg, pub=pub):
-            f = decode_traces(msg)
-            float(f.traces[0, 0])  # touch the data
-            pub.publish(String(data=f"{f.frame_id}"))
+            def on_frame(msg, pub=pub):
+                f = decode_traces(msg)
+                float(f.traces[0, 0])  # touch the data
+                pub.publish(String(data=f"{f.frame_id}"))
 
-        node.create_subscription(TRACE_MSG_TYPE, topics.TRACES, on_frame, TRACES_QOS)
-        nodes.append(node)
-    ctx = nodes[0].context  # as inkdiag printer builds its executor
-    ex = EventsExecutor(context=ctx) if executor == "events" else SingleThreadedExecutor(context=ctx)
-    for node in nodes:
-        ex.add_node(node)
-    try:
-        while rclpy.ok():  # as inkdiag printer spins its executor
-            ex.spin_once(timeout_sec=0.5)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        ex.shutdown()
-        for n in nodes:
-            n.destroy_node()
-        rclpy.try_shutdown()
+            node.create_subscription(TRACE_MSG_TYPE, topics.TRACES, on_frame, TRACES_QOS)
+            nodes.append(node)
+        ctx = nodes[0].context  # as inkdiag printer builds its executor
+        if executor == "events":  # it takes no guard condition: rclpy's shutdown wakes it
+            ex = EventsExecutor(context=ctx)
+        else:
+            stop.attach(nodes[0])
+            ex = SingleThreadedExecutor(context=ctx)
+        for node in nodes:
+            ex.add_node(node)
+        freeze_startup_objects()
+        release = PeriodicRelease()
+        try:
+            while not stop.requested and ctx.ok():
+                ex.spin_once(timeout_sec=0.5)
+                release()
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        finally:
+            ex.shutdown()
+            for n in nodes:
+                n.destroy_node()
+            rclpy.try_shutdown()
     return 0
 
 
