@@ -263,15 +263,7 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, eve
                     raise
                 early = 0 if exit_code is None else 1
                 return early
-            if not events:  # the EventsExecutor takes no guard condition; rclpy's shutdown wakes it
-                stop.attach(node)
-            if events:
-                from rclpy.experimental import EventsExecutor
-
-                executor = EventsExecutor(context=node.context)
-            else:
-                executor = SingleThreadedExecutor(context=node.context)
-            executor.add_node(node)
+            executor = make_executor([node], events, stop)
             freeze_startup_objects()
             period = 1.0 if until is None else 0.1
             while not stop.requested and node.context.ok() and not (until is not None and until(node)):
@@ -286,6 +278,26 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, eve
             status = _deadline_status(early, exit_code, node)
             tear_down(executor, [node], deadline_s=teardown_deadline_s, deadline_status=status)
     return 0 if exit_code is None else exit_code(node)
+
+
+def make_executor(nodes, events: bool, stop):
+    """The executor that spins ``nodes`` (all of one context), each node added.
+
+    ``events``: rclpy's C++ ``EventsExecutor``, which takes no guard condition (rclpy's
+    shutdown wakes it); else the Python ``SingleThreadedExecutor``, with ``stop`` (a
+    :func:`stop_on_signals` request) attached to the first node so that a signal wakes it.
+    """
+    ctx = nodes[0].context
+    if events:
+        from rclpy.experimental import EventsExecutor
+
+        executor = EventsExecutor(context=ctx)
+    else:
+        stop.attach(nodes[0])
+        executor = SingleThreadedExecutor(context=ctx)
+    for n in nodes:
+        executor.add_node(n)
+    return executor
 
 
 def _deadline_status(early, exit_code, node) -> int:

@@ -70,12 +70,11 @@ def sink_main(heads, executor: str = "events") -> int:
     ``EventsExecutor`` the ceiling read below what the transport takes (``reports/printer.md``).
     """
     import rclpy
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-    from rclpy.experimental import EventsExecutor
+    from rclpy.executors import ExternalShutdownException
     from rclpy.node import Node
     from std_msgs.msg import String
 
-    from inkdiag_ros._spin import freeze_startup_objects, stop_on_signals
+    from inkdiag_ros._spin import freeze_startup_objects, make_executor, stop_on_signals
     from inkdiag_ros.allocator import PeriodicRelease, keep_freed_memory
     from inkdiag_ros.blas import limit_blas_threads
     from msg_defs import RELIABLE_QOS, TRACE_MSG_TYPE, TRACES_QOS, decode_traces, topics
@@ -96,14 +95,8 @@ def sink_main(heads, executor: str = "events") -> int:
 
             node.create_subscription(TRACE_MSG_TYPE, topics.TRACES, on_frame, TRACES_QOS)
             nodes.append(node)
-        ctx = nodes[0].context  # as inkdiag printer builds its executor
-        if executor == "events":  # it takes no guard condition: rclpy's shutdown wakes it
-            ex = EventsExecutor(context=ctx)
-        else:
-            stop.attach(nodes[0])
-            ex = SingleThreadedExecutor(context=ctx)
-        for node in nodes:
-            ex.add_node(node)
+        ctx = nodes[0].context
+        ex = make_executor(nodes, executor == "events", stop)  # as inkdiag printer's workers
         freeze_startup_objects()
         release = PeriodicRelease()
         try:

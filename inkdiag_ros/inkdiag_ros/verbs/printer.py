@@ -225,12 +225,12 @@ def worker_main(argv=None) -> int:
     import rclpy
     import scipy.linalg  # noqa: F401
     from rclpy.exceptions import ParameterException
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-    from rclpy.experimental import EventsExecutor
+    from rclpy.executors import ExternalShutdownException
     from rclpy.parameter import Parameter
     from rclpy.utilities import remove_ros_args
 
-    from .._spin import TEARDOWN_DEADLINE_S, freeze_startup_objects, shutting_down, stop_on_signals, tear_down
+    from .._spin import (TEARDOWN_DEADLINE_S, freeze_startup_objects, make_executor, shutting_down, stop_on_signals,
+                         tear_down)
     from ..allocator import PeriodicRelease, keep_freed_memory
     from ..blas import limit_blas_threads
     from ..graph import default_params_file
@@ -269,13 +269,9 @@ def worker_main(argv=None) -> int:
         try:
             for i in heads:
                 nodes.append(cls(namespace=f"/head_{i:02d}", parameter_overrides=overrides(i)))
-            if ns.executor == "events":  # it takes no guard condition: rclpy's shutdown wakes it
-                executor = EventsExecutor(context=ctx)
-            else:  # a timer callback failing at shutdown raises here (EventsExecutor logs it as FATAL)
-                stop.attach(nodes[0])
-                executor = SingleThreadedExecutor(context=ctx)
-            for n in nodes:
-                executor.add_node(n)
+            # with the SingleThreadedExecutor a timer callback failing at shutdown raises here
+            # (the EventsExecutor logs it as FATAL)
+            executor = make_executor(nodes, ns.executor == "events", stop)
             freeze_startup_objects()
             release = PeriodicRelease()
             while not stop.requested and ctx.ok():
