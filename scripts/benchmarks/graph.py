@@ -410,7 +410,7 @@ def main() -> int:
     c = rates.get(CEILING)
     for case in cases:
         if c:
-            alone, alone_scan = data[case][4], data[case][5]
+            alone_scan = data[case][5]
             print(f"{case + ': labelling alone':<34} / ceiling = {alone_scan / c:.2f}x at one head scan per call: what "
                   "a node could reach with a core to itself and no ROS cost at all (plain branch)")
         for kind in (FDI_THREAD, FDI_PROCESS):
