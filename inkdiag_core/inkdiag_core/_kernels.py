@@ -15,7 +15,8 @@ the same run (issue 17: a compiled kernel goes in only where it wins >= 2x on it
   and infinite value, and a NaN maps beyond +-Inf, so a row holding one comes out
   non-finite, as numpy's NaN-propagating max and min say.
 - :func:`row_sums`: ``sum(x)``, ``sum(x * x)`` and ``sum(x * r)`` per row, accumulated
-  in float64 whatever the input precision. Only these sums may be reassociated
+  in float64 whatever the input precision, each row's ``r`` read in place from the
+  reference table. Only these sums may be reassociated
   (``fastmath={"reassoc", "contract"}``): no flag assumes finite values, so a NaN or Inf
   sample still propagates.
 - :func:`fit_windows`: the KPIs' damped-sinusoid fit on each trace's spectral window
@@ -109,9 +110,10 @@ def _codes(x, hi, lo, flat_tol, max_abs_v, clip_run, code):
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_SUMS_FASTMATH)
-def _sums(x, r, s1, s2, sr):
+def _sums(x, ref, pos, s1, s2, sr):
     n, m = x.shape
     for i in range(n):
+        p = pos[i]
         a = 0.0
         b = 0.0
         c = 0.0
@@ -119,7 +121,7 @@ def _sums(x, r, s1, s2, sr):
             v = np.float64(x[i, k])
             a += v
             b += v * v
-            c += v * np.float64(r[i, k])
+            c += v * np.float64(ref[p, k])
         s1[i] = a
         s2[i] = b
         sr[i] = c
@@ -406,28 +408,43 @@ def screen_codes(x, flat_tol, max_abs_v, clip_run):
     return code
 
 
-def row_sums(x, r):
-    """``sum(x)``, ``sum(x * x)`` and ``sum(x * r)`` of each row, in float64.
+def row_sums(x, ref, pos):
+    """``sum(x)``, ``sum(x * x)`` and ``sum(x * r)`` of each row, in float64, ``r`` its row of ``ref``.
+
+    Each row's reference is read where it lies in ``ref`` (row ``pos[i]``): no gathered copy
+    of the references (a batch that wraps around the head, or any out-of-order ids, would
+    otherwise copy every row's reference first).
 
     Parameters
     ----------
     x : ndarray of float32 or float64, shape (n, m)
-    r : ndarray of x's dtype, shape (n, m)
-        Each row's reference.
+    ref : ndarray of float32 or float64, shape (n_ref, m)
+        The references, one per row of the table.
+    pos : ndarray of int64, shape (n,)
+        Each row's reference row, in ``[0, n_ref)``.
 
     Returns
     -------
     x1, xx, xr : ndarray of float64, shape (n,)
         Summed in float64, in an order the compiler chooses (vectorised): within a few
         float64 roundings of the exact sums. NaN or Inf where a row holds one.
+
+    Raises
+    ------
+    ValueError
+        Other dtypes or shapes, or a ``pos`` outside ``ref``.
     """
-    if x.dtype not in (np.float32, np.float64) or r.dtype != x.dtype or x.ndim != 2 or r.shape != x.shape:
-        raise ValueError(f"row_sums takes float rows and references of one dtype and shape, got "
-                         f"{x.dtype} {x.shape} and {r.dtype} {r.shape}")
+    pos = np.asarray(pos)
+    if (x.dtype not in (np.float32, np.float64) or ref.dtype not in (np.float32, np.float64) or x.ndim != 2
+            or ref.ndim != 2 or ref.shape[1] != x.shape[1] or pos.shape != (x.shape[0],) or pos.dtype != np.int64):
+        raise ValueError(f"row_sums takes float rows (n, m), references (n_ref, m) and int64 positions (n,), got "
+                         f"{x.dtype} {x.shape}, {ref.dtype} {ref.shape} and {pos.dtype} {pos.shape}")
     n = x.shape[0]
     x1, xx, xr = np.empty(n), np.empty(n), np.empty(n)
     if n:
-        _sums(x, r, x1, xx, xr)
+        if pos.min() < 0 or pos.max() >= ref.shape[0]:
+            raise ValueError(f"row_sums: positions must be in [0, {ref.shape[0]}), got {pos.min()}..{pos.max()}")
+        _sums(x, ref, pos, x1, xx, xr)
     return x1, xx, xr
 
 
@@ -443,7 +460,7 @@ def warm_up() -> None:
             x = np.zeros((1, 4), dtype)
             x.flags.writeable = writeable
             screen_codes(x, 1e-6, np.inf, 5)
-            row_sums(x, np.zeros((1, 4), dtype))  # the gate's references: its own writable array
+            row_sums(x, np.zeros((1, 4), np.float32), np.zeros(1, np.int64))  # the gate's float32 references
     fit_windows(np.ones((1, 16), np.complex128), np.ones(1, np.int64), np.ones(1, np.int64), 64)
     forest_proba(np.zeros((1, 1), np.float32), np.zeros(1, np.int64), np.full((1, 4), -1, np.int32), np.zeros(1),
                  np.ones((1, 1)))

@@ -179,15 +179,7 @@ class HealthyGate:
         if not every and at.size == 0:
             return _nothing_cleared(n)
         p = pos if every else pos[at]
-        # one contiguous, ascending nozzle range (the node's case): a view, no gather; repeated or
-        # out-of-order ids with the same ends must gather, each row against its own nozzle's reference
-        if every and p[-1] - p[0] == n - 1 and (n == 1 or bool((np.diff(p) == 1).all())):
-            r = self._ref[p[0]:p[0] + n]
-            xs = x
-        else:
-            r = self._ref[p]
-            xs = x if every else x[at]
-        x1, xx, xr = _row_sums(xs, r.astype(xs.dtype, copy=False))
+        x1, xx, xr = _row_sums(x if every else x[at], self._ref, p)  # each row's reference read in place
         with np.errstate(invalid="ignore", divide="ignore"):
             g = xr / self._rr[p]
             var = xx - x1 * x1 / self.n_samples
@@ -216,16 +208,18 @@ def _nothing_cleared(n: int) -> GateResult:
     return GateResult(np.zeros(n, bool), np.full(n, "", dtype=object), np.full(n, np.nan), np.full(n, np.nan))
 
 
-def _row_sums(x, r):
-    """``sum(x)``, ``sum(x * x)``, ``sum(x * r)`` per row in float64: the compiled kernel (one loop per row)."""
+def _row_sums(x, ref, pos):
+    """``sum(x)``, ``sum(x * x)``, ``sum(x * ref[pos])`` per row in float64: the compiled kernel (one loop per row)."""
     from ._kernels import row_sums
 
-    return row_sums(x, r)
+    return row_sums(x, ref, pos)
 
 
-def _row_sums_numpy(x, r):
+def _row_sums_numpy(x, ref, pos):
     """:func:`_row_sums` in numpy passes (the baseline ``scripts/bench fdi`` measures the kernel against):
-    row-wise dot products as batched (1 x m) @ (m x 1) BLAS products, float32 rows accumulated in float32."""
+    the references gathered, row-wise dot products as batched (1 x m) @ (m x 1) BLAS products, float32
+    rows accumulated in float32."""
+    r = ref[pos].astype(x.dtype, copy=False)
     xr = np.matmul(x[:, None, :], r[:, :, None]).reshape(-1).astype(np.float64)
     xx = np.matmul(x[:, None, :], x[:, :, None]).reshape(-1).astype(np.float64)
     return x.sum(axis=1).astype(np.float64), xx, xr

@@ -92,17 +92,22 @@ def test_row_sums_are_the_float64_sums_and_propagate_non_finite_samples():
     rng = np.random.default_rng(1)
     for dtype in (np.float32, np.float64):
         x = rng.standard_normal((50, 300)).astype(dtype) + 0.3
-        r = rng.standard_normal((50, 300)).astype(dtype)
-        x1, xx, xr = _kernels.row_sums(x, r)
-        X, R = x.astype(np.float64), r.astype(np.float64)
+        ref = rng.standard_normal((80, 300)).astype(np.float32)  # the gate's table: float32, more rows than x
+        pos = rng.permutation(80)[:50]  # each row's own reference, out of order
+        x1, xx, xr = _kernels.row_sums(x, ref, pos)
+        X, R = x.astype(np.float64), ref[pos].astype(np.float64)
         np.testing.assert_allclose(x1, X.sum(axis=1), rtol=1e-12)
         np.testing.assert_allclose(xx, (X * X).sum(axis=1), rtol=1e-12)
         np.testing.assert_allclose(xr, (X * R).sum(axis=1), rtol=1e-10, atol=1e-10)
         x[3, 4], x[7, 0] = np.nan, np.inf
-        x1, xx, xr = _kernels.row_sums(x, r)
+        x1, xx, xr = _kernels.row_sums(x, ref, pos)
         assert np.isnan(x1[3]) and np.isnan(xx[3]) and np.isinf(xx[7]) and np.isfinite(np.delete(xx, [3, 7])).all()
-    with pytest.raises(ValueError, match="one dtype and shape"):
-        _kernels.row_sums(np.zeros((2, 3), np.float32), np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="int64 positions"):
+        _kernels.row_sums(np.zeros((2, 3), np.float32), np.zeros((2, 4), np.float32), np.zeros(2, np.int64))
+    with pytest.raises(ValueError, match="int64 positions"):
+        _kernels.row_sums(np.zeros((2, 3), np.float32), np.zeros((2, 3), np.float32), np.zeros(3, np.int64))
+    with pytest.raises(ValueError, match=r"positions must be in \[0, 2\)"):
+        _kernels.row_sums(np.zeros((2, 3), np.float32), np.zeros((2, 3), np.float32), np.array([0, 2]))
 
 
 def test_gate_clears_the_same_rows_with_the_kernel_as_with_numpy_passes(monkeypatch):
