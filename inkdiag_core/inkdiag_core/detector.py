@@ -26,6 +26,7 @@ threshold (:func:`inkdiag_core.fdi.fnr_threshold`) and the scores from the other
 
 from __future__ import annotations
 
+import functools
 import numbers
 from typing import NamedTuple
 
@@ -62,6 +63,15 @@ DEFAULT_SAMPLE_RATE_HZ = 10e6
 #: Feature set of the baseline branch (its rows are ``with_baseline(traces, baseline_kpis)``).
 BASELINE_FEATURES = "kpi_y+baseline"
 _DTYPES = [np.float64, np.float32]
+
+
+@functools.lru_cache(maxsize=32)
+def _healthy_classes(classes: tuple) -> np.ndarray:
+    """``healthy_mask(classes)`` once per set of classes (read-only): ``label`` must not change the
+    detector's ``__dict__`` (scikit-learn's contract), so the mask is cached here, not on it."""
+    mask = healthy_mask(np.asarray(classes, dtype=object))
+    mask.flags.writeable = False
+    return mask
 
 
 class DetectorLabels(NamedTuple):
@@ -481,7 +491,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         p_faulty = np.full(n, np.nan)
         valid = np.ones(n, dtype=bool)
         unknown_score = np.full(n, np.nan)
-        healthy = healthy_mask(self.classes_)
+        healthy = _healthy_classes(tuple(self.classes_.tolist()))
         openset = getattr(self, "openset_", None)
         baseline_openset = getattr(self, "baseline_openset_", None)
         for rows, pipeline, threshold, layer in (
@@ -497,7 +507,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
             valid[at[~ok]] = False
             if proba.shape[0]:
                 pf = 1.0 - proba[:, healthy].sum(axis=1)  # as fault_probability computes it
-                idx, conf = decide_classes(self.classes_, proba, pf, threshold)
+                idx, conf = decide_classes(self.classes_, proba, pf, threshold, healthy=healthy)
                 cls = self.classes_[idx].astype(object)
                 if layer is not None:
                     outdated = self.openset_outdated()

@@ -315,7 +315,8 @@ def forest_predict_proba(forest, X) -> np.ndarray:
     -------
     ndarray, shape (n_samples, n_classes)
     """
-    check_is_fitted(forest)
+    if forest not in _FLAT_FORESTS:  # flattened before: fitted (the check costs as much as walking ~50 rows)
+        check_is_fitted(forest)
     if forest.n_outputs_ != 1:
         return forest.predict_proba(X)
     X = np.ascontiguousarray(X, dtype=np.float32)
@@ -510,7 +511,7 @@ def _check_threshold(fd_threshold) -> float:
     return float(fd_threshold)
 
 
-def decide_classes(classes, proba, p_faulty, fd_threshold):
+def decide_classes(classes, proba, p_faulty, fd_threshold, *, healthy=None):
     """Each row's class at ``fd_threshold`` (checked before), as a column index and its probability.
 
     A row is faulty when ``p_faulty >= fd_threshold`` and then gets its most probable
@@ -523,13 +524,16 @@ def decide_classes(classes, proba, p_faulty, fd_threshold):
     proba : ndarray of float, shape (n, n_classes)
     p_faulty : ndarray of float, shape (n,)
     fd_threshold : float in (0, 1]
+    healthy : ndarray of bool, shape (n_classes,), optional
+        ``healthy_mask(classes)``, if the caller has it already.
 
     Returns
     -------
     idx : ndarray of int, shape (n,)
     confidence : ndarray of float, shape (n,)
     """
-    healthy = healthy_mask(np.asarray(classes, dtype=object))
+    if healthy is None:
+        healthy = healthy_mask(np.asarray(classes, dtype=object))
     faulty = p_faulty >= fd_threshold
     masked = np.where(healthy[None, :] == faulty[:, None], -1.0, proba)  # keep the allowed group
     idx = np.argmax(masked, axis=1)

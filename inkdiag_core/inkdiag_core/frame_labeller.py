@@ -258,9 +258,9 @@ class FrameLabeller:
             with_base[at] = got.baseline
         valid = reasons == ""
         with_base &= valid
-        cuts = np.cumsum([a.shape[0] for a in arrays])[:-1]
         cols = (classes, confidence, valid, reasons, with_base) + ((cleared,) if self.gate is not None else ())
-        return [FrameLabels(*p) for p in zip(*(np.split(col, cuts) for col in cols))]
+        ends = np.cumsum([a.shape[0] for a in arrays]).tolist()
+        return [FrameLabels(*(col[a:b] for col in cols)) for a, b in zip([0, *ends[:-1]], ends)]  # views
 
 
 def _warm_up_kernels() -> None:
