@@ -18,7 +18,11 @@ the same run (issue 17: a compiled kernel goes in only where it wins >= 2x on it
   in float64 whatever the input precision, each row's ``r`` read in place from the
   reference table. Only these sums may be reassociated
   (``fastmath={"reassoc", "contract"}``): no flag assumes finite values, so a NaN or Inf
-  sample still propagates.
+  sample still propagates, and the screening's comparisons are exact.
+- :func:`screen_and_row_sums`: both for the same rows from one kernel (both functions above
+  are it), each row's loops back to back, so a row comes from memory once and its later
+  loops read it from cache. The labeller calls it once per frame into its batch's arrays:
+  the frames of a batch are not concatenated first (a copy of every sample).
 - :func:`fit_windows`: the KPIs' damped-sinusoid fit on each trace's spectral window
   (:func:`inkdiag_core.spectral_fit.fit_windows`, its numpy reference, has the method),
   one trace at a time: in numpy about a hundred small array operations per call, a fixed
@@ -48,83 +52,96 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba.core import types
+from numba.core.extending import intrinsic
 
-__all__ = ["fit_windows", "forest_proba", "row_sums", "screen_codes", "warm_up"]
+__all__ = ["fit_windows", "forest_proba", "row_sums", "screen_and_row_sums", "screen_codes", "warm_up"]
 
 _SUMS_FASTMATH = {"reassoc", "contract"}  # reorder and fuse the sums only: no finite-math assumption
 
 
-@numba.njit(cache=True, nogil=True)
-def _ordered_extremes(bits, hi, lo):
-    """Per row the largest and smallest of ``bits`` (a float array viewed as signed integers of its
-    width) in the floats' order, written back as the floats' bit patterns into ``hi, lo``."""
-    n, m = bits.shape
-    top = np.iinfo(bits.dtype).max  # all bits but the sign: flips a negative float's order
-    sign = 8 * bits.itemsize - 1
-    for i in range(n):
-        h = bits[i, 0] ^ ((bits[i, 0] >> sign) & top)
-        lw = h
-        for k in range(1, m):
-            q = bits[i, k]
-            q = q ^ ((q >> sign) & top)
-            h = max(h, q)
-            lw = min(lw, q)
-        hi[i] = h ^ ((h >> sign) & top)
-        lo[i] = lw ^ ((lw >> sign) & top)
+@intrinsic
+def _float_of_bits(typingctx, bits, like):
+    """The float of ``like``'s type whose bit pattern is the low 32 or 64 bits of the integer ``bits``
+    (numba widens int32 arithmetic to int64; the low bits are the pattern): a bit cast."""
+    if not isinstance(bits, types.Integer) or like not in (types.float32, types.float64):
+        return None
 
+    def codegen(context, builder, sig, args):
+        width = 32 if like == types.float32 else 64
+        v = args[0]
+        if bits.bitwidth > width:
+            v = builder.trunc(v, ir.IntType(width))
+        elif bits.bitwidth < width:
+            v = builder.sext(v, ir.IntType(width))
+        return builder.bitcast(v, context.get_value_type(like))
 
-@numba.njit(cache=True, nogil=True)
-def _codes(x, hi, lo, flat_tol, max_abs_v, clip_run, code):
-    """Per row its screening code from its extremes ``hi, lo`` (see :func:`screen_codes`)."""
-    n, m = x.shape
-    for i in range(n):
-        a = hi[i]
-        b = lo[i]
-        if not (np.isfinite(a) and np.isfinite(b)):
-            code[i] = 1  # non_finite
-            continue
-        if np.float64(a) > max_abs_v or np.float64(b) < -max_abs_v:
-            code[i] = 2  # out_of_range
-            continue
-        if np.float64(a) - np.float64(b) <= flat_tol:
-            code[i] = 3  # flat
-            continue
-        ch = 0
-        cl = 0
-        for k in range(m):
-            v = x[i, k]
-            ch += v == a
-            cl += v == b
-        code[i] = 0
-        if ch < clip_run and cl < clip_run:  # nearly every row: no run that long can exist
-            continue
-        run_h = 0
-        run_l = 0
-        for k in range(m):  # clip_run consecutive samples at an extreme (float equality: -0.0 == 0.0)
-            v = x[i, k]
-            run_h = run_h + 1 if v == a else 0
-            run_l = run_l + 1 if v == b else 0
-            if run_h >= clip_run or run_l >= clip_run:
-                code[i] = 4  # clipped
-                break
+    return like(bits, like), codegen
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_SUMS_FASTMATH)
-def _sums(x, ref, pos, s1, s2, sr):
+def _screen_sums(x, bits, screen, flat_tol, max_abs_v, clip_run, ref, pos, code, s1, s2, sr):
+    """Per row: its screening code (if ``screen``) and, where ``pos[i] >= 0``, its three sums against
+    ``ref[pos[i]]`` (NaN elsewhere). Each row's loops run back to back, so the row is read from
+    memory once. ``bits`` is ``x`` viewed as signed integers of its width."""
     n, m = x.shape
+    top = np.iinfo(bits.dtype).max  # all bits but the sign: flips a negative float's order
+    sign = 8 * bits.itemsize - 1
     for i in range(n):
+        if screen:
+            # the extremes over the bit patterns mapped to integers of the floats' order: vectorises
+            # (a float max with NaN semantics does not), exact, a NaN maps beyond +-Inf
+            h = bits[i, 0] ^ ((bits[i, 0] >> sign) & top)
+            lw = h
+            for k in range(1, m):
+                q = bits[i, k]
+                q = q ^ ((q >> sign) & top)
+                h = max(h, q)
+                lw = min(lw, q)
+            a = _float_of_bits(h ^ ((h >> sign) & top), x[i, 0])
+            b = _float_of_bits(lw ^ ((lw >> sign) & top), x[i, 0])
+            if not (np.isfinite(a) and np.isfinite(b)):
+                code[i] = 1  # non_finite
+            elif np.float64(a) > max_abs_v or np.float64(b) < -max_abs_v:
+                code[i] = 2  # out_of_range
+            elif np.float64(a) - np.float64(b) <= flat_tol:
+                code[i] = 3  # flat
+            else:
+                code[i] = 0
+                ch = 0
+                cl = 0
+                for k in range(m):
+                    v = x[i, k]
+                    ch += v == a
+                    cl += v == b
+                if ch >= clip_run or cl >= clip_run:  # few rows: only then can such a run exist
+                    run_h = 0
+                    run_l = 0
+                    for k in range(m):  # clip_run consecutive samples at an extreme (-0.0 == 0.0)
+                        v = x[i, k]
+                        run_h = run_h + 1 if v == a else 0
+                        run_l = run_l + 1 if v == b else 0
+                        if run_h >= clip_run or run_l >= clip_run:
+                            code[i] = 4  # clipped
+                            break
         p = pos[i]
-        a = 0.0
-        b = 0.0
-        c = 0.0
+        if p < 0:
+            s1[i] = np.nan
+            s2[i] = np.nan
+            sr[i] = np.nan
+            continue
+        c1 = 0.0
+        c2 = 0.0
+        c3 = 0.0
         for k in range(m):
             v = np.float64(x[i, k])
-            a += v
-            b += v * v
-            c += v * np.float64(ref[p, k])
-        s1[i] = a
-        s2[i] = b
-        sr[i] = c
+            c1 += v
+            c2 += v * v
+            c3 += v * np.float64(ref[p, k])
+        s1[i] = c1
+        s2[i] = c2
+        sr[i] = c3
 
 
 @numba.njit(cache=True, nogil=True)
@@ -396,16 +413,7 @@ def screen_codes(x, flat_tol, max_abs_v, clip_run):
     -------
     ndarray of uint8, shape (n,)
     """
-    if x.dtype not in (np.float32, np.float64) or x.ndim != 2 or x.shape[1] == 0:
-        raise ValueError(f"screen_codes takes (n, m >= 1) float32 or float64 rows, got {x.dtype} {x.shape}")
-    n = x.shape[0]
-    code = np.empty(n, np.uint8)
-    if n:
-        as_int = np.int32 if x.dtype == np.float32 else np.int64
-        hi, lo = np.empty(n, x.dtype), np.empty(n, x.dtype)
-        _ordered_extremes(x.view(as_int), hi.view(as_int), lo.view(as_int))
-        _codes(x, hi, lo, float(flat_tol), float(max_abs_v), int(clip_run), code)
-    return code
+    return screen_and_row_sums(x, flat_tol, max_abs_v, clip_run, None, None)[0]
 
 
 def row_sums(x, ref, pos):
@@ -434,18 +442,57 @@ def row_sums(x, ref, pos):
     ValueError
         Other dtypes or shapes, or a ``pos`` outside ``ref``.
     """
+    if np.asarray(pos).size and np.min(pos) < 0:
+        raise ValueError(f"row_sums: positions must be in [0, {ref.shape[0]}), got {np.min(pos)}..{np.max(pos)}")
+    return screen_and_row_sums(x, None, None, None, ref, pos)[1:]
+
+
+def screen_and_row_sums(x, flat_tol, max_abs_v, clip_run, ref, pos, out=None):
+    """:func:`screen_codes` and :func:`row_sums` of the same rows, each row read from memory once.
+
+    Parameters
+    ----------
+    x : ndarray of float32 or float64, shape (n, m), m >= 1
+    flat_tol, max_abs_v, clip_run
+        As for :func:`screen_codes`; ``clip_run`` None: no screening (the codes are not written).
+    ref : ndarray of float32 or float64, shape (n_ref, m), or None
+        Reference rows; None: no sums (they are NaN).
+    pos : ndarray of int64, shape (n,), or None
+        Each row's reference row in ``[0, n_ref)``, or -1 for a row without one (its sums NaN).
+    out : tuple of 4 ndarray, optional
+        ``(code uint8, x1, xx, xr float64)``, each of shape (n,), to write into (e.g. one
+        frame's slices of a batch's arrays).
+
+    Returns
+    -------
+    code : ndarray of uint8, shape (n,)
+    x1, xx, xr : ndarray of float64, shape (n,)
+
+    Raises
+    ------
+    ValueError
+        Other dtypes or shapes, or a position beyond ``ref``.
+    """
+    if x.dtype not in (np.float32, np.float64) or x.ndim != 2 or x.shape[1] == 0:
+        raise ValueError(f"the screening and gate kernels take (n, m >= 1) float32 or float64 rows, "
+                         f"got {x.dtype} {x.shape}")
+    n, m = x.shape
+    if ref is None:
+        ref, pos = np.zeros((1, m), np.float32), np.full(n, -1, np.int64)
     pos = np.asarray(pos)
-    if (x.dtype not in (np.float32, np.float64) or ref.dtype not in (np.float32, np.float64) or x.ndim != 2
-            or ref.ndim != 2 or ref.shape[1] != x.shape[1] or pos.shape != (x.shape[0],) or pos.dtype != np.int64):
+    if (ref.dtype not in (np.float32, np.float64) or ref.ndim != 2 or ref.shape[1] != m
+            or pos.shape != (n,) or pos.dtype != np.int64):
         raise ValueError(f"row_sums takes float rows (n, m), references (n_ref, m) and int64 positions (n,), got "
                          f"{x.dtype} {x.shape}, {ref.dtype} {ref.shape} and {pos.dtype} {pos.shape}")
-    n = x.shape[0]
-    x1, xx, xr = np.empty(n), np.empty(n), np.empty(n)
+    if n and pos.max() >= ref.shape[0]:
+        raise ValueError(f"row_sums: positions must be in [0, {ref.shape[0]}), got up to {pos.max()}")
+    code, x1, xx, xr = out if out is not None else (np.empty(n, np.uint8), np.empty(n), np.empty(n), np.empty(n))
     if n:
-        if pos.min() < 0 or pos.max() >= ref.shape[0]:
-            raise ValueError(f"row_sums: positions must be in [0, {ref.shape[0]}), got {pos.min()}..{pos.max()}")
-        _sums(x, ref, pos, x1, xx, xr)
-    return x1, xx, xr
+        screen = clip_run is not None
+        _screen_sums(x, x.view(np.int32 if x.dtype == np.float32 else np.int64), screen,
+                     float(flat_tol) if screen else 0.0, float(max_abs_v) if screen else 0.0,
+                     int(clip_run) if screen else 0, ref, pos, code, x1, xx, xr)
+    return code, x1, xx, xr
 
 
 def warm_up() -> None:
@@ -459,8 +506,7 @@ def warm_up() -> None:
         for writeable in (True, False):
             x = np.zeros((1, 4), dtype)
             x.flags.writeable = writeable
-            screen_codes(x, 1e-6, np.inf, 5)
-            row_sums(x, np.zeros((1, 4), np.float32), np.zeros(1, np.int64))  # the gate's float32 references
+            screen_and_row_sums(x, 1e-6, np.inf, 5, np.zeros((1, 4), np.float32), np.zeros(1, np.int64))
     fit_windows(np.ones((1, 16), np.complex128), np.ones(1, np.int64), np.ones(1, np.int64), 64)
     forest_proba(np.zeros((1, 1), np.float32), np.zeros(1, np.int64), np.full((1, 4), -1, np.int32), np.zeros(1),
                  np.ones((1, 1)))

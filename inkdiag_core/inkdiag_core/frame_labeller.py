@@ -11,7 +11,9 @@ reports :class:`LabellerConfigError`, and it validates each frame once:
 3. when the baselines carry reference traces, the healthy gate
    (:class:`inkdiag_core.HealthyGate`): valid rows that match their nozzle's healthy
    reference are labelled ``healthy_nozzle`` or ``ok_signal`` at once (confidence 1.0,
-   ``baseline`` True, ``gate_cleared`` True);
+   ``baseline`` True, ``gate_cleared`` True). Float frames are screened and summed against
+   their references by one kernel call per frame (each row read once), not stacked into
+   one array first; only the rows left for the detector are gathered;
 4. one :meth:`inkdiag_core.FaultDetector.label` call for the other valid rows of the batch,
    each row routed to the baseline branch when its nozzle has a baseline;
 5. if that call raises, each frame alone, so one bad frame costs only itself.
@@ -30,7 +32,7 @@ from .detector import FaultDetector
 from .gate import HealthyGate
 from .persistence import load_detector
 from .labelling import FrameLabels
-from .screening import screen_traces
+from .screening import screen_traces, screening_settings, verdicts
 
 __all__ = ["FrameFailure", "FrameInputError", "FrameLabeller", "LabellerConfigError", "load_labeller"]
 
@@ -144,6 +146,7 @@ class FrameLabeller:
         self.sample_rate_hz = want_fs
         self.profile = profile
         self.max_abs_v = None if max_abs_v is None else float(max_abs_v)
+        self._screening = screening_settings(max_abs_v=self.max_abs_v, sample_rate_hz=want_fs)
         _warm_up_kernels()
 
     def __setstate__(self, state):  # unpickled in the labelling process's child: its kernels too
@@ -226,31 +229,53 @@ class FrameLabeller:
 
     def _label_rows(self, arrays, firsts) -> list:
         """Screen and classify frames of the right width together; a list of FrameLabels."""
-        x = np.concatenate(arrays) if len(arrays) > 1 else arrays[0]
-        n = x.shape[0]
-        valid, reasons = screen_traces(x, max_abs_v=self.max_abs_v, sample_rate_hz=self.sample_rate_hz)
+        sizes = [a.shape[0] for a in arrays]
+        ends = np.cumsum(sizes)
+        starts = ends - sizes
+        n = int(ends[-1])
+        ids = None
+        if self.baselines is not None:
+            ids = np.concatenate([f + np.arange(a.shape[0]) if np.ndim(f) == 0 else f
+                                  for f, a in zip(firsts, arrays)])
+        if all(a.dtype in (np.float32, np.float64) for a in arrays):
+            from ._kernels import screen_and_row_sums  # numba: imported when a kernel is first needed
+            # screening and the gate's sums frame by frame into the batch's arrays, each row read once,
+            # the frames not concatenated (the detector's rows are gathered below: few on a working head)
+            x = None
+            pos = self.gate.positions(ids) if self.gate is not None else np.full(n, -1, np.int64)
+            ref = self.gate.references if self.gate is not None else None
+            code, x1, xx, xr = np.empty(n, np.uint8), np.empty(n), np.empty(n), np.empty(n)
+            for a, i, j in zip(arrays, starts.tolist(), ends.tolist()):
+                screen_and_row_sums(a, *self._screening, ref, pos[i:j], out=(code[i:j], x1[i:j], xx[i:j], xr[i:j]))
+            valid, reasons = verdicts(code)
+        else:  # ADC counts or other dtypes: screen_traces' numpy passes
+            x = np.concatenate(arrays) if len(arrays) > 1 else arrays[0]
+            valid, reasons = screen_traces(x, max_abs_v=self.max_abs_v, sample_rate_hz=self.sample_rate_hz)
         classes = np.full(n, "", dtype=object)
         confidence = np.full(n, np.nan)
         with_base = np.zeros(n, dtype=bool)
         cleared = np.zeros(n, dtype=bool)
         at = np.flatnonzero(valid)
-        if at.size and self.baselines is not None:
-            ids = np.concatenate([f + np.arange(a.shape[0]) if np.ndim(f) == 0 else f
-                                  for f, a in zip(firsts, arrays)])
-            if self.gate is not None:  # screen -> gate -> full model on the rest
+        if at.size and self.gate is not None:  # screen -> gate -> full model on the rest
+            if x is None:
+                g = self.gate.decide(x1, xx, xr, np.where(valid, pos, -1))
+                done = np.flatnonzero(g.cleared)
+                classes[done] = g.classes[done]
+            else:
                 g = self.gate.screen(x if at.size == n else x[at], ids[at])
                 done = at[g.cleared]
-                cleared[done] = True
                 classes[done] = g.classes[g.cleared]
-                confidence[done] = 1.0
-                with_base[done] = True
-                at = at[~g.cleared]
+            cleared[done] = True
+            confidence[done] = 1.0
+            with_base[done] = True
+            at = at[~cleared[at]]
         if at.size:
             kpis = None
             if self.baselines is not None:
                 has, kpis = self.baselines.lookup(ids[at])
                 kpis[~has] = np.nan  # routed to the plain branch
-            got = self.detector.label(x if at.size == n else x[at], baseline_kpis=kpis)
+            rows = (x if at.size == n else x[at]) if x is not None else _rows_of(arrays, ends, at)
+            got = self.detector.label(rows, baseline_kpis=kpis)
             ok = at[got.valid]
             classes[ok] = got.classes[got.valid].astype(str).astype(object)
             confidence[ok] = got.confidence[got.valid]
@@ -259,8 +284,25 @@ class FrameLabeller:
         valid = reasons == ""
         with_base &= valid
         cols = (classes, confidence, valid, reasons, with_base) + ((cleared,) if self.gate is not None else ())
-        ends = np.cumsum([a.shape[0] for a in arrays]).tolist()
-        return [FrameLabels(*(col[a:b] for col in cols)) for a, b in zip([0, *ends[:-1]], ends)]  # views
+        bounds = zip(starts.tolist(), ends.tolist())
+        return [FrameLabels(*(col[i:j] for col in cols)) for i, j in bounds]  # views of the batch's columns
+
+
+def _rows_of(arrays, ends, at):
+    """Rows ``at`` (ascending batch indices) of the frames ``arrays`` stacked, as one array; no copy
+    when they are all of one frame."""
+    if len(arrays) == 1:
+        a = arrays[0]
+        return a if at.size == a.shape[0] else a[at]
+    k = np.searchsorted(ends, at, side="right")  # each row's frame
+    cut = np.flatnonzero(np.diff(k)) + 1
+    parts = []
+    for lo, hi in zip([0, *cut.tolist()], [*cut.tolist(), at.size]):
+        f = int(k[lo])
+        a = arrays[f]
+        local = at[lo:hi] - (int(ends[f]) - a.shape[0])
+        parts.append(a if local.size == a.shape[0] else a[local])
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
 def _warm_up_kernels() -> None:

@@ -172,32 +172,59 @@ class HealthyGate:
                 raise ValueError(f"nozzle_ids must have shape ({n},), got {ids.shape}")
         if self._ref is None or n == 0:
             return _nothing_cleared(n)
+        pos = self.positions(ids)
+        return self.decide(*_row_sums(x, self._ref, pos), pos)
+
+    def positions(self, nozzle_ids) -> np.ndarray:
+        """Each nozzle's row of the gate's reference table, -1 where it has no usable reference.
+
+        Parameters
+        ----------
+        nozzle_ids : array_like of int, shape (n,)
+
+        Returns
+        -------
+        ndarray of int64, shape (n,)
+            What :meth:`decide` and the row-sums kernel (:attr:`references`) take.
+        """
+        ids = np.asarray(nozzle_ids, dtype=np.int64)
+        if self._ref is None:
+            return np.full(ids.shape, -1, np.int64)
         has, pos = self.baselines.reference_rows(ids)
-        has &= self._usable[pos]
-        every = bool(has.all())
-        at = None if every else np.flatnonzero(has)
-        if not every and at.size == 0:
-            return _nothing_cleared(n)
-        p = pos if every else pos[at]
-        x1, xx, xr = _row_sums(x if every else x[at], self._ref, p)  # each row's reference read in place
+        return np.where(has & self._usable[pos], pos, -1)
+
+    @property
+    def references(self) -> np.ndarray | None:
+        """The mean-removed reference traces, float32 (n_nozzles_with_baselines, n_samples), V; None without."""
+        return self._ref
+
+    def decide(self, x1, xx, xr, pos) -> GateResult:
+        """Clear rows from their three sums against their references (:meth:`screen` from the sums).
+
+        Parameters
+        ----------
+        x1, xx, xr : ndarray of float64, shape (n,)
+            Each row's ``sum(x)``, ``sum(x * x)`` and ``sum(x * r)``, V, V^2, V^2, with ``r`` its
+            reference (:attr:`references` row ``pos``); any value where ``pos`` is -1.
+        pos : ndarray of int64, shape (n,)
+            :meth:`positions` (-1: not cleared).
+
+        Returns
+        -------
+        GateResult
+        """
+        has = pos >= 0
         with np.errstate(invalid="ignore", divide="ignore"):
-            g = xr / self._rr[p]
+            g = np.where(has, xr, np.nan) / (self._rr[pos] if self._ref is not None else np.nan)
             var = xx - x1 * x1 / self.n_samples
             f = (var - g * xr) / var
         f = np.where(var > 0, np.minimum(np.maximum(f, 0.0), 1.0), np.nan)
+        f[~has] = np.nan
         ok = f <= self.max_residual_fraction  # NaN: False
         jet = ok & (g >= self.jetting_gain[0]) & (g <= self.jetting_gain[1])
         oks = ok & (g >= self.ok_gain[0]) & (g <= self.ok_gain[1])
         code = jet.view(np.uint8) + 2 * oks.view(np.uint8)  # the bands do not overlap: 0, 1 or 2
-        if every:
-            return GateResult(jet | oks, _GATE_CLASSES[code], g, f)
-        gain, frac, cleared = np.full(n, np.nan), np.full(n, np.nan), np.zeros(n, bool)
-        classes = np.full(n, "", dtype=object)
-        gain[at] = g
-        frac[at] = f
-        cleared[at] = jet | oks
-        classes[at] = _GATE_CLASSES[code]
-        return GateResult(cleared, classes, gain, frac)
+        return GateResult(jet | oks, _GATE_CLASSES[code], g, f)
 
 
 #: A gate row's class by its code: not cleared, cleared jetting, cleared OK-check.
@@ -209,10 +236,11 @@ def _nothing_cleared(n: int) -> GateResult:
 
 
 def _row_sums(x, ref, pos):
-    """``sum(x)``, ``sum(x * x)``, ``sum(x * ref[pos])`` per row in float64: the compiled kernel (one loop per row)."""
-    from ._kernels import row_sums
+    """``sum(x)``, ``sum(x * x)``, ``sum(x * ref[pos])`` per row in float64 (NaN where ``pos`` is -1): the
+    compiled kernel (one loop per row)."""
+    from ._kernels import screen_and_row_sums
 
-    return row_sums(x, ref, pos)
+    return screen_and_row_sums(x, None, None, None, ref, pos)[1:]
 
 
 def _row_sums_numpy(x, ref, pos):
@@ -222,4 +250,6 @@ def _row_sums_numpy(x, ref, pos):
     r = ref[pos].astype(x.dtype, copy=False)
     xr = np.matmul(x[:, None, :], r[:, :, None]).reshape(-1).astype(np.float64)
     xx = np.matmul(x[:, None, :], x[:, :, None]).reshape(-1).astype(np.float64)
+    none = pos < 0
+    xr[none] = np.nan
     return x.sum(axis=1).astype(np.float64), xx, xr

@@ -91,16 +91,41 @@ def screen_traces(traces, *, flat_tol: float = 1e-6, clip_run: int | None = None
     x = np.asarray(traces)
     if x.ndim != 2:
         raise ValueError(f"traces must be 2-D (n, n_samples), got shape {x.shape}")
+    clip_run = screening_settings(flat_tol=flat_tol, clip_run=clip_run, max_abs_v=max_abs_v,
+                                  sample_rate_hz=sample_rate_hz, clip_s=clip_s)[2]
+    n = x.shape[0]
+    if n == 0 or x.shape[1] == 0:
+        return np.ones(n, bool), np.full(n, "", dtype=object)
+    return verdicts(_screen_codes(x, flat_tol, max_abs_v, clip_run))
+
+
+def screening_settings(*, flat_tol: float = 1e-6, clip_run: int | None = None, max_abs_v: float | None = None,
+                       sample_rate_hz: float = 10e6, clip_s: float = CLIP_S) -> tuple:
+    """:func:`screen_traces`'s settings checked, in the order the screening kernel takes them
+    (:func:`inkdiag_core._kernels.screen_codes`).
+
+    Parameters are :func:`screen_traces`'s.
+
+    Returns
+    -------
+    flat_tol : float
+        V.
+    max_abs_v : float
+        V; ``inf`` for no range check.
+    clip_run : int
+        Samples.
+    """
     if clip_run is None:
         clip_run = clip_run_samples(sample_rate_hz, clip_s)
     if clip_run < 2:
         raise ValueError(f"clip_run must be >= 2, got {clip_run}")
     if max_abs_v is not None and not max_abs_v > 0:
         raise ValueError(f"max_abs_v must be > 0 V or None, got {max_abs_v!r}")
-    n = x.shape[0]
-    if n == 0 or x.shape[1] == 0:
-        return np.ones(n, bool), np.full(n, "", dtype=object)
-    code = _screen_codes(x, flat_tol, max_abs_v, clip_run)
+    return float(flat_tol), math.inf if max_abs_v is None else float(max_abs_v), int(clip_run)
+
+
+def verdicts(code):
+    """``(valid, reasons)`` of :func:`screen_traces` from the rows' screening codes (uint8, (n,))."""
     return code == 0, _REASONS[code]
 
 

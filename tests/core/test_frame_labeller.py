@@ -193,3 +193,54 @@ def test_gate_clears_healthy_rows_and_leaves_the_rest_to_the_detector(detector):
     np.testing.assert_array_equal(g["confidence"][~cleared], w["confidence"][~cleared])  # bit-identical
     assert (g["classes"][cleared] == classes[cleared]).all() and (g["confidence"][cleared] == 1.0).all()
     assert np.mean(g["classes"][cleared] == w["classes"][cleared]) >= 0.97  # the full model's healthy class
+
+
+def test_frames_screened_and_gated_one_by_one_label_as_the_stacked_batch(detector):
+    """The labeller screens each frame and sums it against its references in place (no stacked copy):
+    the same labels as screen_traces, HealthyGate.screen and the detector on the stacked rows, with frames
+    that wrap around the head, invalid rows, nozzles without a reference and a float64 frame."""
+    from inkdiag_core import HealthyGate, screen_traces
+
+    n = 120
+    rec = BaselineRecorder(n_frames=4)
+    for k in range(4):
+        rec.add(FIRST, simulate_nozzles(["healthy_nozzle"] * n, seed=HEAD, frame_seed=k).traces)
+    base = rec.baselines()  # nozzles FIRST .. FIRST + 119
+    classes = np.array(["healthy_nozzle", "ok_signal"] * (n // 2), dtype=object)
+    classes[::10] = "partially_blocked"
+    x = simulate_nozzles(classes, seed=HEAD, frame_seed=9).traces.astype(np.float32)
+    x[7, 3], x[30] = np.inf, 0.0  # non_finite, flat
+    x[64, 100:110] = x[64].max()  # clipped
+    # the first frame's nozzles have no baseline (ids far beyond the head's), then the batch wraps around
+    order = [(90, 120, 1000), (0, 50, 0), (50, 90, 50)]
+    frames = [x[a:b] for a, b, _ in order]
+    frames[2] = frames[2].astype(np.float64)
+    firsts = [FIRST + f for _, _, f in order]
+    labeller = FrameLabeller(detector, base, max_abs_v=10.0)
+    assert labeller.uses_gate
+    got = labeller._label_rows(frames, firsts)  # the batch itself (label() would retry a failing batch frame by frame)
+
+    rows = np.concatenate(frames)
+    ids = np.concatenate([f + np.arange(a.shape[0]) for f, a in zip(firsts, frames)])
+    valid, reasons = screen_traces(rows, max_abs_v=10.0, sample_rate_hz=detector.sample_rate_hz_)
+    at = np.flatnonzero(valid)
+    g = HealthyGate(base).screen(rows[at], ids[at])
+    rest = at[~g.cleared]
+    has, kpis = base.lookup(ids[rest])
+    kpis[~has] = np.nan
+    d = detector.label(rows[rest], baseline_kpis=kpis)
+    want = np.full(len(rows), "", dtype=object)
+    want[at[g.cleared]] = g.classes[g.cleared]
+    want[rest] = d.classes
+    conf = np.full(len(rows), np.nan)
+    conf[at[g.cleared]] = 1.0
+    conf[rest] = d.confidence
+
+    cat = {k: np.concatenate([getattr(f, k) for f in got]) for k in ("classes", "confidence", "reasons", "gate_cleared")}
+    np.testing.assert_array_equal(cat["reasons"], reasons)
+    np.testing.assert_array_equal(cat["gate_cleared"][at], g.cleared)
+    np.testing.assert_array_equal(cat["classes"], want)
+    np.testing.assert_array_equal(cat["confidence"], conf)
+    assert g.cleared.sum() > 50 and (~g.cleared).sum() > 20  # both paths taken
+    where = {int(i): r for i, r in zip(ids, cat["reasons"]) if r}
+    assert where == {FIRST + 7: "non_finite", FIRST + 30: "flat", FIRST + 64: "clipped"}

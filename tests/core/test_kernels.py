@@ -147,8 +147,7 @@ def test_after_warm_up_a_decoded_frame_and_a_batch_need_no_new_kernel_build():
             rec.add(0, simulate_nozzles(["healthy_nozzle"] * 8, seed=1, frame_seed=[1, f]).traces)
         gate = HealthyGate(rec.baselines())
         _kernels.warm_up()
-        kernels = (_kernels._ordered_extremes, _kernels._codes, _kernels._sums, _kernels._fit_windows,
-                   _kernels._forest_sums)
+        kernels = (_kernels._screen_sums, _kernels._fit_windows, _kernels._forest_sums)
         before = [len(k.signatures) for k in kernels]
         x = simulate_nozzles(["healthy_nozzle"] * 8, seed=1, frame_seed=[1, 9]).traces.astype(np.float32)
         frame = decode_traces(encode_traces(x, first_nozzle=0, frame_id=1, stamp=0.0)).traces
