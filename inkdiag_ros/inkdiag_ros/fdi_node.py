@@ -13,7 +13,7 @@ from rclpy.node import Node
 from inkdiag_core import FrameFailure, LabellerConfigError, ModelFileError, load_labeller
 from msg_defs import (DIAGNOSTICS_MSG_TYPE, DIAGNOSTICS_QOS, DRYING_MSG_TYPE, LABELS_MSG_TYPE, RELIABLE_QOS,
                       TRACE_MSG_TYPE, TRACES_QOS, DryingNozzles, FrameError, LabelsReport, build_diagnostics,
-                      decode_traces, encode_drying, encode_labels, topics)
+                      decode_traces_serialized, encode_drying, encode_labels, topics)
 
 from . import _params
 from ._head import HEAD_PROFILE_PARAM, SAMPLING_PARAMS, head_from_parameters
@@ -60,7 +60,8 @@ class FdiNode(Node):
             backend, self._publish, on_batch=self._on_batch, on_drop=self._on_dropped, on_error=self._failed,
             max_queued=c["max_queued_frames"], max_batch_rows=c["max_batch_traces"], name="fdi-labeller")
         self.close_outputs = self._pipeline.close  # _spin.tear_down: the batches out published before nodes go
-        self._sub = self.create_subscription(TRACE_MSG_TYPE, topics.TRACES, self._on_traces, TRACES_QOS)
+        # raw: the traces are viewed in the taken bytes, not converted to a Python message first (as fe)
+        self._sub = self.create_subscription(TRACE_MSG_TYPE, topics.TRACES, self._on_traces, TRACES_QOS, raw=True)
         self._diag_timer = self.create_timer(c["diagnostics_period_s"], lambda: self._on_diagnostics(0.5))
 
     def _load_labeller(self):
@@ -105,8 +106,8 @@ class FdiNode(Node):
         self.stats.received()
         c = self.config
         try:
-            frame = decode_traces(msg, max_nozzle_id=self._max_id, n_samples=c["n_samples"],
-                                  sample_rate_hz=c["sample_rate_hz"])
+            frame = decode_traces_serialized(msg, max_nozzle_id=self._max_id, n_samples=c["n_samples"],
+                                             sample_rate_hz=c["sample_rate_hz"])
         except FrameError as exc:
             why = f"{exc} (head {self.head.name!r}: {c['sample_rate_hz']:g} Hz x {c['n_samples']} samples)"
             self.stats.malformed(why)
