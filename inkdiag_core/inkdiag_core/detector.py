@@ -501,8 +501,13 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
                 continue
             plain = pipeline is not self.baseline_pipeline_
             Xt = X if rows.all() else X[rows]  # no copy when every row is on one branch
-            Xr = Xt if plain else with_baseline(Xt, base[rows])
-            ok, proba, feats = finite_rows_proba(pipeline, Xr, return_features=True, checked=True)
+            # the baseline branch's features from the traces and the baseline KPIs apart, not from a stacked
+            # copy of them (knn needs the stacked rows for its open-set features)
+            apart = None if plain or len(pipeline) > 2 else getattr(pipeline[0], "_features_of", None)
+            Xr = Xt if plain else with_baseline(Xt, base[rows]) if apart is None else None
+            with np.errstate(all="ignore"):  # overflowing rows are found below, as finite_rows_proba does
+                given = None if apart is None else apart(Xt, base[rows])
+            ok, proba, feats = finite_rows_proba(pipeline, Xr, return_features=True, checked=True, features=given)
             at = np.flatnonzero(rows)
             valid[at[~ok]] = False
             if proba.shape[0]:

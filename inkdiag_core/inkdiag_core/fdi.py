@@ -442,7 +442,7 @@ def classify(pipeline, traces, *, fd_threshold: float = 0.5):
     return classes[idx].astype(str), confidence, p_faulty
 
 
-def finite_rows_proba(pipeline, X, *, return_features=False, checked=False):
+def finite_rows_proba(pipeline, X, *, return_features=False, checked=False, features=None):
     """Class probabilities of the rows of ``X`` whose features are finite in float32.
 
     The feature steps run on every row; the final estimator (what scikit-learn's
@@ -455,7 +455,8 @@ def finite_rows_proba(pipeline, X, *, return_features=False, checked=False):
     (for the open-set layer of :class:`inkdiag_core.FaultDetector`). ``checked=True``:
     ``X`` is a finite float32/float64 ndarray of the pipeline's input width, validated by
     the caller; a feature step of inkdiag's own then skips scikit-learn's input checks
-    (the same features: they cost about as much as the KPIs of a few traces).
+    (the same features: they cost about as much as the KPIs of a few traces). ``features``: the
+    feature rows of ``X``, computed by the caller (``X`` itself is then not used).
 
     Returns
     -------
@@ -467,7 +468,10 @@ def finite_rows_proba(pipeline, X, *, return_features=False, checked=False):
     with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
         if isinstance(pipeline, Pipeline) and len(pipeline) > 1:
             fast = getattr(pipeline[0], "_transform_checked", None) if checked and len(pipeline) == 2 else None
-            feats = fast(X) if fast is not None else pipeline[:-1].transform(X)
+            if features is not None:
+                feats = features
+            else:
+                feats = fast(X) if fast is not None else pipeline[:-1].transform(X)
             ok = np.isfinite(np.asarray(feats, dtype=np.float32)).all(axis=1)
             final, rows = pipeline[-1], feats if ok.all() else feats[ok]
         else:

@@ -99,8 +99,16 @@ class BaselineKpis(TransformerMixin, BaseEstimator):
     def _transform_checked(self, X):
         """:meth:`transform` of rows already validated against this fitted step (finite float32/64 ndarray,
         ``n_features_in_`` columns): the same result without scikit-learn's checks (the detector's hot path)."""
-        k = kpis_of_checked(X[:, :-N_KPIS], float(self.sample_rate_hz))
-        b = X[:, -N_KPIS:].astype(np.float64)
+        return self._features_of(X[:, :-N_KPIS], X[:, -N_KPIS:])
+
+    def _features_of(self, traces, baseline):
+        """:meth:`_transform_checked` of ``with_baseline(traces, baseline)`` without stacking them:
+        ``traces`` (n, n_features_in_ - 7) finite float32/64, ``baseline`` (n, 7) finite. The KPIs are
+        fitted in the precision the stacked rows would have (float64 for float32 traces with float64
+        baselines), each chunk of traces cast in cache."""
+        b = np.asarray(baseline)
+        k = kpis_of_checked(traces, float(self.sample_rate_hz), dtype=np.result_type(traces.dtype, b.dtype))
+        b = b.astype(np.float64)
         dphi = np.angle(np.exp(1j * (k[:, 4] - b[:, 4])))
         rel = np.column_stack([
             k[:, 1] / (b[:, 1] + _EPS), k[:, 2] - b[:, 2], k[:, 2] / (b[:, 2] + _EPS),
