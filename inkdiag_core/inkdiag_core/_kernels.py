@@ -3,8 +3,8 @@
 Every row of every frame is screened (:func:`inkdiag_core.screen_traces`: its extremes
 and how many samples sit at them) and, where its nozzle has a healthy reference, fitted
 to it (:class:`inkdiag_core.HealthyGate`: three row sums). In numpy these are seven
-passes over the samples, each a separate reduction; here they are two loops per row,
-which LLVM vectorises. ``scripts/bench fdi`` measures both against the numpy passes in
+passes over the samples, each a separate reduction; here they are one kernel, three
+short loops per row back to back (extremes, samples at them, sums), which LLVM vectorises. ``scripts/bench fdi`` measures both against the numpy passes in
 the same run (issue 17: a compiled kernel goes in only where it wins >= 2x on its stage).
 
 - :func:`screen_codes`: each row's screening verdict (valid, non-finite, out of range,
@@ -16,9 +16,10 @@ the same run (issue 17: a compiled kernel goes in only where it wins >= 2x on it
   non-finite, as numpy's NaN-propagating max and min say.
 - :func:`row_sums`: ``sum(x)``, ``sum(x * x)`` and ``sum(x * r)`` per row, accumulated
   in float64 whatever the input precision, each row's ``r`` read in place from the
-  reference table. Only these sums may be reassociated
-  (``fastmath={"reassoc", "contract"}``): no flag assumes finite values, so a NaN or Inf
-  sample still propagates, and the screening's comparisons are exact.
+  reference table. The kernel is compiled with ``fastmath={"reassoc", "contract"}`` for
+  these sums: no flag assumes finite values, so a NaN or Inf sample still propagates; the
+  screening is integer and comparison work plus one ``max - min <= flat_tol`` per row,
+  which neither flag changes.
 - :func:`screen_and_row_sums`: both for the same rows from one kernel (both functions above
   are it), each row's loops back to back, so a row comes from memory once and its later
   loops read it from cache. The labeller calls it once per frame into its batch's arrays:
@@ -482,7 +483,7 @@ def screen_and_row_sums(x, flat_tol, max_abs_v, clip_run, ref, pos, out=None):
     pos = np.asarray(pos)
     if (ref.dtype not in (np.float32, np.float64) or ref.ndim != 2 or ref.shape[1] != m
             or pos.shape != (n,) or pos.dtype != np.int64):
-        raise ValueError(f"row_sums takes float rows (n, m), references (n_ref, m) and int64 positions (n,), got "
+        raise ValueError(f"the gate's row sums take float rows (n, m), references (n_ref, m) and int64 positions (n,), got "
                          f"{x.dtype} {x.shape}, {ref.dtype} {ref.shape} and {pos.dtype} {pos.shape}")
     if n and pos.max() >= ref.shape[0]:
         raise ValueError(f"row_sums: positions must be in [0, {ref.shape[0]}), got up to {pos.max()}")

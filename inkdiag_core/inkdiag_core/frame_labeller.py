@@ -7,7 +7,7 @@ that say whether a detector and a baselines file go together, so a node only
 reports :class:`LabellerConfigError`, and it validates each frame once:
 
 1. each frame's shape (per frame: a bad one is a :class:`FrameFailure`, the others go on);
-2. one screening of every row (:func:`inkdiag_core.screen_traces`, ``max_abs_v``);
+2. a screening of every row (:func:`inkdiag_core.screen_traces`'s verdicts, ``max_abs_v``);
 3. when the baselines carry reference traces, the healthy gate
    (:class:`inkdiag_core.HealthyGate`): valid rows that match their nozzle's healthy
    reference are labelled ``healthy_nozzle`` or ``ok_signal`` at once (confidence 1.0,
@@ -96,7 +96,7 @@ class FrameLabeller:
     Raises
     ------
     LabellerConfigError
-        Not a fitted FaultDetector; a detector built for another head than
+        A ``max_abs_v`` that is not positive; not a fitted FaultDetector; a detector built for another head than
         ``profile``; its sample rate or trace length differ from
         ``sample_rate_hz`` / ``n_samples``; the baselines' differ; or baselines with
         nozzles were given to a detector without a baseline branch.
@@ -146,7 +146,10 @@ class FrameLabeller:
         self.sample_rate_hz = want_fs
         self.profile = profile
         self.max_abs_v = None if max_abs_v is None else float(max_abs_v)
-        self._screening = screening_settings(max_abs_v=self.max_abs_v, sample_rate_hz=want_fs)
+        try:  # (flat_tol, max_abs_v, clip_run): what every frame is screened with, float or not
+            self._screening = screening_settings(max_abs_v=self.max_abs_v, sample_rate_hz=want_fs)
+        except ValueError as exc:
+            raise LabellerConfigError(str(exc)) from None
         _warm_up_kernels()
 
     def __setstate__(self, state):  # unpickled in the labelling process's child: its kernels too
@@ -169,7 +172,8 @@ class FrameLabeller:
         return self.gate is not None
 
     def label(self, frames, first_nozzles, *, nozzles=None) -> list:
-        """Label a batch of frames: one screening and one detector call, each frame isolated.
+        """Label a batch of frames: each frame screened and gated by one kernel call, one detector call
+        for the rows left, each frame isolated.
 
         Parameters
         ----------
@@ -250,7 +254,9 @@ class FrameLabeller:
             valid, reasons = verdicts(code)
         else:  # ADC counts or other dtypes: screen_traces' numpy passes
             x = np.concatenate(arrays) if len(arrays) > 1 else arrays[0]
-            valid, reasons = screen_traces(x, max_abs_v=self.max_abs_v, sample_rate_hz=self.sample_rate_hz)
+            flat_tol, max_abs, clip_run = self._screening
+            valid, reasons = screen_traces(x, flat_tol=flat_tol, clip_run=clip_run,
+                                           max_abs_v=None if max_abs == np.inf else max_abs)
         classes = np.full(n, "", dtype=object)
         confidence = np.full(n, np.nan)
         with_base = np.zeros(n, dtype=bool)

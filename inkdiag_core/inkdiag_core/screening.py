@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-__all__ = ["CLIP_S", "INVALID_REASONS", "clip_run_samples", "screen_traces"]
+__all__ = ["CLIP_S", "INVALID_REASONS", "clip_run_samples", "screen_traces", "screening_settings", "verdicts"]
 
 #: Shortest plateau at a row's extreme that reads as ADC clipping, s (5 samples at 10 MHz).
 CLIP_S = 0.5e-6

@@ -244,3 +244,9 @@ def test_frames_screened_and_gated_one_by_one_label_as_the_stacked_batch(detecto
     assert g.cleared.sum() > 50 and (~g.cleared).sum() > 20  # both paths taken
     where = {int(i): r for i, r in zip(ids, cat["reasons"]) if r}
     assert where == {FIRST + 7: "non_finite", FIRST + 30: "flat", FIRST + 64: "clipped"}
+
+
+@pytest.mark.parametrize("max_abs_v", [0.0, -1.0, float("nan")])
+def test_a_max_abs_v_that_is_not_positive_is_a_config_error(detector, max_abs_v):
+    with pytest.raises(LabellerConfigError, match="max_abs_v must be > 0 V"):
+        FrameLabeller(detector, max_abs_v=max_abs_v)
