@@ -13,11 +13,15 @@ from .errors import MessageError
 JSON_SCHEMA_VERSION = 1
 
 
+#: One encoder for every message (``json.dumps`` with these options builds a new one per call).
+_encode = json.JSONEncoder(separators=(",", ":"), allow_nan=False).encode
+
+
 def dump(schema: str, body: dict) -> String:
     """``std_msgs/String`` holding ``{"schema": ..., "schema_version": ..., **body}``."""
     doc = {"schema": schema, "schema_version": JSON_SCHEMA_VERSION}
     doc.update(body)
-    return String(data=json.dumps(doc, separators=(",", ":"), allow_nan=False))
+    return String(data=_encode(doc))
 
 
 def load(msg, schema: str) -> dict:

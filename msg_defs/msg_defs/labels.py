@@ -70,6 +70,7 @@ UNKNOWN_CLASS = "unknown"
 DRIED_CLASSES = ("slightly_dried", "intermediately_dried", "deeply_dried")
 #: Key of the invalid-row count in ``counts``.
 INVALID_KEY = "invalid"
+_HEALTHY = frozenset(HEALTHY_CLASSES)
 
 
 @dataclass(frozen=True)
@@ -126,20 +127,27 @@ class LabelsReport:
                 f"labels: classes, confidence, valid and reasons must all have shape ({n},), got "
                 f"{classes.shape}, {np.shape(confidence)}, {valid.shape}, {np.shape(reasons)}"
             )
-        # Object-array comparisons and Counter instead of np.unique / np.isin on strings,
-        # which sort and convert: this runs for every published frame.
-        ids = np.arange(first_nozzle, first_nozzle + n)
-        by_class = Counter(classes[valid].tolist())
+        # One list of the classes, a Counter and a set test per row instead of np.unique / np.isin on
+        # strings, which sort and convert: this runs for every published frame.
+        cl = classes.tolist()
+        n_valid = int(np.count_nonzero(valid))
+        if n_valid == n:
+            by_class = Counter(cl)
+            faulty = [i for i, c in enumerate(cl) if c not in _HEALTHY]
+        else:
+            ok = valid.tolist()
+            by_class = Counter(c for c, v in zip(cl, ok) if v)
+            faulty = [i for i, (c, v) in enumerate(zip(cl, ok)) if v and c not in _HEALTHY]
         counts = {str(c): by_class[c] for c in sorted(by_class)}
-        counts[INVALID_KEY] = int(n - np.count_nonzero(valid))
-        healthy = np.zeros(n, dtype=bool)
-        for value in HEALTHY_CLASSES:
-            healthy |= classes == value
-        faulty = valid & ~healthy
+        counts[INVALID_KEY] = n - n_valid
         conf = np.rint(np.asarray(confidence, dtype=float)[faulty] * 1e3) / 1e3  # np.round(., 3)
-        faults = tuple(zip(ids[faulty].tolist(), map(str, classes[faulty].tolist()), conf.tolist()))
+        f0 = int(first_nozzle)
+        faults = tuple(zip([f0 + i for i in faulty], [str(cl[i]) for i in faulty], conf.tolist()))
         bad = ~valid
-        invalid = tuple(zip(ids[bad].tolist(), map(str, np.asarray(reasons, dtype=object)[bad].tolist())))
+        invalid = ()
+        if n_valid < n:
+            ids = np.arange(f0, f0 + n)
+            invalid = tuple(zip(ids[bad].tolist(), map(str, np.asarray(reasons, dtype=object)[bad].tolist())))
         n_cleared = 0
         if gate_cleared is not None:
             g = np.asarray(gate_cleared, dtype=bool)
