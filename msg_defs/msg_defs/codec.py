@@ -44,6 +44,7 @@ import array
 import math
 import struct
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from std_msgs.msg import Float32MultiArray, MultiArrayDimension
@@ -265,13 +266,12 @@ def _decode(dims, data_offset, data, *, max_nozzle_id, n_samples, sample_rate_hz
         raise FrameError(
             f"expected {want} data values ({HEADER_LEN} header + {n} x {s}), got {data.size}"
         )
-    head = data[:HEADER_LEN].astype(np.float64)
+    head = data[:HEADER_LEN].tolist()  # 8 Python floats: checked without numpy's per-call cost
     if head[0] != SCHEMA_VERSION:
         raise FrameError(f"expected trace schema version {SCHEMA_VERSION}, got {head[0]:.10g}")
-    if not np.all(np.isfinite(head)) or np.any(head[[1, 2, 3, 5, 6, 7]] < 0) or np.any(
-        head[[1, 2, 3, 5, 6, 7]] != np.floor(head[[1, 2, 3, 5, 6, 7]])
-    ):
-        raise FrameError(f"header values must be non-negative integers, got {head.tolist()}")
+    counts = [head[k] for k in (1, 2, 3, 5, 6, 7)]
+    if not all(map(math.isfinite, head)) or any(v < 0 or v != math.floor(v) for v in counts):
+        raise FrameError(f"header values must be non-negative integers, got {head}")
     if not head[4] > 0:
         raise FrameError(f"expected a positive sample_rate_hz in the header, got {head[4]:.10g}")
     for k, name in ((2, "frame_lo"), (3, "frame_hi"), (5, "stamp_s_lo"), (6, "stamp_s_hi")):
@@ -302,8 +302,7 @@ def _decode(dims, data_offset, data, *, max_nozzle_id, n_samples, sample_rate_hz
     )
 
 
-@dataclass(frozen=True)
-class _Dim:
+class _Dim(NamedTuple):  # a NamedTuple: built twice per received frame, ~10x cheaper than a dataclass
     label: str
     size: int
     stride: int
@@ -311,6 +310,7 @@ class _Dim:
 
 # CDR encapsulation identifiers (first two bytes of a serialized message): plain CDR, big/little endian
 _CDR_BYTE_ORDER = {b"\x00\x00": ">", b"\x00\x01": "<"}
+_FLOAT32 = {order: np.dtype(np.float32).newbyteorder(order) for order in "<>"}
 
 
 def _read_cdr_traces(buf):
@@ -350,7 +350,7 @@ def _read_cdr_traces(buf):
     if pos + 4 * count > end:
         raise FrameError(f"serialized trace frame: {count} data values announced, "
                          f"{(end - pos) // 4} present")
-    data = np.frombuffer(buf, dtype=np.dtype(np.float32).newbyteorder(order), count=count, offset=pos)
+    data = np.frombuffer(buf, dtype=_FLOAT32[order], count=count, offset=pos)
     if order == ">":
         data = data.astype(np.float32)
     return dims, data_offset, data
