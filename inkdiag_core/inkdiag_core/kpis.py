@@ -184,7 +184,7 @@ def extract_kpis(traces, sample_rate_hz):
     return kpis_of_checked(y, fs)
 
 
-def kpis_of_checked(y, fs, dtype=None):
+def kpis_of_checked(y, fs):
     """:func:`extract_kpis` of traces its checks already passed: the same result, without them.
 
     For a hot path whose input was validated once at its boundary (the FDI detector's
@@ -198,9 +198,6 @@ def kpis_of_checked(y, fs, dtype=None):
         precision, float64 in double (as :func:`extract_kpis`); any memory layout.
     fs : float
         Sample rate, Hz, positive and finite.
-    dtype : float32 or float64, optional
-        Fit in this precision: the KPIs of ``y.astype(dtype)``, each chunk of traces cast
-        while it is in cache, not the whole array first. None: ``y``'s.
 
     Returns
     -------
@@ -212,8 +209,7 @@ def kpis_of_checked(y, fs, dtype=None):
     # Chunks of traces keep the spectra and the fit's temporaries in cache; every step is
     # per trace, so the chunking does not change any result.
     for i in range(0, n_traces, _CHUNK):
-        chunk = y[i : i + _CHUNK] if dtype is None else y[i : i + _CHUNK].astype(dtype, copy=False)
-        _extract_chunk(chunk, fs, out[i : i + _CHUNK])
+        _extract_chunk(y[i : i + _CHUNK], fs, out[i : i + _CHUNK])
     return out
 
 
