@@ -455,8 +455,9 @@ def finite_rows_proba(pipeline, X, *, return_features=False, checked=False, feat
     (for the open-set layer of :class:`inkdiag_core.FaultDetector`). ``checked=True``:
     ``X`` is a finite float32/float64 ndarray of the pipeline's input width, validated by
     the caller; a feature step of inkdiag's own then skips scikit-learn's input checks
-    (the same features: they cost about as much as the KPIs of a few traces). ``features``: the
-    feature rows of ``X``, computed by the caller (``X`` itself is then not used).
+    (the same features: they cost about as much as the KPIs of a few traces). ``features``: for a
+    Pipeline of more than one step, the feature rows of ``X`` computed by the caller (``X`` itself is
+    then not used); ignored for a bare estimator.
 
     Returns
     -------

@@ -110,8 +110,9 @@ class BaselineKpis(TransformerMixin, BaseEstimator):
         rows of float32 traces and float64 baselines are float64 (:meth:`_transform_checked` of
         :func:`with_baseline`). The relative features are computed in float64 either way. On
         float32 traces of every class (14,400 rows, 6 seeds, the default detector) not one class
-        or confidence differs from the stacked rows' (a scratch check, 2026-11-26); float64
-        traces give the stacked rows' features bit for bit (tests).
+        or confidence differs from the stacked rows' (a scratch check, 2026-11-26; the open-set
+        layer's unknown score moved on 16 of them, none across its threshold); float64 traces give
+        the stacked rows' features bit for bit (tests).
         """
         k = kpis_of_checked(traces, float(self.sample_rate_hz))
         b = np.asarray(baseline).astype(np.float64)
