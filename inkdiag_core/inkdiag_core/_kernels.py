@@ -4,8 +4,8 @@ Every row of every frame is screened (:func:`inkdiag_core.screen_traces`: its ex
 and how many samples sit at them) and, where its nozzle has a healthy reference, fitted
 to it (:class:`inkdiag_core.HealthyGate`: three row sums). In numpy these are seven
 passes over the samples, each a separate reduction; here they are one kernel, three
-short loops per row back to back (extremes, samples at them, sums), which LLVM vectorises. ``scripts/bench fdi`` measures both against the numpy passes in
-the same run (issue 17: a compiled kernel goes in only where it wins >= 2x on its stage).
+short loops per row back to back (extremes, samples at them, sums), which LLVM vectorises.
+``scripts/bench fdi`` measures both against the numpy passes in the same run (issue 17: a compiled kernel goes in only where it wins >= 2x on its stage).
 
 - :func:`screen_codes`: each row's screening verdict (valid, non-finite, out of range,
   flat, clipped), exact: the same as numpy's ``max``/``min`` passes and the comparisons
@@ -443,8 +443,9 @@ def row_sums(x, ref, pos):
     ValueError
         Other dtypes or shapes, or a ``pos`` outside ``ref``.
     """
-    if np.asarray(pos).size and np.min(pos) < 0:
-        raise ValueError(f"row_sums: positions must be in [0, {ref.shape[0]}), got {np.min(pos)}..{np.max(pos)}")
+    p = np.asarray(pos)
+    if p.size and (p.min() < 0 or p.max() >= len(ref)):
+        raise ValueError(f"row_sums: positions must be in [0, {len(ref)}), got {p.min()}..{p.max()}")
     return screen_and_row_sums(x, None, None, None, ref, pos)[1:]
 
 
@@ -472,7 +473,7 @@ def screen_and_row_sums(x, flat_tol, max_abs_v, clip_run, ref, pos, out=None):
     Raises
     ------
     ValueError
-        Other dtypes or shapes, or a position beyond ``ref``.
+        Other dtypes or shapes, or a position outside ``[-1, n_ref)``.
     """
     if x.dtype not in (np.float32, np.float64) or x.ndim != 2 or x.shape[1] == 0:
         raise ValueError(f"the screening and gate kernels take (n, m >= 1) float32 or float64 rows, "
@@ -485,8 +486,9 @@ def screen_and_row_sums(x, flat_tol, max_abs_v, clip_run, ref, pos, out=None):
             or pos.shape != (n,) or pos.dtype != np.int64):
         raise ValueError(f"the gate's row sums take float rows (n, m), references (n_ref, m) and int64 positions (n,), got "
                          f"{x.dtype} {x.shape}, {ref.dtype} {ref.shape} and {pos.dtype} {pos.shape}")
-    if n and pos.max() >= ref.shape[0]:
-        raise ValueError(f"row_sums: positions must be in [0, {ref.shape[0]}), got up to {pos.max()}")
+    if n and (pos.min() < -1 or pos.max() >= ref.shape[0]):
+        raise ValueError(f"the gate's row sums: positions must be in [-1, {ref.shape[0]}) (-1: no reference), "
+                         f"got {pos.min()}..{pos.max()}")
     code, x1, xx, xr = out if out is not None else (np.empty(n, np.uint8), np.empty(n), np.empty(n), np.empty(n))
     if n:
         screen = clip_run is not None

@@ -108,6 +108,12 @@ def test_row_sums_are_the_float64_sums_and_propagate_non_finite_samples():
         _kernels.row_sums(np.zeros((2, 3), np.float32), np.zeros((2, 3), np.float32), np.zeros(3, np.int64))
     with pytest.raises(ValueError, match=r"positions must be in \[0, 2\)"):
         _kernels.row_sums(np.zeros((2, 3), np.float32), np.zeros((2, 3), np.float32), np.array([0, 2]))
+    # the labeller's call: -1 is a row without a reference (NaN sums), anything below is an error
+    x = np.ones((2, 3), np.float32)
+    _, x1, xx, xr = _kernels.screen_and_row_sums(x, None, None, None, np.ones((2, 3), np.float32), np.array([-1, 1]))
+    assert np.isnan([x1[0], xx[0], xr[0]]).all() and (x1[1], xx[1], xr[1]) == (3.0, 3.0, 3.0)
+    with pytest.raises(ValueError, match=r"positions must be in \[-1, 2\)"):
+        _kernels.screen_and_row_sums(x, None, None, None, np.ones((2, 3), np.float32), np.array([-2, 0]))
 
 
 def test_gate_clears_the_same_rows_with_the_kernel_as_with_numpy_passes(monkeypatch):
