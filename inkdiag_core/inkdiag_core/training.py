@@ -163,7 +163,10 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
         profile's draws vary what its healthy traces hardly pin (the restrictor against the
         actuator compliance): on the heads of ``tests/foreign_head.py`` 8 draws took the
         known classes called ``unknown`` from up to 5.5 % to at most 0.5 % and cost 0.7-2.2
-        points of FI (``scripts/report heads`` with 8 instead of 1, 2026-11-24).
+        points of FI (``scripts/report heads`` with 8 instead of 1, 2026-11-24), but partially
+        blocked fell to 46.5-74.5 % (74.0-96.5 % with 1; h20, h16, h12, seeds 0, 7, 11,
+        2026-11-26): the draws span the posterior's width, near the prior's, wider than the
+        fit's own error there (``docs/calibration.md``).
     progress : callable(step: int, total: int, message: str), optional
         Called after each stage.
     return_data : bool

@@ -248,7 +248,7 @@ def run_head(name, work, *, per_class, n_per_class, seed, log, posterior_draws=1
     return out
 
 
-def run_seed(name, work, *, per_class, n_per_class, seed, log):
+def run_seed(name, work, *, per_class, n_per_class, seed, log, posterior_draws=1):
     """The calibrated workflow alone (calibrate, train, label) on recordings and training of ``seed``."""
     d = work / f"{name}_seed{seed}"
     d.mkdir(parents=True, exist_ok=True)
@@ -264,7 +264,8 @@ def run_seed(name, work, *, per_class, n_per_class, seed, log):
         tag = kind.replace("calibrated + ", "calibrated_")
         _inkdiag("calibrate", d / "healthy.npz", "--nominal", d / "nominal.yaml", *extra, "--out", d / f"{tag}.yaml",
                  log=log)
-        train_args = ["train", "--profile", d / f"{tag}.yaml", "--out", d / f"{tag}.joblib", "--seed", seed]
+        train_args = ["train", "--profile", d / f"{tag}.yaml", "--out", d / f"{tag}.joblib", "--seed", seed,
+                      "--posterior-draws", posterior_draws]
         if n_per_class:
             train_args += ["--n-per-class", n_per_class]
         _inkdiag(*train_args, log=log)
@@ -316,7 +317,8 @@ def main(argv=None) -> int:
                                      posterior_draws=args.posterior_draws,
                                      seed=args.seed, log=log)
             results[name]["seeds"] = {s: run_seed(name, work, per_class=args.per_class, n_per_class=args.n_per_class,
-                                                  seed=s, log=log) for s in args.other_seeds}
+                                                  posterior_draws=args.posterior_draws, seed=s, log=log)
+                                        for s in args.other_seeds}
     finally:
         if args.keep:
             dest = out_path("heads_work")

@@ -67,8 +67,9 @@ def add_arguments(parser) -> None:
                         "(conformal, per class; default: %(default)s; 0: no layer, never 'unknown')")
     parser.add_argument("--posterior-draws", type=int, default=1, metavar="K",
                         help="spread the simulated traces over K draws of what calibration left uncertain (the "
-                        "restrictor against the actuator compliance): steadier on a head unlike its calibrated "
-                        "model, a little less sharp (default: %(default)s, the calibrated profile alone)")
+                        "restrictor against the actuator compliance): fewer known traces called 'unknown' on a head "
+                        "unlike its calibrated model, but the classes that restrictor separates (partially blocked "
+                        "against dried) blur: see docs/cli.md (default: %(default)s, the calibrated profile alone)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
