@@ -141,6 +141,24 @@ def test_a_fit_the_nominal_channel_cannot_make_says_why(recorded):
         calibrate(nominal, recorded.traces[:40], TRUE.sample_rate_hz)
 
 
+def test_a_fit_that_needs_a_restrictor_far_from_the_design_ratios_is_refused(recorded):
+    # a nozzle of another size fits the mode with a restrictor inertance the prior would never give, and
+    # dried nozzles' traces given as healthy ones with a restrictor that damps them: each fits the mean
+    # trace well, so only the restrictor says so
+    wrong = nominal_of(TRUE).replace(channel={"r_n": 30e-6, "L_n": 20e-6})
+    with pytest.raises(CalibrationError, match="fit only with a restrictor of an inertance 0.[0-9]+ times the "
+                                               "nozzle's \\(beyond a factor 2.5 of the design ratio 1.03\\)"):
+        calibrate(wrong, recorded.traces[:100], TRUE.sample_rate_hz)
+    for cls in ("slightly_dried", "deeply_dried", "partially_blocked"):
+        faulty = TRUE.simulate({cls: 100}, seed=4)
+        with pytest.raises(CalibrationError, match="damping ratio 0.[12][0-9]+\\) fit only .*a resistance [0-9.]+ "
+                                                   "times the nozzle's \\(above 4 times .*are the traces healthy"):
+            calibrate(nominal_of(TRUE), faulty.traces, TRUE.sample_rate_hz)
+    # the healthy traces fit within both (the restrictor's resistance near the true one)
+    p = calibrate(nominal_of(TRUE), recorded.traces[:100], TRUE.sample_rate_hz).report["identifiability"]["parameters"]
+    assert 0.5 < p["I_r"]["ratio_to_I_n"] < 2.0 and p["R_r"]["ratio_to_R_n"] < 1.0
+
+
 def test_physical_spreads_follow_the_recordings_spread(result):
     """A head with twice the geometry tolerances and half the temperature spread is fitted so."""
     base = TRUE.spreads()

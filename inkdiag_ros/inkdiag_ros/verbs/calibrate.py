@@ -169,6 +169,7 @@ def extra_outputs(args) -> list:
 def run(args) -> int:
     import itertools
     import json
+    import math
     import sys
     from pathlib import Path
 
@@ -246,7 +247,9 @@ def run(args) -> int:
         ir = report["identifiability"]["parameters"]["I_r"]
         if ir["determined_by"] != "data":
             print(f"inkdiag calibrate: note: the restrictor's share of the channel's inertance (I_r = "
-                  f"{ir['ratio_to_I_n']:.2f} I_n) is set by the {ir['determined_by']}: healthy traces pin it weakly, "
+                  f"{ir['ratio_to_I_n']:.2f} I_n) is set by the {ir['determined_by']} (its centre: the design ratio "
+                  f"{report['prior']['I_r/I_n']} I_n, within a factor {math.exp(report['prior']['sd_log']):.2f}): "
+                  "healthy traces pin it weakly, "
                   "and it decides where partially blocked and dried nozzles ring. 50 traces of fully blocked nozzles "
                   "(--blocked BLOCKED.npz) pin it from the data (reports/restrictor.md measures both ways)",
                   file=sys.stdout)
