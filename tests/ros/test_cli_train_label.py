@@ -111,7 +111,7 @@ def test_label_uses_each_rows_nozzle_baseline(work, tmp_path, capsys):
     _, rows = _read(tmp_path / "l.csv")
     assert [r["baseline"] for r in rows] == ["1", "0", "1", "0", "1", "0"]
     # rows of nozzles without a baseline are said (a nozzle column that does not match is not silent)
-    assert "3 against their nozzle's baseline, 3 without one" in capsys.readouterr().err
+    assert "3 against their nozzle's baseline, 3 without one" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize(("argv", "match"), [
@@ -219,8 +219,9 @@ def test_a_recording_in_millivolts_is_labelled_invalid_with_a_hint_about_units(w
     d, head, sim = work
     save_recording(tmp_path / "mv.npz", Recording.from_arrays(sim.traces[:20] * 1e3, head.sample_rate_hz))
     assert main(["label", str(tmp_path / "mv.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "l.csv")]) == 0
-    err = capsys.readouterr().err
-    assert "20 invalid" in err and "are the traces in volts (not millivolts or ADC counts)?" in err
+    cap = capsys.readouterr()  # the summary line on stdout (the CSV went to a file), the hint on stderr
+    assert cap.out.startswith("inkdiag label: labelled 0 of 20 rows") and "20 invalid" in cap.out
+    assert "are the traces in volts (not millivolts or ADC counts)?" in cap.err
     _, rows = _read(tmp_path / "l.csv")
     assert {r["reason"] for r in rows} == {"out_of_range"}
     # a recording with one such row is not told about units
@@ -254,8 +255,8 @@ def test_another_heads_recording_of_the_same_sampling_is_labelled_with_a_warning
     own[:20, 3] = np.nan
     save_recording(tmp_path / "bad.npz", Recording.from_arrays(own, head.sample_rate_hz))
     assert main(["label", str(tmp_path / "bad.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "b.csv")]) == 0
-    err = capsys.readouterr().err
-    assert "20 invalid" in err and "a working head" not in err
+    cap = capsys.readouterr()
+    assert "20 invalid" in cap.out and "a working head" not in cap.err
 
 
 def test_label_csv_says_unknown_for_a_trace_unlike_every_class(work, tmp_path, capsys):

@@ -145,7 +145,7 @@ def run(args) -> int:
     from inkdiag_core import FrameLabeller, LabellerConfigError, NozzleBaselines, load_detector
     from inkdiag_core.head_profile import HeadProfile
     from ..bags import report_stats, stream_recording
-    from . import NO_BASELINE_HINT, open_csv_out
+    from . import NO_BASELINE_HINT, open_csv_out, summary_stream
 
     detector = load_detector(args.model)  # ModelFileError (a ValueError): missing, tampered, other versions
     head = detector.profile if detector.profile is not None else HeadProfile.default()
@@ -186,9 +186,9 @@ def run(args) -> int:
         n_plain = n_rows - n_invalid - n_base
         against = (f"; {n_base} against their nozzle's baseline, {n_plain} without one ({NO_BASELINE_HINT})"
                    if n_plain else f"; all {n_base} against their nozzle's baseline")
-    print(f"labelled {n_rows - n_invalid} of {n_rows} rows with {detector.model_id} (head {head.name!r}); "
-          f"{n_invalid} invalid" + (f", {n_failed} in frames whose labelling failed" if n_failed else "") + against
-          + (f"; wrote {args.out}" if args.out != "-" else ""), file=sys.stderr)
+    print(f"inkdiag label: labelled {n_rows - n_invalid} of {n_rows} rows with {detector.model_id} (head "
+          f"{head.name!r}); {n_invalid} invalid" + (f", {n_failed} in frames whose labelling failed" if n_failed else "")
+          + against + (f"; wrote {args.out}" if args.out != "-" else ""), file=summary_stream(args.out))
     if n_rows and n_out_of_range >= n_rows / 2:  # a recording in other units, not a head whose sensor broke
         print(f"{n_out_of_range} of {n_rows} rows have a sample beyond {max_abs_v:g} V, more than the head's sensor "
               "can produce: "
