@@ -331,14 +331,14 @@ def _blocked_measurement(nominal, blocked, sample_rate_hz, f_healthy, healthy_sp
     return f_med, max(se, BLOCKED_MODE_FLOOR * f_med), int(f.size), z_med
 
 
-def _check_restrictor_plausible(known, theta, f_hz, damping, *, blocked):
-    """Refuse a fitted restrictor far from the design ratios: its inertance beyond a factor
-    :data:`HEALTHY_MAX_RATIO` (unless blocked traces measured it: :func:`_check_blocked_fit`), its resistance
-    above :data:`HEALTHY_MAX_LOSS` times the design's. Either is the data fighting the prior: a nominal
-    channel that is not the head's, or traces that are not healthy nozzles'."""
+def _check_restrictor_plausible(known, theta, f_hz, damping):
+    """Refuse a restrictor fitted to healthy traces alone far from the design ratios: its inertance
+    beyond a factor :data:`HEALTHY_MAX_RATIO`, its resistance above :data:`HEALTHY_MAX_LOSS` times the
+    design's. Either is the data fighting the prior: a nominal channel that is not the head's, or traces
+    that are not healthy nozzles'. (Blocked traces measure the restrictor: :func:`_check_blocked_fit`.)"""
     ratio, loss = math.exp(theta[1]) / known.I_n, math.exp(theta[2]) / known.R_n
     far = []
-    if not blocked and abs(math.log(ratio / PRIOR_RATIOS["I_r/I_n"])) > math.log(HEALTHY_MAX_RATIO):
+    if abs(math.log(ratio / PRIOR_RATIOS["I_r/I_n"])) > math.log(HEALTHY_MAX_RATIO):
         far.append(f"an inertance {ratio:.2f} times the nozzle's (beyond a factor {HEALTHY_MAX_RATIO:g} of the design "
                    f"ratio {PRIOR_RATIOS['I_r/I_n']})")
     if loss > HEALTHY_MAX_LOSS * PRIOR_RATIOS["R_r/R_n"]:
@@ -347,9 +347,10 @@ def _check_restrictor_plausible(known, theta, f_hz, damping, *, blocked):
     if far:
         raise CalibrationError(
             f"cannot calibrate: the traces (mode {f_hz / 1e3:.1f} kHz, damping ratio {damping:.3f}) fit only with a "
-            f"restrictor of {' and '.join(far)}: is the nominal channel this head's (r_n, L_n, V_ch, c, rho, mu in SI "
-            "units), and are the traces healthy nozzles fired with its drive (dried or partially blocked nozzles ring "
-            "damped)? A head built with such a restrictor: give channel.r_r and channel.L_r in the nominal profile")
+            f"restrictor of {' and '.join(far)}: is the nominal channel this head's (r_n, L_n, V_ch, c, rho in SI "
+            "units, mu the ink's viscosity at the head's temperature, Pa s), and are the traces healthy nozzles fired "
+            "with its drive (dried or partially blocked nozzles ring damped)? A head built with such a restrictor: "
+            "give channel.r_r and channel.L_r in the nominal profile")
 
 
 def _check_blocked_fit(fb, known, theta, fixed_restrictor):
@@ -484,8 +485,9 @@ HEALTHY_MAX_RATIO = 2.5
 (:data:`PRIOR_RATIOS`, 4.1 of the prior's standard deviations) before calibration refuses: the prior holds it
 within about 1.7 on every head of ``tests/foreign_head.py`` (fitted 0.61-1.52 times ``I_n``,
 ``reports/restrictor.md``), so a fit beyond is the data fighting the prior. A nominal nozzle of the wrong size
-(radius x length 30 x 20 um given for 12 x 55 um: 0.26) and one head's deeply dried nozzles' traces given as
-healthy (3.3) did that while their mean trace fitted to 0.6 and 8 % RMS (2026-11-26)."""
+(radius x length 30 x 20 um given for the 11 x 45 um of ``tests/core/test_calibration.py``: 0.19), a nominal
+``mu`` 1.4 times the ink's (h20: 0.30) and one head's deeply dried nozzles' traces given as healthy (3.3) did
+that, the first and last while their mean trace fitted to 0.6 and 8 % RMS (2026-11-26)."""
 HEALTHY_MAX_LOSS = 4.0
 """Factor above the design ratio ``R_r / R_n`` (:data:`PRIOR_RATIOS`) the restrictor resistance fitted to
 healthy traces alone may reach before calibration refuses: traces damped more than the nominal nozzle and
@@ -649,8 +651,8 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
                f"damping {z_fit:.3f}): the traces are not what the nominal channel and drive give")
         raise CalibrationError(f"cannot calibrate: {why}")
     fb_fit = None if fb is None else _check_blocked_fit(fb, known, theta, fixed_restrictor)
-    if not fixed_restrictor:
-        _check_restrictor_plausible(known, theta, f_rec, float(kp_mean[2]), blocked=fb is not None)
+    if fb is None and not fixed_restrictor:
+        _check_restrictor_plausible(known, theta, f_rec, float(kp_mean[2]))
 
     # -- identifiability --------------------------------------------------------------------
     m = mean.size  # the data rows at the misfit's own scale; the blocked mode and the prior after them

@@ -28,7 +28,11 @@ Traces screening refuses (non-finite, out of range, flat, clipped) are dropped a
 column, only its healthy_nozzle rows are used. See docs/calibration.md.
 
 Healthy traces pin the healthy mode, not how the restrictor and the nozzle share it
-(the prior does, within +-12 % on the heads of reports/heads.md). --blocked gives
+(the prior does, within +-12 % on the heads of reports/heads.md). A fit that needs a
+restrictor far from the design ratios (an inertance beyond a factor 2.5 of 1.03 I_n, a
+resistance above 4 times R_n / 2) is refused: a nominal channel that is not the head's
+(a nozzle of the wrong size, mu not the ink's at the head's temperature) or traces that
+are not healthy nozzles' (dried ones ring damped) fit so. --blocked gives
 traces of fully blocked nozzles of the head (an .npz of at least 10; with a label
 column, its fully_blocked rows): their ringing is the restrictor with the chamber alone,
 and the fit matches their median mode too, which pins the split (within 3.6 % from 50
@@ -247,8 +251,9 @@ def run(args) -> int:
         ir = report["identifiability"]["parameters"]["I_r"]
         if ir["determined_by"] != "data":
             print(f"inkdiag calibrate: note: the restrictor's share of the channel's inertance (I_r = "
-                  f"{ir['ratio_to_I_n']:.2f} I_n) is set by the {ir['determined_by']} (its centre: the design ratio "
-                  f"{report['prior']['I_r/I_n']} I_n, within a factor {math.exp(report['prior']['sd_log']):.2f}): "
+                  f"{ir['ratio_to_I_n']:.2f} I_n) is set by the {ir['determined_by']} (centred on the design ratio "
+                  f"{report['prior']['I_r/I_n']} I_n, one standard deviation a factor "
+                  f"{math.exp(report['prior']['sd_log']):.2f}): "
                   "healthy traces pin it weakly, "
                   "and it decides where partially blocked and dried nozzles ring. 50 traces of fully blocked nozzles "
                   "(--blocked BLOCKED.npz) pin it from the data (reports/restrictor.md measures both ways)",
