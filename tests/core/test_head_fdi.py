@@ -243,3 +243,33 @@ def test_training_with_recorded_rows_weighs_each_recorded_class_as_its_simulated
     with pytest.raises(ProfileError, match="Hz"):
         train_detector(head, n_per_class=8, data=Recording.from_arrays(
             rec_sim.traces, 10e6, label=rec_sim.label_values()))
+
+
+def test_the_default_training_size_and_its_leaves():
+    """inkdiag train's default is training.N_PER_CLASS; the forest's leaves scale with the rows (3 per 1,000)."""
+    import argparse
+
+    from inkdiag_core.training import N_PER_CLASS, leaf_size
+    from inkdiag_ros.verbs import train as train_verb
+
+    parser = argparse.ArgumentParser()
+    train_verb.add_arguments(parser)
+    assert parser.get_default("n_per_class") == N_PER_CLASS == 5000 and leaf_size(N_PER_CLASS) == 15
+    assert [leaf_size(n) for n in (8, 400, 1000, 1166, 1167, 3000)] == [3, 3, 3, 3, 4, 9]
+    det, info = train_detector(HeadProfile.default(), n_per_class=2000, seed=1, unknown_rate=None, n_estimators=2)
+    assert det.min_samples_leaf == 6 and info["n_per_class"] == 2000
+    det, _ = train_detector(HeadProfile.default(), n_per_class=2000, seed=1, unknown_rate=None, n_estimators=2,
+                            min_samples_leaf=3)  # given: kept
+    assert det.min_samples_leaf == 3
+
+
+def test_twin_frames_in_chunks_are_the_same_numbers():
+    from inkdiag_core.simulation import healthy_twin_chunks, healthy_twin_frames
+
+    kw = dict(seed=5, n_frames=3, noise_std_v=0.01, sample_rate_hz=10e6, n_samples=128)
+    _, whole = healthy_twin_frames(11, **kw)
+    parts = list(healthy_twin_chunks(11, chunk_rows=4, **kw))
+    assert [a for a, _ in parts] == [0, 4, 8]
+    np.testing.assert_array_equal(np.concatenate([f for _, f in parts]), whole)
+    with pytest.raises(ValueError, match="chunk_rows must be an integer >= 1"):
+        next(healthy_twin_chunks(11, chunk_rows=0, **kw))

@@ -12,7 +12,7 @@ module          contents
 ``result``      :class:`SimulationResult`
 ``linear``      :func:`simulate`, :func:`simulate_nozzles`
 ``nonlinear``   :func:`simulate_nonlinear`, :class:`NonlinearTerms`
-``datasets``    :func:`healthy_twin_frames`
+``datasets``    :func:`healthy_twin_frames`, :func:`healthy_twin_chunks`
 ``heldout``     held-out fault conditions, evaluation only: :func:`simulate_heldout`
 ``scenario``    a simulated head's faults over time: :class:`HeadScenario`,
                 :func:`simulate_head`
@@ -31,7 +31,7 @@ from .channels import (
     draw_channels,
     observable_A,
 )
-from .datasets import healthy_twin_frames
+from .datasets import healthy_twin_chunks, healthy_twin_frames
 from .heldout import HELDOUT_CONDITIONS, HeldoutTraces, simulate_heldout
 from .inputs import check_counts, check_positive_float, check_positive_int, check_severity, prepare_run
 from .linear import simulate, simulate_nozzles
@@ -50,6 +50,7 @@ __all__ = [
     "bubble_compliance",
     "draw_channels",
     "observable_A",
+    "healthy_twin_chunks",
     "healthy_twin_frames",
     "HELDOUT_CONDITIONS",
     "HeldoutTraces",

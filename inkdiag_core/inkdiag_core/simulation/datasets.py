@@ -10,7 +10,7 @@ from ..faults import FaultClass
 from .channels import Spreads
 from .linear import simulate
 
-__all__ = ["healthy_twin_frames"]
+__all__ = ["healthy_twin_chunks", "healthy_twin_frames"]
 
 
 def healthy_twin_frames(n_traces: int, *, seed, n_frames: int, noise_std_v: float,
@@ -51,6 +51,49 @@ def healthy_twin_frames(n_traces: int, *, seed, n_frames: int, noise_std_v: floa
     frames : ndarray of float32, shape (n_traces, n_frames, n_samples)
         Noisy healthy frames, V.
     """
+    twins = _twins(n_traces, seed, n_frames, noise_std_v, spreads, simulate_fn, kwargs)
+    shape = (int(n_traces), int(n_frames), twins.traces.shape[1])
+    noise = np.random.default_rng([int(seed), 7]).standard_normal(shape)
+    frames = (twins.traces[:, None, :] + noise_std_v * noise).astype(np.float32)
+    return twins, frames
+
+
+def healthy_twin_chunks(n_traces: int, *, seed, n_frames: int, noise_std_v: float, spreads: Spreads | None = None,
+                        simulate_fn=None, chunk_rows: int = 2048, **kwargs):
+    """:func:`healthy_twin_frames`' frames a block of rows at a time: the same numbers, in bounded memory.
+
+    Every frame of every row at once is ``n_traces x n_frames x n_samples`` float64 noise
+    (60,000 rows of 8 frames of 1,024 samples: 3.9 GB); this draws the same noise stream
+    block by block (a generator fills its draws in order), so a block's frames equal those
+    rows of :func:`healthy_twin_frames`' bit for bit.
+
+    Parameters
+    ----------
+    n_traces, seed, n_frames, noise_std_v, spreads, simulate_fn, **kwargs
+        As :func:`healthy_twin_frames`.
+    chunk_rows : int
+        Rows per block, >= 1.
+
+    Yields
+    ------
+    start : int
+        The block's first row.
+    frames : ndarray of float32, shape (k, n_frames, n_samples)
+        Noisy healthy frames of rows ``start .. start + k - 1``, V.
+    """
+    if isinstance(chunk_rows, bool) or not isinstance(chunk_rows, (int, np.integer)) or chunk_rows < 1:
+        raise ValueError(f"chunk_rows must be an integer >= 1, got {chunk_rows!r}")
+    twins = _twins(n_traces, seed, n_frames, noise_std_v, spreads, simulate_fn, kwargs)
+    rng = np.random.default_rng([int(seed), 7])
+    n, n_samples = twins.traces.shape
+    for a in range(0, n, int(chunk_rows)):
+        b = min(a + int(chunk_rows), n)
+        noise = rng.standard_normal((b - a, int(n_frames), n_samples))
+        yield a, (twins.traces[a:b, None, :] + noise_std_v * noise).astype(np.float32)
+
+
+def _twins(n_traces, seed, n_frames, noise_std_v, spreads, simulate_fn, kwargs):
+    """The noise-free healthy twins of :func:`healthy_twin_frames`, its arguments checked."""
     if n_frames < 1:
         raise ValueError(f"n_frames must be >= 1, got {n_frames}")
     if not np.isfinite(noise_std_v) or noise_std_v < 0:
@@ -58,8 +101,4 @@ def healthy_twin_frames(n_traces: int, *, seed, n_frames: int, noise_std_v: floa
     fn = simulate if simulate_fn is None else simulate_fn
     base = Spreads() if spreads is None else spreads
     quiet = dataclasses.replace(base, temperature_std_k=0.0, snr_db=np.inf, adc_bits=None)
-    twins = fn({FaultClass.HEALTHY_NOZZLE: int(n_traces)}, seed=seed, spreads=quiet, **kwargs)
-    n_samples = twins.traces.shape[1]
-    noise = np.random.default_rng([int(seed), 7]).standard_normal((int(n_traces), int(n_frames), n_samples))
-    frames = (twins.traces[:, None, :] + noise_std_v * noise).astype(np.float32)
-    return twins, frames
+    return fn({FaultClass.HEALTHY_NOZZLE: int(n_traces)}, seed=seed, spreads=quiet, **kwargs)

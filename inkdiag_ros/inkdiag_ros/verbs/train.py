@@ -58,8 +58,9 @@ def add_arguments(parser) -> None:
                         "are left out")
     parser.add_argument("--topic", default=None, metavar="TOPIC",
                         help="traces topic of a bag given as --data (default: the one trace topic it has)")
-    parser.add_argument("--n-per-class", type=int, default=1000, metavar="N",
-                        help="simulated traces per class (default: %(default)s; >= 8)")
+    parser.add_argument("--n-per-class", type=int, default=5000, metavar="N",  # training.N_PER_CLASS (a test pins it)
+                        help="simulated traces per class (default: %(default)s; >= 8); the forest's leaves hold "
+                        "at least 3 per 1,000 of them")
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulation, split and forest "
                         "(default: %(default)s)")
     parser.add_argument("--unknown-rate", type=float, default=0.01, metavar="R",
