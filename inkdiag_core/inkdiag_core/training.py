@@ -129,7 +129,7 @@ apart: ``reports/separability.md``), all of issue 14's targets met in 6 of the 1
 
 def leaf_size(n_per_class: int) -> int:
     """Default ``min_samples_leaf`` for ``n_per_class`` simulated traces a class: 3 per 1,000, at least 3."""
-    return max(3, int(round(3 * int(n_per_class) / 1000)))
+    return max(3, int(3 * int(n_per_class) / 1000 + 0.5))  # halves up
 
 
 def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseline: bool = False,
@@ -154,7 +154,8 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
     then train the plain branch only, so ``baseline`` with ``data`` is refused).
 
     For the default head and no ``data`` the detector is the one
-    :func:`inkdiag_core.fdi.train_default_model` fits (same rows, same seed).
+    :func:`inkdiag_core.fdi.train_default_model` fits with the same ``n_per_class``, ``seed``
+    and ``min_samples_leaf`` (its default is 3; here :func:`leaf_size`, 3 up to 1,166 a class).
 
     Parameters
     ----------
@@ -185,8 +186,8 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
         actuator compliance): on the heads of ``tests/foreign_head.py`` 8 draws took the
         known classes called ``unknown`` from up to 5.5 % to at most 0.5 % and cost 0.7-2.2
         points of FI (``scripts/report heads`` with 8 instead of 1, 2026-11-24), but partially
-        blocked fell to 46.5-74.5 % (74.0-96.5 % with 1; h20, h16, h12, seeds 0, 7, 11,
-        2026-11-26): the draws span the posterior's width, near the prior's, wider than the
+        blocked fell to 46.5-74.5 % (74.0-96.5 % with 1; h20, h16, h12, seeds 0, 7, 11, 1,000
+        traces a class, 2026-11-26): the draws span the posterior's width, near the prior's, wider than the
         fit's own error there (``docs/calibration.md``).
     progress : callable(step: int, total: int, message: str), optional
         Called after each stage.

@@ -59,6 +59,7 @@ from inkdiag_core import FaultClass, HeadProfile, screen_traces  # noqa: E402
 from inkdiag_core.calibration import UNSEEN_PHYSICS_SPREADS  # noqa: E402
 from inkdiag_core.faults import DRIED_CLASSES  # noqa: E402
 from inkdiag_core.head_profile import SPREAD_KEYS  # noqa: E402
+from inkdiag_core.training import N_PER_CLASS  # noqa: E402
 from inkdiag_core.kpis import extract_kpis  # noqa: E402
 
 HEALTHY = {FaultClass.OK_SIGNAL.value, FaultClass.HEALTHY_NOZZLE.value}
@@ -294,7 +295,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--heads", nargs="+", default=["default", "h20", "h16", "h12", "h5"])
     ap.add_argument("--per-class", type=int, default=150, help="test traces per class and head")
-    ap.add_argument("--n-per-class", type=int, default=0, help="training traces per class (0: train's default)")
+    ap.add_argument("--n-per-class", type=int, default=N_PER_CLASS,
+                    help="training traces per class (default: %(default)s, inkdiag train's)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--posterior-draws", type=int, default=1,
                     help="inkdiag train --posterior-draws for the calibrated profiles (default: %(default)s)")
@@ -341,7 +343,8 @@ def write_report(results, args, log, elapsed):
         "# inkdiag on other printheads",
         "",
         f"{today}. `scripts/report heads --heads {' '.join(args.heads)} --per-class {args.per_class} --seed "
-        f"{args.seed}" + (f" --posterior-draws {args.posterior_draws}" if args.posterior_draws != 1 else "")
+        f"{args.seed} --n-per-class {args.n_per_class}"
+        + (f" --posterior-draws {args.posterior_draws}" if args.posterior_draws != 1 else "")
         + (f" --other-seeds {' '.join(map(str, args.other_seeds))}" if args.other_seeds else "")
         + f"` ({elapsed / 60:.1f} min on the shared 2-core machine). Traces come from the independent "
         "simulator `tests/foreign_head.py`, not from inkdiag's; each head is calibrated from 300 of its "

@@ -255,7 +255,7 @@ def test_the_default_training_size_and_its_leaves():
     parser = argparse.ArgumentParser()
     train_verb.add_arguments(parser)
     assert parser.get_default("n_per_class") == N_PER_CLASS == 5000 and leaf_size(N_PER_CLASS) == 15
-    assert [leaf_size(n) for n in (8, 400, 1000, 1166, 1167, 3000)] == [3, 3, 3, 3, 4, 9]
+    assert [leaf_size(n) for n in (8, 400, 1000, 1166, 1167, 1500, 2500, 3000)] == [3, 3, 3, 3, 4, 5, 8, 9]
     det, info = train_detector(HeadProfile.default(), n_per_class=2000, seed=1, unknown_rate=None, n_estimators=2)
     assert det.min_samples_leaf == 6 and info["n_per_class"] == 2000
     det, _ = train_detector(HeadProfile.default(), n_per_class=2000, seed=1, unknown_rate=None, n_estimators=2,
@@ -272,4 +272,4 @@ def test_twin_frames_in_chunks_are_the_same_numbers():
     assert [a for a, _ in parts] == [0, 4, 8]
     np.testing.assert_array_equal(np.concatenate([f for _, f in parts]), whole)
     with pytest.raises(ValueError, match="chunk_rows must be an integer >= 1"):
-        next(healthy_twin_chunks(11, chunk_rows=0, **kw))
+        healthy_twin_chunks(11, chunk_rows=0, **kw)  # refused on the call, before any block

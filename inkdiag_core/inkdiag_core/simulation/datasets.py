@@ -74,22 +74,25 @@ def healthy_twin_chunks(n_traces: int, *, seed, n_frames: int, noise_std_v: floa
     chunk_rows : int
         Rows per block, >= 1.
 
-    Yields
-    ------
-    start : int
-        The block's first row.
-    frames : ndarray of float32, shape (k, n_frames, n_samples)
-        Noisy healthy frames of rows ``start .. start + k - 1``, V.
+    Returns
+    -------
+    iterator of (start, frames)
+        ``start`` (int) the block's first row; ``frames`` (k, n_frames, n_samples) float32, the
+        noisy healthy frames of rows ``start .. start + k - 1``, V. The arguments are checked and
+        the twins simulated on the call; the noise is drawn block by block as it is iterated.
     """
     if isinstance(chunk_rows, bool) or not isinstance(chunk_rows, (int, np.integer)) or chunk_rows < 1:
         raise ValueError(f"chunk_rows must be an integer >= 1, got {chunk_rows!r}")
-    twins = _twins(n_traces, seed, n_frames, noise_std_v, spreads, simulate_fn, kwargs)
-    rng = np.random.default_rng([int(seed), 7])
-    n, n_samples = twins.traces.shape
-    for a in range(0, n, int(chunk_rows)):
-        b = min(a + int(chunk_rows), n)
-        noise = rng.standard_normal((b - a, int(n_frames), n_samples))
-        yield a, (twins.traces[a:b, None, :] + noise_std_v * noise).astype(np.float32)
+    twins = _twins(n_traces, seed, n_frames, noise_std_v, spreads, simulate_fn, kwargs)  # checked here, not later
+    return _chunks(twins.traces, np.random.default_rng([int(seed), 7]), int(n_frames), noise_std_v, int(chunk_rows))
+
+
+def _chunks(twins, rng, n_frames, noise_std_v, chunk_rows):
+    n, n_samples = twins.shape
+    for a in range(0, n, chunk_rows):
+        b = min(a + chunk_rows, n)
+        noise = rng.standard_normal((b - a, n_frames, n_samples))
+        yield a, (twins[a:b, None, :] + noise_std_v * noise).astype(np.float32)
 
 
 def _twins(n_traces, seed, n_frames, noise_std_v, spreads, simulate_fn, kwargs):
