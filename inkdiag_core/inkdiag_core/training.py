@@ -119,11 +119,11 @@ N_PER_CLASS = 5000
 """Simulated traces per class :func:`train_detector` (and ``inkdiag train``) fits by default.
 
 On the calibrated profiles of ``tests/foreign_head.py``'s heads h20, h16, h12 and h5 (300 healthy
-traces, seeds 0, 7 and 11, 1,000 test traces a class; 2026-11-26), 5,000 a class with 15 traces a
-leaf against 1,000 with 3: FI 90.89 against 90.05 % on average, the weakest class 62.74 against
-59.51 % (77.86 against 71.83 % without h5, whose partially blocked nozzles no single trace tells
-apart: ``reports/separability.md``), all of issue 14's targets met in 6 of the 12 runs against 4.
-3,000 with 9 a leaf fell between (90.44 %, 61.27 %, 5 runs). The trees grow by about half
+traces, seeds 0, 7 and 11, 1,000 test traces a class; ``reports/train_size.md``, 2026-11-26), 5,000
+a class with 15 traces a leaf against 1,000 with 3: FI 90.74 against 89.89 % on average, the
+weakest class 62.69 against 59.45 % (77.86 against 71.83 % without h5, whose partially blocked
+nozzles no single trace tells apart: ``reports/separability.md``), the FD, FI and per-class targets
+met in 6 of the 12 runs against 4. 3,000 with 9 a leaf fell between (90.27 %, 61.20 %, 5 runs). The trees grow by about half
 (``min_samples_leaf`` scales with the rows, :func:`leaf_size`); training takes about 3 times as long."""
 
 
