@@ -27,10 +27,8 @@ from _common import md_table, out_path  # noqa: E402
 
 from inkdiag_core import FaultClass, HeadProfile, screen_traces  # noqa: E402
 from inkdiag_core.calibration import calibrate  # noqa: E402
+from inkdiag_core.faults import HEALTHY_VALUES  # noqa: E402
 from inkdiag_core.training import N_PER_CLASS, leaf_size, train_detector  # noqa: E402
-
-HEALTHY = ("ok_signal", "healthy_nozzle")
-
 
 def _setting(text: str) -> tuple:
     try:
@@ -63,7 +61,7 @@ def run(heads, seeds, settings, n_test):
                 got = got.astype(str)
                 per = {c: float(np.mean(got[y == c] == c)) for c in np.unique(y)}
                 weakest = min(per, key=per.get)
-                fd = float(np.mean(np.isin(y, HEALTHY) == np.isin(got, HEALTHY)))
+                fd = float(np.mean(np.isin(y, HEALTHY_VALUES) == np.isin(got, HEALTHY_VALUES)))
                 nodes = sum(e.tree_.node_count for e in det.pipeline_[-1].estimators_)
                 rows.append({"head": name, "seed": seed, "n": n, "leaf": leaf, "fd": fd,
                              "fi": float(np.mean(got == y)), "weakest": weakest, "weakest_acc": per[weakest],
