@@ -186,9 +186,10 @@ def run(args) -> int:
         n_plain = n_rows - n_invalid - n_base
         against = (f"; {n_base} against their nozzle's baseline, {n_plain} without one ({NO_BASELINE_HINT})"
                    if n_plain else f"; all {n_base} against their nozzle's baseline")
+    failed = f", {n_failed} in frames whose labelling failed" if n_failed else ""
     print(f"inkdiag label: labelled {n_rows - n_invalid} of {n_rows} rows with {detector.model_id} (head "
-          f"{head.name!r}); {n_invalid} invalid" + (f", {n_failed} in frames whose labelling failed" if n_failed else "")
-          + against + (f"; wrote {args.out}" if args.out != "-" else ""), file=summary_stream(args.out))
+          f"{head.name!r}); {n_invalid} invalid{failed}" + against + (f"; wrote {args.out}" if args.out != "-" else ""),
+          file=summary_stream(args.out))
     if n_rows and n_out_of_range >= n_rows / 2:  # a recording in other units, not a head whose sensor broke
         print(f"{n_out_of_range} of {n_rows} rows have a sample beyond {max_abs_v:g} V, more than the head's sensor "
               "can produce: "
