@@ -5,7 +5,8 @@ and how many samples sit at them) and, where its nozzle has a healthy reference,
 to it (:class:`inkdiag_core.HealthyGate`: three row sums). In numpy these are seven
 passes over the samples, each a separate reduction; here they are one kernel, three
 short loops per row back to back (extremes, samples at them, sums), which LLVM vectorises.
-``scripts/bench fdi`` measures both against the numpy passes in the same run (issue 17: a compiled kernel goes in only where it wins >= 2x on its stage).
+``scripts/bench fdi`` measures both against the numpy passes in the same run (issue 17: a
+compiled kernel goes in only where it wins >= 2x on its stage).
 
 - :func:`screen_codes`: each row's screening verdict (valid, non-finite, out of range,
   flat, clipped), exact: the same as numpy's ``max``/``min`` passes and the comparisons
@@ -484,8 +485,8 @@ def screen_and_row_sums(x, flat_tol, max_abs_v, clip_run, ref, pos, out=None):
     pos = np.asarray(pos)
     if (ref.dtype not in (np.float32, np.float64) or ref.ndim != 2 or ref.shape[1] != m
             or pos.shape != (n,) or pos.dtype != np.int64):
-        raise ValueError(f"the gate's row sums take float rows (n, m), references (n_ref, m) and int64 positions (n,), got "
-                         f"{x.dtype} {x.shape}, {ref.dtype} {ref.shape} and {pos.dtype} {pos.shape}")
+        raise ValueError(f"the gate's row sums take float rows (n, m), references (n_ref, m) and int64 positions "
+                         f"(n,), got {x.dtype} {x.shape}, {ref.dtype} {ref.shape} and {pos.dtype} {pos.shape}")
     if n and (pos.min() < -1 or pos.max() >= ref.shape[0]):
         raise ValueError(f"the gate's row sums: positions must be in [-1, {ref.shape[0]}) (-1: no reference), "
                          f"got {pos.min()}..{pos.max()}")

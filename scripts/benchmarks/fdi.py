@@ -141,7 +141,7 @@ def gate_bench(n: int, seed: int, faulty: float = 0.02, repeats: int = 5):
     from inkdiag_core.model_cache import ensure_default_model
 
     rng = np.random.default_rng(seed)
-    from inkdiag_core.faults import HEALTHY_CLASSES
+    from inkdiag_core.faults import HEALTHY_CLASSES, HEALTHY_VALUES
 
     faults = [c.value for c in FaultClass if c not in HEALTHY_CLASSES]
     classes = np.where(rng.random(n) < 0.5, FaultClass.HEALTHY_NOZZLE.value, FaultClass.OK_SIGNAL.value).astype(object)
@@ -194,8 +194,8 @@ def gate_bench(n: int, seed: int, faulty: float = 0.02, repeats: int = 5):
     g_cls, w_cls = (np.concatenate([r.classes for r in x]) for x in (gl, wl))
     cleared = np.concatenate([r.gate_cleared for r in gl])
     differ = g_cls != w_cls
-    model_fault = cleared & ~np.isin(w_cls, [c.value for c in HEALTHY_CLASSES])
-    sim_healthy = np.isin(classes, [c.value for c in HEALTHY_CLASSES])
+    model_fault = cleared & ~np.isin(w_cls, HEALTHY_VALUES)
+    sim_healthy = np.isin(classes, HEALTHY_VALUES)
     print(f"labels with the gate against without: {int(differ.sum())} of {n} rows differ, "
           f"{int((differ & ~cleared).sum())} of them among the rows the gate left to the model, "
           f"{int((differ & cleared & ~model_fault).sum())} only in the healthy class; of the {int(cleared.sum())} "

@@ -52,10 +52,10 @@ def healthy_twin_frames(n_traces: int, *, seed, n_frames: int, noise_std_v: floa
         Noisy healthy frames, V.
     """
     twins = _twins(n_traces, seed, n_frames, noise_std_v, spreads, simulate_fn, kwargs)
-    shape = (int(n_traces), int(n_frames), twins.traces.shape[1])
-    noise = np.random.default_rng([int(seed), 7]).standard_normal(shape)
-    frames = (twins.traces[:, None, :] + noise_std_v * noise).astype(np.float32)
-    return twins, frames
+    n, n_samples = twins.traces.shape
+    rng = np.random.default_rng([int(seed), 7])
+    blocks = [f for _, f in _chunks(twins.traces, rng, int(n_frames), noise_std_v, max(n, 1))]  # one block
+    return twins, blocks[0] if blocks else np.zeros((0, int(n_frames), n_samples), np.float32)
 
 
 def healthy_twin_chunks(n_traces: int, *, seed, n_frames: int, noise_std_v: float, spreads: Spreads | None = None,
