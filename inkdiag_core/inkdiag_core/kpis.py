@@ -225,6 +225,18 @@ def _peak_spectrum(y):
     -------
     spec : ndarray of complex, shape (n, N // 2 + 1)
         ``rfft(y)`` in the input precision.
+    m_peak, peak_power, ac_sumsq
+        :func:`_spectrum_peaks` of ``spec``.
+    """
+    spec = scipy.fft.rfft(y, axis=-1)
+    return (spec, *_spectrum_peaks(spec, y.shape[1]))
+
+
+def _spectrum_peaks(spec, n_samples):
+    """Peak bin, its power and the AC energy of traces of ``n_samples`` from their rfft ``spec``.
+
+    Returns
+    -------
     m_peak : ndarray of int, shape (n,)
         Index of the largest ``|Y[m]|``, ``m >= 1``.
     peak_power : ndarray of float64, shape (n,)
@@ -232,8 +244,6 @@ def _peak_spectrum(y):
     ac_sumsq : ndarray of float64, shape (n,)
         ``sum_k (y[k] - mean(y))**2`` by Parseval.
     """
-    n_samples = y.shape[1]
-    spec = scipy.fft.rfft(y, axis=-1)
     # |Y[m]|^2 for m = 1 .. N/2 (the mean only enters bin 0).
     ac = spec[:, 1:]
     power = ac.real**2 + ac.imag**2
@@ -246,13 +256,13 @@ def _peak_spectrum(y):
     if n_samples % 2 == 0:
         ac_sumsq -= power[:, -1]
     ac_sumsq /= n_samples
-    return spec, m_peak, peak_power, ac_sumsq
+    return m_peak, peak_power, ac_sumsq
 
 
 def _extract_chunk(y, fs, out):
     """KPIs of the validated traces ``y`` (n, N), written into ``out`` (n, 7)."""
     with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
-        _fit_chunk(y, fs, out, *_peak_spectrum(y))
+        _fit_spectra(scipy.fft.rfft(y, axis=-1), y.shape[1], fs, out)
     # Traces whose power spectrum leaves the floating-point range (float32 amplitudes
     # above ~1e16 overflow |Y|^2 and below ~1e-12 lose it to underflow; float64 amplitudes
     # above ~1e150 overflow it) are fitted again in float64, scaled to a unit peak. The
@@ -267,7 +277,7 @@ def _extract_chunk(y, fs, out):
         scale[scale == 0.0] = 1.0  # an all-zero trace: flat, nothing to rescale
         y_big /= scale[:, None]
         sub = np.empty((rows.size, out.shape[1]))
-        _fit_chunk(y_big, fs, sub, *_peak_spectrum(y_big))
+        _fit_spectra(scipy.fft.rfft(y_big, axis=-1), y_big.shape[1], fs, sub)
         big = np.finfo(np.float64).max
         with np.errstate(over="ignore", under="ignore"):
             sub[:, [0, 3, 6]] = np.clip(sub[:, [0, 3, 6]] * scale[:, None], -big, big)
@@ -275,9 +285,23 @@ def _extract_chunk(y, fs, out):
         out[rows] = sub
 
 
-def _fit_chunk(y, fs, out, spec, m_peak, peak_power, ac_sumsq):
-    """Fit the traces ``y`` (n, N) from their spectrum pass; KPIs into ``out`` (n, 7)."""
-    n_traces, n_samples = y.shape
+def _fit_spectra(spec, n_samples, fs, out):
+    """KPIs into ``out`` (n, 7) of traces of ``n_samples`` from their rfft ``spec``, compiled
+    (:func:`inkdiag_core._kernels.kpis_of_spectra`: :func:`_fit_spectra_numpy`'s steps one row
+    at a time, instead of ~60 numpy calls per chunk: the fixed cost of the few rows the gate leaves)."""
+    from ._kernels import kpis_of_spectra  # numba: imported when a kernel is first needed
+
+    kpis_of_spectra(spec, n_samples, fs, _FLAT_RTOL, out)
+
+
+def _fit_spectra_numpy(spec, n_samples, fs, out):
+    """:func:`_fit_spectra` in numpy: its reference in the tests and in ``scripts/bench fdi``."""
+    _fit_chunk(n_samples, fs, out, spec, *_spectrum_peaks(spec, n_samples))
+
+
+def _fit_chunk(n_samples, fs, out, spec, m_peak, peak_power, ac_sumsq):
+    """Fit traces of ``n_samples`` from their spectrum pass; KPIs into ``out`` (n, 7)."""
+    n_traces = spec.shape[0]
     half = n_samples // 2
     nyq_scale = np.full(n_traces, 2.0)
     if n_samples % 2 == 0:

@@ -23,8 +23,8 @@ end to end on that frame in 200-nozzle messages (the default detector
 ``models/fdi_default.joblib``, trained if missing) with the baselines' references
 (gate on) and without (gate off), and that per-row stage (screening and the gate) with
 the compiled kernels against the numpy passes they replace, on one message and on eight, and
-the KPIs with the compiled window fit against numpy's, on the gate's leftovers and on 1,600 rows,
-and the detector's forests walked by the compiled kernel against one ``tree_.predict`` per tree.
+the KPIs compiled (spectrum steps and window fit) against numpy, on the gate's leftovers and on
+1,600 rows, the spectrum steps alone, the open-set layer's unexplained fraction, and the detector's forests walked by the compiled kernel against one ``tree_.predict`` per tree.
 Prints traces/s and ratios; run it on one core
 (``scripts/bench`` sets the thread variables). ``--gate-only`` skips all but the gate.
 """
@@ -208,16 +208,20 @@ def gate_bench(n: int, seed: int, faulty: float = 0.02, repeats: int = 5):
 
 @contextlib.contextmanager
 def numpy_passes():
-    """Screening, the gate's row sums and the KPI window fit as numpy passes instead of the compiled kernels."""
-    from inkdiag_core import gate, kpis, screening, spectral_fit
+    """Screening, the gate's row sums, the KPIs' spectrum steps and window fit and the open-set
+    layer's unexplained fraction as numpy passes instead of the compiled kernels."""
+    from inkdiag_core import gate, kpis, openset, screening, spectral_fit
 
-    saved = screening._screen_codes, gate._row_sums, kpis._fit_windows
+    saved = (screening._screen_codes, gate._row_sums, kpis._fit_windows, kpis._fit_spectra,
+             openset.unexplained_fraction)
     screening._screen_codes, gate._row_sums = screening._screen_codes_numpy, gate._row_sums_numpy
-    kpis._fit_windows = spectral_fit.fit_windows
+    kpis._fit_windows, kpis._fit_spectra = spectral_fit.fit_windows, kpis._fit_spectra_numpy
+    openset.unexplained_fraction = openset._unexplained_fraction_numpy
     try:
         yield
     finally:
-        screening._screen_codes, gate._row_sums, kpis._fit_windows = saved
+        (screening._screen_codes, gate._row_sums, kpis._fit_windows, kpis._fit_spectra,
+         openset.unexplained_fraction) = saved
 
 
 def kernel_bench(frame, gate, repeats: int = 5, rounds: int = 20):
@@ -243,7 +247,7 @@ def kernel_bench(frame, gate, repeats: int = 5, rounds: int = 20):
               f"ratio {t_np / t_k:.2f}x faster; same reasons and cleared rows: {same}")
     # the detector's KPIs on what the gate leaves: ~70 rows per classifier pass of 8 messages (2 % faulty)
     left = np.ascontiguousarray(frame[~gate.screen(frame, 0).cleared])
-    print(f"KPIs (kpis_of_checked: rfft, window fit, KPIs) with the compiled window fit against numpy's "
+    print(f"KPIs (kpis_of_checked: rfft, then the peak, the window, its fit and the KPIs) compiled against numpy "
           f"(best of {repeats} x {rounds} calls, in turns)")
     for name, x in ((f"the gate's leftovers ({min(72, len(left))} rows)", left[:72]),
                     ("a classifier pass (1,600 rows)", np.ascontiguousarray(frame[:1600]))):
@@ -259,6 +263,30 @@ def kernel_bench(frame, gate, repeats: int = 5, rounds: int = 20):
         rel = float(np.max(np.abs(got - ref) / np.maximum(np.abs(ref), 1e-300)))
         print(f"  {name:<32}: numpy {1e3 * t_np / rounds:7.3f} ms, kernel {1e3 * t_k / rounds:7.3f} ms, "
               f"ratio {t_np / t_k:.2f}x faster; largest relative KPI difference {rel:.1e}")
+    print(f"the KPIs' spectrum steps alone (kpis._fit_spectra: _kernels.kpis_of_spectra against numpy's peak, window "
+          f"and KPI steps, the window fit compiled in both, same spectra, best of {repeats} x {rounds} calls, in turns)")
+    for x in (left[:72], np.ascontiguousarray(frame[:200]), np.ascontiguousarray(frame[:1600])):
+        from inkdiag_core import kpis as kpis_module
+
+        spec, out = scipy.fft.rfft(x, axis=-1), np.empty((len(x), 7))
+        with np.errstate(all="ignore"):
+            t_np, t_k = _in_turns(
+                lambda: [kpis_module._fit_spectra_numpy(spec, x.shape[1], 10e6, out) for _ in range(rounds)],
+                lambda: [kpis_module._fit_spectra(spec, x.shape[1], 10e6, out) for _ in range(rounds)], repeats)
+        print(f"  {len(x):>5} rows{'':<22}: numpy {1e3 * t_np / rounds:7.3f} ms, kernel {1e3 * t_k / rounds:7.3f} ms, "
+              f"ratio {t_np / t_k:.2f}x faster")
+    print(f"the open-set layer's unexplained fraction (openset.unexplained_fraction: _kernels.unexplained against "
+          f"numpy's float32 blocks, best of {repeats} x {rounds} calls, in turns)")
+    for x in (left[:72], np.ascontiguousarray(frame[:200]), np.ascontiguousarray(frame[:1600])):
+        from inkdiag_core import openset
+
+        k = kpis_of_checked(x, 10e6)
+        got, ref = openset.unexplained_fraction(x, k, 10e6), openset._unexplained_fraction_numpy(x, k, 10e6)
+        t_np, t_k = _in_turns(lambda: [openset._unexplained_fraction_numpy(x, k, 10e6) for _ in range(rounds)],
+                              lambda: [openset.unexplained_fraction(x, k, 10e6) for _ in range(rounds)], repeats)
+        rel = float(np.nanmax(np.abs(got / ref - 1.0)))
+        print(f"  {len(x):>5} rows{'':<22}: numpy {1e3 * t_np / rounds:7.3f} ms, kernel {1e3 * t_k / rounds:7.3f} ms, "
+              f"ratio {t_np / t_k:.2f}x faster; largest relative difference {rel:.1e} (numpy's float32 sums)")
     print(f"the window fit alone (spectral_fit.fit_windows against _kernels.fit_windows, same windows, "
           f"best of {repeats} x {rounds} calls, in turns)")
     for x in (left[:72], np.ascontiguousarray(frame[:200]), np.ascontiguousarray(frame[:1600])):

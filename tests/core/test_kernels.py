@@ -153,7 +153,9 @@ def test_after_warm_up_a_decoded_frame_and_a_batch_need_no_new_kernel_build():
             rec.add(0, simulate_nozzles(["healthy_nozzle"] * 8, seed=1, frame_seed=[1, f]).traces)
         gate = HealthyGate(rec.baselines())
         _kernels.warm_up()
-        kernels = (_kernels._screen_sums, _kernels._fit_windows, _kernels._forest_sums)
+        from inkdiag_core.openset import unexplained_fraction
+        kernels = (_kernels._screen_sums, _kernels._fit_windows, _kernels._forest_sums, _kernels._kpis_of_spectra,
+                   _kernels._unexplained)
         before = [len(k.signatures) for k in kernels]
         x = simulate_nozzles(["healthy_nozzle"] * 8, seed=1, frame_seed=[1, 9]).traces.astype(np.float32)
         frame = decode_traces(encode_traces(x, first_nozzle=0, frame_id=1, stamp=0.0)).traces
@@ -161,7 +163,7 @@ def test_after_warm_up_a_decoded_frame_and_a_batch_need_no_new_kernel_build():
         for rows in (frame, np.concatenate([frame, frame]), x.astype(np.float64)):
             screen_traces(rows)
             gate.screen(rows[:8], 0)
-            extract_kpis(rows, 10e6)
+            unexplained_fraction(rows, extract_kpis(rows, 10e6), 10e6)
         from sklearn.ensemble import RandomForestClassifier
         from inkdiag_core.fdi import forest_predict_proba
         rf = RandomForestClassifier(n_estimators=3, random_state=0).fit(extract_kpis(x, 10e6), [0, 1] * 4)
@@ -193,3 +195,27 @@ def test_the_compiled_window_fit_is_numpys_within_float64_rounding():
     Yw.flags.writeable = False
     np.testing.assert_allclose(_kernels.fit_windows(Yw[:3], 5, m_peak[:3], n_samples)[0],
                                spectral_fit.fit_windows(Yw[:3], 5, m_peak[:3], n_samples)[0], rtol=1e-8)
+
+
+def test_the_compiled_kpis_are_numpys_within_float64_rounding(monkeypatch):
+    """extract_kpis with the compiled spectrum steps and with their numpy form: every class, float32 and
+    float64, odd and very short traces, flat rows, amplitudes that take the rescaled path, one row."""
+    from inkdiag_core import FaultClass, extract_kpis, kpis, simulate
+
+    sim = simulate({c: 30 for c in FaultClass}, seed=8)
+    t = np.arange(512)
+    ring = np.exp(-0.01 * t) * np.cos(0.7 * t)
+    cases = [sim.traces, sim.traces.astype(np.float64), sim.traces[:, :511], sim.traces[:, :7], sim.traces[:, :5],
+             np.vstack([np.full((2, 512), 0.3), ring, np.zeros((1, 512))]),  # flat, a clean ring, all zero
+             (ring * np.array([[1e-14], [1e20], [1.0]])).astype(np.float32),  # underflowing / overflowing |Y|**2
+             ring[None] * 1e200, sim.traces[:1]]
+    got = [extract_kpis(y, 10e6) for y in cases]
+    monkeypatch.setattr(kpis, "_fit_spectra", kpis._fit_spectra_numpy)
+    for y, g in zip(cases, got):
+        want = extract_kpis(y, 10e6)
+        np.testing.assert_array_equal(np.isfinite(g), np.isfinite(want))
+        for j in range(want.shape[1]):
+            # dc: a difference of bin 0 and the mode's share of it, within rounding of the amplitude
+            scale = np.abs(want[:, [j, 3] if j == 0 else j]).max()
+            np.testing.assert_allclose(g[:, j], want[:, j], rtol=1e-9, atol=1e-12 * scale,
+                                       err_msg=f"{y.dtype} {y.shape}, KPI {j}")

@@ -7,7 +7,7 @@ import pytest
 
 from inkdiag_core import FaultClass, FaultDetector, baseline_training_kpis, extract_kpis, simulate
 from inkdiag_core.kpis import reconstruct
-from inkdiag_core.openset import UNKNOWN, ConformalOpenSet, unexplained_fraction
+from inkdiag_core.openset import UNKNOWN, ConformalOpenSet, _unexplained_fraction_numpy, unexplained_fraction
 
 FS = 10e6
 # 320 per class: 240 training rows calibrate each class, enough for the training-conditional
@@ -42,16 +42,37 @@ def _foreign_body(traces, seed):
     return (x + a * np.exp(-0.01 * 2 * np.pi * f * t) * np.cos(2 * np.pi * f * t)).astype(np.float32)
 
 
-def test_unexplained_fraction_matches_the_direct_formula(healthy):
-    x = healthy.traces[:50].astype(np.float64)
+def _direct_unexplained(x, k):
+    x = x.astype(np.float64)
+    return ((x - reconstruct(k, x.shape[1], FS)) ** 2).sum(1) / ((x - k[:, [0]]) ** 2).sum(1)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_unexplained_fraction_matches_the_direct_formula(healthy, dtype):
+    x = healthy.traces[:50].astype(dtype)
     k = extract_kpis(x, FS)
-    direct = ((x - reconstruct(k, x.shape[1], FS)) ** 2).sum(1) / ((x - k[:, [0]]) ** 2).sum(1)
-    np.testing.assert_allclose(unexplained_fraction(x, k, FS), direct, rtol=2e-3)
-    # odd lengths (padding) and unusable KPIs (NaN for that row only)
+    direct = _direct_unexplained(x, k)
+    np.testing.assert_allclose(unexplained_fraction(x, k, FS), direct, rtol=1e-9)  # compiled, float64 sums
+    np.testing.assert_allclose(_unexplained_fraction_numpy(x, k, FS), direct, rtol=3e-3)  # its float32 reference
+    # odd lengths (a last, partial block of samples) and unusable KPIs (NaN for that row only)
     k2 = k.copy()
     k2[3, 2] = 1.5
-    got = unexplained_fraction(x[:, :301], k2, FS)
-    assert np.isnan(got[3]) and np.isfinite(np.delete(got, 3)).all()
+    k2[5, 1] = np.nan
+    for fraction in (unexplained_fraction, _unexplained_fraction_numpy):
+        got = fraction(x[:, :301], k2, FS)
+        assert np.isnan(got[[3, 5]]).all() and np.isfinite(np.delete(got, [3, 5])).all()
+    keep = np.delete(np.arange(50), [3, 5])
+    np.testing.assert_allclose(unexplained_fraction(x[:, :301], k2, FS)[keep],
+                               _direct_unexplained(x[keep, :301], k2[keep]), rtol=1e-9)
+
+
+def test_unexplained_fraction_of_every_class_and_of_a_read_only_strided_view(sim):
+    """Every class (dried and blocked traces fit their sinusoid worse than healthy ones) and any layout."""
+    x = sim.traces[::7]
+    k = extract_kpis(x, FS)
+    view = np.asarray(sim.traces)[::7, :]  # rows not contiguous
+    view.flags.writeable = False
+    np.testing.assert_allclose(unexplained_fraction(view, k, FS), _direct_unexplained(x, k), rtol=1e-9, atol=1e-12)
 
 
 def test_conformal_p_values_are_the_rank_formula():
