@@ -31,9 +31,11 @@ The fit is a least-squares fit done in the frequency domain, batched over traces
 Restricting the fit to the bins around the dominant peak makes the cost of each iteration
 independent of the trace length, keeps other modes and out-of-band noise out of the
 fit, and means that on a multi-mode trace the KPIs describe the mode with the largest FFT
-peak. Every numpy step is vectorised over the batch; the window fit itself runs compiled, one
-trace at a time in one call (:func:`inkdiag_core._kernels.fit_windows`, numba), with
-:func:`inkdiag_core.spectral_fit.fit_windows` (numpy, batched) as its reference: the two agree to
+peak. The FFT is one batched ``rfft``; every step after it runs compiled, one trace at a time
+in one call (:func:`inkdiag_core._kernels.kpis_of_spectra`, numba; :func:`_fit_spectra_numpy`,
+batched numpy, is its reference), the window fit
+(:func:`inkdiag_core._kernels.fit_windows`) with :func:`inkdiag_core.spectral_fit.fit_windows`
+(numpy, batched) as its reference: the two agree to
 ~1e-11 relative on the simulator's traces (an ill-conditioned fit, such as a step's, moves as
 much in either under a 1e-15 change of its input), and a trace's KPIs never depend on its batch.
 """
@@ -113,7 +115,7 @@ def extract_kpis(traces, sample_rate_hz):
     Each trace is fitted with ``y[k] = dc + A exp(-zeta w0 t_k) cos(w_d t_k + phi)``,
     ``w_d = w0 sqrt(1 - zeta**2)``, ``t_k = k / sample_rate_hz`` counted from the first
     sample, by least squares on the FFT bins around the dominant spectral peak (see the
-    module docstring). Vectorised over the batch; the window fit compiled.
+    module docstring). One batched FFT; the steps after it compiled, one trace at a time.
 
     Parameters
     ----------

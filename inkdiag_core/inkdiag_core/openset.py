@@ -83,8 +83,11 @@ _TINY = 1e-30
 # while our own mild ad-hoc crosstalk stayed 92 % unknown (97 % at 0.03, 46 % at 0.3).
 _RIDGE = 0.05
 _MIN_FIT_ROWS = 4  # fewer training rows of a class: no model for it (its p-value is 1)
-_POW_BLOCK = 32  # z**k = (z**32)**a * z**b in unexplained_fraction
-_CHUNK = 1024  # traces per chunk in unexplained_fraction (a chunk's arrays stay in cache)
+_POW_BLOCK = 32  # z**k = (z**32)**a * z**b in _unexplained_fraction_numpy (the kernel's blocks too)
+_CHUNK = 1024  # traces per chunk in _unexplained_fraction_numpy (a chunk's arrays stay in cache)
+#: Rows up to which ConformalOpenSet's p-values are counted by the compiled kernel (``scripts/bench fdi``:
+#: 4.4x on the gate's ~70 leftover rows, 0.93x on 1,600).
+_P_KERNEL_MAX_ROWS = 256
 
 
 def check_unknown_rate(rate):
@@ -115,7 +118,8 @@ def unexplained_fraction(traces, kpis, sample_rate_hz):
     32 samples ``k = 32 a + b``, ``Re(C z**(32 a) * sum_b (y - dc)[32 a + b] z**b)``,
     ``|model|**2`` per block in closed form; no ``exp`` or ``cos`` per sample. Compiled,
     one row at a time in float64 (:func:`inkdiag_core._kernels.unexplained`): within 1e-11
-    (relative) of the direct formula on the simulator's traces. (Its numpy form,
+    (relative) of the direct formula on the simulator's 512-sample traces (short traces that
+    the sinusoid fits almost exactly: within 1e-9, the cancellation in ``rest``). (Its numpy form,
     :func:`_unexplained_fraction_numpy`, sums in float32: within 0.3 %; ``scripts/bench fdi``
     times both.)
 
@@ -305,8 +309,8 @@ class ConformalOpenSet:
         Robust class centres (standardized units).
     whiten_ : ndarray of float64, shape (n_classes, d, d)
         Per class a matrix ``W`` with ``W W^T`` the inverse regularised covariance.
-    calibration_ : list of ndarray of float64
-        Per class its calibration scores, sorted (possibly empty).
+    calibration_ : list of ndarray of float32
+        Per class its calibration scores (:meth:`scores`), sorted (possibly empty).
     modelled_ : ndarray of bool, shape (n_classes,)
         Classes with a model (>= 4 fit rows); the others get p-value 1.
     levels_ : ndarray of float64, shape (n_classes,)
@@ -379,7 +383,7 @@ class ConformalOpenSet:
             self.whiten_[i] = np.linalg.cholesky(prec)
             self.means_[i] = est.location_
             self.modelled_[i] = True
-        for cache in ("_w_all", "_mu_w", "_block_sum"):  # scores() rebuilds them from these models
+        for cache in ("_w_all", "_mu_w", "_block_sum", "_cal_flat", "_cal_starts"):  # rebuilt from the fit
             self.__dict__.pop(cache, None)
         self.features_version_ = OPENSET_FEATURES_VERSION
         cal_ok = np.isfinite(X_cal).all(axis=1)
@@ -424,7 +428,31 @@ class ConformalOpenSet:
         ``(1 + #{calibration scores of c >= score}) / (n_c + 1)``; 1 for a class without a
         model; NaN for a row with non-finite features.
         """
-        S = self.scores(X)
+        return self._p_of_scores(self.scores(X))
+
+    def _p_of_scores(self, S):
+        """:meth:`p_values` of the scores ``S`` (n, n_classes): compiled (:func:`inkdiag_core._kernels.p_values`)
+        up to :data:`_P_KERNEL_MAX_ROWS` rows, where one ``searchsorted`` call per class is the fixed cost;
+        beyond, numpy's (as fast there, ``scripts/bench fdi``). The same p-values either way."""
+        if S.shape[0] > _P_KERNEL_MAX_ROWS:
+            return self._p_of_scores_numpy(S)
+        from ._kernels import p_values  # numba: imported when a kernel is first needed
+
+        if "_cal_flat" not in self.__dict__:  # the calibration scores of every class in one array
+            cal = self.calibration_
+            self._cal_flat = (np.concatenate([np.empty(0, np.float32), *cal])
+                              if all(np.asarray(c).dtype == np.float32 for c in cal) else None)
+            self._cal_starts = np.cumsum([0] + [len(c) for c in cal]).astype(np.int64)
+        if self._cal_flat is None:  # scores calibrated in another precision than scores() gives
+            return self._p_of_scores_numpy(S)
+        return p_values(S, self._cal_flat, self._cal_starts, np.asarray(self.modelled_, dtype=bool))
+
+    def _p_values_numpy(self, X):
+        """:meth:`p_values` as one ``searchsorted`` per class (the kernel's reference in the tests)."""
+        return self._p_of_scores_numpy(self.scores(X))
+
+    def _p_of_scores_numpy(self, S):
+        """:meth:`_p_of_scores` in numpy: one ``searchsorted`` per class."""
         P = np.ones(S.shape)
         for i, cal in enumerate(self.calibration_):
             if not self.modelled_[i]:

@@ -24,7 +24,8 @@ end to end on that frame in 200-nozzle messages (the default detector
 (gate on) and without (gate off), and that per-row stage (screening and the gate) with
 the compiled kernels against the numpy passes they replace, on one message and on eight, and
 the KPIs compiled (spectrum steps and window fit) against numpy, on the gate's leftovers and on
-1,600 rows, the spectrum steps alone, the open-set layer's unexplained fraction, and the detector's forests walked by the compiled kernel against one ``tree_.predict`` per tree.
+1,600 rows, the spectrum steps alone, the open-set layer's unexplained fraction and p-values, and
+the detector's forests walked by the compiled kernel against one ``tree_.predict`` per tree.
 Prints traces/s and ratios; run it on one core
 (``scripts/bench`` sets the thread variables). ``--gate-only`` skips all but the gate.
 """
@@ -263,18 +264,22 @@ def kernel_bench(frame, gate, repeats: int = 5, rounds: int = 20):
         rel = float(np.max(np.abs(got - ref) / np.maximum(np.abs(ref), 1e-300)))
         print(f"  {name:<32}: numpy {1e3 * t_np / rounds:7.3f} ms, kernel {1e3 * t_k / rounds:7.3f} ms, "
               f"ratio {t_np / t_k:.2f}x faster; largest relative KPI difference {rel:.1e}")
-    print(f"the KPIs' spectrum steps alone (kpis._fit_spectra: _kernels.kpis_of_spectra against numpy's peak, window "
-          f"and KPI steps, the window fit compiled in both, same spectra, best of {repeats} x {rounds} calls, in turns)")
+    print(f"the KPIs' spectrum steps alone (kpis._fit_spectra: _kernels.kpis_of_spectra against numpy's peak, "
+          f"window and KPI steps, the window fit compiled in both, same spectra, best of {repeats} x {rounds} calls, "
+          "in turns)")
     for x in (left[:72], np.ascontiguousarray(frame[:200]), np.ascontiguousarray(frame[:1600])):
         from inkdiag_core import kpis as kpis_module
 
         spec, out = scipy.fft.rfft(x, axis=-1), np.empty((len(x), 7))
+        args = _windows(x)
         with np.errstate(all="ignore"):
             t_np, t_k = _in_turns(
                 lambda: [kpis_module._fit_spectra_numpy(spec, x.shape[1], 10e6, out) for _ in range(rounds)],
                 lambda: [kpis_module._fit_spectra(spec, x.shape[1], 10e6, out) for _ in range(rounds)], repeats)
+            t_fit = best_of(lambda: [_kernels.fit_windows(*args) for _ in range(rounds)], repeats)
         print(f"  {len(x):>5} rows{'':<22}: numpy {1e3 * t_np / rounds:7.3f} ms, kernel {1e3 * t_k / rounds:7.3f} ms, "
-              f"ratio {t_np / t_k:.2f}x faster")
+              f"ratio {t_np / t_k:.2f}x faster; without the compiled fit's {1e3 * t_fit / rounds:.3f} ms in each: "
+              f"{(t_np - t_fit) / max(t_k - t_fit, 1e-9):.2f}x")
     print(f"the open-set layer's unexplained fraction (openset.unexplained_fraction: _kernels.unexplained against "
           f"numpy's float32 blocks, best of {repeats} x {rounds} calls, in turns)")
     for x in (left[:72], np.ascontiguousarray(frame[:200]), np.ascontiguousarray(frame[:1600])):
@@ -322,6 +327,23 @@ def forest_bench(det, base, frame, gate, repeats: int = 5, rounds: int = 20):
                                   lambda: [_kernels.forest_proba(F, *flat) for _ in range(rounds)], repeats)
             print(f"  {branch:<8} {name:<32}: per tree {1e3 * t_np / rounds:7.3f} ms, kernel {1e3 * t_k / rounds:7.3f} "
                   f"ms, ratio {t_np / t_k:.2f}x faster; bit-identical: {same}")
+    print(f"the open-set layer's conformal p-values of the same scores (_kernels.p_values against one searchsorted "
+          f"per class, best of {repeats} x {rounds} calls, in turns)")
+    for branch, pipe, rows in branches:
+        layer = det.baseline_openset_ if branch == "baseline" else det.openset_
+        if layer is None:
+            continue
+        for name, at in ((f"the gate's leftovers ({min(72, left.size)} rows)", left[:72]),
+                         ("a classifier pass (1,600 rows)", np.arange(min(1600, len(rows))))):
+            feats = pipe[0].transform(rows[at])
+            with np.errstate(all="ignore"):
+                F = det._openset_features(feats, frame[at], branch == "baseline")
+            S = layer.scores(F)  # the p-value step alone, on the same scores
+            same = np.array_equal(layer._p_of_scores(S), layer._p_of_scores_numpy(S), equal_nan=True)
+            t_np, t_k = _in_turns(lambda: [layer._p_of_scores_numpy(S) for _ in range(rounds)],
+                                  lambda: [layer._p_of_scores(S) for _ in range(rounds)], repeats)
+            print(f"  {branch:<8} {name:<32}: numpy {1e3 * t_np / rounds:7.3f} ms, kernel {1e3 * t_k / rounds:7.3f} "
+                  f"ms, ratio {t_np / t_k:.2f}x faster; identical: {same}")
 
 
 def _with_numpy_passes(fn):

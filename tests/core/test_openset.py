@@ -7,6 +7,7 @@ import pytest
 
 from inkdiag_core import FaultClass, FaultDetector, baseline_training_kpis, extract_kpis, simulate
 from inkdiag_core.kpis import reconstruct
+from inkdiag_core import openset
 from inkdiag_core.openset import UNKNOWN, ConformalOpenSet, _unexplained_fraction_numpy, unexplained_fraction
 
 FS = 10e6
@@ -66,6 +67,15 @@ def test_unexplained_fraction_matches_the_direct_formula(healthy, dtype):
                                _direct_unexplained(x[keep, :301], k2[keep]), rtol=1e-9)
 
 
+def test_unexplained_fraction_refuses_traces_and_kpis_that_do_not_pair():
+    x = np.zeros((5, 64))
+    for k in (np.zeros((2, 7)), np.zeros((5, 4)), np.zeros(7)):
+        with pytest.raises(ValueError, match="traces"):
+            unexplained_fraction(x, k, FS)
+    with pytest.raises(ValueError, match="traces"):
+        unexplained_fraction(np.zeros(64), np.zeros((1, 7)), FS)
+
+
 def test_unexplained_fraction_of_every_class_and_of_a_read_only_strided_view(sim):
     """Every class (dried and blocked traces fit their sinusoid worse than healthy ones) and any layout."""
     x = sim.traces[::7]
@@ -73,6 +83,30 @@ def test_unexplained_fraction_of_every_class_and_of_a_read_only_strided_view(sim
     view = np.asarray(sim.traces)[::7, :]  # rows not contiguous
     view.flags.writeable = False
     np.testing.assert_allclose(unexplained_fraction(view, k, FS), _direct_unexplained(x, k), rtol=1e-9, atol=1e-12)
+
+
+def test_compiled_p_values_are_the_per_class_searchsorted(det, sim):
+    """Every class of the detector's layers (ties, unmodelled or empty classes, NaN rows): the same
+    p-values as one searchsorted per class."""
+    layer = det.openset_
+    F = det._openset_features(det.pipeline_[0].transform(sim.traces[::20]), sim.traces[::20], False)
+    F[3] = np.nan
+    F[7, 2] = np.inf
+    cal = layer.calibration_
+    F = np.vstack([F, np.zeros((1, F.shape[1]))])
+    np.testing.assert_array_equal(layer.p_values(F), layer._p_values_numpy(F))
+    layer2 = pickle.loads(pickle.dumps(layer))
+    layer2.modelled_ = layer2.modelled_.copy()
+    layer2.modelled_[1] = False
+    layer2.calibration_ = [cal[0][:0], *cal[1:]]  # a class without calibration scores
+    layer2.calibration_[2] = np.repeat(cal[2][:3], 5)  # ties
+    for cache in ("_cal_flat", "_cal_starts"):
+        layer2.__dict__.pop(cache, None)
+    np.testing.assert_array_equal(layer2.p_values(F), layer2._p_values_numpy(F))
+    assert np.isnan(layer2.p_values(F)[[3, 7]]).all()
+    assert F.shape[0] <= openset._P_KERNEL_MAX_ROWS  # the kernel's, not numpy's, compared above
+    big = np.repeat(F, openset._P_KERNEL_MAX_ROWS // F.shape[0] + 1, axis=0)  # numpy's beyond
+    np.testing.assert_array_equal(layer.p_values(big), layer._p_values_numpy(big))
 
 
 def test_conformal_p_values_are_the_rank_formula():
