@@ -306,6 +306,7 @@ def forest_bench(det, base, frame, gate, repeats: int = 5, rounds: int = 20):
     """The detector's forests (plain and baseline branch) in one compiled call (``_kernels.forest_proba``)
     against one ``tree_.predict`` call per tree (what ``forest_predict_proba`` did before), in turns, same rows;
     bit-identical: the kernel's against scikit-learn's ``predict_proba``."""
+    from inkdiag_core import openset
     from inkdiag_core.fdi import _flat_forest, _per_tree_proba as _per_tree
 
     left = np.flatnonzero(~gate.screen(frame, 0).cleared)
@@ -328,7 +329,8 @@ def forest_bench(det, base, frame, gate, repeats: int = 5, rounds: int = 20):
             print(f"  {branch:<8} {name:<32}: per tree {1e3 * t_np / rounds:7.3f} ms, kernel {1e3 * t_k / rounds:7.3f} "
                   f"ms, ratio {t_np / t_k:.2f}x faster; bit-identical: {same}")
     print(f"the open-set layer's conformal p-values of the same scores (_kernels.p_values against one searchsorted "
-          f"per class, best of {repeats} x {rounds} calls, in turns)")
+          f"per class; ConformalOpenSet takes the kernel up to {openset._P_KERNEL_MAX_ROWS} rows, numpy beyond; "
+          f"best of {repeats} x {rounds} calls, in turns)")
     for branch, pipe, rows in branches:
         layer = det.baseline_openset_ if branch == "baseline" else det.openset_
         if layer is None:
@@ -339,9 +341,11 @@ def forest_bench(det, base, frame, gate, repeats: int = 5, rounds: int = 20):
             with np.errstate(all="ignore"):
                 F = det._openset_features(feats, frame[at], branch == "baseline")
             S = layer.scores(F)  # the p-value step alone, on the same scores
-            same = np.array_equal(layer._p_of_scores(S), layer._p_of_scores_numpy(S), equal_nan=True)
+            layer._p_of_scores(S[:1])  # its flat calibration table built
+            args = (layer._cal_flat, layer._cal_starts, np.asarray(layer.modelled_, dtype=bool))
+            same = np.array_equal(_kernels.p_values(S, *args), layer._p_of_scores_numpy(S), equal_nan=True)
             t_np, t_k = _in_turns(lambda: [layer._p_of_scores_numpy(S) for _ in range(rounds)],
-                                  lambda: [layer._p_of_scores(S) for _ in range(rounds)], repeats)
+                                  lambda: [_kernels.p_values(S, *args) for _ in range(rounds)], repeats)
             print(f"  {branch:<8} {name:<32}: numpy {1e3 * t_np / rounds:7.3f} ms, kernel {1e3 * t_k / rounds:7.3f} "
                   f"ms, ratio {t_np / t_k:.2f}x faster; identical: {same}")
 
