@@ -664,7 +664,17 @@ def p_values(S, cal, starts, modelled):
     ndarray of float64, shape (n, k)
         NaN on every column of a row with a non-finite score.
     """
+    S, cal, starts, modelled = np.asarray(S), np.asarray(cal), np.asarray(starts), np.asarray(modelled)
+    if (S.ndim != 2 or S.dtype != np.float32 or cal.ndim != 1 or cal.dtype != np.float32
+            or starts.shape != (S.shape[1] + 1,) or modelled.shape != (S.shape[1],) or modelled.dtype != bool
+            or (starts.size and (starts[0] != 0 or starts[-1] != cal.size or np.any(np.diff(starts) < 0)))):
+        raise ValueError(f"p_values: float32 scores (n, k), float32 calibration scores (m,), starts (k + 1,) from 0 "
+                         f"to m and a bool mask (k,) are needed, got {S.dtype} {S.shape}, {cal.dtype} {cal.shape}, "
+                         f"{starts.shape} and {modelled.dtype} {modelled.shape}")
     S = np.require(S, np.float32, ["C", "W"])
+    starts = np.require(starts, np.int64, ["C", "W"])
+    cal = np.require(cal, np.float32, ["C", "W"])
+    modelled = np.require(modelled, bool, ["C", "W"])
     out = np.empty(S.shape)
     if S.shape[0]:
         _p_values(S, cal, starts, modelled, out)

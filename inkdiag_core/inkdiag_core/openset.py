@@ -86,7 +86,7 @@ _MIN_FIT_ROWS = 4  # fewer training rows of a class: no model for it (its p-valu
 _POW_BLOCK = 32  # z**k = (z**32)**a * z**b in _unexplained_fraction_numpy (the kernel's blocks too)
 _CHUNK = 1024  # traces per chunk in _unexplained_fraction_numpy (a chunk's arrays stay in cache)
 #: Rows up to which ConformalOpenSet's p-values are counted by the compiled kernel (``scripts/bench fdi``:
-#: 4.4x on the gate's ~70 leftover rows, 0.93x on 1,600).
+#: 4.4-5.0x on the gate's ~70 leftover rows, 0.93-0.96x on 1,600).
 _P_KERNEL_MAX_ROWS = 256
 
 
@@ -383,7 +383,7 @@ class ConformalOpenSet:
             self.whiten_[i] = np.linalg.cholesky(prec)
             self.means_[i] = est.location_
             self.modelled_[i] = True
-        for cache in ("_w_all", "_mu_w", "_block_sum", "_cal_flat", "_cal_starts"):  # rebuilt from the fit
+        for cache in ("_w_all", "_mu_w", "_block_sum", "_cal_table"):  # rebuilt from the fit
             self.__dict__.pop(cache, None)
         self.features_version_ = OPENSET_FEATURES_VERSION
         cal_ok = np.isfinite(X_cal).all(axis=1)
@@ -434,18 +434,35 @@ class ConformalOpenSet:
         """:meth:`p_values` of the scores ``S`` (n, n_classes): compiled (:func:`inkdiag_core._kernels.p_values`)
         up to :data:`_P_KERNEL_MAX_ROWS` rows, where one ``searchsorted`` call per class is the fixed cost;
         beyond, numpy's (as fast there, ``scripts/bench fdi``). The same p-values either way."""
-        if S.shape[0] > _P_KERNEL_MAX_ROWS:
+        if S.shape[0] > _P_KERNEL_MAX_ROWS or S.dtype != np.float32:
             return self._p_of_scores_numpy(S)
         from ._kernels import p_values  # numba: imported when a kernel is first needed
 
-        if "_cal_flat" not in self.__dict__:  # the calibration scores of every class in one array
-            cal = self.calibration_
-            self._cal_flat = (np.concatenate([np.empty(0, np.float32), *cal])
-                              if all(np.asarray(c).dtype == np.float32 for c in cal) else None)
-            self._cal_starts = np.cumsum([0] + [len(c) for c in cal]).astype(np.int64)
-        if self._cal_flat is None:  # scores calibrated in another precision than scores() gives
+        table = self._calibration_table()
+        if table is None:  # scores calibrated in another precision than scores() gives
             return self._p_of_scores_numpy(S)
-        return p_values(S, self._cal_flat, self._cal_starts, np.asarray(self.modelled_, dtype=bool))
+        return p_values(S, *table, np.asarray(self.modelled_, dtype=bool))
+
+    def _calibration_table(self):
+        """``(scores, starts)``: every class's calibration scores in one float32 array and where each
+        class's begin, built again whenever ``calibration_`` holds other arrays (a refit, a reassigned
+        list or element; the arrays are not to be changed in place); None unless all are float32.
+        Not pickled (:meth:`__getstate__`): a saved layer's bytes do not depend on its use."""
+        cal = self.calibration_
+        key = (id(cal), *map(id, cal))
+        cached = self.__dict__.get("_cal_table")
+        if cached is None or cached[0] != key:
+            table = None
+            if all(np.asarray(c).dtype == np.float32 for c in cal):
+                table = (np.concatenate([np.empty(0, np.float32), *cal]),
+                         np.cumsum([0] + [len(c) for c in cal]).astype(np.int64))
+            self._cal_table = cached = (key, table)
+        return cached[1]
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state.pop("_cal_table", None)  # ids of this process's arrays: rebuilt on first use
+        return state
 
     def _p_values_numpy(self, X):
         """:meth:`p_values` as one ``searchsorted`` per class (the kernel's reference in the tests)."""

@@ -100,13 +100,36 @@ def test_compiled_p_values_are_the_per_class_searchsorted(det, sim):
     layer2.modelled_[1] = False
     layer2.calibration_ = [cal[0][:0], *cal[1:]]  # a class without calibration scores
     layer2.calibration_[2] = np.repeat(cal[2][:3], 5)  # ties
-    for cache in ("_cal_flat", "_cal_starts"):
-        layer2.__dict__.pop(cache, None)
+    np.testing.assert_array_equal(layer2.p_values(F), layer2._p_values_numpy(F))
+    layer2.calibration_ = list(cal)  # reassigned after use: the flat table follows
+    np.testing.assert_array_equal(layer2.p_values(F), layer2._p_values_numpy(F))
+    layer2.calibration_[4] = cal[4][::2].copy()  # one class's array replaced
     np.testing.assert_array_equal(layer2.p_values(F), layer2._p_values_numpy(F))
     assert np.isnan(layer2.p_values(F)[[3, 7]]).all()
     assert F.shape[0] <= openset._P_KERNEL_MAX_ROWS  # the kernel's, not numpy's, compared above
     big = np.repeat(F, openset._P_KERNEL_MAX_ROWS // F.shape[0] + 1, axis=0)  # numpy's beyond
     np.testing.assert_array_equal(layer.p_values(big), layer._p_values_numpy(big))
+
+
+def test_labelling_leaves_the_pickled_layer_as_it_was(det, sim):
+    """The p-values' table is not pickled: a detector saved after labelling is the file saved before."""
+    fresh = FaultDetector(n_estimators=5, random_state=0).fit(sim.traces[::3], sim.label_values()[::3])
+    before = pickle.dumps(fresh.openset_)
+    fresh.label(sim.traces[:40])
+    assert "_cal_table" in fresh.openset_.__dict__
+    assert pickle.dumps(fresh.openset_) == before
+
+
+def test_the_p_value_kernel_refuses_tables_that_do_not_fit_the_scores():
+    from inkdiag_core import _kernels
+
+    S, cal = np.zeros((2, 3), np.float32), np.arange(4, dtype=np.float32)
+    for starts, modelled in (([0, 2], [True] * 3), ([0, 2, 4, 4], [True]), ([0, 1, 2, 5], [True] * 3),
+                             ([0, 3, 2, 4], [True] * 3)):
+        with pytest.raises(ValueError, match="p_values"):
+            _kernels.p_values(S, cal, np.array(starts), np.array(modelled))
+    with pytest.raises(ValueError, match="p_values"):
+        _kernels.p_values(S.astype(np.float64), cal, np.array([0, 1, 2, 4]), np.ones(3, bool))
 
 
 def test_conformal_p_values_are_the_rank_formula():
