@@ -666,7 +666,8 @@ def p_values(S, cal, starts, modelled):
     """
     S, cal, starts, modelled = np.asarray(S), np.asarray(cal), np.asarray(starts), np.asarray(modelled)
     if (S.ndim != 2 or S.dtype != np.float32 or cal.ndim != 1 or cal.dtype != np.float32
-            or starts.shape != (S.shape[1] + 1,) or modelled.shape != (S.shape[1],) or modelled.dtype != bool
+            or starts.shape != (S.shape[1] + 1,) or starts.dtype.kind not in "iu"
+            or modelled.shape != (S.shape[1],) or modelled.dtype != bool
             or (starts.size and (starts[0] != 0 or starts[-1] != cal.size or np.any(np.diff(starts) < 0)))):
         raise ValueError(f"p_values: float32 scores (n, k), float32 calibration scores (m,), starts (k + 1,) from 0 "
                          f"to m and a bool mask (k,) are needed, got {S.dtype} {S.shape}, {cal.dtype} {cal.shape}, "

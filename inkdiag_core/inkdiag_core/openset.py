@@ -86,7 +86,7 @@ _MIN_FIT_ROWS = 4  # fewer training rows of a class: no model for it (its p-valu
 _POW_BLOCK = 32  # z**k = (z**32)**a * z**b in _unexplained_fraction_numpy (the kernel's blocks too)
 _CHUNK = 1024  # traces per chunk in _unexplained_fraction_numpy (a chunk's arrays stay in cache)
 #: Rows up to which ConformalOpenSet's p-values are counted by the compiled kernel (``scripts/bench fdi``:
-#: 4.4-5.0x on the gate's ~70 leftover rows, 0.93-0.96x on 1,600).
+#: 2.8-5.0x on the gate's ~70 leftover rows, 0.93-1.09x on 1,600).
 _P_KERNEL_MAX_ROWS = 256
 
 
@@ -449,19 +449,21 @@ class ConformalOpenSet:
         list or element; the arrays are not to be changed in place); None unless all are float32.
         Not pickled (:meth:`__getstate__`): a saved layer's bytes do not depend on its use."""
         cal = self.calibration_
-        key = (id(cal), *map(id, cal))
         cached = self.__dict__.get("_cal_table")
-        if cached is None or cached[0] != key:
+        # the list and its arrays themselves (held, so no new array can take a freed one's place)
+        if cached is None or cached[0] is not cal or len(cached[1]) != len(cal) or any(
+                a is not b for a, b in zip(cached[1], cal)):
             table = None
             if all(np.asarray(c).dtype == np.float32 for c in cal):
                 table = (np.concatenate([np.empty(0, np.float32), *cal]),
                          np.cumsum([0] + [len(c) for c in cal]).astype(np.int64))
-            self._cal_table = cached = (key, table)
-        return cached[1]
+            self._cal_table = cached = (cal, tuple(cal), table)
+        return cached[2]
 
     def __getstate__(self):
         state = dict(self.__dict__)
-        state.pop("_cal_table", None)  # ids of this process's arrays: rebuilt on first use
+        for cache in ("_cal_table", "_cal_flat", "_cal_starts"):  # rebuilt on first use (the last two:
+            state.pop(cache, None)  # an earlier form of the table, in layers pickled after use)
         return state
 
     def _p_values_numpy(self, X):

@@ -105,6 +105,9 @@ def test_compiled_p_values_are_the_per_class_searchsorted(det, sim):
     np.testing.assert_array_equal(layer2.p_values(F), layer2._p_values_numpy(F))
     layer2.calibration_[4] = cal[4][::2].copy()  # one class's array replaced
     np.testing.assert_array_equal(layer2.p_values(F), layer2._p_values_numpy(F))
+    for part in (cal[5][::2], cal[5][1::3]):  # replaced twice: the second copy may reuse the first's freed id
+        layer2.calibration_[5] = part.copy()
+        np.testing.assert_array_equal(layer2.p_values(F), layer2._p_values_numpy(F))
     assert np.isnan(layer2.p_values(F)[[3, 7]]).all()
     assert F.shape[0] <= openset._P_KERNEL_MAX_ROWS  # the kernel's, not numpy's, compared above
     big = np.repeat(F, openset._P_KERNEL_MAX_ROWS // F.shape[0] + 1, axis=0)  # numpy's beyond
@@ -130,6 +133,8 @@ def test_the_p_value_kernel_refuses_tables_that_do_not_fit_the_scores():
             _kernels.p_values(S, cal, np.array(starts), np.array(modelled))
     with pytest.raises(ValueError, match="p_values"):
         _kernels.p_values(S.astype(np.float64), cal, np.array([0, 1, 2, 4]), np.ones(3, bool))
+    with pytest.raises(ValueError, match="p_values"):
+        _kernels.p_values(S, cal, np.array([0, 1.5, 2, 4]), np.ones(3, bool))
 
 
 def test_conformal_p_values_are_the_rank_formula():
