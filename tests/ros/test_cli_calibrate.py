@@ -74,6 +74,18 @@ def test_help():
     assert r.returncode == 0 and "--nominal" in r.stdout and "--out" in r.stdout
 
 
+def test_help_states_the_refusal_bounds_calibration_applies():
+    """The help spells out the restrictor bounds a fit is refused beyond; they are the core's constants."""
+    from inkdiag_core import calibration as cal
+    from inkdiag_ros.verbs import calibrate as verb
+
+    text = " ".join(verb.DESCRIPTION.split())
+    inertance = (f"an inertance beyond a factor {cal.HEALTHY_MAX_RATIO:g} of "
+                 f"{cal.PRIOR_RATIOS['I_r/I_n']:g} I_n")
+    resistance = f"a resistance above {cal.HEALTHY_MAX_LOSS:g} times R_n / {1 / cal.PRIOR_RATIOS['R_r/R_n']:g}"
+    assert inertance in text and resistance in text
+
+
 def test_wrong_sampling_is_one_line_and_status_2(files, tmp_path):
     r = inkdiag("calibrate", files / "10mhz.npz", "--nominal", files / "nominal.yaml", "--out", tmp_path / "h.yaml")
     assert r.returncode == 2
