@@ -2,6 +2,7 @@
 
     scripts/bench graph [--case both|realistic|worst|mixed] [--nozzles 2656] [--chunk 200] [--seconds 8]
                         [--window N] [--no-baselines] [--no-process] [--model models/fdi_default.joblib]
+                        [--fdi-param NAME:=VALUE ...]
 
 Pre-generates frames of a realistic 2,656-nozzle head (512 samples; :func:`realistic_head`: every nozzle
 its own tolerances, the faults the same in every frame, every nozzle's healthy baseline recorded by
@@ -18,6 +19,9 @@ nozzles each frame, no baselines). Then replays them from this process into a se
    and the case's baselines, whose ``labels`` messages are the answers, labelling on its executor thread;
 3. per case, the same node with ``labelling_process:=true`` (the classifier in a child
    process: a third process on the same 2 cores; ``--no-process`` skips it).
+
+``--fdi-param NAME:=VALUE`` (repeatable) gives the fdi node one more ROS parameter in every fdi phase,
+e.g. ``max_batch_traces:=800`` (classifier passes of at most 4 messages).
 
 Before them, the fdi node's compute alone is timed in this process
 (``label_frames``, the plain branch, on the same messages, one per call, and one head scan per
@@ -249,10 +253,14 @@ def main() -> int:
                          "mixed: the earlier benchmark's frames (10 %% faulty, new nozzles every frame, no baselines)")
     ap.add_argument("--no-baselines", action="store_true", help="the fdi node without the recorded baselines")
     ap.add_argument("--no-process", action="store_true", help="skip the labelling_process phase")
+    ap.add_argument("--fdi-param", action="append", default=[], metavar="NAME:=VALUE",
+                    help="one more ROS parameter of the fdi node (repeatable), e.g. max_batch_traces:=800")
     ap.add_argument("--model", default=str(ROOT / "models" / "fdi_default.joblib"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--namespace", default="/", help=argparse.SUPPRESS)  # the sink's
     ns = ap.parse_args()
+    if bad := [p for p in ns.fdi_param if ":=" not in p]:
+        ap.error(f"--fdi-param takes NAME:=VALUE, got {bad[0]!r}")
     if ns.role == "sink":
         return sink_main(ns.namespace)
     if ns.window is None:
@@ -331,6 +339,8 @@ def main() -> int:
     next_id = 0
     fdi = [sys.executable, "-m", "inkdiag_ros.fdi_node", "--ros-args", "-r", f"__ns:={bench_ns}", "-p", f"model_path:={model}",
            "-p", f"n_nozzles:={ns.nozzles}", "-p", "diagnostics_period_s:=0.5", "--log-level", "warn"]
+    for param in ns.fdi_param:
+        fdi += ["-p", param]
     phases = [(CEILING, cases[0], [sys.executable, __file__, "--role", "sink", "--namespace", bench_ns],
                lambda: node.count_publishers(f"{bench_ns}/{ACK}") > 0)]
     for case in cases:
