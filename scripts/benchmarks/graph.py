@@ -304,7 +304,8 @@ def main() -> int:
     print(f"graph benchmark: {ns.frames} pre-generated frames of {ns.nozzles} nozzles x 512 samples per case "
           f"({frames[0].nbytes / 1e6:.1f} MB each) as messages of {ns.chunk} nozzles; "
           f"window {ns.window} messages in flight ({ns.window / per_scan:.2g} head scans); "
-          f"{ns.seconds:g} s per phase; model {Path(model).name} ({cfg.get('kind')}, {cfg.get('features')})")
+          f"{ns.seconds:g} s per phase; model {Path(model).name} ({cfg.get('kind')}, {cfg.get('features')})"
+          + (f"; fdi parameters {' '.join(ns.fdi_param)}" if ns.fdi_param else ""))
     for case in cases:
         msgs, base, what, gen_s = data[case]
         print(f"case {case}: {what} ({gen_s:.1f} s to generate)")
