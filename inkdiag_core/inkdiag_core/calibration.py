@@ -550,7 +550,8 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     Raises
     ------
     ProfileError
-        The traces are not of the profile's sampling, or the nominal profile lacks a key.
+        The traces are not of the profile's sampling, the nominal profile lacks a key, or ``name``
+        is not a non-empty string.
     CalibrationError
         Fewer than :data:`MIN_TRACES` finite traces, no oscillation in them, or a fit the
         model cannot make (the message says why).
@@ -558,6 +559,8 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     missing = [k for k in NOMINAL_CHANNEL_KEYS if k not in nominal.channel]
     if missing:
         raise ProfileError(f"nominal profile {nominal.name!r}: channel.{missing[0]} is missing")
+    if name is not None and (not isinstance(name, str) or not name):  # as a profile's name must be
+        raise ProfileError(f"the calibrated profile's name must be a non-empty string, got {name!r}")
     nominal.check_traces(traces, sample_rate_hz, what="the recording")
     y = np.asarray(traces, dtype=np.float64)
     # rows labelling would refuse (non-finite, beyond 5x the ADC range, flat, clipped) are left out

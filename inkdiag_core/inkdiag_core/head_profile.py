@@ -299,6 +299,8 @@ class HeadProfile:
         if sensor.get("noise_std_v", 0.0) < 0:
             raise ProfileError(f"{source}: sensor.noise_std_v: expected a number >= 0 in V, got "
                                f"{sensor['noise_std_v']!r}")
+        if sensor.get("snr_db", 0.0) < 0:  # the simulator's noise takes an SNR of 0 dB or more (Spreads.snr_db)
+            raise ProfileError(f"{source}: sensor.snr_db: expected a number >= 0 in dB, got {sensor['snr_db']!r}")
         sp = _section(doc, "spreads", _SPREAD_UNITS, source)
         spreads = {k: _number(f"{source}: spreads", k, v, _SPREAD_UNITS[k], positive=False) for k, v in sp.items()}
         for k, v in spreads.items():

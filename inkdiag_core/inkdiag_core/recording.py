@@ -283,7 +283,7 @@ def read_labels_csv(path) -> LabelTable:
                 raise RecordingError(f"{src}: UTF-16 text (a spreadsheet's 'Unicode text' export): save the labels "
                                      "as a UTF-8 CSV")
         with open(path, newline="", encoding="utf-8-sig") as f:
-            reader = csv.reader(f)
+            reader = csv.reader(f, strict=True)  # an unclosed quote is an error, not the rest of the file as one cell
             header = next(reader, None)
             cols = [c.strip().lower() for c in (header or [])]
             twice = sorted({c for c in cols if c and cols.count(c) > 1})
@@ -297,6 +297,9 @@ def read_labels_csv(path) -> LabelTable:
                 if not any(c.strip() for c in cells):
                     continue
                 line = reader.line_num
+                if any(c.strip() for c in cells[len(cols):]):  # empty trailing cells (a spreadsheet's) are fine
+                    raise RecordingError(f"{src}:{line}: {len(cells)} fields, the header has {len(cols)}: "
+                                         f"{cells[len(cols):]!r} beyond its columns")
                 get = {c: (cells[j].strip() if j < len(cells) else "") for c, j in at.items()}
                 cls = get["class"].lower()  # class names are lower case; a spreadsheet may have capitalised them
                 if cls not in LABEL_VALUES:

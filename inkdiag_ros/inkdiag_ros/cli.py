@@ -28,6 +28,7 @@ one line too, exit status 1.
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import os
 import sys
@@ -91,8 +92,15 @@ def main(argv=None) -> int:
         return 1
     except (InputError, ValueError, OSError) as exc:  # bad input: one line, status 2
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        if (isinstance(exc, OSError) and exc.filename is None and exc.errno in _WRITE_ERRNOS
+                and getattr(args, "out", None)):  # a full disk says no file name: the output is the one written
+            msg = f"--out {args.out}: {exc.strerror or msg}"
         print(f"inkdiag {args.verb}: error: {msg}", file=sys.stderr)
         return 2
+
+
+#: Errors only writing raises (a full disk or quota, a file too large, a read-only file system).
+_WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS})
 
 
 def _same_path(a: str, b: str) -> bool:

@@ -107,6 +107,12 @@ def test_another_sampling_is_refused(recorded):
         calibrate(nominal_of(TRUE), recorded.traces[:, :512], 20e6)
 
 
+@pytest.mark.parametrize("name", ["", 7])
+def test_a_name_that_is_not_a_non_empty_string_is_refused(recorded, name):
+    with pytest.raises(ProfileError, match="name must be a non-empty string"):
+        calibrate(nominal_of(TRUE), recorded.traces, TRUE.sample_rate_hz, name=name)
+
+
 def test_flat_traces_are_refused():
     with pytest.raises(CalibrationError, match="0 usable healthy traces \\(50 left out by screening: flat 50\\)"):
         calibrate(nominal_of(TRUE), np.full((50, 1024), 0.01, np.float32), 20e6)

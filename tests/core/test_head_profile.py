@@ -66,6 +66,7 @@ def test_nominal_profile_loads_and_says_what_is_missing():
     (lambda d: d["sampling"].update(n_samples=512.5), r"sampling\.n_samples: expected a positive integer"),
     (lambda d: d["sampling"].update(sample_rate_hz=float("nan")), r"sampling\.sample_rate_hz"),
     (lambda d: d.update(sensor={"noise_std_v": 0.01, "snr_db": 30.0}), "not both"),
+    (lambda d: d.update(sensor={"snr_db": -300.0}), r"sensor\.snr_db: expected a number >= 0 in dB, got -300\.0"),
     (lambda d: d.update(sensor="x"), "sensor: expected a mapping"),
     (lambda d: d.update(extra=1), "extra: unknown key"),
     (lambda d: d["channel"].update(f_act=6e6), r"channel\.f_act: the actuator's resonance 6000\.0 kHz is not below "

@@ -149,6 +149,8 @@ def test_labels_from_csv_by_row_by_nozzle_and_by_nozzle_and_frame(tmp_path):
     ("nozzle,class\n,ok_signal\n", "l.csv:2: nozzle '' is not an integer"),
     ("nozzle,class\n5,ok_signal\n", "l.csv:2: recording has no row of nozzle 5"),
     ("nozzle,frame_id,class\n7,2,ok_signal\n", "l.csv:2: recording has no row of nozzle 7 in frame 2"),
+    ("row,class\n0,ok_signal,extra\n", "l.csv:2: 3 fields, the header has 2: ['extra'] beyond its columns"),
+    ('row,class\n"0,ok_signal\n1,ok_signal\n', "cannot read the labels CSV: unexpected end of data"),
 ])
 def test_labels_from_csv_refuses_what_it_cannot_use_naming_the_line(tmp_path, text, message):
     from inkdiag_core import labels_from_csv
@@ -173,3 +175,12 @@ def test_labels_from_csv_refuses_a_missing_file_a_directory_and_bytes_that_are_n
     (tmp_path / "b.csv").write_bytes(b"\x80\x81\x00r")  # not UTF-8 text
     with pytest.raises(RecordingError, match="cannot read the labels CSV"):
         labels_from_csv(rec, tmp_path / "b.csv")
+
+
+def test_labels_from_csv_takes_empty_cells_beyond_the_header(tmp_path):
+    """A spreadsheet's export may end lines with empty cells; a non-empty one beyond the header is refused."""
+    from inkdiag_core import labels_from_csv
+
+    rec = Recording.from_arrays(np.random.default_rng(0).normal(size=(2, 64)).astype(np.float32), 10e6)
+    labelled, n_named = labels_from_csv(rec, _csv(tmp_path / "l.csv", "row,class\n0,ok_signal,,\n1,deeply_dried, \n"))
+    assert n_named == 2 and list(labelled.label) == ["ok_signal", "deeply_dried"]

@@ -99,18 +99,21 @@ def test_wrong_sampling_is_one_line_and_status_2(files, tmp_path):
     ("schema", "schema is 'something.else'"),
     ("few", "5 usable healthy traces"),
     ("nominal_missing", "no such head profile file"),
+    ("empty_name", "--name must be a non-empty name"),
 ])
 def test_bad_input_is_one_line_and_status_2(files, tmp_path, capsys, case, message):
     healthy, nominal = files / "healthy.npz", files / "nominal.yaml"
+    extra = ["--name", ""] if case == "empty_name" else []
     if case == "missing":
         healthy = files / "nope.npz"
     elif case == "schema":
         nominal = files / "other.yaml"
     elif case == "few":
         healthy = files / "few.npz"
-    else:
+    elif case == "nominal_missing":
         nominal = files / "nope.yaml"
-    status = cli.main(["calibrate", str(healthy), "--nominal", str(nominal), "--out", str(tmp_path / "h.yaml")])
+    status = cli.main(["calibrate", str(healthy), "--nominal", str(nominal), "--out", str(tmp_path / "h.yaml"),
+                       *extra])
     err = capsys.readouterr().err
     assert status == 2 and err.count("\n") == 1 and err.startswith("inkdiag calibrate: error: ")
     assert message in err

@@ -128,6 +128,14 @@ def test_estimate_bad_input_is_one_line_and_status_2(head, tmp_path):
         assert len(res.stderr.strip().splitlines()) == 1 and not out.exists()
 
 
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (a device that is always full)")
+def test_a_full_disk_names_the_output(head):
+    d, p, r = head
+    res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--rows", "0:2", "--out", "/dev/full")
+    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert res.stderr.strip() == "inkdiag estimate: error: --out /dev/full: No space left on device", res.stderr
+
+
 def test_a_reader_that_stops_early_is_one_line_and_status_1(head):
     """`inkdiag estimate ... --out - | head`: the CSV's reader is gone before it is written; one line, status 1,
     no traceback (buffered stdout too: the summary flushed at exit must not fail either)."""

@@ -183,6 +183,8 @@ def run(args) -> int:
 
     if not 0 <= args.seed < 2**32:
         raise ValueError(f"--seed must be in 0..2**32-1, got {args.seed}")
+    if args.name is not None and not args.name:  # before the recording is read
+        raise ValueError("--name must be a non-empty name, got ''")
     nominal = HeadProfile.load(args.nominal)
     # before a long bag is read
     blocked = _fault_rows(args.blocked, "--blocked", "fully_blocked") if args.blocked else None
