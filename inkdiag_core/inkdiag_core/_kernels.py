@@ -410,6 +410,7 @@ def _unexplained(x, kpis, fs, tiny, out):
         u = max(total - 2.0 * cross + model2, 0.0) / max(total, tiny)
         out[i] = u if np.isfinite(u) else np.nan
 
+
 @numba.njit(cache=True, nogil=True)
 def _power(y, out):
     """``|y|**2`` in ``y``'s precision, as numpy's ``y.real**2 + y.imag**2`` rounds it (no fused multiply-add)."""

@@ -466,12 +466,8 @@ class ConformalOpenSet:
             state.pop(cache, None)  # an earlier form of the table, in layers pickled after use)
         return state
 
-    def _p_values_numpy(self, X):
-        """:meth:`p_values` as one ``searchsorted`` per class (the kernel's reference in the tests)."""
-        return self._p_of_scores_numpy(self.scores(X))
-
     def _p_of_scores_numpy(self, S):
-        """:meth:`_p_of_scores` in numpy: one ``searchsorted`` per class."""
+        """:meth:`_p_of_scores` in numpy: one ``searchsorted`` per class (the kernel's reference in the tests)."""
         P = np.ones(S.shape)
         for i, cal in enumerate(self.calibration_):
             if not self.modelled_[i]:

@@ -39,7 +39,8 @@ import scipy.fft
 
 from inkdiag_core import (FaultClass, FaultDetector, baseline_kpis, extract_kpis, healthy_twin_frames,
                           make_fdi_pipeline, simulate, with_baseline)
-from inkdiag_core import _kernels, spectral_fit
+from inkdiag_core import _kernels, openset, spectral_fit
+from inkdiag_core import kpis as kpis_module
 from inkdiag_core.fdi import forest_predict_proba
 from inkdiag_core.kpis import kpis_of_checked
 from inkdiag_core.screening import screen_traces
@@ -289,8 +290,6 @@ def kernel_bench(frame, gate, repeats: int = 5, rounds: int = 20):
           f"window and KPI steps, the window fit compiled in both, same spectra, best of {repeats} x {rounds} calls, "
           "in turns)")
     for x in (left[:72], np.ascontiguousarray(frame[:200]), np.ascontiguousarray(frame[:1600])):
-        from inkdiag_core import kpis as kpis_module
-
         spec, out = scipy.fft.rfft(x, axis=-1), np.empty((len(x), 7))
         with np.errstate(all="ignore"):
             t_np, t_k = _in_turns(
@@ -301,8 +300,6 @@ def kernel_bench(frame, gate, repeats: int = 5, rounds: int = 20):
     print(f"the open-set layer's unexplained fraction (openset.unexplained_fraction: _kernels.unexplained against "
           f"numpy's float32 blocks, best of {repeats} x {rounds} calls, in turns)")
     for x in (left[:72], np.ascontiguousarray(frame[:200]), np.ascontiguousarray(frame[:1600])):
-        from inkdiag_core import openset
-
         k = kpis_of_checked(x, 10e6)
         got, ref = openset.unexplained_fraction(x, k, 10e6), openset._unexplained_fraction_numpy(x, k, 10e6)
         t_np, t_k = _in_turns(lambda: [openset._unexplained_fraction_numpy(x, k, 10e6) for _ in range(rounds)],
@@ -324,7 +321,6 @@ def forest_bench(det, base, frame, gate, repeats: int = 5, rounds: int = 20):
     """The detector's forests (plain and baseline branch) in one compiled call (``_kernels.forest_proba``)
     against one ``tree_.predict`` call per tree (what ``forest_predict_proba`` did before), in turns, same rows;
     bit-identical: the kernel's against scikit-learn's ``predict_proba``."""
-    from inkdiag_core import openset
     from inkdiag_core.fdi import _flat_forest, _per_tree_proba as _per_tree
 
     left = np.flatnonzero(~gate.screen(frame, 0).cleared)

@@ -94,24 +94,24 @@ def test_compiled_p_values_are_the_per_class_searchsorted(det, sim):
     F[7, 2] = np.inf
     cal = layer.calibration_
     F = np.vstack([F, np.zeros((1, F.shape[1]))])
-    np.testing.assert_array_equal(layer.p_values(F), layer._p_values_numpy(F))
+    np.testing.assert_array_equal(layer.p_values(F), layer._p_of_scores_numpy(layer.scores(F)))
     layer2 = pickle.loads(pickle.dumps(layer))
     layer2.modelled_ = layer2.modelled_.copy()
     layer2.modelled_[1] = False
     layer2.calibration_ = [cal[0][:0], *cal[1:]]  # a class without calibration scores
     layer2.calibration_[2] = np.repeat(cal[2][:3], 5)  # ties
-    np.testing.assert_array_equal(layer2.p_values(F), layer2._p_values_numpy(F))
+    np.testing.assert_array_equal(layer2.p_values(F), layer2._p_of_scores_numpy(layer2.scores(F)))
     layer2.calibration_ = list(cal)  # reassigned after use: the flat table follows
-    np.testing.assert_array_equal(layer2.p_values(F), layer2._p_values_numpy(F))
+    np.testing.assert_array_equal(layer2.p_values(F), layer2._p_of_scores_numpy(layer2.scores(F)))
     layer2.calibration_[4] = cal[4][::2].copy()  # one class's array replaced
-    np.testing.assert_array_equal(layer2.p_values(F), layer2._p_values_numpy(F))
+    np.testing.assert_array_equal(layer2.p_values(F), layer2._p_of_scores_numpy(layer2.scores(F)))
     for part in (cal[5][::2], cal[5][1::3]):  # replaced twice: the second copy may reuse the first's freed id
         layer2.calibration_[5] = part.copy()
-        np.testing.assert_array_equal(layer2.p_values(F), layer2._p_values_numpy(F))
+        np.testing.assert_array_equal(layer2.p_values(F), layer2._p_of_scores_numpy(layer2.scores(F)))
     assert np.isnan(layer2.p_values(F)[[3, 7]]).all()
     assert F.shape[0] <= openset._P_KERNEL_MAX_ROWS  # the kernel's, not numpy's, compared above
     big = np.repeat(F, openset._P_KERNEL_MAX_ROWS // F.shape[0] + 1, axis=0)  # numpy's beyond
-    np.testing.assert_array_equal(layer.p_values(big), layer._p_values_numpy(big))
+    np.testing.assert_array_equal(layer.p_values(big), layer._p_of_scores_numpy(layer.scores(big)))
 
 
 def test_labelling_leaves_the_pickled_layer_as_it_was(det, sim):
