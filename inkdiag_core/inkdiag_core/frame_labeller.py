@@ -18,6 +18,11 @@ reports :class:`LabellerConfigError`, and it validates each frame once:
    each row routed to the baseline branch when its nozzle has a baseline;
 5. if that call raises, each frame alone, so one bad frame costs only itself.
 
+:meth:`FrameLabeller.label` does it all at once; :meth:`FrameLabeller.screen` (1-3) and
+:meth:`FrameLabeller.finish` (4-5) apart let a node screen each burst of frames as it
+arrives and run the detector once for several bursts (its fixed cost per call is most of
+what a working head's few leftover rows cost). The grouping changes no label.
+
 No ROS in here.
 """
 
@@ -34,7 +39,7 @@ from .persistence import load_detector
 from .labelling import FrameLabels
 from .screening import screen_traces, screening_settings, verdicts
 
-__all__ = ["FrameFailure", "FrameInputError", "FrameLabeller", "LabellerConfigError", "load_labeller"]
+__all__ = ["FrameFailure", "FrameInputError", "FrameLabeller", "LabellerConfigError", "ScreenedFrames", "load_labeller"]
 
 
 class LabellerConfigError(ValueError):
@@ -173,7 +178,7 @@ class FrameLabeller:
 
     def label(self, frames, first_nozzles, *, nozzles=None) -> list:
         """Label a batch of frames: each frame screened and gated by one kernel call, one detector call
-        for the rows left, each frame isolated.
+        for the rows left, each frame isolated (:meth:`finish` of one :meth:`screen`).
 
         Parameters
         ----------
@@ -194,6 +199,24 @@ class FrameLabeller:
             :class:`FrameFailure` (a :class:`FrameInputError` for a frame of the
             wrong shape; the exception labelling it alone raised otherwise).
         """
+        return self.finish([self.screen(frames, first_nozzles, nozzles=nozzles)])[0]
+
+    def screen(self, frames, first_nozzles, *, nozzles=None) -> "ScreenedFrames":
+        """The first stage of :meth:`label`: screening and the healthy gate, the rows left for the
+        detector gathered. :meth:`finish` labels them, for several screened batches in one
+        detector call: a node screens each burst of messages as it takes it and runs the
+        detector once its input is idle. ``label(...)`` is ``finish([screen(...)])[0]``; how
+        frames are grouped into screened batches and finished changes no label (the detector
+        labels each row on its own).
+
+        Parameters and their checks are :meth:`label`'s.
+
+        Returns
+        -------
+        ScreenedFrames
+            Opaque; for :meth:`finish` (``len()`` is its number of frames, ``rows_left`` the
+            rows the detector will take).
+        """
         if len(frames) != len(first_nozzles):
             raise ValueError(f"{len(frames)} frames but {len(first_nozzles)} first nozzle ids")
         if nozzles is not None and len(nozzles) != len(frames):
@@ -212,27 +235,62 @@ class FrameLabeller:
             else:
                 good.append(i)
                 arrays.append(a)
+        screened = ScreenedFrames(out)
         if not good:
-            return out
+            return screened
         if nozzles is None:
             firsts = [int(first_nozzles[i]) for i in good]
         else:  # each row's own id
             firsts = [np.asarray(nozzles[i], dtype=np.int64) for i in good]
         try:
-            rows = self._label_rows(arrays, firsts)
+            screened.parts.append(_Part(good, arrays, firsts, self._screen_rows(arrays, firsts)))
         except Exception:  # noqa: BLE001 - find the frame(s) at fault: each alone
             for i, a, first in zip(good, arrays, firsts):
                 try:
-                    out[i] = self._label_rows([a], [first])[0]
+                    screened.parts.append(_Part([i], [a], [first], self._screen_rows([a], [first])))
                 except Exception as exc:  # noqa: BLE001 - this frame's failure, reported by the caller
                     out[i] = FrameFailure(i, exc)
-            return out
-        for i, r in zip(good, rows):
-            out[i] = r
-        return out
+        return screened
 
-    def _label_rows(self, arrays, firsts) -> list:
-        """Screen and classify frames of the right width together; a list of FrameLabels."""
+    def finish(self, screened) -> list:
+        """The second stage of :meth:`label`: one detector call for the rows every batch of
+        ``screened`` left, each frame's labels.
+
+        Parameters
+        ----------
+        screened : sequence of ScreenedFrames
+            From :meth:`screen` of this labeller, each finished once.
+
+        Returns
+        -------
+        list of list
+            Per screened batch, per frame: as :meth:`label` returns them. If the one call
+            raises, each batch alone, then each of its frames alone: one bad frame costs only itself.
+        """
+        owners = [s for s in screened for _ in s.parts]
+        parts = [p for s in screened for p in s.parts]
+        try:
+            done = self._finish_rows([p.pending for p in parts])
+        except Exception:  # noqa: BLE001 - find the frame(s) at fault: each batch, then each frame alone
+            done = []
+            for p in parts:
+                try:
+                    done.extend(self._finish_rows([p.pending]))
+                except Exception:  # noqa: BLE001
+                    rows = []
+                    for a, first in zip(p.arrays, p.firsts):
+                        try:
+                            rows.append(self._finish_rows([self._screen_rows([a], [first])])[0][0])
+                        except Exception as exc:  # noqa: BLE001 - this frame's failure, reported by the caller
+                            rows.append(exc)
+                    done.append(rows)
+        for s, p, rows in zip(owners, parts, done):
+            for i, r in zip(p.frames, rows):
+                s.out[i] = FrameFailure(i, r) if isinstance(r, BaseException) else r
+        return [s.out for s in screened]
+
+    def _screen_rows(self, arrays, firsts) -> "_Pending":
+        """Screen frames of the right width together, the gate's rows labelled, the others gathered."""
         sizes = [a.shape[0] for a in arrays]
         ends = np.cumsum(sizes)
         starts = ends - sizes
@@ -275,31 +333,90 @@ class FrameLabeller:
             confidence[done] = 1.0
             with_base[done] = True
             at = at[~cleared[at]]
+        rows = kpis = None
         if at.size:
-            kpis = None
             if self.baselines is not None:
                 has, kpis = self.baselines.lookup(ids[at])
                 kpis[~has] = np.nan  # routed to the plain branch
-            rows = (x if at.size == n else x[at]) if x is not None else _rows_of(arrays, ends, at)
+            rows = [(x if at.size == n else x[at])] if x is not None else _row_parts(arrays, ends, at)
+        return _Pending(starts, ends, classes, confidence, with_base, cleared, reasons, at, rows, kpis)
+
+    def _finish_rows(self, pending) -> list:
+        """One detector call for the rows left in every ``pending`` batch; per batch, its frames' FrameLabels."""
+        left = [p for p in pending if p.at.size]
+        if left:
+            parts = [r for p in left for r in p.rows]
+            rows = parts[0] if len(parts) == 1 else np.concatenate(parts)
+            kpis = None if left[0].kpis is None else (
+                left[0].kpis if len(left) == 1 else np.concatenate([p.kpis for p in left]))
             got = self.detector.label(rows, baseline_kpis=kpis)
-            ok = at[got.valid]
-            classes[ok] = got.classes[got.valid].astype(str).astype(object)
-            confidence[ok] = got.confidence[got.valid]
-            reasons[at[~got.valid]] = "non_finite_features"
-            with_base[at] = got.baseline
-        valid = reasons == ""
-        with_base &= valid
-        cols = (classes, confidence, valid, reasons, with_base) + ((cleared,) if self.gate is not None else ())
-        bounds = zip(starts.tolist(), ends.tolist())
-        return [FrameLabels(*(col[i:j] for col in cols)) for i, j in bounds]  # views of the batch's columns
+            got_classes = got.classes.astype(str).astype(object)
+            k = 0
+            for p in left:
+                sl = slice(k, k + p.at.size)
+                k += p.at.size
+                ok, at = got.valid[sl], p.at
+                p.classes[at[ok]] = got_classes[sl][ok]
+                p.confidence[at[ok]] = got.confidence[sl][ok]
+                p.reasons[at[~ok]] = "non_finite_features"
+                p.with_base[at] = got.baseline[sl]
+        out = []
+        for p in pending:
+            valid = p.reasons == ""
+            with_base = p.with_base & valid
+            cols = (p.classes, p.confidence, valid, p.reasons, with_base) + (
+                (p.cleared,) if self.gate is not None else ())
+            bounds = zip(p.starts.tolist(), p.ends.tolist())
+            out.append([FrameLabels(*(col[i:j] for col in cols)) for i, j in bounds])  # views of the columns
+        return out
 
 
-def _rows_of(arrays, ends, at):
-    """Rows ``at`` (ascending batch indices) of the frames ``arrays`` stacked, as one array; no copy
-    when they are all of one frame."""
+class ScreenedFrames:
+    """A batch of frames after :meth:`FrameLabeller.screen`, waiting for :meth:`FrameLabeller.finish`."""
+
+    def __init__(self, out: list):
+        self.out = out  # per frame: its result once known (a FrameFailure from screening at once)
+        self.parts: list = []  # _Part: frames screened together
+
+    def __len__(self) -> int:
+        return len(self.out)
+
+    @property
+    def rows_left(self) -> int:
+        """Rows the detector will take."""
+        return sum(int(p.pending.at.size) for p in self.parts)
+
+
+@dataclass
+class _Part:
+    frames: list  # their indices in the batch
+    arrays: list
+    firsts: list
+    pending: "_Pending"
+
+
+@dataclass
+class _Pending:
+    """Columns of frames screened together; ``at``: the batch rows left for the detector, ``rows`` them."""
+
+    starts: np.ndarray
+    ends: np.ndarray
+    classes: np.ndarray
+    confidence: np.ndarray
+    with_base: np.ndarray
+    cleared: np.ndarray
+    reasons: np.ndarray
+    at: np.ndarray
+    rows: list | None
+    kpis: np.ndarray | None
+
+
+def _row_parts(arrays, ends, at) -> list:
+    """Rows ``at`` (ascending batch indices) of the frames ``arrays`` stacked, as a list of arrays
+    (one per frame they fall in); no copy for a frame all of whose rows are taken."""
     if len(arrays) == 1:
         a = arrays[0]
-        return a if at.size == a.shape[0] else a[at]
+        return [a if at.size == a.shape[0] else a[at]]
     k = np.searchsorted(ends, at, side="right")  # each row's frame
     cut = np.flatnonzero(np.diff(k)) + 1
     parts = []
@@ -308,7 +425,7 @@ def _rows_of(arrays, ends, at):
         a = arrays[f]
         local = at[lo:hi] - (int(ends[f]) - a.shape[0])
         parts.append(a if local.size == a.shape[0] else a[local])
-    return parts[0] if len(parts) == 1 else np.concatenate(parts)
+    return parts
 
 
 def _warm_up_kernels() -> None:

@@ -96,11 +96,20 @@ class FdiNode(Node):
 
     def _on_traces(self, msg) -> None:
         try:
-            for taken in (msg, *take_queued(self._sub, min(64, self.config["max_queued_frames"] - 1))):  # a burst
-                self._on_trace_msg(taken)
-        finally:  # labelled and published here until a signal shuts the context (a child's pipeline: no-op)
-            self._pipeline.flush(self.context.ok)
+            self._on_trace_msg(msg)
+            self._take_waiting(self.config["max_queued_frames"] - 1)  # the rest of a burst
+        finally:  # labelled and published here until a signal shuts the context (a child's pipeline: no-op);
+            # what arrives while the burst is screened is screened too before the detector runs (one pass)
+            self._pipeline.flush(self.context.ok, refill=lambda: self._take_waiting(self.config["max_queued_frames"]))
         self._on_diagnostics(1.0)  # under load the timer waits behind this callback: /diagnostics on time
+
+    def _take_waiting(self, at_most: int) -> bool:
+        """Decode and queue the trace messages waiting in the subscription (at most ``at_most``, 64); any?"""
+        n = 0
+        for taken in take_queued(self._sub, min(64, at_most)):
+            self._on_trace_msg(taken)
+            n += 1
+        return n > 0
 
     def _on_trace_msg(self, msg) -> None:
         self.stats.received()

@@ -7,7 +7,8 @@ labeller's per-frame results (a :class:`inkdiag_core.FrameLabels`, or an
 goes wrong inside a backend becomes a failure of every frame of the batch it
 hit; neither method raises for a batch.
 
-- :class:`ThreadBackend`: labels in :meth:`submit`, on the caller's thread.
+- :class:`ThreadBackend`: labels in :meth:`submit`, on the caller's thread; or in two
+  stages, :meth:`ThreadBackend.screen` per batch and :meth:`ThreadBackend.finish` for several.
 - :class:`ProcessBackend`: a child process (:class:`.labelling_process.LabellingProcess`)
   runs the same labeller (pickled across), so receiving, labelling and publishing
   overlap on two cores. A child that dies fails the frames it had and the next
@@ -18,9 +19,10 @@ hit; neither method raises for a batch.
 Two pipelines take decoded frames and hand each frame's result to the node:
 
 - :class:`InlinePipeline` (the node's default, with a :class:`ThreadBackend`): the executor
-  thread that took a burst of frames labels them (in batches of at most ``max_batch_rows``
-  rows) and publishes their results (:meth:`InlinePipeline.flush`) before it takes more. One Python thread does all of the
-  node's work, so no thread waits for another's GIL.
+  thread that took a burst of frames screens them, and the frames that arrive meanwhile,
+  labels them in one detector pass (at most ``max_batch_rows`` rows of frames) and
+  publishes their results (:meth:`InlinePipeline.flush`) before it takes more. One Python
+  thread does all of the node's work, so no thread waits for another's GIL.
 - :class:`LabellingPipeline` (with a :class:`ProcessBackend`): a worker thread hands batches
   to the child while the executor thread keeps receiving, and a collector thread publishes.
 
@@ -68,6 +70,12 @@ class LabellingBackend(Protocol):
     def close(self) -> None: ...
 
 
+#: Rows left for the detector by the frames screened, beyond which :meth:`InlinePipeline.flush` runs it
+#: without screening what arrives meanwhile first: its fixed cost per call (about 50 rows' worth,
+#: reports/gate_bench.md) is small against theirs, and the answers need not wait.
+DEFER_ROWS = 256
+
+
 def _all_failed(n: int, exc: BaseException) -> list:
     return [FrameFailure(i, exc) for i in range(n)]
 
@@ -102,6 +110,38 @@ class ThreadBackend:
     def collect(self) -> LabelledBatch:
         """The oldest batch submitted and not collected yet."""
         return self._done.popleft()
+
+    def screen(self, frames, first_nozzles):
+        """The first stage of labelling ``frames`` now (:meth:`inkdiag_core.FrameLabeller.screen`).
+
+        Returns
+        -------
+        token
+            For :meth:`finish` (with the tokens of other screened batches).
+        rows_left : int
+            Rows the detector will take.
+        busy_s : float
+            Seconds spent.
+        """
+        t0 = time.perf_counter()
+        try:
+            token = self.labeller.screen(frames, first_nozzles)
+            left = token.rows_left
+        except Exception as exc:  # noqa: BLE001 - the labeller's own error: every frame of the batch failed
+            token, left = _all_failed(len(frames), exc), 0
+        return token, left, time.perf_counter() - t0
+
+    def finish(self, tokens) -> LabelledBatch:
+        """Every screened batch of ``tokens`` labelled, one detector call for them all
+        (:meth:`inkdiag_core.FrameLabeller.finish`): their frames' results, in order."""
+        t0 = time.perf_counter()
+        screened = [t for t in tokens if not isinstance(t, list)]
+        try:
+            done = iter(self.labeller.finish(screened))
+        except Exception as exc:  # noqa: BLE001 - as in submit
+            done = iter([_all_failed(len(t), exc) for t in screened])
+        results = [r for t in tokens for r in (t if isinstance(t, list) else next(done))]
+        return LabelledBatch(results, time.perf_counter() - t0)
 
     def close(self) -> None:
         self._done.clear()
@@ -228,7 +268,7 @@ class LabellingPipeline:
         """Queue one decoded frame (``.traces`` (n, n_samples), ``.first_nozzle``)."""
         self._worker.submit(frame, rows=frame.traces.shape[0])
 
-    def flush(self, keep_going: Callable | None = None) -> None:
+    def flush(self, keep_going: Callable | None = None, refill: Callable | None = None) -> None:
         """Nothing to do: the pipeline's own threads label and hand out every frame submitted."""
 
     def wait_idle(self, timeout: float | None = None) -> bool:
@@ -274,6 +314,14 @@ class LabellingPipeline:
         _hand_out(callback, self._on_error, frame, arg)
 
 
+def _asked(refill: Callable) -> bool:
+    """``refill()``, False if it raises (the frames it took are the caller's to report)."""
+    try:
+        return bool(refill())
+    except Exception:  # noqa: BLE001 - no more frames this time; the ones screened are labelled
+        return False
+
+
 def _hand_out(callback, on_error, frame, arg) -> None:
     """``callback(frame, arg)``; what it raises goes to ``on_error``, never out of the pipeline."""
     try:
@@ -289,8 +337,9 @@ class InlinePipeline:
     """Frames labelled and handed out on the thread that queued them, when it calls :meth:`flush`.
 
     The fdi node's subscription callback submits every frame it took in one executor
-    wake-up, then flushes: the queued frames are labelled in batches (at most
-    ``max_batch_rows`` rows each; one larger frame alone) and each frame's result goes to
+    wake-up, then flushes: the queued frames are screened as they are taken, and what
+    arrives meanwhile too (``refill``), then labelled in one detector pass (at most
+    ``max_batch_rows`` rows of frames each; one larger frame alone); each frame's result goes to
     ``on_result(frame, result)`` in order, then ``on_batch(n_frames, busy_s)``. No thread of
     its own: taking, labelling and publishing take turns on one thread instead of three
     threads contending for the GIL (the fdi node's throughput, reports/gate_bench.md). While
@@ -334,42 +383,97 @@ class InlinePipeline:
         if dropped is not None:
             self._on_drop(dropped)
 
-    def flush(self, keep_going: Callable | None = None) -> None:
+    def flush(self, keep_going: Callable | None = None, refill: Callable | None = None) -> None:
         """Label every queued frame and hand out its result, on this thread; returns when none is left.
 
-        ``keep_going()`` (optional) is asked before each batch: False stops the flush, and
-        what is still queued waits for the next one (or is dropped by :meth:`close`), as
-        when the node's context is shut down by a signal in the middle of a burst.
+        Each batch taken from the queue is screened at once (the healthy gate); the detector
+        runs on the rows they left once nothing more is queued, ``max_batch_rows`` rows of
+        frames are screened, or they left :data:`DEFER_ROWS` rows: one detector pass for a
+        burst of messages that arrive while the first of them are screened, not one per
+        executor wake-up (the pass's fixed cost, reports/gate_bench.md). ``refill()``
+        (optional) is asked for more before the detector runs: it submits what has arrived
+        meanwhile and returns whether it did. No label depends on how the frames are grouped.
+
+        ``keep_going()`` (optional) is asked before each batch: False stops the flush (the frames
+        screened are labelled and handed out first), and what is still queued waits for the
+        next one (or is dropped by :meth:`close`), as when the node's context is shut down by a
+        signal in the middle of a burst.
         """
         me = threading.current_thread()
         with self._cv:
             if self._flushing is not None:  # re-entered from a callback: the running flush takes them
                 return
             self._flushing = me
+        staged = hasattr(self.backend, "screen")
+        pending: list = []  # (frames, token) screened, waiting for the detector
+        n_rows, n_left, busy_s = 0, 0, 0.0
         try:
-            while (keep_going is None or keep_going()) and (batch := self._take()):
-                try:
-                    self.backend.submit([f.traces for f in batch], [f.first_nozzle for f in batch])
-                    results, busy_s = self.backend.collect()
-                except Exception as exc:  # noqa: BLE001 - the batch is lost: each of its frames fails
-                    results, busy_s = _all_failed(len(batch), exc), 0.0
-                for frame, result in zip(batch, results):
-                    _hand_out(self._on_result, self._on_error, frame, result)
-                try:
-                    self._on_batch(len(batch), busy_s)
-                except Exception:  # noqa: BLE001 - statistics only; the pipeline goes on
-                    pass
+            while keep_going is None or keep_going():
+                batch = self._take(self._max_rows - n_rows if pending else None)
+                if batch and staged:
+                    try:
+                        token, left, dt = self.backend.screen([f.traces for f in batch],
+                                                              [f.first_nozzle for f in batch])
+                    except Exception as exc:  # noqa: BLE001 - the batch is lost: each of its frames fails
+                        token, left, dt = _all_failed(len(batch), exc), 0, 0.0
+                    pending.append((batch, token))
+                    n_rows += sum(f.traces.shape[0] for f in batch)
+                    n_left += left
+                    busy_s += dt
+                    if (n_rows < self._max_rows and n_left < DEFER_ROWS
+                            and (self._queue or (refill is not None and _asked(refill)))):
+                        continue  # more arrived: screened too before the detector's one pass
+                elif batch:
+                    self._label_and_hand_out(batch)
+                    continue
+                if not pending:
+                    break  # _take ended the flush
+                self._finish(pending, busy_s)
+                pending, n_rows, n_left, busy_s = [], 0, 0, 0.0
         finally:
-            with self._cv:
-                if self._flushing is me:  # stopped early, or raised
-                    self._flushing = None
-                    self._cv.notify_all()
+            try:
+                if pending:  # stopped early, or raised: what was screened is still labelled and handed out
+                    self._finish(pending, busy_s)
+            finally:
+                with self._cv:
+                    if self._flushing is me:  # stopped early, or raised
+                        self._flushing = None
+                        self._cv.notify_all()
 
-    def _take(self) -> list:
-        """The next batch; none left: the flush ends in the same lock (a frame submitted after it finds none)."""
+    def _label_and_hand_out(self, batch) -> None:  # a backend without stages: each batch in one call
+        try:
+            self.backend.submit([f.traces for f in batch], [f.first_nozzle for f in batch])
+            results, busy_s = self.backend.collect()
+        except Exception as exc:  # noqa: BLE001 - the batch is lost: each of its frames fails
+            results, busy_s = _all_failed(len(batch), exc), 0.0
+        self._hand_out(batch, results, busy_s)
+
+    def _finish(self, pending, screen_s: float) -> None:
+        frames = [f for batch, _ in pending for f in batch]
+        try:
+            results, busy_s = self.backend.finish([token for _, token in pending])
+        except Exception as exc:  # noqa: BLE001 - the batches are lost: each of their frames fails
+            results, busy_s = _all_failed(len(frames), exc), 0.0
+        self._hand_out(frames, results, screen_s + busy_s)
+
+    def _hand_out(self, frames, results, busy_s: float) -> None:
+        for frame, result in zip(frames, results):
+            _hand_out(self._on_result, self._on_error, frame, result)
+        try:
+            self._on_batch(len(frames), busy_s)
+        except Exception:  # noqa: BLE001 - statistics only; the pipeline goes on
+            pass
+
+    def _take(self, room: int | None = None) -> list:
+        """The next batch; none left: the flush ends in the same lock (a frame submitted after it finds
+        none). With ``room`` (rows, frames screened and not finished yet): frames within it only,
+        and the flush goes on."""
         with self._cv:
-            batch = take_batch(self._queue, self._max_rows)
-            if not batch:
+            if room is None:
+                batch = take_batch(self._queue, self._max_rows)
+            else:
+                batch = take_batch(self._queue, room) if self._queue and self._queue[0][1] <= room else []
+            if not batch and room is None:
                 self._flushing = None
                 self._cv.notify_all()
             return batch

@@ -218,7 +218,7 @@ def test_frames_screened_and_gated_one_by_one_label_as_the_stacked_batch(detecto
     firsts = [FIRST + f for _, _, f in order]
     labeller = FrameLabeller(detector, base, max_abs_v=10.0)
     assert labeller.uses_gate
-    got = labeller._label_rows(frames, firsts)  # the batch itself (label() would retry a failing batch frame by frame)
+    got = labeller._finish_rows([labeller._screen_rows(frames, firsts)])[0]  # the batch itself (label() would retry a failing batch frame by frame)
 
     rows = np.concatenate(frames)
     ids = np.concatenate([f + np.arange(a.shape[0]) for f, a in zip(firsts, frames)])
@@ -250,3 +250,55 @@ def test_frames_screened_and_gated_one_by_one_label_as_the_stacked_batch(detecto
 def test_a_max_abs_v_that_is_not_positive_is_a_config_error(detector, max_abs_v):
     with pytest.raises(LabellerConfigError, match="max_abs_v must be > 0 V"):
         FrameLabeller(detector, max_abs_v=max_abs_v)
+
+
+def test_frames_screened_in_bursts_and_finished_together_label_as_label_does(detector, baselines):
+    """screen() per burst, one finish() for them all (the fdi node's flush): each frame's labels are
+    label()'s, bit for bit, with and without the gate, bad frames failing alone in their burst; the
+    detector runs once."""
+    import dataclasses
+
+    frames, firsts = _head_frames()
+    rec = BaselineRecorder(n_frames=4)
+    for k in range(4):
+        rec.add(FIRST, simulate_nozzles(["healthy_nozzle"] * N, seed=HEAD, frame_seed=k).traces)
+    with_ref = rec.baselines()
+    for base in (baselines, with_ref, None, dataclasses.replace(with_ref, reference=None)):
+        lab = FrameLabeller(detector, base, max_abs_v=10.0)
+        want = lab.label(frames, firsts)
+        bursts = [([frames[0]], [firsts[0]]), ([frames[1], np.zeros(512, np.float32), frames[2]],
+                                                [firsts[1], 0, firsts[2]]), ([frames[3]], [firsts[3]])]
+        screened = [lab.screen(f, fi) for f, fi in bursts]
+        assert [len(s) for s in screened] == [1, 3, 1]
+        assert sum(s.rows_left for s in screened) > 0
+        got = lab.finish(screened)
+        assert isinstance(got[1][1], FrameFailure) and got[1][1].frame_index == 1
+        _same([got[0][0], got[1][0], got[1][2], got[2][0]], want)
+        for g, w in zip([got[0][0], got[1][0], got[1][2], got[2][0]], want):
+            assert (g.gate_cleared is None) == (w.gate_cleared is None)
+            if w.gate_cleared is not None:
+                np.testing.assert_array_equal(g.gate_cleared, w.gate_cleared)
+
+
+def test_a_frame_the_detector_refuses_in_a_joint_finish_fails_alone(detector, monkeypatch):
+    """finish() of several screened bursts: the joint detector call raises, so each burst alone, then
+    each frame of the burst that still raises alone: only the frame at fault fails."""
+    frames, firsts = _head_frames()
+    lab = FrameLabeller(detector, max_abs_v=10.0)
+    real = type(detector).label
+    calls = []
+
+    def refuse_frame_two(self, X, **kw):
+        calls.append(len(X))
+        if any(np.array_equal(r, frames[2][0]) for r in np.asarray(X)):
+            raise RuntimeError("boom")
+        return real(self, X, **kw)
+
+    want = lab.label([frames[0], frames[1], frames[3]], [firsts[0], firsts[1], firsts[3]])
+    monkeypatch.setattr(type(detector), "label", refuse_frame_two)
+    screened = [lab.screen(frames[:2], firsts[:2]), lab.screen(frames[2:], firsts[2:])]
+    got = lab.finish(screened)
+    assert [isinstance(g, FrameFailure) for g in got[0] + got[1]] == [False, False, True, False]
+    assert got[1][0].frame_index == 0 and got[1][0].why == "RuntimeError: boom"
+    _same([got[0][0], got[0][1], got[1][1]], want)
+    assert len(calls) == 5  # joint, burst 1, burst 2, then its frames alone

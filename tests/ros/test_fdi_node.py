@@ -44,7 +44,7 @@ def test_a_failed_batch_counts_every_frame_it_held(ros, fdi_model, monkeypatch):
         calls.append(len(frames))
         raise RuntimeError("unexpected labelling error")
 
-    monkeypatch.setattr(inkdiag_core.FrameLabeller, "label", fail)
+    monkeypatch.setattr(inkdiag_core.FrameLabeller, "screen", fail)  # the first stage of each pass
     fdi = _fdi(ros, fdi_model)
     x = simulate({FaultClass.HEALTHY_NOZZLE: 4}, seed=1).traces.astype(np.float32)
     for k in range(5):  # taken in one executor wake-up: labelled together when the callback flushes

@@ -246,16 +246,16 @@ def test_inline_pipeline_fails_every_frame_of_a_batch_its_backend_lost_and_goes_
 
     det, _, frames, firsts = head
     backend = ThreadBackend(FrameLabeller(det, max_abs_v=10.0))
-    submit = backend.submit
+    screen = backend.screen
     calls = []
 
     def lose_first(traces, first_nozzles):
         calls.append(len(traces))
         if len(calls) == 1:
             raise OSError("gone")
-        submit(traces, first_nozzles)
+        return screen(traces, first_nozzles)
 
-    backend.submit = lose_first
+    backend.screen = lose_first
     got = []
     pipe = InlinePipeline(backend, lambda frame, result: got.append((frame.id, type(result).__name__)),
                           max_batch_rows=40)
@@ -276,14 +276,14 @@ def test_closing_an_inline_pipeline_waits_for_the_batch_being_labelled_on_anothe
     det, _, frames, firsts = head
     backend = ThreadBackend(FrameLabeller(det, max_abs_v=10.0))
     started, release, events = threading.Event(), threading.Event(), []
-    label = backend.labeller.label
+    finish = backend.labeller.finish
 
-    def slow_label(fr, fi, **kw):
+    def slow_finish(screened):
         started.set()
         release.wait(10.0)
-        return label(fr, fi, **kw)
+        return finish(screened)
 
-    backend.labeller.label = slow_label
+    backend.labeller.finish = slow_finish
     close = backend.close
     backend.close = lambda: events.append("backend closed") or close()
     pipe = InlinePipeline(backend, lambda frame, result: events.append(frame.id), max_batch_rows=16)
@@ -317,3 +317,89 @@ def test_an_inline_flush_stops_between_batches_when_told_and_the_rest_waits(head
     assert seen == [0] and not pipe.wait_idle(0.0)
     pipe.flush()
     assert seen == [0, 1, 2] and pipe.wait_idle(0.0)
+
+
+def test_an_inline_flush_screens_what_arrives_meanwhile_and_runs_the_detector_once(head):
+    """fdi's flush asks ``refill`` for the messages that arrived while a burst was screened: they are
+    screened too, and the detector runs once for all of them (its fixed cost once per burst, not per
+    executor wake-up); the labels are FrameLabeller.label's, frame by frame, in order."""
+    from inkdiag_ros.labelling_backend import InlinePipeline
+
+    det, base, frames, firsts = head
+    labeller = FrameLabeller(det, base, max_abs_v=10.0)
+    backend = ThreadBackend(labeller)
+    detector_calls, finish = [], labeller.finish
+    labeller.finish = lambda screened: detector_calls.append(len(screened)) or finish(screened)
+    seen, batches = [], []
+    pipe = InlinePipeline(backend, lambda f, r: seen.append((f.id, r)), max_batch_rows=1000,
+                          on_batch=lambda n, busy_s: batches.append(n))
+    arrivals = [[3, 4], [5], []]  # what each refill finds
+
+    def refill():
+        new = arrivals.pop(0)
+        for i in new:
+            pipe.submit(_frame(i, frames, firsts))
+        return bool(new)
+
+    for i in range(3):
+        pipe.submit(_frame(i, frames, firsts))
+    pipe.flush(refill=refill)
+    assert arrivals == [] and detector_calls == [3] and batches == [6]  # screened 3 times, finished once
+    assert [i for i, _ in seen] == list(range(6))
+    want = labeller.label(frames, firsts)
+    for i, got in seen:
+        w = want[i % 3]
+        for name in ("classes", "valid", "reasons", "baseline", "gate_cleared"):
+            assert np.array_equal(getattr(got, name), getattr(w, name)), name
+        assert np.array_equal(got.confidence, w.confidence, equal_nan=True)
+    assert pipe.wait_idle(0.0)
+
+
+def test_an_inline_flush_bounds_a_detector_pass_by_max_batch_rows_and_a_stop_still_hands_out_the_screened(head):
+    """Frames keep arriving: the detector runs once ``max_batch_rows`` rows of frames are screened; a stop
+    (``keep_going`` False) between batches labels and hands out what was screened, what is queued waits."""
+    from inkdiag_ros.labelling_backend import InlinePipeline
+
+    det, _, frames, firsts = head
+    seen, batches = [], []
+    pipe = InlinePipeline(ThreadBackend(FrameLabeller(det, max_abs_v=10.0)), lambda f, r: seen.append(f.id),
+                          max_batch_rows=48, on_batch=lambda n, busy_s: batches.append(n))
+    k = iter(range(3, 100))
+
+    def refill():  # a frame (16, 24 or 24 rows) always waiting
+        pipe.submit(_frame(next(k), frames, firsts))
+        return True
+
+    for i in range(3):  # 16 + 24 rows: the third (24) does not fit a pass of 48
+        pipe.submit(_frame(i, frames, firsts))
+    pipe.flush(lambda: len(batches) < 2, refill=refill)
+    assert batches == [2, 2] and seen == [0, 1, 2, 3]  # 16+24 | 24+16 (refilled), then told to stop
+    assert not pipe.wait_idle(0.0)  # frame 4, refilled, waits for the next flush
+    pipe.close()
+
+    seen.clear(), batches.clear()
+    pipe = InlinePipeline(ThreadBackend(FrameLabeller(det, max_abs_v=10.0)), lambda f, r: seen.append(f.id),
+                          max_batch_rows=1000, on_batch=lambda n, busy_s: batches.append(n))
+    for i in range(2):
+        pipe.submit(_frame(i, frames, firsts))
+    calls = []
+    pipe.flush(lambda: not calls.append(1) and len(calls) < 2, refill=refill)  # stopped after one refill
+    assert seen == [0, 1] and batches == [2]  # the screened frames labelled at the stop, not lost
+    assert not pipe.wait_idle(0.0)  # the refilled one waits
+    pipe.close()
+
+
+def test_an_inline_flush_does_not_wait_for_more_once_the_screened_frames_left_many_rows(head, monkeypatch):
+    """Frames of faulty nozzles leave most rows to the detector: past DEFER_ROWS of them the detector runs
+    without asking for more (its fixed cost is already small against theirs)."""
+    from inkdiag_ros import labelling_backend
+    from inkdiag_ros.labelling_backend import InlinePipeline
+
+    det, _, frames, firsts = head  # no gate: every valid row is left to the detector
+    monkeypatch.setattr(labelling_backend, "DEFER_ROWS", 30)
+    batches, asked = [], []
+    pipe = InlinePipeline(ThreadBackend(FrameLabeller(det, max_abs_v=10.0)), lambda f, r: None,
+                          max_batch_rows=1000, on_batch=lambda n, busy_s: batches.append(n))
+    pipe.submit(_frame(0, frames, firsts))  # 16 rows left: below 30, more is asked for
+    pipe.flush(refill=lambda: asked.append(1) or (len(asked) == 1 and pipe.submit(_frame(1, frames, firsts)) is None))
+    assert asked == [1] and batches == [2]  # 16 + 24 rows left: 40 >= 30, the detector ran at once
