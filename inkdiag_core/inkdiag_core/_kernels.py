@@ -25,6 +25,9 @@ compiled kernel goes in only where it wins >= 2x on its stage).
   are it), each row's loops back to back, so a row comes from memory once and its later
   loops read it from cache. The labeller calls it once per frame into its batch's arrays:
   the frames of a batch are not concatenated first (a copy of every sample).
+- :func:`gate_codes`: the healthy gate's verdict per row from those sums (its gain, residual
+  fraction and bands), one loop for what :meth:`inkdiag_core.HealthyGate.decide` does in about a
+  dozen numpy passes (a fixed cost per call, several calls per head scan): the same verdicts.
 - :func:`fit_windows`: the KPIs' damped-sinusoid fit on each trace's spectral window
   (:func:`inkdiag_core.spectral_fit.fit_windows`, its numpy reference, has the method),
   one trace at a time: in numpy about a hundred small array operations per call, a fixed
@@ -70,8 +73,8 @@ from llvmlite import ir
 from numba.core import types
 from numba.core.extending import intrinsic
 
-__all__ = ["fit_windows", "forest_proba", "kpis_of_spectra", "p_values", "row_sums", "screen_and_row_sums",
-           "screen_codes", "unexplained", "warm_up"]
+__all__ = ["fit_windows", "forest_proba", "gate_codes", "kpis_of_spectra", "p_values", "row_sums",
+           "screen_and_row_sums", "screen_codes", "screen_frames_and_row_sums", "unexplained", "warm_up"]
 
 _SUMS_FASTMATH = {"reassoc", "contract"}  # reorder and fuse the sums only: no finite-math assumption
 
@@ -169,6 +172,28 @@ def _screen_sums(x, bits, screen, flat_tol, max_abs_v, clip_run, ref, pos, code,
         s1[i] = c1
         s2[i] = c2
         sr[i] = c3
+
+
+@numba.njit(cache=True, nogil=True)
+def _gate_codes(x1, xx, xr, pos, rr, n_samples, max_f, jet_lo, jet_hi, ok_lo, ok_hi, out):
+    for i in range(x1.shape[0]):
+        c = 0
+        p = pos[i]
+        if p >= 0:
+            g = xr[i] / rr[p]
+            var = xx[i] - x1[i] * x1[i] / n_samples
+            if var > 0:
+                f = (var - g * xr[i]) / var
+                if f < 0.0:  # clipped to [0, 1]; a NaN stays NaN and clears nothing
+                    f = 0.0
+                elif f > 1.0:
+                    f = 1.0
+                if f <= max_f:
+                    if g >= jet_lo and g <= jet_hi:
+                        c = 1
+                    elif g >= ok_lo and g <= ok_hi:
+                        c = 2
+        out[i] = c
 
 
 @numba.njit(cache=True, nogil=True)
@@ -802,6 +827,79 @@ def screen_and_row_sums(x, flat_tol, max_abs_v, clip_run, ref, pos, out=None):
     return code, x1, xx, xr
 
 
+def screen_frames_and_row_sums(frames, flat_tol, max_abs_v, clip_run, ref, pos):
+    """:func:`screen_and_row_sums` of a batch of frames, each frame's rows in turn into the batch's arrays
+    (the frames not concatenated), the arguments checked once for the batch instead of once per frame.
+
+    Parameters
+    ----------
+    frames : sequence of ndarray of float32 or float64, each of shape (n_i, m), m >= 1
+    flat_tol, max_abs_v, clip_run
+        As for :func:`screen_codes`.
+    ref : ndarray of float32 or float64, shape (n_ref, m), or None
+    pos : ndarray of int64, shape (sum n_i,), or None
+        Each row's reference row in ``[0, n_ref)``, or -1.
+
+    Returns
+    -------
+    code : ndarray of uint8, shape (sum n_i,)
+    x1, xx, xr : ndarray of float64, shape (sum n_i,)
+    """
+    m = frames[0].shape[1] if frames and frames[0].ndim == 2 else 0
+    for a in frames:
+        if a.dtype not in (np.float32, np.float64) or a.ndim != 2 or a.shape[1] != m or m == 0:
+            raise ValueError(f"the screening and gate kernels take (n, m >= 1) float32 or float64 rows of one "
+                             f"width, got {a.dtype} {a.shape}")
+    n = sum(a.shape[0] for a in frames)
+    if ref is None:
+        ref, pos = np.zeros((1, max(m, 1)), np.float32), np.full(n, -1, np.int64)
+    pos = np.asarray(pos)
+    if (ref.dtype not in (np.float32, np.float64) or ref.ndim != 2 or ref.shape[1] != m
+            or pos.shape != (n,) or pos.dtype != np.int64):
+        raise ValueError(f"the gate's row sums take float rows (n, m), references (n_ref, m) and int64 positions "
+                         f"(n,), got {n} rows of {m}, {ref.dtype} {ref.shape} and {pos.dtype} {pos.shape}")
+    if n and (pos.min() < -1 or pos.max() >= ref.shape[0]):
+        raise ValueError(f"the gate's row sums: positions must be in [-1, {ref.shape[0]}) (-1: no reference), "
+                         f"got {pos.min()}..{pos.max()}")
+    code, x1, xx, xr = np.empty(n, np.uint8), np.empty(n), np.empty(n), np.empty(n)
+    i = 0
+    for a in frames:
+        j = i + a.shape[0]
+        if j > i:
+            _screen_sums(a, a.view(np.int32 if a.dtype == np.float32 else np.int64), True, float(flat_tol),
+                         float(max_abs_v), int(clip_run), ref, pos[i:j], code[i:j], x1[i:j], xx[i:j], xr[i:j])
+        i = j
+    return code, x1, xx, xr
+
+
+def gate_codes(x1, xx, xr, pos, rr, n_samples, max_residual_fraction, jetting_gain, ok_gain):
+    """The healthy gate's verdict per row from its three sums (:meth:`inkdiag_core.HealthyGate.decide`'s
+    arithmetic, one loop instead of about a dozen numpy passes: the same verdicts, bit for bit).
+
+    Parameters
+    ----------
+    x1, xx, xr : ndarray of float64, shape (n,)
+        Each row's ``sum(x)``, ``sum(x * x)``, ``sum(x * r)``.
+    pos : ndarray of int64, shape (n,)
+        Each row's reference row, -1 for none (not cleared).
+    rr : ndarray of float64, shape (n_ref,)
+        ``r.r`` of each reference row (finite and positive where ``pos`` points).
+    n_samples : int
+    max_residual_fraction : float
+    jetting_gain, ok_gain : (float, float)
+        The gain bands (not overlapping).
+
+    Returns
+    -------
+    ndarray of uint8, shape (n,)
+        0: not cleared, 1: cleared ``healthy_nozzle``, 2: cleared ``ok_signal``.
+    """
+    out = np.empty(x1.shape[0], np.uint8)
+    _gate_codes(x1, xx, xr, pos, rr, float(n_samples), float(max_residual_fraction), float(jetting_gain[0]),
+                float(jetting_gain[1]), float(ok_gain[0]), float(ok_gain[1]), out)
+    return out
+
+
 def warm_up() -> None:
     """Compile (first run) or load from the cache every kernel for the rows a labeller sees.
 
@@ -825,6 +923,7 @@ def warm_up() -> None:
             x.flags.writeable = writeable
             unexplained(x, np.zeros((1, 7)), 1.0, 1e-30)
     p_values(np.zeros((1, 2), np.float32), np.zeros(1, np.float32), np.array([0, 1, 1]), np.array([True, False]))
+    gate_codes(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1, np.int64), np.ones(1), 4, 0.5, (0.9, 1.1), (0.7, 0.8))
 
 
 if __name__ == "__main__":  # scripts/_bootstrap.sh: compile at install

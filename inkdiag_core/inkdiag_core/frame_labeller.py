@@ -34,7 +34,7 @@ import numpy as np
 
 from .baselines import BaselineFileError, NozzleBaselines
 from .detector import FaultDetector
-from .gate import HealthyGate
+from .gate import GATE_CLASSES, HealthyGate
 from .persistence import load_detector
 from .labelling import FrameLabels
 from .screening import screen_traces, screening_settings, verdicts
@@ -300,15 +300,13 @@ class FrameLabeller:
             ids = np.concatenate([f + np.arange(a.shape[0]) if np.ndim(f) == 0 else f
                                   for f, a in zip(firsts, arrays)])
         if all(a.dtype in (np.float32, np.float64) for a in arrays):
-            from ._kernels import screen_and_row_sums  # numba: imported when a kernel is first needed
+            from ._kernels import screen_frames_and_row_sums  # numba: imported when a kernel is first needed
             # screening and the gate's sums frame by frame into the batch's arrays, each row read once,
             # the frames not concatenated (the detector's rows are gathered below: few on a working head)
             x = None
             pos = self.gate.positions(ids) if self.gate is not None else np.full(n, -1, np.int64)
             ref = self.gate.references if self.gate is not None else None
-            code, x1, xx, xr = np.empty(n, np.uint8), np.empty(n), np.empty(n), np.empty(n)
-            for a, i, j in zip(arrays, starts.tolist(), ends.tolist()):
-                screen_and_row_sums(a, *self._screening, ref, pos[i:j], out=(code[i:j], x1[i:j], xx[i:j], xr[i:j]))
+            code, x1, xx, xr = screen_frames_and_row_sums(arrays, *self._screening, ref, pos)
             valid, reasons = verdicts(code)
         else:  # ADC counts or other dtypes: screen_traces' numpy passes
             x = np.concatenate(arrays) if len(arrays) > 1 else arrays[0]
@@ -322,9 +320,9 @@ class FrameLabeller:
         at = np.flatnonzero(valid)
         if at.size and self.gate is not None:  # screen -> gate -> full model on the rest
             if x is None:
-                g = self.gate.decide(x1, xx, xr, np.where(valid, pos, -1))
-                done = np.flatnonzero(g.cleared)
-                classes[done] = g.classes[done]
+                code = self.gate.codes(x1, xx, xr, np.where(valid, pos, -1))
+                done = np.flatnonzero(code)
+                classes[done] = GATE_CLASSES[code[done]]
             else:
                 g = self.gate.screen(x if at.size == n else x[at], ids[at])
                 done = at[g.cleared]

@@ -224,11 +224,24 @@ class HealthyGate:
         jet = ok & (g >= self.jetting_gain[0]) & (g <= self.jetting_gain[1])
         oks = ok & (g >= self.ok_gain[0]) & (g <= self.ok_gain[1])
         code = jet.view(np.uint8) + 2 * oks.view(np.uint8)  # the bands do not overlap: 0, 1 or 2
-        return GateResult(jet | oks, _GATE_CLASSES[code], g, f)
+        return GateResult(jet | oks, GATE_CLASSES[code], g, f)
+
+
+    def codes(self, x1, xx, xr, pos) -> np.ndarray:
+        """:meth:`decide`'s verdict alone, per row: 0 not cleared, 1 ``healthy_nozzle``, 2 ``ok_signal``
+        (:data:`GATE_CLASSES`), from one compiled loop (:func:`inkdiag_core._kernels.gate_codes`: the
+        same arithmetic, the same verdicts). The labeller's hot path; same arguments as :meth:`decide`."""
+        n = np.shape(x1)[0]
+        if self._ref is None:
+            return np.zeros(n, np.uint8)
+        from ._kernels import gate_codes  # numba: imported when a kernel is first needed
+
+        return gate_codes(x1, xx, xr, pos, self._rr, self.n_samples, self.max_residual_fraction, self.jetting_gain,
+                          self.ok_gain)
 
 
 #: A gate row's class by its code: not cleared, cleared jetting, cleared OK-check.
-_GATE_CLASSES = np.array(["", FaultClass.HEALTHY_NOZZLE.value, FaultClass.OK_SIGNAL.value], dtype=object)
+GATE_CLASSES = np.array(["", FaultClass.HEALTHY_NOZZLE.value, FaultClass.OK_SIGNAL.value], dtype=object)
 
 
 def _nothing_cleared(n: int) -> GateResult:

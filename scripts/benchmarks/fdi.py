@@ -268,6 +268,17 @@ def kernel_bench(frame, gate, repeats: int = 5, rounds: int = 20):
         same = bool((ref[0] == got[0]).all() and (ref[1] == got[1]).all())
         print(f"  {name:<32}: numpy {1e3 * t_np / rounds:7.3f} ms, kernels {1e3 * t_k / rounds:7.3f} ms, "
               f"ratio {t_np / t_k:.2f}x faster; same reasons and cleared rows: {same}")
+    print("the gate's verdict from the row sums (HealthyGate.codes, the labeller's compiled loop, against "
+          "HealthyGate.decide's numpy passes)")
+    for name, x in rows.items():
+        x = np.ascontiguousarray(x)
+        pos = gate.positions(np.arange(len(x)))
+        sums = _kernels.row_sums(x, gate.references, np.where(pos >= 0, pos, 0))
+        same = np.array_equal(gate.codes(*sums, pos) > 0, gate.decide(*sums, pos).cleared)
+        t_np, t_k = _in_turns(lambda: [gate.decide(*sums, pos) for _ in range(rounds)],
+                              lambda: [gate.codes(*sums, pos) for _ in range(rounds)], repeats)
+        print(f"  {name:<32}: numpy {1e3 * t_np / rounds:7.3f} ms, kernel {1e3 * t_k / rounds:7.3f} ms, "
+              f"ratio {t_np / t_k:.2f}x faster; same verdicts: {same}")
     # the detector's KPIs on what the gate leaves: ~70 rows per classifier pass of 8 messages (2 % faulty)
     left = np.ascontiguousarray(frame[~gate.screen(frame, 0).cleared])
     print(f"KPIs (kpis_of_checked: rfft, then the peak, the window, its fit and the KPIs) compiled against numpy "

@@ -157,3 +157,39 @@ def test_each_row_meets_its_own_nozzles_reference_whatever_the_id_order(recorded
     assert wrong.cleared.tolist() == [True, False, True]
     swapped = gate.screen(x[[0, 1, 2, 3]], ids)  # rows 1 and 2 claim each other's nozzle
     assert swapped.cleared.tolist() == [True, False, False, True]
+
+
+def test_compiled_codes_are_decides_verdicts_on_every_kind_of_row(recorded):
+    """HealthyGate.codes (the labeller's compiled loop) against decide (numpy): the same verdict on every row,
+    real rows of every class and the edges: rows at each band's and the residual bound's limits, a constant
+    row (var 0), NaN and Inf sums, a negative var, rows without a reference."""
+    from inkdiag_core._kernels import row_sums
+    from inkdiag_core.gate import GATE_CLASSES
+
+    gate = HealthyGate(recorded)
+    classes = np.array(list(FaultClass), dtype=object)[np.arange(N) % 12]
+    x = simulate_nozzles(classes, seed=HEAD, frame_seed=5).traces
+    pos = gate.positions(np.arange(N))
+    pos[::17] = -1
+    x1, xx, xr = row_sums(x, gate.references, np.where(pos >= 0, pos, 0))
+    rng = np.random.default_rng(0)
+    k = 60  # hand-made sums at the limits: gains at and around each band edge, residual fraction at the bound
+    p = rng.integers(0, len(gate.references), k)
+    rr = gate._rr[p]
+    edges = np.array([*gate.jetting_gain, *gate.ok_gain, 1.0, 0.8, 0.5, 1.5])
+    g = np.repeat(edges, k // len(edges) + 1)[:k] * (1 + rng.choice([-1e-15, 0.0, 1e-15], k))
+    f = rng.choice([0.0, gate.max_residual_fraction, 0.5, -0.1, 1.2], k)  # the residual fraction aimed at
+    hx1 = rng.normal(size=k)
+    hxr = g * rr
+    var = g * hxr / (1.0 - f)  # f = (var - g xr) / var: at the bound give or take a rounding; 1.2: var < 0
+    hxx = var + hx1 * hx1 / gate.n_samples
+    odd = np.array([[0.0, 0.0, 0.0], [np.nan, 1.0, 1.0], [1.0, np.inf, 1.0], [1.0, 1.0, -np.inf], [1.0, -5.0, 0.1]])
+    X1 = np.concatenate([x1, hx1, odd[:, 0]])
+    XX = np.concatenate([xx, hxx, odd[:, 1]])
+    XR = np.concatenate([xr, hxr, odd[:, 2]])
+    P = np.concatenate([pos, p, np.zeros(len(odd), np.int64)])
+    want = gate.decide(X1, XX, XR, P)
+    got = gate.codes(X1, XX, XR, P)
+    np.testing.assert_array_equal(got > 0, want.cleared)
+    np.testing.assert_array_equal(GATE_CLASSES[got], want.classes)
+    assert 0 < (got[:N] > 0).sum() < N and (got[N:] == 1).any() and (got[N:] == 2).any()

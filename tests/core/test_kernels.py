@@ -155,7 +155,7 @@ def test_after_warm_up_a_decoded_frame_and_a_batch_need_no_new_kernel_build():
         _kernels.warm_up()
         from inkdiag_core.openset import unexplained_fraction
         kernels = (_kernels._screen_sums, _kernels._fit_windows, _kernels._forest_sums, _kernels._kpis_of_spectra,
-                   _kernels._unexplained)
+                   _kernels._unexplained, _kernels._gate_codes)
         before = [len(k.signatures) for k in kernels]
         x = simulate_nozzles(["healthy_nozzle"] * 8, seed=1, frame_seed=[1, 9]).traces.astype(np.float32)
         frame = decode_traces(encode_traces(x, first_nozzle=0, frame_id=1, stamp=0.0)).traces
@@ -163,6 +163,8 @@ def test_after_warm_up_a_decoded_frame_and_a_batch_need_no_new_kernel_build():
         for rows in (frame, np.concatenate([frame, frame]), x.astype(np.float64)):
             screen_traces(rows)
             gate.screen(rows[:8], 0)
+            pos = gate.positions(np.arange(8))
+            gate.codes(*_kernels.screen_frames_and_row_sums([rows[:8]], 1e-6, 10.0, 5, gate.references, pos)[1:], pos)
             unexplained_fraction(rows, extract_kpis(rows, 10e6), 10e6)
         from sklearn.ensemble import RandomForestClassifier
         from inkdiag_core.fdi import forest_predict_proba
@@ -219,3 +221,24 @@ def test_the_compiled_kpis_are_numpys_within_float64_rounding(monkeypatch):
             scale = np.abs(want[:, [j, 3] if j == 0 else j]).max()
             np.testing.assert_allclose(g[:, j], want[:, j], rtol=1e-9, atol=1e-12 * scale,
                                        err_msg=f"{y.dtype} {y.shape}, KPI {j}")
+
+
+def test_a_batch_of_frames_is_screened_and_summed_as_each_frame_alone():
+    """screen_frames_and_row_sums (the labeller's per-batch call) against screen_and_row_sums frame by frame:
+    the same codes and bit-identical sums, float32 and float64 frames, an empty frame, rows without a reference;
+    bad positions or widths refused for the batch."""
+    ref = _adversarial(np.float32, seed=3)[:10]
+    frames = [_adversarial(np.float32, seed=1)[:17], np.zeros((0, 64), np.float32), _adversarial(np.float64, seed=2)]
+    n = sum(len(a) for a in frames)
+    pos = np.arange(n, dtype=np.int64) % 11 - 1  # -1 .. 9
+    got = _kernels.screen_frames_and_row_sums(frames, 1e-6, 2.5, 5, ref, pos)
+    want, i = [], 0
+    for a in frames:
+        want.append(_kernels.screen_and_row_sums(a, 1e-6, 2.5, 5, ref, pos[i:i + len(a)]))
+        i += len(a)
+    for g, w in zip(got, zip(*want)):
+        np.testing.assert_array_equal(g, np.concatenate(w))
+    with pytest.raises(ValueError, match="positions"):
+        _kernels.screen_frames_and_row_sums(frames, 1e-6, 2.5, 5, ref, pos + 2)
+    with pytest.raises(ValueError, match="one width"):
+        _kernels.screen_frames_and_row_sums([frames[0], frames[2][:, :32]], 1e-6, 2.5, 5, ref, pos[:17 + 40])
