@@ -804,27 +804,7 @@ def screen_and_row_sums(x, flat_tol, max_abs_v, clip_run, ref, pos, out=None):
     ValueError
         Other dtypes or shapes, or a position outside ``[-1, n_ref)``.
     """
-    if x.dtype not in (np.float32, np.float64) or x.ndim != 2 or x.shape[1] == 0:
-        raise ValueError(f"the screening and gate kernels take (n, m >= 1) float32 or float64 rows, "
-                         f"got {x.dtype} {x.shape}")
-    n, m = x.shape
-    if ref is None:
-        ref, pos = np.zeros((1, m), np.float32), np.full(n, -1, np.int64)
-    pos = np.asarray(pos)
-    if (ref.dtype not in (np.float32, np.float64) or ref.ndim != 2 or ref.shape[1] != m
-            or pos.shape != (n,) or pos.dtype != np.int64):
-        raise ValueError(f"the gate's row sums take float rows (n, m), references (n_ref, m) and int64 positions "
-                         f"(n,), got {x.dtype} {x.shape}, {ref.dtype} {ref.shape} and {pos.dtype} {pos.shape}")
-    if n and (pos.min() < -1 or pos.max() >= ref.shape[0]):
-        raise ValueError(f"the gate's row sums: positions must be in [-1, {ref.shape[0]}) (-1: no reference), "
-                         f"got {pos.min()}..{pos.max()}")
-    code, x1, xx, xr = out if out is not None else (np.empty(n, np.uint8), np.empty(n), np.empty(n), np.empty(n))
-    if n:
-        screen = clip_run is not None
-        _screen_sums(x, x.view(np.int32 if x.dtype == np.float32 else np.int64), screen,
-                     float(flat_tol) if screen else 0.0, float(max_abs_v) if screen else 0.0,
-                     int(clip_run) if screen else 0, ref, pos, code, x1, xx, xr)
-    return code, x1, xx, xr
+    return _screen_and_sum([x], flat_tol, max_abs_v, clip_run, ref, pos, out)
 
 
 def screen_frames_and_row_sums(frames, flat_tol, max_abs_v, clip_run, ref, pos):
@@ -845,6 +825,11 @@ def screen_frames_and_row_sums(frames, flat_tol, max_abs_v, clip_run, ref, pos):
     code : ndarray of uint8, shape (sum n_i,)
     x1, xx, xr : ndarray of float64, shape (sum n_i,)
     """
+    return _screen_and_sum(frames, flat_tol, max_abs_v, clip_run, ref, pos, None)
+
+
+def _screen_and_sum(frames, flat_tol, max_abs_v, clip_run, ref, pos, out):
+    """Both functions above: the arguments checked once, then the kernel frame by frame into one set of arrays."""
     m = frames[0].shape[1] if frames and frames[0].ndim == 2 else 0
     for a in frames:
         if a.dtype not in (np.float32, np.float64) or a.ndim != 2 or a.shape[1] != m or m == 0:
@@ -852,7 +837,7 @@ def screen_frames_and_row_sums(frames, flat_tol, max_abs_v, clip_run, ref, pos):
                              f"width, got {a.dtype} {a.shape}")
     n = sum(a.shape[0] for a in frames)
     if ref is None:
-        ref, pos = np.zeros((1, max(m, 1)), np.float32), np.full(n, -1, np.int64)
+        ref, pos = np.zeros((1, m), np.float32), np.full(n, -1, np.int64)
     pos = np.asarray(pos)
     if (ref.dtype not in (np.float32, np.float64) or ref.ndim != 2 or ref.shape[1] != m
             or pos.shape != (n,) or pos.dtype != np.int64):
@@ -861,13 +846,15 @@ def screen_frames_and_row_sums(frames, flat_tol, max_abs_v, clip_run, ref, pos):
     if n and (pos.min() < -1 or pos.max() >= ref.shape[0]):
         raise ValueError(f"the gate's row sums: positions must be in [-1, {ref.shape[0]}) (-1: no reference), "
                          f"got {pos.min()}..{pos.max()}")
-    code, x1, xx, xr = np.empty(n, np.uint8), np.empty(n), np.empty(n), np.empty(n)
+    code, x1, xx, xr = out if out is not None else (np.empty(n, np.uint8), np.empty(n), np.empty(n), np.empty(n))
+    screen = clip_run is not None
     i = 0
     for a in frames:
         j = i + a.shape[0]
         if j > i:
-            _screen_sums(a, a.view(np.int32 if a.dtype == np.float32 else np.int64), True, float(flat_tol),
-                         float(max_abs_v), int(clip_run), ref, pos[i:j], code[i:j], x1[i:j], xx[i:j], xr[i:j])
+            _screen_sums(a, a.view(np.int32 if a.dtype == np.float32 else np.int64), screen,
+                         float(flat_tol) if screen else 0.0, float(max_abs_v) if screen else 0.0,
+                         int(clip_run) if screen else 0, ref, pos[i:j], code[i:j], x1[i:j], xx[i:j], xr[i:j])
         i = j
     return code, x1, xx, xr
 
