@@ -297,8 +297,11 @@ class FrameLabeller:
         n = int(ends[-1])
         ids = None
         if self.baselines is not None:
-            ids = np.concatenate([f + np.arange(a.shape[0]) if np.ndim(f) == 0 else f
-                                  for f, a in zip(firsts, arrays)])
+            if all(np.ndim(f) == 0 for f in firsts):  # consecutive ids from each frame's first
+                ids = np.repeat(np.asarray(firsts, dtype=np.int64) - starts, sizes) + np.arange(n)
+            else:
+                ids = np.concatenate([f + np.arange(a.shape[0]) if np.ndim(f) == 0 else f
+                                      for f, a in zip(firsts, arrays)])
         if all(a.dtype in (np.float32, np.float64) for a in arrays):
             from ._kernels import screen_frames_and_row_sums  # numba: imported when a kernel is first needed
             # screening and the gate's sums frame by frame into the batch's arrays, each row read once,

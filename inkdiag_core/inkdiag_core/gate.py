@@ -127,6 +127,11 @@ class HealthyGate:
         self._ref = centred
         self._rr = np.where(usable, rr, np.nan)
         self._usable = usable
+        ids = baselines.nozzle_ids
+        self._table = None  # each nozzle id's usable reference row (-1: none), by id, where the ids are dense
+        if ids[-1] < max(1 << 16, 4 * len(ids)):
+            self._table = np.full(int(ids[-1]) + 1, -1, np.int64)
+            self._table[ids[usable]] = np.flatnonzero(usable)
 
     @property
     def active(self) -> bool:
@@ -190,6 +195,9 @@ class HealthyGate:
         ids = np.asarray(nozzle_ids, dtype=np.int64)
         if self._ref is None:
             return np.full(ids.shape, -1, np.int64)
+        t = self._table
+        if t is not None and ids.size and ids.min() >= 0 and ids.max() < t.size:  # one look-up per id
+            return t[ids]
         has, pos = self.baselines.reference_rows(ids)
         return np.where(has & self._usable[pos], pos, -1)
 

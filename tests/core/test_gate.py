@@ -193,3 +193,23 @@ def test_compiled_codes_are_decides_verdicts_on_every_kind_of_row(recorded):
     np.testing.assert_array_equal(got > 0, want.cleared)
     np.testing.assert_array_equal(GATE_CLASSES[got], want.classes)
     assert 0 < (got[:N] > 0).sum() < N and (got[N:] == 1).any() and (got[N:] == 2).any()
+
+
+def test_positions_by_table_are_the_searched_ones(recorded):
+    """HealthyGate.positions looks ids up in a table by id: the same rows as searching the baselines' ids
+    (-1 for a nozzle without a baseline, without a usable reference, or an id beyond the table)."""
+    ids = recorded.nozzle_ids[::2] * 3  # gaps between the ids
+    ref = recorded.reference[::2].copy()
+    ref[5] = np.nan  # no usable reference
+    b = NozzleBaselines(ids, recorded.kpis[::2], recorded.sample_rate_hz, recorded.n_samples, recorded.n_frames,
+                        reference=ref)
+    gate = HealthyGate(b)
+    assert gate._table is not None
+    q = np.concatenate([np.arange(-3, ids[-1] + 5), np.random.default_rng(0).integers(0, 10**6, 50)])
+    has, pos = b.reference_rows(q)
+    usable = np.isfinite(ref).all(axis=1)
+    want = np.where(has & usable[pos], pos, -1)
+    np.testing.assert_array_equal(gate.positions(q), want)
+    inside = q[(q >= 0) & (q <= ids[-1])]
+    np.testing.assert_array_equal(gate.positions(inside), want[(q >= 0) & (q <= ids[-1])])
+    assert (gate.positions([ids[5]]) == -1).all() and (gate.positions([ids[6]]) == 6).all()
