@@ -1,7 +1,7 @@
 """Benchmark of the fdi node on a full printhead, against the bare transport ceiling in the same run.
 
     scripts/bench graph [--case both|realistic|worst|mixed] [--nozzles 2656] [--chunk 200] [--seconds 8]
-                        [--window N] [--no-baselines] [--no-process] [--model models/fdi_default.joblib]
+                        [--window N | --scans] [--no-baselines] [--no-process] [--model models/fdi_default.joblib]
                         [--fdi-param NAME:=VALUE ...]
 
 Pre-generates frames of a realistic 2,656-nozzle head (512 samples; :func:`realistic_head`: every nozzle
@@ -32,7 +32,10 @@ The CPU of the second process (and its children) over the measured phase, from
 All use the same closed loop: at most ``--window`` messages in flight
 (published, not yet answered), so the consumer sets the pace. The default
 window is one head scan (``ceil(nozzles / chunk)`` messages, 14): a printer
-controller publishes a scan's nozzle ranges together, once per measurement. A frame
+controller publishes a scan's nozzle ranges together, once per measurement.
+``--scans``: a whole scan goes out together and the next once all of its messages
+are answered (one scan in flight, the issue's protocol; the window sliding by one
+message keeps the consumer's queue fuller). A frame
 unanswered for 10x the worst latency of a 0.5 s warm-up (at least 50 ms) is
 counted lost and its slot reused: the traces topic is best effort, and with 400 kB messages
 Fast DDS drops a fraction of a percent of them between the processes, in the
@@ -139,11 +142,12 @@ def realistic_head(n_nozzles, n_frames, seed, *, faulty=0.02, n_baseline_frames=
 
 
 def replay(node, executor, pub, msgs, answered, seconds, window, lost_after_s=0.25, first_id=0,
-           scan_hz=0.0, scan_msgs=1):
+           scan_hz=0.0, scan_msgs=1, scans=False):
     """Replay; returns (published, latencies s, lost ids, elapsed s).
 
     Closed loop (``scan_hz`` 0): a message goes out whenever fewer than ``window`` are
-    unanswered. Paced (``scan_hz`` > 0): every ``1 / scan_hz`` s the next ``scan_msgs``
+    unanswered; with ``scans``, the next head scan (``scan_msgs`` messages, together) once
+    every message of the one before is answered or lost (one scan in flight). Paced (``scan_hz`` > 0): every ``1 / scan_hz`` s the next ``scan_msgs``
     messages (one head scan: ``msgs`` holds whole scans in order) go out together,
     answered or not, as a head controller sends them; a publisher that falls behind skips
     the missed scan (never two at a time); an answer later than ``lost_after_s`` is lost. Frame ids start at ``first_id``: never
@@ -160,11 +164,11 @@ def replay(node, executor, pub, msgs, answered, seconds, window, lost_after_s=0.
     while time.monotonic() < end or in_flight:
         now_m = time.monotonic()
         due = scan_msgs if scan_hz > 0 and now_m < end and now_m >= next_scan else 0
-        if scan_hz <= 0 and now_m < end and len(in_flight) < window:
-            due = 1
+        if scan_hz <= 0 and now_m < end and (not in_flight if scans else len(in_flight) < window):
+            due = scan_msgs if scans else 1
         if due:
             for _ in range(due):
-                msg = msgs[(fid - first_id if scan_hz > 0 else fid) % len(msgs)]  # paced: scans whole
+                msg = msgs[(fid - first_id if scan_hz > 0 or scans else fid) % len(msgs)]  # scans whole
                 now = time.time()
                 restamp_traces(msg, frame_id=fid, stamp=now)
                 pub.publish(msg)
@@ -246,6 +250,10 @@ def main() -> int:
     ap.add_argument("--window", type=int, default=None,
                     help="messages in flight at most (closed loop: a new one is published when one is "
                          "answered); default one head scan, ceil(nozzles / chunk)")
+    ap.add_argument("--scans", action="store_true",
+                    help="closed loop by head scans instead of --window: a scan's messages go out together, the "
+                         "next scan once all of them are answered (one scan in flight, as a controller that "
+                         "waits for a scan's labels)")
     ap.add_argument("--chunk", type=int, default=200,
                     help="nozzles per message: a head scan travels as contiguous nozzle ranges")
     ap.add_argument("--case", choices=["both", "realistic", "worst", "mixed"], default="both",
@@ -303,8 +311,9 @@ def main() -> int:
         data[case] = (msgs, base, what, time.perf_counter() - t)
     print(f"graph benchmark: {ns.frames} pre-generated frames of {ns.nozzles} nozzles x 512 samples per case "
           f"({frames[0].nbytes / 1e6:.1f} MB each) as messages of {ns.chunk} nozzles; "
-          f"window {ns.window} messages in flight ({ns.window / per_scan:.2g} head scans); "
-          f"{ns.seconds:g} s per phase; model {Path(model).name} ({cfg.get('kind')}, {cfg.get('features')})"
+          + ("one head scan in flight (--scans); " if ns.scans else
+             f"window {ns.window} messages in flight ({ns.window / per_scan:.2g} head scans); ")
+          + f"{ns.seconds:g} s per phase; model {Path(model).name} ({cfg.get('kind')}, {cfg.get('features')})"
           + (f"; fdi parameters {' '.join(ns.fdi_param)}" if ns.fdi_param else ""))
     for case in cases:
         msgs, base, what, gen_s = data[case]
@@ -370,7 +379,8 @@ def main() -> int:
                 pids = tree_pids(proc.pid)  # with labelling_process: its child too
                 c0 = cpu_s(pids)
                 sent, lat, lost, el = replay(node, ex, pub, msgs, answered, ns.seconds, ns.window,
-                                             lost_after_s=lost_after, first_id=next_id)
+                                             lost_after_s=lost_after, first_id=next_id, scan_msgs=per_scan,
+                                             scans=ns.scans)
                 cpu = cpu_s(pids) - c0
                 next_id += sent
                 mine = f"inkdiag fdi: {bench_ns}"
