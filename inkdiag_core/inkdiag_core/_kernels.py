@@ -881,7 +881,13 @@ def gate_codes(x1, xx, xr, pos, rr, n_samples, max_residual_fraction, jetting_ga
     ndarray of uint8, shape (n,)
         0: not cleared, 1: cleared ``healthy_nozzle``, 2: cleared ``ok_signal``.
     """
-    out = np.empty(x1.shape[0], np.uint8)
+    n = np.shape(x1)[0]
+    if not (np.shape(x1) == np.shape(xx) == np.shape(xr) == np.shape(pos) == (n,)) or pos.dtype != np.int64:
+        raise ValueError(f"gate_codes takes x1, xx, xr and int64 pos of one shape (n,), got {np.shape(x1)}, "
+                         f"{np.shape(xx)}, {np.shape(xr)}, {np.shape(pos)} {getattr(pos, 'dtype', '')}")
+    if n and (pos.min() < -1 or pos.max() >= len(rr)):
+        raise ValueError(f"gate_codes: positions must be in [-1, {len(rr)}), got {pos.min()}..{pos.max()}")
+    out = np.empty(n, np.uint8)
     _gate_codes(x1, xx, xr, pos, rr, float(n_samples), float(max_residual_fraction), float(jetting_gain[0]),
                 float(jetting_gain[1]), float(ok_gain[0]), float(ok_gain[1]), out)
     return out

@@ -21,7 +21,8 @@ reports :class:`LabellerConfigError`, and it validates each frame once:
 :meth:`FrameLabeller.label` does it all at once; :meth:`FrameLabeller.screen` (1-3) and
 :meth:`FrameLabeller.finish` (4-5) apart let a node screen each burst of frames as it
 arrives and run the detector once for several bursts (its fixed cost per call is most of
-what a working head's few leftover rows cost). The grouping changes no label.
+what a working head's few leftover rows cost). For frames of one dtype (a node's are all
+float32) the grouping changes no label.
 
 No ROS in here.
 """
@@ -206,8 +207,9 @@ class FrameLabeller:
         detector gathered. :meth:`finish` labels them, for several screened batches in one
         detector call: a node screens each burst of messages as it takes it and runs the
         detector once its input is idle. ``label(...)`` is ``finish([screen(...)])[0]``; how
-        frames are grouped into screened batches and finished changes no label (the detector
-        labels each row on its own).
+        frames of one dtype are grouped into screened batches and finished changes no label (the
+        detector labels each row on its own; rows of several dtypes taken together are computed in
+        their common dtype, as by one :meth:`label` call).
 
         Parameters and their checks are :meth:`label`'s.
 
@@ -272,22 +274,27 @@ class FrameLabeller:
         try:
             done = self._finish_rows([p.pending for p in parts])
         except Exception:  # noqa: BLE001 - find the frame(s) at fault: each batch, then each frame alone
-            done = []
-            for p in parts:
-                try:
-                    done.extend(self._finish_rows([p.pending]))
-                except Exception:  # noqa: BLE001
-                    rows = []
-                    for a, first in zip(p.arrays, p.firsts):
-                        try:
-                            rows.append(self._finish_rows([self._screen_rows([a], [first])])[0][0])
-                        except Exception as exc:  # noqa: BLE001 - this frame's failure, reported by the caller
-                            rows.append(exc)
-                    done.append(rows)
+            done = [self._finish_part(p, whole=len(parts) > 1) for p in parts]
         for s, p, rows in zip(owners, parts, done):
             for i, r in zip(p.frames, rows):
                 s.out[i] = FrameFailure(i, r) if isinstance(r, BaseException) else r
         return [s.out for s in screened]
+
+    def _finish_part(self, p, whole: bool) -> list:
+        """One screened part's frame results: the part in one detector call (``whole``), and if that raises
+        (or not ``whole``), each frame alone; a frame that still fails gives its exception."""
+        if whole:
+            try:
+                return self._finish_rows([p.pending])[0]
+            except Exception:  # noqa: BLE001 - each frame alone, below
+                pass
+        rows = []
+        for a, first in zip(p.arrays, p.firsts):
+            try:
+                rows.append(self._finish_rows([self._screen_rows([a], [first])])[0][0])
+            except Exception as exc:  # noqa: BLE001 - this frame's failure, reported by the caller
+                rows.append(exc)
+        return rows
 
     def _screen_rows(self, arrays, firsts) -> "_Pending":
         """Screen frames of the right width together, the gate's rows labelled, the others gathered."""

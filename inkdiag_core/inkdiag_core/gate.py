@@ -38,13 +38,14 @@ accumulated in float64); no ROS.
 
 from __future__ import annotations
 
+import warnings
 from typing import NamedTuple
 
 import numpy as np
 
 from .faults import FaultClass
 
-__all__ = ["GateResult", "HealthyGate"]
+__all__ = ["GATE_CLASSES", "GateResult", "HealthyGate"]
 
 #: Default bound on a cleared row's residual fraction (module docstring).
 DEFAULT_MAX_RESIDUAL_FRACTION = 0.005
@@ -120,7 +121,9 @@ class HealthyGate:
         if ref is None or not len(baselines):
             self._ref = None
             return
-        centred = (ref - np.nanmean(ref, axis=1, keepdims=True)).astype(np.float32)
+        with warnings.catch_warnings():  # a nozzle without a reference is a row of NaN: its mean is NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
+            centred = (ref - np.nanmean(ref, axis=1, keepdims=True)).astype(np.float32)
         rr = np.einsum("ij,ij->i", centred.astype(np.float64), centred.astype(np.float64))
         usable = np.isfinite(rr) & (rr > 0)
         centred[~usable] = 0.0
@@ -196,8 +199,10 @@ class HealthyGate:
         if self._ref is None:
             return np.full(ids.shape, -1, np.int64)
         t = self._table
-        if t is not None and ids.size and ids.min() >= 0 and ids.max() < t.size:  # one look-up per id
-            return t[ids]
+        if t is not None:  # one look-up per id; an id outside the table has no baseline
+            if ids.size and ids.min() >= 0 and ids.max() < t.size:
+                return t[ids]
+            return np.where((ids >= 0) & (ids < t.size), t[np.clip(ids, 0, t.size - 1)], -1)
         has, pos = self.baselines.reference_rows(ids)
         return np.where(has & self._usable[pos], pos, -1)
 
@@ -233,7 +238,6 @@ class HealthyGate:
         oks = ok & (g >= self.ok_gain[0]) & (g <= self.ok_gain[1])
         code = jet.view(np.uint8) + 2 * oks.view(np.uint8)  # the bands do not overlap: 0, 1 or 2
         return GateResult(jet | oks, GATE_CLASSES[code], g, f)
-
 
     def codes(self, x1, xx, xr, pos) -> np.ndarray:
         """:meth:`decide`'s verdict alone, per row: 0 not cleared, 1 ``healthy_nozzle``, 2 ``ok_signal``

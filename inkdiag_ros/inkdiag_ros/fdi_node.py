@@ -99,7 +99,7 @@ class FdiNode(Node):
             self._on_trace_msg(msg)
             self._take_waiting(self.config["max_queued_frames"] - 1)  # the rest of a burst
         finally:  # labelled and published here until a signal shuts the context (a child's pipeline: no-op);
-            # what arrives while the burst is screened is screened too before the detector runs (one pass)
+            # what arrives while the burst is screened is screened too before the detector's first pass
             self._pipeline.flush(self.context.ok, refill=lambda: self._take_waiting(self.config["max_queued_frames"]))
         self._on_diagnostics(1.0)  # under load the timer waits behind this callback: /diagnostics on time
 

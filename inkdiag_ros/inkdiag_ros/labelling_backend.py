@@ -138,8 +138,9 @@ class ThreadBackend:
         screened = [t for t in tokens if not isinstance(t, list)]
         try:
             done = iter(self.labeller.finish(screened))
-        except Exception as exc:  # noqa: BLE001 - as in submit
-            done = iter([_all_failed(len(t), exc) for t in screened])
+        except Exception as exc:  # noqa: BLE001 - as in submit; a frame's own failure from screening stays
+            done = iter([[r if isinstance(r, FrameFailure) else FrameFailure(i, exc) for i, r in enumerate(t.out)]
+                         for t in screened])
         results = [r for t in tokens for r in (t if isinstance(t, list) else next(done))]
         return LabelledBatch(results, time.perf_counter() - t0)
 
@@ -314,14 +315,6 @@ class LabellingPipeline:
         _hand_out(callback, self._on_error, frame, arg)
 
 
-def _asked(refill: Callable) -> bool:
-    """``refill()``, False if it raises (the frames it took are the caller's to report)."""
-    try:
-        return bool(refill())
-    except Exception:  # noqa: BLE001 - no more frames this time; the ones screened are labelled
-        return False
-
-
 def _hand_out(callback, on_error, frame, arg) -> None:
     """``callback(frame, arg)``; what it raises goes to ``on_error``, never out of the pipeline."""
     try:
@@ -391,8 +384,11 @@ class InlinePipeline:
         frames are screened, or they left :data:`DEFER_ROWS` rows: one detector pass for a
         burst of messages that arrive while the first of them are screened, not one per
         executor wake-up (the pass's fixed cost, reports/gate_bench.md). ``refill()``
-        (optional) is asked for more before the detector runs: it submits what has arrived
-        meanwhile and returns whether it did. No label depends on how the frames are grouped.
+        (optional) is asked for more before the first detector pass of the flush: it submits
+        what has arrived meanwhile and returns whether it did; what it raises ends the flush
+        (after the frames screened are labelled and handed out). After that pass the flush
+        labels what is still queued and returns, so a caller under sustained load gets its
+        thread back. Frames of one dtype get the same labels however they are grouped.
 
         ``keep_going()`` (optional) is asked before each batch: False stops the flush (the frames
         screened are labelled and handed out first), and what is still queued waits for the
@@ -421,19 +417,22 @@ class InlinePipeline:
                     n_left += left
                     busy_s += dt
                     if (n_rows < self._max_rows and n_left < DEFER_ROWS
-                            and (self._queue or (refill is not None and _asked(refill)))):
+                            and (self._queue or (refill is not None and refill()))):
                         continue  # more arrived: screened too before the detector's one pass
                 elif batch:
                     self._label_and_hand_out(batch)
                     continue
                 if not pending:
                     break  # _take ended the flush
-                self._finish(pending, busy_s)
-                pending, n_rows, n_left, busy_s = [], 0, 0, 0.0
+                done, pending = pending, []  # handed out once, whatever on_result raises
+                refill = None  # one refill chain per flush: the caller's callback returns under sustained load
+                self._finish(done, busy_s)
+                n_rows, n_left, busy_s = 0, 0, 0.0
         finally:
             try:
                 if pending:  # stopped early, or raised: what was screened is still labelled and handed out
-                    self._finish(pending, busy_s)
+                    done, pending = pending, []
+                    self._finish(done, busy_s)
             finally:
                 with self._cv:
                     if self._flushing is me:  # stopped early, or raised

@@ -247,10 +247,11 @@ def main() -> int:
     ap.add_argument("--nozzles", type=int, default=2656)
     ap.add_argument("--frames", type=int, default=8, help="distinct frames to pre-generate and cycle")
     ap.add_argument("--seconds", type=float, default=8.0, help="replay time of each phase")
-    ap.add_argument("--window", type=int, default=None,
+    loop = ap.add_mutually_exclusive_group()
+    loop.add_argument("--window", type=int, default=None,
                     help="messages in flight at most (closed loop: a new one is published when one is "
                          "answered); default one head scan, ceil(nozzles / chunk)")
-    ap.add_argument("--scans", action="store_true",
+    loop.add_argument("--scans", action="store_true",
                     help="closed loop by head scans instead of --window: a scan's messages go out together, the "
                          "next scan once all of them are answered (one scan in flight, as a controller that "
                          "waits for a scan's labels)")

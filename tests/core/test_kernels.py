@@ -242,3 +242,13 @@ def test_a_batch_of_frames_is_screened_and_summed_as_each_frame_alone():
         _kernels.screen_frames_and_row_sums(frames, 1e-6, 2.5, 5, ref, pos + 2)
     with pytest.raises(ValueError, match="one width"):
         _kernels.screen_frames_and_row_sums([frames[0], frames[2][:, :32]], 1e-6, 2.5, 5, ref, pos[:17 + 40])
+
+
+def test_gate_codes_refuses_positions_outside_its_table_and_mismatched_shapes():
+    x = np.ones(3)
+    rr = np.ones(2)
+    with pytest.raises(ValueError, match=r"positions must be in \[-1, 2\)"):
+        _kernels.gate_codes(x, x, x, np.array([0, 1, 2]), rr, 4, 0.5, (0.9, 1.1), (0.7, 0.8))
+    with pytest.raises(ValueError, match="one shape"):
+        _kernels.gate_codes(x, x[:2], x, np.array([0, 1, -1]), rr, 4, 0.5, (0.9, 1.1), (0.7, 0.8))
+    assert _kernels.gate_codes(x, x, x, np.array([0, 1, -1]), rr, 4, 0.5, (0.9, 1.1), (0.7, 0.8)).shape == (3,)

@@ -355,37 +355,76 @@ def test_an_inline_flush_screens_what_arrives_meanwhile_and_runs_the_detector_on
     assert pipe.wait_idle(0.0)
 
 
-def test_an_inline_flush_bounds_a_detector_pass_by_max_batch_rows_and_a_stop_still_hands_out_the_screened(head):
-    """Frames keep arriving: the detector runs once ``max_batch_rows`` rows of frames are screened; a stop
-    (``keep_going`` False) between batches labels and hands out what was screened, what is queued waits."""
+def test_an_inline_flush_bounds_a_detector_pass_by_max_batch_rows_and_returns_under_sustained_load(head):
+    """Frames keep arriving (``refill`` always finds one): the detector runs once ``max_batch_rows`` rows of
+    frames are screened, refill is not asked again, and the flush returns once the queue is empty (the
+    node's callback gets its thread back: /diagnostics, the timer)."""
     from inkdiag_ros.labelling_backend import InlinePipeline
 
     det, _, frames, firsts = head
-    seen, batches = [], []
+    seen, batches, asked = [], [], []
     pipe = InlinePipeline(ThreadBackend(FrameLabeller(det, max_abs_v=10.0)), lambda f, r: seen.append(f.id),
                           max_batch_rows=48, on_batch=lambda n, busy_s: batches.append(n))
     k = iter(range(3, 100))
 
     def refill():  # a frame (16, 24 or 24 rows) always waiting
+        asked.append(1)
         pipe.submit(_frame(next(k), frames, firsts))
         return True
 
-    for i in range(3):  # 16 + 24 rows: the third (24) does not fit a pass of 48
-        pipe.submit(_frame(i, frames, firsts))
-    pipe.flush(lambda: len(batches) < 2, refill=refill)
-    assert batches == [2, 2] and seen == [0, 1, 2, 3]  # 16+24 | 24+16 (refilled), then told to stop
-    assert not pipe.wait_idle(0.0)  # frame 4, refilled, waits for the next flush
+    pipe.submit(_frame(0, frames, firsts))  # 16 rows
+    pipe.flush(refill=refill)
+    # frame 0 (16 rows) and refilled 3 (16): one pass; refilled 4 (24 rows) does not fit the 48 - 32 left:
+    # a pass of its own after, without asking refill again
+    assert asked == [1, 1] and batches == [2, 1] and seen == [0, 3, 4] and pipe.wait_idle(0.0)
     pipe.close()
 
-    seen.clear(), batches.clear()
+
+def test_a_stopped_inline_flush_still_hands_out_the_screened_and_each_frame_once(head):
+    """A stop (``keep_going`` False) between batches labels and hands out what was screened, what is queued
+    waits; an exception that is not an Exception (KeyboardInterrupt) from ``on_result`` leaves the flush
+    without handing any frame out twice; one from ``refill`` ends it after the screened frames."""
+    from inkdiag_ros.labelling_backend import InlinePipeline
+
+    det, _, frames, firsts = head
+    seen, batches = [], []
     pipe = InlinePipeline(ThreadBackend(FrameLabeller(det, max_abs_v=10.0)), lambda f, r: seen.append(f.id),
                           max_batch_rows=1000, on_batch=lambda n, busy_s: batches.append(n))
     for i in range(2):
         pipe.submit(_frame(i, frames, firsts))
     calls = []
-    pipe.flush(lambda: not calls.append(1) and len(calls) < 2, refill=refill)  # stopped after one refill
+    pipe.flush(lambda: not calls.append(1) and len(calls) < 2,
+               refill=lambda: pipe.submit(_frame(2, frames, firsts)) is None)  # stopped after one refill
     assert seen == [0, 1] and batches == [2]  # the screened frames labelled at the stop, not lost
     assert not pipe.wait_idle(0.0)  # the refilled one waits
+    pipe.close()
+
+    handed = []
+
+    def on_result(frame, result):
+        handed.append(frame.id)
+        if frame.id == 1:
+            raise KeyboardInterrupt
+
+    pipe = InlinePipeline(ThreadBackend(FrameLabeller(det, max_abs_v=10.0)), on_result, max_batch_rows=1000)
+    for i in range(3):
+        pipe.submit(_frame(i, frames, firsts))
+    with pytest.raises(KeyboardInterrupt):
+        pipe.flush()
+    assert handed == [0, 1] and pipe.wait_idle(0.0)  # frame 2 is not handed out; none twice
+    pipe.close()
+
+    seen.clear()
+    pipe = InlinePipeline(ThreadBackend(FrameLabeller(det, max_abs_v=10.0)), lambda f, r: seen.append(f.id),
+                          max_batch_rows=1000)
+    pipe.submit(_frame(0, frames, firsts))
+
+    def broken_refill():
+        raise RuntimeError("take failed")
+
+    with pytest.raises(RuntimeError, match="take failed"):
+        pipe.flush(refill=broken_refill)
+    assert seen == [0] and pipe.wait_idle(0.0)
     pipe.close()
 
 
