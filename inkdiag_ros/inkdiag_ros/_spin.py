@@ -329,3 +329,12 @@ def take_queued(subscription, at_most: int):
         if taken is None:
             return
         yield taken[0]
+
+
+def take_into(subscription, at_most: int, handle) -> bool:
+    """Each message :func:`take_queued` yields handed to ``handle(msg)`` in turn; whether there was any."""
+    n = 0
+    for msg in take_queued(subscription, at_most):
+        handle(msg)
+        n += 1
+    return n > 0

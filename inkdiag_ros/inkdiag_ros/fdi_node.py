@@ -17,7 +17,7 @@ from msg_defs import (DIAGNOSTICS_MSG_TYPE, DIAGNOSTICS_QOS, DRYING_MSG_TYPE, LA
 
 from . import _params
 from ._head import HEAD_PROFILE_PARAM, SAMPLING_PARAMS, head_from_parameters
-from ._spin import spin_node, take_queued
+from ._spin import spin_node, take_into
 from .labelling_backend import InlinePipeline, LabellingPipeline, ThreadBackend, make_backend
 from .stats import FdiStats
 
@@ -95,21 +95,13 @@ class FdiNode(Node):
         return self._pipeline.wait_idle(timeout)
 
     def _on_traces(self, msg) -> None:
+        k = min(64, self.config["max_queued_frames"])
         try:
             self._on_trace_msg(msg)
-            self._take_waiting(self.config["max_queued_frames"] - 1)  # the rest of a burst
-        finally:  # labelled and published here until a signal shuts the context (a child's pipeline: no-op);
-            # what arrives while the burst is screened is screened too before the detector's first pass
-            self._pipeline.flush(self.context.ok, refill=lambda: self._take_waiting(self.config["max_queued_frames"]))
+            take_into(self._sub, k - 1, self._on_trace_msg)  # the rest of a burst
+        finally:  # labelled, published here (a child's pipeline: no-op); what arrives meanwhile screened too
+            self._pipeline.flush(self.context.ok, refill=lambda: take_into(self._sub, k, self._on_trace_msg))
         self._on_diagnostics(1.0)  # under load the timer waits behind this callback: /diagnostics on time
-
-    def _take_waiting(self, at_most: int) -> bool:
-        """Decode and queue the trace messages waiting in the subscription (at most ``at_most``, 64); any?"""
-        n = 0
-        for taken in take_queued(self._sub, min(64, at_most)):
-            self._on_trace_msg(taken)
-            n += 1
-        return n > 0
 
     def _on_trace_msg(self, msg) -> None:
         self.stats.received()
@@ -139,9 +131,8 @@ class FdiNode(Node):
             if isinstance(result, FrameFailure):
                 raise result.error
             report = LabelsReport.from_arrays(
-                frame_id=frame.frame_id, stamp=frame.stamp, first_nozzle=frame.first_nozzle, classes=result.classes,
-                confidence=result.confidence, valid=result.valid, reasons=result.reasons, model_id=self.model_id,
-                gate_cleared=result.gate_cleared)
+                frame_id=frame.frame_id, stamp=frame.stamp, first_nozzle=frame.first_nozzle, model_id=self.model_id,
+                **{k: getattr(result, k) for k in ("classes", "confidence", "valid", "reasons", "gate_cleared")})
             self._labels_pub.publish(encode_labels(report))
             self._drying_pub.publish(encode_drying(DryingNozzles.from_labels(report)))
         except Exception as exc:  # noqa: BLE001 - this frame failed; the batch's others go on
