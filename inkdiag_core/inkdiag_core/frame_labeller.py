@@ -274,7 +274,7 @@ class FrameLabeller:
         try:
             done = self._finish_rows([p.pending for p in parts])
         except Exception:  # noqa: BLE001 - find the frame(s) at fault: each batch, then each frame alone
-            done = [self._finish_part(p, whole=len(parts) > 1) for p in parts]
+            done = [self._finish_part(p, whole=len(parts) > 1 and len(p.frames) > 1) for p in parts]
         for s, p, rows in zip(owners, parts, done):
             for i, r in zip(p.frames, rows):
                 s.out[i] = FrameFailure(i, r) if isinstance(r, BaseException) else r

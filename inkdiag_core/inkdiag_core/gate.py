@@ -122,7 +122,7 @@ class HealthyGate:
             self._ref = None
             return
         with warnings.catch_warnings():  # a nozzle without a reference is a row of NaN: its mean is NaN
-            warnings.simplefilter("ignore", RuntimeWarning)
+            warnings.filterwarnings("ignore", "Mean of empty slice", RuntimeWarning)
             centred = (ref - np.nanmean(ref, axis=1, keepdims=True)).astype(np.float32)
         rr = np.einsum("ij,ij->i", centred.astype(np.float64), centred.astype(np.float64))
         usable = np.isfinite(rr) & (rr > 0)
