@@ -412,6 +412,9 @@ class InlinePipeline:
                                                               [f.first_nozzle for f in batch])
                     except Exception as exc:  # noqa: BLE001 - the batch is lost: each of its frames fails
                         token, left, dt = _all_failed(len(batch), exc), 0, 0.0
+                    except BaseException as exc:  # KeyboardInterrupt, SystemExit: taken, so reported failed
+                        self._fail(batch, exc)
+                        raise
                     pending.append((batch, token))
                     n_rows += sum(f.traces.shape[0] for f in batch)
                     n_left += left
@@ -453,15 +456,32 @@ class InlinePipeline:
             results, busy_s = self.backend.finish([token for _, token in pending])
         except Exception as exc:  # noqa: BLE001 - the batches are lost: each of their frames fails
             results, busy_s = _all_failed(len(frames), exc), 0.0
+        except BaseException as exc:  # KeyboardInterrupt, SystemExit: none handed out, each reported failed
+            self._fail(frames, exc)
+            raise
         self._hand_out(frames, results, screen_s + busy_s)
 
     def _hand_out(self, frames, results, busy_s: float) -> None:
-        for frame, result in zip(frames, results):
-            _hand_out(self._on_result, self._on_error, frame, result)
+        n = 0
+        try:
+            for frame, result in zip(frames, results):
+                n += 1
+                _hand_out(self._on_result, self._on_error, frame, result)
+        except BaseException as exc:  # from on_result/on_error (KeyboardInterrupt, SystemExit): the rest failed
+            self._fail(frames[n:], exc)
+            raise
         try:
             self._on_batch(len(frames), busy_s)
         except Exception:  # noqa: BLE001 - statistics only; the pipeline goes on
             pass
+
+    def _fail(self, frames, exc: BaseException) -> None:
+        """``on_error(frame, exc)`` for frames taken and never handed out (a flush left by ``exc``)."""
+        for frame in frames:
+            try:
+                self._on_error(frame, exc)
+            except Exception:  # noqa: BLE001 - nothing more to do for this frame
+                pass
 
     def _take(self, room: int | None = None) -> list:
         """The next batch; none left: the flush ends in the same lock (a frame submitted after it finds

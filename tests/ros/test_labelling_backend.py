@@ -356,8 +356,8 @@ def test_an_inline_flush_screens_what_arrives_meanwhile_and_runs_the_detector_on
 
 
 def test_an_inline_flush_bounds_a_detector_pass_by_max_batch_rows_and_returns_under_sustained_load(head):
-    """Frames keep arriving (``refill`` always finds one): the detector runs once ``max_batch_rows`` rows of
-    frames are screened, refill is not asked again, and the flush returns once the queue is empty (the
+    """Frames keep arriving (``refill`` always finds one): the detector runs once the next frame would take its
+    pass beyond ``max_batch_rows`` rows, refill is not asked again, and the flush returns once the queue is empty (the
     node's callback gets its thread back: /diagnostics, the timer)."""
     from inkdiag_ros.labelling_backend import InlinePipeline
 
@@ -406,13 +406,35 @@ def test_a_stopped_inline_flush_still_hands_out_the_screened_and_each_frame_once
         if frame.id == 1:
             raise KeyboardInterrupt
 
-    pipe = InlinePipeline(ThreadBackend(FrameLabeller(det, max_abs_v=10.0)), on_result, max_batch_rows=1000)
+    failed = []
+    pipe = InlinePipeline(ThreadBackend(FrameLabeller(det, max_abs_v=10.0)), on_result, max_batch_rows=1000,
+                          on_error=lambda frame, exc: failed.append((frame.id, type(exc).__name__)))
     for i in range(3):
         pipe.submit(_frame(i, frames, firsts))
     with pytest.raises(KeyboardInterrupt):
         pipe.flush()
     assert handed == [0, 1] and pipe.wait_idle(0.0)  # frame 2 is not handed out; none twice
+    assert failed == [(2, "KeyboardInterrupt")]  # but reported: not silently lost
     pipe.close()
+
+    for stage in ("screen", "finish"):  # interrupted inside the backend: every frame taken is reported failed
+        backend = ThreadBackend(FrameLabeller(det, max_abs_v=10.0))
+
+        def interrupted(*args, **kwargs):
+            raise KeyboardInterrupt
+
+        setattr(backend, stage, interrupted)
+        handed.clear()
+        failed.clear()
+        pipe = InlinePipeline(backend, lambda f, r: handed.append(f.id), max_batch_rows=1000,
+                              on_error=lambda frame, exc: failed.append((frame.id, type(exc).__name__)))
+        for i in range(2):
+            pipe.submit(_frame(i, frames, firsts))
+        with pytest.raises(KeyboardInterrupt):
+            pipe.flush()
+        assert handed == [] and failed == [(0, "KeyboardInterrupt"), (1, "KeyboardInterrupt")], stage
+        assert pipe.wait_idle(0.0)
+        pipe.close()
 
     seen.clear()
     pipe = InlinePipeline(ThreadBackend(FrameLabeller(det, max_abs_v=10.0)), lambda f, r: seen.append(f.id),
