@@ -274,6 +274,22 @@ def save_detector(detector, path, *, config: dict | None = None) -> Path:
     if not isinstance(detector, FaultDetector):
         raise TypeError(f"save_detector takes a FaultDetector, got {type(detector).__name__}")
     check_is_fitted(detector)
+    own, scores = _detector_entries(detector)
+    clash = sorted(set(own) & set(config or {}))
+    if clash:
+        raise ValueError(f"config may not replace the detector's own entries {clash}")
+    config = {**own, **(config or {})}
+    try:
+        json.dumps(config)
+    except (TypeError, ValueError) as exc:  # e.g. a RandomState as random_state
+        raise ValueError(f"the detector's parameters or config are not JSON-serialisable: {exc}") from None
+    mpath, manifest = _save(detector, path, config=config, scores=scores)
+    detector.file_sha256_ = manifest["sha256"]
+    return mpath
+
+
+def _detector_entries(detector) -> tuple:
+    """The manifest's ``config`` entries and ``scores`` that a fitted detector itself determines."""
     params = {k: v.item() if isinstance(v, numpy.generic) else v for k, v in detector.get_params().items()}
     own = {**params, "estimator": DETECTOR_ESTIMATOR,
            "baseline": detector.baseline_pipeline_ is not None,
@@ -285,19 +301,51 @@ def save_detector(detector, path, *, config: dict | None = None) -> Path:
            # the head: its profile document (None: the default head) and its sha256
            "profile": None if detector.profile is None else detector.profile.to_dict(),
            "profile_sha256": detector.head_sha256, "profile_name": detector.head_name}
-    clash = sorted(set(own) & set(config or {}))
-    if clash:
-        raise ValueError(f"config may not replace the detector's own entries {clash}")
     scores = dict(detector.scores_)
     scores.update({f"baseline_{k}": v for k, v in (detector.baseline_scores_ or {}).items()})
-    config = {**own, **(config or {})}
-    try:
-        json.dumps(config)
-    except (TypeError, ValueError) as exc:  # e.g. a RandomState as random_state
-        raise ValueError(f"the detector's parameters or config are not JSON-serialisable: {exc}") from None
-    mpath, manifest = _save(detector, path, config=config, scores=scores)
-    detector.file_sha256_ = manifest["sha256"]
-    return mpath
+    return own, scores
+
+
+def _check_manifest_entries(path, manifest: dict, detector) -> None:
+    """Refuse a manifest whose ``config`` or ``scores`` entries disagree with the detector inside.
+
+    The file's sha256 covers the model, not the manifest: an edited threshold, class
+    list, head or score would otherwise be shown (``inkdiag`` prints the manifest's
+    head) while the model inside does something else. Entries a manifest lacks (files
+    written before they existed) are not checked."""
+    own, scores = _detector_entries(detector)
+    if detector.profile is None:  # a default-head model: the default head's sha256 when it was written
+        own.pop("profile_sha256")  # (model_head_sha256: it stays the current default head's)
+    for section, mine in (("config", own), ("scores", scores)):
+        theirs = manifest.get(section)
+        if not isinstance(theirs, dict):
+            raise ModelFileError(f"model file {path}: its manifest's {section} is not an object")
+        if section == "scores" and set(theirs) - set(mine):  # every score is the detector's
+            raise ModelFileError(f"model file {path}: its manifest's scores {sorted(set(theirs) - set(mine))} are not "
+                                 "the model's: manifest edited, refusing an inconsistent file")
+        # through JSON (the text the manifest was written as): tuples are lists, NaN equals NaN
+        mine = json.loads(json.dumps({k: mine[k] for k in theirs if k in mine}, default=str))
+        where = _first_difference({k: theirs[k] for k in mine}, mine, section)
+        if where is not None:
+            key, got, want = where
+            raise ModelFileError(f"model file {path}: its manifest's {key} is {got:.60}, the model's {want:.60}: "
+                                 "manifest edited, refusing an inconsistent file")
+
+
+def _first_difference(a, b, key: str):
+    """``(key path, a's JSON, b's JSON)`` where two JSON documents first differ, or None."""
+    if isinstance(a, dict) and isinstance(b, dict) and set(a) == set(b):
+        for k in sorted(a):
+            if (d := _first_difference(a[k], b[k], f"{key}.{k}")) is not None:
+                return d
+        return None
+    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        for i, (x, y) in enumerate(zip(a, b)):
+            if (d := _first_difference(x, y, f"{key}[{i}]")) is not None:
+                return d
+        return None
+    ja, jb = json.dumps(a, sort_keys=True), json.dumps(b, sort_keys=True)
+    return None if ja == jb else (key, ja, jb)
 
 
 def load_detector(path, *, check_versions: bool = True):
@@ -337,6 +385,7 @@ def load_detector(path, *, check_versions: bool = True):
     if detector.profile is not None and model_head_sha256(manifest) != detector.head_sha256:
         raise ModelFileError(f"model file {path}: its manifest's profile_sha256 is not the head of the detector "
                              "inside: refusing an inconsistent file")
+    _check_manifest_entries(path, manifest, detector)
     detector.file_sha256_ = manifest["sha256"]
     return detector
 

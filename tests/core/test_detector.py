@@ -176,6 +176,29 @@ def test_tampered_or_foreign_files_are_refused(tmp_path, fitted, sim):
         save_detector(fitted, tmp_path / "x.joblib", config={"fd_threshold": 0.1})
 
 
+@pytest.mark.parametrize("edit, where", [
+    (lambda m: m["config"].__setitem__("fd_threshold", 0.99), r"config\.fd_threshold is 0\.99"),
+    (lambda m: m["config"]["classes"].reverse(), r"config\.classes\[0\]"),
+    (lambda m: m["config"].__setitem__("profile_name", "other_head"), r"config\.profile_name"),
+    (lambda m: m["scores"].__setitem__(sorted(m["scores"])[0], 1.5), r"scores\."),
+    (lambda m: m["scores"].__setitem__("fi_accuracy_claimed", 1.0), r"scores \['fi_accuracy_claimed'\]"),
+])
+def test_a_manifest_edited_to_say_other_than_its_model_is_refused(tmp_path, fitted, edit, where):
+    """The file's sha256 covers the model, not its manifest: the manifest's own entries (the threshold,
+    classes, head, scores a user reads there) must still be the model's, else the file is refused."""
+    path = tmp_path / "det.joblib"
+    save_detector(fitted, path, config={"note": "kept"})
+    mpath = tmp_path / "det.joblib.manifest.json"
+    m = json.loads(mpath.read_text())
+    m["config"]["note"] = "an entry of the caller's may change"
+    mpath.write_text(json.dumps(m))
+    assert load_detector(path).fd_threshold_ == fitted.fd_threshold_
+    edit(m)
+    mpath.write_text(json.dumps(m))
+    with pytest.raises(ModelFileError, match=where):
+        load_detector(path)
+
+
 def test_train_default_model_saves_a_detector_as_the_previous_route_trained_it(tmp_path, sim):
     path = tmp_path / "fdi.joblib"
     train_default_model(path, n_per_class=N_PER_CLASS, seed=SEED, baseline=True)
