@@ -55,9 +55,12 @@ def _default_head():
     return HeadProfile.default()
 from .trend import FmTrendBank, deeply_dried_fm
 
-__all__ = ["ESTIMATE_COLUMNS", "DryingTracker", "RangeEstimates", "RowEstimates"]
+__all__ = ["ESTIMATE_COLUMNS", "NONPHYSICAL_REASON", "DryingTracker", "RangeEstimates", "RowEstimates"]
 
 
+#: Reason of a row whose estimate means a viscosity <= 0 (``channel.mu + d_mu``): no nozzle the linear
+#: channel model describes (an empty channel, an air bubble), so not an estimate of its ink.
+NONPHYSICAL_REASON = "viscosity_not_positive"
 #: Columns of :attr:`RangeEstimates.columns`, in this order (the fields of ``fm_estimates``).
 ESTIMATE_COLUMNS = ("nozzle", "fm", "fm_std", "d_mu", "viscosity", "fm_trend", "fm_rate",
                     "eta_deeply_dried_s")
@@ -116,7 +119,8 @@ class RowEstimates:
         in every estimate column of a row that was not estimated.
     reasons : ndarray of str (object), shape (n,)
         ``""`` for estimated rows; else screening's reason
-        (:data:`~inkdiag_core.INVALID_REASONS`) or ``"estimate_not_finite"``.
+        (:data:`~inkdiag_core.INVALID_REASONS`), ``"estimate_not_finite"`` or
+        :data:`NONPHYSICAL_REASON` (the estimate means a viscosity <= 0).
     method : str
         The estimator that ran.
     note : str
@@ -416,6 +420,10 @@ class DryingTracker:
                                     method=self.method, **kw)
             bad = ~np.isfinite(est.fm)
             reasons[sel[bad]] = "estimate_not_finite"
+            # a viscosity <= 0 is no nozzle the channel model describes (an empty channel, a bubble): not an estimate
+            nonphysical = ~bad & ~(np.asarray(est.viscosity) > 0)
+            reasons[sel[nonphysical]] = NONPHYSICAL_REASON
+            bad |= nonphysical
             for k, v in zip(("fm", "fm_std", "d_mu", "viscosity"), (est.fm, est.std, est.d_mu, est.viscosity)):
                 cols[k][sel] = v
             good = sel[~bad]

@@ -165,3 +165,23 @@ def test_a_sample_no_sensor_can_produce_is_out_of_range_not_an_estimate():
     assert tr.max_abs_v == 10.0  # 5x the default head's +-2 V
     with pytest.raises(ValueError, match="max_abs_v"):
         DryingTracker(max_abs_v=0.0)
+
+
+def test_an_estimate_that_means_a_viscosity_of_zero_or_less_is_not_an_estimate():
+    """A row the ink-channel model does not describe (here a ringing with no damping at all, as the actuator
+    alone of an empty channel rings on some heads) can come out with an f_m that means a viscosity <= 0: that
+    row has the reason ``viscosity_not_positive`` and empty values; the others are estimated as the
+    estimator gives them."""
+    from inkdiag_core.drying_tracker import NONPHYSICAL_REASON
+
+    x = _frame(1)[:6].copy()  # nozzles 2 and 5 deeply dried
+    t = np.arange(x.shape[1]) / 10e6
+    x[[1, 4]] = 0.5 * np.sin(2 * np.pi * 237e3 * t)  # the default head's healthy mode, undamped
+    raw = estimate_fm_batch(x, InkChannelModel(), 10e6, method="vp_cal")
+    neg = raw.viscosity <= 0
+    assert list(np.flatnonzero(neg)) == [1, 4]  # what the estimator itself says
+    tr = DryingTracker()
+    r = tr.estimate_rows(x, np.arange(6), stamp=0.0, sample_rate_hz=10e6)
+    assert list(r.reasons) == ["", NONPHYSICAL_REASON, "", "", NONPHYSICAL_REASON, ""] and tr.estimates == 4
+    assert np.isnan(r.columns["viscosity"][neg]).all() and np.isnan(r.columns["fm_trend"][neg]).all()
+    np.testing.assert_allclose(r.columns["viscosity"][~neg], raw.viscosity[~neg])

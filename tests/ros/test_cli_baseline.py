@@ -37,8 +37,9 @@ def test_baselines_of_a_recording_are_record_baselines_of_its_frames(work, tmp_p
     capsys.readouterr()
     assert main(["baseline", str(tmp_path / "c.npz"), "--profile", str(d / "head.yaml"), "--out",
                  str(tmp_path / "b.npz"), "--frames", "2", "--fm-frames", "1"]) == 0
-    err = capsys.readouterr().err
-    assert "baselines of 6 nozzles (head 'default') from 12 of 18 rows (1 not labelled healthy_nozzle)" in err, err
+    out = capsys.readouterr().out
+    assert "inkdiag baseline: baselines of 6 nozzles (head 'default') from 12 of 18 rows (1 not labelled " \
+           "healthy_nozzle)" in out, out
     got = NozzleBaselines.load(tmp_path / "b.npz")
     mask = os.umask(0o022)
     os.umask(mask)
@@ -85,8 +86,8 @@ def test_nozzles_short_of_frames_are_left_out_and_said(work, tmp_path, capsys):
     capsys.readouterr()
     assert main(["baseline", str(tmp_path / "c.npz"), "--profile", str(d / "head.yaml"), "--out",
                  str(tmp_path / "b.npz"), "--frames", "2", "--fm-frames", "0"]) == 0
-    err = capsys.readouterr().err
-    assert "from 6 of 8 rows" in err and "4 nozzles with fewer than 2 usable rows left out" in err, err
+    out = capsys.readouterr().out
+    assert "from 6 of 8 rows" in out and "4 nozzles with fewer than 2 usable rows left out" in out, out
     np.testing.assert_array_equal(NozzleBaselines.load(tmp_path / "b.npz").nozzle_ids, [0, 1])
 
 

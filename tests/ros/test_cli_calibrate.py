@@ -56,13 +56,18 @@ def test_calibrate_end_to_end(files, tmp_path):
     png = tmp_path / "head.fit.png"
     assert report["figure"] == "head.fit.png" and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "is the nominal profile's" not in r.stdout
+    # the head's vp_cal constants stored (fitted on this head: inkdiag estimate and fe read them, not refit)
+    from inkdiag_core.estimation.vp_calibration import vp_cal_needs_fit
+    assert p.calibration["vp_cal"]["profile_sha256"] == p.sha256 and not vp_cal_needs_fit(p)
+    assert "vp_cal constants fitted in" in r.stdout
     # healthy traces alone leave the restrictor's split to the prior: said, with what pins it
     by = p.calibration["determined_by"]["I_r"]
     ratio = report["identifiability"]["parameters"]["I_r"]["ratio_to_I_n"]
     assert f"the restrictor's share of the channel's inertance (I_r = {ratio:.2f} I_n) is set by the {by}" in r.stdout
     assert by != "data" and "50 traces of fully blocked nozzles (--blocked BLOCKED.npz) pin it" in r.stdout
     # the profile it wrote as the nominal of another run: its restrictor is kept, and the run says so
-    again = inkdiag("calibrate", files / "healthy.npz", "--nominal", out, "--out", tmp_path / "again.yaml")
+    again = inkdiag("calibrate", files / "healthy.npz", "--nominal", out, "--out", tmp_path / "again.yaml",
+                    "--no-vp-cal")
     assert again.returncode == 0, again.stderr
     assert "the restrictor (channel.r_r, channel.L_r) is the nominal profile's, not fitted" in again.stdout
     assert "pin it" not in again.stdout
@@ -113,7 +118,7 @@ def test_bad_input_is_one_line_and_status_2(files, tmp_path, capsys, case, messa
     elif case == "nominal_missing":
         nominal = files / "nope.yaml"
     status = cli.main(["calibrate", str(healthy), "--nominal", str(nominal), "--out", str(tmp_path / "h.yaml"),
-                       *extra])
+                       "--no-vp-cal", *extra])
     err = capsys.readouterr().err
     assert status == 2 and err.count("\n") == 1 and err.startswith("inkdiag calibrate: error: ")
     assert message in err
@@ -126,7 +131,7 @@ def test_without_matplotlib_the_report_says_so(files, tmp_path, monkeypatch, cap
     y = np.load(files / "healthy.npz")["traces"][:40]
     save_recording(tmp_path / "h40.npz", Recording.from_arrays(y, TRUE.sample_rate_hz))
     status = cli.main(["calibrate", str(tmp_path / "h40.npz"), "--nominal", str(files / "nominal.yaml"),
-                       "--out", str(out), "--report-dir", str(tmp_path / "rep")])
+                       "--out", str(out), "--report-dir", str(tmp_path / "rep"), "--no-vp-cal"])
     assert status == 0
     assert "matplotlib is not installed" in capsys.readouterr().err
     report = json.loads((tmp_path / "rep" / "head.fit.json").read_text())
@@ -142,7 +147,7 @@ def test_a_labelled_recording_calibrates_on_its_healthy_rows(tmp_path, capsys):
     doc["channel"] = {k: doc["channel"][k] for k in NOMINAL_CHANNEL_KEYS}
     HeadProfile.from_dict(doc).save(tmp_path / "nominal.yaml")
     status = cli.main(["calibrate", str(tmp_path / "mixed.npz"), "--nominal", str(tmp_path / "nominal.yaml"),
-                       "--out", str(tmp_path / "head.yaml")])
+                       "--out", str(tmp_path / "head.yaml"), "--no-vp-cal"])
     assert status == 0
     assert "(60 traces, 0 dropped; 20 rows labelled otherwise left out)" in capsys.readouterr().out
     assert json.loads((tmp_path / "head.fit.json").read_text())["n_rows_left_out_by_label"] == 20
@@ -158,7 +163,7 @@ def test_a_foreign_head_through_the_cli(tmp_path, capsys, head, tol_dried):
     fh.write_nominal_yaml(tmp_path / "nominal.yaml", head)
     fh.write_true_yaml(tmp_path / "true.yaml", head)
     status = cli.main(["calibrate", str(tmp_path / "healthy.npz"), "--nominal", str(tmp_path / "nominal.yaml"),
-                       "--out", str(tmp_path / "head.yaml")])
+                       "--out", str(tmp_path / "head.yaml"), "--no-vp-cal"])
     assert status == 0, capsys.readouterr().err
     p, true = HeadProfile.load(tmp_path / "head.yaml"), HeadProfile.load(tmp_path / "true.yaml")
     assert p.is_complete
@@ -178,7 +183,7 @@ def test_blocked_traces_through_the_cli(files, tmp_path, capsys):
     blocked mode recorded and fitted; a recording with no such row, or the same file as --out, is refused."""
     sim = TRUE.simulate({"healthy_nozzle": 5, "fully_blocked": 30}, seed=6)
     save_recording(tmp_path / "b.npz", Recording.from_arrays(sim.traces, TRUE.sample_rate_hz, label=sim.labels))
-    args = ["calibrate", str(files / "healthy.npz"), "--nominal", str(files / "nominal.yaml")]
+    args = ["calibrate", str(files / "healthy.npz"), "--nominal", str(files / "nominal.yaml"), "--no-vp-cal"]
     assert cli.main([*args, "--blocked", str(tmp_path / "b.npz"), "--out", str(tmp_path / "head.yaml")]) == 0
     out = capsys.readouterr().out
     assert "blocked mode recorded/fitted" in out and "pin it" not in out  # no advice to do what was done
@@ -218,7 +223,7 @@ def test_empty_channel_traces_through_the_cli(tmp_path, capsys):
     empty = fh.simulate_foreign(head, {"healthy_nozzle": 10, "empty_channel_1": 40, "empty_channel_2": 40}, 2)
     fh.write_recording(tmp_path / "empty.npz", empty)  # labelled: its empty_channel_1 rows are taken
     f_rec = np.median(np.asarray(empty["frequency_hz"])[np.asarray(empty["labels"]) == "empty_channel_1"])
-    args = ["calibrate", str(tmp_path / "healthy.npz"), "--nominal", str(tmp_path / "nominal.yaml")]
+    args = ["calibrate", str(tmp_path / "healthy.npz"), "--nominal", str(tmp_path / "nominal.yaml"), "--no-vp-cal"]
     assert cli.main([*args, "--out", str(tmp_path / "plain.yaml")]) == 0
     assert "note: the empty channels' actuator is assumed like the default head's" in capsys.readouterr().out
     assert cli.main([*args, "--empty", str(tmp_path / "empty.npz"), "--out", str(tmp_path / "head.yaml")]) == 0

@@ -57,6 +57,7 @@ def test_estimate_writes_the_columns_and_reports_bad_rows(head):
     res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--out", out)
     assert res.returncode == 0, res.stderr
     assert "13 of 16 rows estimated" in res.stdout
+    assert "finite stamp" not in res.stderr  # every row stamped
     header, rows = read_csv(out)
     assert header == COLUMNS
     assert [int(x["row"]) for x in rows] == list(range(16))
@@ -178,3 +179,19 @@ def test_estimate_says_how_many_rows_were_relative_to_their_nozzles_baseline(hea
     assert "13 of 16 rows estimated" in res.stdout
     # rows 0..3 and 8..11 are nozzles 0..3; rows 1, 2, 3 are not estimated (non-finite, flat, clipped)
     assert "; 5 relative to their nozzle's healthy f_m, 8 without one (no baseline for that nozzle id" in res.stdout
+
+
+def test_rows_without_a_finite_stamp_are_said_to_have_no_trend(head, tmp_path):
+    """A recording whose stamps are partly NaN: those rows are estimated without a trend, and the run says so."""
+    d, p, r = head
+    rec = np.load(d / "rec.npz", allow_pickle=True)
+    stamp = np.repeat([1.0, 1.5], 8)
+    stamp[[8, 9]] = np.nan
+    save_recording(tmp_path / "rec.npz", Recording.from_arrays(rec["traces"], p.sample_rate_hz, nozzle=rec["nozzle"],
+                                                               frame_id=rec["frame_id"], stamp=stamp))
+    res = run_cli(tmp_path / "rec.npz", "--profile", d / "head.yaml", "--out", tmp_path / "fm.csv")
+    assert res.returncode == 0, res.stderr
+    assert "note: 2 of the 13 estimated rows have no finite stamp: fm_trend, fm_rate and eta_deeply_dried_s are " \
+           "empty for them" in res.stderr, res.stderr
+    _, rows = read_csv(tmp_path / "fm.csv")
+    assert rows[8]["fm"] != "" and rows[8]["fm_trend"] == "" and rows[10]["fm_trend"] != ""

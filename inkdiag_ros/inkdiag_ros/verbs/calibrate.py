@@ -78,6 +78,9 @@ def add_arguments(parser) -> None:
                         help="where to write the fit report (default: beside --out)")
     parser.add_argument("--name", default=None, help="name of the calibrated profile (default: the nominal's)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the spread-separating simulation (default 0)")
+    parser.add_argument("--no-vp-cal", action="store_true",
+                        help="do not fit the head's vp_cal constants into the profile (seconds); `inkdiag estimate` "
+                        "and fe then fit them at their first use of the head in each process")
 
 
 #: A median per-trace residual above this many times the larger of the noise alone and the calibrated head's own
@@ -159,6 +162,25 @@ def _fault_rows(path, option, cls):
     return rec
 
 
+def _with_vp_cal(profile):
+    """The profile with its ``calibration: vp_cal:`` constants fitted (not the default head's: shipped), and a note.
+
+    The constants are fitted on the calibrated head's own simulated dried nozzles
+    (:func:`inkdiag_core.estimation.vp_cal_for`); stored in the profile, ``inkdiag estimate``
+    and the fe node read them instead of fitting them again in every process."""
+    import time
+
+    from inkdiag_core import HeadProfile
+    from inkdiag_core.estimation import vp_cal_for
+
+    if profile.sha256 == HeadProfile.default().sha256:
+        return profile, ""
+    t0 = time.perf_counter()
+    cal = vp_cal_for(profile)
+    return (profile.replace(calibration={**profile.calibration, "vp_cal": cal}),
+            f"; vp_cal constants fitted in {time.perf_counter() - t0:.1f} s")
+
+
 def extra_outputs(args) -> list:
     """The fit report's files (``.fit.json``, ``.fit.md``, ``.fit.png``) for ``--out`` and ``--report-dir`` (cli
     refuses them over an input)."""
@@ -218,7 +240,10 @@ def run(args) -> int:
     result = calibrate(nominal, traces, fs, name=args.name, seed=args.seed,
                        blocked=None if blocked is None else blocked.traces,
                        empty=None if empty is None else empty.traces)
-    result.profile.save(out)
+    profile, vp_note = result.profile, ""
+    if not args.no_vp_cal:
+        profile, vp_note = _with_vp_cal(profile)
+    profile.save(out)
     stem = report_dir / out.name.removesuffix(".yaml").removesuffix(".yml")
     png = stem.with_name(stem.name + ".fit.png")
     report = dict(result.report, recording=str(args.healthy), nominal=str(args.nominal), profile=str(out),
@@ -244,7 +269,7 @@ def run(args) -> int:
           + ("" if not (fe := report["empty_mode"]) else
              f"; actuator (empty channels) {fe['frequency_hz'] / 1e3:.1f} kHz, damping {fe['damping_ratio']:.3f} "
              f"({fe['n_traces']} traces)")
-          + f"; report {stem}.fit.md", file=sys.stdout)
+          + vp_note + f"; report {stem}.fit.md", file=sys.stdout)
     if "channel.r_r" not in report["fitted"]:  # the nominal profile's restrictor, kept
         print(f"inkdiag calibrate: the restrictor (channel.r_r, channel.L_r) is the nominal profile's, not "
               f"fitted: leave both out of {args.nominal} to fit them (a profile inkdiag calibrate wrote keeps its "

@@ -236,6 +236,13 @@ def run(args) -> int:
           + _to(args.out), file=summary_stream(args.out))
     for note in sorted(notes):
         print(f"inkdiag estimate: note: {note}", file=sys.stderr)
+    est = ~bad
+    k = int(np.count_nonzero(est & ~np.isfinite(stamps)))
+    if k:  # said, not silent: those rows' trend columns are empty
+        print("inkdiag estimate: note: " + (
+            "no estimated row has a finite stamp (the recording's 'stamp' column is missing or not finite)"
+            if k == est.sum() else f"{k} of the {int(est.sum())} estimated rows have no finite stamp")
+            + ": fm_trend, fm_rate and eta_deeply_dried_s are empty for them", file=sys.stderr)
     return 0
 
 

@@ -22,8 +22,9 @@ corrected it, or per 'nozzle' from an inspection): a quarter of each recorded cl
 validation; the rest is replicated up to the simulated rows of its class, so a
 recorded class weighs as much as its simulated one.
 
-The manifest records the profile (and its sha256: fdi and `inkdiag label`
-refuse the model for another head), the training configuration and the
+The manifest records the profile (and its sha256: the fdi node refuses the model
+for another head's profile; `inkdiag label` refuses it for a recording of another
+sampling), the training configuration and the
 validation scores, which are printed at the end.
 
 A nominal profile (only a datasheet's values) is refused: run `inkdiag
