@@ -414,20 +414,22 @@ class DryingTracker:
         note = ""
         sel = np.flatnonzero(valid)
         if sel.size:
-            baseline_fm, note = self._baseline_fm(ids[sel], sample_rate_hz, rows.shape[1])
+            baseline_fm, with_base, note = self._baseline_fm(ids[sel], sample_rate_hz, rows.shape[1])
             kw = {} if self.vp_cal is None else {"cal": self.vp_cal}
             est = estimate_fm_batch(rows[sel], self.model, sample_rate_hz, baseline_fm=baseline_fm,
                                     method=self.method, **kw)
             bad = ~np.isfinite(est.fm)
             reasons[sel[bad]] = "estimate_not_finite"
             # a viscosity <= 0 is no nozzle the channel model describes (an empty channel, a bubble): not an estimate
-            nonphysical = ~bad & ~(np.asarray(est.viscosity) > 0)
+            visc = np.asarray(est.viscosity, dtype=float)  # NaN for a matrix model, which has no viscosity
+            nonphysical = ~bad & np.isfinite(visc) & (visc <= 0)
             reasons[sel[nonphysical]] = NONPHYSICAL_REASON
             bad |= nonphysical
             for k, v in zip(("fm", "fm_std", "d_mu", "viscosity"), (est.fm, est.std, est.d_mu, est.viscosity)):
                 cols[k][sel] = v
             good = sel[~bad]
             self.estimates += int(good.size)
+            self.estimates_with_baseline += int(np.count_nonzero(with_base & ~bad))  # of the rows estimated
             if good.size and math.isfinite(stamp):
                 trend, rate, eta = self.trends.update(stamp, ids[good], cols["fm"][good], cols["fm_std"][good])
                 cols["fm_trend"][good], cols["fm_rate"][good], cols["eta_deeply_dried_s"][good] = trend, rate, eta
@@ -436,17 +438,17 @@ class DryingTracker:
         return RowEstimates(cols, reasons, method, note)
 
     def _baseline_fm(self, ids, sample_rate_hz, n_samples):
-        """``(healthy f_m of ids or None, why not used)``."""
+        """``(healthy f_m of ids or None, whether each id has one, why not used)``."""
         b = self.baselines
+        none = np.zeros(len(ids), dtype=bool)
         if b is None or b.fm is None:
-            return None, ""
+            return None, none, ""
         if b.fm_method is None and (self.method == "vp" or not _default_constants(self.vp_cal)):
             # a file before format 5: default-head vp_cal readings, another estimator's on this head
-            return None, ("the f_m baselines are vp_cal readings with the default head's constants (a file "
+            return None, none, ("the f_m baselines are vp_cal readings with the default head's constants (a file "
                           "recorded before format 5): estimated without them; record the baselines again")
         if (sample_rate_hz, n_samples) != (b.sample_rate_hz, b.n_samples):
-            return None, (f"traces of {sample_rate_hz:g} Hz x {n_samples} samples, the f_m baselines "
+            return None, none, (f"traces of {sample_rate_hz:g} Hz x {n_samples} samples, the f_m baselines "
                           f"{b.sample_rate_hz:g} Hz x {b.n_samples}: estimated without them")
         has, fm = b.lookup_fm(ids)
-        self.estimates_with_baseline += int(has.sum())
-        return fm, ""
+        return fm, has, ""

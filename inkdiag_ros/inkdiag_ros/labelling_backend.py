@@ -448,6 +448,9 @@ class InlinePipeline:
             results, busy_s = self.backend.collect()
         except Exception as exc:  # noqa: BLE001 - the batch is lost: each of its frames fails
             results, busy_s = _all_failed(len(batch), exc), 0.0
+        except BaseException as exc:  # KeyboardInterrupt, SystemExit: none handed out, each reported failed
+            self._fail(batch, exc)
+            raise
         self._hand_out(batch, results, busy_s)
 
     def _finish(self, pending, screen_s: float) -> None:

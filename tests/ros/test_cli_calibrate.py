@@ -72,6 +72,7 @@ def test_calibrate_end_to_end(files, tmp_path):
     assert "the restrictor (channel.r_r, channel.L_r) is the nominal profile's, not fitted" in again.stdout
     assert "pin it" not in again.stdout
     assert HeadProfile.load(tmp_path / "again.yaml").channel["L_r"] == p.channel["L_r"]
+    assert "vp_cal" not in HeadProfile.load(tmp_path / "again.yaml").calibration  # --no-vp-cal: not the nominal's
 
 
 def test_help():

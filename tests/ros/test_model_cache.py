@@ -37,12 +37,20 @@ def test_stale_default_is_retrained_a_users_model_is_not(tmp_path):
     assert "unusable" in logs[-1] and "tampered" in logs[-1]
     assert ensure_default_model(default, progress=False, log=logs.append) == default  # verifies again
 
+    mpath = str(default) + ".manifest.json"  # its manifest edited to say other than the model: as tampered
+    m = json.loads(open(mpath).read())
+    m["config"]["fd_threshold"] = 0.99
+    open(mpath, "w").write(json.dumps(m))
+    ensure_default_model(default, progress=False, log=logs.append)
+    assert "unusable" in logs[-1] and "config.fd_threshold is 0.99" in logs[-1] and "retraining" in logs[-1]
+    load_detector(default)  # retrained: loads as the fdi node loads it
+
 
 def test_a_default_from_before_max_features_is_retrained(tmp_path, monkeypatch):
     import inkdiag_core.model_cache as cache
 
     default = tmp_path / "fdi_default.joblib"
-    train_default_model(default, n_per_class=30)
+    train_default_model(default, n_per_class=30, baseline=True)  # as the default (its manifest below is)
     manifest = json.loads(open(str(default) + ".manifest.json").read())
     manifest["config"] = {**manifest["config"], **{k: v for k, v in default_config().items() if k != "max_features"}}
     del manifest["config"]["max_features"]  # written before the setting: its forests used sqrt(7) KPIs per split

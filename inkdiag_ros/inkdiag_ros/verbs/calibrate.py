@@ -176,8 +176,13 @@ def _with_vp_cal(profile):
     if profile.sha256 == HeadProfile.default().sha256:
         return profile, ""
     t0 = time.perf_counter()
-    cal = vp_cal_for(profile)
-    return (profile.replace(calibration={**profile.calibration, "vp_cal": cal}),
+    try:
+        cal = vp_cal_for(profile)
+    except Exception as exc:  # noqa: BLE001 - the calibration itself is done: written without them, said why
+        return (profile.replace(calibration={"vp_cal": None}),
+                f"; vp_cal constants not fitted ({type(exc).__name__}: {exc}; inkdiag estimate and fe fit them at "
+                "their first use of the head)")
+    return (profile.replace(calibration={"vp_cal": cal}),
             f"; vp_cal constants fitted in {time.perf_counter() - t0:.1f} s")
 
 
@@ -241,7 +246,9 @@ def run(args) -> int:
                        blocked=None if blocked is None else blocked.traces,
                        empty=None if empty is None else empty.traces)
     profile, vp_note = result.profile, ""
-    if not args.no_vp_cal:
+    if args.no_vp_cal:  # none, not a nominal's (another head's) left behind
+        profile = profile.replace(calibration={"vp_cal": None})
+    else:
         profile, vp_note = _with_vp_cal(profile)
     profile.save(out)
     stem = report_dir / out.name.removesuffix(".yaml").removesuffix(".yml")
