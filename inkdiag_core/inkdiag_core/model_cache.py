@@ -23,7 +23,7 @@ from pathlib import Path
 
 from .fdi import train_default_model as _core_train
 from .detector import FaultDetector
-from .persistence import ModelFileError, _check_manifest_entries, load_model
+from .persistence import ModelFileError, check_manifest_entries, load_model
 from .openset import OPENSET_FEATURES_VERSION
 
 __all__ = ["DEFAULT_FEATURES", "DEFAULT_MODEL", "DEFAULT_SETTINGS", "default_config", "ensure_default_model",
@@ -93,7 +93,7 @@ def ensure_default_model(path=DEFAULT_MODEL, *, progress=True, log=print):
         try:
             obj, manifest = load_model(path, as_pipeline=False)
             if isinstance(obj, FaultDetector):  # its manifest's entries as load_detector checks them (the fdi node)
-                _check_manifest_entries(path, manifest, obj)
+                check_manifest_entries(path, manifest, obj)
             cfg = manifest.get("config", {})
             had = {k: cfg.get(k, _SETTINGS_BEFORE.get(k)) for k in want}
             stale = {k: (had[k], v) for k, v in want.items() if path.name in DEFAULT_FEATURES and had[k] != v}

@@ -38,7 +38,7 @@ from ._fileio import temp_beside
 from ._version import __version__
 
 __all__ = ["ModelFileError", "save_model", "load_model", "save_detector", "load_detector", "read_manifest",
-           "library_versions", "manifest_path", "model_head_sha256"]
+           "library_versions", "manifest_path", "model_head_sha256", "check_manifest_entries"]
 
 FORMAT = "inkdiag-model"
 FORMAT_VERSION = 1
@@ -306,8 +306,11 @@ def _detector_entries(detector) -> tuple:
     return own, scores
 
 
-def _check_manifest_entries(path, manifest: dict, detector) -> None:
+def check_manifest_entries(path, manifest: dict, detector) -> None:
     """Refuse a manifest whose ``config`` or ``scores`` entries disagree with the detector inside.
+
+    Raises :class:`ModelFileError` naming the first entry that differs (``load_detector``
+    calls it; so does the model cache for a file it loaded with ``load_model``).
 
     The file's sha256 covers the model, not the manifest: an edited threshold, class
     list, head or score would otherwise be shown (``inkdiag`` prints the manifest's
@@ -385,7 +388,7 @@ def load_detector(path, *, check_versions: bool = True):
     if detector.profile is not None and model_head_sha256(manifest) != detector.head_sha256:
         raise ModelFileError(f"model file {path}: its manifest's profile_sha256 is not the head of the detector "
                              "inside: refusing an inconsistent file")
-    _check_manifest_entries(path, manifest, detector)
+    check_manifest_entries(path, manifest, detector)
     detector.file_sha256_ = manifest["sha256"]
     return detector
 
