@@ -84,8 +84,9 @@ def ensure_default_model(path=DEFAULT_MODEL, *, progress=True, log=print):
     A file named like the default (:data:`DEFAULT_FEATURES`: ``fdi_default.joblib``) is trained with that default's settings, and
     one that verifies but was trained with other settings than the current
     defaults (:func:`default_config`, e.g. after an upgrade changed them) is
-    retrained too; any other model file is the user's own and is only verified
-    (a missing one gets the KPI_Y default).
+    retrained too, as is one that does not verify; any other model file is the user's own
+    and is only verified: one that does not verify raises :class:`ModelFileError`, never
+    trained over (a missing one gets the KPI_Y default).
     """
     path = Path(path)
     want = default_config(path.name)
@@ -106,6 +107,9 @@ def ensure_default_model(path=DEFAULT_MODEL, *, progress=True, log=print):
             log(f"inkdiag: cached model trained with other settings than the default "
                 f"({', '.join(f'{k}={a!r}, now {b!r}' for k, (a, b) in stale.items())}); retraining")
         except ModelFileError as exc:
+            if path.name not in DEFAULT_FEATURES:  # a model of the user's own: never trained over
+                raise ModelFileError(f"{exc} (a model of your own is not retrained here: train it again, "
+                                     "e.g. with inkdiag train)") from None
             log(f"inkdiag: cached model unusable ({exc}); retraining")
     else:
         log(f"inkdiag: no FDI model at {path}; training the default one (once, a few seconds)")
@@ -120,7 +124,11 @@ def main(argv=None, *, prog: str = "python -m inkdiag_core.model_cache") -> int:
     ap.add_argument("paths", nargs="*", default=[str(DEFAULT_MODEL)],
                     help="model files to verify or train (default: the default model)")
     for p in ap.parse_args(argv).paths:
-        print(f"{ensure_default_model(p)}: verified")
+        try:
+            print(f"{ensure_default_model(p)}: verified")
+        except ModelFileError as exc:
+            print(f"{prog}: error: {exc}", file=sys.stderr)
+            return 2
     return 0
 
 

@@ -309,13 +309,20 @@ def _detector_entries(detector) -> tuple:
 def check_manifest_entries(path, manifest: dict, detector) -> None:
     """Refuse a manifest whose ``config`` or ``scores`` entries disagree with the detector inside.
 
-    Raises :class:`ModelFileError` naming the first entry that differs (``load_detector``
-    calls it; so does the model cache for a file it loaded with ``load_model``).
+    Raises :class:`ModelFileError` naming the first entry that differs, or when the manifest
+    does not say ``estimator: FaultDetector`` or names another head than the detector's
+    (``load_detector`` calls it; so does the model cache for a file it loaded with ``load_model``).
 
     The file's sha256 covers the model, not the manifest: an edited threshold, class
     list, head or score would otherwise be shown (``inkdiag`` prints the manifest's
     head) while the model inside does something else. Entries a manifest lacks (files
     written before they existed) are not checked."""
+    if manifest.get("config", {}).get("estimator") != DETECTOR_ESTIMATOR:
+        raise ModelFileError(f"model file {path} is not a FaultDetector file (its manifest's config has no "
+                             f"estimator={DETECTOR_ESTIMATOR!r}; a plain pipeline is read by load_model)")
+    if detector.profile is not None and model_head_sha256(manifest) != detector.head_sha256:
+        raise ModelFileError(f"model file {path}: its manifest's profile_sha256 is not the head of the detector "
+                             "inside: refusing an inconsistent file")
     own, scores = _detector_entries(detector)
     if detector.profile is None:  # a default-head model: the default head's sha256 when it was written
         own.pop("profile_sha256")  # (model_head_sha256: it stays the current default head's)
@@ -385,9 +392,6 @@ def load_detector(path, *, check_versions: bool = True):
     detector, manifest = load_model(path, check_versions=check_versions, as_pipeline=False)
     if not isinstance(detector, FaultDetector):
         raise ModelFileError(f"model file {path} holds a {type(detector).__name__}, not a FaultDetector")
-    if detector.profile is not None and model_head_sha256(manifest) != detector.head_sha256:
-        raise ModelFileError(f"model file {path}: its manifest's profile_sha256 is not the head of the detector "
-                             "inside: refusing an inconsistent file")
     check_manifest_entries(path, manifest, detector)
     detector.file_sha256_ = manifest["sha256"]
     return detector

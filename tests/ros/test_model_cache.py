@@ -2,8 +2,11 @@
 
 import json
 
-from inkdiag_core import load_detector
+import pytest
+
+from inkdiag_core import ModelFileError, load_detector
 from inkdiag_core.fdi import train_default_model
+from inkdiag_core.model_cache import main as model_cache_main
 from inkdiag_ros.model_cache import default_config, ensure_default_model
 
 
@@ -30,6 +33,14 @@ def test_stale_default_is_retrained_a_users_model_is_not(tmp_path):
     train_default_model(mine, n_per_class=30, features="rich")
     ensure_default_model(mine, progress=False, log=logs.append)
     assert _config(mine)["n_per_class"] == 30 and len(logs) == 1
+    mm = json.loads(open(str(mine) + ".manifest.json").read())  # a user's model that does not verify
+    del mm["config"]["estimator"]
+    open(str(mine) + ".manifest.json", "w").write(json.dumps(mm))
+    before = mine.read_bytes()
+    with pytest.raises(ModelFileError, match="not a FaultDetector file.*not retrained"):
+        ensure_default_model(mine, progress=False, log=logs.append)
+    assert mine.read_bytes() == before and len(logs) == 1  # never trained over
+    assert model_cache_main([str(mine)]) == 2
 
     with open(default, "ab") as f:  # tampered: refused by its manifest, retrained
         f.write(b"\0")
