@@ -882,7 +882,8 @@ def gate_codes(x1, xx, xr, pos, rr, n_samples, max_residual_fraction, jetting_ga
         0: not cleared, 1: cleared ``healthy_nozzle``, 2: cleared ``ok_signal``.
     """
     n = np.shape(x1)[0]
-    if not (np.shape(x1) == np.shape(xx) == np.shape(xr) == np.shape(pos) == (n,)) or getattr(pos, "dtype", None) != np.int64:
+    same = np.shape(x1) == np.shape(xx) == np.shape(xr) == np.shape(pos) == (n,)
+    if not same or getattr(pos, "dtype", None) != np.int64:
         raise ValueError(f"gate_codes takes x1, xx, xr and int64 pos of one shape (n,), got {np.shape(x1)}, "
                          f"{np.shape(xx)}, {np.shape(xr)}, {np.shape(pos)} {getattr(pos, 'dtype', '')}")
     if n and (pos.min() < -1 or pos.max() >= len(rr)):

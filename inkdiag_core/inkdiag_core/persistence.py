@@ -317,9 +317,7 @@ def check_manifest_entries(path, manifest: dict, detector) -> None:
     list, head or score would otherwise be shown (``inkdiag`` prints the manifest's
     head) while the model inside does something else. Entries a manifest lacks (files
     written before they existed) are not checked."""
-    if manifest.get("config", {}).get("estimator") != DETECTOR_ESTIMATOR:
-        raise ModelFileError(f"model file {path} is not a FaultDetector file (its manifest's config has no "
-                             f"estimator={DETECTOR_ESTIMATOR!r}; a plain pipeline is read by load_model)")
+    _require_detector_manifest(path, manifest)
     if detector.profile is not None and model_head_sha256(manifest) != detector.head_sha256:
         raise ModelFileError(f"model file {path}: its manifest's profile_sha256 is not the head of the detector "
                              "inside: refusing an inconsistent file")
@@ -340,6 +338,12 @@ def check_manifest_entries(path, manifest: dict, detector) -> None:
             key, got, want = where
             raise ModelFileError(f"model file {path}: its manifest's {key} is {got:.60}, the model's {want:.60}: "
                                  "manifest edited, refusing an inconsistent file")
+
+
+def _require_detector_manifest(path, manifest: dict) -> None:
+    if manifest.get("config", {}).get("estimator") != DETECTOR_ESTIMATOR:
+        raise ModelFileError(f"model file {path} is not a FaultDetector file (its manifest's config has no "
+                             f"estimator={DETECTOR_ESTIMATOR!r}; a plain pipeline is read by load_model)")
 
 
 def _first_difference(a, b, key: str):
@@ -385,10 +389,7 @@ def load_detector(path, *, check_versions: bool = True):
     from .detector import FaultDetector
 
     path = Path(path)
-    manifest = read_manifest(path)
-    if manifest.get("config", {}).get("estimator") != DETECTOR_ESTIMATOR:
-        raise ModelFileError(f"model file {path} is not a FaultDetector file (its manifest's config has no "
-                             f"estimator={DETECTOR_ESTIMATOR!r}; a plain pipeline is read by load_model)")
+    _require_detector_manifest(path, read_manifest(path))  # before anything is unpickled
     detector, manifest = load_model(path, check_versions=check_versions, as_pipeline=False)
     if not isinstance(detector, FaultDetector):
         raise ModelFileError(f"model file {path} holds a {type(detector).__name__}, not a FaultDetector")

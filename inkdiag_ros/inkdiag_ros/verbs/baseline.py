@@ -93,7 +93,8 @@ def run(args) -> int:
                             if nozzles.size == n_rows > 1 and min_frames > 1 and n_used else
                             "record more frames of each nozzle, or lower --min-frames"))
     baselines.save(args.out)
-    print(f"inkdiag baseline: baselines of {len(baselines)} nozzles (head {profile.name!r}) from {n_used} of {n_rows} rows"
+    print(f"inkdiag baseline: baselines of {len(baselines)} nozzles (head {profile.name!r}) from {n_used} of "
+          f"{n_rows} rows"
           + (f" ({n_other} not labelled healthy_nozzle)" if n_other else "")
           + (f"; {short} nozzles with fewer than {min_frames} usable rows left out" if short else "")
           + f"; wrote {args.out}", file=sys.stdout)

@@ -179,7 +179,7 @@ def _with_vp_cal(profile):
     try:
         cal = vp_cal_for(profile)
     except Exception as exc:  # noqa: BLE001 - the calibration itself is done: written without them, said why
-        return (profile.replace(calibration={"vp_cal": None}),
+        return (profile,
                 f"; vp_cal constants not fitted ({type(exc).__name__}: {exc}; inkdiag estimate and fe fit them at "
                 "their first use of the head)")
     return (profile.replace(calibration={"vp_cal": cal}),
@@ -245,11 +245,8 @@ def run(args) -> int:
     result = calibrate(nominal, traces, fs, name=args.name, seed=args.seed,
                        blocked=None if blocked is None else blocked.traces,
                        empty=None if empty is None else empty.traces)
-    profile, vp_note = result.profile, ""
-    if args.no_vp_cal:  # none, not a nominal's (another head's) left behind
-        profile = profile.replace(calibration={"vp_cal": None})
-    else:
-        profile, vp_note = _with_vp_cal(profile)
+    profile = result.profile.replace(calibration={"vp_cal": None})  # not a nominal's (another head's)
+    profile, vp_note = (profile, "") if args.no_vp_cal else _with_vp_cal(profile)
     profile.save(out)
     stem = report_dir / out.name.removesuffix(".yaml").removesuffix(".yml")
     png = stem.with_name(stem.name + ".fit.png")

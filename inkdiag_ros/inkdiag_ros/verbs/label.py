@@ -191,7 +191,8 @@ def run(args) -> int:
           f"{head.name!r}); {n_invalid} invalid{failed}" + against + (f"; wrote {args.out}" if args.out != "-" else ""),
           file=summary_stream(args.out))
     if n_rows and n_out_of_range >= n_rows / 2:  # a recording in other units, not a head whose sensor broke
-        print(f"inkdiag label: warning: {n_out_of_range} of {n_rows} rows have a sample beyond {max_abs_v:g} V, more than the head's sensor "
+        print(f"inkdiag label: warning: {n_out_of_range} of {n_rows} rows have a sample beyond {max_abs_v:g} V, "
+              "more than the head's sensor "
               "can produce: "
               "are the traces in volts (not millivolts or ADC counts)?", file=sys.stderr)
     said = _one_fault_class_dominates(per_class, head)
