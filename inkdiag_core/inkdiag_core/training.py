@@ -137,15 +137,15 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
                    n_per_class: int = N_PER_CLASS, data=None, seed: int = 0, n_estimators: int = 50,
                    min_samples_leaf=None, max_features=None, fnr_target: float = 0.005,
                    validation_fraction: float = 0.25,
-                   unknown_rate: float | None = 0.01, posterior_draws: int = 1, progress=None,
+                   unknown_rate: float | None = 0.01, posterior_draws: int = 5, progress=None,
                    return_data: bool = False):
     """Fit a :class:`inkdiag_core.FaultDetector` for the head of ``profile``.
 
     Simulates ``n_per_class`` traces of each of the 12 classes on the head
     (:meth:`inkdiag_core.HeadProfile.simulate`, ``seed``; with ``posterior_draws`` > 1 and a
     profile ``inkdiag calibrate`` wrote, spread evenly over
-    :func:`inkdiag_core.calibration.posterior_profiles`: the fit and draws of what its healthy
-    traces left uncertain), adds the recorded rows of
+    :func:`inkdiag_core.calibration.posterior_profiles`: the fit and its neighbours along what
+    its healthy traces left uncertain), adds the recorded rows of
     ``data`` if given (see the module docstring: split first, the training part
     replicated per class up to the simulated count, the validation part once),
     and fits a detector with ``profile=profile`` (its sample rate, its residual
@@ -182,14 +182,12 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
         As :class:`inkdiag_core.FaultDetector` (``unknown_rate``: the open-set layer's
         false-unknown bound, default 0.01; None or 0: no ``unknown``).
     posterior_draws : int
-        Profiles the simulated rows are spread over (1: the profile alone). A calibrated
-        profile's draws vary what its healthy traces hardly pin (the restrictor against the
-        actuator compliance): on the heads of ``tests/foreign_head.py`` 8 draws took the
-        known classes called ``unknown`` from up to 5.5 % to at most 0.5 % and cost 0.7-2.2
-        points of FI (``scripts/report heads`` with 8 instead of 1, 2026-11-24), but partially
-        blocked fell to 46.5-74.5 % (74.0-96.5 % with 1; h20, h16, h12, seeds 0, 7, 11, 1,000
-        traces a class, 2026-11-26): the draws span the posterior's width, near the prior's, wider than the
-        fit's own error there (``docs/calibration.md``).
+        Profiles the simulated rows are spread over (1: the profile alone; the default is
+        :data:`inkdiag_core.calibration.POSTERIOR_DRAWS`): for a profile ``inkdiag calibrate``
+        wrote, :func:`inkdiag_core.calibration.posterior_profiles`, its restrictor inertance
+        spread over calibration's own scatter, with the healthy mode kept. On the heads of
+        ``tests/foreign_head.py`` whose fitted restrictor was 2-7 % off, the dried classes a
+        fit-alone model lost to partially blocked came back (``reports/heads.md``).
     progress : callable(step: int, total: int, message: str), optional
         Called after each stage.
     return_data : bool
@@ -230,13 +228,13 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
     if posterior_draws > n_per_class:
         raise ValueError(f"posterior_draws ({posterior_draws}) must not exceed n_per_class ({n_per_class}): each "
                          "draw simulates n_per_class / posterior_draws traces per class")
-    heads = posterior_profiles(profile, int(posterior_draws), seed=seed)  # [profile] without a recorded posterior
+    heads = posterior_profiles(profile, int(posterior_draws))  # [profile] without a recorded posterior
     sims = [(head, head.simulate(_share(n_per_class, len(heads), k), seed=seed + 7919 * k), seed + 7919 * k)
             for k, head in enumerate(heads)]
     X = np.concatenate([sim.traces for _, sim, _ in sims]) if len(sims) > 1 else sims[0][1].traces
     y = np.concatenate([sim.label_values() for _, sim, _ in sims])
     report(1, total, f"simulated {len(y)} traces on head {profile.name!r}"
-           + (f" over {len(heads)} draws of its calibration's posterior" if len(heads) > 1 else ""))
+           + (f" over {len(heads)} restrictors its calibration allows" if len(heads) > 1 else ""))
     info = {"n_per_class": int(n_per_class), "seed": int(seed),
             "training_data": "simulated", "n_real_rows": 0, "posterior_draws": len(heads)}
     det = FaultDetector(kind=kind, features=features, profile=profile, n_estimators=int(n_estimators),

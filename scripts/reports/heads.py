@@ -166,7 +166,12 @@ def _dmu_errors(fm_csv, d_mu_true):
     return float(np.median(err)), float(np.percentile(err, 90)), n_nan
 
 
-def run_head(name, work, *, per_class, n_per_class, seed, log, posterior_draws=1):
+def _draws(posterior_draws):
+    """``inkdiag train``'s ``--posterior-draws`` option when one is given (None: its default)."""
+    return [] if posterior_draws is None else ["--posterior-draws", posterior_draws]
+
+
+def run_head(name, work, *, per_class, n_per_class, seed, log, posterior_draws=None):
     head_dir = work / name
     head_dir.mkdir(parents=True, exist_ok=True)
     nominal = head_dir / "nominal.yaml"
@@ -205,8 +210,7 @@ def run_head(name, work, *, per_class, n_per_class, seed, log, posterior_draws=1
     for kind, prof in profiles.items():
         tag = kind.replace("calibrated + ", "calibrated_")
         model = head_dir / f"model_{tag}.joblib"
-        train_args = ["train", "--profile", prof, "--out", model, "--seed", seed,
-                      "--posterior-draws", posterior_draws if kind != "true" else 1]
+        train_args = ["train", "--profile", prof, "--out", model, "--seed", seed, *_draws(posterior_draws)]
         if n_per_class:
             train_args += ["--n-per-class", n_per_class]
         _, t_train = _inkdiag(*train_args, log=log)
@@ -225,7 +229,7 @@ def run_head(name, work, *, per_class, n_per_class, seed, log, posterior_draws=1
     # the calibrated profile again, with each nozzle's commissioning baseline
     prof, model, base = profiles["calibrated"], head_dir / "model_baselines.joblib", head_dir / "baselines.npz"
     train_args = ["train", "--profile", prof, "--out", model, "--baseline", "--seed", seed,
-                  "--posterior-draws", posterior_draws]
+                  *_draws(posterior_draws)]
     if n_per_class:
         train_args += ["--n-per-class", n_per_class]
     _, t_train = _inkdiag(*train_args, log=log)
@@ -249,7 +253,7 @@ def run_head(name, work, *, per_class, n_per_class, seed, log, posterior_draws=1
     return out
 
 
-def run_seed(name, work, *, per_class, n_per_class, seed, log, posterior_draws=1):
+def run_seed(name, work, *, per_class, n_per_class, seed, log, posterior_draws=None):
     """The calibrated workflow alone (calibrate, train, label) on recordings and training of ``seed``."""
     d = work / f"{name}_seed{seed}"
     d.mkdir(parents=True, exist_ok=True)
@@ -266,7 +270,7 @@ def run_seed(name, work, *, per_class, n_per_class, seed, log, posterior_draws=1
         _inkdiag("calibrate", d / "healthy.npz", "--nominal", d / "nominal.yaml", *extra, "--out", d / f"{tag}.yaml",
                  log=log)
         train_args = ["train", "--profile", d / f"{tag}.yaml", "--out", d / f"{tag}.joblib", "--seed", seed,
-                      "--posterior-draws", posterior_draws]
+                      *_draws(posterior_draws)]
         if n_per_class:
             train_args += ["--n-per-class", n_per_class]
         _inkdiag(*train_args, log=log)
@@ -298,8 +302,8 @@ def main(argv=None) -> int:
     ap.add_argument("--n-per-class", type=int, default=N_PER_CLASS,
                     help="training traces per class (default: %(default)s, inkdiag train's)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--posterior-draws", type=int, default=1,
-                    help="inkdiag train --posterior-draws for the calibrated profiles (default: %(default)s)")
+    ap.add_argument("--posterior-draws", type=int, default=None,
+                    help="inkdiag train --posterior-draws for every model (default: inkdiag train's)")
     ap.add_argument("--other-seeds", type=int, nargs="*", default=[],
                     help="seeds of further calibrated runs per head (calibrate, train, label only)")
     ap.add_argument("--keep", action="store_true", help="keep the work files under reports/heads_work/")
@@ -344,13 +348,14 @@ def write_report(results, args, log, elapsed):
         "",
         f"{today}. `scripts/report heads --heads {' '.join(args.heads)} --per-class {args.per_class} --seed "
         f"{args.seed} --n-per-class {args.n_per_class}"
-        + (f" --posterior-draws {args.posterior_draws}" if args.posterior_draws != 1 else "")
+        + (f" --posterior-draws {args.posterior_draws}" if args.posterior_draws is not None else "")
         + (f" --other-seeds {' '.join(map(str, args.other_seeds))}" if args.other_seeds else "")
         + f"` ({elapsed / 60:.1f} min on the shared 2-core machine). Traces come from the independent "
         "simulator `tests/foreign_head.py`, not from inkdiag's; each head is calibrated from 300 of its "
         "healthy traces and a nominal profile (sampling, drive, rho, mu, r_n, L_n, V_ch, c), then trained, "
-        "labelled and estimated with the `inkdiag` command. *calibrated*: the profile `inkdiag calibrate` "
-        "wrote; *calibrated + blocked*: `inkdiag calibrate --blocked` with 50 recorded traces of the head's fully "
+        "labelled and estimated with the `inkdiag` command (`inkdiag train` with its defaults but the seed: a "
+        "calibrated profile's rows spread over 5 restrictors within calibration's own scatter, `docs/calibration.md`)."
+        " *calibrated*: the profile `inkdiag calibrate` wrote; *calibrated + blocked*: `inkdiag calibrate --blocked` with 50 recorded traces of the head's fully "
         "blocked nozzles as well, which pin the restrictor; *calibrated + empty*: `inkdiag calibrate --empty` with 50 "
         "recorded traces of the head's empty (dry) channels as well, which give the actuator's own resonance (the "
         "empty-channel classes); *true*: the head's real channel and sensor, to show what "

@@ -191,9 +191,9 @@ def test_a_spike_row_is_screened_out_not_fatal(recorded):
     assert r.profile.healthy_mode()[0] == pytest.approx(TRUE.healthy_mode()[0], rel=0.01)
 
 
-def test_posterior_draws_keep_the_healthy_mode_and_vary_what_it_leaves_open(result, recorded, tmp_path):
-    """calibration.posterior (issue 14): training can spread its rows over what healthy traces hardly pin."""
-    from inkdiag_core.calibration import posterior_profiles
+def test_posterior_profiles_keep_the_healthy_mode_and_move_the_restrictor_within_its_scatter(result, tmp_path):
+    """calibration.posterior (issue 14): training spreads its rows over the restrictors healthy traces allow."""
+    from inkdiag_core.calibration import RESTRICTOR_SCATTER, posterior_profiles
     from inkdiag_core.training import train_detector
 
     p = HeadProfile.load(result.profile.save(tmp_path / "fitted.yaml"))  # the posterior survives the YAML
@@ -202,16 +202,28 @@ def test_posterior_draws_keep_the_healthy_mode_and_vary_what_it_leaves_open(resu
     assert post["parameters"] == ["B_act", "I_r", "R_r"] and cov.shape == (3, 3)
     assert np.allclose(cov, cov.T) and np.linalg.eigvalsh(cov).min() > -1e-12
     np.testing.assert_allclose(np.exp(post["mean_log"][0]), p.channel["B_act"], rtol=1e-12)
-    draws = posterior_profiles(p, 6, seed=1)
-    assert len(draws) == 6 and draws[0] is p
+    assert np.sqrt(cov[1, 1]) > RESTRICTOR_SCATTER  # healthy traces alone: the prior's width, wider than the scatter
+
+    def inertance(q):
+        return q.channel["rho"] * q.channel["L_r"] / (np.pi * q.channel["r_r"] ** 2)
+
+    draws = posterior_profiles(p, 5)
+    assert len(draws) == 5 and draws[2] is p  # an odd count: the fit in the middle
+    log_ratio = np.log([inertance(q) / inertance(p) for q in draws])
+    np.testing.assert_allclose(log_ratio, np.linspace(-2, 2, 5) * RESTRICTOR_SCATTER, atol=1e-9)  # +-2 scatter
     f0, z0 = p.healthy_mode()
-    for q in draws[1:]:
+    for q in draws:
         f, z = q.healthy_mode()
         assert abs(f / f0 - 1) < 0.01 and abs(z / z0 - 1) < 0.05  # as consistent with the traces as the fit
-    l_r = np.array([q.channel["L_r"] for q in draws])
-    assert l_r.std() / l_r.mean() > 0.02  # ... while the restrictor moves
+        assert q.channel["B_act"] != p.channel["B_act"] or q is p  # the compliance moves with the restrictor
+    narrow = posterior_profiles(p, 3, scatter=0.01)
+    np.testing.assert_allclose(np.log([inertance(q) / inertance(p) for q in narrow]), [-0.02, 0, 0.02], atol=1e-9)
+    assert len(posterior_profiles(p, 4)) == 4 and p not in posterior_profiles(p, 4)  # even: around the fit
     assert posterior_profiles(TRUE, 6) == [TRUE]  # no posterior recorded: the profile alone
-    assert posterior_profiles(p, 1) == [p]
+    assert posterior_profiles(p, 1) == [p] and posterior_profiles(p, 5, scatter=0) == [p]
+    given = p.replace(calibration={**p.calibration, "posterior": {**post, "cov_log": np.diag(
+        [cov[0, 0], 0.0, 0.0]).tolist()}})  # a datasheet's restrictor: calibration did not fit it
+    assert posterior_profiles(given, 5) == [given]
     det, info = train_detector(p, n_per_class=24, posterior_draws=3, unknown_rate=None, n_estimators=5)
     assert info["posterior_draws"] == 3
     for bad in (0, 25):

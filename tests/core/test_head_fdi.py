@@ -246,15 +246,20 @@ def test_training_with_recorded_rows_weighs_each_recorded_class_as_its_simulated
 
 
 def test_the_default_training_size_and_its_leaves():
-    """inkdiag train's default is training.N_PER_CLASS; the forest's leaves scale with the rows (3 per 1,000)."""
+    """inkdiag train's defaults are training's (N_PER_CLASS, POSTERIOR_DRAWS); the forest's leaves scale with the rows
+    (3 per 1,000)."""
     import argparse
+    import inspect
 
+    from inkdiag_core.calibration import POSTERIOR_DRAWS
     from inkdiag_core.training import N_PER_CLASS, leaf_size
     from inkdiag_ros.verbs import train as train_verb
 
     parser = argparse.ArgumentParser()
     train_verb.add_arguments(parser)
     assert parser.get_default("n_per_class") == N_PER_CLASS == 5000 and leaf_size(N_PER_CLASS) == 15
+    default_draws = inspect.signature(train_detector).parameters["posterior_draws"].default
+    assert parser.get_default("posterior_draws") == default_draws == POSTERIOR_DRAWS == 5
     assert [leaf_size(n) for n in (8, 400, 1000, 1166, 1167, 1500, 2500, 3000)] == [3, 3, 3, 3, 4, 5, 8, 9]
     det, info = train_detector(HeadProfile.default(), n_per_class=2000, seed=1, unknown_rate=None, n_estimators=2)
     assert det.min_samples_leaf == 6 and info["n_per_class"] == 2000

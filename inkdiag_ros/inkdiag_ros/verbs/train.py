@@ -67,11 +67,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--unknown-rate", type=float, default=0.01, metavar="R",
                         help="open-set layer: a trace of a known class is called 'unknown' with probability <= R "
                         "(conformal, per class; default: %(default)s; 0: no layer, never 'unknown')")
-    parser.add_argument("--posterior-draws", type=int, default=1, metavar="K",
-                        help="spread the simulated traces over K draws of what calibration left uncertain (the "
-                        "restrictor against the actuator compliance): fewer known traces called 'unknown' on a head "
-                        "unlike its calibrated model, but the classes that restrictor separates (partially blocked "
-                        "against dried) blur: see docs/cli.md (default: %(default)s, the calibrated profile alone)")
+    parser.add_argument("--posterior-draws", type=int, default=5, metavar="K",  # calibration.POSTERIOR_DRAWS
+                        help="spread the simulated traces over K restrictors a calibrated profile's healthy traces "
+                        "allow, within calibration's own scatter (the restrictor against the actuator compliance, "
+                        "with the healthy mode kept): a model that leans less on the fitted restrictor; see "
+                        "docs/cli.md (default: %(default)s; 1: the profile alone; no effect on a profile "
+                        "calibration did not write or whose restrictor it did not fit)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
