@@ -77,6 +77,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 from types import SimpleNamespace
 
 import numpy as np
@@ -101,6 +102,7 @@ __all__ = [
     "calibrate",
     "healthy_response",
     "posterior_profiles",
+    "restrictor_spread",
 ]
 
 MIN_TRACES = 10
@@ -834,8 +836,43 @@ RESTRICTOR_SCATTER = 0.03
 
 Calibration's own scatter of the restrictor inertance from healthy traces alone: over 12
 recordings of each of four heads of ``tests/foreign_head.py`` its RMS error was 2.4-4.8 %
-(``reports/restrictor.md``), while the posterior, which healthy traces leave near the
-prior, is about 19 % wide."""
+(10.8 % on a fifth, the 5 MHz x 256 head h5: ``reports/restrictor.md``), while the
+posterior, which healthy traces leave near the prior, is about 19 % wide."""
+
+
+def _restrictor_ridge(profile, scatter):
+    """``(sd, slope)`` of :func:`posterior_profiles`; ``sd`` 0 when there is nothing to spread."""
+    post = profile.calibration.get("posterior") if isinstance(profile.calibration, Mapping) else None
+    if post is None or not scatter > 0:
+        return 0.0, None
+    where = f"profile {profile.name!r}: calibration.posterior"
+    if not isinstance(post, Mapping) or "cov_log" not in post:
+        raise ProfileError(f"{where} must be a mapping with cov_log (the 3 x 3 covariance of log B_act, log I_r, "
+                           "log R_r that inkdiag calibrate writes)")
+    if list(post.get("parameters", _PARAMS)) != list(_PARAMS):
+        raise ProfileError(f"{where}.parameters must be {list(_PARAMS)}, got {post['parameters']!r}")
+    try:
+        cov = np.asarray(post["cov_log"], dtype=np.float64)
+    except (TypeError, ValueError):
+        cov = None
+    if cov is None or cov.shape != (3, 3) or not np.isfinite(cov).all():
+        raise ProfileError(f"{where}.cov_log must be a 3 x 3 matrix of finite numbers")
+    var = float(cov[1, 1])
+    if not var > 0:  # the restrictor was not fitted (a datasheet's)
+        return 0.0, None
+    slope = (cov[:, 1] + cov[1, :]) / (2 * var)  # d(log B_act, log I_r, log R_r) / d(log I_r) given the data
+    return min(math.sqrt(var), float(scatter)), slope
+
+
+def restrictor_spread(profile, scatter: float = RESTRICTOR_SCATTER) -> float:
+    """Standard deviation of ``log I_r`` that :func:`posterior_profiles` spreads ``profile`` over (0: none).
+
+    Raises
+    ------
+    ProfileError
+        A malformed ``calibration.posterior``.
+    """
+    return _restrictor_ridge(profile, scatter)[0]
 
 
 def posterior_profiles(profile, n_draws: int = POSTERIOR_DRAWS, *, scatter: float = RESTRICTOR_SCATTER) -> list:
@@ -850,11 +887,12 @@ def posterior_profiles(profile, n_draws: int = POSTERIOR_DRAWS, *, scatter: floa
     rings with the restrictor alone, a dried one changes only the nozzle's resistance.
     Training on the fit alone trains on one guess of that split. These profiles move the
     restrictor inertance ``I_r`` along that ridge: ``log I_r`` at ``n_draws`` points evenly
-    spaced over +-2 s around the fit, ``s`` the smaller of the posterior's standard
-    deviation of ``log I_r`` and ``scatter``, with ``log B_act`` and ``log R_r`` at their
-    posterior means given ``log I_r`` (so each profile rings the healthy mode as the fit
-    does). The channel's ``r_r`` and ``L_r`` follow from each profile's ``I_r`` and ``R_r``
-    as in :func:`calibrate`.
+    spaced over +-2 s around the profile's own, ``s`` the smaller of the posterior's standard
+    deviation of ``log I_r`` and ``scatter`` (:func:`restrictor_spread`), with ``log B_act`` and
+    ``log R_r`` moved as their posterior means move with ``log I_r`` (so each profile rings
+    the healthy mode as the fit does). The channel's ``r_r`` and ``L_r`` follow from each
+    profile's ``I_r`` and ``R_r`` as in :func:`calibrate`. The centre is the profile's channel
+    (a channel edited after calibration is the centre, the posterior gives the directions only).
 
     Why not draws of the whole posterior: its width in ``log I_r`` is the prior's, about
     19 %, where calibration's actual error is a few per cent (:data:`RESTRICTOR_SCATTER`);
@@ -868,9 +906,10 @@ def posterior_profiles(profile, n_draws: int = POSTERIOR_DRAWS, *, scatter: floa
     profile : HeadProfile
         A complete profile.
     n_draws : int
-        Profiles returned (with an odd count the fit is the middle one).
+        Profiles returned (an odd count: the profile itself the middle one; an even one:
+        around it, without it).
     scatter : float
-        Largest standard deviation of ``log I_r``, dimensionless (``0``: the fit alone).
+        Largest standard deviation of ``log I_r``, dimensionless (``0``: the profile alone).
 
     Returns
     -------
@@ -880,29 +919,28 @@ def posterior_profiles(profile, n_draws: int = POSTERIOR_DRAWS, *, scatter: floa
         did not fit the restrictor (a nominal profile that gives ``r_r`` and ``L_r``), or
         with ``n_draws <= 1`` or ``scatter <= 0``; else ``n_draws`` profiles, in increasing
         ``I_r``.
+
+    Raises
+    ------
+    ProfileError
+        A malformed ``calibration.posterior``.
     """
-    post = (profile.calibration or {}).get("posterior")
-    if not post or n_draws <= 1 or not scatter > 0:
+    sd, slope = _restrictor_ridge(profile, scatter)
+    if not sd > 0 or n_draws <= 1:
         return [profile]
-    mean = np.asarray(post["mean_log"], dtype=np.float64)
-    cov = np.asarray(post["cov_log"], dtype=np.float64)
-    if mean.shape != (3,) or cov.shape != (3, 3) or not (np.isfinite(mean).all() and np.isfinite(cov).all()):
-        return [profile]
-    var = float(cov[1, 1])
-    if not var > 0:  # the restrictor was not fitted
-        return [profile]
-    slope = (cov[:, 1] + cov[1, :]) / (2 * var)  # d(log B_act, log I_r, log R_r) / d(log I_r) given the data
-    sd = min(math.sqrt(var), float(scatter))
-    rho, mu = float(profile.channel["rho"]), float(profile.channel["mu"])
+    ch = profile.channel
+    rho, mu = float(ch["rho"]), float(ch["mu"])
+    r_r0, L_r0 = float(ch["r_r"]), float(ch["L_r"])
+    centre = np.log([float(ch["B_act"]), rho * L_r0 / (math.pi * r_r0**2), 8.0 * mu * L_r0 / (math.pi * r_r0**4)])
     out = []
     n = int(n_draws)
     for i, delta in enumerate(np.linspace(-2.0 * sd, 2.0 * sd, n)):
-        if 2 * i == n - 1:  # the middle of an odd count: the fit itself
+        if 2 * i == n - 1:  # the middle of an odd count: the profile itself
             out.append(profile)
             continue
-        B_act, I_r, R_r = np.exp(mean + slope * delta)
+        B_act, I_r, R_r = np.exp(centre + slope * delta)
         r_r = math.sqrt(8.0 * mu * I_r / (rho * R_r))
-        channel = dict(profile.channel, B_act=float(B_act), r_r=float(r_r), L_r=float(I_r * math.pi * r_r**2 / rho))
+        channel = dict(ch, B_act=float(B_act), r_r=float(r_r), L_r=float(I_r * math.pi * r_r**2 / rho))
         out.append(profile.replace(channel=channel))
     return out
 

@@ -35,7 +35,7 @@ The file (YAML, SI units)::
       adc_bits: 12              # or null: no quantisation
     spreads:   # optional: per-trace variation of a head (Spreads field names)
       temperature_std_k: 1.5
-    calibration: {...}          # optional, free-form: how the profile was made
+    calibration: {...}          # optional: how the profile was made (its posterior: what training spreads over)
 
 A *nominal* profile is what a datasheet and the drive settings give:
 ``sampling``, ``drive`` and the channel keys :data:`NOMINAL_CHANNEL_KEYS`; every
@@ -213,7 +213,9 @@ class HeadProfile:
     spreads : mapping of str -> float
         Overrides of :class:`Spreads` fields (per-trace physical variation).
     calibration : mapping
-        Free-form provenance (what calibration fitted, its residual); kept, not used.
+        Provenance (what calibration fitted, its residual), free-form but for ``posterior``,
+        which training reads (:func:`inkdiag_core.calibration.posterior_profiles`); not part of
+        :attr:`sha256`.
     """
 
     name: str

@@ -69,8 +69,9 @@ def _check_profile(profile):
 
 
 def _share(n_per_class, n_draws, k):
-    """Traces per class of draw ``k`` of ``n_draws``: ``n_per_class`` split evenly, the remainder to the first."""
-    n = n_per_class // n_draws + (n_per_class % n_draws if k == 0 else 0)
+    """Traces per class of draw ``k`` of ``n_draws``: ``n_per_class`` split evenly, the remainder to the middle one
+    (with an odd count, the profile itself)."""
+    n = n_per_class // n_draws + (n_per_class % n_draws if k == n_draws // 2 else 0)
     return {c: int(n) for c in FaultClass}
 
 
@@ -211,7 +212,7 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
         ``data`` without labels or of another sampling.
     """
     from .baselines import baseline_kpis
-    from .calibration import posterior_profiles
+    from .calibration import posterior_profiles, restrictor_spread
     from .detector import FaultDetector
     from .simulation import healthy_twin_chunks
 
@@ -236,7 +237,8 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
     report(1, total, f"simulated {len(y)} traces on head {profile.name!r}"
            + (f" over {len(heads)} restrictors its calibration allows" if len(heads) > 1 else ""))
     info = {"n_per_class": int(n_per_class), "seed": int(seed),
-            "training_data": "simulated", "n_real_rows": 0, "posterior_draws": len(heads)}
+            "training_data": "simulated", "n_real_rows": 0, "posterior_draws": len(heads),
+            "restrictor_sd_log": restrictor_spread(profile) if len(heads) > 1 else 0.0}
     det = FaultDetector(kind=kind, features=features, profile=profile, n_estimators=int(n_estimators),
                         min_samples_leaf=leaf_size(n_per_class) if min_samples_leaf is None else int(min_samples_leaf),
                         max_features=max_features,

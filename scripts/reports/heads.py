@@ -56,7 +56,7 @@ import foreign_head as fh  # noqa: E402
 from _common import md_table, out_path  # noqa: E402
 
 from inkdiag_core import FaultClass, HeadProfile, screen_traces  # noqa: E402
-from inkdiag_core.calibration import UNSEEN_PHYSICS_SPREADS  # noqa: E402
+from inkdiag_core.calibration import POSTERIOR_DRAWS, UNSEEN_PHYSICS_SPREADS  # noqa: E402
 from inkdiag_core.faults import DRIED_CLASSES  # noqa: E402
 from inkdiag_core.head_profile import SPREAD_KEYS  # noqa: E402
 from inkdiag_core.training import N_PER_CLASS  # noqa: E402
@@ -353,9 +353,12 @@ def write_report(results, args, log, elapsed):
         + f"` ({elapsed / 60:.1f} min on the shared 2-core machine). Traces come from the independent "
         "simulator `tests/foreign_head.py`, not from inkdiag's; each head is calibrated from 300 of its "
         "healthy traces and a nominal profile (sampling, drive, rho, mu, r_n, L_n, V_ch, c), then trained, "
-        "labelled and estimated with the `inkdiag` command (`inkdiag train` with its defaults but the seed: a "
-        "calibrated profile's rows spread over 5 restrictors within calibration's own scatter, `docs/calibration.md`)."
-        " *calibrated*: the profile `inkdiag calibrate` wrote; *calibrated + blocked*: `inkdiag calibrate --blocked` with 50 recorded traces of the head's fully "
+        "labelled and estimated with the `inkdiag` command ("
+        + ("`inkdiag train` with its defaults but the seed: a calibrated profile's rows spread over "
+           f"{POSTERIOR_DRAWS} restrictors within calibration's own scatter"
+           if args.posterior_draws is None else f"`inkdiag train --posterior-draws {args.posterior_draws}`")
+        + ", `docs/calibration.md`). *calibrated*: the profile `inkdiag calibrate` wrote; *calibrated + blocked*: "
+        "`inkdiag calibrate --blocked` with 50 recorded traces of the head's fully "
         "blocked nozzles as well, which pin the restrictor; *calibrated + empty*: `inkdiag calibrate --empty` with 50 "
         "recorded traces of the head's empty (dry) channels as well, which give the actuator's own resonance (the "
         "empty-channel classes); *true*: the head's real channel and sensor, to show what "

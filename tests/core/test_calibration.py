@@ -193,7 +193,7 @@ def test_a_spike_row_is_screened_out_not_fatal(recorded):
 
 def test_posterior_profiles_keep_the_healthy_mode_and_move_the_restrictor_within_its_scatter(result, tmp_path):
     """calibration.posterior (issue 14): training spreads its rows over the restrictors healthy traces allow."""
-    from inkdiag_core.calibration import RESTRICTOR_SCATTER, posterior_profiles
+    from inkdiag_core.calibration import RESTRICTOR_SCATTER, posterior_profiles, restrictor_spread
     from inkdiag_core.training import train_detector
 
     p = HeadProfile.load(result.profile.save(tmp_path / "fitted.yaml"))  # the posterior survives the YAML
@@ -207,25 +207,43 @@ def test_posterior_profiles_keep_the_healthy_mode_and_move_the_restrictor_within
     def inertance(q):
         return q.channel["rho"] * q.channel["L_r"] / (np.pi * q.channel["r_r"] ** 2)
 
+    def resistance(q):
+        return 8 * q.channel["mu"] * q.channel["L_r"] / (np.pi * q.channel["r_r"] ** 4)
+
     draws = posterior_profiles(p, 5)
     assert len(draws) == 5 and draws[2] is p  # an odd count: the fit in the middle
-    log_ratio = np.log([inertance(q) / inertance(p) for q in draws])
-    np.testing.assert_allclose(log_ratio, np.linspace(-2, 2, 5) * RESTRICTOR_SCATTER, atol=1e-9)  # +-2 scatter
+    delta = np.linspace(-2, 2, 5) * RESTRICTOR_SCATTER  # +-2 scatter: the healthy posterior is wider
+    np.testing.assert_allclose(np.log([inertance(q) / inertance(p) for q in draws]), delta, atol=1e-9)
+    slope = cov[:, 1] / cov[1, 1]  # the conditional posterior mean's direction
+    for q, d in zip(draws, delta):
+        np.testing.assert_allclose(np.log(q.channel["B_act"] / p.channel["B_act"]), slope[0] * d, atol=1e-9)
+        np.testing.assert_allclose(np.log(resistance(q) / resistance(p)), slope[2] * d, atol=1e-9)
     f0, z0 = p.healthy_mode()
     for q in draws:
         f, z = q.healthy_mode()
-        assert abs(f / f0 - 1) < 0.01 and abs(z / z0 - 1) < 0.05  # as consistent with the traces as the fit
-        assert q.channel["B_act"] != p.channel["B_act"] or q is p  # the compliance moves with the restrictor
+        assert abs(f / f0 - 1) < 0.002 and abs(z / z0 - 1) < 0.005  # as consistent with the traces as the fit
     narrow = posterior_profiles(p, 3, scatter=0.01)
     np.testing.assert_allclose(np.log([inertance(q) / inertance(p) for q in narrow]), [-0.02, 0, 0.02], atol=1e-9)
+    assert restrictor_spread(p) == RESTRICTOR_SCATTER and restrictor_spread(p, 0.01) == 0.01
     assert len(posterior_profiles(p, 4)) == 4 and p not in posterior_profiles(p, 4)  # even: around the fit
-    assert posterior_profiles(TRUE, 6) == [TRUE]  # no posterior recorded: the profile alone
+    edited = p.replace(channel={**p.channel, "B_act": 1.2 * p.channel["B_act"]})  # the channel is the centre
+    assert [q.channel["B_act"] / edited.channel["B_act"] for q in posterior_profiles(edited, 3)] == pytest.approx(
+        [q.channel["B_act"] / p.channel["B_act"] for q in posterior_profiles(p, 3)], rel=1e-12)
+    assert posterior_profiles(TRUE, 6) == [TRUE] and restrictor_spread(TRUE) == 0  # no posterior: the profile alone
     assert posterior_profiles(p, 1) == [p] and posterior_profiles(p, 5, scatter=0) == [p]
     given = p.replace(calibration={**p.calibration, "posterior": {**post, "cov_log": np.diag(
         [cov[0, 0], 0.0, 0.0]).tolist()}})  # a datasheet's restrictor: calibration did not fit it
-    assert posterior_profiles(given, 5) == [given]
+    assert posterior_profiles(given, 5) == [given] and restrictor_spread(given) == 0
+    for bad, why in (("x", "mapping"), ({}, "mapping"), ({**post, "cov_log": [[1.0]]}, "3 x 3"),
+                     ({**post, "cov_log": "a"}, "3 x 3"), ({**post, "cov_log": np.full((3, 3), np.nan).tolist()},
+                                                          "finite"),
+                     ({**post, "parameters": ["I_r", "B_act", "R_r"]}, "parameters")):
+        with pytest.raises(ProfileError, match=why):  # training refuses it, not a KeyError from deep inside
+            posterior_profiles(p.replace(calibration={**p.calibration, "posterior": bad}), 5)
     det, info = train_detector(p, n_per_class=24, posterior_draws=3, unknown_rate=None, n_estimators=5)
-    assert info["posterior_draws"] == 3
+    assert info["posterior_draws"] == 3 and info["restrictor_sd_log"] == RESTRICTOR_SCATTER
+    assert train_detector(p, n_per_class=24, posterior_draws=1, unknown_rate=None, n_estimators=5)[1][
+        "restrictor_sd_log"] == 0.0
     for bad in (0, 25):
         with pytest.raises(ValueError, match="posterior_draws"):
             train_detector(p, n_per_class=24, posterior_draws=bad)
