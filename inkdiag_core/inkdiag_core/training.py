@@ -187,8 +187,9 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
         :data:`inkdiag_core.calibration.POSTERIOR_DRAWS`): for a profile ``inkdiag calibrate``
         wrote, :func:`inkdiag_core.calibration.posterior_profiles`, its restrictor inertance
         spread over calibration's own scatter, with the healthy mode kept. On the heads of
-        ``tests/foreign_head.py`` whose fitted restrictor was 2-7 % off, the dried classes a
-        fit-alone model lost to partially blocked came back (``reports/heads.md``).
+        ``tests/foreign_head.py`` whose restrictor calibration fitted 6-7 % too large, the
+        dried classes a model of the fit alone lost to partially blocked came back, 66.0-71.0
+        -> 78.5-80.0 % for the weakest class (``docs/calibration.md``).
     progress : callable(step: int, total: int, message: str), optional
         Called after each stage.
     return_data : bool

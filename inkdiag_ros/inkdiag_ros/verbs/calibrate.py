@@ -286,8 +286,9 @@ def run(args) -> int:
                   f"{report['prior']['I_r/I_n']} I_n, one standard deviation a factor "
                   f"{math.exp(report['prior']['sd_log']):.2f}): "
                   "healthy traces pin it weakly, "
-                  "and it decides where partially blocked and dried nozzles ring. 50 traces of fully blocked nozzles "
-                  "(--blocked BLOCKED.npz) pin it from the data (reports/restrictor.md measures both ways)",
+                  "and it decides where partially blocked and dried nozzles ring (inkdiag train spreads its rows over "
+                  "a few per cent of it). 50 traces of fully blocked nozzles (--blocked BLOCKED.npz) pin it from the "
+                  "data (reports/restrictor.md measures both ways)",
                   file=sys.stdout)
     act = report["actuator"]
     if act["warning"]:
