@@ -849,14 +849,18 @@ def _restrictor_ridge(profile, scatter):
     if not isinstance(post, Mapping) or "cov_log" not in post:
         raise ProfileError(f"{where} must be a mapping with cov_log (the 3 x 3 covariance of log B_act, log I_r, "
                            "log R_r that inkdiag calibrate writes)")
-    if list(post.get("parameters", _PARAMS)) != list(_PARAMS):
-        raise ProfileError(f"{where}.parameters must be {list(_PARAMS)}, got {post['parameters']!r}")
+    params = post.get("parameters", list(_PARAMS))
+    if not isinstance(params, (list, tuple)) or list(params) != list(_PARAMS):
+        raise ProfileError(f"{where}.parameters must be {list(_PARAMS)}, got {params!r}")
     try:
         cov = np.asarray(post["cov_log"], dtype=np.float64)
     except (TypeError, ValueError):
         cov = None
     if cov is None or cov.shape != (3, 3) or not np.isfinite(cov).all():
         raise ProfileError(f"{where}.cov_log must be a 3 x 3 matrix of finite numbers")
+    sym = (cov + cov.T) / 2
+    if np.linalg.eigvalsh(sym).min() < -1e-9 * max(float(np.abs(sym).max()), 1e-300):
+        raise ProfileError(f"{where}.cov_log is not a covariance (not positive semi-definite)")
     var = float(cov[1, 1])
     if not var > 0:  # the restrictor was not fitted (a datasheet's)
         return 0.0, None

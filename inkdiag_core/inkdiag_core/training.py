@@ -69,8 +69,8 @@ def _check_profile(profile):
 
 
 def _share(n_per_class, n_draws, k):
-    """Traces per class of draw ``k`` of ``n_draws``: ``n_per_class`` split evenly, the remainder to the middle one
-    (with an odd count, the profile itself)."""
+    """Traces per class of draw ``k`` of ``n_draws``: ``n_per_class`` split evenly, the remainder to draw
+    ``n_draws // 2`` (with an odd count, the profile itself)."""
     n = n_per_class // n_draws + (n_per_class % n_draws if k == n_draws // 2 else 0)
     return {c: int(n) for c in FaultClass}
 

@@ -100,7 +100,7 @@ def main(argv=None) -> int:
         "",
         f"{datetime.date.today().isoformat()}. `{cmd}` ({elapsed / 60:.1f} min on the shared 2-core machine). "
         "Heads of the independent simulator `tests/foreign_head.py`; per head and seed, 300 healthy traces "
-        "calibrated as `inkdiag calibrate` does, then one detector per `--posterior-draws` value (`inkdiag "
+        "calibrated by `inkdiag_core.calibration.calibrate` (the fit `inkdiag calibrate` runs), then one detector per `--posterior-draws` value (`inkdiag "
         "train`'s defaults otherwise, the run's seed) labels the same test recording. *I_r error*: the "
         "calibrated restrictor inertance against the true head's; *sd*: the spread of `log I_r` the rows were "
         "trained over (`inkdiag_core.calibration.restrictor_spread`, 0: the fit alone). The default of 5 "

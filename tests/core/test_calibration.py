@@ -237,7 +237,10 @@ def test_posterior_profiles_keep_the_healthy_mode_and_move_the_restrictor_within
     for bad, why in (("x", "mapping"), ({}, "mapping"), ({**post, "cov_log": [[1.0]]}, "3 x 3"),
                      ({**post, "cov_log": "a"}, "3 x 3"), ({**post, "cov_log": np.full((3, 3), np.nan).tolist()},
                                                           "finite"),
-                     ({**post, "parameters": ["I_r", "B_act", "R_r"]}, "parameters")):
+                     ({**post, "parameters": ["I_r", "B_act", "R_r"]}, "parameters"),
+                     ({**post, "parameters": None}, "parameters"), ({**post, "parameters": 5}, "parameters"),
+                     ({**post, "cov_log": [[1.0, 0, 0], [0, -1.0, 0], [0, 0, 1.0]]}, "positive semi-definite"),
+                     ({**post, "cov_log": [[1.0, 5.0, 0], [5.0, 1.0, 0], [0, 0, 1.0]]}, "positive semi-definite")):
         with pytest.raises(ProfileError, match=why):  # training refuses it, not a KeyError from deep inside
             posterior_profiles(p.replace(calibration={**p.calibration, "posterior": bad}), 5)
     det, info = train_detector(p, n_per_class=24, posterior_draws=3, unknown_rate=None, n_estimators=5)

@@ -156,6 +156,8 @@ def test_label_uses_each_rows_nozzle_baseline(work, tmp_path, capsys):
      "are the traces transposed?"),
     (["calibrate", "{d}/rec.npz", "--nominal", "{d}/nominal_mpas.yaml", "--out", "{d}/c.yaml"],
      "implausible: channel.mu 6 Pa s (an inkjet head's: 0.0001 to 0.5 Pa s), a value in other units?"),
+    (["train", "--profile", "{d}/bad_posterior.yaml", "--out", "{d}/x.joblib"],
+     "bad_posterior.yaml: profile 'foreign20': calibration.posterior.parameters must be"),
 ])
 def test_bad_input_is_one_line_and_exit_status_2(work, trained, argv, match, capsys):
     d, _, _ = work
@@ -173,6 +175,9 @@ def test_bad_input_is_one_line_and_exit_status_2(work, trained, argv, match, cap
         np.savez(d / "transposed.npz", **dict(z, traces=z["traces"].T.copy()))
         nominal = HeadProfile.load(d / "nominal.yaml")
         nominal.replace(channel={"mu": 1e3 * nominal.channel["mu"]}).save(d / "nominal_mpas.yaml")  # mPa s
+        head = HeadProfile.load(d / "head.yaml")  # a calibration section edited by hand: its posterior unreadable
+        head.replace(calibration={**head.calibration, "posterior": {"parameters": None, "cov_log": [[1.0]]}}).save(
+            d / "bad_posterior.yaml")
     capsys.readouterr()
     inputs = {p: p.read_bytes() for p in (d / "rec.npz", d / "head.yaml", trained[0],
                                           d / "head.joblib.manifest.json")}

@@ -7,7 +7,10 @@ Train a fault detector (FaultDetector .joblib + .manifest.json) for the head of
 a complete profile: every fault class is simulated on the head's calibrated
 model (the same physical mechanisms as the default head's, scaled to its
 geometry, ink, drive and sampling), a quarter held out for the detection
-threshold and the validation scores. The detector also gets an open-set layer
+threshold and the validation scores. For a profile `inkdiag calibrate` wrote,
+the simulated traces are spread over --posterior-draws restrictors within a few
+per cent of the fitted one, which healthy traces pin only that well (it decides
+where partially blocked and dried nozzles ring). The detector also gets an open-set layer
 (--unknown-rate, default 0.01): a trace unlike every known class is labelled
 'unknown', and a trace of a known class is called 'unknown' with probability
 at most that rate, for the model this run trains, with 90 % confidence
@@ -116,11 +119,16 @@ def run(args) -> int:
     from inkdiag_core import labels_from_csv, read_labels_csv
     from inkdiag_core.recording import NOT_CLASSES
     from inkdiag_core.head_profile import HeadProfile, ProfileError
+    from inkdiag_core.calibration import restrictor_spread
     from inkdiag_core.persistence import save_detector
     from ..bags import is_bag, load_and_report
     from inkdiag_core.training import train_detector
 
     profile = HeadProfile.load(args.profile)
+    try:
+        restrictor_spread(profile)  # a malformed calibration.posterior: refused before anything is loaded
+    except ProfileError as exc:
+        raise ProfileError(f"{args.profile}: {exc}") from None
     if not profile.is_complete:
         raise ProfileError(f"{args.profile}: a nominal profile ({', '.join(profile.missing)} missing): run "
                            "`inkdiag calibrate` first to fit them to recorded healthy traces")
