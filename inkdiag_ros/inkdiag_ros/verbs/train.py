@@ -10,13 +10,14 @@ geometry, ink, drive and sampling), a quarter held out for the detection
 threshold and the validation scores. For a profile `inkdiag calibrate` wrote,
 the simulated traces are spread over --posterior-draws restrictors within a few
 per cent of the fitted one, which healthy traces pin only that well (it decides
-where partially blocked and dried nozzles ring). The detector also gets an open-set layer
-(--unknown-rate, default 0.01): a trace unlike every known class is labelled
-'unknown', and a trace of a known class is called 'unknown' with probability
-at most that rate, for the model this run trains, with 90 % confidence
-(per-class training-conditional conformal p-values; a class needs
-(1 - R)**n <= 0.1 calibration rows n, 230 for the default rate: the training
-three quarters of --n-per-class >= 307).
+where partially blocked and dried nozzles ring).
+
+The detector also gets an open-set layer (--unknown-rate, default 0.01): a
+trace unlike every known class is labelled 'unknown', and a trace of a known
+class is called 'unknown' with probability at most that rate, for the model
+this run trains, with 90 % confidence (per-class training-conditional
+conformal p-values; a class needs (1 - R)**n <= 0.1 calibration rows n, 230
+for the default rate: the training three quarters of --n-per-class >= 307).
 
 With --data, the head's own labelled recordings join the simulated rows: an
 .npz with a 'label' array, or any recording (.npz or rosbag2 bag) with
