@@ -18,7 +18,7 @@ and exit-time percentiles (ms) of the stops that exited by themselves.
 
 Runs on the ``ROS_DOMAIN_ID`` of its environment (scripts/_bootstrap.sh sets one) with
 discovery on localhost; a small FDI model is trained into a temporary directory first.
-The test suite runs the same cycles, three per signal and node (tests/ros/test_node_stops.py).
+The test suite runs the same cycles, two per signal and node (tests/ros/test_node_stops.py).
 Run it as ``source scripts/_bootstrap.sh && python scripts/stop_cycles.py``.
 """
 

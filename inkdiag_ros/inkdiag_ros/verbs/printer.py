@@ -148,7 +148,7 @@ def _monitor(args, children) -> list:
 
     from msg_defs import DIAGNOSTICS_MSG_TYPE, DIAGNOSTICS_QOS, diagnostics_values
 
-    from .._spin import stop_on_signals, tear_down
+    from .._spin import shutting_down, stop_on_signals, tear_down
 
     latest = {}  # head namespace -> (arrival time, values)
     wanted = {f"{i:02d}" for i in range(args.first_head, args.first_head + args.heads)}
@@ -181,6 +181,9 @@ def _monitor(args, children) -> list:
                     next_print += 1.0
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
+        except Exception:  # a signal shut the context down as spin_once built its wait set (RCLError): a stop
+            if not (stop.requested or shutting_down(node.context)):
+                raise
         finally:
             tear_down(executor, [node])
     return []
