@@ -11,7 +11,7 @@ over ``K`` restrictors within calibration's own scatter
 (:func:`inkdiag_core.calibration.posterior_profiles`; 1: the fit alone).
 
 Per head of ``tests/foreign_head.py`` (an independent simulator) and seed: 300 healthy traces
-(seed) calibrated (:func:`~inkdiag_core.calibration.calibrate`, as ``inkdiag calibrate``),
+(seed) calibrated (:func:`~inkdiag_core.calibration.calibrate`, the fit ``inkdiag calibrate`` runs),
 then per ``--draws`` value a detector trained on the calibrated profile
 (:func:`~inkdiag_core.training.train_detector` with ``inkdiag train``'s defaults, that seed and
 that count) labels the same test recording (``--per-class`` traces of every class, seed + 1).
@@ -36,6 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import foreign_head as fh  # noqa: E402
 from _common import md_table, out_path  # noqa: E402
+from heads import _split_errors  # noqa: E402
 
 from inkdiag_core import FaultClass, HeadProfile  # noqa: E402
 from inkdiag_core.calibration import calibrate  # noqa: E402
@@ -50,8 +51,7 @@ def run(name, seed, draws, per_class, tmp, n_per_class=N_PER_CLASS):
     healthy = fh.simulate_foreign(name, {"healthy_nozzle": 300}, seed)
     test = fh.simulate_foreign(name, {c.value: per_class for c in FaultClass}, seed + 1)
     profile = calibrate(HeadProfile.load(tmp / f"{name}.yaml"), healthy["traces"], healthy["sample_rate_hz"]).profile
-    ch, true = profile.channel, fh.FOREIGN_HEADS[name]["channel"]
-    ir_err = (ch["L_r"] / true["L_r"]) / (ch["r_r"] / true["r_r"]) ** 2 - 1
+    ir_err = _split_errors(profile.channel, fh.FOREIGN_HEADS[name]["channel"])["I_r_err"]
     truth = np.asarray(test["labels"], dtype=object)
     out = {}
     for k in draws:
@@ -100,8 +100,9 @@ def main(argv=None) -> int:
         "",
         f"{datetime.date.today().isoformat()}. `{cmd}` ({elapsed / 60:.1f} min on the shared 2-core machine). "
         "Heads of the independent simulator `tests/foreign_head.py`; per head and seed, 300 healthy traces "
-        "calibrated by `inkdiag_core.calibration.calibrate` (the fit `inkdiag calibrate` runs), then one detector per `--posterior-draws` value (`inkdiag "
-        "train`'s defaults otherwise, the run's seed) labels the same test recording. *I_r error*: the "
+        "calibrated by `inkdiag_core.calibration.calibrate` (the fit `inkdiag calibrate` runs), then one detector "
+        "per `--posterior-draws` value (`inkdiag train`'s defaults otherwise, the run's seed) labels the same test "
+        "recording. *I_r error*: the "
         "calibrated restrictor inertance against the true head's; *sd*: the spread of `log I_r` the rows were "
         "trained over (`inkdiag_core.calibration.restrictor_spread`, 0: the fit alone). The default of 5 "
         "draws was chosen on seeds 0, 7 and 11 (`reports/heads.md`); the seeds here are others.",
