@@ -36,7 +36,8 @@ from pathlib import Path
 
 __all__ = ["INPUT_ARGS", "VERBS", "build_parser", "main"]
 
-INPUT_ARGS = ("recording", "healthy", "model", "baselines", "profile", "nominal", "data", "blocked", "empty", "labels")
+INPUT_ARGS = ("recording", "healthy", "model", "baselines", "profile", "nominal", "data", "blocked", "blocked_labels",
+              "empty", "labels")
 RECORDING_ARGS = ("recording", "healthy", "data", "blocked", "empty")  # inputs that may be a bag directory
 """The verbs' arguments that name files they read: an ``--out`` that is one of them is refused."""
 
@@ -128,7 +129,7 @@ def _check_out(args) -> None:
         extra_outputs = getattr(args, "_extra_outputs", None)  # a manifest, a fit report, written beside --out
         outs = [out] + ([str(o) for o in extra_outputs(args)] if extra_outputs else [])
         for name, value in inputs:
-            what = name.upper() if name in ("recording", "healthy") else "--" + name
+            what = name.upper() if name in ("recording", "healthy") else "--" + name.replace("_", "-")
             for o in outs:
                 if value and _same_path(value, o):
                     extra = "'s manifest" if value != getattr(args, name, None) else ""

@@ -208,6 +208,71 @@ def test_blocked_traces_through_the_cli(files, tmp_path, capsys):
     assert "--blocked takes an .npz recording" in capsys.readouterr().err
 
 
+def test_blocked_rows_from_a_label_csv(files, tmp_path, capsys):
+    """--blocked-labels: the rows of an unlabelled recording that inkdiag label's CSV calls fully_blocked are the
+    blocked traces (the same fit as the recording's own label column gives); a CSV of another recording, one
+    without the columns, one without such a row, or the option without --blocked: one line, exit status 2."""
+    import csv
+
+    sim = TRUE.simulate({"healthy_nozzle": 5, "deeply_dried": 5, "fully_blocked": 30}, seed=6)
+    save_recording(tmp_path / "field.npz", Recording.from_arrays(sim.traces, TRUE.sample_rate_hz))
+    save_recording(tmp_path / "own.npz", Recording.from_arrays(sim.traces, TRUE.sample_rate_hz, label=sim.labels))
+    order = np.random.default_rng(0).permutation(len(sim.labels))  # any row order, as the CSV's row column says
+
+    def write(path, rows, columns=("row", "nozzle", "frame_id", "class", "confidence", "reason", "baseline")):
+        with open(path, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(columns)
+            for i in rows:
+                w.writerow([i, i, 0, sim.labels[i], 0.99, "", 0][:len(columns)])
+
+    write(tmp_path / "field.csv", order)
+    args = ["calibrate", str(files / "healthy.npz"), "--nominal", str(files / "nominal.yaml"), "--no-vp-cal"]
+    assert cli.main([*args, "--blocked", str(tmp_path / "field.npz"), "--blocked-labels",
+                     str(tmp_path / "field.csv"), "--out", str(tmp_path / "csv.yaml")]) == 0
+    assert cli.main([*args, "--blocked", str(tmp_path / "own.npz"), "--out", str(tmp_path / "own.yaml")]) == 0
+    capsys.readouterr()
+    by_csv, by_own = HeadProfile.load(tmp_path / "csv.yaml"), HeadProfile.load(tmp_path / "own.yaml")
+    assert by_csv.calibration["n_blocked_traces"] == 30 and by_csv.channel == by_own.channel
+    report = json.loads((tmp_path / "csv.fit.json").read_text())
+    assert report["blocked_labels"] == str(tmp_path / "field.csv")
+    # the CSV, not the recording's own label column, says which rows (here: none of them healthy ones)
+    flipped = np.where(sim.labels == "fully_blocked", "healthy_nozzle", "fully_blocked")
+    save_recording(tmp_path / "flipped.npz", Recording.from_arrays(sim.traces, TRUE.sample_rate_hz, label=flipped))
+    assert cli.main([*args, "--blocked", str(tmp_path / "flipped.npz"), "--blocked-labels",
+                     str(tmp_path / "field.csv"), "--out", str(tmp_path / "flipped.yaml")]) == 0
+    assert HeadProfile.load(tmp_path / "flipped.yaml").channel == by_own.channel
+    capsys.readouterr()
+    write(tmp_path / "short.csv", order[:-1])
+    write(tmp_path / "twice.csv", [*order[:-1], order[0]])
+    write(tmp_path / "nocls.csv", order, columns=("row", "nozzle", "frame_id"))
+    with open(tmp_path / "none.csv", "w", newline="") as f:
+        f.write("row,class\n" + "".join(f"{i},healthy_nozzle\n" for i in range(len(sim.labels))))
+    with open(tmp_path / "huge.csv", "w", newline="") as f:
+        f.write("row,class\n" + "".join(f"{i},fully_blocked\n" for i in [10**30, *range(1, len(sim.labels))]))
+    with open(tmp_path / "other.csv", "w", newline="") as f:  # the labels of other nozzles, same row count
+        f.write("row,nozzle,class\n" + "".join(f"{i},{i + 1000},fully_blocked\n" for i in range(len(sim.labels))))
+    for csv_file, message in (("short.csv", "labels 39 rows, not each of the 40 rows"),
+                              ("twice.csv", "not each of the 40 rows"),
+                              ("nocls.csv", "needs the columns row and class"),
+                              ("none.csv", "is labelled fully_blocked"), ("missing.csv", "missing.csv"),
+                              ("huge.csv", "row column must hold integers"),
+                              ("other.csv", "its nozzle column is not that of"),
+                              ("field.npz", "not a text CSV")):
+        assert cli.main([*args, "--blocked", str(tmp_path / "field.npz"), "--blocked-labels", str(tmp_path / csv_file),
+                         "--out", str(tmp_path / "x.yaml")]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1, err
+    assert cli.main([*args, "--blocked-labels", str(tmp_path / "field.csv"), "--out", str(tmp_path / "x.yaml")]) == 2
+    assert "--blocked-labels needs --blocked" in capsys.readouterr().err
+    before = (tmp_path / "field.csv").read_bytes()  # the labels are an input: never overwritten by --out
+    assert cli.main([*args, "--blocked", str(tmp_path / "field.npz"), "--blocked-labels", str(tmp_path / "field.csv"),
+                     "--out", str(tmp_path / "field.csv")]) == 2
+    assert "also the --blocked-labels input" in capsys.readouterr().err
+    assert (tmp_path / "field.csv").read_bytes() == before
+    assert not (tmp_path / "x.yaml").exists()
+
+
 def test_empty_channel_traces_through_the_cli(tmp_path, capsys):
     """--empty: a head whose actuator rings 17 % below what the default head's actuator scaled to its B_act
     gives; the empty channels' median mode becomes channel.f_act, and the calibrated head's simulated

@@ -1,7 +1,7 @@
 """``inkdiag calibrate``: a complete head profile from a nominal one and recorded healthy traces.
 
-    inkdiag calibrate HEALTHY --nominal NOMINAL.yaml --out HEAD.yaml [--blocked BLOCKED] [--empty EMPTY]
-                      [--report-dir DIR] [--name NAME]
+    inkdiag calibrate HEALTHY --nominal NOMINAL.yaml --out HEAD.yaml [--blocked BLOCKED [--blocked-labels CSV]]
+                      [--empty EMPTY] [--report-dir DIR] [--name NAME]
 
 Reads the recording (:func:`inkdiag_core.load_recording`), fits what the nominal
 profile leaves out (:func:`inkdiag_core.calibration.calibrate`), writes the
@@ -39,7 +39,11 @@ and the fit matches their median mode too, which pins the split (within 3.6 % fr
 traces on those heads; record them at the healthy traces' ink temperature). Traces
 that are not fully blocked nozzles are refused (their damping, their spread or the
 restrictor they would give says so), as are blocked traces that contradict a
-restrictor the nominal profile gives.
+restrictor the nominal profile gives. --blocked-labels takes inkdiag label's CSV of
+the --blocked recording instead of its own label column: a recording of the head's
+faults, labelled by a model trained on the healthy-only profile, gives its fully
+blocked rows (the class a wrong split leaves recognisable), and a second calibration
+with them pins the split (docs/calibration.md, reports/splits.md).
 
 Healthy traces never show the actuator alone, which the empty-channel classes
 ring with: without more, its resonance is the default head's actuator scaled to the
@@ -71,6 +75,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--out", metavar="HEAD.yaml", required=True, help="complete head profile to write")
     parser.add_argument("--blocked", metavar="BLOCKED", default=None,
                         help="recording (.npz) of fully blocked nozzles of the head: pins the restrictor")
+    parser.add_argument("--blocked-labels", metavar="LABELS.csv", default=None,
+                        help="inkdiag label's CSV of the --blocked recording: its rows labelled fully_blocked are "
+                        "used (a recording of the head's faults labelled by a first model, instead of its own label "
+                        "column)")
     parser.add_argument("--empty", metavar="EMPTY", default=None,
                         help="recording (.npz) of empty channels of the head (no ink: purged dry): the actuator's own "
                         "resonance, which the empty-channel classes are simulated from")
@@ -145,8 +153,9 @@ def bag_sample(chunks, nominal, *, max_rows: int = MAX_BAG_ROWS, seed: int = 0):
     return store[:m][keep], n_read, n_screened
 
 
-def _fault_rows(path, option, cls):
-    """The recording at ``path`` (an .npz) given as ``option``, its rows labelled ``cls`` where it has labels."""
+def _fault_rows(path, option, cls, labels_csv=None):
+    """The recording at ``path`` (an .npz) given as ``option``, its rows labelled ``cls`` where it has labels:
+    those of ``labels_csv`` (``inkdiag label``'s CSV of that recording) when given, else its own label column."""
     from inkdiag_core import load_recording
 
     from ..bags import is_bag
@@ -154,12 +163,56 @@ def _fault_rows(path, option, cls):
     if is_bag(path):
         raise ValueError(f"{option} {path}: a rosbag2 bag; {option} takes an .npz recording (a few dozen traces)")
     rec = load_recording(path)
-    if rec.label is not None:
-        keep = rec.label == cls
+    label = rec.label if labels_csv is None else _csv_classes(labels_csv, rec, f"{option} {path}")
+    if label is not None:
+        keep = label == cls
         if not keep.any():
-            raise ValueError(f"{path}: its label column has no {cls} row")
+            raise ValueError(f"{path}: its label column has no {cls} row" if labels_csv is None else
+                             f"{labels_csv}: no row of {path} is labelled {cls}")
         rec = type(rec).from_arrays(rec.traces[keep], rec.sample_rate_hz, source=rec.source)
     return rec
+
+
+def _csv_classes(labels_csv, rec, what):
+    """Each row's ``class`` from ``inkdiag label``'s CSV of the recording ``rec`` (columns ``row`` and ``class``;
+    every row once; its ``nozzle`` and ``frame_id`` columns, where present, the recording's), as an (n,) object
+    array."""
+    import csv
+
+    import numpy as np
+
+    n = rec.n_rows
+    try:
+        with open(labels_csv, newline="", encoding="utf-8-sig") as f:
+            reader = csv.DictReader(f)
+            columns = set(reader.fieldnames or ())
+            if not {"row", "class"} <= columns:
+                raise ValueError(f"{labels_csv}: not a labels CSV of inkdiag label (needs the columns row and "
+                                 f"class, has {reader.fieldnames})")
+            table = list(reader)
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{labels_csv}: not a text CSV (inkdiag label's labels): {exc.reason}") from None
+    except csv.Error as exc:
+        raise ValueError(f"{labels_csv}: not a readable CSV ({exc})") from None
+    try:
+        rows = np.array([int(r["row"]) for r in table], dtype=np.int64)
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError(f"{labels_csv}: its row column must hold integers (the recording's row numbers)") from None
+    if rows.size != n or not np.array_equal(np.sort(rows), np.arange(n)):
+        raise ValueError(f"{labels_csv} labels {rows.size} rows, not each of the {n} rows of {what} once: "
+                         "the labels of another recording?")
+    for col, have in (("nozzle", rec.nozzle), ("frame_id", rec.frame_id)):
+        if col in columns:
+            try:
+                same = np.array_equal(np.array([int(r[col]) for r in table], dtype=np.int64), have[rows])
+            except (TypeError, ValueError, OverflowError):
+                same = False
+            if not same:
+                raise ValueError(f"{labels_csv}: its {col} column is not that of {what}: the labels of another "
+                                 "recording?")
+    label = np.empty(n, dtype=object)
+    label[rows] = [r["class"] for r in table]
+    return label
 
 
 def _with_vp_cal(profile):
@@ -214,7 +267,9 @@ def run(args) -> int:
         raise ValueError("--name must be a non-empty name, got ''")
     nominal = HeadProfile.load(args.nominal)
     # before a long bag is read
-    blocked = _fault_rows(args.blocked, "--blocked", "fully_blocked") if args.blocked else None
+    if args.blocked_labels and not args.blocked:
+        raise ValueError("--blocked-labels needs --blocked: the recording those labels are of")
+    blocked = _fault_rows(args.blocked, "--blocked", "fully_blocked", args.blocked_labels) if args.blocked else None
     if blocked is not None:
         nominal.check_traces(blocked.traces, blocked.sample_rate_hz, what=f"{args.blocked}")
     empty = _fault_rows(args.empty, "--empty", "empty_channel_1") if args.empty else None
@@ -252,6 +307,7 @@ def run(args) -> int:
     png = stem.with_name(stem.name + ".fit.png")
     report = dict(result.report, recording=str(args.healthy), nominal=str(args.nominal), profile=str(out),
                   blocked=None if blocked is None else str(args.blocked),
+                  blocked_labels=None if blocked is None else args.blocked_labels,
                   empty=None if empty is None else str(args.empty),
                   profile_sha256=result.profile.sha256, n_rows_left_out_by_label=left_out)
     try:
@@ -288,7 +344,9 @@ def run(args) -> int:
                   "healthy traces pin it weakly, "
                   "and it decides where partially blocked and dried nozzles ring (inkdiag train spreads its rows over "
                   "a few per cent of it). 50 traces of fully blocked nozzles (--blocked BLOCKED.npz) pin it from the "
-                  "data (reports/restrictor.md measures both ways)",
+                  "data (reports/restrictor.md measures both ways); without such a recording, label one of the head's "
+                  "faults with a model of this profile and calibrate again with --blocked THAT.npz --blocked-labels "
+                  "ITS.csv (a head far from the design ratio needs it: reports/splits.md)",
                   file=sys.stdout)
     act = report["actuator"]
     if act["warning"]:
