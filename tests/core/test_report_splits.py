@@ -1,0 +1,56 @@
+"""scripts/report splits: the heads it builds have the restrictor split asked for and the base head's mode."""
+
+import importlib.util
+import math
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def mod():
+    spec = importlib.util.spec_from_file_location("splits_report", ROOT / "scripts/reports/splits.py")
+    m = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(m)
+    return m
+
+
+def _ratios_and_mode(ch):
+    I_n = ch["rho"] * (ch["L_n"] + math.pi * ch["r_n"] / 4) / (math.pi * ch["r_n"] ** 2)
+    R_n = 8 * ch["mu"] * ch["L_n"] / (math.pi * ch["r_n"] ** 4)
+    I_r = ch["rho"] * ch["L_r"] / (math.pi * ch["r_r"] ** 2)
+    R_r = 8 * ch["mu"] * ch["L_r"] / (math.pi * ch["r_r"] ** 4)
+    B_t = ch["B_act"] + ch["V_ch"] / (ch["rho"] * ch["c"] ** 2)
+    return I_r / I_n, R_r / R_n, (1 / I_r + 1 / I_n) / B_t
+
+
+@pytest.mark.parametrize("ratio_i, ratio_r", [(1.25, 0.4), (0.6, 0.15), (1.0, 1.0)])
+def test_split_head_has_the_split_and_keeps_the_mode(mod, ratio_i, ratio_r):
+    import foreign_head as fh
+
+    head = mod.split_head(ratio_i, ratio_r)
+    ri, rr, k = _ratios_and_mode(head["channel"])
+    *_, k0 = _ratios_and_mode(fh.FOREIGN_HEADS["h20"]["channel"])
+    assert ri == pytest.approx(ratio_i, rel=1e-12) and rr == pytest.approx(ratio_r, rel=1e-12)
+    assert k == pytest.approx(k0, rel=1e-12)
+    for key in ("rho", "mu", "r_n", "L_n", "V_ch", "c"):  # what a nominal profile gives: the base head's
+        assert head["channel"][key] == fh.FOREIGN_HEADS["h20"]["channel"][key]
+    assert head["sampling"] == fh.FOREIGN_HEADS["h20"]["sampling"] and "physics" in head
+
+
+def test_split_head_refuses_what_it_cannot_build(mod):
+    for bad in ((0.0, 0.5), (1.0, -0.5), (math.nan, 0.5)):
+        with pytest.raises(ValueError, match="positive"):
+            mod.split_head(*bad)
+
+
+def test_split_head_at_h20s_own_split_is_h20(mod):
+    import foreign_head as fh
+
+    ch = fh.FOREIGN_HEADS["h20"]["channel"]
+    ri, rr, _ = _ratios_and_mode(ch)
+    got = mod.split_head(ri, rr)["channel"]
+    for key in ("r_r", "L_r", "B_act"):
+        assert got[key] == pytest.approx(ch[key], rel=1e-9), key
