@@ -28,7 +28,7 @@ Traces screening refuses (non-finite, out of range, flat, clipped) are dropped a
 column, only its healthy_nozzle rows are used. See docs/calibration.md.
 
 Healthy traces pin the healthy mode, not how the restrictor and the nozzle share it (the
-prior does: within +-12 % on the heads of reports/heads.md, up to 28 % off on heads
+prior does: within +-12 % on the heads of reports/heads.md, up to 28.5 % off on heads
 whose restrictor is far from the default head's design, reports/splits.md). A fit that
 needs a restrictor far from the design ratios (an inertance beyond a factor 2.5 of 1.03
 I_n, a resistance above 4 times R_n / 2) is refused: a nominal channel that is not the
@@ -43,8 +43,10 @@ they would give says so), as are blocked traces that contradict a restrictor the
 profile gives. --blocked-labels takes inkdiag label's CSV of the --blocked recording
 instead of its own label column: a recording of the head's faults, labelled by a model
 trained on the healthy-only profile, gives its fully blocked rows (the class a wrong
-split leaves recognisable), and a second calibration with them pins the split
-(docs/calibration.md, reports/splits.md).
+split leaves recognisable); on three heads far from the design ratios a second
+calibration with them put the restrictor -7.2 to -0.7 % off, against -28.5 to +13.7 % from
+healthy traces alone (reports/splits.md: keep it when the two differ by more than about
+10 %; docs/calibration.md).
 
 Healthy traces never show the actuator alone, which the empty-channel classes
 ring with: without more, its resonance is the default head's actuator scaled to the
@@ -347,7 +349,8 @@ def run(args) -> int:
                   "a few per cent of it). 50 traces of fully blocked nozzles (--blocked BLOCKED.npz) pin it from the "
                   "data (reports/restrictor.md measures both ways); without such a recording, label one of the head's "
                   "faults with a model of this profile and calibrate again with --blocked THAT.npz --blocked-labels "
-                  "ITS.csv (a head far from the design ratio needs it: reports/splits.md)",
+                  "ITS.csv, and keep that profile if its I_r differs from this one's by more than about 10 % (a head "
+                  "far from the design ratios: reports/splits.md)",
                   file=sys.stdout)
     act = report["actuator"]
     if act["warning"]:
