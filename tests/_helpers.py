@@ -3,7 +3,12 @@
 Import as ``from _helpers import ...``; fixtures live in conftest.py.
 """
 
+import importlib.util
+from pathlib import Path
+
 import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
 
 #: Sampling rate of the synthetic traces, Hz.
 FS = 10e6
@@ -24,3 +29,11 @@ def damped(f_hz, zeta, n, seed, n_samples=512):
     phase = rng.uniform(-0.3, 0.3, (n, 1))  # the drive fixes the phase up to small spreads
     y = amp * np.exp(-zeta * w0 * t) * np.cos(2 * np.pi * f_hz * t + phase)
     return y + 0.005 * rng.standard_normal(y.shape)
+
+
+def load_report(name):
+    """The module of ``scripts/reports/NAME.py`` (a script, not a package: loaded from its file)."""
+    spec = importlib.util.spec_from_file_location(f"{name}_report", ROOT / "scripts" / "reports" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod

@@ -1,20 +1,14 @@
 """scripts/report restrictor: its per-head calibration runs, on a small recording."""
 
-import importlib.util
 import math
-from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parents[2]
+from _helpers import load_report
 
 
 @pytest.fixture(scope="module")
 def restrictor():
-    spec = importlib.util.spec_from_file_location("restrictor_report", ROOT / "scripts/reports/restrictor.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_report("restrictor")
 
 
 def test_run_head_gives_every_condition(restrictor):

@@ -1,17 +1,12 @@
 """scripts/report restrictor_spread: one head and seed, the fit alone against a spread, on a small training."""
 
-import importlib.util
-from pathlib import Path
+from _helpers import load_report
 
 from inkdiag_core import FaultClass
 
-ROOT = Path(__file__).resolve().parents[2]
-
 
 def test_run_compares_the_draw_counts_on_one_recording(tmp_path):
-    spec = importlib.util.spec_from_file_location("spread_report", ROOT / "scripts/reports/restrictor_spread.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_report("restrictor_spread")
     ir_err, res = mod.run("h20", 1, [1, 3], 4, tmp_path, n_per_class=24)
     assert abs(ir_err) < 0.3 and set(res) == {1, 3}
     assert res[1]["sd"] == 0.0 and res[3]["sd"] == 0.03  # the fit alone; healthy traces alone: the scatter

@@ -1,20 +1,14 @@
 """scripts/report splits: the heads it builds have the restrictor split asked for and the base head's mode."""
 
-import importlib.util
 import math
-from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parents[2]
+from _helpers import load_report
 
 
 @pytest.fixture(scope="module")
 def mod():
-    spec = importlib.util.spec_from_file_location("splits_report", ROOT / "scripts/reports/splits.py")
-    m = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(m)
-    return m
+    return load_report("splits")
 
 
 def _ratios_and_mode(ch):
