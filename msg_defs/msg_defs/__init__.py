@@ -19,7 +19,7 @@ from .codec import (
     encode_traces,
     restamp_traces,
 )
-from ._json import JSON_SCHEMA_VERSION
+from ._json import JSON_SCHEMA_VERSION, serialized
 from .labels import (
     DRIED_CLASSES,
     HEALTHY_CLASSES,
@@ -87,6 +87,7 @@ __all__ = [
     "encode_traces",
     "encode_truth",
     "restamp_traces",
+    "serialized",
     "topics",
     "truth_from_arrays",
 ]

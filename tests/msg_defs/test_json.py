@@ -165,3 +165,25 @@ def test_estimates_json_says_its_first_nozzle():
     assert decode_estimates(encode_estimates(ranged)).first_nozzle == 400
     assert decode_estimates(encode_estimates(e)).first_nozzle is None
     assert "first_nozzle" not in json.loads(encode_estimates(e).data)
+
+
+@pytest.mark.parametrize("text", ["", "x", "ab", "abc", "abcd", "é ü ∆ 😀", '{"a": "\\u0000"}'])
+def test_serialized_is_rclpy_serialization(text):
+    """A node publishes msg_defs.serialized(msg) as bytes: the same CDR rclpy writes for the message, so a
+    subscriber (typed or raw) cannot tell them apart."""
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    msg = String(data=text)
+    wire = msg_defs.serialized(msg)
+    assert wire == serialize_message(msg)
+    assert deserialize_message(wire, String).data == text
+
+
+def test_serialized_labels_decode():
+    report = LabelsReport.from_arrays(frame_id=7, stamp=1.5, first_nozzle=100, model_id="m",
+                                      classes=np.array(["healthy_nozzle", "deeply_dried"], dtype=object),
+                                      confidence=[0.9, 0.8123], valid=[True, True], reasons=["", ""])
+    from rclpy.serialization import deserialize_message
+
+    got = decode_labels(deserialize_message(msg_defs.serialized(encode_labels(report)), String))
+    assert got == report
