@@ -276,6 +276,8 @@ def main() -> int:
     ns = ap.parse_args()
     if bad := [p for p in ns.fdi_param if ":=" not in p]:
         ap.error(f"--fdi-param takes NAME:=VALUE, got {bad[0]!r}")
+    if ns.rounds < 1:
+        ap.error(f"--rounds must be >= 1, got {ns.rounds}")
     if ns.role == "sink":
         return sink_main(ns.namespace)
     if ns.window is None:
@@ -367,7 +369,8 @@ def main() -> int:
             phases.append((f"{case}: {FDI_PROCESS}", case, cmd + ["-p", "labelling_process:=true"],
                            lambda: node.count_publishers(f"{bench_ns}/{topics.LABELS}") > 0))
     if ns.rounds > 1:  # each phase's name with its round: "ceiling: plain subscriber [2]"
-        phases = [(f"{name} [{r + 1}]", case, cmd, matched) for r in range(ns.rounds) for name, case, cmd, matched in phases]
+        phases = [(f"{name} [{r + 1}]", case, cmd, matched)
+                  for r in range(ns.rounds) for name, case, cmd, matched in phases]
     try:
         for name, case, cmd, matched in phases:
             msgs = data[case][0]

@@ -167,7 +167,8 @@ def test_estimates_json_says_its_first_nozzle():
     assert "first_nozzle" not in json.loads(encode_estimates(e).data)
 
 
-@pytest.mark.parametrize("text", ["", "x", "ab", "abc", "abcd", "é ü ∆ 😀", '{"a": "\\u0000"}'])
+@pytest.mark.parametrize("text", ["", "x", "ab", "abc", "abcd", "é ü ∆ 😀", '{"a": "\\u0000"}', "a" * 70000,
+                                  "é" * 40000])
 def test_serialized_is_rclpy_serialization(text):
     """A node publishes msg_defs.serialized(msg) as bytes: the same CDR rclpy writes for the message, so a
     subscriber (typed or raw) cannot tell them apart."""
@@ -179,11 +180,17 @@ def test_serialized_is_rclpy_serialization(text):
     assert deserialize_message(wire, String).data == text
 
 
-def test_serialized_labels_decode():
+def test_serialized_answers_decode():
+    """The fdi node's two answers, published as bytes: rclpy's bytes, and they decode to the same report."""
+    from rclpy.serialization import deserialize_message, serialize_message
+
     report = LabelsReport.from_arrays(frame_id=7, stamp=1.5, first_nozzle=100, model_id="m",
                                       classes=np.array(["healthy_nozzle", "deeply_dried"], dtype=object),
                                       confidence=[0.9, 0.8123], valid=[True, True], reasons=["", ""])
-    from rclpy.serialization import deserialize_message
-
-    got = decode_labels(deserialize_message(msg_defs.serialized(encode_labels(report)), String))
-    assert got == report
+    labels, drying = encode_labels(report), encode_drying(DryingNozzles.from_labels(report))
+    for msg in (labels, drying):
+        assert msg_defs.serialized(msg) == serialize_message(msg)
+    assert decode_labels(deserialize_message(msg_defs.serialized(labels), String)) == report
+    assert decode_drying(deserialize_message(msg_defs.serialized(drying), String)).nozzles == (101,)
+    with pytest.raises(TypeError, match="std_msgs/String"):
+        msg_defs.serialized(Float64MultiArray())
