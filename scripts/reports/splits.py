@@ -22,7 +22,10 @@ Per head and seed, through the ``inkdiag`` command as a user runs it:
    ``train`` and ``label`` the same test recording.
 
 Prints and writes ``reports/splits.md``: the calibrated restrictor inertance against the true
-one, FD, FI and the weakest classes of both passes.
+one, FD, FI and the weakest classes of both passes, how far the second pass moved the restrictor
+from the first, and how ways of choosing between the two profiles without labels did on these
+runs (the restrictor moved more than 10 %; always the second; the model more confident on, or
+calling fewer rows unknown in, the recording of faults, which both models label).
 """
 
 from __future__ import annotations
@@ -89,6 +92,53 @@ def _weakest(per):
     return f"{c} {100 * per[c]:.1f}"
 
 
+#: The rule calibrate's note gave for a second pass: keep its profile when its I_r moved more than this.
+RULE_CHANGE = 0.10
+
+#: Ways to choose between the two passes' profiles without labels: name -> (run -> 2 or 1).
+RULES = {
+    "the restrictor moved more than 10 %": lambda r: 2 if abs(_moved(r)) > RULE_CHANGE else 1,
+    "always the second pass": lambda r: 2,
+    "the model more confident on the recording of faults": lambda r: (
+        2 if r["pass 2"]["field_confidence"] > r["pass 1"]["field_confidence"] else 1),
+    "the model with fewer unknowns on the recording of faults": lambda r: (
+        2 if r["pass 2"]["field_unknown"] < r["pass 1"]["field_unknown"] else 1),
+}
+
+
+def _moved(r) -> float:
+    """The second pass's restrictor inertance against the first's, relative."""
+    return (1 + r["pass 2"]["I_r_err"]) / (1 + r["pass 1"]["I_r_err"]) - 1
+
+
+def rule_summary(results) -> str:
+    """How each way of choosing between the passes (:data:`RULES`) did on ``results`` (``(split, seed,
+    run(...))``): the weakest class it keeps against the better pass's, in all, then per run."""
+    out = []
+    for name, rule in RULES.items():
+        hits, loss = 0, []
+        for *_, r in results:
+            w = {k: min(r[f"pass {k}"]["per"].values()) for k in (1, 2)}
+            kept = w[rule(r)]
+            hits += kept == max(w.values())
+            loss.append(max(w.values()) - kept)
+        out.append([name, f"{hits} of {len(results)}", f"{100 * max(loss):.1f}", f"{100 * float(np.mean(loss)):.1f}"])
+    lines = []
+    for split, seed, r in results:
+        p1, p2 = r["pass 1"], r["pass 2"]
+        lines.append(f"{split[0]:g} / {split[1]:g} seed {seed}: I_r moved {100 * _moved(r):+.1f} %, weakest class "
+                     f"{100 * min(p1['per'].values()):.1f} -> {100 * min(p2['per'].values()):.1f} %, mean confidence "
+                     f"on the recording of faults {p1.get('field_confidence', math.nan):.3f} -> "
+                     f"{p2.get('field_confidence', math.nan):.3f}, unknown {100 * p1.get('field_unknown', math.nan):.1f}"
+                     f" -> {100 * p2.get('field_unknown', math.nan):.1f} %")
+    return ("Choosing between the two profiles without labels, by what a user has (the two fit reports, the two "
+            "models' labels of the recording of faults): how often each way kept the pass with the higher weakest "
+            "class (a tie counts as kept), and the points of that class it gave up.\n\n"
+            + md_table(["keep the second pass when", "kept the better", "points given up, most",
+                        "points given up, mean"], out)
+            + "\n\n" + "\n".join(f"- {x}" for x in lines))
+
+
 def run(split, seed, work, *, per_class, field_per_class, n_per_class, log):
     """Both passes on one head and seed: ``{"pass 1": {...}, "pass 2": {...}}`` (scores, the I_r error)."""
     ratio_i, ratio_r = split
@@ -107,18 +157,32 @@ def run(split, seed, work, *, per_class, field_per_class, n_per_class, log):
     for step, extra in (("pass 1", []), ("pass 2", ["--blocked", d / "field.npz", "--blocked-labels",
                                                     d / "field_labels.csv"])):
         tag = step.replace(" ", "")
-        _inkdiag("calibrate", d / "healthy.npz", "--nominal", d / "nominal.yaml", *extra,
-                 "--out", d / f"{tag}.yaml", log=log)
+        try:
+            _inkdiag("calibrate", d / "healthy.npz", "--nominal", d / "nominal.yaml", *extra,
+                     "--out", d / f"{tag}.yaml", log=log)
+        except SystemExit as exc:  # the second calibration refused (e.g. too few rows called fully blocked):
+            if step == "pass 1":  # a user keeps the first profile
+                raise
+            why = str(exc).strip().splitlines()[-1].removeprefix("inkdiag calibrate: error: ")
+            out[step] = {**out["pass 1"], "refused": why}
+            print(f"{ratio_i:g}/{ratio_r:g} seed {seed} {step}: calibrate refused ({why}); the first profile kept",
+                  flush=True)
+            break
         _inkdiag("train", "--profile", d / f"{tag}.yaml", "--out", d / f"{tag}.joblib", *train, log=log)
         _inkdiag("label", d / "test.npz", "--model", d / f"{tag}.joblib", "--out", d / f"{tag}_test.csv", log=log)
         fd, fi, per, *_ = _scores(d / f"{tag}_test.csv", test["labels"])
         ir = _split_errors(HeadProfile.load(d / f"{tag}.yaml").channel, head["channel"])["I_r_err"]
         out[step] = {"I_r_err": ir, "fd": fd, "fi": fi, "per": per}
-        if step == "pass 1":  # the recording of faults, labelled by the first model: its fully blocked rows
-            _inkdiag("label", d / "field.npz", "--model", d / f"{tag}.joblib", "--out", d / "field_labels.csv",
-                     log=log)
-            called = np.array([r["class"] == FaultClass.FULLY_BLOCKED.value for r in
-                               sorted(_read_csv(d / "field_labels.csv"), key=lambda r: int(r["row"]))])
+        # the recording of faults labelled by this pass's model: the first pass's fully blocked rows feed the
+        # second; what a user can compare the two models by without labels (their confidence, their unknowns)
+        labels = d / ("field_labels.csv" if step == "pass 1" else f"field_{tag}.csv")
+        _inkdiag("label", d / "field.npz", "--model", d / f"{tag}.joblib", "--out", labels, log=log)
+        rows = sorted(_read_csv(labels), key=lambda r: int(r["row"]))
+        judged = [r for r in rows if r["class"] != "invalid"]
+        out[step].update(field_confidence=float(np.mean([float(r["confidence"]) for r in judged])),
+                         field_unknown=float(np.mean([r["class"] == "unknown" for r in judged])))
+        if step == "pass 1":
+            called = np.array([r["class"] == FaultClass.FULLY_BLOCKED.value for r in rows])
             truly = np.asarray(field["labels"], dtype=object) == FaultClass.FULLY_BLOCKED.value
             out["field"] = {"called": int(called.sum()), "right": int((called & truly).sum()),
                             "blocked": int(truly.sum())}
@@ -146,7 +210,7 @@ def main(argv=None) -> int:
         ap.error(f"--splits takes RATIO_I/RATIO_R pairs of positive numbers such as 1.25/0.4, got {args.splits}")
     work = ROOT / "reports" / "splits_work" if args.keep else Path(tempfile.mkdtemp(prefix="inkdiag_splits_"))
     heads._WORK[0] = str(work)  # the commands below show it as WORK
-    t0, log, rows = time.perf_counter(), [], []
+    t0, log, rows, results = time.perf_counter(), [], [], []
     n_first = None
     try:
         for split in splits:
@@ -154,14 +218,18 @@ def main(argv=None) -> int:
                 r = run(split, seed, work, per_class=args.per_class, field_per_class=args.field_per_class,
                         n_per_class=args.n_per_class, log=log)
                 n_first = len(log) if n_first is None else n_first
+                results.append((split, seed, r))
                 for step in ("pass 1", "pass 2"):
                     s = r[step]
                     first = step == "pass 1"
+                    moved = (1 + s["I_r_err"]) / (1 + r["pass 1"]["I_r_err"]) - 1
                     rows.append([f"{split[0]:g} / {split[1]:g}" if first and seed == args.seeds[0] else "",
-                                 seed if first else "", step,
+                                 seed if first else "", step if "refused" not in s else
+                                 f"{step}: calibrate refused ({s['refused']}), the first profile kept",
                                  (f"{r['field']['called']} ({r['field']['right']} of {r['field']['blocked']})"
                                   if not first else ""),
-                                 f"{100 * s['I_r_err']:+.1f}", f"{100 * s['fd']:.1f}", f"{100 * s['fi']:.1f}",
+                                 f"{100 * s['I_r_err']:+.1f}", "" if first else f"{100 * moved:+.1f}",
+                                 f"{100 * s['fd']:.1f}", f"{100 * s['fi']:.1f}",
                                  _weakest(s["per"]), *(f"{100 * s['per'][c]:.1f}" for c in SHOWN)])
     finally:
         if not args.keep:
@@ -184,12 +252,14 @@ def main(argv=None) -> int:
         "--blocked-labels ITS.csv` (*blocked rows taken*: the rows it called fully blocked, in brackets how many of "
         f"them were, of the recording's {args.field_per_class}), "
         "`train`, `label` the same test recording. *I_r error*: calibrated restrictor inertance against the "
-        "true one.",
+        "true one; *I_r moved*: the second pass's against the first's.",
         "",
-        md_table(["I_r/I_n / R_r/R_n", "seed", "pass", "blocked rows taken", "I_r error %", "FD %", "FI %",
-                  "weakest class %", *(f"{c} %" for c in SHOWN)], rows),
+        md_table(["I_r/I_n / R_r/R_n", "seed", "pass", "blocked rows taken", "I_r error %", "I_r moved %", "FD %",
+                  "FI %", "weakest class %", *(f"{c} %" for c in SHOWN)], rows),
         "",
         "Issue 14's targets: FD >= 98 %, FI >= 90 %, every class >= 75 %.",
+        "",
+        rule_summary(results),
         "",
         "The commands of the first head and seed (each run the same with its own files):",
         "",

@@ -48,3 +48,23 @@ def test_split_head_at_h20s_own_split_is_h20(mod):
     got = mod.split_head(ri, rr)["channel"]
     for key in ("r_r", "L_r", "B_act"):
         assert got[key] == pytest.approx(ch[key], rel=1e-9), key
+
+
+
+def test_rule_summary_scores_each_way_of_choosing(mod):
+    """Each way of choosing between the passes without labels, scored by the weakest class it keeps."""
+    def run(e1, e2, w1, w2, c1, c2, u1, u2):
+        return {"pass 1": {"I_r_err": e1, "per": {"a": w1, "b": 0.99}, "field_confidence": c1, "field_unknown": u1},
+                "pass 2": {"I_r_err": e2, "per": {"a": w2, "b": 0.99}, "field_confidence": c2, "field_unknown": u2}}
+
+    results = [((1.0, 1.0), 0, run(-0.28, -0.05, 0.01, 0.60, 0.7, 0.8, 0.05, 0.01)),  # moved +31.9 %
+               ((0.78, 0.2), 0, run(0.005, -0.009, 0.83, 0.775, 0.9, 0.8, 0.01, 0.02)),  # moved -1.4 %
+               ((0.78, 0.2), 7, run(0.065, -0.028, 0.70, 0.74, 0.8, 0.7, 0.02, 0.01))]  # moved -8.7 %
+    text = mod.rule_summary(results)
+    rows = {line.split(" | ")[0].strip("| "): line.split(" | ")[1:] for line in text.splitlines() if line.startswith("| ")}
+    # moved > 10 %: pass 2, pass 1, pass 1 -> the better in runs 1 and 2; run 3 gives up 4 points
+    assert rows["the restrictor moved more than 10 %"] == ["2 of 3", "4.0", "1.3 |"]
+    assert rows["always the second pass"] == ["2 of 3", "5.5", "1.8 |"]
+    assert rows["the model more confident on the recording of faults"] == ["2 of 3", "4.0", "1.3 |"]
+    assert rows["the model with fewer unknowns on the recording of faults"] == ["3 of 3", "0.0", "0.0 |"]
+    assert "moved +31.9 %, weakest class 1.0 -> 60.0 %" in text and "unknown 5.0 -> 1.0 %" in text
