@@ -1,6 +1,7 @@
 """Splits report: heads whose restrictor shares the channel unlike the design ratios, and the second pass.
 
-    scripts/report splits [--splits 0.78/0.20 1.25/0.4 0.6/0.15 1.0/1.0] [--seeds 0 7] [--per-class 200]
+    scripts/report splits [--splits 0.78/0.20 1.25/0.4 0.6/0.15 1.0/1.0 1.1/0.6 0.7/0.3 1.5/0.5 0.8/0.8]
+                          [--seeds 0 7] [--per-class 200]
                           [--field-per-class 100] [--n-per-class N] [--keep]
 
 Healthy traces pin a head's healthy mode, not how the restrictor and the nozzle share it:
@@ -160,9 +161,9 @@ def run(split, seed, work, *, per_class, field_per_class, n_per_class, log):
         try:
             _inkdiag("calibrate", d / "healthy.npz", "--nominal", d / "nominal.yaml", *extra,
                      "--out", d / f"{tag}.yaml", log=log)
-        except SystemExit as exc:  # the second calibration refused (e.g. too few rows called fully blocked):
-            if step == "pass 1":  # a user keeps the first profile
-                raise
+        except SystemExit as exc:  # the second calibration refused (too few rows called fully blocked, say):
+            if step == "pass 1" or "(exit 2)" not in str(exc):  # a crash, not a refusal: the report fails
+                raise  # (a refusal: a user keeps the first profile)
             why = str(exc).strip().splitlines()[-1].removeprefix("inkdiag calibrate: error: ")
             out[step] = {**out["pass 1"], "refused": why}
             print(f"{ratio_i:g}/{ratio_r:g} seed {seed} {step}: calibrate refused ({why}); the first profile kept",
@@ -193,7 +194,8 @@ def run(split, seed, work, *, per_class, field_per_class, n_per_class, log):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--splits", nargs="+", default=["0.78/0.20", "1.25/0.4", "0.6/0.15", "1.0/1.0"],
+    ap.add_argument("--splits", nargs="+", default=["0.78/0.20", "1.25/0.4", "0.6/0.15", "1.0/1.0", "1.1/0.6",
+                                                    "0.7/0.3", "1.5/0.5", "0.8/0.8"],
                     help="restrictor splits RATIO_I/RATIO_R: I_r / I_n and R_r / R_n, both > 0")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 7])
     ap.add_argument("--per-class", type=int, default=200, help="test traces per class")

@@ -50,7 +50,6 @@ def test_split_head_at_h20s_own_split_is_h20(mod):
         assert got[key] == pytest.approx(ch[key], rel=1e-9), key
 
 
-
 def test_rule_summary_scores_each_way_of_choosing(mod):
     """Each way of choosing between the passes without labels, scored by the weakest class it keeps."""
     def run(e1, e2, w1, w2, c1, c2, u1, u2):
@@ -68,3 +67,9 @@ def test_rule_summary_scores_each_way_of_choosing(mod):
     assert rows["the model more confident on the recording of faults"] == ["2 of 3", "4.0", "1.3 |"]
     assert rows["the model with fewer unknowns on the recording of faults"] == ["3 of 3", "0.0", "0.0 |"]
     assert "moved +31.9 %, weakest class 1.0 -> 60.0 %" in text and "unknown 5.0 -> 1.0 %" in text
+    # a refused second pass is the first profile kept: a tie, kept by every way, moved 0
+    refused = run(0.4, 0.4, 0.0, 0.0, 0.9, 0.9, 0.0, 0.0)
+    rows = {line.split(" | ")[0].strip("| "): line.split(" | ")[1:] for line in
+            mod.rule_summary(results + [((0.7, 0.3), 7, refused)]).splitlines() if line.startswith("| ")}
+    assert rows["always the second pass"] == ["3 of 4", "5.5", "1.4 |"]
+    assert "moved +0.0 %" in mod.rule_summary([((0.7, 0.3), 7, refused)])

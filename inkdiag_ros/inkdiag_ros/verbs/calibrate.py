@@ -28,8 +28,8 @@ Traces screening refuses (non-finite, out of range, flat, clipped) are dropped a
 column, only its healthy_nozzle rows are used. See docs/calibration.md.
 
 Healthy traces pin the healthy mode, not how the restrictor and the nozzle share it (the
-prior does: within +-12 % on the heads of reports/heads.md, up to 28.5 % off on heads
-whose restrictor is far from the default head's design, reports/splits.md). A fit that
+prior does: within +-12 % on the heads of reports/heads.md, -35.3 to +47.7 % off on heads
+of other restrictor splits, reports/splits.md). A fit that
 needs a restrictor far from the design ratios (an inertance beyond a factor 2.5 of 1.03
 I_n, a resistance above 4 times R_n / 2) is refused: a nominal channel that is not the
 head's (a nozzle of the wrong size, mu not the ink's at the head's temperature) or
