@@ -224,13 +224,12 @@ def main(argv=None) -> int:
                 for step in ("pass 1", "pass 2"):
                     s = r[step]
                     first = step == "pass 1"
-                    moved = (1 + s["I_r_err"]) / (1 + r["pass 1"]["I_r_err"]) - 1
                     rows.append([f"{split[0]:g} / {split[1]:g}" if first and seed == args.seeds[0] else "",
                                  seed if first else "", step if "refused" not in s else
                                  f"{step}: calibrate refused ({s['refused']}), the first profile kept",
                                  (f"{r['field']['called']} ({r['field']['right']} of {r['field']['blocked']})"
                                   if not first else ""),
-                                 f"{100 * s['I_r_err']:+.1f}", "" if first else f"{100 * moved:+.1f}",
+                                 f"{100 * s['I_r_err']:+.1f}", "" if first else f"{100 * _moved(r):+.1f}",
                                  f"{100 * s['fd']:.1f}", f"{100 * s['fi']:.1f}",
                                  _weakest(s["per"]), *(f"{100 * s['per'][c]:.1f}" for c in SHOWN)])
     finally:
