@@ -13,7 +13,7 @@ from rclpy.node import Node
 from inkdiag_core import FrameFailure, LabellerConfigError, ModelFileError, load_labeller
 from msg_defs import (DIAGNOSTICS_MSG_TYPE, DIAGNOSTICS_QOS, DRYING_MSG_TYPE, LABELS_MSG_TYPE, RELIABLE_QOS,
                       TRACE_MSG_TYPE, TRACES_QOS, DryingNozzles, FrameError, LabelsReport, build_diagnostics,
-                      decode_traces_serialized, encode_drying, encode_labels, serialized, topics)
+                      decode_traces_serialized, serialize_drying, serialize_labels, topics)
 
 from . import _params
 from ._head import HEAD_PROFILE_PARAM, SAMPLING_PARAMS, head_from_parameters
@@ -133,8 +133,8 @@ class FdiNode(Node):
             report = LabelsReport.from_arrays(
                 frame_id=frame.frame_id, stamp=frame.stamp, first_nozzle=frame.first_nozzle, model_id=self.model_id,
                 **{k: getattr(result, k) for k in ("classes", "confidence", "valid", "reasons", "gate_cleared")})
-            self._labels_pub.publish(serialized(encode_labels(report)))  # bytes: no conversion by rclpy
-            self._drying_pub.publish(serialized(encode_drying(DryingNozzles.from_labels(report))))
+            self._labels_pub.publish(serialize_labels(report))  # bytes: no conversion by rclpy
+            self._drying_pub.publish(serialize_drying(DryingNozzles.from_labels(report)))
         except Exception as exc:  # noqa: BLE001 - this frame failed; the batch's others go on
             return self._failed(frame, exc)
         self.stats.labelled(report.counts, report.n_nozzles, int(np.count_nonzero(result.baseline)), report.gate_cleared)

@@ -28,8 +28,9 @@ from .labels import (
     LabelsReport,
     decode_labels,
     encode_labels,
+    serialize_labels,
 )
-from .drying import DRYING_MSG_TYPE, DryingNozzles, decode_drying, encode_drying
+from .drying import DRYING_MSG_TYPE, DryingNozzles, decode_drying, encode_drying, serialize_drying
 from .estimates import (
     ESTIMATES_ARRAY_MSG_TYPE,
     ESTIMATES_MSG_TYPE,
@@ -87,6 +88,8 @@ __all__ = [
     "encode_traces",
     "encode_truth",
     "restamp_traces",
+    "serialize_drying",
+    "serialize_labels",
     "serialized",
     "topics",
     "truth_from_arrays",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import struct
+from json.encoder import encode_basestring_ascii as quote  # json.dumps' own string quoting (ensure_ascii)
 
 from std_msgs.msg import String
 
@@ -43,8 +44,30 @@ def serialized(msg: String) -> bytes:
     """
     if not isinstance(msg, String):  # published raw, the bytes skip rclpy's type check: keep it here
         raise TypeError(f"serialized takes a std_msgs/String, got {type(msg).__name__}")
-    text = msg.data.encode("utf-8")
-    return b"".join((_CDR_LE, _u32(len(text) + 1), text, b"\x00"))
+    return cdr(msg.data)
+
+
+def cdr(text: str) -> bytes:
+    """The CDR bytes of a ``std_msgs/String`` holding ``text`` (no NUL character)."""
+    b = text.encode("utf-8")
+    return b"".join((_CDR_LE, _u32(len(b) + 1), b, b"\x00"))
+
+
+class NotPlain(Exception):
+    """A value the byte encoders do not write themselves (not exactly an int, a finite float or a str):
+    the caller falls back to ``json``, which writes it, or raises, as :func:`dump` would."""
+
+
+def plain(x, kind):
+    """``x`` if it is exactly of ``kind`` (int: not bool; float: finite), else :class:`NotPlain`."""
+    if type(x) is not kind or (kind is float and x - x != 0.0):  # inf - inf, nan - nan: nan
+        raise NotPlain
+    return x
+
+
+def head(schema: str) -> str:
+    """The opening of a message's JSON text, as :func:`dump` writes it, before its first body field."""
+    return f'{{"schema":{quote(schema)},"schema_version":{JSON_SCHEMA_VERSION},'
 
 
 def load(msg, schema: str) -> dict:

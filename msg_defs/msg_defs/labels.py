@@ -54,6 +54,7 @@ __all__ = [
     "UNKNOWN_CLASS",
     "LabelsReport",
     "encode_labels",
+    "serialize_labels",
     "decode_labels",
 ]
 
@@ -127,33 +128,48 @@ class LabelsReport:
                 f"labels: classes, confidence, valid and reasons must all have shape ({n},), got "
                 f"{classes.shape}, {np.shape(confidence)}, {valid.shape}, {np.shape(reasons)}"
             )
-        # One list of the classes, a Counter and a set test per row instead of np.unique / np.isin on
-        # strings, which sort and convert: this runs for every published frame.
+        # Lists and counts of the Python strings instead of np.unique / np.isin, which sort and convert:
+        # this runs for every published frame (scripts/bench node).
         cl = classes.tolist()
         n_valid = int(np.count_nonzero(valid))
+        g = None
+        if gate_cleared is not None:
+            g = np.asarray(gate_cleared, dtype=bool)
+            if g.shape != (n,):
+                raise MessageError(f"labels: gate_cleared must have shape ({n},), got {g.shape}")
+        faulty = None
         if n_valid == n:
-            by_class = Counter(cl)
-            faulty = [i for i, c in enumerate(cl) if c not in _HEALTHY]
+            by_class = {h: k for h in HEALTHY_CLASSES if (k := cl.count(h))}
+            n_healthy = sum(by_class.values())
+            if n_healthy == n:
+                faulty = []
+            elif g is not None:  # the gate's rows are healthy ones: look for faults among the others only
+                rest = np.flatnonzero(~g).tolist()
+                faulty = [i for i in rest if cl[i] not in _HEALTHY]
+                if len(rest) - len(faulty) + (n - len(rest)) != n_healthy:  # a cleared row is not healthy
+                    faulty = None
+            if faulty is None:
+                faulty = [i for i, c in enumerate(cl) if c not in _HEALTHY]
+            for i in faulty:  # a few rows: a Counter costs more than it saves
+                by_class[cl[i]] = by_class.get(cl[i], 0) + 1
         else:
             ok = valid.tolist()
             by_class = Counter(c for c, v in zip(cl, ok) if v)
             faulty = [i for i, (c, v) in enumerate(zip(cl, ok)) if v and c not in _HEALTHY]
         counts = {str(c): by_class[c] for c in sorted(by_class)}
         counts[INVALID_KEY] = n - n_valid
-        conf = np.rint(np.asarray(confidence, dtype=float)[faulty] * 1e3) / 1e3  # np.round(., 3)
         f0 = int(first_nozzle)
-        faults = tuple(zip([f0 + i for i in faulty], [str(cl[i]) for i in faulty], conf.tolist()))
+        faults = ()
+        if faulty:
+            conf = np.asarray(confidence, dtype=float)[faulty]
+            conf = np.rint(conf * 1e3, out=conf) / 1e3  # np.round(., 3)
+            faults = tuple(zip([f0 + i for i in faulty], [str(cl[i]) for i in faulty], conf.tolist()))
         bad = ~valid
         invalid = ()
         if n_valid < n:
             ids = np.arange(f0, f0 + n)
             invalid = tuple(zip(ids[bad].tolist(), map(str, np.asarray(reasons, dtype=object)[bad].tolist())))
-        n_cleared = 0
-        if gate_cleared is not None:
-            g = np.asarray(gate_cleared, dtype=bool)
-            if g.shape != (n,):
-                raise MessageError(f"labels: gate_cleared must have shape ({n},), got {g.shape}")
-            n_cleared = int(np.count_nonzero(g & valid))
+        n_cleared = 0 if g is None else int(np.count_nonzero(g & valid))
         return cls(int(frame_id), float(stamp), int(first_nozzle), int(n), str(model_id), counts,
                    faults, invalid, n_cleared)
 
@@ -176,6 +192,34 @@ def encode_labels(report: LabelsReport) -> String:
         "faults": [{"nozzle": nz, "class": c, "confidence": p} for nz, c, p in report.faults],
         "invalid": [{"nozzle": nz, "reason": r} for nz, r in report.invalid],
     })
+
+
+_LABELS_HEAD = _json.head(LABELS_SCHEMA)
+
+
+def serialize_labels(report: LabelsReport) -> bytes:
+    """The CDR bytes of :func:`encode_labels`'s message, byte for byte ``serialized(encode_labels(report))``,
+    the text written directly instead of through ``json`` (what the fdi node publishes for every frame).
+
+    A value that is not exactly an int, a finite float or a str where the schema has one (a numpy
+    scalar, a NaN) goes the ``json`` way, which writes it or raises as :func:`encode_labels` does.
+    """
+    try:
+        return _json.cdr(_labels_text(report))
+    except _json.NotPlain:
+        return _json.serialized(encode_labels(report))
+
+
+def _labels_text(r: LabelsReport) -> str:
+    p, q = _json.plain, _json.quote
+    counts = ",".join([f"{q(p(c, str))}:{p(k, int)}" for c, k in r.counts.items()])
+    faults = ",".join([f'{{"nozzle":{p(nz, int)},"class":{q(p(c, str))},"confidence":{p(x, float)!r}}}'
+                       for nz, c, x in r.faults])
+    invalid = ",".join([f'{{"nozzle":{p(nz, int)},"reason":{q(p(why, str))}}}' for nz, why in r.invalid])
+    return (f'{_LABELS_HEAD}"frame_id":{p(r.frame_id, int)},"stamp":{p(round(r.stamp, 6), float)!r},'
+            f'"first_nozzle":{p(r.first_nozzle, int)},"n_nozzles":{p(r.n_nozzles, int)},'
+            f'"model_id":{q(p(r.model_id, str))},"counts":{{{counts}}},"gate_cleared":{p(r.gate_cleared, int)},'
+            f'"faults":[{faults}],"invalid":[{invalid}]}}')
 
 
 def decode_labels(msg) -> LabelsReport:

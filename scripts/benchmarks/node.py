@@ -4,8 +4,8 @@
 
 What the fdi node does with each 200-nozzle trace message once rclpy has taken it:
 ``decode_traces`` -> ``FrameLabeller.label`` (screening, the healthy gate, the detector on
-what the gate did not clear) -> ``LabelsReport.from_arrays`` -> ``encode_labels`` and
-``encode_drying``; timed per message with the frames labelled one message per call and in
+what the gate did not clear) -> ``LabelsReport.from_arrays`` -> the labels and drying messages'
+bytes (``serialize_labels``, ``serialize_drying``; a tree without them: its encoders' text as CDR); timed per message with the frames labelled one message per call and in
 batches of 8 messages per call (what the labelling pipeline hands the labeller under load:
 ``scripts/bench graph`` reports 8-9 frames per classifier pass). The head is
 :func:`graph.realistic_head` (2,656 nozzles, 2 % faulty, every nozzle's baseline and
@@ -25,6 +25,7 @@ import argparse
 import hashlib
 import json
 import os
+import struct
 import subprocess
 import sys
 import tarfile
@@ -42,6 +43,15 @@ def child(data: Path, model: str, n_nozzles: int, chunk: int, passes: int = 5) -
     """This interpreter's package versions: CPU s per message for each batch size, and a digest of the output."""
     from inkdiag_core import load_labeller
     from msg_defs import DryingNozzles, LabelsReport, decode_traces, encode_drying, encode_labels, encode_traces
+
+    try:  # what the fdi node of each tree publishes: the two answers' CDR bytes
+        from msg_defs import serialize_drying, serialize_labels
+    except ImportError:  # a tree before them: the messages' bytes as serialize_message gives them
+        def serialize_labels(report):
+            return cdr(encode_labels(report).data)
+
+        def serialize_drying(drying):
+            return cdr(encode_drying(drying).data)
 
     frames = np.load(data / "frames.npy")
     labeller, err = load_labeller(model, data / "baselines.npz", max_abs_v=10.0, sample_rate_hz=10e6, n_samples=512)
@@ -61,13 +71,13 @@ def child(data: Path, model: str, n_nozzles: int, chunk: int, passes: int = 5) -
                     frame_id=f.frame_id, stamp=f.stamp, first_nozzle=f.first_nozzle, classes=r.classes,
                     confidence=r.confidence, valid=r.valid, reasons=r.reasons, model_id="bench",
                     gate_cleared=r.gate_cleared)
-                out.append((encode_labels(report).data, encode_drying(DryingNozzles.from_labels(report)).data))
+                out.append((serialize_labels(report), serialize_drying(DryingNozzles.from_labels(report))))
         return out
 
     digest = hashlib.sha256()
     for labels, drying in run(1):
-        digest.update(labels.encode())
-        digest.update(drying.encode())
+        digest.update(labels)
+        digest.update(drying)
     per_msg = {}
     for batch in BATCHES:
         run(batch)  # warm
@@ -78,6 +88,12 @@ def child(data: Path, model: str, n_nozzles: int, chunk: int, passes: int = 5) -
             best = min(best, (time.process_time() - t) / len(msgs))
         per_msg[str(batch)] = best
     return {"per_msg_s": per_msg, "digest": digest.hexdigest(), "messages": len(msgs)}
+
+
+def cdr(text: str) -> bytes:
+    """A ``std_msgs/String``'s CDR bytes (``rclpy.serialization.serialize_message``'s)."""
+    b = text.encode("utf-8")
+    return b"\x00\x01\x00\x00" + struct.pack("<I", len(b) + 1) + b + b"\x00"
 
 
 def extract(ref: str, tmp: Path) -> Path:

@@ -1,18 +1,20 @@
-"""CPU of publishing the fdi node's answers: a message object against its serialized bytes, same run.
+"""CPU of publishing the fdi node's answers: a message object, its serialized bytes, bytes written directly; same run.
 
     scripts/bench publish [--rounds 4] [--count 4000] [--faults 5]
 
 For each trace message the fdi node publishes a ``labels`` and a ``drying_nozzles`` message
 (``std_msgs/String`` JSON). ``Publisher.publish`` takes either the message object (rclpy
 converts it to its C form, then the middleware serializes it) or its serialized bytes
-(``msg_defs.serialized``: published as they are). This publishes the same realistic pair (a
+(``msg_defs.serialized``: published as they are); ``msg_defs.serialize_labels`` and
+``serialize_drying`` write the same bytes without the ``json`` encoder and the message object (what
+the node publishes). This publishes the same realistic pair (a
 200-nozzle frame with ``--faults`` faulty nozzles) ``--count`` times per round each way (14
 pairs, one head scan's, back to back, then 10 ms of rest), ``--rounds`` rounds each way in
-turn (which way goes first alternates), to a subscriber in another process (a raw
+turn (which way goes first rotates), to a subscriber in another process (a raw
 subscription on rclpy's ``EventsExecutor``, as the bench's ceiling takes messages), and
 prints the publishing thread's CPU per message pair (``getrusage(RUSAGE_THREAD)``, user +
-system, building the message included: ``encode_*`` and, for bytes, ``serialized``), best
-of the rounds, and the ratio. It checks that the bytes are
+system, building the message included: ``encode_*`` and ``serialized``, or ``serialize_*``),
+best of the rounds, and the ratios. It checks that the bytes of both byte ways are
 ``rclpy.serialization.serialize_message``'s and that the subscriber got every message (exit
 status 1 otherwise).
 """
@@ -67,7 +69,7 @@ def thread_cpu() -> float:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--role", default="bench", choices=["bench", "sink"])
-    ap.add_argument("--rounds", type=int, default=4, help="rounds of each way, alternating")
+    ap.add_argument("--rounds", type=int, default=4, help="rounds of each way, in turn")
     ap.add_argument("--count", type=int, default=4000, help="message pairs per round")
     ap.add_argument("--faults", type=int, default=5, help="faulty nozzles in the 200-nozzle frame")
     ap.add_argument("--expected", type=int, default=0, help=argparse.SUPPRESS)  # the sink's
@@ -82,7 +84,8 @@ def main() -> int:
     from rclpy.serialization import serialize_message
     from std_msgs.msg import String
 
-    from msg_defs import DryingNozzles, LabelsReport, RELIABLE_QOS, encode_drying, encode_labels, serialized
+    from msg_defs import (DryingNozzles, LabelsReport, RELIABLE_QOS, encode_drying, encode_labels, serialize_drying,
+                          serialize_labels, serialized)
 
     n = 200
     classes = np.array(["healthy_nozzle"] * n, dtype=object)
@@ -93,12 +96,14 @@ def main() -> int:
                                       confidence=np.linspace(0.5, 0.99, n), valid=np.ones(n, bool),
                                       reasons=np.full(n, "", dtype=object), model_id="fdi-rf-kpi_y-3f2a9c1b+baseline",
                                       gate_cleared=classes == "healthy_nozzle")
+    drying = DryingNozzles.from_labels(report)
     same = all(serialized(m) == serialize_message(m)
-               for m in (encode_labels(report), encode_drying(DryingNozzles.from_labels(report)), String(data=""),
-                         String(data="é ü ∆ " * 7)))
+               for m in (encode_labels(report), encode_drying(drying), String(data=""), String(data="é ü ∆ " * 7)))
+    same &= (serialize_labels(report) == serialize_message(encode_labels(report))
+             and serialize_drying(drying) == serialize_message(encode_drying(drying)))
     print(f"publish benchmark: a labels message ({len(encode_labels(report).data)} characters, {ns.faults} faults) "
-          f"and its drying message, {ns.count} pairs per round, {ns.rounds} rounds each way, alternating; "
-          f"serialized bytes identical to serialize_message's: {same}")
+          f"and its drying message, {ns.count} pairs per round, {ns.rounds} rounds each way, in turn; "
+          f"both ways' bytes identical to serialize_message's: {same}")
     if not same:
         return 1
 
@@ -106,7 +111,7 @@ def main() -> int:
     node = Node("bench_publish")
     pubs = [node.create_publisher(String, topic, RELIABLE_QOS) for topic in (LABELS_TOPIC, DRYING_TOPIC)]
     env = dict(os.environ)
-    total = 2 * ns.count * 2 * ns.rounds
+    total = 2 * ns.count * 3 * ns.rounds
     sub = subprocess.Popen([sys.executable, __file__, "--role", "sink", "--expected", str(total)], env=env,
                            stdout=subprocess.PIPE, text=True)
     t0 = time.monotonic()
@@ -126,10 +131,15 @@ def main() -> int:
         pubs[0].publish(serialized(encode_labels(report)))
         pubs[1].publish(serialized(encode_drying(DryingNozzles.from_labels(report))))
 
-    ways = {"message object": as_object, "serialized bytes": as_bytes}
+    def as_direct_bytes():
+        pubs[0].publish(serialize_labels(report))
+        pubs[1].publish(serialize_drying(DryingNozzles.from_labels(report)))
+
+    ways = {"message object": as_object, "serialized bytes": as_bytes, "direct bytes": as_direct_bytes}
     cpu = {k: [] for k in ways}
+    order = list(ways.items())
     for r in range(ns.rounds):
-        for name, publish in (list(ways.items()) if r % 2 == 0 else list(ways.items())[::-1]):
+        for name, publish in order[r % 3:] + order[:r % 3]:
             c0 = thread_cpu()
             for k in range(ns.count):
                 publish()
@@ -142,9 +152,9 @@ def main() -> int:
     for name, v in cpu.items():
         print(f"  {name:<17}: {1e6 * min(v):6.1f} us CPU per pair (best of {ns.rounds}; "
               f"rounds {1e6 * min(v):.1f}-{1e6 * max(v):.1f})")
-    a, b = (min(v) for v in cpu.values())
-    print(f"ratio message object / serialized bytes: {a / b:.2f}x the CPU; "
-          f"the subscriber got {received} of {total} messages")
+    a, b, c = (min(v) for v in cpu.values())
+    print(f"ratios of the CPU: message object / serialized bytes {a / b:.2f}x, serialized / direct bytes {b / c:.2f}x, "
+          f"message object / direct bytes {a / c:.2f}x; the subscriber got {received} of {total} messages")
     node.destroy_node()
     rclpy.try_shutdown()
     return 0 if received == total else 1

@@ -194,3 +194,74 @@ def test_serialized_answers_decode():
     assert decode_drying(deserialize_message(msg_defs.serialized(drying), String)).nozzles == (101,)
     with pytest.raises(TypeError, match="std_msgs/String"):
         msg_defs.serialized(Float64MultiArray())
+
+
+def _random_report(rng, classes, n_max=40):
+    """A frame's arrays as the labeller gives them (some invalid rows, some cleared by the gate, a few of them
+    wrongly: from_arrays must not trust the gate's column for the classes) and the report built from them."""
+    n = int(rng.integers(0, n_max))
+    healthy = rng.random(n) < rng.random()
+    cls = np.where(healthy, rng.choice(msg_defs.HEALTHY_CLASSES, n), rng.choice(classes, n)).astype(object)
+    valid = rng.random(n) > rng.choice([0.0, 0.2])
+    reasons = np.where(valid, "", rng.choice(["flat", "non_finite", "clipped"], n)).astype(object)
+    cleared = None if rng.random() < 0.2 else (healthy & (rng.random(n) < 0.8)) | (rng.random(n) < rng.choice([0, 0.1]))
+    conf = rng.random(n)
+    if n and rng.random() < 0.05:
+        conf[rng.integers(n)] = rng.choice([math.nan, math.inf])
+    kw = dict(frame_id=int(rng.integers(0, 2**40)), stamp=float(rng.choice([rng.random() * 2e9, 3.0, 0.0])),
+              first_nozzle=int(rng.integers(0, 2**20)), classes=cls, confidence=conf, valid=valid, reasons=reasons,
+              model_id=str(rng.choice(["fdi-rf-kpi_y-3f2a9c1b", "modèle \"ü\"\n", "m"])), gate_cleared=cleared)
+    return kw, LabelsReport.from_arrays(**kw)
+
+
+def _outcome(fn, *args):
+    try:
+        return fn(*args)
+    except Exception as exc:  # noqa: BLE001 - the failure itself is what is compared
+        return type(exc)
+
+
+def test_serialize_labels_and_drying_are_the_json_way_byte_for_byte():
+    """The fdi node publishes serialize_labels / serialize_drying: the very bytes of the json encoders'
+    messages, and the same error where json raises (a NaN confidence, a numpy scalar, a bool)."""
+    rng = np.random.default_rng(5)
+    classes = ["deeply_dried", "slightly_dried", "unknown", "empty_channel_1", "fully_blocked", 'odd "cl\u00e4ss"\t']
+    seen_error = 0
+    for _ in range(3000):
+        _, rep = _random_report(rng, classes)
+        drying = DryingNozzles.from_labels(rep)
+        for old, new, obj in ((encode_labels, msg_defs.serialize_labels, rep),
+                              (encode_drying, msg_defs.serialize_drying, drying)):
+            want = _outcome(lambda o: msg_defs.serialized(old(o)), obj)
+            assert _outcome(new, obj) == want
+            seen_error += isinstance(want, type)
+    assert seen_error > 0  # the NaN and inf confidences were met
+    # reports built by hand with values json writes otherwise or refuses: the json way, the same outcome
+    base = _random_report(np.random.default_rng(1), classes)[1]
+    import dataclasses
+    for change in (dict(frame_id=np.int64(3)), dict(stamp=np.float64(1.5)), dict(stamp=2), dict(gate_cleared=True),
+                   dict(counts={"healthy_nozzle": np.int64(2), "invalid": 0}), dict(model_id=np.str_("m")),
+                   dict(faults=((1, "deeply_dried", 1),)), dict(faults=((1, "deeply_dried", np.float32(0.5)),)),
+                   dict(stamp=math.nan), dict(invalid=((np.int64(4), "flat"),))):
+        rep = dataclasses.replace(base, **change)
+        assert _outcome(msg_defs.serialize_labels, rep) == _outcome(lambda r: msg_defs.serialized(encode_labels(r)), rep)
+    for change in (dict(stamp=math.inf), dict(frame_id=np.int64(3)), dict(nozzles=(np.int64(5),), classes=("x",))):
+        d = dataclasses.replace(DryingNozzles(1, 2.0), **change)
+        assert _outcome(msg_defs.serialize_drying, d) == _outcome(lambda x: msg_defs.serialized(encode_drying(x)), d)
+
+
+def test_from_arrays_does_not_trust_the_gate_column_for_classes():
+    """from_arrays looks for faults among the rows the gate did not clear: a cleared row of a fault class (a
+    labeller bug) is still counted and listed, and the report is the one without the column but its count."""
+    rng = np.random.default_rng(11)
+    import dataclasses
+    for _ in range(2000):
+        kw, rep = _random_report(rng, ["deeply_dried", "unknown", "fully_blocked"])
+        plain = LabelsReport.from_arrays(**{**kw, "gate_cleared": None})
+        assert repr(dataclasses.replace(rep, gate_cleared=0)) == repr(dataclasses.replace(plain, gate_cleared=0))  # NaN
+        g = kw["gate_cleared"]
+        assert rep.gate_cleared == (0 if g is None else int(np.count_nonzero(g & kw["valid"])))
+    cls = np.array(["healthy_nozzle", "deeply_dried", "ok_signal"], dtype=object)
+    rep = LabelsReport.from_arrays(frame_id=1, stamp=1.0, first_nozzle=10, classes=cls, confidence=[1, 0.5, 1],
+                                   valid=[True] * 3, reasons=[""] * 3, model_id="m", gate_cleared=[True, True, True])
+    assert rep.faults == ((11, "deeply_dried", 0.5),) and rep.counts["deeply_dried"] == 1 and rep.gate_cleared == 3
