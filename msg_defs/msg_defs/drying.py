@@ -72,16 +72,22 @@ _DRYING_HEAD = _json.head(DRYING_SCHEMA)
 def serialize_drying(d: DryingNozzles) -> bytes:
     """The CDR bytes of :func:`encode_drying`'s message, byte for byte ``serialized(encode_drying(d))``,
     the text written directly instead of through ``json`` (what the fdi node publishes for every frame).
-    A stamp that is not finite goes the ``json`` way, which raises as :func:`encode_drying` does."""
+    A stamp that is not finite, ``nozzles`` or ``classes`` not a tuple, or any value the conversions
+    refuse goes the ``json`` way, which writes it or raises as :func:`encode_drying` does."""
     try:
-        stamp = _json.plain(round(float(d.stamp), 6), float)
-    except _json.NotPlain:
+        return _json.cdr(_drying_text(d))
+    except Exception:  # noqa: BLE001 - NotPlain, or a value int() / float() refuse: the json way decides
         return _json.serialized(encode_drying(d))
+
+
+def _drying_text(d: DryingNozzles) -> str:
+    if type(d.nozzles) is not tuple or type(d.classes) is not tuple:
+        raise _json.NotPlain  # read once, here: an iterator would be left empty for the json way
+    frame_id, stamp = int(d.frame_id), _json.plain(round(float(d.stamp), 6), float)  # encode_drying's conversions
     span = "" if d.first_nozzle is None else f'"first_nozzle":{int(d.first_nozzle)},"n_nozzles":{int(d.n_nozzles)},'
     nozzles = ",".join([str(int(x)) for x in d.nozzles])
     classes = ",".join([_json.quote(str(c)) for c in d.classes])
-    return _json.cdr(f'{_DRYING_HEAD}"frame_id":{int(d.frame_id)},"stamp":{stamp!r},{span}'
-                     f'"nozzles":[{nozzles}],"classes":[{classes}]}}')
+    return f'{_DRYING_HEAD}"frame_id":{frame_id},"stamp":{stamp!r},{span}"nozzles":[{nozzles}],"classes":[{classes}]}}'
 
 
 def decode_drying(msg) -> DryingNozzles:

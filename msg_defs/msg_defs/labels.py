@@ -72,6 +72,7 @@ DRIED_CLASSES = ("slightly_dried", "intermediately_dried", "deeply_dried")
 #: Key of the invalid-row count in ``counts``.
 INVALID_KEY = "invalid"
 _HEALTHY = frozenset(HEALTHY_CLASSES)
+_STR = frozenset({str})
 
 
 @dataclass(frozen=True)
@@ -132,44 +133,51 @@ class LabelsReport:
         # this runs for every published frame (scripts/bench node).
         cl = classes.tolist()
         n_valid = int(np.count_nonzero(valid))
-        g = None
-        if gate_cleared is not None:
-            g = np.asarray(gate_cleared, dtype=bool)
-            if g.shape != (n,):
-                raise MessageError(f"labels: gate_cleared must have shape ({n},), got {g.shape}")
-        faulty = None
-        if n_valid == n:
+        hint = None  # the gate's rows, a hint only: checked, and its errors raised, where they always were
+        if gate_cleared is not None and n_valid == n:
+            try:
+                hint = np.asarray(gate_cleared, dtype=bool)
+            except (TypeError, ValueError):
+                pass
+            if hint is not None and hint.shape != (n,):
+                hint = None
+        if n_valid == n and set(map(type, cl)) <= _STR:  # plain str: list.count and `in` agree with a Counter's keys
             by_class = {h: k for h in HEALTHY_CLASSES if (k := cl.count(h))}
             n_healthy = sum(by_class.values())
-            if n_healthy == n:
-                faulty = []
-            elif g is not None:  # the gate's rows are healthy ones: look for faults among the others only
-                rest = np.flatnonzero(~g).tolist()
+            faulty = [] if n_healthy == n else None
+            if faulty is None and hint is not None:  # the gate's rows are healthy: faults among the others only
+                rest = np.flatnonzero(~hint).tolist()
                 faulty = [i for i in rest if cl[i] not in _HEALTHY]
-                if len(rest) - len(faulty) + (n - len(rest)) != n_healthy:  # a cleared row is not healthy
+                if n - len(faulty) != n_healthy:  # a cleared row is not of a healthy class: every row, below
                     faulty = None
             if faulty is None:
                 faulty = [i for i, c in enumerate(cl) if c not in _HEALTHY]
             for i in faulty:  # a few rows: a Counter costs more than it saves
                 by_class[cl[i]] = by_class.get(cl[i], 0) + 1
+        elif n_valid == n:
+            by_class = Counter(cl)
+            faulty = [i for i, c in enumerate(cl) if c not in _HEALTHY]
         else:
             ok = valid.tolist()
             by_class = Counter(c for c, v in zip(cl, ok) if v)
             faulty = [i for i, (c, v) in enumerate(zip(cl, ok)) if v and c not in _HEALTHY]
         counts = {str(c): by_class[c] for c in sorted(by_class)}
         counts[INVALID_KEY] = n - n_valid
+        conf = np.asarray(confidence, dtype=float)[faulty]
+        conf = np.rint(conf * 1e3, out=conf) / 1e3  # np.round(., 3)
         f0 = int(first_nozzle)
-        faults = ()
-        if faulty:
-            conf = np.asarray(confidence, dtype=float)[faulty]
-            conf = np.rint(conf * 1e3, out=conf) / 1e3  # np.round(., 3)
-            faults = tuple(zip([f0 + i for i in faulty], [str(cl[i]) for i in faulty], conf.tolist()))
+        faults = tuple(zip([f0 + i for i in faulty], [str(cl[i]) for i in faulty], conf.tolist()))
         bad = ~valid
         invalid = ()
         if n_valid < n:
             ids = np.arange(f0, f0 + n)
             invalid = tuple(zip(ids[bad].tolist(), map(str, np.asarray(reasons, dtype=object)[bad].tolist())))
-        n_cleared = 0 if g is None else int(np.count_nonzero(g & valid))
+        n_cleared = 0
+        if gate_cleared is not None:
+            g = np.asarray(gate_cleared, dtype=bool)
+            if g.shape != (n,):
+                raise MessageError(f"labels: gate_cleared must have shape ({n},), got {g.shape}")
+            n_cleared = int(np.count_nonzero(g & valid))
         return cls(int(frame_id), float(stamp), int(first_nozzle), int(n), str(model_id), counts,
                    faults, invalid, n_cleared)
 
@@ -201,16 +209,19 @@ def serialize_labels(report: LabelsReport) -> bytes:
     """The CDR bytes of :func:`encode_labels`'s message, byte for byte ``serialized(encode_labels(report))``,
     the text written directly instead of through ``json`` (what the fdi node publishes for every frame).
 
-    A value that is not exactly an int, a finite float or a str where the schema has one (a numpy
-    scalar, a NaN) goes the ``json`` way, which writes it or raises as :func:`encode_labels` does.
+    A report whose values are not exactly what :meth:`LabelsReport.from_arrays` and :func:`decode_labels`
+    give (a numpy scalar, a NaN, a bool, ``counts`` not a dict, ``faults`` not a tuple) goes the
+    ``json`` way, which writes it or raises as :func:`encode_labels` does.
     """
     try:
         return _json.cdr(_labels_text(report))
-    except _json.NotPlain:
+    except Exception:  # noqa: BLE001 - NotPlain, or anything else amiss: the json way writes it or raises its error
         return _json.serialized(encode_labels(report))
 
 
 def _labels_text(r: LabelsReport) -> str:
+    if type(r.counts) is not dict or type(r.faults) is not tuple or type(r.invalid) is not tuple:
+        raise _json.NotPlain  # read once, here: an iterator would be left empty for the json way
     p, q = _json.plain, _json.quote
     counts = ",".join([f"{q(p(c, str))}:{p(k, int)}" for c, k in r.counts.items()])
     faults = ",".join([f'{{"nozzle":{p(nz, int)},"class":{q(p(c, str))},"confidence":{p(x, float)!r}}}'

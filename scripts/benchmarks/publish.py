@@ -1,6 +1,6 @@
 """CPU of publishing the fdi node's answers: a message object, its serialized bytes, bytes written directly; same run.
 
-    scripts/bench publish [--rounds 4] [--count 4000] [--faults 5]
+    scripts/bench publish [--rounds 6] [--count 4000] [--faults 5]
 
 For each trace message the fdi node publishes a ``labels`` and a ``drying_nozzles`` message
 (``std_msgs/String`` JSON). ``Publisher.publish`` takes either the message object (rclpy
@@ -69,7 +69,7 @@ def thread_cpu() -> float:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--role", default="bench", choices=["bench", "sink"])
-    ap.add_argument("--rounds", type=int, default=4, help="rounds of each way, in turn")
+    ap.add_argument("--rounds", type=int, default=6, help="rounds of each way, in turn (a multiple of 3: each way first as often)")
     ap.add_argument("--count", type=int, default=4000, help="message pairs per round")
     ap.add_argument("--faults", type=int, default=5, help="faulty nozzles in the 200-nozzle frame")
     ap.add_argument("--expected", type=int, default=0, help=argparse.SUPPRESS)  # the sink's

@@ -250,18 +250,72 @@ def test_serialize_labels_and_drying_are_the_json_way_byte_for_byte():
         assert _outcome(msg_defs.serialize_drying, d) == _outcome(lambda x: msg_defs.serialized(encode_drying(x)), d)
 
 
-def test_from_arrays_does_not_trust_the_gate_column_for_classes():
+def _reference_from_arrays(*, frame_id, stamp, first_nozzle, classes, confidence, valid, reasons, model_id,
+                           gate_cleared=None):
+    """from_arrays as it was written first (a Counter of every valid row's class, a membership test per row):
+    the faster from_arrays must give the same report."""
+    from collections import Counter
+
+    cl, ok = list(np.asarray(classes, dtype=object)), np.asarray(valid, dtype=bool).tolist()
+    by_class = Counter(c for c, v in zip(cl, ok) if v)
+    faulty = [i for i, (c, v) in enumerate(zip(cl, ok)) if v and c not in msg_defs.HEALTHY_CLASSES]
+    counts = {str(c): by_class[c] for c in sorted(by_class)}
+    counts["invalid"] = len(cl) - sum(ok)
+    conf = (np.rint(np.asarray(confidence, dtype=float)[faulty] * 1e3) / 1e3).tolist()
+    faults = tuple((first_nozzle + i, str(cl[i]), x) for i, x in zip(faulty, conf))
+    invalid = tuple((first_nozzle + i, str(r)) for i, (r, v) in enumerate(zip(reasons, ok)) if not v)
+    cleared = 0 if gate_cleared is None else int(np.count_nonzero(np.asarray(gate_cleared, bool) & np.asarray(ok, bool)))
+    return LabelsReport(frame_id, stamp, first_nozzle, len(cl), model_id, counts, faults, invalid, cleared)
+
+
+def test_from_arrays_is_the_reference_and_does_not_trust_the_gate_column_for_classes():
     """from_arrays looks for faults among the rows the gate did not clear: a cleared row of a fault class (a
-    labeller bug) is still counted and listed, and the report is the one without the column but its count."""
+    labeller bug) is still counted and listed. Against a plain reference, with and without the gate's column."""
     rng = np.random.default_rng(11)
-    import dataclasses
     for _ in range(2000):
-        kw, rep = _random_report(rng, ["deeply_dried", "unknown", "fully_blocked"])
-        plain = LabelsReport.from_arrays(**{**kw, "gate_cleared": None})
-        assert repr(dataclasses.replace(rep, gate_cleared=0)) == repr(dataclasses.replace(plain, gate_cleared=0))  # NaN
-        g = kw["gate_cleared"]
-        assert rep.gate_cleared == (0 if g is None else int(np.count_nonzero(g & kw["valid"])))
+        kw, rep = _random_report(rng, ["deeply_dried", "unknown", "fully_blocked", "slightly_dried"])
+        assert repr(rep) == repr(_reference_from_arrays(**kw))  # repr: a NaN confidence equals itself
+        no_gate = {**kw, "gate_cleared": None}
+        assert repr(LabelsReport.from_arrays(**no_gate)) == repr(_reference_from_arrays(**no_gate))
     cls = np.array(["healthy_nozzle", "deeply_dried", "ok_signal"], dtype=object)
     rep = LabelsReport.from_arrays(frame_id=1, stamp=1.0, first_nozzle=10, classes=cls, confidence=[1, 0.5, 1],
                                    valid=[True] * 3, reasons=[""] * 3, model_id="m", gate_cleared=[True, True, True])
     assert rep.faults == ((11, "deeply_dried", 0.5),) and rep.counts["deeply_dried"] == 1 and rep.gate_cleared == 3
+    # not plain strings (numpy's str_; an enum that equals its value but hashes by its name): the Counter way
+    import enum
+
+    Odd = enum.Enum("Odd", {"H": "healthy_nozzle", "D": "deeply_dried"}, type=str)
+    for odd in (np.array(["healthy_nozzle", "deeply_dried"], dtype=np.str_), [np.str_("ok_signal"), "unknown"],
+                [Odd.H, Odd.D], ["healthy_nozzle", Odd.H]):
+        kw = dict(frame_id=1, stamp=1.0, first_nozzle=0, classes=np.asarray(odd, dtype=object), confidence=[0.9, 0.8],
+                  valid=[True, True], reasons=["", ""], model_id="m", gate_cleared=[True, False])
+        assert repr(LabelsReport.from_arrays(**kw)) == repr(_reference_from_arrays(**kw))
+    # a bad confidence or gate column fails as it always did, even when every row is healthy
+    healthy = dict(frame_id=1, stamp=1.0, first_nozzle=0, classes=["healthy_nozzle"] * 2, valid=[True, True],
+                   reasons=["", ""], model_id="m")
+    with pytest.raises(ValueError):
+        LabelsReport.from_arrays(**healthy, confidence=["a", "b"])
+    with pytest.raises(MessageError, match="gate_cleared must have shape"):
+        LabelsReport.from_arrays(**healthy, confidence=[1.0, 1.0], gate_cleared=[True])
+
+
+def test_serializers_read_iterators_once_and_fail_as_json_does():
+    """A hand-built report with iterators, a counts mapping that is not a dict or two bad fields: the json way's
+    bytes or error, every time."""
+    import dataclasses
+    import types
+
+    base = LabelsReport(3, 1.5, 0, 2, "m", {"deeply_dried": 1, "healthy_nozzle": 1, "invalid": 0},
+                        ((0, "deeply_dried", 0.5),), ())
+    json_way = lambda r: msg_defs.serialized(encode_labels(r))  # noqa: E731
+    for change in (lambda: dict(faults=iter(((0, "deeply_dried", 0.5),)), gate_cleared=True),
+                   lambda: dict(counts=types.MappingProxyType({"a": 2})), lambda: dict(counts=[("a", 2)]),
+                   lambda: dict(stamp=None, faults=((1, "a"),)), lambda: dict(stamp=None, counts=[])):
+        a, b = dataclasses.replace(base, **change()), dataclasses.replace(base, **change())  # their own iterators
+        assert _outcome(msg_defs.serialize_labels, a) == _outcome(json_way, b)
+    d_json = lambda d: msg_defs.serialized(encode_drying(d))  # noqa: E731
+    for change in (lambda: dict(nozzles=(5.7, True), classes=("deeply_dried", "slightly_dried")),
+                   lambda: dict(frame_id=None, stamp="x"), lambda: dict(frame_id="abc", nozzles=(None,), classes=("x",)),
+                   lambda: dict(nozzles=iter((4,)), classes=("deeply_dried",)), lambda: dict(stamp="7.25")):
+        a, b = (dataclasses.replace(DryingNozzles(1, 2.0, first_nozzle=0, n_nozzles=9), **change()) for _ in range(2))
+        assert _outcome(msg_defs.serialize_drying, a) == _outcome(d_json, b)
