@@ -95,13 +95,17 @@ def _read_csv(path):
 
 
 def _true_profile_yaml(name, path):
-    head = fh.FOREIGN_HEADS[name]
+    """The true profile of head ``name`` (a name of ``tests/foreign_head.py`` or a head dict with its
+    ``physics``, as ``splits.split_head`` builds) written to ``path``; returns ``path``."""
+    head = fh.FOREIGN_HEADS[name] if isinstance(name, str) else name
     # the head's true channel, drive, sensor and spreads; and the same training over the
     # physics healthy traces cannot show as a calibrated profile gets, so that the two rows
     # differ by calibration only
     spreads = {k: v for k, v in fh.FOREIGN_SPREADS.items() if k in SPREAD_KEYS}
-    physics = fh.FOREIGN_PHYSICS[name]  # the actuator alone: the empty channels' resonance and damping
-    doc = {"schema": "inkdiag.head_profile", "schema_version": 1, "name": f"{name}_true", **{
+    # the actuator alone: the empty channels' resonance and damping
+    physics = fh.FOREIGN_PHYSICS[name] if isinstance(name, str) else name["physics"]
+    doc = {"schema": "inkdiag.head_profile", "schema_version": 1,
+           "name": f"{name if isinstance(name, str) else 'custom'}_true", **{
         k: dict(head[k]) for k in ("sampling", "channel", "drive", "sensor")},
         "spreads": {**spreads, **UNSEEN_PHYSICS_SPREADS}}
     doc["channel"].update(f_act=physics["f_act_hz"], zeta_act=physics["zeta_act"])

@@ -73,3 +73,24 @@ def test_rule_summary_scores_each_way_of_choosing(mod):
             mod.rule_summary(results + [((0.7, 0.3), 7, refused)]).splitlines() if line.startswith("| ")}
     assert rows["always the second pass"] == ["3 of 4", "5.5", "1.4 |"]
     assert "moved +0.0 %" in mod.rule_summary([((0.7, 0.3), 7, refused)])
+
+
+def test_true_profile_of_a_split_head_is_that_head(mod, tmp_path):
+    """The report's *true profile* row trains on the split head's own channel (not h20's), its drive and sensor."""
+    import heads
+
+    from inkdiag_core import HeadProfile
+
+    head = mod.split_head(1.0, 1.0)
+    prof = HeadProfile.load(heads._true_profile_yaml(head, tmp_path / "true.yaml"))
+    for key in ("r_r", "L_r", "B_act", "r_n", "mu"):
+        assert prof.channel[key] == pytest.approx(head["channel"][key], rel=1e-12), key
+    assert prof.channel["f_act"] == head["physics"]["f_act_hz"]
+    assert prof.sample_rate_hz == head["sampling"]["sample_rate_hz"]
+
+
+def test_met_is_issue_14s_targets(mod):
+    ok = {"fd": 0.98, "fi": 0.90, "per": {"a": 0.75, "b": 1.0}}
+    assert mod.met(ok)
+    for bad in ({"fd": 0.979}, {"fi": 0.899}, {"per": {"a": 0.749, "b": 1.0}}):
+        assert not mod.met({**ok, **bad})
