@@ -97,19 +97,17 @@ def _read_csv(path):
 def _true_profile_yaml(name, path):
     """The true profile of head ``name`` (a name of ``tests/foreign_head.py`` or a head dict with its
     ``physics``, as ``splits.split_head`` builds) written to ``path``; returns ``path``."""
-    head = fh.FOREIGN_HEADS[name] if isinstance(name, str) else name
-    # the head's true channel, drive, sensor and spreads; and the same training over the
-    # physics healthy traces cannot show as a calibrated profile gets, so that the two rows
-    # differ by calibration only
-    spreads = {k: v for k, v in fh.FOREIGN_SPREADS.items() if k in SPREAD_KEYS}
-    # the actuator alone: the empty channels' resonance and damping
-    physics = fh.FOREIGN_PHYSICS[name] if isinstance(name, str) else name["physics"]
-    doc = {"schema": "inkdiag.head_profile", "schema_version": 1,
-           "name": f"{name if isinstance(name, str) else 'custom'}_true", **{
+    # the head's true channel, drive, sensor and spreads (a dict's own physics and spreads over the
+    # simulator's defaults, as it simulates them); and the same training over the physics healthy
+    # traces cannot show as a calibrated profile gets, so that the two rows differ by calibration only
+    head, physics, all_spreads = fh._head(name)  # physics: the actuator alone (the empty channels' mode)
+    spreads = {k: v for k, v in all_spreads.items() if k in SPREAD_KEYS}
+    label = name if isinstance(name, str) else "custom"
+    doc = {"schema": "inkdiag.head_profile", "schema_version": 1, "name": f"{label}_true", **{
         k: dict(head[k]) for k in ("sampling", "channel", "drive", "sensor")},
         "spreads": {**spreads, **UNSEEN_PHYSICS_SPREADS}}
     doc["channel"].update(f_act=physics["f_act_hz"], zeta_act=physics["zeta_act"])
-    HeadProfile.from_dict(doc, source=f"{name} true profile").save(path)
+    HeadProfile.from_dict(doc, source=f"{label} true profile").save(path)
     return path
 
 

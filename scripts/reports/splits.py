@@ -145,7 +145,9 @@ def rule_summary(results) -> str:
 
 
 def run(split, seed, work, *, per_class, field_per_class, n_per_class, log):
-    """Both passes on one head and seed: ``{"pass 1": {...}, "pass 2": {...}}`` (scores, the I_r error)."""
+    """Both passes and the true profile on one head and seed: ``{"pass 1": {...}, "pass 2": {...},
+    "true profile": {...}}`` (scores, the I_r error; the passes also the recording of faults' mean confidence
+    and unknowns) and ``"field"`` (the rows the first model called fully blocked, how many were)."""
     ratio_i, ratio_r = split
     head = split_head(ratio_i, ratio_r)
     d = work / f"split_{ratio_i:g}_{ratio_r:g}_s{seed}"
@@ -272,7 +274,8 @@ def main(argv=None) -> int:
         "--blocked-labels ITS.csv` (*blocked rows taken*: the rows it called fully blocked, in brackets how many of "
         f"them were, of the recording's {args.field_per_class}), "
         "`train`, `label` the same test recording. *true profile*: the head's own channel, drive, sensor and "
-        "spreads, trained and labelled the same way: what is left when calibration costs nothing. *I_r error*: "
+        "spreads, trained (with the same options, on one restrictor: it has no posterior to spread over) and "
+        "labelled the same way: what is left when calibration costs nothing. *I_r error*: "
         "calibrated restrictor inertance against the true one; *I_r moved*: the second pass's against the first's.",
         "",
         md_table(["I_r/I_n / R_r/R_n", "seed", "pass", "blocked rows taken", "I_r error %", "I_r moved %", "FD %",

@@ -86,6 +86,7 @@ def test_true_profile_of_a_split_head_is_that_head(mod, tmp_path):
     for key in ("r_r", "L_r", "B_act", "r_n", "mu"):
         assert prof.channel[key] == pytest.approx(head["channel"][key], rel=1e-12), key
     assert prof.channel["f_act"] == head["physics"]["f_act_hz"]
+    assert prof.channel["zeta_act"] == head["physics"]["zeta_act"]
     assert prof.sample_rate_hz == head["sampling"]["sample_rate_hz"]
 
 
