@@ -137,7 +137,7 @@ class LabelsReport:
         if gate_cleared is not None and n_valid == n:
             try:
                 hint = np.asarray(gate_cleared, dtype=bool)
-            except (TypeError, ValueError):
+            except Exception:  # noqa: BLE001 - raised below, after what the old code checked first
                 pass
             if hint is not None and hint.shape != (n,):
                 hint = None
