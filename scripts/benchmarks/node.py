@@ -5,7 +5,8 @@
 What the fdi node does with each 200-nozzle trace message once rclpy has taken it:
 ``decode_traces`` -> ``FrameLabeller.label`` (screening, the healthy gate, the detector on
 what the gate did not clear) -> ``LabelsReport.from_arrays`` -> the labels and drying messages'
-bytes (``serialize_labels``, ``serialize_drying``; a tree without them: its encoders' text as CDR); timed per message with the frames labelled one message per call and in
+bytes (``serialize_labels``, ``serialize_drying``; a tree without them: its messages through
+``serialize_message``); timed per message with the frames labelled one message per call and in
 batches of 8 messages per call (what the labelling pipeline hands the labeller under load:
 ``scripts/bench graph`` reports 8-9 frames per classifier pass). The head is
 :func:`graph.realistic_head` (2,656 nozzles, 2 % faulty, every nozzle's baseline and
@@ -25,7 +26,6 @@ import argparse
 import hashlib
 import json
 import os
-import struct
 import subprocess
 import sys
 import tarfile
@@ -46,12 +46,14 @@ def child(data: Path, model: str, n_nozzles: int, chunk: int, passes: int = 5) -
 
     try:  # what the fdi node of each tree publishes: the two answers' CDR bytes
         from msg_defs import serialize_drying, serialize_labels
-    except ImportError:  # a tree before them: the messages' bytes as serialize_message gives them
+    except ImportError:  # a tree before them: its messages' bytes, as rclpy serializes them
+        from rclpy.serialization import serialize_message
+
         def serialize_labels(report):
-            return cdr(encode_labels(report).data)
+            return serialize_message(encode_labels(report))
 
         def serialize_drying(drying):
-            return cdr(encode_drying(drying).data)
+            return serialize_message(encode_drying(drying))
 
     frames = np.load(data / "frames.npy")
     labeller, err = load_labeller(model, data / "baselines.npz", max_abs_v=10.0, sample_rate_hz=10e6, n_samples=512)
@@ -88,12 +90,6 @@ def child(data: Path, model: str, n_nozzles: int, chunk: int, passes: int = 5) -
             best = min(best, (time.process_time() - t) / len(msgs))
         per_msg[str(batch)] = best
     return {"per_msg_s": per_msg, "digest": digest.hexdigest(), "messages": len(msgs)}
-
-
-def cdr(text: str) -> bytes:
-    """A ``std_msgs/String``'s CDR bytes (``rclpy.serialization.serialize_message``'s)."""
-    b = text.encode("utf-8")
-    return b"\x00\x01\x00\x00" + struct.pack("<I", len(b) + 1) + b + b"\x00"
 
 
 def extract(ref: str, tmp: Path) -> Path:
