@@ -2,7 +2,7 @@
 
     scripts/bench graph [--case both|realistic|worst|mixed] [--nozzles 2656] [--chunk 200] [--seconds 8]
                         [--window N | --scans] [--no-baselines] [--no-process] [--model models/fdi_default.joblib]
-                        [--fdi-param NAME:=VALUE ...] [--rounds N]
+                        [--fdi-param NAME:=VALUE ...] [--rounds N] [--ref COMMIT]
 
 Pre-generates frames of a realistic 2,656-nozzle head (512 samples; :func:`realistic_head`: every nozzle
 its own tolerances, the faults the same in every frame, every nozzle's healthy baseline recorded by
@@ -26,6 +26,13 @@ ceiling moves from one minute to the next (a factor 2 within three runs), more t
 
 ``--fdi-param NAME:=VALUE`` (repeatable) gives the fdi node one more ROS parameter in every fdi phase,
 e.g. ``max_batch_traces:=800`` (classifier passes of at most 4 messages).
+
+``--ref COMMIT`` adds, per case and right after this tree's fdi node, the fdi node of an older
+commit on the same frames (its ``inkdiag_core``, ``msg_defs`` and ``inkdiag_ros`` extracted with
+``git archive`` and put first on its PYTHONPATH; its own default model, trained by its own
+``model_cache``; its own baselines, recorded by its own ``BaselineRecorder`` from the same healthy
+frames), and prints this tree's traces/s over it, round by round: a same-run baseline, e.g.
+``--ref 46a687e`` for the node issue 17 was measured on ("the worst case not slower than today").
 
 Before them, the fdi node's compute alone is timed in this process
 (``label_frames``, the plain branch, on the same messages, one per call, and one head scan per
@@ -65,6 +72,18 @@ ROOT = Path(__file__).resolve().parents[2]
 ACK = "bench_ack"
 FDI_THREAD = "fdi node"
 FDI_PROCESS = "fdi, labelling process"
+FDI_REF = "fdi node at --ref"
+REF_PACKAGES = ("inkdiag_core", "msg_defs", "inkdiag_ros")
+RECORD_REF = """import sys
+import numpy as np
+from inkdiag_core import BaselineRecorder
+healthy = np.load(sys.argv[1])
+rec = BaselineRecorder(n_frames=len(healthy))
+for traces in healthy:
+    rec.add(0, traces)
+rec.baselines().save(sys.argv[2])
+"""
+"""The --ref tree's own baselines from the same healthy frames (its baselines file format may be older)."""
 CEILING = "ceiling: plain subscriber"
 
 
@@ -128,21 +147,40 @@ def realistic_head(n_nozzles, n_frames, seed, *, faulty=0.02, n_baseline_frames=
         Every nozzle's.
     n_faulty : int
     """
-    from inkdiag_core import BaselineRecorder, FaultClass, simulate_nozzles
+    from inkdiag_core import BaselineRecorder
+
+    frames, healthy, n_faulty = head_recordings(n_nozzles, n_frames, seed, faulty=faulty,
+                                                n_baseline_frames=n_baseline_frames)
+    rec = BaselineRecorder(n_frames=n_baseline_frames)
+    for traces in healthy:
+        rec.add(0, traces)
+    return frames, rec.baselines(), n_faulty
+
+
+def head_recordings(n_nozzles, n_frames, seed, *, faulty=0.02, n_baseline_frames=8):
+    """:func:`realistic_head`'s frames, and the healthy frames its baselines are recorded from.
+
+    Returns
+    -------
+    frames : list of ndarray, shape (n_nozzles, 512), float32
+        V.
+    healthy : list of ndarray, shape (n_nozzles, 512), float32
+        ``n_baseline_frames`` frames of the same nozzles all healthy, V.
+    n_faulty : int
+    """
+    from inkdiag_core import FaultClass, simulate_nozzles
     from inkdiag_core.faults import HEALTHY_CLASSES
 
     rng = np.random.default_rng(seed)
     healthy = np.array(sorted(HEALTHY_CLASSES, key=lambda c: c.value), dtype=object)
     faults = np.array([c for c in FaultClass if c not in HEALTHY_CLASSES], dtype=object)
     classes = rng.choice(healthy, size=n_nozzles)  # each nozzle's healthy condition
-    rec = BaselineRecorder(n_frames=n_baseline_frames)
-    for k in range(n_baseline_frames):
-        rec.add(0, simulate_nozzles(classes, seed=seed, frame_seed=1_000_000 + k).traces)
+    recorded = [simulate_nozzles(classes, seed=seed, frame_seed=1_000_000 + k).traces for k in range(n_baseline_frames)]
     n_faulty = int(round(faulty * n_nozzles))
     idx = rng.choice(n_nozzles, n_faulty, replace=False)
     classes[idx] = rng.choice(faults, size=n_faulty)
     frames = [simulate_nozzles(classes, seed=seed, frame_seed=k).traces for k in range(n_frames)]
-    return frames, rec.baselines(), n_faulty
+    return frames, recorded, n_faulty
 
 
 def replay(node, executor, pub, msgs, answered, seconds, window, lost_after_s=0.25, first_id=0,
@@ -272,6 +310,10 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--rounds", type=int, default=1, help="the phases this many times in turn, each round's ratios "
                     "against its own ceiling")
+    ap.add_argument("--ref", metavar="COMMIT", help="also the fdi node of an older commit, in each round right after "
+                    "this tree's, on the same frames: its inkdiag_core, msg_defs and inkdiag_ros extracted with "
+                    "git archive, its own default model trained by its own code, its own baselines recorded from "
+                    "the same healthy frames (e.g. 46a687e, the tree issue 17 was filed against)")
     ap.add_argument("--namespace", default="/", help=argparse.SUPPRESS)  # the sink's
     ns = ap.parse_args()
     if bad := [p for p in ns.fdi_param if ":=" not in p]:
@@ -291,7 +333,7 @@ def main() -> int:
     from rclpy.node import Node
     from std_msgs.msg import String
 
-    from inkdiag_core import label_frames, load_model
+    from inkdiag_core import BaselineRecorder, label_frames, load_model
     from inkdiag_core.model_cache import ensure_default_model
     from inkdiag_core.persistence import read_manifest
     from msg_defs import (DIAGNOSTICS_MSG_TYPE, DIAGNOSTICS_QOS, LABELS_MSG_TYPE, RELIABLE_QOS,
@@ -311,19 +353,26 @@ def main() -> int:
         if case == "mixed":
             frames, base, what = make_frames(ns.nozzles, ns.frames, ns.seed), None, "10 % faulty (mixed), no baselines"
         else:
-            frames, baselines, n_faulty = realistic_head(ns.nozzles, ns.frames, ns.seed, faulty=CASES[case])
-            base = None if ns.no_baselines else str(baselines.save(tmp / f"{case}.npz"))
+            frames, healthy, n_faulty = head_recordings(ns.nozzles, ns.frames, ns.seed, faulty=CASES[case])
+            rec = BaselineRecorder(n_frames=len(healthy))
+            for traces in healthy:
+                rec.add(0, traces)
+            base = None if ns.no_baselines else str(rec.baselines().save(tmp / f"{case}.npz"))
+            if ns.ref and base:
+                np.save(tmp / f"{case}_healthy.npy", np.stack(healthy))
             what = (f"{n_faulty} faulty ({CASES[case]:.0%}), "
                     + ("baselines NOT given to fdi" if ns.no_baselines else "baselines of every nozzle recorded"))
         msgs = [encode_traces(x[i:i + ns.chunk], first_nozzle=i, frame_id=0, stamp=0.0)
                 for x in frames for i in range(0, ns.nozzles, ns.chunk)]
         data[case] = (msgs, base, what, time.perf_counter() - t)
+    ref = prepare_ref(ns.ref, tmp, [c for c in cases if data[c][1]]) if ns.ref else None
     print(f"graph benchmark: {ns.frames} pre-generated frames of {ns.nozzles} nozzles x 512 samples per case "
           f"({frames[0].nbytes / 1e6:.1f} MB each) as messages of {ns.chunk} nozzles; "
           + ("one head scan in flight (--scans); " if ns.scans else
              f"window {ns.window} messages in flight ({ns.window / per_scan:.2g} head scans); ")
           + f"{ns.seconds:g} s per phase; model {Path(model).name} ({cfg.get('kind')}, {cfg.get('features')})"
-          + (f"; fdi parameters {' '.join(ns.fdi_param)}" if ns.fdi_param else ""))
+          + (f"; fdi parameters {' '.join(ns.fdi_param)}" if ns.fdi_param else "")
+          + (f"; {FDI_REF}: {ns.ref}'s node with its own default model ({ref[2]}) and baselines" if ref else ""))
     for case in cases:
         msgs, base, what, gen_s = data[case]
         print(f"case {case}: {what} ({gen_s:.1f} s to generate)")
@@ -365,6 +414,12 @@ def main() -> int:
     for case in cases:
         cmd = fdi + (["-p", f"baseline_path:={data[case][1]}"] if data[case][1] else [])
         phases.append((f"{case}: {FDI_THREAD}", case, cmd, lambda: node.count_publishers(f"{bench_ns}/{topics.LABELS}") > 0))
+        if ref:
+            ref_env, ref_model, _ = ref
+            ref_cmd = [a.replace(f"model_path:={model}", f"model_path:={ref_model}") for a in fdi]
+            ref_cmd += ["-p", f"baseline_path:={tmp / f'{case}_ref.npz'}"] if data[case][1] else []
+            phases.append((f"{case}: {FDI_REF}", case, (ref_cmd, ref_env),
+                           lambda: node.count_publishers(f"{bench_ns}/{topics.LABELS}") > 0))
         if not ns.no_process:
             phases.append((f"{case}: {FDI_PROCESS}", case, cmd + ["-p", "labelling_process:=true"],
                            lambda: node.count_publishers(f"{bench_ns}/{topics.LABELS}") > 0))
@@ -375,7 +430,8 @@ def main() -> int:
         for name, case, cmd, matched in phases:
             msgs = data[case][0]
             diag.clear()
-            proc = subprocess.Popen(cmd, env=env, cwd=ROOT)
+            cmd, penv = cmd if isinstance(cmd, tuple) else (cmd, env)  # the --ref node: its own PYTHONPATH
+            proc = subprocess.Popen(cmd, env=penv, cwd=ROOT)
             try:
                 if not wait_for_match(ex, pub, matched):
                     print(f"{name}: the second process never matched", file=sys.stderr)
@@ -448,7 +504,7 @@ def main() -> int:
                 alone_scan = data[case][5]
                 print(f"{case + ': labelling alone' + tag:<34} / ceiling = {alone_scan / c:.2f}x at one head scan per "
                       "call: what a node could reach with a core to itself and no ROS cost at all (plain branch)")
-            for kind in (FDI_THREAD, FDI_PROCESS):
+            for kind in (FDI_THREAD, FDI_PROCESS, FDI_REF):
                 name = f"{case}: {kind}{tag}"
                 f = rates.get(name)
                 if c and f:
@@ -456,11 +512,37 @@ def main() -> int:
                     p99 = np.percentile(results[name][1], 99)
                     print(f"{name + ':':<34} / ceiling = {f / c:.2f}x (aim >= 0.5x); p99 "
                           f"{1e3 * p99:.1f} ms ({'<=' if p99 <= 0.05 else '>'} 50 ms); lost {len(results[name][2])}")
+            if (f := rates.get(f"{case}: {FDI_THREAD}{tag}")) and (r := rates.get(f"{case}: {FDI_REF}{tag}")):
+                ratios.setdefault(f"{case}: {FDI_THREAD} / {FDI_REF}", []).append(f / r)
+                print(f"{case + ': ' + FDI_THREAD + tag:<34} / {ns.ref}'s node = {f / r:.2f}x (traces/s)")
     if ns.rounds > 1:
         for name, r in ratios.items():
-            print(f"{name + ':':<34} / its round's ceiling over {len(r)} rounds: {min(r):.2f}-{max(r):.2f}x, "
-                  f"median {float(np.median(r)):.2f}x")
+            what = f"{name}:" if " / " in name else f"{name + ':':<34} / its round's ceiling"
+            print(f"{what} over {len(r)} rounds: {min(r):.2f}-{max(r):.2f}x, median {float(np.median(r)):.2f}x")
     return 0
+
+
+def prepare_ref(commit: str, tmp: Path, cases) -> tuple:
+    """``commit``'s packages under ``tmp / "ref"``, its default model trained by its own code, its own baselines.
+
+    Returns (the environment its node runs in, its model's path, the model's kind and features).
+    """
+    import json
+
+    from node import extract
+
+    path = extract(commit, tmp / "ref", REF_PACKAGES)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([*(str(path / p) for p in REF_PACKAGES),
+                                                         os.environ.get("PYTHONPATH", "")])}
+    model = tmp / "ref_model" / "fdi_default.joblib"  # the default's name: its default's settings (baseline branch)
+    model.parent.mkdir()
+    subprocess.run([sys.executable, "-m", "inkdiag_ros.model_cache", str(model)], env=env, cwd=path, check=True,
+                   stdout=subprocess.DEVNULL)
+    for case in cases:
+        subprocess.run([sys.executable, "-c", RECORD_REF, str(tmp / f"{case}_healthy.npy"), str(tmp / f"{case}_ref.npz")],
+                       env=env, cwd=path, check=True)
+    cfg = json.loads(Path(f"{model}.manifest.json").read_text()).get("config", {})
+    return env, str(model), f"{cfg.get('kind')}, {cfg.get('features')}"
 
 
 if __name__ == "__main__":

@@ -92,12 +92,12 @@ def child(data: Path, model: str, n_nozzles: int, chunk: int, passes: int = 5) -
     return {"per_msg_s": per_msg, "digest": digest.hexdigest(), "messages": len(msgs)}
 
 
-def extract(ref: str, tmp: Path) -> Path:
-    """``inkdiag_core`` and ``msg_defs`` of commit ``ref`` under ``tmp``; the PYTHONPATH for them."""
+def extract(ref: str, tmp: Path, packages=("inkdiag_core", "msg_defs")) -> Path:
+    """The ``packages`` of commit ``ref`` under ``tmp`` (``tmp / name / name``): put ``tmp / name`` on PYTHONPATH."""
     tmp.mkdir(parents=True, exist_ok=True)
     tar = tmp / "ref.tar"
     with open(tar, "wb") as fh:
-        subprocess.run(["git", "-C", str(ROOT), "archive", ref, "inkdiag_core/inkdiag_core", "msg_defs/msg_defs"],
+        subprocess.run(["git", "-C", str(ROOT), "archive", ref, *(f"{p}/{p}" for p in packages)],
                        stdout=fh, check=True)
     with tarfile.open(tar) as tf:
         tf.extractall(tmp, filter="data")
