@@ -313,10 +313,27 @@ _CDR_BYTE_ORDER = {b"\x00\x00": ">", b"\x00\x01": "<"}
 _FLOAT32 = {order: np.dtype(np.float32).newbyteorder(order) for order in "<>"}
 
 
+# A trace frame's bytes up to its data in little-endian CDR, as every frame encode_traces makes is laid out:
+# encapsulation, 2 dimensions ("nozzle", "sample": 7 bytes with the NUL, 1 of padding), data_offset, count.
+_TRACES_PREFIX = struct.Struct(f"<4sII{len(NOZZLE_LABEL) + 1}sxIII{len(SAMPLE_LABEL) + 1}sxIIII")
+_PREFIX_CONST = (b"\x00\x01\x00\x00", 2, len(NOZZLE_LABEL) + 1, NOZZLE_LABEL.encode() + b"\0",
+                 len(SAMPLE_LABEL) + 1, SAMPLE_LABEL.encode() + b"\0")
+
+
 def _read_cdr_traces(buf):
     """``(dims, data_offset, data)`` of a serialized Float32MultiArray (plain CDR: ROS 2's
     encoding on the wire), the data a zero-copy float32 view of ``buf``; None for another
     encapsulation."""
+    if len(buf) >= _TRACES_PREFIX.size:  # the usual layout in one unpack; the general reader below gives the same
+        enc, nd, l1, lab1, n, st1, l2, lab2, s, st2, off, count = _TRACES_PREFIX.unpack_from(buf)
+        if (enc, nd, l1, lab1, l2, lab2) == _PREFIX_CONST and _TRACES_PREFIX.size + 4 * count <= len(buf):
+            return ((_Dim(NOZZLE_LABEL, n, st1), _Dim(SAMPLE_LABEL, s, st2)), off,
+                    np.frombuffer(buf, dtype=_FLOAT32["<"], count=count, offset=_TRACES_PREFIX.size))
+    return _read_cdr_fields(buf)
+
+
+def _read_cdr_fields(buf):
+    """:func:`_read_cdr_traces` field by field: any layout, either byte order."""
     mv = memoryview(buf).cast("B")
     order = _CDR_BYTE_ORDER.get(bytes(mv[:2]))
     if order is None:

@@ -306,3 +306,40 @@ def test_an_unknown_nozzle_is_a_fault_with_its_score_and_counted():
     assert back.counts[UNKNOWN_CLASS] == 1
     assert (11, UNKNOWN_CLASS, 0.995) in back.faults
     assert back.nozzles_of(DRIED_CLASSES) == [12]
+
+
+def test_serialized_fast_prefix_reads_what_the_field_reader_reads():
+    """The usual layout's bytes in one unpack (the fdi node decodes every message so): the same dims, offset
+    and data as the field-by-field reader, or the same error, for every byte of the prefix changed,
+    every truncation around it and trailing bytes."""
+    from rclpy.serialization import serialize_message
+
+    from msg_defs import codec
+
+    def read(fn, buf):
+        try:
+            got = fn(buf)
+        except FrameError as exc:
+            return "error", str(exc)
+        if got is None:  # another encapsulation
+            return None
+        dims, off, data = got
+        return [tuple(d) for d in dims], off, data.dtype.str, data.tolist()
+
+    x = np.arange(12, dtype=np.float32).reshape(3, 4)
+    buf = serialize_message(encode_traces(x, first_nozzle=5, frame_id=2, stamp=1.5))
+    n = codec._TRACES_PREFIX.size
+    cases = [buf, buf + b"\x00" * 5] + [buf[:cut] for cut in range(n - 2, n + 6)] + [buf[:-1], buf[:-4]]
+    for i in range(n):  # each byte of the prefix changed
+        for v in (0, 1, 0x41, 0xFF):
+            b = bytearray(buf)
+            b[i] = v
+            cases.append(bytes(b))
+    head = codec._TRACES_PREFIX.unpack_from(buf)
+    assert (head[:4] + head[6:8]) == codec._PREFIX_CONST, "encode_traces' bytes take the one-unpack way"
+    read_ok = 0
+    for b in cases:
+        got = read(codec._read_cdr_traces, b)
+        assert got == read(codec._read_cdr_fields, b)
+        read_ok += got is not None and got[0] != "error"
+    assert read_ok > 10
