@@ -314,8 +314,10 @@ _FLOAT32 = {order: np.dtype(np.float32).newbyteorder(order) for order in "<>"}
 
 
 # A trace frame's bytes up to its data in little-endian CDR, as every frame encode_traces makes is laid out:
-# encapsulation, 2 dimensions ("nozzle", "sample": 7 bytes with the NUL, 1 of padding), data_offset, count.
-_TRACES_PREFIX = struct.Struct(f"<4sII{len(NOZZLE_LABEL) + 1}sxIII{len(SAMPLE_LABEL) + 1}sxIIII")
+# encapsulation, 2 dimensions ("nozzle", "sample"), data_offset, count.
+_DIM = "I{0}s{1}xII"  # a dimension: label length, label and NUL, padding to 4 bytes, size, stride
+_TRACES_PREFIX = struct.Struct("<4sI" + "".join(_DIM.format(len(lab) + 1, -(len(lab) + 1) % 4)
+                                                for lab in (NOZZLE_LABEL, SAMPLE_LABEL)) + "II")
 _PREFIX_CONST = (b"\x00\x01\x00\x00", 2, len(NOZZLE_LABEL) + 1, NOZZLE_LABEL.encode() + b"\0",
                  len(SAMPLE_LABEL) + 1, SAMPLE_LABEL.encode() + b"\0")
 

@@ -33,6 +33,8 @@ commit on the same frames (its ``inkdiag_core``, ``msg_defs`` and ``inkdiag_ros`
 ``model_cache``; its own baselines, recorded by its own ``BaselineRecorder`` from the same healthy
 frames), and prints this tree's traces/s over it, round by round: a same-run baseline, e.g.
 ``--ref 46a687e`` for the node issue 17 was measured on ("the worst case not slower than today").
+``--fdi-param`` goes to that node too (one it does not declare is ignored; not ``model_path`` or
+``baseline_path``).
 
 Before them, the fdi node's compute alone is timed in this process
 (``label_frames``, the plain branch, on the same messages, one per call, and one head scan per
@@ -320,6 +322,8 @@ def main() -> int:
         ap.error(f"--fdi-param takes NAME:=VALUE, got {bad[0]!r}")
     if ns.rounds < 1:
         ap.error(f"--rounds must be >= 1, got {ns.rounds}")
+    if ns.ref and (own := [p for p in ns.fdi_param if p.split(":=")[0] in ("model_path", "baseline_path")]):
+        ap.error(f"--fdi-param {own[0]} with --ref: each tree's node takes its own model and baselines")
     if ns.role == "sink":
         return sink_main(ns.namespace)
     if ns.window is None:
@@ -533,7 +537,7 @@ def prepare_ref(commit: str, tmp: Path, cases) -> tuple:
 
     path = extract(commit, tmp / "ref", REF_PACKAGES)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([*(str(path / p) for p in REF_PACKAGES),
-                                                         os.environ.get("PYTHONPATH", "")])}
+                                                         *filter(None, [os.environ.get("PYTHONPATH")])])}
     model = tmp / "ref_model" / "fdi_default.joblib"  # the default's name: its default's settings (baseline branch)
     model.parent.mkdir()
     subprocess.run([sys.executable, "-m", "inkdiag_ros.model_cache", str(model)], env=env, cwd=path, check=True,

@@ -308,10 +308,10 @@ def test_an_unknown_nozzle_is_a_fault_with_its_score_and_counted():
     assert back.nozzles_of(DRIED_CLASSES) == [12]
 
 
-def test_serialized_fast_prefix_reads_what_the_field_reader_reads():
+def test_serialized_fast_prefix_reads_what_the_field_reader_reads(monkeypatch):
     """The usual layout's bytes in one unpack (the fdi node decodes every message so): the same dims, offset
     and data as the field-by-field reader, or the same error, for every byte of the prefix changed,
-    every truncation around it and trailing bytes."""
+    every truncation around it and trailing bytes, as bytes, bytearray or memoryview."""
     from rclpy.serialization import serialize_message
 
     from msg_defs import codec
@@ -324,22 +324,28 @@ def test_serialized_fast_prefix_reads_what_the_field_reader_reads():
         if got is None:  # another encapsulation
             return None
         dims, off, data = got
-        return [tuple(d) for d in dims], off, data.dtype.str, data.tolist()
+        return [tuple(d) for d in dims], off, data.dtype.str, data.flags.writeable, data.tolist()
 
     x = np.arange(12, dtype=np.float32).reshape(3, 4)
     buf = serialize_message(encode_traces(x, first_nozzle=5, frame_id=2, stamp=1.5))
     n = codec._TRACES_PREFIX.size
+    assert len(buf) == n + 4 * (8 + x.size), "encode_traces' bytes end with the data"
     cases = [buf, buf + b"\x00" * 5] + [buf[:cut] for cut in range(n - 2, n + 6)] + [buf[:-1], buf[:-4]]
     for i in range(n):  # each byte of the prefix changed
         for v in (0, 1, 0x41, 0xFF):
             b = bytearray(buf)
             b[i] = v
             cases.append(bytes(b))
-    head = codec._TRACES_PREFIX.unpack_from(buf)
-    assert (head[:4] + head[6:8]) == codec._PREFIX_CONST, "encode_traces' bytes take the one-unpack way"
     read_ok = 0
     for b in cases:
-        got = read(codec._read_cdr_traces, b)
-        assert got == read(codec._read_cdr_fields, b)
-        read_ok += got is not None and got[0] != "error"
-    assert read_ok > 10
+        for given in (b, bytearray(b), memoryview(b)):
+            got = read(codec._read_cdr_traces, given)
+            assert got == read(codec._read_cdr_fields, given)
+            read_ok += got is not None and got[0] != "error"
+    assert read_ok > 30
+    # the usual frame, as it is and with trailing bytes, takes the one-unpack way: never the field reader
+    monkeypatch.setattr(codec, "_read_cdr_fields", lambda b: pytest.fail("the field reader read a usual frame"))
+    for b in (buf, bytearray(buf), memoryview(buf), buf + b"\x00"):
+        dims, off, data = codec._read_cdr_traces(b)
+        assert [tuple(d) for d in dims] == [("nozzle", 3, 12), ("sample", 4, 4)] and off == 8
+        assert np.array_equal(data[8:].reshape(3, 4), x)
