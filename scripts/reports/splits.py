@@ -2,7 +2,7 @@
 
     scripts/report splits [--splits 0.78/0.20 1.25/0.4 0.6/0.15 1.0/1.0 1.1/0.6 0.7/0.3 1.5/0.5 0.8/0.8]
                           [--seeds 0 7] [--per-class 200]
-                          [--field-per-class 100] [--n-per-class N] [--keep]
+                          [--field-per-class 100] [--n-per-class N] [--empty N] [--keep]
 
 Healthy traces pin a head's healthy mode, not how the restrictor and the nozzle share it:
 ``inkdiag calibrate`` takes that split from a prior centred on the default head's design
@@ -24,6 +24,10 @@ Per head and seed, through the ``inkdiag`` command as a user runs it:
 
 3. **true profile**: ``train`` on the head's true profile and ``label`` the same test recording: what the
    method reaches on the head when calibration costs nothing.
+
+``--empty N``: both passes' ``calibrate`` also take N recorded traces of the head's empty channels
+(``--empty``: the actuator's own resonance, which healthy traces do not show), and the report goes to
+``reports/splits_empty.md``.
 
 Prints and writes ``reports/splits.md``: the calibrated restrictor inertance against the true
 one, FD, FI and the weakest classes of both passes and of the true profile, how far the second pass moved the restrictor
@@ -144,7 +148,7 @@ def rule_summary(results) -> str:
             + "\n\n" + "\n".join(f"- {x}" for x in lines))
 
 
-def run(split, seed, work, *, per_class, field_per_class, n_per_class, log):
+def run(split, seed, work, *, per_class, field_per_class, n_per_class, log, n_empty=0):
     """Both passes and the true profile on one head and seed: ``{"pass 1": {...}, "pass 2": {...},
     "true profile": {...}}`` (scores, the I_r error; the passes also the recording of faults' mean confidence
     and unknowns) and ``"field"`` (the rows the first model called fully blocked, how many were)."""
@@ -160,9 +164,13 @@ def run(split, seed, work, *, per_class, field_per_class, n_per_class, log):
     np.savez(d / "field.npz", traces=np.asarray(field["traces"], np.float32),  # a recording of faults, unlabelled
              sample_rate_hz=np.float64(field["sample_rate_hz"]))
     train = ["--seed", seed] + (["--n-per-class", n_per_class] if n_per_class else [])
+    empty = []
+    if n_empty:  # the head's empty channels, recorded as heads.py records them
+        fh.write_recording(d / "empty.npz", fh.simulate_foreign(head, {"empty_channel_1": n_empty}, seed + 7))
+        empty = ["--empty", d / "empty.npz"]
     out = {}
-    for step, extra in (("pass 1", []), ("pass 2", ["--blocked", d / "field.npz", "--blocked-labels",
-                                                    d / "field_labels.csv"])):
+    for step, extra in (("pass 1", empty), ("pass 2", ["--blocked", d / "field.npz", "--blocked-labels",
+                                                       d / "field_labels.csv", *empty])):
         tag = step.replace(" ", "")
         try:
             _inkdiag("calibrate", d / "healthy.npz", "--nominal", d / "nominal.yaml", *extra,
@@ -222,8 +230,13 @@ def main(argv=None) -> int:
     ap.add_argument("--field-per-class", type=int, default=100,
                     help="traces per class of the recording of faults the second pass takes its blocked rows from")
     ap.add_argument("--n-per-class", type=int, default=None, help="inkdiag train's --n-per-class (default: its own)")
+    ap.add_argument("--empty", type=int, default=0, metavar="N",
+                    help="both passes calibrate with N recorded empty-channel traces as well (inkdiag calibrate "
+                         "--empty); the report goes to reports/splits_empty.md")
     ap.add_argument("--keep", action="store_true", help="keep the work files under reports/splits_work/")
     args = ap.parse_args(argv)
+    if args.empty < 0:
+        ap.error(f"--empty takes a number of traces >= 0, got {args.empty}")
     try:
         splits = [tuple(float(x) for x in s.split("/")) for s in args.splits]
         if any(len(s) != 2 or not (s[0] > 0 and s[1] > 0) for s in splits):
@@ -238,7 +251,7 @@ def main(argv=None) -> int:
         for split in splits:
             for seed in args.seeds:
                 r = run(split, seed, work, per_class=args.per_class, field_per_class=args.field_per_class,
-                        n_per_class=args.n_per_class, log=log)
+                        n_per_class=args.n_per_class, log=log, n_empty=args.empty)
                 n_first = len(log) if n_first is None else n_first
                 results.append((split, seed, r))
                 for step in ("pass 1", "pass 2", TRUE):
@@ -259,9 +272,11 @@ def main(argv=None) -> int:
     elapsed = time.perf_counter() - t0
     cmd = (f"scripts/report splits --splits {' '.join(args.splits)} --seeds {' '.join(map(str, args.seeds))} "
            f"--per-class {args.per_class} --field-per-class {args.field_per_class}"
-           + (f" --n-per-class {args.n_per_class}" if args.n_per_class else ""))
+           + (f" --n-per-class {args.n_per_class}" if args.n_per_class else "")
+           + (f" --empty {args.empty}" if args.empty else ""))
     text = "\n".join([
-        "# Heads whose restrictor splits the channel unlike the design ratios",
+        "# Heads whose restrictor splits the channel unlike the design ratios"
+        + (", calibrated with empty-channel traces as well" if args.empty else ""),
         "",
         f"{datetime.date.today().isoformat()}. `{cmd}` ({elapsed / 60:.1f} min on the shared 2-core machine). "
         f"Each head is `tests/foreign_head.py`'s {BASE} (20 MHz x 1024, simulated independently of inkdiag's code) "
@@ -276,7 +291,9 @@ def main(argv=None) -> int:
         "`train`, `label` the same test recording. *true profile*: the head's own channel, drive, sensor and "
         "spreads, trained (with the same options, on one restrictor: it has no posterior to spread over) and "
         "labelled the same way: what is left when calibration costs nothing. *I_r error*: "
-        "calibrated restrictor inertance against the true one; *I_r moved*: the second pass's against the first's.",
+        "calibrated restrictor inertance against the true one; *I_r moved*: the second pass's against the first's."
+        + (f" Both passes' `calibrate` also took {args.empty} recorded traces of the head's empty channels "
+           "(`--empty EMPTY.npz`: the actuator's own resonance)." if args.empty else ""),
         "",
         md_table(["I_r/I_n / R_r/R_n", "seed", "pass", "blocked rows taken", "I_r error %", "I_r moved %", "FD %",
                   "FI %", "weakest class %", *(f"{c} %" for c in SHOWN)], rows),
@@ -296,7 +313,7 @@ def main(argv=None) -> int:
         "",
     ])
     print(text)
-    out_path("splits.md").write_text(text)
+    out_path("splits_empty.md" if args.empty else "splits.md").write_text(text)
     return 0
 
 
