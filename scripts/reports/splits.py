@@ -25,11 +25,12 @@ Per head and seed, through the ``inkdiag`` command as a user runs it:
 3. **true profile**: ``train`` on the head's true profile and ``label`` the same test recording: what the
    method reaches on the head when calibration costs nothing.
 
-``--empty N``: both passes' ``calibrate`` also take N recorded traces of the head's empty channels
-(``--empty``: the actuator's own resonance, which healthy traces do not show), and the report goes to
-``reports/splits_empty.md``.
+``--empty N`` (at least 10, as ``inkdiag calibrate --empty`` takes): both passes' ``calibrate`` also take
+N recorded traces of the head's empty channels (the actuator's own resonance, which healthy traces do not
+show; recorded with seed + 7, as ``scripts/report heads`` records them), and the report goes to
+``reports/splits_empty.md``; the true profile takes the head's own actuator either way.
 
-Prints and writes ``reports/splits.md``: the calibrated restrictor inertance against the true
+Prints and writes ``reports/splits.md`` (with ``--empty``, ``reports/splits_empty.md``): the calibrated restrictor inertance against the true
 one, FD, FI and the weakest classes of both passes and of the true profile, how far the second pass moved the restrictor
 from the first, and how ways of choosing between the two profiles without labels did on these
 runs (the restrictor moved more than 10 %; always the second; the model more confident on, or
@@ -235,8 +236,8 @@ def main(argv=None) -> int:
                          "--empty); the report goes to reports/splits_empty.md")
     ap.add_argument("--keep", action="store_true", help="keep the work files under reports/splits_work/")
     args = ap.parse_args(argv)
-    if args.empty < 0:
-        ap.error(f"--empty takes a number of traces >= 0, got {args.empty}")
+    if args.empty < 0 or 0 < args.empty < 10:
+        ap.error(f"--empty takes 10 or more traces (inkdiag calibrate --empty needs 10), or 0 for none; got {args.empty}")
     try:
         splits = [tuple(float(x) for x in s.split("/")) for s in args.splits]
         if any(len(s) != 2 or not (s[0] > 0 and s[1] > 0) for s in splits):

@@ -2,6 +2,7 @@
 
 import math
 
+import numpy as np
 import pytest
 from _helpers import load_report
 
@@ -95,3 +96,24 @@ def test_met_is_issue_14s_targets(mod):
     assert mod.met(ok)
     for bad in ({"fd": 0.979}, {"fi": 0.899}, {"per": {"a": 0.749, "b": 1.0}}):
         assert not mod.met({**ok, **bad})
+
+
+def test_empty_recording_goes_to_the_calibration_and_too_few_are_refused(mod, tmp_path, monkeypatch):
+    """--empty N: the first calibration takes the head's empty channels as well; fewer than calibrate's 10 refused."""
+    for bad in ("5", "-1"):
+        with pytest.raises(SystemExit) as exc:
+            mod.main(["--empty", bad, "--splits", "1.0/1.0"])
+        assert exc.value.code == 2
+    calls = []
+
+    def fake_inkdiag(*args, log):
+        calls.append([str(a) for a in args])
+        raise RuntimeError("stop after the first command")
+
+    monkeypatch.setattr(mod, "_inkdiag", fake_inkdiag)
+    with pytest.raises(RuntimeError, match="stop"):
+        mod.run((1.0, 1.0), 0, tmp_path, per_class=1, field_per_class=1, n_per_class=None, log=[], n_empty=12)
+    (cmd,) = calls
+    assert cmd[0] == "calibrate" and cmd[cmd.index("--empty") + 1] == str(tmp_path / "split_1_1_s0" / "empty.npz")
+    with np.load(tmp_path / "split_1_1_s0" / "empty.npz") as f:
+        assert f["traces"].shape[0] == 12 and set(f["label"].tolist()) == {"empty_channel_1"}
