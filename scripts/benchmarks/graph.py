@@ -149,14 +149,20 @@ def realistic_head(n_nozzles, n_frames, seed, *, faulty=0.02, n_baseline_frames=
         Every nozzle's.
     n_faulty : int
     """
-    from inkdiag_core import BaselineRecorder
-
     frames, healthy, n_faulty = head_recordings(n_nozzles, n_frames, seed, faulty=faulty,
                                                 n_baseline_frames=n_baseline_frames)
-    rec = BaselineRecorder(n_frames=n_baseline_frames)
+    return frames, record_baselines(healthy), n_faulty
+
+
+def record_baselines(healthy):
+    """The baselines :class:`inkdiag_core.BaselineRecorder` records from ``healthy`` frames of the nozzles 0.., as
+    commissioning does (the --ref tree records its own from the same frames: :data:`RECORD_REF`)."""
+    from inkdiag_core import BaselineRecorder
+
+    rec = BaselineRecorder(n_frames=len(healthy))
     for traces in healthy:
         rec.add(0, traces)
-    return frames, rec.baselines(), n_faulty
+    return rec.baselines()
 
 
 def head_recordings(n_nozzles, n_frames, seed, *, faulty=0.02, n_baseline_frames=8):
@@ -337,7 +343,7 @@ def main() -> int:
     from rclpy.node import Node
     from std_msgs.msg import String
 
-    from inkdiag_core import BaselineRecorder, label_frames, load_model
+    from inkdiag_core import label_frames, load_model
     from inkdiag_core.model_cache import ensure_default_model
     from inkdiag_core.persistence import read_manifest
     from msg_defs import (DIAGNOSTICS_MSG_TYPE, DIAGNOSTICS_QOS, LABELS_MSG_TYPE, RELIABLE_QOS,
@@ -358,10 +364,7 @@ def main() -> int:
             frames, base, what = make_frames(ns.nozzles, ns.frames, ns.seed), None, "10 % faulty (mixed), no baselines"
         else:
             frames, healthy, n_faulty = head_recordings(ns.nozzles, ns.frames, ns.seed, faulty=CASES[case])
-            rec = BaselineRecorder(n_frames=len(healthy))
-            for traces in healthy:
-                rec.add(0, traces)
-            base = None if ns.no_baselines else str(rec.baselines().save(tmp / f"{case}.npz"))
+            base = None if ns.no_baselines else str(record_baselines(healthy).save(tmp / f"{case}.npz"))
             if ns.ref and base:
                 np.save(tmp / f"{case}_healthy.npy", np.stack(healthy))
             what = (f"{n_faulty} faulty ({CASES[case]:.0%}), "

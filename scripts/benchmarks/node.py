@@ -15,7 +15,8 @@ reference recorded; ``--case worst``: every nozzle faulty) with the default mode
 Each tree runs in a child process of its own (``REF``'s ``inkdiag_core`` and ``msg_defs``
 extracted with ``git archive`` and put first on ``PYTHONPATH``), on the same frames and
 baselines (written once by this tree), one BLAS thread; the children alternate for
-``--rounds`` rounds and each reports its process CPU time per message, best of 5 passes.
+``--rounds`` rounds (which goes first alternating too: a round's first child ran slower) and each
+reports its process CPU time per message, best of 5 passes.
 Prints ms per message for each tree, the ratio, and whether the two trees' labels and drying
 messages are byte-identical. Then two of its stages alone, best of 50 passes over every message, as
 us per message: ``decode`` (the serialized message to a ``TraceFrame``) and ``answers`` (a labelled
@@ -87,26 +88,20 @@ def child(data: Path, model: str, n_nozzles: int, chunk: int, passes: int = 5) -
     for labels, drying in run(1):
         digest.update(labels)
         digest.update(drying)
-    per_msg = {}
-    for batch in BATCHES:
-        run(batch)  # warm
+    def best_per_msg(work, n_passes):  # CPU s per message, best of n_passes after one to warm
+        work()
         best = np.inf
-        for _ in range(passes):
-            t = time.process_time()
-            run(batch)
-            best = min(best, (time.process_time() - t) / len(msgs))
-        per_msg[str(batch)] = best
-    decoded = [decode(m) for m in msgs]
-    labelled = list(zip(decoded, labeller.label([f.traces for f in decoded], [f.first_nozzle for f in decoded])))
-    for stage, work in (("decode", lambda: [decode(m) for m in msgs]),
-                        ("answers", lambda: [answers(f, r) for f, r in labelled])):
-        work()  # warm
-        best = np.inf
-        for _ in range(10 * passes):  # short passes: the best of more
+        for _ in range(n_passes):
             t = time.process_time()
             work()
             best = min(best, (time.process_time() - t) / len(msgs))
-        per_msg[stage] = best
+        return best
+
+    per_msg = {str(batch): best_per_msg(lambda: run(batch), passes) for batch in BATCHES}
+    decoded = [decode(m) for m in msgs]
+    labelled = list(zip(decoded, labeller.label([f.traces for f in decoded], [f.first_nozzle for f in decoded])))
+    per_msg["decode"] = best_per_msg(lambda: [decode(m) for m in msgs], 10 * passes)  # short passes: the best of more
+    per_msg["answers"] = best_per_msg(lambda: [answers(f, r) for f, r in labelled], 10 * passes)
     return {"per_msg_s": per_msg, "digest": digest.hexdigest(), "messages": len(msgs)}
 
 
@@ -157,8 +152,8 @@ def main() -> int:
         cmd = [sys.executable, __file__, "--role", "child", "--data", str(tmp), "--model", model,
                "--nozzles", str(ns.nozzles), "--chunk", str(ns.chunk)]
         runs = {k: [] for k in trees}
-        for _ in range(ns.rounds):
-            for name, path in trees.items():  # alternating: both trees see the same machine
+        for r in range(ns.rounds):  # in turn, both trees on the same machine; which goes first alternates (the
+            for name, path in list(trees.items())[::1 if r % 2 == 0 else -1]:  # first child of a round ran slower)
                 e = dict(env)
                 if path is not None:
                     e["PYTHONPATH"] = os.pathsep.join([str(path / "inkdiag_core"), str(path / "msg_defs"),
