@@ -52,6 +52,15 @@ compiled kernel goes in only where it wins >= 2x on its stage).
   an ``(n, k)`` sum: the forest's fixed cost on the few rows the gate leaves. The same
   comparisons (the float32 feature against the float64 threshold) and the same sums in
   the same order per row: bit-identical to scikit-learn's ``predict_proba``.
+- :func:`mahalanobis_scores`: the open-set layer's float32 squared Mahalanobis distances, one
+  row at a time (a BLAS matrix-vector product, then each class's sum of squares in index order),
+  so a row's scores are the same bits whatever rows are scored with it (numpy's matrix product
+  of a batch summed one row in another order than of that row alone, gemv against gemm, and
+  differently again in a batch of another size).
+- :func:`detector_tail`: one branch of :meth:`inkdiag_core.FaultDetector.label` from the KPIs on
+  (features, forest, decision, open-set features, :func:`mahalanobis_scores`' arithmetic, p-values,
+  unknown score) in one call instead of about eighty numpy calls: ``scripts/bench fdi`` times it
+  against that loop, and the tests check the same labels, confidences and unknown scores.
 
 The kernels compile on first use and are cached next to this file (numba's
 ``cache=True``; a read-only install falls back to numba's user-wide cache directory).
@@ -73,7 +82,8 @@ from llvmlite import ir
 from numba.core import types
 from numba.core.extending import intrinsic
 
-__all__ = ["fit_windows", "forest_proba", "gate_codes", "kpis_of_spectra", "p_values", "row_sums",
+__all__ = ["detector_tail", "fit_windows", "forest_proba", "gate_codes", "kpis_of_spectra", "mahalanobis_scores",
+           "p_values", "row_sums",
            "screen_and_row_sums", "screen_codes", "screen_frames_and_row_sums", "unexplained", "warm_up"]
 
 _SUMS_FASTMATH = {"reassoc", "contract"}  # reorder and fuse the sums only: no finite-math assumption
@@ -551,6 +561,156 @@ def _p_values(S, cal, starts, modelled, out):
                 out[i, c] = (1.0 + n_ge) / (hi - lo + 1.0)
 
 
+
+@numba.njit(cache=True, nogil=True)
+def _floor(v, tiny):
+    """``np.maximum(v, tiny)``: NaN stays NaN."""
+    return tiny if v < tiny else v
+
+
+@numba.njit(cache=True, nogil=True)
+def _row_scores(z, w_all, mu_w, out):
+    """Squared Mahalanobis distances of one standardized float32 row ``z`` (d,) to every class, in float32
+    into ``out`` (k,): ``z [W_1 ... W_k]`` by one BLAS matrix-vector product (the row alone: the same bits
+    whatever rows are scored with it and whichever kernel calls this), then per class
+    ``sum_e2 ((z W_c)[e2] - (mu_c W_c)[e2])**2`` in index order."""
+    d = z.shape[0]
+    W = np.dot(z, w_all)
+    for c in range(out.shape[0]):
+        s = np.float32(0.0)
+        for e2 in range(d):
+            v = W[c * d + e2] - mu_w[c * d + e2]
+            s += v * v
+        out[c] = s
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _scores(Z, w_all, mu_w, out):
+    for i in range(Z.shape[0]):
+        _row_scores(Z[i], w_all, mu_w, out[i])
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _detector_tail(kpis, base, x, fs, tiny, eps, roots, nodes, threshold, value, healthy, fd_threshold,
+                   has_layer, center, scale, w_all, mu_w, cal, starts, modelled, levels, rate, rate_bound,
+                   ok, idx, conf, pf, uscore):
+    n = kpis.shape[0]
+    has_base = base.shape[0] == n and base.shape[1] == 7
+    p = 13 if has_base else 7
+    k = value.shape[1]
+    d = center.shape[0]
+    n_trees = roots.shape[0]
+    feats = np.empty(p)
+    xf = np.empty(p, np.float32)
+    proba = np.empty(k)
+    F = np.empty(d)
+    z = np.empty(d, np.float32)  # standardized open-set features, float32 (ConformalOpenSet.scores)
+    S = np.empty(k, np.float32)
+    u = np.empty(n)
+    if has_layer and n:
+        _unexplained(x, kpis, fs, tiny, u)
+    for i in range(n):
+        # the branch's features (BaselineKpis._features_of / the KPIs alone), in float64
+        for j in range(7):
+            feats[j] = kpis[i, j]
+        if has_base:
+            feats[7] = kpis[i, 1] / (base[i, 1] + eps)
+            feats[8] = kpis[i, 2] - base[i, 2]
+            feats[9] = kpis[i, 2] / (base[i, 2] + eps)
+            feats[10] = kpis[i, 3] / (base[i, 3] + eps)
+            feats[11] = kpis[i, 5] / (base[i, 5] + eps)
+            dphi = kpis[i, 4] - base[i, 4]
+            feats[12] = math.atan2(math.sin(dphi), math.cos(dphi))  # np.angle(np.exp(1j * dphi))
+        finite = True
+        for j in range(p):
+            xf[j] = np.float32(feats[j])
+            if not np.isfinite(xf[j]):
+                finite = False
+        ok[i] = finite
+        if not finite:  # not classified (finite_rows_proba)
+            continue
+        # the forest (_forest_sums: each row's sum in tree order, then the mean)
+        for c in range(k):
+            proba[c] = 0.0
+        for t in range(n_trees):
+            node = roots[t]
+            left = nodes[node, 0]
+            while left >= 0:
+                if xf[nodes[node, 2]] <= threshold[node]:
+                    node = left
+                else:
+                    node = nodes[node, 1]
+                left = nodes[node, 0]
+            for c in range(k):
+                proba[c] += value[node, c]
+        for c in range(k):
+            proba[c] /= n_trees
+        # P(faulty) and the class at the threshold (fdi.decide_classes)
+        h = 0.0
+        for c in range(k):
+            if healthy[c]:
+                h += proba[c]
+        pf[i] = 1.0 - h
+        faulty = pf[i] >= fd_threshold
+        best_c = 0
+        best = -1.0 if healthy[0] == faulty else proba[0]
+        for c in range(1, k):
+            v = -1.0 if healthy[c] == faulty else proba[c]
+            if v > best:
+                best, best_c = v, c
+        idx[i] = best_c
+        conf[i] = proba[best_c]
+        uscore[i] = np.nan
+        if not has_layer:
+            continue
+        # the open-set features (openset.openset_features, baseline_openset_features), standardized
+        F[0] = math.log(_floor(feats[1], tiny))
+        F[1] = math.log(_floor(feats[2], tiny))
+        F[2] = math.log(_floor(feats[3], tiny))
+        F[3] = math.log(_floor(feats[5], tiny))
+        F[4] = math.log(_floor(feats[6], tiny))
+        F[5] = math.cos(feats[4])
+        F[6] = math.sin(feats[4])
+        F[7] = math.log10(_floor(u[i], 1e-12))
+        if has_base:
+            F[8] = math.log(_floor(feats[7], tiny))
+            F[9] = feats[8]
+            F[10] = math.log(_floor(feats[10], tiny))
+            F[11] = math.log(_floor(feats[11], tiny))
+            F[12] = math.cos(feats[12])
+        for e in range(d):
+            z[e] = np.float32((F[e] - center[e]) / scale[e])
+        # per class the squared Mahalanobis distance (ConformalOpenSet.scores), its p-value (_p_values)
+        # and the row's unknown score 1 - max_c min(1, p_c rate / a_c) (ConformalOpenSet.unknown_score)
+        _row_scores(z, w_all, mu_w, S)
+        q_max = 0.0
+        for c in range(k):
+            s = S[c]
+            if not np.isfinite(s):
+                q_max = np.nan
+                break
+            if not modelled[c]:
+                pv = 1.0
+            else:
+                lo, hi = starts[c], starts[c + 1]
+                a, b = lo, hi  # the first calibration score >= this row's (searchsorted, side left)
+                while a < b:
+                    mid = (a + b) >> 1
+                    if cal[mid] < s:
+                        a = mid + 1
+                    else:
+                        b = mid
+                pv = (1.0 + (hi - a)) / (hi - lo + 1.0)
+            q = min(1.0, pv * (rate / levels[c])) if levels[c] > 0 else 1.0
+            if q > q_max:
+                q_max = q
+        uscore[i] = 1.0 - q_max
+        if 1.0 - uscore[i] <= rate_bound:  # unknown (ConformalOpenSet.is_unknown)
+            conf[i] = uscore[i]
+            pf[i] = 1.0
+            idx[i] = -1
+
+
 def forest_proba(X, roots, nodes, threshold, value):
     """Mean over the trees of each row's leaf values: a flattened forest's ``predict_proba``.
 
@@ -577,6 +737,109 @@ def forest_proba(X, roots, nodes, threshold, value):
         _forest_sums(X, roots, nodes, threshold, value, out)
     out /= roots.shape[0]
     return out
+
+
+
+
+def mahalanobis_scores(Z, w_all, mu_w):
+    """Squared Mahalanobis distances of standardized rows to every class, in float32, row by row.
+
+    :meth:`inkdiag_core.openset.ConformalOpenSet.scores` (calibration and test rows alike) and
+    :func:`detector_tail` both compute them one row at a time (a BLAS matrix-vector product, then
+    each class's sum of squares in index order): a row's scores do not depend on the rows scored
+    with it, nor on which of the two computes them.
+
+    Parameters
+    ----------
+    Z : ndarray of float32, shape (n, d)
+        Standardized feature rows.
+    w_all : ndarray of float32, shape (d, k * d)
+        The classes' whitening matrices side by side (``[W_1 ... W_k]``).
+    mu_w : ndarray of float32, shape (k * d,)
+        The classes' centres, whitened (``mu_c W_c``).
+
+    Returns
+    -------
+    ndarray of float32, shape (n, k)
+        ``sum_e ((z W_c)[e] - (mu_c W_c)[e])**2``; non-finite where the row is.
+    """
+    Z = np.require(Z, np.float32, ["C", "W"])
+    w_all = np.require(w_all, np.float32, ["C", "W"])
+    mu_w = np.require(mu_w, np.float32, ["C", "W"])
+    d = w_all.shape[0]
+    if Z.ndim != 2 or Z.shape[1] != d or w_all.ndim != 2 or d == 0 or w_all.shape[1] % d or mu_w.shape != (
+            w_all.shape[1],):
+        raise ValueError(f"mahalanobis_scores: rows (n, d), whitening (d, k * d) and centres (k * d,) are needed, "
+                         f"got {Z.shape}, {w_all.shape} and {mu_w.shape}")
+    out = np.empty((Z.shape[0], w_all.shape[1] // d), np.float32)
+    if Z.shape[0]:
+        _scores(Z, w_all, mu_w, out)
+    return out
+
+def detector_tail(kpis, base, x, sample_rate_hz, forest, healthy, fd_threshold, layer, *, eps):
+    """One branch of :meth:`inkdiag_core.FaultDetector.label` from the KPIs on, one row at a time in one call.
+
+    Per row: the branch's features (the KPIs, and with ``base`` the six relative to the nozzle's
+    baseline, :class:`inkdiag_core.baselines.BaselineKpis`), the forest's class probabilities
+    (:func:`forest_proba`), P(faulty) and the class at the threshold
+    (:func:`inkdiag_core.fdi.decide_classes`), then with a layer its open-set features
+    (:func:`inkdiag_core.openset.openset_features`, :func:`inkdiag_core.openset.baseline_openset_features`),
+    their float32 Mahalanobis scores, p-values and unknown score
+    (:meth:`inkdiag_core.openset.ConformalOpenSet.unknown_score`): in numpy about eighty calls
+    (most of the detector's fixed cost on the few rows the gate leaves). The same arithmetic, the
+    scores :func:`mahalanobis_scores`' own: the same labels, confidences and unknown scores.
+
+    Parameters
+    ----------
+    kpis : ndarray of float64, shape (n, 7)
+        The traces' KPIs (:func:`inkdiag_core.kpis.kpis_of_checked`).
+    base : ndarray of float64, shape (n, 7) or None
+        The baseline branch: each row's nozzle baseline KPIs; None: the plain branch (KPI_Y).
+    x : ndarray of float32 or float64, shape (n, n_samples)
+        The traces, V (the open-set layer's unexplained fraction).
+    sample_rate_hz : float
+    forest : tuple
+        ``(roots, nodes, threshold, value)`` of :func:`inkdiag_core.fdi.flat_forest`.
+    healthy : ndarray of bool, shape (n_classes,)
+    fd_threshold : float
+    layer : tuple or None
+        :meth:`inkdiag_core.openset.ConformalOpenSet._tail_params` (its last item the open-set
+        features' floor); None: no open-set layer.
+    eps : float
+        The relative features' denominator offset (:data:`inkdiag_core.baselines.features.RELATIVE_EPS`).
+
+    Returns
+    -------
+    ok : ndarray of bool, shape (n,)
+        The row's features are finite in float32 (the others are not classified).
+    idx : ndarray of int64, shape (n,)
+        Class column; -1 where the open-set layer calls the row unknown.
+    conf, pf, uscore : ndarray of float64, shape (n,)
+        Confidence, P(faulty), unknown score (NaN without a layer or for non-finite open-set
+        features), as :meth:`inkdiag_core.FaultDetector.label` reports them; meaningless where not ``ok``.
+    """
+    roots, nodes, threshold, value = forest
+    n = kpis.shape[0]
+    kpis = np.require(kpis, np.float64, ["C", "W"])
+    base = np.empty((0, 7)) if base is None else np.require(base, np.float64, ["C", "W"])
+    x = np.require(x, np.float32 if x.dtype == np.float32 else np.float64, ["C", "W"])  # the signatures warm_up compiles
+    if kpis.shape != (n, 7) or base.shape not in ((0, 7), (n, 7)) or x.ndim != 2 or x.shape[0] != n:
+        raise ValueError(f"detector_tail: KPIs (n, 7), baselines (n, 7) or none and traces (n, m) are needed, got "
+                         f"{kpis.shape}, {base.shape} and {x.shape}")
+    if layer is None:
+        f32, f64 = np.zeros((1, 1), np.float32), np.zeros(1)
+        layer = (f64, f64, f32, f32[0], f32[0], np.zeros(2, np.int64), np.zeros(1, bool), f64, 0.0, 0.0, 1e-30)
+        has_layer = False
+    else:
+        has_layer = True
+    center, scale, w_all, mu_w, cal, starts, modelled, levels, rate, rate_bound, tiny = layer
+    ok, idx = np.empty(n, bool), np.empty(n, np.int64)
+    conf, pf, uscore = np.empty(n), np.empty(n), np.full(n, np.nan)
+    if n:
+        _detector_tail(kpis, base, x, float(sample_rate_hz), float(tiny), float(eps), roots, nodes, threshold, value,
+                       np.require(healthy, bool, ["C", "W"]), float(fd_threshold), has_layer, center, scale, w_all,
+                       mu_w, cal, starts, modelled, levels, float(rate), float(rate_bound), ok, idx, conf, pf, uscore)
+    return ok, idx, conf, pf, uscore
 
 
 def fit_windows(Yw, start, m_peak, n_samples):
@@ -917,6 +1180,11 @@ def warm_up() -> None:
             x.flags.writeable = writeable
             unexplained(x, np.zeros((1, 7)), 1.0, 1e-30)
     p_values(np.zeros((1, 2), np.float32), np.zeros(1, np.float32), np.array([0, 1, 1]), np.array([True, False]))
+    mahalanobis_scores(np.zeros((1, 2), np.float32), np.ones((2, 4), np.float32), np.zeros(4, np.float32))
+    forest = (np.zeros(1, np.int64), np.full((1, 4), -1, np.int32), np.zeros(1), np.ones((1, 2)))
+    for dtype in (np.float32, np.float64):  # both branches' rows (one signature: base (0, 7) or (n, 7))
+        detector_tail(np.ones((1, 7)), None, np.zeros((1, 4), dtype), 1.0, forest, np.array([True, False]), 0.5,
+                      None, eps=1e-30)
     gate_codes(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1, np.int64), np.ones(1), 4, 0.5, (0.9, 1.1), (0.7, 0.8))
 
 

@@ -328,7 +328,7 @@ def forest_predict_proba(forest, X) -> np.ndarray:
         return _per_tree_proba(forest, X)
     from ._kernels import forest_proba
 
-    return forest_proba(X, *_flat_forest(forest))
+    return forest_proba(X, *flat_forest(forest))
 
 
 def _per_tree_proba(forest, X):
@@ -350,7 +350,7 @@ _KERNEL_MAX_ROWS = 256
 _FLAT_FORESTS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
-def _flat_forest(forest) -> tuple:
+def flat_forest(forest) -> tuple:
     """A single-output forest's trees as one set of node arrays (for :func:`_kernels.forest_proba`).
 
     Kept per forest object while it holds the same trees (a refit makes new ones; ``warm_start``

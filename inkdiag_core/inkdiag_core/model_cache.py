@@ -24,7 +24,7 @@ from pathlib import Path
 from .fdi import train_default_model as _core_train
 from .detector import FaultDetector
 from .persistence import ModelFileError, check_manifest_entries, load_model
-from .openset import OPENSET_FEATURES_VERSION
+from .openset import OPENSET_FEATURES_VERSION, OPENSET_SCORES_VERSION
 
 __all__ = ["DEFAULT_FEATURES", "DEFAULT_MODEL", "DEFAULT_SETTINGS", "default_config", "ensure_default_model",
            "main", "train_default_model"]
@@ -102,6 +102,9 @@ def ensure_default_model(path=DEFAULT_MODEL, *, progress=True, log=print):
             versions = {getattr(x, "features_version_", 1) for x in layers if x is not None}
             if versions - {OPENSET_FEATURES_VERSION}:
                 stale["open-set features version"] = (min(versions), OPENSET_FEATURES_VERSION)
+            scoring = {getattr(x, "scores_version_", 1) for x in layers if x is not None}
+            if scoring - {OPENSET_SCORES_VERSION}:  # labels as before, but not row by row (nor compiled)
+                stale["open-set scores version"] = (min(scoring), OPENSET_SCORES_VERSION)
             if not stale:
                 return path
             log(f"inkdiag: cached model trained with other settings than the default "

@@ -56,6 +56,7 @@ import numpy as np
 
 __all__ = [
     "OPENSET_FEATURES_VERSION",
+    "OPENSET_SCORES_VERSION",
     "UNKNOWN",
     "ConformalOpenSet",
     "DEFAULT_DELTA",
@@ -73,6 +74,10 @@ UNKNOWN = "unknown"
 #: Version of :func:`openset_features` / :func:`baseline_openset_features` (2: without the
 #: dc offset). A :class:`ConformalOpenSet` fitted on other features cannot score these.
 OPENSET_FEATURES_VERSION = 2
+#: Arithmetic of :meth:`ConformalOpenSet.scores` (2: row by row,
+#: :func:`inkdiag_core._kernels.mahalanobis_scores`; 1: numpy's matrix products of the batch,
+#: whose summation order for a row depends on the batch). A layer scores test rows as it scored its calibration rows.
+OPENSET_SCORES_VERSION = 2
 
 _TINY = 1e-30
 # Added to the diagonal of each class covariance, in standardized units (the features' robust
@@ -383,9 +388,10 @@ class ConformalOpenSet:
             self.whiten_[i] = np.linalg.cholesky(prec)
             self.means_[i] = est.location_
             self.modelled_[i] = True
-        for cache in ("_w_all", "_mu_w", "_block_sum", "_cal_table"):  # rebuilt from the fit
+        for cache in ("_w_all", "_mu_w", "_block_sum", "_cal_table", "_tail"):  # rebuilt from the fit
             self.__dict__.pop(cache, None)
         self.features_version_ = OPENSET_FEATURES_VERSION
+        self.scores_version_ = OPENSET_SCORES_VERSION
         cal_ok = np.isfinite(X_cal).all(axis=1)
         S = self.scores(X_cal[cal_ok])
         yc = y_cal[cal_ok]
@@ -406,21 +412,26 @@ class ConformalOpenSet:
     def scores(self, X):
         """Nonconformity of each row to each class: squared Mahalanobis distances, float32 (n, n_classes).
 
-        One matrix product for all classes (``Z @ [W_1 ... W_k]``), in float32 (calibration
-        and test rows alike, so their ranks compare like with like); NaN for a row with
-        non-finite features.
+        ``|z W_c - mu_c W_c|**2`` for every class, in float32 (calibration and test rows alike, so
+        their ranks compare like with like), one row at a time
+        (:func:`inkdiag_core._kernels.mahalanobis_scores`): a row's scores do not depend on the
+        rows scored with it. Non-finite for a row with non-finite features. A layer fitted before
+        (:data:`OPENSET_SCORES_VERSION` 1) scores as it was calibrated, by numpy's matrix products.
         """
         Z = self._standardize(X)
         k, d = self.means_.shape
         if not hasattr(self, "_w_all"):  # float32: the same arithmetic for calibration and test rows
             self._w_all = self.whiten_.transpose(1, 0, 2).reshape(d, k * d).astype(np.float32)  # (d, k*d)
             self._mu_w = np.einsum("kd,kde->ke", self.means_, self.whiten_).reshape(k * d).astype(np.float32)
-            self._block_sum = np.repeat(np.eye(k, dtype=np.float32), d, axis=0)  # (k*d, k): sums d squares
         with np.errstate(all="ignore"):
-            W = Z.astype(np.float32) @ self._w_all  # (z - mu_c) W_c for every class c at once, centred below
-            W -= self._mu_w
-            W *= W
-            return W @ self._block_sum
+            if getattr(self, "scores_version_", 1) < 2:  # calibrated by numpy's matrix products: scored so
+                W = Z.astype(np.float32) @ self._w_all
+                W -= self._mu_w
+                W *= W
+                return W @ np.repeat(np.eye(k, dtype=np.float32), d, axis=0)  # (k*d, k): sums d squares
+            from ._kernels import mahalanobis_scores  # numba: imported when a kernel is first needed
+
+            return mahalanobis_scores(Z.astype(np.float32), self._w_all, self._mu_w)
 
     def p_values(self, X):
         """Conformal p-value of each row for each class, (n, n_classes), in (0, 1].
@@ -460,9 +471,39 @@ class ConformalOpenSet:
             self._cal_table = cached = (cal, tuple(cal), table)
         return cached[2]
 
+    def _tail_params(self):
+        """What :func:`inkdiag_core._kernels.detector_tail` needs of this layer, or None where its scores are
+        not the kernel's (its calibration in another precision, or by numpy's matrix products):
+        ``(center, scale, w_all, mu_w, cal, starts, modelled, levels, rate, rate_bound, tiny)``, as :meth:`scores`,
+        :meth:`_p_of_scores`, :meth:`unknown_score` and :meth:`is_unknown` use them: the whitening ``w_all``
+        (d, k * d) and the centres ``mu_w`` (k * d) in float32, as :meth:`scores` builds them; ``tiny``
+        the floor of the features' logs (:func:`openset_features`)."""
+        table = self._calibration_table()
+        if table is None or getattr(self, "scores_version_", 1) < 2:
+            return None
+        if not hasattr(self, "_w_all"):
+            self.scores(np.zeros((0, self.means_.shape[1])))  # builds the float32 whitening once
+        levels = getattr(self, "levels_", None)
+        if levels is None:  # a layer fitted before the training-conditional levels
+            levels = self.levels_ = self._levels()
+        # built again whenever one of the arrays (or the rate) it comes from is another object
+        key = (table, self.center_, self.scale_, self._w_all, self._mu_w, self.modelled_, levels, self.rate)
+        cached = self.__dict__.get("_tail")
+        if cached is not None and len(cached[0]) == len(key) and all(a is b for a, b in zip(cached[0], key)):
+            return cached[1]
+
+        def c(a, dtype):
+            return np.require(a, dtype, ["C", "W"])
+
+        params = (c(self.center_, np.float64), c(self.scale_, np.float64), c(self._w_all, np.float32),
+                  c(self._mu_w, np.float32), c(table[0], np.float32), c(table[1], np.int64),
+                  c(self.modelled_, bool), c(levels, np.float64), float(self.rate), self.rate * (1 + 1e-12), _TINY)
+        self._tail = (key, params)
+        return params
+
     def __getstate__(self):
         state = dict(self.__dict__)
-        for cache in ("_cal_table", "_cal_flat", "_cal_starts"):  # rebuilt on first use (the last two:
+        for cache in ("_cal_table", "_tail", "_cal_flat", "_cal_starts"):  # rebuilt on first use (the last two:
             state.pop(cache, None)  # an earlier form of the table, in layers pickled after use)
         return state
 

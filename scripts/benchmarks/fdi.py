@@ -25,7 +25,8 @@ end to end on that frame in 200-nozzle messages (the default detector
 the compiled kernels against the numpy passes they replace, on one message and on eight, and
 the KPIs compiled (spectrum steps and window fit) against numpy, on the gate's leftovers and on
 1,600 rows, the spectrum steps alone, the open-set layer's unexplained fraction and p-values, and
-the detector's forests walked by the compiled kernel against one ``tree_.predict`` per tree.
+the detector's forests walked by the compiled kernel against one ``tree_.predict`` per tree, and
+``FaultDetector.label`` from the KPIs on in one compiled call against its numpy loop.
 Prints traces/s and ratios; run it on one core
 (``scripts/bench`` sets the thread variables). ``--gate-only`` skips all but the gate.
 """
@@ -207,6 +208,7 @@ def gate_bench(n: int, seed: int, faulty: float = 0.02, repeats: int = 5):
     pass_bench(with_ref, msgs, firsts, frame, gate, base, repeats)
     kernel_bench(frame, gate, repeats)
     forest_bench(det, base, frame, gate, repeats)
+    tail_bench(det, base, frame, gate, repeats)
 
 
 def pass_bench(lab, msgs, firsts, frame, gate, base, repeats: int = 5):
@@ -332,7 +334,7 @@ def forest_bench(det, base, frame, gate, repeats: int = 5, rounds: int = 20):
     """The detector's forests (plain and baseline branch) in one compiled call (``_kernels.forest_proba``)
     against one ``tree_.predict`` call per tree (what ``forest_predict_proba`` did before), in turns, same rows;
     bit-identical: the kernel's against scikit-learn's ``predict_proba``."""
-    from inkdiag_core.fdi import _flat_forest, _per_tree_proba as _per_tree
+    from inkdiag_core.fdi import flat_forest, _per_tree_proba as _per_tree
 
     left = np.flatnonzero(~gate.screen(frame, 0).cleared)
     branches = [("plain", det.pipeline_, frame)]
@@ -347,7 +349,7 @@ def forest_bench(det, base, frame, gate, repeats: int = 5, rounds: int = 20):
                          ("one message (200 rows)", np.arange(min(200, len(rows)))),
                          ("a classifier pass (1,600 rows)", np.arange(min(1600, len(rows))))):
             F = np.ascontiguousarray(pipe[:-1].transform(rows[at]), dtype=np.float32)
-            flat = _flat_forest(clf)
+            flat = flat_forest(clf)
             same = np.array_equal(_kernels.forest_proba(F, *flat), clf.predict_proba(F))
             t_np, t_k = _in_turns(lambda: [_per_tree(clf, F) for _ in range(rounds)],
                                   lambda: [_kernels.forest_proba(F, *flat) for _ in range(rounds)], repeats)
@@ -372,6 +374,49 @@ def forest_bench(det, base, frame, gate, repeats: int = 5, rounds: int = 20):
                                   lambda: [_kernels.p_values(S, *args) for _ in range(rounds)], repeats)
             print(f"  {branch:<8} {name:<32}: numpy {1e3 * t_np / rounds:7.3f} ms, kernel {1e3 * t_k / rounds:7.3f} "
                   f"ms, ratio {t_np / t_k:.2f}x faster; identical: {same}")
+
+
+
+def tail_bench(det, base, frame, gate, repeats: int = 5, rounds: int = 20):
+    """``FaultDetector.label`` from the KPIs on (the KPIs computed before, the same for both): one compiled
+    call per branch (``_kernels.detector_tail``: features, forest, decision, open-set features, scores,
+    p-values, unknown score) against the numpy loop it replaces, in turns, same rows; then the whole call."""
+    import inkdiag_core.baselines.features as features_module
+    import inkdiag_core.detector as detector_module
+
+    left = np.flatnonzero(~gate.screen(frame, 0).cleared)
+    if left.size == 0 or not base.lookup(np.arange(frame.shape[0]))[0].all():
+        print("FaultDetector.label from the KPIs on: not timed (the gate left no rows, or a nozzle has no baseline)")
+        return
+    loop = lambda *a, **k: None  # noqa: E731 - the detector's loop: no compiled tail
+    print(f"FaultDetector.label from the KPIs on, baseline branch (the compiled tail against the numpy loop; "
+          f"the KPIs precomputed for both; best of {repeats} x {rounds} calls, in turns)")
+    for whole in (False, True):
+        if whole:
+            print("the whole FaultDetector.label call (KPIs included), the same rows")
+        for r in (8, min(72, left.size), 200, 1600):
+            at = left[np.arange(r) % left.size] if r <= left.size else np.arange(r)
+            rows, (_, kp) = np.ascontiguousarray(frame[at]), base.lookup(at)
+            got = kpis_of_checked(rows, det.sample_rate_hz_)
+            fixed = (lambda y, fs: got.copy()) if not whole else kpis_of_checked
+            tail = type(det)._label_tail
+            saved = features_module.kpis_of_checked, detector_module.kpis_of_checked
+            features_module.kpis_of_checked = detector_module.kpis_of_checked = fixed
+            try:
+                def run(with_tail):
+                    type(det)._label_tail = tail if with_tail else loop
+                    try:
+                        return [det.label(rows, baseline_kpis=kp) for _ in range(rounds)][-1]
+                    finally:
+                        type(det)._label_tail = tail
+                a, b = run(True), run(False)
+                same = all(np.array_equal(x, y, equal_nan=x.dtype.kind == "f") for x, y in zip(a, b))
+                t_np, t_k = _in_turns(lambda: run(False), lambda: run(True), repeats)
+            finally:
+                features_module.kpis_of_checked, detector_module.kpis_of_checked = saved
+            name = f"{r} rows" + (" (the gate's leftovers)" if r == min(72, left.size) else "")
+            print(f"  {name:<40}: numpy {1e3 * t_np / rounds:7.3f} ms, kernel {1e3 * t_k / rounds:7.3f} ms, "
+                  f"ratio {t_np / t_k:.2f}x faster; identical labels: {same}")
 
 
 def _with_numpy_passes(fn):

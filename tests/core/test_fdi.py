@@ -121,11 +121,11 @@ def test_forest_predict_proba_compiled_and_per_tree_paths_are_sklearns_and_a_ref
         Xt = rng.normal(size=(n, 9))  # float64 in: the forest sees float32, as scikit-learn's
         np.testing.assert_array_equal(fdi.forest_predict_proba(rf, Xt), rf.predict_proba(Xt), err_msg=f"{n} rows")
     assert fdi.forest_predict_proba(rf, np.empty((0, 9))).shape == (0, 5)
-    flat = fdi._flat_forest(rf)
+    flat = fdi.flat_forest(rf)
     rf.fit(X[:500], np.array(["p", "q", "r"])[y[:500] % 3])  # the same object, new trees and classes
-    assert fdi._flat_forest(rf) is not flat
+    assert fdi.flat_forest(rf) is not flat
     Xt = rng.normal(size=(40, 9))
     np.testing.assert_array_equal(fdi.forest_predict_proba(rf, Xt), rf.predict_proba(Xt))
     rf.set_params(warm_start=True, n_estimators=30).fit(X[:500], np.array(["p", "q", "r"])[y[:500] % 3])
-    assert len(fdi._flat_forest(rf)[0]) == 30  # trees appended to the same list: flattened again
+    assert len(fdi.flat_forest(rf)[0]) == 30  # trees appended to the same list: flattened again
     np.testing.assert_array_equal(fdi.forest_predict_proba(rf, Xt), rf.predict_proba(Xt))

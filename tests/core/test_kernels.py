@@ -137,8 +137,8 @@ def test_gate_clears_the_same_rows_with_the_kernel_as_with_numpy_passes(monkeypa
 
 def test_after_warm_up_a_decoded_frame_and_a_batch_need_no_new_kernel_build():
     """In a fresh process (what a node does): warm_up, then screen, gate and fit the KPIs of a read-only
-    frame decoded from a message and of a writable batch, float32 and float64, and walk a forest; no kernel
-    gains a signature."""
+    frame decoded from a message and of a writable batch, float32 and float64, label them with a detector
+    of both branches (its compiled tail), and walk a forest; no kernel gains a signature."""
     import subprocess
     import sys
     import textwrap
@@ -155,7 +155,11 @@ def test_after_warm_up_a_decoded_frame_and_a_batch_need_no_new_kernel_build():
         _kernels.warm_up()
         from inkdiag_core.openset import unexplained_fraction
         kernels = (_kernels._screen_sums, _kernels._fit_windows, _kernels._forest_sums, _kernels._kpis_of_spectra,
-                   _kernels._unexplained, _kernels._gate_codes)
+                   _kernels._unexplained, _kernels._gate_codes, _kernels._detector_tail)
+        from inkdiag_core import FaultDetector
+        y = np.array(["ok_signal", "blocked"] * 8)
+        t = simulate_nozzles(["healthy_nozzle"] * 16, seed=2).traces
+        det = FaultDetector(n_estimators=3, unknown_rate=0.5).fit(t, y, baseline_kpis=extract_kpis(t, 10e6))
         before = [len(k.signatures) for k in kernels]
         x = simulate_nozzles(["healthy_nozzle"] * 8, seed=1, frame_seed=[1, 9]).traces.astype(np.float32)
         frame = decode_traces(encode_traces(x, first_nozzle=0, frame_id=1, stamp=0.0)).traces
@@ -166,6 +170,9 @@ def test_after_warm_up_a_decoded_frame_and_a_batch_need_no_new_kernel_build():
             pos = gate.positions(np.arange(8))
             gate.codes(*_kernels.screen_frames_and_row_sums([rows[:8]], 1e-6, 10.0, 5, gate.references, pos)[1:], pos)
             unexplained_fraction(rows, extract_kpis(rows, 10e6), 10e6)
+            base = extract_kpis(rows, 10e6)
+            base[::2] = np.nan  # both branches
+            det.label(rows, baseline_kpis=base)
         from sklearn.ensemble import RandomForestClassifier
         from inkdiag_core.fdi import forest_predict_proba
         rf = RandomForestClassifier(n_estimators=3, random_state=0).fit(extract_kpis(x, 10e6), [0, 1] * 4)

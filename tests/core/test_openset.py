@@ -282,3 +282,28 @@ def test_a_fitted_layer_keeps_its_rate_with_the_stated_confidence():
         over.append(realised > rate)
     # binomial noise of 60 draws around delta: sd 0.039
     assert np.mean(over) <= delta + 0.08, np.mean(over)
+
+
+def test_a_layer_calibrated_by_matrix_products_scores_as_it_was_calibrated(det, healthy, monkeypatch):
+    """A layer pickled before the row-by-row scores (no ``scores_version_``) scores test rows with numpy's
+    matrix products, as its calibration rows were; the detector labels it without the compiled tail."""
+    from inkdiag_core import _kernels
+
+    old = pickle.loads(pickle.dumps(det))
+    for layer in (old.openset_, old.baseline_openset_):
+        if layer is not None:
+            del layer.scores_version_
+    layer = old.openset_
+    x = healthy.traces[:40]
+    F = old._openset_features(old.pipeline_[0].transform(x), x, False)
+    k, d = layer.means_.shape
+    W = ((F - layer.center_) / layer.scale_).astype(np.float32) @ layer._w_all - layer._mu_w
+    np.testing.assert_array_equal(layer.scores(F), (W * W) @ np.repeat(np.eye(k, dtype=np.float32), d, axis=0))
+    assert layer._tail_params() is None and det.openset_._tail_params() is not None
+    calls = []
+    kernel = _kernels.detector_tail
+    monkeypatch.setattr(_kernels, "detector_tail", lambda *a, **kw: calls.append(1) or kernel(*a, **kw))
+    got = old.label(x)
+    assert not calls and (got.classes != None).all()  # noqa: E711 - labelled, by the loop
+    np.testing.assert_array_equal(got.classes, det.label(x).classes)
+    assert calls  # the current layer: the tail

@@ -71,3 +71,27 @@ def test_a_default_from_before_max_features_is_retrained(tmp_path, monkeypatch):
     ensure_default_model(default, progress=False, log=logs.append)
     assert len(calls) == 1 and logs == ["inkdiag: cached model trained with other settings than the default "
                                         "(max_features='sqrt', now None); retraining"]
+
+
+def test_a_default_whose_open_set_layer_scores_by_matrix_products_is_retrained(tmp_path, monkeypatch):
+    """A default from before the row-by-row scores (OPENSET_SCORES_VERSION 1) is retrained once."""
+    import inkdiag_core.model_cache as cache
+    from inkdiag_core import save_detector
+
+    default = tmp_path / "fdi_default.joblib"
+    train_default_model(default, n_per_class=30, baseline=True)
+    det = load_detector(default)
+    for layer in (det.openset_, det.baseline_openset_):
+        del layer.scores_version_  # as a layer pickled before the attribute
+    manifest = json.loads(open(str(default) + ".manifest.json").read())
+    save_detector(det, default, config={k: v for k, v in default_config().items()
+                                        if k not in det.get_params() and k not in ("baseline",)})
+    m = json.loads(open(str(default) + ".manifest.json").read())
+    m["config"] = {**manifest["config"], **default_config(), "fd_threshold": m["config"]["fd_threshold"]}
+    calls, logs = [], []
+    monkeypatch.setattr(cache, "train_default_model", lambda path, **kw: calls.append((path, kw)))
+    stale = [k for k in default_config() if m["config"].get(k) != default_config()[k]]
+    assert not stale
+    open(str(default) + ".manifest.json", "w").write(json.dumps(m))
+    ensure_default_model(default, progress=False, log=logs.append)
+    assert len(calls) == 1 and "open-set scores version=1, now 2" in logs[-1], logs

@@ -23,7 +23,8 @@ N_KPIS = len(KPI_NAMES)
 RELATIVE_NAMES = ("frequency_ratio", "damping_ratio_difference", "damping_ratio_ratio",
                   "amplitude_ratio", "energy_ratio", "phase_difference_rad")
 
-_EPS = 1e-30
+#: Offset of the relative features' denominators (a zero baseline KPI gives a large, finite ratio).
+RELATIVE_EPS = 1e-30
 
 
 def baseline_kpis(frames, sample_rate_hz: float) -> np.ndarray:
@@ -118,8 +119,8 @@ class BaselineKpis(TransformerMixin, BaseEstimator):
         b = np.asarray(baseline).astype(np.float64)
         dphi = np.angle(np.exp(1j * (k[:, 4] - b[:, 4])))
         rel = np.column_stack([
-            k[:, 1] / (b[:, 1] + _EPS), k[:, 2] - b[:, 2], k[:, 2] / (b[:, 2] + _EPS),
-            k[:, 3] / (b[:, 3] + _EPS), k[:, 5] / (b[:, 5] + _EPS), dphi,
+            k[:, 1] / (b[:, 1] + RELATIVE_EPS), k[:, 2] - b[:, 2], k[:, 2] / (b[:, 2] + RELATIVE_EPS),
+            k[:, 3] / (b[:, 3] + RELATIVE_EPS), k[:, 5] / (b[:, 5] + RELATIVE_EPS), dphi,
         ])
         return np.hstack([k, rel])
 
