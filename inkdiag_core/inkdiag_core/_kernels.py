@@ -49,7 +49,8 @@ compiled kernel goes in only where it wins >= 2x on its stage).
 - :func:`forest_proba`: a Random Forest's class probabilities, every tree walked per row in
   one call (:func:`inkdiag_core.fdi.forest_predict_proba` flattens the forest once). In
   numpy each tree is a call of its own (``tree_.predict``, a few us each, 50 per forest) and
-  an ``(n, k)`` sum: the forest's fixed cost on the few rows the gate leaves. The same
+  an ``(n, k)`` sum: the forest's fixed cost on a few rows (:func:`detector_tail` walks the
+  trees the same way for the default detector). The same
   comparisons (the float32 feature against the float64 threshold) and the same sums in
   the same order per row: bit-identical to scikit-learn's ``predict_proba``.
 - :func:`mahalanobis_scores`: the open-set layer's float32 squared Mahalanobis distances, one

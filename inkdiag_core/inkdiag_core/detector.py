@@ -554,11 +554,14 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         """One branch's rows labelled by one compiled call from their KPIs on
         (:func:`inkdiag_core._kernels.detector_tail`), or None where that call does not apply
         (the loop in :meth:`label` then labels them): a forest on KPI_Y (the plain branch) or on the
-        baseline branch's features, and an open-set layer (if any) of today's features with float32
-        scores. ``scripts/bench fdi``: 2.1-2.5x the loop's speed from the KPIs on at the gate's ~70
-        leftover rows, and the whole call 1.3-1.4x on 256-1,600 rows (the worst case's passes). The same labels as that loop: the features, the forest,
-        P(faulty) and the classes bit for bit; the Mahalanobis scores, hence the unknown scores, may differ
-        by float32 rounding, as the loop's own differ between batches of other sizes (the tests find none).
+        baseline branch's features, and an open-set layer (if any) of today's features and scores
+        (``scores_version_`` 2). ``scripts/bench fdi``: from the KPIs on 2.0-2.1x the loop's speed at the
+        gate's 72 leftover rows, 3.0x at 8, 1.1x at 1,600 (a worst-case pass). The same labels as the
+        loop, bit for bit: classes, confidences, P(faulty), validity and unknown scores (both score a row
+        alone, :func:`inkdiag_core._kernels.mahalanobis_scores`). The tail's logs, cosines and sines are
+        the C library's; numpy's float64 ones are too on this x86-64 (AVX2) machine, while on AVX-512
+        numpy takes its own, which may differ in the last bit (after the float32 cast of the features,
+        rarely a visible one).
 
         Returns
         -------
