@@ -534,9 +534,9 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
                     if outdated:
                         raise ValueError(outdated)
                     sel = ok.all()
-                    if len(pipeline) > 2:  # knn: the features before its scaler
-                        feats = pipeline[0].transform(Xr)
-                    with np.errstate(all="ignore"):
+                    with np.errstate(all="ignore"):  # a row's overflow is its own (not valid), as above
+                        if len(pipeline) > 2:  # knn: the features before its scaler
+                            feats = pipeline[0].transform(Xr)
                         F = self._openset_features(feats if sel else feats[ok], Xt if sel else Xt[ok], not plain)
                     score = layer.unknown_score(F)
                     unk = layer.is_unknown(score)

@@ -471,8 +471,12 @@ def finite_rows_proba(pipeline, X, *, return_features=False, checked=False, feat
             fast = getattr(pipeline[0], "_transform_checked", None) if checked and len(pipeline) == 2 else None
             if features is not None:
                 feats = features
+            elif fast is not None:
+                feats = fast(X)
             else:
-                feats = fast(X) if fast is not None else pipeline[:-1].transform(X)
+                feats = pipeline[0].transform(X)
+                if len(pipeline) > 2:  # e.g. a scaler, which refuses non-finite rows: given the finite ones
+                    feats = _finite_rows_through(pipeline[1:-1], feats)
             ok = np.isfinite(np.asarray(feats, dtype=np.float32)).all(axis=1)
             final, rows = pipeline[-1], feats if ok.all() else feats[ok]
         else:
@@ -481,6 +485,20 @@ def finite_rows_proba(pipeline, X, *, return_features=False, checked=False, feat
         proba = pipeline_predict_proba(final, rows) if ok.any() else np.empty((0, len(final.classes_)))
     return (ok, proba, feats) if return_features else (ok, proba)
 
+
+
+def _finite_rows_through(steps, feats):
+    """``steps.transform`` of the rows of ``feats`` that are finite in float32, NaN rows for the others (their
+    width the finite rows' output width, or ``feats``' where none is finite): a row whose features overflow
+    costs itself, not the batch, in a step that refuses non-finite input (scikit-learn's ``StandardScaler``)."""
+    feats = np.asarray(feats)
+    ok = np.isfinite(feats.astype(np.float32)).all(axis=1)
+    if ok.all():
+        return steps.transform(feats)
+    out = steps.transform(feats[ok]) if ok.any() else np.empty((0, feats.shape[1]))
+    full = np.full((feats.shape[0], out.shape[1]), np.nan, dtype=np.result_type(out.dtype, np.float32))
+    full[ok] = out
+    return full
 
 def classify_finite(pipeline, traces, *, fd_threshold: float = 0.5):
     """:func:`classify` of the rows whose features are finite; the others are not classified.

@@ -263,3 +263,21 @@ def test_a_file_from_before_max_features_reads_as_sqrt_and_numpy_settings_save(t
     cfg = json.loads(save_detector(det, tmp_path / "np.joblib").read_text())["config"]
     assert (cfg["max_features"], cfg["min_samples_leaf"]) == (3, 3)
     assert {t.max_features_ for t in det.pipeline_[-1].estimators_} == {3}
+
+
+def test_a_knn_rows_non_finite_baseline_feature_costs_only_itself(new):
+    """A relative feature that overflows (a baseline KPI of exactly -1e-30: k / 0) in a knn detector's
+    baseline branch: its scaler refuses non-finite rows, so the row is left out before it, not the call."""
+    from inkdiag_core import FaultDetector
+
+    sim = simulate({c: 24 for c in FaultClass}, seed=SEED + 5)
+    det = FaultDetector(kind="knn", random_state=SEED).fit(sim.traces, sim.label_values(),
+                                                          baseline_kpis=baseline_training_kpis(sim, SEED + 5))
+    base = baseline_training_kpis(new, SEED + 100)
+    base[4, 1] = -1e-30
+    out = det.label(new.traces, baseline_kpis=base)
+    assert list(np.flatnonzero(~out.valid)) == [4]
+    keep = out.valid
+    ref = det.label(new.traces[keep], baseline_kpis=base[keep])
+    for a, b in zip(out, ref):
+        np.testing.assert_array_equal(a[keep], b)
