@@ -445,11 +445,12 @@ def classify(pipeline, traces, *, fd_threshold: float = 0.5):
 def finite_rows_proba(pipeline, X, *, return_features=False, checked=False, features=None):
     """Class probabilities of the rows of ``X`` whose features are finite in float32.
 
-    The feature steps run on every row; the final estimator (what scikit-learn's
-    trees take as float32) sees only the rows whose features are finite, so an
-    overflowing row costs itself alone. Overflow is expected here and detected, so
-    numpy's floating-point warnings are silenced. Per row, the probabilities are
-    bit-identical to ``pipeline.predict_proba``.
+    The first feature step runs on every row; the steps between it and the final
+    estimator (knn's scaler) and the final estimator (what scikit-learn's trees take as
+    float32) see only the rows whose features are finite in float32 at their input, so an
+    overflowing row costs itself alone (a row finite only after the scaler is not valid
+    either). Overflow is expected here and detected, so numpy's floating-point warnings are
+    silenced. Per row, the probabilities are bit-identical to ``pipeline.predict_proba``.
 
     With ``return_features=True`` also the feature rows the final estimator saw
     (for the open-set layer of :class:`inkdiag_core.FaultDetector`). ``checked=True``:
@@ -484,7 +485,6 @@ def finite_rows_proba(pipeline, X, *, return_features=False, checked=False, feat
             ok, final, rows = np.ones(X.shape[0], dtype=bool), pipeline, X
         proba = pipeline_predict_proba(final, rows) if ok.any() else np.empty((0, len(final.classes_)))
     return (ok, proba, feats) if return_features else (ok, proba)
-
 
 
 def _finite_rows_through(steps, feats):
