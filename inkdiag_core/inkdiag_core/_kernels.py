@@ -374,19 +374,25 @@ def _fit_windows(Yw, start, m_peak, n_samples, w, M, n_iter, sigma_min, sigma_ma
 
 
 @numba.njit(cache=True, nogil=True)
+def _leaf(x, root, nodes, threshold):
+    """The leaf the feature row ``x`` reaches in the tree at ``root``: left where ``x[feature] <= threshold``."""
+    node = root
+    left = nodes[node, 0]
+    while left >= 0:
+        if x[nodes[node, 2]] <= threshold[node]:
+            node = left
+        else:
+            node = nodes[node, 1]
+        left = nodes[node, 0]
+    return node
+
+
+@numba.njit(cache=True, nogil=True)
 def _forest_sums(X, roots, nodes, threshold, value, out):
     n_classes = value.shape[1]
     for t in range(roots.shape[0]):  # tree by tree (its nodes stay in cache); each row's sum in tree order
-        root = roots[t]
         for i in range(X.shape[0]):
-            node = root
-            left = nodes[node, 0]
-            while left >= 0:
-                if X[i, nodes[node, 2]] <= threshold[node]:
-                    node = left
-                else:
-                    node = nodes[node, 1]
-                left = nodes[node, 0]
+            node = _leaf(X[i], roots[t], nodes, threshold)
             for c in range(n_classes):
                 out[i, c] += value[node, c]
 
@@ -557,10 +563,15 @@ def _p_values(S, cal, starts, modelled, out):
             elif not modelled[c]:
                 out[i, c] = 1.0
             else:
-                lo, hi = starts[c], starts[c + 1]
-                n_ge = (hi - lo) - np.searchsorted(cal[lo:hi], S[i, c])  # scores >= this row's (side left)
-                out[i, c] = (1.0 + n_ge) / (hi - lo + 1.0)
+                out[i, c] = _p_value(cal, starts[c], starts[c + 1], S[i, c])
 
+
+@numba.njit(cache=True, nogil=True)
+def _p_value(cal, lo, hi, s):
+    """``(1 + #{cal[lo:hi] >= s}) / (hi - lo + 1)``: the conformal p-value of score ``s`` against one
+    class's sorted calibration scores."""
+    n_ge = (hi - lo) - np.searchsorted(cal[lo:hi], s)  # scores >= this row's (side left)
+    return (1.0 + n_ge) / (hi - lo + 1.0)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -634,14 +645,7 @@ def _detector_tail(kpis, base, x, fs, tiny, eps, roots, nodes, threshold, value,
         for c in range(k):
             proba[c] = 0.0
         for t in range(n_trees):
-            node = roots[t]
-            left = nodes[node, 0]
-            while left >= 0:
-                if xf[nodes[node, 2]] <= threshold[node]:
-                    node = left
-                else:
-                    node = nodes[node, 1]
-                left = nodes[node, 0]
+            node = _leaf(xf, roots[t], nodes, threshold)
             for c in range(k):
                 proba[c] += value[node, c]
         for c in range(k):
@@ -690,18 +694,7 @@ def _detector_tail(kpis, base, x, fs, tiny, eps, roots, nodes, threshold, value,
             if not np.isfinite(s):
                 q_max = np.nan
                 break
-            if not modelled[c]:
-                pv = 1.0
-            else:
-                lo, hi = starts[c], starts[c + 1]
-                a, b = lo, hi  # the first calibration score >= this row's (searchsorted, side left)
-                while a < b:
-                    mid = (a + b) >> 1
-                    if cal[mid] < s:
-                        a = mid + 1
-                    else:
-                        b = mid
-                pv = (1.0 + (hi - a)) / (hi - lo + 1.0)
+            pv = _p_value(cal, starts[c], starts[c + 1], s) if modelled[c] else 1.0
             q = min(1.0, pv * (rate / levels[c])) if levels[c] > 0 else 1.0
             if q > q_max:
                 q_max = q
@@ -740,8 +733,6 @@ def forest_proba(X, roots, nodes, threshold, value):
     return out
 
 
-
-
 def mahalanobis_scores(Z, w_all, mu_w):
     """Squared Mahalanobis distances of standardized rows to every class, in float32, row by row.
 
@@ -776,6 +767,7 @@ def mahalanobis_scores(Z, w_all, mu_w):
     if Z.shape[0]:
         _scores(Z, w_all, mu_w, out)
     return out
+
 
 def detector_tail(kpis, base, x, sample_rate_hz, forest, healthy, fd_threshold, layer, *, eps):
     """One branch of :meth:`inkdiag_core.FaultDetector.label` from the KPIs on, one row at a time in one call.

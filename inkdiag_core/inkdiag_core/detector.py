@@ -44,8 +44,8 @@ from .fdi import (
     FEATURE_SETS,
     decide_classes,
     finite_rows_proba,
-    make_fdi_pipeline,
     flat_forest,
+    make_fdi_pipeline,
     pipeline_predict_proba,
     threshold_and_scores,
 )

@@ -500,6 +500,7 @@ def _finite_rows_through(steps, feats):
     full[ok] = out
     return full
 
+
 def classify_finite(pipeline, traces, *, fd_threshold: float = 0.5):
     """:func:`classify` of the rows whose features are finite; the others are not classified.
 
