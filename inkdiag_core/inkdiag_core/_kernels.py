@@ -28,6 +28,10 @@ compiled kernel goes in only where it wins >= 2x on its stage).
 - :func:`gate_codes`: the healthy gate's verdict per row from those sums (its gain, residual
   fraction and bands), one loop for what :meth:`inkdiag_core.HealthyGate.decide` does in about a
   dozen numpy passes (a fixed cost per call, several calls per head scan): the same verdicts.
+- :func:`screen_gate_frames`: the labeller's first stage, per frame one call of both kernels above
+  (the same compiled screening, sums and verdicts) that also lists the rows left for the detector
+  with their nozzle ids and copies those few out: one code per row (left, invalid and why, cleared
+  and as what) instead of about thirty numpy calls per batch around :func:`screen_and_row_sums`.
 - :func:`fit_windows`: the KPIs' damped-sinusoid fit on each trace's spectral window
   (:func:`inkdiag_core.spectral_fit.fit_windows`, its numpy reference, has the method),
   one trace at a time: in numpy about a hundred small array operations per call, a fixed
@@ -83,9 +87,12 @@ from llvmlite import ir
 from numba.core import types
 from numba.core.extending import intrinsic
 
+from .gate import CLEARED_HEALTHY
+
 __all__ = ["detector_tail", "fit_windows", "forest_proba", "gate_codes", "kpis_of_spectra", "mahalanobis_scores",
            "p_values", "row_sums",
-           "screen_and_row_sums", "screen_codes", "screen_frames_and_row_sums", "unexplained", "warm_up"]
+           "screen_and_row_sums", "screen_codes", "screen_frames_and_row_sums", "screen_gate_frames", "unexplained",
+           "warm_up"]
 
 _SUMS_FASTMATH = {"reassoc", "contract"}  # reorder and fuse the sums only: no finite-math assumption
 
@@ -206,6 +213,44 @@ def _gate_codes(x1, xx, xr, pos, rr, n_samples, max_f, jet_lo, jet_hi, ok_lo, ok
                         c = 2
         out[i] = c
 
+
+
+@numba.njit(cache=True, nogil=True)
+def _screen_gate_rows(x, bits, flat_tol, max_abs_v, clip_run, ref, pos, rr, n_samples, max_f, jet_lo, jet_hi, ok_lo,
+                      ok_hi, first, ids, row0, code, at, nozzle, left, k):
+    """One frame of :func:`screen_gate_frames`: each row screened, then gated where it is valid and has a
+    reference (``pos`` empty: none has), its code written at ``code[row0 + i]``; the rows left (code 0)
+    listed from ``at[k]`` on with their nozzle ids (``ids[i]``, or ``first + i`` where ``ids`` is empty) and,
+    unless every row of the frame is left, copied to ``left[k]`` on. The sums and verdicts are
+    :func:`_screen_sums`' and :func:`_gate_codes`' own (called here). Returns the next ``k``, whether every row
+    was left (then none is copied: the frame is its own rows), and -1 or the first position outside
+    ``[-1, len(ref))``."""
+    n, m = x.shape
+    p = pos if pos.shape[0] else np.full(n, -1, np.int64)  # empty: no row has a reference
+    for i in range(n):
+        if p[i] < -1 or p[i] >= ref.shape[0]:
+            return k, False, p[i]
+    frame_code = code[row0:row0 + n]
+    s1, s2, sr = np.empty(n), np.empty(n), np.empty(n)
+    _screen_sums(x, bits, True, flat_tol, max_abs_v, clip_run, ref, p, frame_code, s1, s2, sr)
+    gate = np.zeros(n, np.uint8)
+    _gate_codes(s1, s2, sr, p, rr, n_samples, max_f, jet_lo, jet_hi, ok_lo, ok_hi, gate)
+    k0 = k
+    for i in range(n):
+        if frame_code[i] == 0:
+            if gate[i] != 0:
+                frame_code[i] = CLEARED_HEALTHY - 1 + gate[i]  # the gate's 1, 2: CLEARED_HEALTHY, CLEARED_OK
+            else:
+                at[k] = row0 + i
+                nozzle[k] = ids[i] if ids.shape[0] else first + i
+                k += 1
+    whole = k - k0 == n
+    if not whole:
+        for j in range(k0, k):
+            r = at[j] - row0
+            for s in range(m):
+                left[j, s] = x[r, s]
+    return k, whole, -1
 
 @numba.njit(cache=True, nogil=True)
 def _solve2(a11, a12, a22, b1, b2):
@@ -1115,6 +1160,91 @@ def _screen_and_sum(frames, flat_tol, max_abs_v, clip_run, ref, pos, out):
     return code, x1, xx, xr
 
 
+
+def screen_gate_frames(frames, flat_tol, max_abs_v, clip_run, positions, verdict, firsts, nozzles=None):
+    """Screening, the healthy gate and the gathering of the rows left for the detector, frame by frame
+    (:class:`inkdiag_core.FrameLabeller`'s first stage): one compiled call per frame, each row read from
+    memory once for its screening and its sums (:func:`screen_and_row_sums`), its verdict
+    :func:`gate_codes`' own. Only the few rows the gate leaves are copied; a frame all of whose rows are
+    left is handed back as it is.
+
+    Parameters
+    ----------
+    frames : sequence of ndarray, each of shape (n_i, m), m >= 1, all float32 or all float64
+    flat_tol, max_abs_v, clip_run
+        As for :func:`screen_codes`.
+    positions : sequence of ndarray of int64, each of shape (n_i,), or None
+        Each row's reference row (:meth:`inkdiag_core.HealthyGate.positions`, -1: none); None: no gate.
+    verdict : tuple or None
+        :attr:`inkdiag_core.HealthyGate.verdict_params` (with ``positions``).
+    firsts : sequence of int
+        Each frame's first nozzle id (its rows consecutive ids), where ``nozzles`` does not give them.
+    nozzles : sequence of ndarray of int64, each of shape (n_i,), optional
+        Each frame's nozzle id per row.
+
+    Returns
+    -------
+    code : ndarray of uint8, shape (sum n_i,)
+        0: left for the detector; 1-4: invalid (:func:`screen_codes`' codes); :data:`inkdiag_core.gate.CLEARED_HEALTHY`,
+        :data:`inkdiag_core.gate.CLEARED_OK`: cleared by the gate.
+    at : ndarray of int64, shape (k,)
+        The rows left, ascending batch indices.
+    nozzle : ndarray of int64, shape (k,)
+        Their nozzle ids.
+    rows : list of ndarray
+        The rows left, in order: copies of the few, or a whole frame itself.
+
+    Raises
+    ------
+    ValueError
+        Frames of several dtypes or widths, other dtypes, or a position outside ``[-1, n_ref)``.
+    """
+    m = frames[0].shape[1] if frames and frames[0].ndim == 2 else 0
+    dtype = frames[0].dtype if frames else None
+    for a in frames:
+        if a.dtype != dtype or dtype not in (np.float32, np.float64) or a.ndim != 2 or a.shape[1] != m or m == 0:
+            raise ValueError(f"screen_gate_frames takes (n, m >= 1) rows of one width and one float dtype "
+                             f"(float32 or float64), got {a.dtype} {a.shape}")
+    n = sum(a.shape[0] for a in frames)
+    if positions is None:
+        ref, rr, n_samples, max_f, (jet_lo, jet_hi), (ok_lo, ok_hi) = (np.zeros((1, m), np.float32), np.ones(1), m,
+                                                                      0.0, (0.0, 0.0), (0.0, 0.0))
+    else:
+        ref, rr, n_samples, max_f, (jet_lo, jet_hi), (ok_lo, ok_hi) = verdict
+        if ref.dtype not in (np.float32, np.float64) or ref.ndim != 2 or ref.shape[1] != m:
+            raise ValueError(f"screen_gate_frames: references (n_ref, {m}) of float32 or float64, got {ref.dtype} "
+                             f"{ref.shape}")
+    no_pos, no_ids = np.empty(0, np.int64), np.empty(0, np.int64)
+    code, at, nozzle = np.empty(n, np.uint8), np.empty(n, np.int64), np.empty(n, np.int64)
+    left = np.empty((n, m), dtype)
+    bits_type = np.int32 if dtype == np.float32 else np.int64
+    rows, k, row0, run = [], 0, 0, None  # run: where the copies not yet handed out start in left
+    for f, a in enumerate(frames):
+        p = no_pos if positions is None else positions[f]
+        ids = no_ids if nozzles is None else nozzles[f]
+        if p.shape not in ((0,), (a.shape[0],)) or p.dtype != np.int64 or ids.shape not in ((0,), (a.shape[0],)):
+            raise ValueError(f"screen_gate_frames: frame {f} has {a.shape[0]} rows, its int64 positions and nozzle "
+                             f"ids {p.dtype} {p.shape} and {ids.shape}")
+        k0 = k
+        k, whole, bad = _screen_gate_rows(a, a.view(bits_type), float(flat_tol), float(max_abs_v), int(clip_run), ref,
+                                          p, rr, float(n_samples), float(max_f), float(jet_lo), float(jet_hi),
+                                          float(ok_lo), float(ok_hi), int(firsts[f]) if nozzles is None else 0,
+                                          ids, row0, code, at, nozzle, left, k)
+        if bad != -1:
+            raise ValueError(f"screen_gate_frames: positions must be in [-1, {ref.shape[0]}) (-1: no reference), "
+                             f"got {bad}")
+        if whole and k > k0:
+            if run is not None:
+                rows.append(left[run:k0])
+                run = None
+            rows.append(a)
+        elif k > k0 and run is None:
+            run = k0
+        row0 += a.shape[0]
+    if run is not None:
+        rows.append(left[run:k])
+    return code, at[:k], nozzle[:k], rows
+
 def gate_codes(x1, xx, xr, pos, rr, n_samples, max_residual_fraction, jetting_gain, ok_gain):
     """The healthy gate's verdict per row from its three sums (:meth:`inkdiag_core.HealthyGate.decide`'s
     arithmetic, one loop instead of about a dozen numpy passes: the same verdicts, bit for bit).
@@ -1179,6 +1309,12 @@ def warm_up() -> None:
         detector_tail(np.ones((1, 7)), None, np.zeros((1, 4), dtype), 1.0, forest, np.array([True, False]), 0.5,
                       None, eps=1e-30)
     gate_codes(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1, np.int64), np.ones(1), 4, 0.5, (0.9, 1.1), (0.7, 0.8))
+    for dtype in (np.float32, np.float64):
+        for writeable in (True, False):
+            x = np.zeros((2, 4), dtype)
+            x.flags.writeable = writeable
+            screen_gate_frames([x], 1e-6, np.inf, 5, [np.zeros(2, np.int64)],
+                               (np.ones((1, 4), np.float32), np.ones(1), 4, 0.5, (0.9, 1.1), (0.7, 0.8)), [0])
 
 
 if __name__ == "__main__":  # scripts/_bootstrap.sh: compile at install

@@ -11,9 +11,11 @@ reports :class:`LabellerConfigError`, and it validates each frame once:
 3. when the baselines carry reference traces, the healthy gate
    (:class:`inkdiag_core.HealthyGate`): valid rows that match their nozzle's healthy
    reference are labelled ``healthy_nozzle`` or ``ok_signal`` at once (confidence 1.0,
-   ``baseline`` True, ``gate_cleared`` True). Float frames are screened and summed against
-   their references by one kernel call per frame (each row read once), not stacked into
-   one array first; only the rows left for the detector are gathered;
+   ``baseline`` True, ``gate_cleared`` True). Float frames are screened, gated and the rows
+   left for the detector gathered by one kernel call per frame
+   (:func:`inkdiag_core._kernels.screen_gate_frames`: each row read from memory once, only the
+   few rows left copied), not stacked into one array first; each row's outcome is a small
+   code until the batch's columns are built from the codes in a few numpy calls;
 4. one :meth:`inkdiag_core.FaultDetector.label` call for the other valid rows of the batch,
    each row routed to the baseline branch when its nozzle has a baseline;
 5. if that call raises, each frame alone, so one bad frame costs only itself.
@@ -29,18 +31,37 @@ No ROS in here.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
+from itertools import accumulate
 
 import numpy as np
 
 from .baselines import BaselineFileError, NozzleBaselines
 from .detector import FaultDetector
-from .gate import GATE_CLASSES, HealthyGate
+from .gate import CLEARED_HEALTHY, CLEARED_OK, GATE_CLASSES, HealthyGate
 from .persistence import load_detector
 from .labelling import FrameLabels
-from .screening import screen_traces, screening_settings, verdicts
+from .screening import INVALID_REASONS, screening_codes, screening_settings
 
 __all__ = ["FrameFailure", "FrameInputError", "FrameLabeller", "LabellerConfigError", "ScreenedFrames", "load_labeller"]
+
+
+#: A screened row's class, reason and validity by its code (:func:`inkdiag_core._kernels.screen_gate_frames`':
+#: 0 left for the detector, 1-4 screening's reasons, the gate's two cleared classes), and the code of a row
+#: whose features came out non-finite.
+_NON_FINITE_FEATURES = CLEARED_OK + 1
+_CLASS_OF_CODE = np.array(["", "", "", "", "", *GATE_CLASSES[1:], ""], dtype=object)
+_REASON_OF_CODE = np.array(["", *INVALID_REASONS[:4], "", "", INVALID_REASONS[4]], dtype=object)
+_VALID_CODE = np.array([True, False, False, False, False, True, True, False])
+
+
+@functools.cache
+def _kernels():
+    """The compiled kernels' module, imported when a kernel is first needed (numba: ~0.35 s), once."""
+    from . import _kernels as kernels
+
+    return kernels
 
 
 class LabellerConfigError(ValueError):
@@ -243,7 +264,7 @@ class FrameLabeller:
         if nozzles is None:
             firsts = [int(first_nozzles[i]) for i in good]
         else:  # each row's own id
-            firsts = [np.asarray(nozzles[i], dtype=np.int64) for i in good]
+            firsts = [np.ascontiguousarray(nozzles[i], dtype=np.int64) for i in good]
         try:
             screened.parts.append(_Part(good, arrays, firsts, self._screen_rows(arrays, firsts)))
         except Exception:  # noqa: BLE001 - find the frame(s) at fault: each alone
@@ -297,57 +318,54 @@ class FrameLabeller:
         return rows
 
     def _screen_rows(self, arrays, firsts) -> "_Pending":
-        """Screen frames of the right width together, the gate's rows labelled, the others gathered."""
+        """Screen frames of the right width together, the gate's rows labelled, the others gathered.
+
+        Frames of one float dtype (a node's): one compiled call per frame screens, gates and gathers
+        (:func:`inkdiag_core._kernels.screen_gate_frames`); others (ADC counts, mixed dtypes) are
+        stacked in their common dtype first, and screened in numpy passes where that is not a float."""
         sizes = [a.shape[0] for a in arrays]
-        ends = np.cumsum(sizes)
-        starts = ends - sizes
-        n = int(ends[-1])
-        ids = None
-        if self.baselines is not None:
-            if all(np.ndim(f) == 0 for f in firsts):  # consecutive ids from each frame's first
-                ids = np.repeat(np.asarray(firsts, dtype=np.int64) - starts, sizes) + np.arange(n)
-            else:
-                ids = np.concatenate([f + np.arange(a.shape[0]) if np.ndim(f) == 0 else f
-                                      for f, a in zip(firsts, arrays)])
-        if all(a.dtype in (np.float32, np.float64) for a in arrays):
-            from ._kernels import screen_frames_and_row_sums  # numba: imported when a kernel is first needed
-            # screening and the gate's sums frame by frame into the batch's arrays, each row read once,
-            # the frames not concatenated (the detector's rows are gathered below: few on a working head)
-            x = None
-            pos = self.gate.positions(ids) if self.gate is not None else np.full(n, -1, np.int64)
-            ref = self.gate.references if self.gate is not None else None
-            code, x1, xx, xr = screen_frames_and_row_sums(arrays, *self._screening, ref, pos)
-            valid, reasons = verdicts(code)
-        else:  # ADC counts or other dtypes: screen_traces' numpy passes
+        ends = list(accumulate(sizes))
+        starts = [e - k for e, k in zip(ends, sizes)]
+        n = ends[-1]
+        consecutive = all(type(f) is int for f in firsts)  # else each row's own id (screen() gives ints or arrays)
+        if len({a.dtype for a in arrays}) > 1 or arrays[0].dtype not in (np.float32, np.float64):
             x = np.concatenate(arrays) if len(arrays) > 1 else arrays[0]
-            flat_tol, max_abs, clip_run = self._screening
-            valid, reasons = screen_traces(x, flat_tol=flat_tol, clip_run=clip_run,
-                                           max_abs_v=None if max_abs == np.inf else max_abs)
-        classes = np.full(n, "", dtype=object)
-        confidence = np.full(n, np.nan)
-        with_base = np.zeros(n, dtype=bool)
-        cleared = np.zeros(n, dtype=bool)
-        at = np.flatnonzero(valid)
-        if at.size and self.gate is not None:  # screen -> gate -> full model on the rest
-            if x is None:
-                code = self.gate.codes(x1, xx, xr, np.where(valid, pos, -1))
-                done = np.flatnonzero(code)
-                classes[done] = GATE_CLASSES[code[done]]
-            else:
-                g = self.gate.screen(x if at.size == n else x[at], ids[at])
-                done = at[g.cleared]
-                classes[done] = g.classes[g.cleared]
-            cleared[done] = True
-            confidence[done] = 1.0
-            with_base[done] = True
-            at = at[~cleared[at]]
-        rows = kpis = None
-        if at.size:
-            if self.baselines is not None:
-                has, kpis = self.baselines.lookup(ids[at])
-                kpis[~has] = np.nan  # routed to the plain branch
-            rows = [(x if at.size == n else x[at])] if x is not None else _row_parts(arrays, ends, at)
-        return _Pending(starts, ends, classes, confidence, with_base, cleared, reasons, at, rows, kpis)
+            ids = (np.repeat(np.asarray(firsts, dtype=np.int64) - starts, sizes) + np.arange(n) if consecutive
+                   else np.concatenate(firsts))
+            if x.dtype not in (np.float32, np.float64):  # ADC counts or other dtypes: screen_traces' numpy passes
+                return self._screen_numpy(x, ids, starts, ends)
+            arrays, firsts, consecutive = [x], [ids], False
+        gate = self.gate
+        positions = None
+        if gate is not None:
+            positions = [gate.range_positions(f, a.shape[0]) if consecutive else gate.positions(f)
+                         for f, a in zip(firsts, arrays)]
+        code, at, nozzle, rows = _kernels().screen_gate_frames(
+            arrays, *self._screening, positions, None if gate is None else gate.verdict_params,
+            firsts if consecutive else None, None if consecutive else firsts)
+        return self._pending(starts, ends, code, at, nozzle, rows)
+
+    def _screen_numpy(self, x, ids, starts, ends) -> "_Pending":
+        """:meth:`_screen_rows` of stacked rows that are not floats: screening's and the gate's numpy passes."""
+        flat_tol, max_abs, clip_run = self._screening
+        code = screening_codes(x, flat_tol=flat_tol, clip_run=clip_run, max_abs_v=None if max_abs == np.inf else max_abs)
+        at = np.flatnonzero(code == 0)
+        if at.size and self.gate is not None:
+            g = self.gate.screen(x if at.size == x.shape[0] else x[at], ids[at])
+            code[at[g.cleared]] = np.where(g.classes[g.cleared] == GATE_CLASSES[1], CLEARED_HEALTHY, CLEARED_OK)
+            at = at[~g.cleared]
+        return self._pending(starts, ends, code, at, ids[at], [x if at.size == x.shape[0] else x[at]])
+
+    def _pending(self, starts, ends, code, at, nozzle, rows) -> "_Pending":
+        """The screened columns from the rows' codes (:func:`inkdiag_core._kernels.screen_gate_frames`'); the
+        rows left with their nozzles' baselines."""
+        cleared = code >= CLEARED_HEALTHY
+        kpis = None
+        if at.size and self.baselines is not None:
+            has, kpis = self.baselines.lookup(nozzle)
+            kpis[~has] = np.nan  # routed to the plain branch
+        return _Pending(starts, ends, code, _CLASS_OF_CODE[code], np.where(cleared, 1.0, np.nan), cleared.copy(),
+                        cleared, _REASON_OF_CODE[code], at, rows if at.size else None, kpis)
 
     def _finish_rows(self, pending) -> list:
         """One detector call for the rows left in every ``pending`` batch; per batch, its frames' FrameLabels."""
@@ -367,15 +385,15 @@ class FrameLabeller:
                 p.classes[at[ok]] = got_classes[sl][ok]
                 p.confidence[at[ok]] = got.confidence[sl][ok]
                 p.reasons[at[~ok]] = "non_finite_features"
+                p.code[at[~ok]] = _NON_FINITE_FEATURES
                 p.with_base[at] = got.baseline[sl]
         out = []
         for p in pending:
-            valid = p.reasons == ""
+            valid = _VALID_CODE[p.code]
             with_base = p.with_base & valid
             cols = (p.classes, p.confidence, valid, p.reasons, with_base) + (
                 (p.cleared,) if self.gate is not None else ())
-            bounds = zip(p.starts.tolist(), p.ends.tolist())
-            out.append([FrameLabels(*(col[i:j] for col in cols)) for i, j in bounds])  # views of the columns
+            out.append([FrameLabels(*(col[i:j] for col in cols)) for i, j in zip(p.starts, p.ends)])  # views
         return out
 
 
@@ -405,10 +423,13 @@ class _Part:
 
 @dataclass
 class _Pending:
-    """Columns of frames screened together; ``at``: the batch rows left for the detector, ``rows`` them."""
+    """Columns of frames screened together (``starts``, ``ends``: each frame's rows); ``code`` each row's
+    (:func:`inkdiag_core._kernels.screen_gate_frames`', or :data:`_NON_FINITE_FEATURES`); ``at``: the batch rows
+    left for the detector, ``rows`` them (a list of arrays, in order)."""
 
-    starts: np.ndarray
-    ends: np.ndarray
+    starts: list
+    ends: list
+    code: np.ndarray
     classes: np.ndarray
     confidence: np.ndarray
     with_base: np.ndarray
@@ -419,28 +440,9 @@ class _Pending:
     kpis: np.ndarray | None
 
 
-def _row_parts(arrays, ends, at) -> list:
-    """Rows ``at`` (ascending batch indices) of the frames ``arrays`` stacked, as a list of arrays
-    (one per frame they fall in); no copy for a frame all of whose rows are taken."""
-    if len(arrays) == 1:
-        a = arrays[0]
-        return [a if at.size == a.shape[0] else a[at]]
-    k = np.searchsorted(ends, at, side="right")  # each row's frame
-    cut = np.flatnonzero(np.diff(k)) + 1
-    parts = []
-    for lo, hi in zip([0, *cut.tolist()], [*cut.tolist(), at.size]):
-        f = int(k[lo])
-        a = arrays[f]
-        local = at[lo:hi] - (int(ends[f]) - a.shape[0])
-        parts.append(a if local.size == a.shape[0] else a[local])
-    return parts
-
-
 def _warm_up_kernels() -> None:
     """The screening and gate kernels compiled (or loaded from their cache) now, not on a first frame."""
-    from ._kernels import warm_up
-
-    warm_up()
+    _kernels().warm_up()
 
 
 def load_labeller(model_path, baseline_path=None, **checks):

@@ -45,7 +45,7 @@ import numpy as np
 
 from .faults import FaultClass
 
-__all__ = ["GATE_CLASSES", "GateResult", "HealthyGate"]
+__all__ = ["CLEARED_HEALTHY", "CLEARED_OK", "GATE_CLASSES", "GateResult", "HealthyGate"]
 
 #: Default bound on a cleared row's residual fraction (module docstring).
 DEFAULT_MAX_RESIDUAL_FRACTION = 0.005
@@ -206,6 +206,32 @@ class HealthyGate:
         has, pos = self.baselines.reference_rows(ids)
         return np.where(has & self._usable[pos], pos, -1)
 
+    def range_positions(self, first: int, n: int) -> np.ndarray:
+        """:meth:`positions` of the consecutive ids ``first .. first + n - 1``: a slice of the gate's
+        table where it covers them (no array of ids built, nothing looked up).
+
+        Parameters
+        ----------
+        first, n : int
+
+        Returns
+        -------
+        ndarray of int64, shape (n,)
+        """
+        t = None if self._ref is None else self._table
+        if t is not None and 0 <= first and first + n <= t.size:
+            return t[first:first + n].copy()  # a copy: the table is the gate's
+        return self.positions(np.arange(first, first + n, dtype=np.int64))
+
+    @property
+    def verdict_params(self) -> tuple | None:
+        """What the compiled verdict takes (:func:`inkdiag_core._kernels.screen_gate_frames`):
+        ``(references, r.r per reference row, n_samples, max_residual_fraction, jetting_gain, ok_gain)``;
+        None without references."""
+        if self._ref is None:
+            return None
+        return self._ref, self._rr, self.n_samples, self.max_residual_fraction, self.jetting_gain, self.ok_gain
+
     @property
     def references(self) -> np.ndarray | None:
         """The mean-removed reference traces, float32 (n_nozzles_with_baselines, n_samples), V; None without."""
@@ -254,6 +280,9 @@ class HealthyGate:
 
 #: A gate row's class by its code: not cleared, cleared jetting, cleared OK-check.
 GATE_CLASSES = np.array(["", FaultClass.HEALTHY_NOZZLE.value, FaultClass.OK_SIGNAL.value], dtype=object)
+#: The codes of rows cleared as ``healthy_nozzle`` / ``ok_signal`` among the labeller's per-row codes
+#: (:func:`inkdiag_core._kernels.screen_gate_frames`: 0 left for the detector, 1-4 screening's reasons).
+CLEARED_HEALTHY, CLEARED_OK = 5, 6
 
 
 def _nothing_cleared(n: int) -> GateResult:

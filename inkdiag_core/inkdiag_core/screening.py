@@ -13,7 +13,8 @@ import math
 
 import numpy as np
 
-__all__ = ["CLIP_S", "INVALID_REASONS", "clip_run_samples", "screen_traces", "screening_settings", "verdicts"]
+__all__ = ["CLIP_S", "INVALID_REASONS", "clip_run_samples", "screen_traces", "screening_codes", "screening_settings",
+           "verdicts"]
 
 #: Shortest plateau at a row's extreme that reads as ADC clipping, s (5 samples at 10 MHz).
 CLIP_S = 0.5e-6
@@ -88,15 +89,22 @@ def screen_traces(traces, *, flat_tol: float = 1e-6, clip_run: int | None = None
     reasons : ndarray of str (object), shape (n,)
         ``""`` for valid rows, else one of :data:`INVALID_REASONS`.
     """
+    return verdicts(screening_codes(traces, flat_tol=flat_tol, clip_run=clip_run, max_abs_v=max_abs_v,
+                                    sample_rate_hz=sample_rate_hz, clip_s=clip_s))
+
+
+def screening_codes(traces, *, flat_tol: float = 1e-6, clip_run: int | None = None, max_abs_v: float | None = None,
+                    sample_rate_hz: float = 10e6, clip_s: float = CLIP_S):
+    """:func:`screen_traces`' verdicts as codes: uint8 (n,), 0 valid, else 1 + the reason's index in
+    :data:`INVALID_REASONS` (:func:`verdicts` turns them into ``(valid, reasons)``). Same parameters."""
     x = np.asarray(traces)
     if x.ndim != 2:
         raise ValueError(f"traces must be 2-D (n, n_samples), got shape {x.shape}")
     clip_run = screening_settings(flat_tol=flat_tol, clip_run=clip_run, max_abs_v=max_abs_v,
                                   sample_rate_hz=sample_rate_hz, clip_s=clip_s)[2]
-    n = x.shape[0]
-    if n == 0 or x.shape[1] == 0:
-        return np.ones(n, bool), np.full(n, "", dtype=object)
-    return verdicts(_screen_codes(x, flat_tol, max_abs_v, clip_run))
+    if x.shape[0] == 0 or x.shape[1] == 0:
+        return np.zeros(x.shape[0], np.uint8)
+    return _screen_codes(x, flat_tol, max_abs_v, clip_run)
 
 
 def screening_settings(*, flat_tol: float = 1e-6, clip_run: int | None = None, max_abs_v: float | None = None,

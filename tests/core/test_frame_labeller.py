@@ -246,6 +246,41 @@ def test_frames_screened_and_gated_one_by_one_label_as_the_stacked_batch(detecto
     assert where == {FIRST + 7: "non_finite", FIRST + 30: "flat", FIRST + 64: "clipped"}
 
 
+def test_frames_of_another_dtype_are_screened_and_gated_in_numpy_as_the_stacked_batch(detector):
+    """Frames that are not float32/float64 (float16 here; ADC counts alike) take screening's and the gate's numpy
+    passes on the stacked rows: the same labels as screen_traces, HealthyGate.screen and the detector, the
+    gate's rows cleared with their class."""
+    from inkdiag_core import HealthyGate, screen_traces
+
+    n = 120
+    rec = BaselineRecorder(n_frames=4)
+    for k in range(4):
+        rec.add(FIRST, simulate_nozzles(["healthy_nozzle"] * n, seed=HEAD, frame_seed=k).traces)
+    base = rec.baselines()
+    classes = np.array(["healthy_nozzle", "ok_signal"] * (n // 2), dtype=object)
+    classes[::10] = "partially_blocked"
+    x = simulate_nozzles(classes, seed=HEAD, frame_seed=9).traces.astype(np.float16)
+    x[7, 3], x[30] = np.inf, 0.0  # non_finite, flat
+    frames, firsts = [x[:50], x[50:]], [FIRST, FIRST + 50]
+    got = FrameLabeller(detector, base, max_abs_v=10.0).label(frames, firsts)
+
+    ids = FIRST + np.arange(n)
+    valid, reasons = screen_traces(x, max_abs_v=10.0, sample_rate_hz=detector.sample_rate_hz_)
+    at = np.flatnonzero(valid)
+    g = HealthyGate(base).screen(x[at], ids[at])
+    rest = at[~g.cleared]
+    d = detector.label(x[rest], baseline_kpis=base.lookup(ids[rest])[1])
+    want = np.full(n, "", dtype=object)
+    want[at[g.cleared]] = g.classes[g.cleared]
+    want[rest] = d.classes
+    cat = {k: np.concatenate([getattr(f, k) for f in got]) for k in ("classes", "reasons", "gate_cleared", "valid")}
+    np.testing.assert_array_equal(cat["reasons"], reasons)
+    np.testing.assert_array_equal(cat["valid"], valid)
+    np.testing.assert_array_equal(cat["gate_cleared"][at], g.cleared)
+    np.testing.assert_array_equal(cat["classes"], want)
+    assert g.cleared.sum() > 50 and (g.classes[g.cleared] == "ok_signal").any() and len(rest) > 10
+
+
 @pytest.mark.parametrize("max_abs_v", [0.0, -1.0, float("nan")])
 def test_a_max_abs_v_that_is_not_positive_is_a_config_error(detector, max_abs_v):
     with pytest.raises(LabellerConfigError, match="max_abs_v must be > 0 V"):

@@ -213,3 +213,23 @@ def test_positions_by_table_are_the_searched_ones(recorded):
     inside = q[(q >= 0) & (q <= ids[-1])]
     np.testing.assert_array_equal(gate.positions(inside), want[(q >= 0) & (q <= ids[-1])])
     assert (gate.positions([ids[5]]) == -1).all() and (gate.positions([ids[6]]) == 6).all()
+
+
+def test_range_positions_are_the_positions_of_the_range(recorded):
+    """HealthyGate.range_positions(first, n) (the labeller's consecutive ids, a slice of the table) is
+    positions(arange(first, first + n)): inside the table, across and beyond its ends, with the table and
+    without one (ids too sparse for it), and writing to it does not touch the gate."""
+    sparse = NozzleBaselines(recorded.nozzle_ids * 1000, recorded.kpis, recorded.sample_rate_hz, recorded.n_samples,
+                             recorded.n_frames, reference=recorded.reference)
+    for b in (recorded, sparse):
+        gate = HealthyGate(b)
+        assert (gate._table is None) == (b is sparse)
+        last = int(b.nozzle_ids[-1])
+        for first, n in ((0, 10), (5, 200), (last - 3, 10), (-4, 8), (last + 1, 5), (3, 0), (0, last + 1)):
+            got = gate.range_positions(first, n)
+            np.testing.assert_array_equal(got, gate.positions(np.arange(first, first + n)))
+            assert got.dtype == np.int64 and got.shape == (n,)
+        got = gate.range_positions(0, 5)
+        got[:] = -1
+        assert (gate.range_positions(0, 5) >= 0).all() or b is sparse
+    assert HealthyGate(dataclasses.replace(recorded, reference=None)).range_positions(0, 4).tolist() == [-1] * 4

@@ -155,7 +155,8 @@ def test_after_warm_up_a_decoded_frame_and_a_batch_need_no_new_kernel_build():
         _kernels.warm_up()
         from inkdiag_core.openset import unexplained_fraction
         kernels = (_kernels._screen_sums, _kernels._fit_windows, _kernels._forest_sums, _kernels._kpis_of_spectra,
-                   _kernels._unexplained, _kernels._gate_codes, _kernels._detector_tail)
+                   _kernels._unexplained, _kernels._gate_codes, _kernels._detector_tail, _kernels._screen_gate_rows)
+        from inkdiag_core import FrameLabeller
         from inkdiag_core import FaultDetector
         y = np.array(["ok_signal", "blocked"] * 8)
         t = simulate_nozzles(["healthy_nozzle"] * 16, seed=2).traces
@@ -173,6 +174,10 @@ def test_after_warm_up_a_decoded_frame_and_a_batch_need_no_new_kernel_build():
             base = extract_kpis(rows, 10e6)
             base[::2] = np.nan  # both branches
             det.label(rows, baseline_kpis=base)
+            labeller = FrameLabeller(det, rec.baselines(), sample_rate_hz=10e6, n_samples=512, max_abs_v=10.0)
+            labeller.label([rows[:8], rows[:8]], [0, 100])  # the gate's nozzles, then none with a reference
+            FrameLabeller(det, max_abs_v=10.0).label([rows[:8]], [0])  # no gate
+            labeller.label([rows[:8]], [0], nozzles=[np.arange(8)[::-1]])  # each row's own id
         from sklearn.ensemble import RandomForestClassifier
         from inkdiag_core.fdi import forest_predict_proba
         rf = RandomForestClassifier(n_estimators=3, random_state=0).fit(extract_kpis(x, 10e6), [0, 1] * 4)
@@ -259,3 +264,72 @@ def test_gate_codes_refuses_positions_outside_its_table_and_mismatched_shapes():
     with pytest.raises(ValueError, match="one shape"):
         _kernels.gate_codes(x, x[:2], x, np.array([0, 1, -1]), rr, 4, 0.5, (0.9, 1.1), (0.7, 0.8))
     assert _kernels.gate_codes(x, x, x, np.array([0, 1, -1]), rr, 4, 0.5, (0.9, 1.1), (0.7, 0.8)).shape == (3,)
+
+
+def _gated_frames(dtype):
+    """Frames of a recorded head (every class, screening's invalid kinds) and the gate of its references."""
+    from inkdiag_core import BaselineRecorder, FaultClass, HealthyGate, simulate_nozzles
+
+    rec = BaselineRecorder(n_frames=4)
+    for k in range(4):
+        rec.add(0, simulate_nozzles(["healthy_nozzle"] * 90, seed=5, frame_seed=k).traces)
+    g = HealthyGate(rec.baselines())
+    classes = np.array(["healthy_nozzle", "ok_signal"] * 45, dtype=object)
+    values = [c.value for c in FaultClass]
+    classes[::6] = [values[i % len(values)] for i in range(15)]
+    x = simulate_nozzles(classes, seed=5, frame_seed=11).traces.astype(dtype)
+    x[4, 9], x[13], x[22, 40:50], x[31, 2] = np.nan, 0.0, x[22].max(), 99.0  # non_finite, flat, clipped, out_of_range
+    return g, x
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_screen_gate_frames_is_screening_then_the_gate(dtype):
+    """screen_gate_frames (the labeller's first stage) against screen_frames_and_row_sums then gate_codes on the
+    valid rows: the same codes; the rows left listed with their nozzle ids and handed back in order (copies
+    of the few, a frame all of whose rows are left as itself); explicit ids; no gate; bad input refused."""
+    g, x = _gated_frames(dtype)
+    cuts = [0, 25, 25, 60, 90]
+    frames = [x[a:b] for a, b in zip(cuts, cuts[1:])]
+    frames.append(x[[12, 18, 42]])  # empty channels and a blocked nozzle: every row left, the frame whole
+    firsts = [0, 25, 25, 60, 12]
+    ids = np.concatenate([np.arange(f, f + len(a)) for f, a in zip(firsts[:4], frames[:4])] + [np.array([12, 18, 42])])
+    pos = g.positions(ids)
+    code, x1, xx, xr = _kernels.screen_frames_and_row_sums(frames, 1e-6, 10.0, 5, g.references, pos)
+    want = code.copy()
+    gate_code = g.codes(x1, xx, xr, np.where(code == 0, pos, -1))
+    want[gate_code > 0] = gate.CLEARED_HEALTHY - 1 + gate_code[gate_code > 0]
+    rows = np.concatenate(frames)
+    for nozzles in (None, [ids[a:b] for a, b in zip([0, 25, 25, 60, 90], [25, 25, 60, 90, 93])]):
+        positions = [g.range_positions(f, len(a)) for f, a in zip(firsts, frames)]
+        positions[-1] = g.positions(ids[-3:])
+        firsts_ = list(firsts)
+        if nozzles is None:  # the last frame's ids are not consecutive: given as a frame of its own ids below
+            got = _kernels.screen_gate_frames(frames[:-1], 1e-6, 10.0, 5, positions[:-1], g.verdict_params, firsts_[:-1])
+            got_all = _kernels.screen_gate_frames(frames, 1e-6, 10.0, 5, positions, g.verdict_params, firsts_,
+                                                  [np.empty(0, np.int64)] * 5)  # empty ids: consecutive from firsts
+            np.testing.assert_array_equal(got_all[0], want)
+            code_, at, nz, parts = got
+            np.testing.assert_array_equal(code_, want[:90])
+        else:
+            code_, at, nz, parts = _kernels.screen_gate_frames(frames, 1e-6, 10.0, 5, positions, g.verdict_params,
+                                                               firsts_, nozzles)
+            np.testing.assert_array_equal(code_, want)
+            assert parts[-1] is frames[-1]  # left whole: not copied
+        np.testing.assert_array_equal(at, np.flatnonzero(code_ == 0))
+        np.testing.assert_array_equal(nz, ids[at])
+        np.testing.assert_array_equal(np.concatenate(parts), rows[at])
+        assert all(p.dtype == dtype for p in parts)
+    assert (want == gate.CLEARED_HEALTHY).sum() > 20 and (want == gate.CLEARED_OK).sum() > 20
+    assert set(want[[4, 13, 22, 31]]) == {1, 3, 4, 2} and (want == 0).sum() > 15
+    # no gate: every valid row left, nothing copied when all of a frame's rows are valid
+    code_, at, nz, parts = _kernels.screen_gate_frames(frames[3:4], 1e-6, 10.0, 5, None, None, [60])
+    np.testing.assert_array_equal(code_, want[60:90].clip(max=4) * (want[60:90] < 5))
+    assert parts[0] is frames[3] and (nz == np.arange(60, 90)).all()
+    with pytest.raises(ValueError, match="one float dtype"):
+        _kernels.screen_gate_frames([frames[0], frames[2].astype(np.float16)], 1e-6, 10.0, 5, None, None, [0, 25])
+    with pytest.raises(ValueError, match=r"positions must be in \[-1"):
+        bad = positions[0].copy()
+        bad[3] = len(g.references)
+        _kernels.screen_gate_frames(frames[:1], 1e-6, 10.0, 5, [bad], g.verdict_params, firsts[:1])
+    with pytest.raises(ValueError, match="positions and nozzle ids"):
+        _kernels.screen_gate_frames(frames[:1], 1e-6, 10.0, 5, [positions[0][:3]], g.verdict_params, [0])
