@@ -72,7 +72,6 @@ DRIED_CLASSES = ("slightly_dried", "intermediately_dried", "deeply_dried")
 #: Key of the invalid-row count in ``counts``.
 INVALID_KEY = "invalid"
 _HEALTHY = frozenset(HEALTHY_CLASSES)
-_STR = frozenset({str})
 
 
 @dataclass(frozen=True)
@@ -141,12 +140,13 @@ class LabelsReport:
                 pass
             if hint is not None and hint.shape != (n,):
                 hint = None
-        if n_valid == n and set(map(type, cl)) <= _STR:  # plain str: list.count and `in` agree with a Counter's keys
-            by_class = {h: k for h in HEALTHY_CLASSES if (k := cl.count(h))}
+        kinds = set(cl) if n_valid == n else None  # the classes present: their types checked, not every row's
+        if kinds is not None and all(type(c) is str for c in kinds):  # plain str: list.count agrees with a Counter
+            by_class = {h: k for h in HEALTHY_CLASSES if (k := cl.count(h))}  # mostly the very same str: fast
             n_healthy = sum(by_class.values())
             faulty = [] if n_healthy == n else None
             if faulty is None and hint is not None:  # the gate's rows are healthy: faults among the others only
-                rest = np.flatnonzero(~hint).tolist()
+                rest = (~hint).nonzero()[0].tolist()  # hint is 1-D: flatnonzero's ravel is not needed
                 faulty = [i for i in rest if cl[i] not in _HEALTHY]
                 if n - len(faulty) != n_healthy:  # a cleared row is not of a healthy class: every row, below
                     faulty = None
@@ -174,10 +174,10 @@ class LabelsReport:
             invalid = tuple(zip(ids[bad].tolist(), map(str, np.asarray(reasons, dtype=object)[bad].tolist())))
         n_cleared = 0
         if gate_cleared is not None:
-            g = np.asarray(gate_cleared, dtype=bool)
+            g = hint if hint is not None else np.asarray(gate_cleared, dtype=bool)
             if g.shape != (n,):
                 raise MessageError(f"labels: gate_cleared must have shape ({n},), got {g.shape}")
-            n_cleared = int(np.count_nonzero(g & valid))
+            n_cleared = int(np.count_nonzero(g if hint is not None else g & valid))  # a hint: every row valid
         return cls(int(frame_id), float(stamp), int(first_nozzle), int(n), str(model_id), counts,
                    faults, invalid, n_cleared)
 

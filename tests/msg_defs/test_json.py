@@ -290,6 +290,10 @@ def test_from_arrays_is_the_reference_and_does_not_trust_the_gate_column_for_cla
         kw = dict(frame_id=1, stamp=1.0, first_nozzle=0, classes=np.asarray(odd, dtype=object), confidence=[0.9, 0.8],
                   valid=[True, True], reasons=["", ""], model_id="m", gate_cleared=[True, False])
         assert repr(LabelsReport.from_arrays(**kw)) == repr(_reference_from_arrays(**kw))
+    # an unhashable class value: the Counter's TypeError, as the reference
+    kw = dict(frame_id=1, stamp=1.0, first_nozzle=0, classes=np.array([["x"], "healthy_nozzle"], dtype=object),
+              confidence=[0.9, 0.8], valid=[True, True], reasons=["", ""], model_id="m", gate_cleared=[False, True])
+    assert _outcome(lambda: LabelsReport.from_arrays(**kw)) is _outcome(lambda: _reference_from_arrays(**kw)) is TypeError
     # a bad confidence or gate column fails as it always did, even when every row is healthy
     healthy = dict(frame_id=1, stamp=1.0, first_nozzle=0, classes=["healthy_nozzle"] * 2, valid=[True, True],
                    reasons=["", ""], model_id="m")
