@@ -1211,9 +1211,10 @@ def screen_gate_frames(frames, flat_tol, max_abs_v, clip_run, positions, verdict
                                                                       0.0, (0.0, 0.0), (0.0, 0.0))
     else:
         ref, rr, n_samples, max_f, (jet_lo, jet_hi), (ok_lo, ok_hi) = verdict
-        if ref.dtype not in (np.float32, np.float64) or ref.ndim != 2 or ref.shape[1] != m:
-            raise ValueError(f"screen_gate_frames: references (n_ref, {m}) of float32 or float64, got {ref.dtype} "
-                             f"{ref.shape}")
+        if (ref.dtype not in (np.float32, np.float64) or ref.ndim != 2 or ref.shape[1] != m
+                or rr.shape != (ref.shape[0],) or rr.dtype != np.float64):
+            raise ValueError(f"screen_gate_frames: references (n_ref, {m}) of float32 or float64 and r.r (n_ref,) "
+                             f"float64, got {ref.dtype} {ref.shape} and {rr.dtype} {rr.shape}")
     no_pos, no_ids = np.empty(0, np.int64), np.empty(0, np.int64)
     code, at, nozzle = np.empty(n, np.uint8), np.empty(n, np.int64), np.empty(n, np.int64)
     left = np.empty((n, m), dtype)
@@ -1222,7 +1223,8 @@ def screen_gate_frames(frames, flat_tol, max_abs_v, clip_run, positions, verdict
     for f, a in enumerate(frames):
         p = no_pos if positions is None else positions[f]
         ids = no_ids if nozzles is None else nozzles[f]
-        if p.shape not in ((0,), (a.shape[0],)) or p.dtype != np.int64 or ids.shape not in ((0,), (a.shape[0],)):
+        if (p.shape not in ((0,), (a.shape[0],)) or p.dtype != np.int64 or ids.shape not in ((0,), (a.shape[0],))
+                or ids.dtype != np.int64):
             raise ValueError(f"screen_gate_frames: frame {f} has {a.shape[0]} rows, its int64 positions and nozzle "
                              f"ids {p.dtype} {p.shape} and {ids.shape}")
         k0 = k

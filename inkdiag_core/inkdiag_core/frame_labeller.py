@@ -264,7 +264,7 @@ class FrameLabeller:
         if nozzles is None:
             firsts = [int(first_nozzles[i]) for i in good]
         else:  # each row's own id
-            firsts = [np.ascontiguousarray(nozzles[i], dtype=np.int64) for i in good]
+            firsts = [np.array(nozzles[i], dtype=np.int64) for i in good]  # a writable C copy: one kernel signature
         try:
             screened.parts.append(_Part(good, arrays, firsts, self._screen_rows(arrays, firsts)))
         except Exception:  # noqa: BLE001 - find the frame(s) at fault: each alone
@@ -340,6 +340,8 @@ class FrameLabeller:
         if gate is not None:
             positions = [gate.range_positions(f, a.shape[0]) if consecutive else gate.positions(f)
                          for f, a in zip(firsts, arrays)]
+        if consecutive and self.baselines is None:  # the ids are not needed (any int a caller gave goes)
+            firsts = [0] * len(arrays)
         code, at, nozzle, rows = _kernels().screen_gate_frames(
             arrays, *self._screening, positions, None if gate is None else gate.verdict_params,
             firsts if consecutive else None, None if consecutive else firsts)
@@ -382,10 +384,13 @@ class FrameLabeller:
                 sl = slice(k, k + p.at.size)
                 k += p.at.size
                 ok, at = got.valid[sl], p.at
-                p.classes[at[ok]] = got_classes[sl][ok]
-                p.confidence[at[ok]] = got.confidence[sl][ok]
-                p.reasons[at[~ok]] = "non_finite_features"
-                p.code[at[~ok]] = _NON_FINITE_FEATURES
+                if ok.all():  # nearly always: no row's features came out non-finite
+                    p.classes[at], p.confidence[at] = got_classes[sl], got.confidence[sl]
+                else:
+                    p.classes[at[ok]] = got_classes[sl][ok]
+                    p.confidence[at[ok]] = got.confidence[sl][ok]
+                    p.reasons[at[~ok]] = "non_finite_features"
+                    p.code[at[~ok]] = _NON_FINITE_FEATURES
                 p.with_base[at] = got.baseline[sl]
         out = []
         for p in pending:

@@ -281,6 +281,22 @@ def test_frames_of_another_dtype_are_screened_and_gated_in_numpy_as_the_stacked_
     assert g.cleared.sum() > 50 and (g.classes[g.cleared] == "ok_signal").any() and len(rest) > 10
 
 
+def test_any_first_id_labels_without_baselines_and_read_only_ids_compile_nothing(detector, baselines):
+    """Without baselines the ids select nothing: a first id beyond int64 labels as any other (the kernel is
+    not given it); explicit read-only ids are copied, so a node's warmed-up kernels take them as they are."""
+    from inkdiag_core import _kernels
+
+    frames, _ = _head_frames()
+    plain = FrameLabeller(detector, max_abs_v=10.0)
+    _same(plain.label(frames[:1], [2**64]), plain.label(frames[:1], [0]))
+    ids = np.arange(FIRST, FIRST + len(frames[0]))
+    ids.flags.writeable = False
+    labeller = FrameLabeller(detector, baselines, max_abs_v=10.0)
+    before = len(_kernels._screen_gate_rows.signatures)
+    _same(labeller.label(frames[:1], [FIRST], nozzles=[ids]), labeller.label(frames[:1], [FIRST]))
+    assert len(_kernels._screen_gate_rows.signatures) == before
+
+
 @pytest.mark.parametrize("max_abs_v", [0.0, -1.0, float("nan")])
 def test_a_max_abs_v_that_is_not_positive_is_a_config_error(detector, max_abs_v):
     with pytest.raises(LabellerConfigError, match="max_abs_v must be > 0 V"):

@@ -333,3 +333,9 @@ def test_screen_gate_frames_is_screening_then_the_gate(dtype):
         _kernels.screen_gate_frames(frames[:1], 1e-6, 10.0, 5, [bad], g.verdict_params, firsts[:1])
     with pytest.raises(ValueError, match="positions and nozzle ids"):
         _kernels.screen_gate_frames(frames[:1], 1e-6, 10.0, 5, [positions[0][:3]], g.verdict_params, [0])
+    with pytest.raises(ValueError, match="positions and nozzle ids"):  # ids of another dtype
+        _kernels.screen_gate_frames(frames[:1], 1e-6, 10.0, 5, positions[:1], g.verdict_params, [0],
+                                    [ids[:25].astype(float)])
+    with pytest.raises(ValueError, match=r"r.r \(n_ref,\)"):
+        ref, rr, *rest = g.verdict_params
+        _kernels.screen_gate_frames(frames[:1], 1e-6, 10.0, 5, positions[:1], (ref, rr[:-1], *rest), [0])
