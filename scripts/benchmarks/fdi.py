@@ -171,6 +171,9 @@ def gate_bench(n: int, seed: int, faulty: float = 0.02, repeats: int = 5):
         for m, f0 in zip(msgs, firsts):
             lab.label([m], [f0])
 
+    t["FrameLabeller.screen (screening, gate, rows left gathered), per 200-nozzle message"] = best_of(
+        lambda: [with_ref.screen([m], [f0]) for m, f0 in zip(msgs, firsts)], repeats)
+    t["FrameLabeller.screen, all messages in one call"] = best_of(lambda: with_ref.screen(msgs, firsts), repeats)
     t["FrameLabeller, baselines with references (gate), per 200-nozzle message"] = best_of(
         lambda: per_message(with_ref), repeats)
     t["FrameLabeller, baselines without references, per 200-nozzle message"] = best_of(
@@ -186,6 +189,9 @@ def gate_bench(n: int, seed: int, faulty: float = 0.02, repeats: int = 5):
         print(f"{name:<{width}} : {n / v:>12,.0f} traces/s  ({1e3 * v:8.2f} ms)")
     mx = t["X.max(axis=1) (one read of each sample)"]
     print(f"ratio HealthyGate.screen / one max pass: {mx / t['HealthyGate.screen (whole frame, one call)']:.3f}")
+    print(f"ratio FrameLabeller.screen / one max pass (the node's first stage: screening, the gate, the rows left "
+          f"copied out): per message {mx / t['FrameLabeller.screen (screening, gate, rows left gathered), per 200-nozzle message']:.3f}"
+          f", one call {mx / t['FrameLabeller.screen, all messages in one call']:.3f}")
     a = t["FrameLabeller, baselines with references (gate), per 200-nozzle message"]
     b = t["FrameLabeller, baselines without references, per 200-nozzle message"]
     print(f"ratio FrameLabeller with gate / without, per message: {b / a:.2f}x faster")
