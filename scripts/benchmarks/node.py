@@ -18,9 +18,10 @@ baselines (written once by this tree), one BLAS thread; the children alternate f
 ``--rounds`` rounds (which goes first alternating too: a round's first child ran slower) and each
 reports its process CPU time per message, best of 5 passes.
 Prints ms per message for each tree, the ratio, and whether the two trees' labels and drying
-messages are byte-identical. Then two of its stages alone, best of 50 passes over every message, as
-us per message: ``decode`` (the serialized message to a ``TraceFrame``) and ``answers`` (a labelled
-frame to its labels and drying messages' bytes).
+messages are byte-identical. Then some of its stages alone, best of 50 passes over every message, as
+us per message: ``decode`` (the serialized message to a ``TraceFrame``), ``screen`` (the labeller's
+first stage, ``FrameLabeller.screen``: screening, the healthy gate, the rows left gathered; one and 8
+messages per call) and ``answers`` (a labelled frame to its labels and drying messages' bytes).
 """
 
 from __future__ import annotations
@@ -101,6 +102,10 @@ def child(data: Path, model: str, n_nozzles: int, chunk: int, passes: int = 5) -
     decoded = [decode(m) for m in msgs]
     labelled = list(zip(decoded, labeller.label([f.traces for f in decoded], [f.first_nozzle for f in decoded])))
     per_msg["decode"] = best_per_msg(lambda: [decode(m) for m in msgs], 10 * passes)  # short passes: the best of more
+    for batch in BATCHES:  # the first stage alone (screening, the gate, the rows left gathered)
+        per_msg[f"screen {batch}"] = best_per_msg(lambda: [
+            labeller.screen([f.traces for f in decoded[j:j + batch]], [f.first_nozzle for f in decoded[j:j + batch]])
+            for j in range(0, len(decoded), batch)], 10 * passes)
     per_msg["answers"] = best_per_msg(lambda: [answers(f, r) for f, r in labelled], 10 * passes)
     return {"per_msg_s": per_msg, "digest": digest.hexdigest(), "messages": len(msgs)}
 
@@ -176,11 +181,13 @@ def main() -> int:
         ratio = old / new
         print(f"  {batch} message(s) per labeller call: this tree {new.min():.3f}-{new.max():.3f} ms, "
               f"{ns.ref} {old.min():.3f}-{old.max():.3f} ms; {ns.ref} / this tree {ratio.min():.2f}-{ratio.max():.2f}x")
-    for stage in ("decode", "answers"):
+    stages = {"decode": "decode", **{f"screen {b}": f"screen, {b} message(s) per call" for b in BATCHES},
+              "answers": "answers"}
+    for stage, label in stages.items():
         new, old = (np.array([r["per_msg_s"][stage] for r in runs[k]]) * 1e6 for k in ("this tree", ns.ref))
         ratio = old / new
-        print(f"  {stage}: this tree {new.min():.1f}-{new.max():.1f} us, {ns.ref} {old.min():.1f}-{old.max():.1f} us per "
-              f"message; {ns.ref} / this tree {ratio.min():.2f}-{ratio.max():.2f}x")
+        print(f"  {label}: this tree {new.min():.1f}-{new.max():.1f} us, {ns.ref} {old.min():.1f}-{old.max():.1f} us per "
+              f"message; {ns.ref} / this tree {ratio.min():.2f}-{ratio.max():.2f}x (median {np.median(ratio):.2f}x)")
     same = len({r["digest"] for rs in runs.values() for r in rs}) == 1
     print(f"  labels and drying messages: {'byte-identical' if same else 'DIFFER'} between the trees")
     return 0
