@@ -203,6 +203,9 @@ def encode_labels(report: LabelsReport) -> String:
 
 
 _LABELS_HEAD = _json.head(LABELS_SCHEMA)
+#: repr(k / 1000) for k in 0..1000: a rounded confidence's text without repr's shortest-digits search (the same
+#: text: the 3-decimal string is the shortest that reads back as that double).
+_MILLI = [repr(k / 1000) for k in range(1001)]
 
 
 def serialize_labels(report: LabelsReport) -> bytes:
@@ -224,8 +227,16 @@ def _labels_text(r: LabelsReport) -> str:
         raise _json.NotPlain  # read once, here: an iterator would be left empty for the json way
     p, q = _json.plain, _json.quote
     counts = ",".join([f"{q(p(c, str))}:{p(k, int)}" for c, k in r.counts.items()])
-    faults = ",".join([f'{{"nozzle":{p(nz, int)},"class":{q(p(c, str))},"confidence":{p(x, float)!r}}}'
-                       for nz, c, x in r.faults])
+    quoted = {}  # each class's JSON string once (a frame of faults repeats a few classes)
+    faults = []
+    for nz, c, x in r.faults:
+        if type(nz) is not int or type(c) is not str or type(x) is not float or x - x != 0.0:  # _json.plain's rules
+            raise _json.NotPlain
+        qc = quoted.get(c) or quoted.setdefault(c, q(c))
+        k = int(x * 1000.0 + 0.5) if 0.0 <= x <= 1.0 else 0  # a confidence from from_arrays: 3 decimals in [0, 1]
+        text = _MILLI[k] if k / 1000 == x and x > 0.0 else repr(x)  # -0.0 and 0.0: repr tells them apart
+        faults.append(f'{{"nozzle":{nz},"class":{qc},"confidence":{text}}}')
+    faults = ",".join(faults)
     invalid = ",".join([f'{{"nozzle":{p(nz, int)},"reason":{q(p(why, str))}}}' for nz, why in r.invalid])
     return (f'{_LABELS_HEAD}"frame_id":{p(r.frame_id, int)},"stamp":{p(round(r.stamp, 6), float)!r},'
             f'"first_nozzle":{p(r.first_nozzle, int)},"n_nozzles":{p(r.n_nozzles, int)},'

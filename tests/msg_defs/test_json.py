@@ -236,6 +236,10 @@ def test_serialize_labels_and_drying_are_the_json_way_byte_for_byte():
             assert _outcome(new, obj) == want
             seen_error += isinstance(want, type)
     assert seen_error > 0  # the NaN and inf confidences were met
+    # confidences the 3-decimal shortcut must write as repr does, or leave to repr
+    for x in (0.0, -0.0, 1.0, 0.001, 0.0005, 0.8734, 0.999, 0.9995, 1e-300, 1.001, 5e-324, 0.1 + 0.2):
+        rep = LabelsReport(1, 2.0, 0, 3, "m", {"deeply_dried": 1, "invalid": 0, "ok_signal": 2}, ((1, "deeply_dried", x),))
+        assert msg_defs.serialize_labels(rep) == msg_defs.serialized(encode_labels(rep)), x
     # reports built by hand with values json writes otherwise or refuses: the json way, the same outcome
     base = _random_report(np.random.default_rng(1), classes)[1]
     import dataclasses
