@@ -57,11 +57,12 @@ _VALID_CODE = np.array([True, False, False, False, False, True, True, False])
 
 
 @functools.cache
-def _kernels():
-    """The compiled kernels' module, imported when a kernel is first needed (numba: ~0.35 s), once."""
-    from . import _kernels as kernels
+def _screen_gate_frames():
+    """:func:`inkdiag_core._kernels.screen_gate_frames`, imported when first needed (numba: ~0.35 s), once
+    (an import statement in the hot path costs a few us per call)."""
+    from ._kernels import screen_gate_frames
 
-    return kernels
+    return screen_gate_frames
 
 
 class LabellerConfigError(ValueError):
@@ -342,7 +343,7 @@ class FrameLabeller:
                          for f, a in zip(firsts, arrays)]
         if consecutive and self.baselines is None:  # the ids are not needed (any int a caller gave goes)
             firsts = [0] * len(arrays)
-        code, at, nozzle, rows = _kernels().screen_gate_frames(
+        code, at, nozzle, rows = _screen_gate_frames()(
             arrays, *self._screening, positions, None if gate is None else gate.verdict_params,
             firsts if consecutive else None, None if consecutive else firsts)
         return self._pending(starts, ends, code, at, nozzle, rows)
@@ -447,7 +448,9 @@ class _Pending:
 
 def _warm_up_kernels() -> None:
     """The screening and gate kernels compiled (or loaded from their cache) now, not on a first frame."""
-    _kernels().warm_up()
+    from ._kernels import warm_up
+
+    warm_up()
 
 
 def load_labeller(model_path, baseline_path=None, **checks):

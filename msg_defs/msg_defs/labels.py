@@ -72,6 +72,7 @@ DRIED_CLASSES = ("slightly_dried", "intermediately_dried", "deeply_dried")
 #: Key of the invalid-row count in ``counts``.
 INVALID_KEY = "invalid"
 _HEALTHY = frozenset(HEALTHY_CLASSES)
+_STR = frozenset({str})
 
 
 @dataclass(frozen=True)
@@ -122,8 +123,8 @@ class LabelsReport:
         """
         classes = np.asarray(classes, dtype=object)
         valid = np.asarray(valid, dtype=bool)
-        n = valid.shape[0]
-        if classes.shape != (n,) or np.shape(confidence) != (n,) or np.shape(reasons) != (n,):
+        n = valid.shape[0] if valid.ndim else 0
+        if valid.shape != (n,) or classes.shape != (n,) or np.shape(confidence) != (n,) or np.shape(reasons) != (n,):
             raise MessageError(
                 f"labels: classes, confidence, valid and reasons must all have shape ({n},), got "
                 f"{classes.shape}, {np.shape(confidence)}, {valid.shape}, {np.shape(reasons)}"
@@ -140,8 +141,7 @@ class LabelsReport:
                 pass
             if hint is not None and hint.shape != (n,):
                 hint = None
-        kinds = set(cl) if n_valid == n else None  # the classes present: their types checked, not every row's
-        if kinds is not None and all(type(c) is str for c in kinds):  # plain str: list.count agrees with a Counter
+        if n_valid == n and set(map(type, cl)) <= _STR:  # plain str: list.count and `in` agree with a Counter's keys
             by_class = {h: k for h in HEALTHY_CLASSES if (k := cl.count(h))}  # mostly the very same str: fast
             n_healthy = sum(by_class.values())
             faulty = [] if n_healthy == n else None
@@ -229,7 +229,10 @@ def _labels_text(r: LabelsReport) -> str:
     counts = ",".join([f"{q(p(c, str))}:{p(k, int)}" for c, k in r.counts.items()])
     quoted = {}  # each class's JSON string once (a frame of faults repeats a few classes)
     faults = []
-    for nz, c, x in r.faults:
+    for f in r.faults:
+        if type(f) is not tuple:  # read once, here: an iterator would be left empty for the json way
+            raise _json.NotPlain
+        nz, c, x = f
         if type(nz) is not int or type(c) is not str or type(x) is not float or x - x != 0.0:  # _json.plain's rules
             raise _json.NotPlain
         qc = quoted.get(c) or quoted.setdefault(c, q(c))
@@ -237,6 +240,8 @@ def _labels_text(r: LabelsReport) -> str:
         text = _MILLI[k] if k / 1000 == x and x > 0.0 else repr(x)  # -0.0 and 0.0: repr tells them apart
         faults.append(f'{{"nozzle":{nz},"class":{qc},"confidence":{text}}}')
     faults = ",".join(faults)
+    if not all(type(f) is tuple for f in r.invalid):
+        raise _json.NotPlain
     invalid = ",".join([f'{{"nozzle":{p(nz, int)},"reason":{q(p(why, str))}}}' for nz, why in r.invalid])
     return (f'{_LABELS_HEAD}"frame_id":{p(r.frame_id, int)},"stamp":{p(round(r.stamp, 6), float)!r},'
             f'"first_nozzle":{p(r.first_nozzle, int)},"n_nozzles":{p(r.n_nozzles, int)},'

@@ -236,6 +236,13 @@ def test_serialize_labels_and_drying_are_the_json_way_byte_for_byte():
             assert _outcome(new, obj) == want
             seen_error += isinstance(want, type)
     assert seen_error > 0  # the NaN and inf confidences were met
+    # entries that are iterators (not tuples), with a later field the json way must write: its bytes, not an
+    # iterator read empty by the direct way first
+    for change in (lambda: dict(invalid=(iter((1, "flat")),), counts={"ok_signal": 2, "invalid": 1}, gate_cleared=True),
+                   lambda: dict(faults=(iter((1, "deeply_dried", 0.5)), (2, "x", np.float64(0.5))))):
+        a, b = (LabelsReport(1, 2.0, 0, 3, "m", **{"counts": {"deeply_dried": 1, "invalid": 0, "ok_signal": 2},
+                                                  **change()}) for _ in range(2))
+        assert _outcome(msg_defs.serialize_labels, a) == _outcome(lambda r: msg_defs.serialized(encode_labels(r)), b)
     # confidences the 3-decimal shortcut must write as repr does, or leave to repr
     for x in (0.0, -0.0, 1.0, 0.001, 0.0005, 0.8734, 0.999, 0.9995, 1e-300, 1.001, 5e-324, 0.1 + 0.2):
         rep = LabelsReport(1, 2.0, 0, 3, "m", {"deeply_dried": 1, "invalid": 0, "ok_signal": 2}, ((1, "deeply_dried", x),))
@@ -294,6 +301,11 @@ def test_from_arrays_is_the_reference_and_does_not_trust_the_gate_column_for_cla
         kw = dict(frame_id=1, stamp=1.0, first_nozzle=0, classes=np.asarray(odd, dtype=object), confidence=[0.9, 0.8],
                   valid=[True, True], reasons=["", ""], model_id="m", gate_cleared=[True, False])
         assert repr(LabelsReport.from_arrays(**kw)) == repr(_reference_from_arrays(**kw))
+    # valid not 1-D: refused (it was broadcast against the gate's column)
+    with pytest.raises(MessageError, match="must all have shape"):
+        LabelsReport.from_arrays(frame_id=1, stamp=1.0, first_nozzle=0, classes=["deeply_dried"] * 2,
+                                 confidence=[0.9, 0.8], valid=np.ones((2, 1), bool), reasons=["", ""], model_id="m",
+                                 gate_cleared=[False, True])
     # an unhashable class value: the Counter's TypeError, as the reference
     kw = dict(frame_id=1, stamp=1.0, first_nozzle=0, classes=np.array([["x"], "healthy_nozzle"], dtype=object),
               confidence=[0.9, 0.8], valid=[True, True], reasons=["", ""], model_id="m", gate_cleared=[False, True])
