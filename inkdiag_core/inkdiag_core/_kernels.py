@@ -23,11 +23,11 @@ compiled kernel goes in only where it wins >= 2x on its stage).
   which neither flag changes.
 - :func:`screen_and_row_sums`: both for the same rows from one kernel (both functions above
   are it), each row's loops back to back, so a row comes from memory once and its later
-  loops read it from cache. The labeller calls it once per frame into its batch's arrays:
-  the frames of a batch are not concatenated first (a copy of every sample).
+  loops read it from cache (:meth:`inkdiag_core.HealthyGate.screen`; :func:`screen_frames_and_row_sums`
+  of a batch of frames, not concatenated, is the reference the tests hold the labeller's kernel to).
 - :func:`gate_codes`: the healthy gate's verdict per row from those sums (its gain, residual
   fraction and bands), one loop for what :meth:`inkdiag_core.HealthyGate.decide` does in about a
-  dozen numpy passes (a fixed cost per call, several calls per head scan): the same verdicts.
+  dozen numpy passes: the same verdicts.
 - :func:`screen_gate_frames`: the labeller's first stage, per frame one call of both kernels above
   (the same compiled screening, sums and verdicts) that also lists the rows left for the detector
   with their nozzle ids and copies those few out: one code per row (left, invalid and why, cleared

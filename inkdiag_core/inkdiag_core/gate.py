@@ -268,7 +268,8 @@ class HealthyGate:
     def codes(self, x1, xx, xr, pos) -> np.ndarray:
         """:meth:`decide`'s verdict alone, per row: 0 not cleared, 1 ``healthy_nozzle``, 2 ``ok_signal``
         (:data:`GATE_CLASSES`), from one compiled loop (:func:`inkdiag_core._kernels.gate_codes`: the
-        same arithmetic, the same verdicts). The labeller's hot path; same arguments as :meth:`decide`."""
+        same arithmetic, the same verdicts; the labeller's kernel, :func:`inkdiag_core._kernels.screen_gate_frames`,
+        calls the same loop). Same arguments as :meth:`decide`."""
         n = np.shape(x1)[0]
         if self._ref is None:
             return np.zeros(n, np.uint8)
