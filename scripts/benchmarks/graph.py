@@ -137,9 +137,11 @@ def realistic_head(n_nozzles, n_frames, seed, *, faulty=0.02, n_baseline_frames=
     healthy conditions; ``round(faulty * n_nozzles)`` nozzles (seeded choice) carry a fault of a
     seeded class among the ten fault classes, the same in every frame; frames differ in their
     ink temperature and noise (``frame_seed``). The baselines are recorded from
-    ``n_baseline_frames`` frames of the same nozzles all healthy, by
-    :class:`inkdiag_core.BaselineRecorder` (whatever it records: KPI baselines, and the
-    healthy references once the gate records them).
+    ``n_baseline_frames`` frames of the same nozzles all healthy and jetting (``healthy_nozzle``:
+    the jetting pulse, as commissioning records them, docs/nodes.md; not the OK-check pulse of an
+    ``ok_signal`` nozzle, whose faults the model would then see 1.25x its baseline's amplitude and
+    call ``unknown``), by :class:`inkdiag_core.BaselineRecorder` (whatever it records: KPI
+    baselines, and the healthy references once the gate records them).
 
     Returns
     -------
@@ -183,7 +185,8 @@ def head_recordings(n_nozzles, n_frames, seed, *, faulty=0.02, n_baseline_frames
     healthy = np.array(sorted(HEALTHY_CLASSES, key=lambda c: c.value), dtype=object)
     faults = np.array([c for c in FaultClass if c not in HEALTHY_CLASSES], dtype=object)
     classes = rng.choice(healthy, size=n_nozzles)  # each nozzle's healthy condition
-    recorded = [simulate_nozzles(classes, seed=seed, frame_seed=1_000_000 + k).traces for k in range(n_baseline_frames)]
+    jetting = np.full(n_nozzles, FaultClass.HEALTHY_NOZZLE, dtype=object)  # commissioning: the jetting pulse
+    recorded = [simulate_nozzles(jetting, seed=seed, frame_seed=1_000_000 + k).traces for k in range(n_baseline_frames)]
     n_faulty = int(round(faulty * n_nozzles))
     idx = rng.choice(n_nozzles, n_faulty, replace=False)
     classes[idx] = rng.choice(faults, size=n_faulty)
