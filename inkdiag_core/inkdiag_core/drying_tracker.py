@@ -196,6 +196,11 @@ class DryingTracker:
         Dropped from a full buffer before a partner came (a drying list without a
         range counts only if it matched no range at all); traces also when a later
         frame's list for their range came first.
+    ranges_stale : int
+        Joined (frame, range) pairs stamped no later than the last pair of the same range
+        already joined (a repeated frame, or one that arrived after a later one): estimated,
+        but not folded into the trends (their trend columns are NaN, their note says so),
+        which would take an old measurement for a new one.
     rows_invalid : int
         Listed rows that screening rejected (not estimated).
     estimates, estimates_with_baseline : int
@@ -235,8 +240,9 @@ class DryingTracker:
         self._traces = OrderedDict()  # (frame_id, first_nozzle) -> _Traces
         self._drying = OrderedDict()  # (frame_id, first_nozzle or None) -> _Drying
         self.traces_received = self.drying_received = 0
-        self.ranges_joined = self.ranges_estimated = 0
+        self.ranges_joined = self.ranges_estimated = self.ranges_stale = 0
         self.traces_unmatched = self.drying_unmatched = 0
+        self._last_stamp = {}  # first nozzle of a range -> stamp of its last joined frame, s
         self.rows_invalid = self.estimates = self.estimates_with_baseline = 0
 
     @property
@@ -366,14 +372,26 @@ class DryingTracker:
         """Estimate the listed nozzles of one trace message; [] when none is valid there."""
         self.ranges_joined += 1
         x = t.traces
+        last = self._last_stamp.get(first)
+        stale = last is not None and not t.stamp > last  # repeated, or older than what the trends hold
+        if not stale:
+            self._last_stamp[first] = t.stamp
+        self.ranges_stale += stale
         ids = self._in_range(nozzles, first, x.shape[0])[: self.max_estimates]
-        r = self.estimate_rows(np.array(x[ids - first]), ids, stamp=t.stamp, sample_rate_hz=t.sample_rate_hz)
+        r = self.estimate_rows(np.array(x[ids - first]), ids, stamp=math.nan if stale else t.stamp,
+                               sample_rate_hz=t.sample_rate_hz)
         ok = r.reasons == ""
         if not ok.any():
             return []
         self.ranges_estimated += 1
         cols = {k: v[ok] for k, v in r.columns.items()}
-        return [RangeEstimates(frame_id, t.stamp, first, int(x.shape[0]), cols, r.note)]
+        note = r.note
+        if stale:
+            note = "; ".join(filter(None, (note, (
+                f"nozzles {first}..{first + x.shape[0] - 1} of frame {frame_id}, stamped {t.stamp:.6f} s, are not "
+                f"after the last frame estimated for them ({last:.6f} s: a repeated or late frame): estimated, "
+                "not folded into their trends"))))
+        return [RangeEstimates(frame_id, t.stamp, first, int(x.shape[0]), cols, note)]
 
     def estimate_rows(self, traces, nozzles, *, stamp: float, sample_rate_hz: float) -> RowEstimates:
         """Screen some rows of one frame, estimate f_m of the valid ones in one batch, update their trends.

@@ -66,14 +66,14 @@ class FdiNode(Node):
 
     def _load_labeller(self):
         if not (c := self.config)["model_path"]:
-            self.get_logger().error("no model_path given: frames will not be labelled")
+            self._config_error("no FDI model: no model_path given")
             return None
         try:
             labeller, baseline_error = load_labeller(c["model_path"], c["baseline_path"], max_abs_v=c["max_abs_sample_v"],
                                                      sample_rate_hz=c["sample_rate_hz"], n_samples=c["n_samples"],
                                                      profile=self.head)
-        except (ModelFileError, LabellerConfigError) as exc:
-            self.get_logger().error(f"FDI model not loaded: {exc}")
+        except (ModelFileError, LabellerConfigError) as exc:  # runs unlabelled; /diagnostics says why (ERROR)
+            self._config_error(f"FDI model not loaded: {exc}")
             return None
         self.get_logger().info(f"FDI model {labeller.model_id} loaded from {c['model_path']}")
         if baseline_error is not None:

@@ -139,8 +139,8 @@ class FdiStats:
             d_bad and f"{d_bad} malformed, failed or dropped frame(s) in the last {dt:.1f} s",
             self._mostly_faulty,
             d_invalid and f"{d_invalid} invalid row(s) in the last {dt:.1f} s") if w]
-        if not model_loaded:
-            level, message = "error", "no FDI model loaded: frames are not labelled"
+        if not model_loaded:  # and why (fdi's config_error: no model_path, a missing or refused model file)
+            level, message = "error", f"{self.config_error or 'no FDI model loaded'}: frames are not labelled"
         elif warnings:
             level, message = "warn", "; ".join(warnings)
         elif self.frames_received == 0:

@@ -185,3 +185,32 @@ def test_an_estimate_that_means_a_viscosity_of_zero_or_less_is_not_an_estimate()
     assert list(r.reasons) == ["", NONPHYSICAL_REASON, "", "", NONPHYSICAL_REASON, ""] and tr.estimates == 4
     assert np.isnan(r.columns["viscosity"][neg]).all() and np.isnan(r.columns["fm_trend"][neg]).all()
     np.testing.assert_allclose(r.columns["viscosity"][~neg], raw.viscosity[~neg])
+
+
+def test_a_repeated_or_late_frame_is_estimated_but_not_folded_into_the_trends():
+    """A controller that sends a frame twice, or a frame that arrives after a later one, must not move the
+    trends as a new measurement would: its estimates come out (with a note), its trend columns are NaN,
+    and the trends end where the frames in order leave them."""
+    frames = {k: _frame(k) for k in range(1, 5)}
+
+    def run(order):
+        tr, out = DryingTracker(), []
+        for k in order:
+            _traces(tr, frames[k], k, 0)
+            out += _drying(tr, k, 0, DRIED[0])
+        return tr, out
+
+    ref, _ = run([1, 2, 4])
+    tr, out = run([1, 2, 2, 4, 3])  # frame 2 twice; frame 3 after frame 4
+    assert tr.ranges_stale == 2 and ref.ranges_stale == 0 and tr.ranges_estimated == 5
+    stale = [e for e in out if e.note]
+    assert [e.frame_id for e in stale] == [2, 3] and all("not folded into their trends" in e.note for e in stale)
+    for e in stale:
+        assert np.isnan(e.columns["fm_trend"]).all() and np.isnan(e.columns["fm_rate"]).all()
+        direct = estimate_fm_batch(frames[e.frame_id][DRIED[0]], InkChannelModel(), 10e6)
+        np.testing.assert_array_equal(e.columns["fm"], direct.fm)  # the estimates themselves are given
+    np.testing.assert_array_equal(tr.trends.x, ref.trends.x)  # the trends of frames 1, 2, 4, in order
+    np.testing.assert_array_equal(tr.trends.n_updates, [3, 3])
+    # the other ranges keep their own clock: range 1's first frame is not stale after range 0's later ones
+    _traces(tr, frames[1], 1, 1)
+    assert _drying(tr, 1, 1, DRIED[1])[0].note == "" and tr.ranges_stale == 2

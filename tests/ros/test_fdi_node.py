@@ -257,6 +257,9 @@ def test_fdi_refuses_a_tampered_model(ros, fdi_model, tmp_path):
     ros.spin_until(lambda: rig.diag, 5, "diagnostics")
     d = rig.diag[-1]["inkdiag fdi: /h"]
     assert d["level"] == "error" and d["model_id"] == "none" and not rig.labels
+    # and why, for an operator who sees /diagnostics only (not the node's log)
+    assert d["config_error"].startswith("FDI model not loaded: ") and "tampered" in d["config_error"]
+    assert d["message"] == d["config_error"] + ": frames are not labelled"
 
 
 def test_fdi_labels_a_trace_unlike_every_class_unknown_and_counts_it(ros, tmp_path):

@@ -30,10 +30,13 @@ Output CSV, one line per selected row, columns:
   row, nozzle, fm, fm_std, d_mu, viscosity,
   frame_id, stamp, fm_trend, fm_rate, eta_deeply_dried_s, method, reason
 Units: fm, fm_std, fm_trend 1/s; fm_rate 1/s^2; d_mu, viscosity Pa s;
-stamp, eta_deeply_dried_s s. A row that cannot be estimated (non-finite,
-out-of-range, flat or clipped samples; an estimate that is not finite) has empty values
-and its reason; the others are estimated all the same. fm_trend and fm_rate
-are filled when the recording has stamps (several frames per nozzle).
+stamp, eta_deeply_dried_s s. A row that cannot be estimated has empty values
+and its reason: non_finite, out_of_range, flat or clipped samples (as fdi
+screens them), estimate_not_finite, or viscosity_not_positive (an estimate
+that means a viscosity of 0 or less: no drying nozzle the channel model
+describes, e.g. an empty channel or a bubble); the others are estimated all
+the same. fm_trend and fm_rate are filled when the recording has stamps
+(several frames per nozzle).
 
 ROWS: comma-separated indices and ranges START:STOP (STOP excluded, either
 may be omitted), e.g. 0:100 or 3,7,9 or 0:10,50; or a class name
