@@ -195,3 +195,28 @@ def test_rows_without_a_finite_stamp_are_said_to_have_no_trend(head, tmp_path):
            "empty for them" in res.stderr, res.stderr
     _, rows = read_csv(tmp_path / "fm.csv")
     assert rows[8]["fm"] != "" and rows[8]["fm_trend"] == "" and rows[10]["fm_trend"] != ""
+
+
+def test_a_nozzle_given_twice_at_one_stamp_is_estimated_twice_but_measured_once(head, tmp_path):
+    """A nozzle column gone wrong (all rows nozzle 0) or a row given twice (--rows 12,12): every row is
+    estimated, the run warns, and a nozzle's trend takes one measurement per stamp (as fe's tracker): its
+    repeats have no trend, and no rate comes out where no time passed."""
+    d, p, r = head
+    rec = np.load(d / "rec.npz", allow_pickle=True)
+    save_recording(tmp_path / "dup.npz", Recording.from_arrays(
+        rec["traces"], p.sample_rate_hz, nozzle=np.zeros(16, int), frame_id=rec["frame_id"], stamp=rec["stamp"]))
+    res = run_cli(tmp_path / "dup.npz", "--profile", d / "head.yaml", "--out", tmp_path / "fm.csv")
+    assert res.returncode == 0, res.stderr
+    assert "warning: 14 row(s) repeat the nozzle and frame_id of an earlier row; each is estimated" in res.stderr
+    _, rows = read_csv(tmp_path / "fm.csv")
+    trended = [x for x in rows if x["fm_trend"] != ""]
+    assert all(x["fm"] != "" for x in rows if not x["reason"])
+    assert [x["frame_id"] for x in trended] == ["5", "6"]  # the first estimated row of each frame
+    assert trended[0]["fm_rate"] == "" and trended[1]["fm_rate"] != ""  # a rate over the 0.5 s between frames
+    res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--rows", "12,12,12", "--out", tmp_path / "fm3.csv")
+    assert res.returncode == 0 and "warning: 2 row(s) repeat" in res.stderr and "2 row(s) estimated but not " \
+        "folded into their nozzle's trend" in res.stderr, res.stderr
+    _, rows = read_csv(tmp_path / "fm3.csv")
+    fm = [float(x["fm"]) for x in rows]  # one trace three times (the batch's sums may differ in the last bits)
+    assert fm == pytest.approx([fm[0]] * 3, rel=1e-12) and [x["fm_trend"] != "" for x in rows] == [True, False, False]
+    assert all(x["fm_rate"] == "" for x in rows)

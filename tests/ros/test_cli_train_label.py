@@ -295,3 +295,20 @@ def test_label_csv_says_unknown_for_a_trace_unlike_every_class(work, tmp_path, c
     assert len(unknown) >= 18
     assert all(0.99 <= float(r["confidence"]) < 1 and r["reason"] == "" for r in unknown)
     assert not any(r["class"] == "unknown" for r in got["c.joblib"])  # --unknown-rate 0: no layer
+
+
+def test_rows_repeating_a_nozzle_and_frame_are_labelled_with_a_warning(work, trained, tmp_path, capsys):
+    """A nozzle column gone wrong (every row nozzle 0, one frame): each row is labelled as before, and the
+    run says that a frame holds one trace per nozzle. A recording without repeats is not told."""
+    d, head, sim = work
+    save_recording(tmp_path / "dup.npz", Recording.from_arrays(sim.traces[:30], head.sample_rate_hz,
+                                                               nozzle=np.zeros(30, int)))
+    assert main(["label", str(tmp_path / "dup.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "l.csv")]) == 0
+    assert ("warning: 29 row(s) repeat the nozzle and frame_id of an earlier row; each is labelled, but a frame "
+            "holds one trace per nozzle") in capsys.readouterr().err
+    _, dup = _read(tmp_path / "l.csv")
+    save_recording(tmp_path / "ok.npz", Recording.from_arrays(sim.traces[:30], head.sample_rate_hz))
+    assert main(["label", str(tmp_path / "ok.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "k.csv")]) == 0
+    assert "repeat" not in capsys.readouterr().err
+    _, ok = _read(tmp_path / "k.csv")
+    assert [(r["class"], r["confidence"]) for r in dup] == [(r["class"], r["confidence"]) for r in ok]

@@ -24,3 +24,23 @@ def open_csv_out(path: str):
 def summary_stream(path: str):
     """Where a verb prints its summary line: standard error when its CSV goes to standard output."""
     return sys.stderr if path == "-" else sys.stdout
+
+
+def repeated_pairs(nozzle, frame_id) -> int:
+    """Rows whose (nozzle, frame_id) pair an earlier row already has: a frame holds one trace per nozzle, so
+    these are a nozzle column gone wrong (e.g. all zeros) or rows given twice.
+
+    Parameters
+    ----------
+    nozzle, frame_id : array_like of int, shape (n,)
+    """
+    import numpy as np
+
+    pairs = np.stack([np.asarray(nozzle, dtype=np.int64), np.asarray(frame_id, dtype=np.int64)], axis=1)
+    return int(pairs.shape[0] - (np.unique(pairs, axis=0).shape[0] if pairs.size else 0))
+
+
+def repeated_pairs_warning(verb: str, n_repeated: int, what: str) -> str:
+    """The warning line of a recording with :func:`repeated_pairs` rows (``what``: how the verb took them)."""
+    return (f"inkdiag {verb}: warning: {n_repeated} row(s) repeat the nozzle and frame_id of an earlier row; {what}, "
+            "but a frame holds one trace per nozzle: is the recording's nozzle column right?")

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import re
 
-from . import NO_BASELINE_HINT, open_csv_out, summary_stream
+from . import NO_BASELINE_HINT, open_csv_out, repeated_pairs, repeated_pairs_warning, summary_stream
 
 OUT_STDOUT = True  # --out - writes the CSV to standard output
 HELP = "estimate the drying fault f_m and the nozzle viscosity of recorded traces"
@@ -211,6 +211,7 @@ def run(args) -> int:
         cols = {k: np.empty(0) for k in ("nozzle", "fm", "fm_std", "d_mu", "viscosity", "fm_trend", "fm_rate",
                                          "eta_deeply_dried_s")}
     # trends: each frame's estimates in time order (stamp, then frame_id), as fe would have seen them
+    n_unfolded = 0
     stamps = rec.stamp[rows]
     frames = rec.frame_id[rows]
     ok = (reasons == "") & np.isfinite(stamps)
@@ -220,9 +221,7 @@ def run(args) -> int:
         keys = np.stack([stamps[idx], frames[idx].astype(float)], axis=1)
         bounds = np.flatnonzero(np.any(keys[1:] != keys[:-1], axis=1)) + 1
         for grp in np.split(idx, bounds):  # one trend update per frame
-            t, rate, eta = tracker.trends.update(float(stamps[grp[0]]), cols["nozzle"][grp], cols["fm"][grp],
-                                                 cols["fm_std"][grp])
-            cols["fm_trend"][grp], cols["fm_rate"][grp], cols["eta_deeply_dried_s"][grp] = t, rate, eta
+            n_unfolded += _fold_frame(tracker.trends, float(stamps[grp[0]]), grp, cols)
     with open_csv_out(args.out) as f:
         w = csv.writer(f)
         w.writerow(["row", "nozzle", "fm", "fm_std", "d_mu", "viscosity", "frame_id", "stamp", "fm_trend",
@@ -239,6 +238,9 @@ def run(args) -> int:
           + _to(args.out), file=summary_stream(args.out))
     for note in sorted(notes):
         print(f"inkdiag estimate: note: {note}", file=sys.stderr)
+    if n_repeated := repeated_pairs(rec.nozzle[rows], frames):
+        print(repeated_pairs_warning("estimate", n_repeated, "each is estimated"), file=sys.stderr)
+    _say_unfolded(n_unfolded)
     est = ~bad
     k = int(np.count_nonzero(est & ~np.isfinite(stamps)))
     if k:  # said, not silent: those rows' trend columns are empty
@@ -313,7 +315,7 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
     from ..bags import report_stats
 
     method = "vp" if args.method == "vp" else "vp_cal"
-    n = n_bad = n_seen = 0
+    n = n_bad = n_seen = n_unfolded = 0
     why, notes = {}, set()
     with open_csv_out(args.out) as f:
         w = csv.writer(f)
@@ -339,9 +341,7 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
                 idx = np.flatnonzero(ok)
                 keys = np.stack([stamps[idx], frames[idx].astype(float)], axis=1)
                 for grp in np.split(idx, np.flatnonzero(np.any(keys[1:] != keys[:-1], axis=1)) + 1):
-                    t, rate, eta = tracker.trends.update(float(stamps[grp[0]]), cols["nozzle"][grp], cols["fm"][grp],
-                                                         cols["fm_std"][grp])
-                    cols["fm_trend"][grp], cols["fm_rate"][grp], cols["eta_deeply_dried_s"][grp] = t, rate, eta
+                    n_unfolded += _fold_frame(tracker.trends, float(stamps[grp[0]]), grp, cols)
             for i in range(sel.size):  # formatting only
                 w.writerow([first_row + int(sel[i]), int(rec.nozzle[sel[i]]), _fmt(cols["fm"][i]),
                             _fmt(cols["fm_std"][i]), _fmt(cols["d_mu"][i]), _fmt(cols["viscosity"][i]),
@@ -360,4 +360,34 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
           + _against(tracker, n - n_bad, notes) + _to(args.out), file=summary_stream(args.out))
     for note in sorted(notes):
         print(f"inkdiag estimate: note: {note}", file=sys.stderr)
+    _say_unfolded(n_unfolded)
     return 0
+
+
+def _fold_frame(trends, t, grp, cols) -> int:
+    """One frame's estimates (rows ``grp`` of ``cols``, stamp ``t``, s) folded into ``trends``, each nozzle at most
+    once and only after its last update (as fe's tracker folds frames): a nozzle listed twice in a frame, or in two
+    frames of one stamp, is not measured twice. Its trend columns stay NaN. Returns how many rows were not folded."""
+    import numpy as np
+
+    ids = cols["nozzle"][grp]
+    keep = np.zeros(grp.size, dtype=bool)
+    keep[np.unique(ids, return_index=True)[1]] = True
+    at = np.searchsorted(trends.ids, ids)
+    seen = at < trends.ids.size
+    seen[seen] = trends.ids[at[seen]] == ids[seen]
+    keep[seen] &= ~(trends.t[at[seen]] >= t)  # NaN (never updated) compares False: folded
+    g = grp[keep]
+    if g.size:
+        out = trends.update(t, ids[keep], cols["fm"][g], cols["fm_std"][g])
+        cols["fm_trend"][g], cols["fm_rate"][g], cols["eta_deeply_dried_s"][g] = out
+    return int(grp.size - g.size)
+
+
+def _say_unfolded(n: int) -> None:
+    import sys
+
+    if n:
+        print(f"inkdiag estimate: note: {n} row(s) estimated but not folded into their nozzle's trend (fm_trend, "
+              "fm_rate empty): their nozzle already had a row at that stamp (listed twice in a frame, or frames "
+              "with the same stamp)", file=sys.stderr)

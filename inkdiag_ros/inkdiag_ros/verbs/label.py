@@ -136,6 +136,7 @@ def label_stream(labeller, chunks):
 
 
 def run(args) -> int:
+    import array
     import collections
     import csv
     import itertools
@@ -145,7 +146,7 @@ def run(args) -> int:
     from inkdiag_core import FrameLabeller, LabellerConfigError, NozzleBaselines, load_detector
     from inkdiag_core.head_profile import HeadProfile
     from ..bags import report_stats, stream_recording
-    from . import NO_BASELINE_HINT, open_csv_out, summary_stream
+    from . import NO_BASELINE_HINT, open_csv_out, repeated_pairs, repeated_pairs_warning, summary_stream
 
     detector = load_detector(args.model)  # ModelFileError (a ValueError): missing, tampered, other versions
     head = detector.profile if detector.profile is not None else HeadProfile.default()
@@ -167,6 +168,7 @@ def run(args) -> int:
     del rec
     n_rows = n_invalid = n_failed = n_base = n_out_of_range = 0
     per_class = collections.Counter()
+    nozzles, frame_ids = array.array("q"), array.array("q")
     with open_csv_out(args.out) as out:
         w = csv.writer(out, lineterminator="\n")
         w.writerow(COLUMNS)
@@ -178,6 +180,8 @@ def run(args) -> int:
             else:
                 per_class[cls] += 1
             w.writerow((row, nozzle, fid, cls, "" if conf != conf else f"{conf:.6f}", reason, int(base)))
+            nozzles.append(nozzle)
+            frame_ids.append(fid)
             n_rows += 1
             n_base += bool(base)
     report_stats(args.recording, stats)
@@ -195,6 +199,9 @@ def run(args) -> int:
               "more than the head's sensor "
               "can produce: "
               "are the traces in volts (not millivolts or ADC counts)?", file=sys.stderr)
+    if n_repeated := repeated_pairs(nozzles, frame_ids):
+        print(repeated_pairs_warning("label", n_repeated, "each is labelled" + (
+            " against that nozzle's baseline" if baselines is not None else "")), file=sys.stderr)
     said = _one_fault_class_dominates(per_class, head)
     if said:
         print(f"inkdiag label: warning: {said}", file=sys.stderr)
