@@ -132,6 +132,14 @@ small along the direction the data pin least (``docs/calibration.md``)."""
 MAX_RESIDUAL_REL = 0.15
 """A mean-trace fit whose RMS residual exceeds this fraction of the trace's RMS is refused."""
 
+MAX_MODE_MISFIT = 0.01
+"""A fit whose mean trace rings more than this fraction away from the recorded mean trace's dominant
+frequency (both read by :func:`inkdiag_core.extract_kpis`) is refused: the channel model cannot ring as
+the traces do, and the restrictor and actuator it found are not the head's. Healthy traces of the heads
+of ``tests/foreign_head.py`` fit within 0.02 % (30 and 300 traces, seeds 1 and 2); 50 traces of deeply
+dried or partially blocked nozzles that the restrictor's bounds let through fit 2.5-3.5 % off (h16, h20,
+seeds 31 and 32; 2026-11-27)."""
+
 _PARAMS = ("B_act", "I_r", "R_r")
 _BOUNDS_REL = {"B_act": (1e-3, 1e3), "I_r": (0.02, 50.0), "R_r": (0.01, 100.0)}  # of B_liq, I_n, R_n
 _STARTS = (1.03, 0.3, 3.0)  # I_r / I_n of the starts
@@ -656,6 +664,13 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
                f"(recorded mode {f_rec / 1e3:.1f} kHz, damping {kp_mean[2]:.3f}; fitted {f_fit / 1e3:.1f} kHz, "
                f"damping {z_fit:.3f}): the traces are not what the nominal channel and drive give")
         raise CalibrationError(f"cannot calibrate: {why}")
+    kp_mean_fit = extract_kpis(mean_fit, fs)[0]
+    if not abs(kp_mean_fit[1] / f_rec - 1.0) <= MAX_MODE_MISFIT:
+        raise CalibrationError(
+            f"cannot calibrate: the best fit's mean trace rings at {kp_mean_fit[1] / 1e3:.1f} kHz, the recorded one at "
+            f"{f_rec / 1e3:.1f} kHz (damping {kp_mean[2]:.3f}): the channel model cannot ring as these traces do. Are "
+            "they healthy nozzles fired with the head's drive (dried or partially blocked nozzles ring lower and damped), "
+            "and is the nominal channel this head's?")
     fb_fit = None if fb is None else _check_blocked_fit(fb, known, theta, fixed_restrictor)
     if fb is None and not fixed_restrictor:
         _check_restrictor_plausible(known, theta, f_rec, float(kp_mean[2]))
@@ -738,7 +753,6 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     # judged against (the noise, and the model's first-order shape terms)
     res_sim = sim - _project(sim, shape, deriv)[2]
     rel_sim = np.sqrt(np.mean(res_sim**2, axis=1)) / np.maximum(_rms_ac(sim), 1e-300)
-    kp_mean_fit = extract_kpis(mean_fit, fs)[0]
     kp_fit = extract_kpis(fitted, fs)
     kp_sim = extract_kpis(sim, fs)
     f_prof, z_prof = calibrated.healthy_mode()

@@ -293,6 +293,20 @@ def test_the_restrictor_split_of_an_independent_head_is_not_dephased():
     assert abs(math.log(ch["B_act"] / true["B_act"])) < 0.1
 
 
+def test_faulty_traces_a_restrictor_within_its_bounds_cannot_fit_are_refused_by_their_mode():
+    """Independent code's h16 head: 50 deeply dried traces given as healthy ones fit with a restrictor within
+    the bounds above, but the fitted mean trace rings 3.5 % above the recorded one (healthy traces: within
+    0.02 %); that profile labelled 297 of 300 healthy traces a fault. Refused, saying why."""
+    import foreign_head as fh
+
+    nominal = HeadProfile.from_dict({"schema": "inkdiag.head_profile", "schema_version": 1,
+                                     **fh.nominal_profile("h16")})
+    dried = fh.simulate_foreign("h16", {"deeply_dried": 50}, seed=31)
+    with pytest.raises(CalibrationError, match="mean trace rings at 13[0-9.]+ kHz, the recorded one at 13[0-9.]+ kHz "
+                                               ".*cannot ring as these traces do. Are they healthy"):
+        calibrate(nominal, dried["traces"], dried["sample_rate_hz"], seed=1)
+
+
 @pytest.mark.parametrize("seed", [0, 11])
 def test_fully_blocked_traces_pin_the_restrictor_that_healthy_ones_leave_to_the_prior(seed):
     """Independent code's h5 head (tests/foreign_head.py), where healthy traces alone put the restrictor's
