@@ -85,7 +85,7 @@ from scipy.optimize import brentq, least_squares
 
 from .checks import InputError
 from .faults import MECHANISMS, FaultClass
-from .head_profile import NOMINAL_CHANNEL_KEYS, HeadProfile, ProfileError
+from .head_profile import NOMINAL_CHANNEL_KEYS, HeadProfile, ProfileError, implausible_values
 from .kpis import extract_kpis
 from .screening import screen_traces
 from .simulation.channels import PHYSICAL_CONSTANTS
@@ -430,9 +430,6 @@ def _empty_measurement(nominal, empty, sample_rate_hz, f_healthy):
             "frequency_spread_rel": spread}
 
 
-_PLAUSIBLE = {"rho": (500.0, 3000.0, "kg/m^3"), "mu": (1e-4, 0.5, "Pa s"), "r_n": (1e-6, 1e-4, "m"),
-              "L_n": (1e-6, 1e-3, "m"), "V_ch": (1e-15, 1e-9, "m^3"), "c": (300.0, 3000.0, "m/s")}
-# ranges of an inkjet head's nominal values, SI: a value outside is named when the fit cannot reach the traces
 
 
 def _actuator(nominal, fe, B_act):
@@ -594,8 +591,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
                                "nozzles fired with the profile's drive?")
     reach = _reachable(known)
     if not (reach[0] * 0.98 <= f_rec <= reach[1] * 1.02):
-        odd = [f"channel.{k} {nominal.channel[k]:g} {unit} (an inkjet head's: {lo:g} to {hi:g} {unit})"
-               for k, (lo, hi, unit) in _PLAUSIBLE.items() if not lo <= nominal.channel[k] <= hi]
+        odd = implausible_values(nominal.channel)
         raise CalibrationError(
             f"the recorded traces' dominant mode {f_rec / 1e3:.1f} kHz is outside what the nominal channel can reach "
             f"({reach[0] / 1e3:.1f}-{reach[1] / 1e3:.1f} kHz with its nozzle, ink and chamber): "

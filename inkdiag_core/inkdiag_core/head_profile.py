@@ -72,12 +72,15 @@ __all__ = [
     "CHANNEL_UNITS",
     "DRIVE_UNITS",
     "HeadProfile",
+    "MIN_PLAUSIBLE_RATE_HZ",
     "NOMINAL_CHANNEL_KEYS",
+    "PLAUSIBLE_CHANNEL",
     "ProfileError",
     "SCHEMA",
     "SCHEMA_VERSION",
     "SENSOR_UNITS",
     "SPREAD_KEYS",
+    "implausible_values",
 ]
 
 SCHEMA = "inkdiag.head_profile"
@@ -97,6 +100,23 @@ _OPTIONAL_CHANNEL_KEYS = ("mu_nozzle", "B_extra", "f_act", "zeta_act")
 
 DRIVE_UNITS = {"amplitude_v": "V", "rise_s": "s", "dwell_s": "s", "fall_s": "s", "switch_delay_s": "s"}
 """The ``drive`` keys (the :class:`DriveWaveform` fields) and their SI units."""
+
+PLAUSIBLE_CHANNEL = {"rho": (500.0, 3000.0, "kg/m^3"), "mu": (1e-4, 0.5, "Pa s"), "r_n": (1e-6, 1e-4, "m"),
+                     "L_n": (1e-6, 1e-3, "m"), "V_ch": (1e-15, 1e-9, "m^3"), "c": (300.0, 3000.0, "m/s")}
+"""Ranges of an inkjet head's nominal channel values, SI (``key: (low, high, unit)``): a value outside is
+named where a profile or a calibration fails (a value in other units: ``mu`` in mPa s, ``r_n`` in um)."""
+
+MIN_PLAUSIBLE_RATE_HZ = 1e5
+"""A sample rate below this (Hz) is named where a profile fails (MHz written as Hz)."""
+
+
+def implausible_values(channel) -> list:
+    """The :data:`PLAUSIBLE_CHANNEL` values of ``channel`` (a mapping; missing keys skipped) outside their
+    range, each as ``"channel.KEY VALUE UNIT (an inkjet head's: LOW to HIGH UNIT)"``."""
+    return [f"channel.{k} {channel[k]:g} {unit} (an inkjet head's: {lo:g} to {hi:g} {unit})"
+            for k, (lo, hi, unit) in PLAUSIBLE_CHANNEL.items()
+            if channel.get(k) is not None and not lo <= channel[k] <= hi]
+
 
 MAX_DRIVE_TIME_S = 1e-4
 """Longest ``drive.rise_s``, ``dwell_s``, ``fall_s`` or ``switch_delay_s`` a profile accepts, s. A piezo
@@ -386,11 +406,16 @@ class HeadProfile:
     def _check_physics(self, source):
         fs, n = self.sample_rate_hz, self.n_samples
         f0, zeta = self.healthy_mode()
+        odd = implausible_values(self.channel) + ([f"sampling.sample_rate_hz {fs:g} Hz (an inkjet head's: "
+                                                   f"{MIN_PLAUSIBLE_RATE_HZ:g} Hz or more)"]
+                                                  if fs < MIN_PLAUSIBLE_RATE_HZ else [])
+        hint = f" (implausible: {'; '.join(odd)}: a value in other units? SI: m, m^3, m/s, kg/m^3, Pa s, Hz)" if odd else ""
         if not (0 < zeta < 1):
-            raise ProfileError(f"{source}: the channel has no oscillating healthy mode (damping ratio {zeta:.3g})")
+            raise ProfileError(f"{source}: the channel has no oscillating healthy mode (damping ratio {zeta:.3g})"
+                               + hint)
         if f0 >= fs / 2:
             raise ProfileError(f"{source}: the healthy mode {f0 / 1e3:.1f} kHz is above the Nyquist frequency "
-                               f"{fs / 2e3:.1f} kHz of sampling.sample_rate_hz")
+                               f"{fs / 2e3:.1f} kHz of sampling.sample_rate_hz" + hint)
         if n / fs * f0 < 3:
             raise ProfileError(f"{source}: a trace of {n} samples at {fs:g} Hz holds {n / fs * f0:.1f} periods of the "
                                f"healthy mode ({f0 / 1e3:.1f} kHz); at least 3 are needed")

@@ -102,8 +102,8 @@ class Recording:
         """
         t = np.asarray(traces)
         if t.ndim != 2 or t.shape[0] < 1 or t.shape[1] < 2:
-            raise RecordingError(f"{source}: traces must be a 2-D array (n, n_samples) with at least one row, "
-                                 f"got shape {t.shape}")
+            raise RecordingError(f"{source}: traces must be a 2-D array (n, n_samples) with at least one row of at "
+                                 f"least two samples, got shape {t.shape}")
         if t.dtype.kind != "f":
             raise RecordingError(f"{source}: traces must be floating-point volts (float32), got dtype {t.dtype}"
                                  + (": convert ADC counts or millivolts to volts first" if t.dtype.kind in "iu"
@@ -135,7 +135,8 @@ class Recording:
                                                      and np.all(a == np.round(a))):
                     raise RecordingError(f"{source}: {name} must be integers, got dtype {a.dtype}")
                 if a.size and (a.min() < 0 or a.max() >= 2**63):
-                    raise RecordingError(f"{source}: {name} must be >= 0")
+                    raise RecordingError(f"{source}: {name} must be integers from 0 to 2**63 - 1, got "
+                                         f"{a.min() if a.min() < 0 else a.max()}")
                 return a.astype(np.int64)
             if a.dtype.kind not in "fiu":
                 raise RecordingError(f"{source}: {name} must be numbers (s), got dtype {a.dtype}")

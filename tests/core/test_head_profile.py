@@ -79,6 +79,12 @@ def test_nominal_profile_loads_and_says_what_is_missing():
      r"1 us = 1\.0e-6"),
     (lambda d: d["drive"].update(dwell_s=0.9e-3), r"drive\.dwell_s: 0\.0009 s is longer than 100 us"),  # us as ms
     (lambda d: d["drive"].update(switch_delay_s=2e-3), r"drive\.switch_delay_s: 0\.002 s is longer"),
+    # a complete profile whose physics fails names the value in other units (a QA walkthrough: MHz as Hz, mPa s)
+    (lambda d: d["sampling"].update(sample_rate_hz=16), r"above the Nyquist frequency 0\.0 kHz .*\(implausible: "
+     r"sampling\.sample_rate_hz 16 Hz \(an inkjet head's: 100000 Hz or more\): a value in other units\?"),
+    (lambda d: d["channel"].update(mu=7.0), r"no oscillating healthy mode .*implausible: channel\.mu 7 Pa s \(an "
+     r"inkjet head's: 0\.0001 to 0\.5 Pa s\)"),
+    (lambda d: d["channel"].update(V_ch=9.0), r"implausible: channel\.V_ch 9 m\^3"),
 ])
 def test_bad_profiles_name_the_key_and_the_unit(edit, match):
     doc = HeadProfile.default().to_dict()
@@ -96,8 +102,8 @@ def test_the_longest_drive_segment_is_accepted():
 def test_physics_checks_of_a_complete_profile():
     doc = HeadProfile.default().to_dict()
     doc["sampling"]["sample_rate_hz"] = 400e3
-    with pytest.raises(ProfileError, match="above the Nyquist"):
-        HeadProfile.from_dict(doc)
+    with pytest.raises(ProfileError, match="above the Nyquist frequency 200.0 kHz of sampling.sample_rate_hz$"):
+        HeadProfile.from_dict(doc)  # plausible values: no hint
     doc = HeadProfile.default().to_dict()
     doc["sampling"].update(n_samples=16)
     with pytest.raises(ProfileError, match="periods of the healthy mode"):

@@ -220,3 +220,14 @@ def test_a_nozzle_given_twice_at_one_stamp_is_estimated_twice_but_measured_once(
     fm = [float(x["fm"]) for x in rows]  # one trace three times (the batch's sums may differ in the last bits)
     assert fm == pytest.approx([fm[0]] * 3, rel=1e-12) and [x["fm_trend"] != "" for x in rows] == [True, False, False]
     assert all(x["fm_rate"] == "" for x in rows)
+
+
+def test_a_recording_in_millivolts_is_told_about_units(head, tmp_path):
+    """As inkdiag label does: every row out_of_range is a recording in other units, said on stderr."""
+    d, p, r = head
+    save_recording(tmp_path / "mv.npz", Recording.from_arrays(r.traces[:8] * 1e3, p.sample_rate_hz))
+    res = run_cli(tmp_path / "mv.npz", "--profile", d / "head.yaml", "--out", tmp_path / "fm.csv")
+    assert res.returncode == 0, res.stderr
+    assert "warning: 8 of 8 rows have a sample beyond" in res.stderr and "in volts (not millivolts" in res.stderr
+    res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--out", tmp_path / "ok.csv")
+    assert res.returncode == 0 and "in volts" not in res.stderr

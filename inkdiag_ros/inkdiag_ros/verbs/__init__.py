@@ -44,3 +44,12 @@ def repeated_pairs_warning(verb: str, n_repeated: int, what: str) -> str:
     """The warning line of a recording with :func:`repeated_pairs` rows (``what``: how the verb took them)."""
     return (f"inkdiag {verb}: warning: {n_repeated} row(s) repeat the nozzle and frame_id of an earlier row; {what}, "
             "but a frame holds one trace per nozzle: is the recording's nozzle column right?")
+
+
+def units_warning(verb: str, n_out_of_range: int, n_rows: int, max_abs_v: float) -> str:
+    """The warning line when at least half the rows have a sample no sensor of the head can produce (a
+    recording in other units, not a head whose sensor broke), else ""."""
+    if not (n_rows and n_out_of_range >= n_rows / 2):
+        return ""
+    return (f"inkdiag {verb}: warning: {n_out_of_range} of {n_rows} rows have a sample beyond {max_abs_v:g} V, more "
+            "than the head's sensor can produce: are the traces in volts (not millivolts or ADC counts)?")

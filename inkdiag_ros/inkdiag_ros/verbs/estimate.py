@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import re
 
-from . import NO_BASELINE_HINT, open_csv_out, repeated_pairs, repeated_pairs_warning, summary_stream
+from . import (NO_BASELINE_HINT, open_csv_out, repeated_pairs, repeated_pairs_warning, summary_stream,
+               units_warning)
 
 OUT_STDOUT = True  # --out - writes the CSV to standard output
 HELP = "estimate the drying fault f_m and the nozzle viscosity of recorded traces"
@@ -241,6 +242,8 @@ def run(args) -> int:
     if n_repeated := repeated_pairs(rec.nozzle[rows], frames):
         print(repeated_pairs_warning("estimate", n_repeated, "each is estimated"), file=sys.stderr)
     _say_unfolded(n_unfolded)
+    if said := units_warning("estimate", int(np.sum(reasons == "out_of_range")), n, tracker.max_abs_v):
+        print(said, file=sys.stderr)
     est = ~bad
     k = int(np.count_nonzero(est & ~np.isfinite(stamps)))
     if k:  # said, not silent: those rows' trend columns are empty
@@ -361,6 +364,8 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
     for note in sorted(notes):
         print(f"inkdiag estimate: note: {note}", file=sys.stderr)
     _say_unfolded(n_unfolded)
+    if said := units_warning("estimate", why.get("out_of_range", 0), n, tracker.max_abs_v):
+        print(said, file=sys.stderr)
     return 0
 
 

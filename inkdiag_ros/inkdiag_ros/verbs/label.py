@@ -146,7 +146,8 @@ def run(args) -> int:
     from inkdiag_core import FrameLabeller, LabellerConfigError, NozzleBaselines, load_detector
     from inkdiag_core.head_profile import HeadProfile
     from ..bags import report_stats, stream_recording
-    from . import NO_BASELINE_HINT, open_csv_out, repeated_pairs, repeated_pairs_warning, summary_stream
+    from . import (NO_BASELINE_HINT, open_csv_out, repeated_pairs, repeated_pairs_warning, summary_stream,
+                   units_warning)
 
     detector = load_detector(args.model)  # ModelFileError (a ValueError): missing, tampered, other versions
     head = detector.profile if detector.profile is not None else HeadProfile.default()
@@ -194,11 +195,8 @@ def run(args) -> int:
     print(f"inkdiag label: labelled {n_rows - n_invalid} of {n_rows} rows with {detector.model_id} (head "
           f"{head.name!r}); {n_invalid} invalid{failed}" + against + (f"; wrote {args.out}" if args.out != "-" else ""),
           file=summary_stream(args.out))
-    if n_rows and n_out_of_range >= n_rows / 2:  # a recording in other units, not a head whose sensor broke
-        print(f"inkdiag label: warning: {n_out_of_range} of {n_rows} rows have a sample beyond {max_abs_v:g} V, "
-              "more than the head's sensor "
-              "can produce: "
-              "are the traces in volts (not millivolts or ADC counts)?", file=sys.stderr)
+    if said := units_warning("label", n_out_of_range, n_rows, max_abs_v):
+        print(said, file=sys.stderr)
     if n_repeated := repeated_pairs(nozzles, frame_ids):
         print(repeated_pairs_warning("label", n_repeated, "each is labelled" + (
             " against that nozzle's baseline" if baselines is not None else "")), file=sys.stderr)
