@@ -43,6 +43,7 @@ def declare_all(node, params) -> dict:
 
     for name, default, desc, kind, rng in params:
         declare(node, name, default, desc, kind=kind, range_=rng)
+    warn_unknown(node)
     out = {}
     for name, _, _, kind, _ in params:
         try:
@@ -52,6 +53,27 @@ def declare_all(node, params) -> dict:
                 raise
             out[name] = []
     return out
+
+
+def warn_unknown(node) -> list:
+    """Log the parameters given to ``node`` (``-p NAME:=VALUE``, a params file's section for it) that it
+    does not declare, with the nearest declared name: rclpy ignores them, so a misspelt name
+    (``max_queue_frames``) would leave its parameter at the default without a word. Returns their names
+    (also ``node.ignored_parameters``). Call it after declaring every parameter."""
+    import difflib
+
+    given = getattr(node, "_parameter_overrides", {})  # rclpy's: this node's values from its arguments
+    unknown = sorted(name for name in given if not node.has_parameter(name))
+    node.ignored_parameters = unknown
+    if unknown:
+        declared = sorted(node._parameters)  # noqa: SLF001 - rclpy keeps no public list of names
+        hints = []
+        for name in unknown:
+            near = difflib.get_close_matches(name, declared, n=1)
+            hints.append(f"{name} (did you mean {near[0]}?)" if near else name)
+        node.get_logger().warning(f"ignoring parameter(s) this node does not have: {', '.join(hints)}; "
+                                  "its parameters: docs/parameters.md")
+    return unknown
 
 
 def result(ok: bool, reason: str = "") -> SetParametersResult:

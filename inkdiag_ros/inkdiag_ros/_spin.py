@@ -241,7 +241,10 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, eve
     if "-h" in own or "--help" in own:  # before rclpy: a node started for its help would join the graph
         from .paramdoc import node_help
 
-        print(node_help(node_cls, prog or os.path.basename(argv[0] if argv else "node")))
+        try:
+            print(node_help(node_cls, prog or os.path.basename(argv[0] if argv else "node")), flush=True)
+        except BrokenPipeError:  # `fdi --help | head`: the reader had enough; no traceback at exit either
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     keep_freed_memory()
     release = PeriodicRelease()

@@ -326,3 +326,11 @@ def test_diagnostics_warn_when_most_rows_are_faults():
     assert "invalid row(s)" in message and "were faults or unknown" in message
     frames(20, {"healthy_nozzle": 64})  # judged again on healthy rows: OK
     assert stats.period(True)[0] == "ok"
+
+
+def test_a_misspelt_parameter_is_named_with_the_one_meant(ros, fdi_model):
+    """rclpy ignores a parameter the node does not declare: fdi says so, with the nearest name it has."""
+    fdi = _fdi(ros, fdi_model, max_queue_frames=5, bogus_thing=1)
+    assert fdi.ignored_parameters == ["bogus_thing", "max_queue_frames"]
+    assert fdi.config["max_queued_frames"] == 64  # left at its default, hence the warning
+    assert _fdi(ros, fdi_model).ignored_parameters == []
