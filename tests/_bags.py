@@ -28,8 +28,9 @@ def frame_msg(ts, traces, *, first, frame_id, stamp_s, data_offset=HEADER_LEN):
     return ma["std_msgs/msg/Float32MultiArray"](layout=layout, data=np.concatenate([head, traces.ravel()]))
 
 
-def write_bag(path, frames, *, version=9, bad_frame=None, traces_type="std_msgs/msg/Float32MultiArray"):
-    """A rosbag2 MCAP bag written by rosbags directly: ``frames`` is a list of (first_nozzle, traces)."""
+def write_bag(path, frames, *, version=9, bad_frame=None, traces_type="std_msgs/msg/Float32MultiArray", stamps=None):
+    """A rosbag2 MCAP bag written by rosbags directly: ``frames`` is a list of (first_nozzle, traces); frame ``k``
+    has frame_id ``k`` and stamp ``stamps[k]`` s (default ``100 + k``)."""
     from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
     from rosbags.rosbag2 import StoragePlugin, Writer
 
@@ -44,7 +45,7 @@ def write_bag(path, frames, *, version=9, bad_frame=None, traces_type="std_msgs/
             if traces_type == "std_msgs/msg/String":
                 msg = ts.types["std_msgs/msg/String"](data="not traces")
             else:
-                msg = frame_msg(ts, x, first=first, frame_id=k, stamp_s=100 + k,
+                msg = frame_msg(ts, x, first=first, frame_id=k, stamp_s=100 + k if stamps is None else stamps[k],
                                 data_offset=3 if k == bad_frame else HEADER_LEN)
             w.write(conn, t0 + k * 100_000_000, ts.serialize_cdr(msg, traces_type))
             w.write(other, t0 + k * 100_000_000 + 1, ts.serialize_cdr(ts.types["std_msgs/msg/String"](data="{}"),

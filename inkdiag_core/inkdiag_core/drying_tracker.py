@@ -53,7 +53,7 @@ def _default_head():
     from .head_profile import HeadProfile
 
     return HeadProfile.default()
-from .trend import FmTrendBank, deeply_dried_fm
+from .trend import CLOCK_RESET_S, FmTrendBank, deeply_dried_fm
 
 __all__ = ["ESTIMATE_COLUMNS", "NONPHYSICAL_REASON", "DryingTracker", "RangeEstimates", "RowEstimates"]
 
@@ -196,11 +196,15 @@ class DryingTracker:
         Dropped from a full buffer before a partner came (a drying list without a
         range counts only if it matched no range at all); traces also when a later
         frame's list for their range came first.
-    ranges_stale : int
-        Joined (frame, range) pairs stamped no later than the last pair of the same range
-        already joined (a repeated frame, or one that arrived after a later one): estimated,
-        but not folded into the trends (their trend columns are NaN, their note says so),
-        which would take an old measurement for a new one.
+    rows_stale : int
+        Estimates not folded into their nozzle's trend since its last update is not before
+        their frame's stamp (a repeated frame, one that arrived after a later one, a nozzle
+        twice in a frame; :meth:`~inkdiag_core.FmTrendBank.fold_newer`): their trend columns
+        are NaN and their range's note says so; folding them would take an old measurement for a
+        new one.
+    trend_restarts : int
+        Nozzle trends restarted by a stamp :data:`~inkdiag_core.trend.CLOCK_RESET_S` or more before
+        their last update (a restarted clock: a controller restarted, a recording replayed again).
     rows_invalid : int
         Listed rows that screening rejected (not estimated).
     estimates, estimates_with_baseline : int
@@ -240,9 +244,9 @@ class DryingTracker:
         self._traces = OrderedDict()  # (frame_id, first_nozzle) -> _Traces
         self._drying = OrderedDict()  # (frame_id, first_nozzle or None) -> _Drying
         self.traces_received = self.drying_received = 0
-        self.ranges_joined = self.ranges_estimated = self.ranges_stale = 0
+        self.ranges_joined = self.ranges_estimated = 0
         self.traces_unmatched = self.drying_unmatched = 0
-        self._last_stamp = {}  # first nozzle of a range -> stamp of its last joined frame, s
+        self.rows_stale = self.trend_restarts = 0
         self.rows_invalid = self.estimates = self.estimates_with_baseline = 0
 
     @property
@@ -372,26 +376,14 @@ class DryingTracker:
         """Estimate the listed nozzles of one trace message; [] when none is valid there."""
         self.ranges_joined += 1
         x = t.traces
-        last = self._last_stamp.get(first)
-        stale = last is not None and not t.stamp > last  # repeated, or older than what the trends hold
-        if not stale:
-            self._last_stamp[first] = t.stamp
-        self.ranges_stale += stale
         ids = self._in_range(nozzles, first, x.shape[0])[: self.max_estimates]
-        r = self.estimate_rows(np.array(x[ids - first]), ids, stamp=math.nan if stale else t.stamp,
-                               sample_rate_hz=t.sample_rate_hz)
+        r = self.estimate_rows(np.array(x[ids - first]), ids, stamp=t.stamp, sample_rate_hz=t.sample_rate_hz)
         ok = r.reasons == ""
         if not ok.any():
             return []
         self.ranges_estimated += 1
         cols = {k: v[ok] for k, v in r.columns.items()}
-        note = r.note
-        if stale:
-            note = "; ".join(filter(None, (note, (
-                f"nozzles {first}..{first + x.shape[0] - 1} of frame {frame_id}, stamped {t.stamp:.6f} s, are not "
-                f"after the last frame estimated for them ({last:.6f} s: a repeated or late frame): estimated, "
-                "not folded into their trends"))))
-        return [RangeEstimates(frame_id, t.stamp, first, int(x.shape[0]), cols, note)]
+        return [RangeEstimates(frame_id, t.stamp, first, int(x.shape[0]), cols, r.note)]
 
     def estimate_rows(self, traces, nozzles, *, stamp: float, sample_rate_hz: float) -> RowEstimates:
         """Screen some rows of one frame, estimate f_m of the valid ones in one batch, update their trends.
@@ -448,12 +440,29 @@ class DryingTracker:
             good = sel[~bad]
             self.estimates += int(good.size)
             self.estimates_with_baseline += int(np.count_nonzero(with_base & ~bad))  # of the rows estimated
-            if good.size and math.isfinite(stamp):
-                trend, rate, eta = self.trends.update(stamp, ids[good], cols["fm"][good], cols["fm_std"][good])
+            if good.size and math.isfinite(stamp):  # each nozzle once, and only after its last update
+                trend, rate, eta, folded, restarted = self.trends.fold_newer(
+                    stamp, ids[good], cols["fm"][good], cols["fm_std"][good])
                 cols["fm_trend"][good], cols["fm_rate"][good], cols["eta_deeply_dried_s"][good] = trend, rate, eta
+                note = "; ".join(filter(None, (note, self._fold_note(stamp, ids[good], folded, restarted))))
         for k in ("fm", "fm_std", "d_mu", "viscosity"):
             cols[k][reasons != ""] = np.nan
         return RowEstimates(cols, reasons, method, note)
+
+    def _fold_note(self, stamp, ids, folded, restarted) -> str:
+        """Count the estimates :meth:`FmTrendBank.fold_newer` left out or restarted with; say so (or "")."""
+        n_stale, n_restart = int(folded.size - np.count_nonzero(folded)), int(np.count_nonzero(restarted))
+        self.rows_stale += n_stale
+        self.trend_restarts += n_restart
+        said = []
+        if n_stale:
+            said.append(f"{n_stale} estimate(s) at {stamp:.6f} s not folded into their nozzle's trend, whose last "
+                        f"update is not before it (a repeated or late frame, or a nozzle twice in a frame; nozzle "
+                        f"{ids[~folded][0]}{', ...' if n_stale > 1 else ''})")
+        if n_restart:
+            said.append(f"{n_restart} nozzle trend(s) restarted: stamp {stamp:.6f} s is {CLOCK_RESET_S:g} s or more "
+                        "before their last update (a restarted clock)")
+        return "; ".join(said)
 
     def _baseline_fm(self, ids, sample_rate_hz, n_samples):
         """``(healthy f_m of ids or None, whether each id has one, why not used)``."""

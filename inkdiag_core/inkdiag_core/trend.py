@@ -30,6 +30,7 @@ from .faults import MECHANISMS, FaultClass
 from .model import InkChannelParams, viscosity_to_fm
 
 __all__ = [
+    "CLOCK_RESET_S",
     "FmTrend",
     "FmTrendBank",
     "KalmanUpdate",
@@ -42,6 +43,11 @@ __all__ = [
 
 #: Floor of a measurement variance, (1/s)^2: keeps the update finite for fm = 0, fm_std = 0.
 R_FLOOR = 1e-12
+
+#: A measurement this much (s) or more before its nozzle's last update is a restarted clock (a controller
+#: restarted, a recording replayed again), not a late frame: :meth:`FmTrendBank.fold_newer` restarts the
+#: nozzle's trend from it. Late frames reach fe within its held messages' span, about 2 s at 5 frames/s.
+CLOCK_RESET_S = 10.0
 
 
 def deeply_dried_fm(params: InkChannelParams | None = None) -> float:
@@ -247,6 +253,17 @@ def _fold(x, P, t_last, n_updates, t, fm, fm_std, accel_std, rel_floor):
     return x, P, t_last, n_updates, K, y
 
 
+def _frame_arrays(nozzles, fm, fm_std):
+    """One frame's ``(nozzles int64, fm, fm_std)`` as flat arrays of one size (else InputError)."""
+    nozzles = np.asarray(nozzles, dtype=np.int64).reshape(-1)
+    fm = np.asarray(fm, dtype=float).reshape(-1)
+    fm_std = np.asarray(fm_std, dtype=float).reshape(-1)
+    if not (fm.size == fm_std.size == nozzles.size):
+        raise checks.InputError(f"nozzles, fm and fm_std must have one entry each per nozzle, "
+                                f"got sizes {nozzles.size}, {fm.size}, {fm_std.size}")
+    return nozzles, fm, fm_std
+
+
 def _check_params(accel_std, rel_floor):
     checks.positive_float("accel_std", accel_std)
     checks.nonnegative_float("rel_floor", rel_floor)
@@ -431,12 +448,7 @@ class FmTrendBank:
             Smoothed f_m (1/s), its rate (1/s^2, NaN until two updates) and the
             time to the deeply-dried level (s, see :func:`eta_deep`).
         """
-        nozzles = np.asarray(nozzles, dtype=np.int64).reshape(-1)
-        fm = np.asarray(fm, dtype=float).reshape(-1)
-        fm_std = np.asarray(fm_std, dtype=float).reshape(-1)
-        if not (fm.size == fm_std.size == nozzles.size):
-            raise checks.InputError(f"nozzles, fm and fm_std must have one entry each per nozzle, "
-                                    f"got sizes {nozzles.size}, {fm.size}, {fm_std.size}")
+        nozzles, fm, fm_std = _frame_arrays(nozzles, fm, fm_std)
         rows = self._rows(nozzles)
         self.K[rows], self.y[rows] = np.nan, np.nan
         out = np.full((3, rows.size), np.nan)
@@ -461,6 +473,58 @@ class FmTrendBank:
             out[1, sel] = np.where(n >= 2, x[:, 1], np.nan)
             out[2, sel] = eta_deep(x, n, self.fm_deep)
         return out[0], out[1], out[2]
+
+    def fold_newer(self, t: float, nozzles, fm, fm_std, *, reset_after_s: float = CLOCK_RESET_S):
+        """Fold in one frame's estimates where they are new: each nozzle once, and only after its last update.
+
+        :meth:`update` folds every entry in (a repeated id once per occurrence; a time not after a
+        nozzle's last one as a level update). A monitor must not: a frame sent twice, or arriving
+        after a later one, would count as a new measurement. Here a nozzle's first entry at ``t``
+        is folded in if ``t`` is after its last update; an entry at or before it is left out
+        (stale), unless ``t`` is ``reset_after_s`` or more before it: then the clock restarted,
+        and the nozzle's trend restarts from this entry (its old state dropped).
+
+        Parameters
+        ----------
+        t : float
+            Frame time, s (finite).
+        nozzles : array_like of int, shape (n,)
+        fm, fm_std : array_like, shape (n,)
+            As :meth:`update` (a non-finite ``fm`` is not folded either).
+        reset_after_s : float
+            s, > 0.
+
+        Returns
+        -------
+        fm_trend, rate, eta_deep_s : ndarray, shape (n,)
+            As :meth:`update` for the entries folded in; NaN for the others.
+        folded, restarted : ndarray of bool, shape (n,)
+            The entries folded in; those of them that restarted their nozzle's trend.
+        """
+        ids, fm, fm_std = _frame_arrays(nozzles, fm, fm_std)
+        if not (math.isfinite(t) and reset_after_s > 0):
+            raise checks.InputError(f"t must be finite and reset_after_s > 0, got {t!r}, {reset_after_s!r}")
+        keep = np.zeros(ids.size, dtype=bool)
+        keep[np.unique(ids, return_index=True)[1]] = True  # each nozzle's first entry
+        keep &= np.isfinite(fm)
+        at = np.searchsorted(self.ids, ids)
+        seen = at < self.ids.size
+        seen[seen] = self.ids[at[seen]] == ids[seen]
+        last = np.full(ids.size, np.nan)
+        last[seen] = self.t[at[seen]]
+        with np.errstate(invalid="ignore"):  # NaN: never updated, folded
+            older = last >= t
+            restart = keep & older & (last - t >= reset_after_s)
+        keep &= ~older | restart
+        if restart.any():
+            r = at[restart]
+            self.x[r], self.P[r], self.t[r], self.n_updates[r] = 0.0, 0.0, np.nan, 0
+            self.P[r, 0, 0] = self.P[r, 1, 1] = np.inf
+            self.K[r], self.y[r] = np.nan, np.nan
+        out = np.full((3, ids.size), np.nan)
+        if keep.any():
+            out[:, keep] = self.update(t, ids[keep], fm[keep], fm_std[keep])
+        return out[0], out[1], out[2], keep, restart
 
     def trend(self, nozzle: int) -> FmTrend:
         """A copy of one nozzle's filter as an :class:`FmTrend` (KeyError if never seen)."""

@@ -175,7 +175,7 @@ def head_recordings(n_nozzles, n_frames, seed, *, faulty=0.02, n_baseline_frames
     frames : list of ndarray, shape (n_nozzles, 512), float32
         V.
     healthy : list of ndarray, shape (n_nozzles, 512), float32
-        ``n_baseline_frames`` frames of the same nozzles all healthy, V.
+        ``n_baseline_frames`` frames of the same nozzles all healthy and jetting (``healthy_nozzle``), V.
     n_faulty : int
     """
     from inkdiag_core import FaultClass, simulate_nozzles

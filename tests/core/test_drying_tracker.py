@@ -190,27 +190,44 @@ def test_an_estimate_that_means_a_viscosity_of_zero_or_less_is_not_an_estimate()
 def test_a_repeated_or_late_frame_is_estimated_but_not_folded_into_the_trends():
     """A controller that sends a frame twice, or a frame that arrives after a later one, must not move the
     trends as a new measurement would: its estimates come out (with a note), its trend columns are NaN,
-    and the trends end where the frames in order leave them."""
-    frames = {k: _frame(k) for k in range(1, 5)}
+    and the trends end where the frames in order leave them. A nozzle's trend is its own clock: a late
+    frame whose nozzles were not updated since (the range's frame in between listed none) is folded."""
+    frames = {k: _frame(k) for k in range(1, 6)}
 
-    def run(order):
+    def run(order, listed=lambda k: DRIED[0]):
         tr, out = DryingTracker(), []
         for k in order:
             _traces(tr, frames[k], k, 0)
-            out += _drying(tr, k, 0, DRIED[0])
+            out += _drying(tr, k, 0, listed(k))
         return tr, out
 
     ref, _ = run([1, 2, 4])
     tr, out = run([1, 2, 2, 4, 3])  # frame 2 twice; frame 3 after frame 4
-    assert tr.ranges_stale == 2 and ref.ranges_stale == 0 and tr.ranges_estimated == 5
+    assert tr.rows_stale == 4 and ref.rows_stale == 0 and tr.trend_restarts == 0 and tr.ranges_estimated == 5
     stale = [e for e in out if e.note]
-    assert [e.frame_id for e in stale] == [2, 3] and all("not folded into their trends" in e.note for e in stale)
+    assert [e.frame_id for e in stale] == [2, 3]
+    assert all("2 estimate(s) at" in e.note and "not folded into their nozzle's trend" in e.note for e in stale)
     for e in stale:
         assert np.isnan(e.columns["fm_trend"]).all() and np.isnan(e.columns["fm_rate"]).all()
         direct = estimate_fm_batch(frames[e.frame_id][DRIED[0]], InkChannelModel(), 10e6)
         np.testing.assert_array_equal(e.columns["fm"], direct.fm)  # the estimates themselves are given
     np.testing.assert_array_equal(tr.trends.x, ref.trends.x)  # the trends of frames 1, 2, 4, in order
     np.testing.assert_array_equal(tr.trends.n_updates, [3, 3])
-    # the other ranges keep their own clock: range 1's first frame is not stale after range 0's later ones
-    _traces(tr, frames[1], 1, 1)
-    assert _drying(tr, 1, 1, DRIED[1])[0].note == "" and tr.ranges_stale == 2
+    # frame 3 listed no dried nozzle; frame 2 comes after it, and its nozzles' trends last moved at frame 1
+    tr, out = run([1, 3, 2], listed=lambda k: [] if k == 3 else DRIED[0])
+    assert tr.rows_stale == 0 and [e.note for e in out] == ["", ""] and tr.trends.n_updates.tolist() == [2, 2]
+
+
+def test_a_restarted_clock_restarts_the_trends_instead_of_freezing_them():
+    """Stamps that jump back 10 s or more (a controller restarted, a recording replayed again) are a new
+    clock: each nozzle's trend starts again from the frame, said in the note, not left frozen until the
+    new stamps pass the old ones."""
+    tr = DryingTracker()
+    for k, stamp in ((1, 100.0), (2, 100.5), (3, 1.0), (4, 1.5)):
+        _traces(tr, _frame(k), k, 0, stamp=stamp)
+        e, = _drying(tr, k, 0, DRIED[0])
+        assert np.isfinite(e.columns["fm_trend"]).all()
+        assert ("2 nozzle trend(s) restarted" in e.note) == (k == 3)
+        assert np.isfinite(e.columns["fm_rate"]).all() == (k in (2, 4))  # a rate from a trend's second frame
+    assert tr.trend_restarts == 2 and tr.rows_stale == 0 and tr.trends.n_updates.tolist() == [2, 2]
+    assert tr.trends.t.tolist() == [1.5, 1.5]

@@ -187,3 +187,21 @@ def test_bank_exposes_gain_and_residual_and_keeps_its_api():
         FmTrendBank(accel_std=0)
     with pytest.raises(TypeError):
         FmTrendBank(bogus=1)
+
+
+def test_fold_newer_folds_each_nozzle_once_and_only_after_its_last_update():
+    bank = FmTrendBank(fm_deep=-1e6)
+    trend, rate, eta, folded, restarted = bank.fold_newer(1.0, [5, 3, 5], [-5e5, np.nan, -6e5], [1e4] * 3)
+    assert folded.tolist() == [True, False, False] and not restarted.any()  # 3: no estimate; 5 twice: once
+    assert trend[0] == -5e5 and np.isnan(trend[1:]).all() and bank.ids.tolist() == [5] and bank.n_updates[0] == 1
+    _, _, _, folded, _ = bank.fold_newer(1.0, [5, 3], [-6e5, -5e5], [1e4] * 2)  # 5 again at 1 s: stale
+    assert folded.tolist() == [False, True] and bank.n_updates.tolist() == [1, 1]
+    _, rate, _, folded, _ = bank.fold_newer(0.5, [5], [-6e5], [1e4])  # before its last update: stale
+    assert not folded.any() and np.isnan(rate).all() and bank.t.tolist() == [1.0, 1.0]
+    _, rate, _, folded, _ = bank.fold_newer(2.0, [5], [-6e5], [1e4])
+    assert folded.all() and rate[0] < 0 and bank.n_updates.tolist() == [1, 2]
+    trend, rate, _, folded, restarted = bank.fold_newer(-8.0, [5, 3], [-7e5, -7e5], [1e4] * 2, reset_after_s=10.0)
+    assert folded.tolist() == [True, False] and restarted.tolist() == [True, False]  # 3 is only 9 s back
+    assert trend[0] == -7e5 and np.isnan(rate[0]) and bank.n_updates.tolist() == [1, 1] and bank.t[1] == -8.0
+    with pytest.raises(ValueError):
+        bank.fold_newer(float("nan"), [5], [-6e5], [1e4])

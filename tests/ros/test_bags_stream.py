@@ -124,6 +124,25 @@ def test_estimate_on_a_bag_streams_the_rows_the_npz_gives(tmp_path, capsys):
     assert status == 2 and "a bag has no label column" in err
 
 
+def test_estimate_on_a_bag_folds_a_frame_out_of_time_order_into_no_trend(tmp_path, capsys):
+    """A bag is estimated in its own order: a frame stamped before one already trended (or at its stamp) is
+    estimated, its trend columns empty, and stderr says so, as fe's tracker does; so do repeated rows."""
+    from inkdiag_ros import cli
+
+    prof = HeadProfile.default()
+    prof.save(tmp_path / "head.yaml")
+    x = prof.simulate({"intermediately_dried": 4}, seed=3).traces.astype(np.float32)
+    bag = write_bag(tmp_path / "bag", [(0, x)] * 4, stamps=[100, 102, 101, 102])  # whole s (the header's field)
+    assert cli.main(["estimate", str(bag), "--profile", str(tmp_path / "head.yaml"), "--out",
+                     str(tmp_path / "fm.csv")]) == 0
+    err = capsys.readouterr().err
+    assert "note: 8 row(s) estimated but not folded into their nozzle's trend" in err and "out of time order" in err
+    assert "repeat" not in err  # frame ids tell the frames apart
+    with open(tmp_path / "fm.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["fm_trend"] != "" for r in rows] == [True] * 8 + [False] * 8 and all(r["fm"] for r in rows)
+
+
 def test_bag_sample_is_bounded_uniform_and_screened():
     from inkdiag_core import Recording
     from inkdiag_ros.verbs.calibrate import bag_sample

@@ -207,7 +207,8 @@ def test_a_nozzle_given_twice_at_one_stamp_is_estimated_twice_but_measured_once(
         rec["traces"], p.sample_rate_hz, nozzle=np.zeros(16, int), frame_id=rec["frame_id"], stamp=rec["stamp"]))
     res = run_cli(tmp_path / "dup.npz", "--profile", d / "head.yaml", "--out", tmp_path / "fm.csv")
     assert res.returncode == 0, res.stderr
-    assert "warning: 14 row(s) repeat the nozzle and frame_id of an earlier row; each is estimated" in res.stderr
+    assert "warning: 14 row(s) repeat the nozzle, frame_id and stamp of an earlier row; each is estimated" \
+        in res.stderr
     _, rows = read_csv(tmp_path / "fm.csv")
     trended = [x for x in rows if x["fm_trend"] != ""]
     assert all(x["fm"] != "" for x in rows if not x["reason"])
@@ -218,6 +219,11 @@ def test_a_nozzle_given_twice_at_one_stamp_is_estimated_twice_but_measured_once(
         "folded into their nozzle's trend" in res.stderr, res.stderr
     _, rows = read_csv(tmp_path / "fm3.csv")
     fm = [float(x["fm"]) for x in rows]  # one trace three times (the batch's sums may differ in the last bits)
+    # frames told apart by their stamps alone (no frame_id column): no repeat, every row trended
+    save_recording(tmp_path / "st.npz", Recording.from_arrays(rec["traces"], p.sample_rate_hz, nozzle=rec["nozzle"],
+                                                              stamp=rec["stamp"]))
+    res2 = run_cli(tmp_path / "st.npz", "--profile", d / "head.yaml", "--out", tmp_path / "st.csv")
+    assert res2.returncode == 0 and "repeat" not in res2.stderr and "not folded" not in res2.stderr, res2.stderr
     assert fm == pytest.approx([fm[0]] * 3, rel=1e-12) and [x["fm_trend"] != "" for x in rows] == [True, False, False]
     assert all(x["fm_rate"] == "" for x in rows)
 

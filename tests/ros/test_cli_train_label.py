@@ -304,11 +304,16 @@ def test_rows_repeating_a_nozzle_and_frame_are_labelled_with_a_warning(work, tra
     save_recording(tmp_path / "dup.npz", Recording.from_arrays(sim.traces[:30], head.sample_rate_hz,
                                                                nozzle=np.zeros(30, int)))
     assert main(["label", str(tmp_path / "dup.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "l.csv")]) == 0
-    assert ("warning: 29 row(s) repeat the nozzle and frame_id of an earlier row; each is labelled, but a frame "
-            "holds one trace per nozzle") in capsys.readouterr().err
+    assert ("warning: 29 row(s) repeat the nozzle, frame_id and stamp of an earlier row; each is labelled, but a "
+            "frame holds one trace per nozzle") in capsys.readouterr().err
     _, dup = _read(tmp_path / "l.csv")
     save_recording(tmp_path / "ok.npz", Recording.from_arrays(sim.traces[:30], head.sample_rate_hz))
     assert main(["label", str(tmp_path / "ok.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "k.csv")]) == 0
     assert "repeat" not in capsys.readouterr().err
     _, ok = _read(tmp_path / "k.csv")
     assert [(r["class"], r["confidence"]) for r in dup] == [(r["class"], r["confidence"]) for r in ok]
+    # frames told apart by their stamps alone (no frame_id column): no repeat
+    save_recording(tmp_path / "st.npz", Recording.from_arrays(sim.traces[:30], head.sample_rate_hz,
+                                                              nozzle=np.arange(30) % 10, stamp=np.arange(30) // 10))
+    assert main(["label", str(tmp_path / "st.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "s.csv")]) == 0
+    assert "repeat" not in capsys.readouterr().err

@@ -26,24 +26,32 @@ def summary_stream(path: str):
     return sys.stderr if path == "-" else sys.stdout
 
 
-def repeated_pairs(nozzle, frame_id) -> int:
-    """Rows whose (nozzle, frame_id) pair an earlier row already has: a frame holds one trace per nozzle, so
-    these are a nozzle column gone wrong (e.g. all zeros) or rows given twice.
+def repeated_pairs(nozzle, frame_id, stamp=None) -> int:
+    """Rows whose nozzle, frame_id and stamp (NaN stamps alike) an earlier row already has: a frame holds one
+    trace per nozzle, so these are a nozzle column gone wrong (e.g. all zeros), rows given twice, or frames
+    told apart by neither a frame_id nor a stamp column.
 
     Parameters
     ----------
     nozzle, frame_id : array_like of int, shape (n,)
+    stamp : array_like of float, shape (n,), optional
+        s; None: not compared.
     """
     import numpy as np
 
-    pairs = np.stack([np.asarray(nozzle, dtype=np.int64), np.asarray(frame_id, dtype=np.int64)], axis=1)
-    return int(pairs.shape[0] - (np.unique(pairs, axis=0).shape[0] if pairs.size else 0))
+    cols = [np.asarray(nozzle, dtype=np.int64), np.asarray(frame_id, dtype=np.int64)]
+    if stamp is not None:
+        st = np.asarray(stamp, dtype=np.float64)
+        cols.append(np.where(np.isnan(st), np.nan, st + 0.0).view(np.int64))  # one NaN; -0.0 as 0.0
+    keys = np.stack(cols, axis=1)
+    return int(keys.shape[0] - (np.unique(keys, axis=0).shape[0] if keys.size else 0))
 
 
 def repeated_pairs_warning(verb: str, n_repeated: int, what: str) -> str:
     """The warning line of a recording with :func:`repeated_pairs` rows (``what``: how the verb took them)."""
-    return (f"inkdiag {verb}: warning: {n_repeated} row(s) repeat the nozzle and frame_id of an earlier row; {what}, "
-            "but a frame holds one trace per nozzle: is the recording's nozzle column right?")
+    return (f"inkdiag {verb}: warning: {n_repeated} row(s) repeat the nozzle, frame_id and stamp of an earlier row; "
+            f"{what}, but a frame holds one trace per nozzle: is the recording's nozzle column right, and does it "
+            "tell its frames apart (frame_id or stamp)?")
 
 
 def units_warning(verb: str, n_out_of_range: int, n_rows: int, max_abs_v: float) -> str:

@@ -212,7 +212,7 @@ def run(args) -> int:
         cols = {k: np.empty(0) for k in ("nozzle", "fm", "fm_std", "d_mu", "viscosity", "fm_trend", "fm_rate",
                                          "eta_deeply_dried_s")}
     # trends: each frame's estimates in time order (stamp, then frame_id), as fe would have seen them
-    n_unfolded = 0
+    unfolded = (0, 0)
     stamps = rec.stamp[rows]
     frames = rec.frame_id[rows]
     ok = (reasons == "") & np.isfinite(stamps)
@@ -222,7 +222,7 @@ def run(args) -> int:
         keys = np.stack([stamps[idx], frames[idx].astype(float)], axis=1)
         bounds = np.flatnonzero(np.any(keys[1:] != keys[:-1], axis=1)) + 1
         for grp in np.split(idx, bounds):  # one trend update per frame
-            n_unfolded += _fold_frame(tracker.trends, float(stamps[grp[0]]), grp, cols)
+            unfolded = np.add(unfolded, _fold_frame(tracker.trends, float(stamps[grp[0]]), grp, cols))
     with open_csv_out(args.out) as f:
         w = csv.writer(f)
         w.writerow(["row", "nozzle", "fm", "fm_std", "d_mu", "viscosity", "frame_id", "stamp", "fm_trend",
@@ -239,9 +239,9 @@ def run(args) -> int:
           + _to(args.out), file=summary_stream(args.out))
     for note in sorted(notes):
         print(f"inkdiag estimate: note: {note}", file=sys.stderr)
-    if n_repeated := repeated_pairs(rec.nozzle[rows], frames):
+    if n_repeated := repeated_pairs(rec.nozzle[rows], frames, stamps):
         print(repeated_pairs_warning("estimate", n_repeated, "each is estimated"), file=sys.stderr)
-    _say_unfolded(n_unfolded)
+    _say_unfolded(unfolded)
     if said := units_warning("estimate", int(np.sum(reasons == "out_of_range")), n, tracker.max_abs_v):
         print(said, file=sys.stderr)
     est = ~bad
@@ -318,7 +318,9 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
     from ..bags import report_stats
 
     method = "vp" if args.method == "vp" else "vp_cal"
-    n = n_bad = n_seen = n_unfolded = 0
+    n = n_bad = n_seen = 0
+    unfolded = (0, 0)
+    seen = []  # each chunk's (nozzle, frame_id, stamp) of the rows estimated: repeats are said at the end
     why, notes = {}, set()
     with open_csv_out(args.out) as f:
         w = csv.writer(f)
@@ -339,12 +341,13 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
                 if r.note:
                     notes.add(r.note)
             stamps, frames = rec.stamp[sel], rec.frame_id[sel]
+            seen.append((rec.nozzle[sel], frames, stamps))
             ok = (reasons == "") & np.isfinite(stamps)
             if ok.any():  # each frame's trend update in bag order (one message is one frame)
                 idx = np.flatnonzero(ok)
                 keys = np.stack([stamps[idx], frames[idx].astype(float)], axis=1)
                 for grp in np.split(idx, np.flatnonzero(np.any(keys[1:] != keys[:-1], axis=1)) + 1):
-                    n_unfolded += _fold_frame(tracker.trends, float(stamps[grp[0]]), grp, cols)
+                    unfolded = np.add(unfolded, _fold_frame(tracker.trends, float(stamps[grp[0]]), grp, cols))
             for i in range(sel.size):  # formatting only
                 w.writerow([first_row + int(sel[i]), int(rec.nozzle[sel[i]]), _fmt(cols["fm"][i]),
                             _fmt(cols["fm_std"][i]), _fmt(cols["d_mu"][i]), _fmt(cols["viscosity"][i]),
@@ -363,36 +366,34 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
           + _against(tracker, n - n_bad, notes) + _to(args.out), file=summary_stream(args.out))
     for note in sorted(notes):
         print(f"inkdiag estimate: note: {note}", file=sys.stderr)
-    _say_unfolded(n_unfolded)
+    if seen and (n_repeated := repeated_pairs(*(np.concatenate(c) for c in zip(*seen)))):
+        print(repeated_pairs_warning("estimate", n_repeated, "each is estimated"), file=sys.stderr)
+    _say_unfolded(unfolded)
     if said := units_warning("estimate", why.get("out_of_range", 0), n, tracker.max_abs_v):
         print(said, file=sys.stderr)
     return 0
 
 
-def _fold_frame(trends, t, grp, cols) -> int:
-    """One frame's estimates (rows ``grp`` of ``cols``, stamp ``t``, s) folded into ``trends``, each nozzle at most
-    once and only after its last update (as fe's tracker folds frames): a nozzle listed twice in a frame, or in two
-    frames of one stamp, is not measured twice. Its trend columns stay NaN. Returns how many rows were not folded."""
+def _fold_frame(trends, t, grp, cols) -> tuple:
+    """One frame's estimates (rows ``grp`` of ``cols``, stamp ``t``, s) folded into ``trends`` as fe's tracker folds
+    them (:meth:`inkdiag_core.FmTrendBank.fold_newer`: each nozzle once, only after its last update; a clock 10 s
+    or more back restarts its trend). The rows left out keep NaN trend columns. Returns ``(left out, restarted)``."""
     import numpy as np
 
-    ids = cols["nozzle"][grp]
-    keep = np.zeros(grp.size, dtype=bool)
-    keep[np.unique(ids, return_index=True)[1]] = True
-    at = np.searchsorted(trends.ids, ids)
-    seen = at < trends.ids.size
-    seen[seen] = trends.ids[at[seen]] == ids[seen]
-    keep[seen] &= ~(trends.t[at[seen]] >= t)  # NaN (never updated) compares False: folded
-    g = grp[keep]
-    if g.size:
-        out = trends.update(t, ids[keep], cols["fm"][g], cols["fm_std"][g])
-        cols["fm_trend"][g], cols["fm_rate"][g], cols["eta_deeply_dried_s"][g] = out
-    return int(grp.size - g.size)
+    trend, rate, eta, folded, restarted = trends.fold_newer(t, cols["nozzle"][grp], cols["fm"][grp],
+                                                            cols["fm_std"][grp])
+    cols["fm_trend"][grp], cols["fm_rate"][grp], cols["eta_deeply_dried_s"][grp] = trend, rate, eta
+    return int(grp.size - np.count_nonzero(folded)), int(np.count_nonzero(restarted))
 
 
-def _say_unfolded(n: int) -> None:
+def _say_unfolded(counts) -> None:
     import sys
 
-    if n:
-        print(f"inkdiag estimate: note: {n} row(s) estimated but not folded into their nozzle's trend (fm_trend, "
-              "fm_rate empty): their nozzle already had a row at that stamp (listed twice in a frame, or frames "
-              "with the same stamp)", file=sys.stderr)
+    stale, restarted = counts
+    if stale:
+        print(f"inkdiag estimate: note: {stale} row(s) estimated but not folded into their nozzle's trend (fm_trend, "
+              "fm_rate empty): their nozzle's trend was already updated at that stamp or later (listed twice in a "
+              "frame, frames of one stamp, or in a bag a frame out of time order)", file=sys.stderr)
+    if restarted:
+        print(f"inkdiag estimate: note: {restarted} nozzle trend(s) restarted where the stamps went back 10 s or more "
+              "(a restarted clock)", file=sys.stderr)

@@ -143,6 +143,7 @@ def run(args) -> int:
     import math
     import sys
 
+    import numpy as np
     from inkdiag_core import FrameLabeller, LabellerConfigError, NozzleBaselines, load_detector
     from inkdiag_core.head_profile import HeadProfile
     from ..bags import report_stats, stream_recording
@@ -169,11 +170,12 @@ def run(args) -> int:
     del rec
     n_rows = n_invalid = n_failed = n_base = n_out_of_range = 0
     per_class = collections.Counter()
-    nozzles, frame_ids = array.array("q"), array.array("q")
+    nozzles, frame_ids, stamps = array.array("q"), array.array("q"), []
     with open_csv_out(args.out) as out:
         w = csv.writer(out, lineterminator="\n")
         w.writerow(COLUMNS)
-        for row, nozzle, fid, cls, conf, reason, base in label_stream(labeller, itertools.chain([first], chunks)):
+        for row, nozzle, fid, cls, conf, reason, base in label_stream(labeller, _stamps_of(itertools.chain([first], chunks),
+                                                                                    stamps)):
             if cls == "invalid":
                 n_invalid += 1
                 n_failed += reason == "labelling_failed"
@@ -197,13 +199,20 @@ def run(args) -> int:
           file=summary_stream(args.out))
     if said := units_warning("label", n_out_of_range, n_rows, max_abs_v):
         print(said, file=sys.stderr)
-    if n_repeated := repeated_pairs(nozzles, frame_ids):
+    if n_repeated := repeated_pairs(nozzles, frame_ids, np.concatenate(stamps) if stamps else np.empty(0)):
         print(repeated_pairs_warning("label", n_repeated, "each is labelled" + (
             " against that nozzle's baseline" if baselines is not None else "")), file=sys.stderr)
     said = _one_fault_class_dominates(per_class, head)
     if said:
         print(f"inkdiag label: warning: {said}", file=sys.stderr)
     return 1 if n_failed else 0
+
+
+def _stamps_of(chunks, stamps: list):
+    """``chunks`` as they come, each chunk's ``stamp`` column appended to ``stamps``."""
+    for first_row, rec in chunks:
+        stamps.append(rec.stamp)
+        yield first_row, rec
 
 
 #: ``inkdiag label`` warns when one fault class (or ``unknown``) is more than this share of the labelled rows.
