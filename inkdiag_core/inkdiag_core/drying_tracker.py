@@ -203,8 +203,8 @@ class DryingTracker:
         are NaN and their range's note says so; folding them would take an old measurement for a
         new one.
     trend_restarts : int
-        Nozzle trends restarted by a stamp :data:`~inkdiag_core.trend.CLOCK_RESET_S` or more before
-        their last update (a restarted clock: a controller restarted, a recording replayed again).
+        Nozzle trends restarted since the stamps went back :data:`~inkdiag_core.trend.CLOCK_RESET_S` or
+        more (a restarted clock: a controller restarted, a recording replayed again).
     rows_invalid : int
         Listed rows that screening rejected (not estimated).
     estimates, estimates_with_baseline : int
@@ -460,8 +460,8 @@ class DryingTracker:
                         f"update is not before it (a repeated or late frame, or a nozzle twice in a frame; nozzle "
                         f"{ids[~folded][0]}{', ...' if n_stale > 1 else ''})")
         if n_restart:
-            said.append(f"{n_restart} nozzle trend(s) restarted: stamp {stamp:.6f} s is {CLOCK_RESET_S:g} s or more "
-                        "before their last update (a restarted clock)")
+            said.append(f"{n_restart} nozzle trend(s) restarted at {stamp:.6f} s: the stamps went back "
+                        f"{CLOCK_RESET_S:g} s or more (a restarted clock)")
         return "; ".join(said)
 
     def _baseline_fm(self, ids, sample_rate_hz, n_samples):

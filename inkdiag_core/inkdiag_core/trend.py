@@ -44,9 +44,10 @@ __all__ = [
 #: Floor of a measurement variance, (1/s)^2: keeps the update finite for fm = 0, fm_std = 0.
 R_FLOOR = 1e-12
 
-#: A measurement this much (s) or more before its nozzle's last update is a restarted clock (a controller
-#: restarted, a recording replayed again), not a late frame: :meth:`FmTrendBank.fold_newer` restarts the
-#: nozzle's trend from it. Late frames reach fe within its held messages' span, about 2 s at 5 frames/s.
+#: A frame this much (s) or more before the latest one :meth:`FmTrendBank.fold_newer` has folded is a
+#: restarted clock (a controller restarted, a recording replayed again), not a late frame: every nozzle's
+#: trend restarts at its next frame. fe joins a range's frames in the order its drying lists come, so a late
+#: frame is one that overtook another in transit: milliseconds to a few frames at several frames a second.
 CLOCK_RESET_S = 10.0
 
 
@@ -402,6 +403,9 @@ class FmTrendBank:
         self.n_updates = np.empty(0, dtype=np.int64)
         self.K = np.empty((0, 2))
         self.y = np.empty(0)
+        self.epoch = 0  # fold_newer's clock: the latest stamp folded (s), and how often it restarted
+        self.clock = math.nan
+        self.nozzle_epoch = np.empty(0, dtype=np.int64)  # each nozzle's at its last fold_newer (-1: none)
 
     def __len__(self) -> int:
         return int(self.ids.size)
@@ -427,6 +431,7 @@ class FmTrendBank:
             self.P[np.searchsorted(ids, new), 1, 1] = np.inf
             self.t, self.n_updates = grow(self.t, np.nan), grow(self.n_updates, 0)
             self.K, self.y = grow(self.K, np.nan), grow(self.y, np.nan)
+            self.nozzle_epoch = grow(self.nozzle_epoch, -1)
             self.ids = ids
         return np.searchsorted(self.ids, nozzles)
 
@@ -479,10 +484,12 @@ class FmTrendBank:
 
         :meth:`update` folds every entry in (a repeated id once per occurrence; a time not after a
         nozzle's last one as a level update). A monitor must not: a frame sent twice, or arriving
-        after a later one, would count as a new measurement. Here a nozzle's first entry at ``t``
-        is folded in if ``t`` is after its last update; an entry at or before it is left out
-        (stale), unless ``t`` is ``reset_after_s`` or more before it: then the clock restarted,
-        and the nozzle's trend restarts from this entry (its old state dropped).
+        after a later one, would count as a new measurement. Here a nozzle's first finite entry is
+        folded in if ``t`` is after its last update; an entry at or before it is left out (stale).
+        A ``t`` ``reset_after_s`` or more before the latest frame folded here restarts the clock (a
+        controller restarted, a recording replayed again): from then on each nozzle's trend
+        restarts (its old state dropped) at its first entry on the new clock, whatever its last
+        update's time, so no trend spans two clocks.
 
         Parameters
         ----------
@@ -490,7 +497,7 @@ class FmTrendBank:
             Frame time, s (finite).
         nozzles : array_like of int, shape (n,)
         fm, fm_std : array_like, shape (n,)
-            As :meth:`update` (a non-finite ``fm`` is not folded either).
+            As :meth:`update` (a non-finite ``fm`` is not folded).
         reset_after_s : float
             s, > 0.
 
@@ -504,18 +511,23 @@ class FmTrendBank:
         ids, fm, fm_std = _frame_arrays(nozzles, fm, fm_std)
         if not (math.isfinite(t) and reset_after_s > 0):
             raise checks.InputError(f"t must be finite and reset_after_s > 0, got {t!r}, {reset_after_s!r}")
+        if self.clock - t >= reset_after_s:  # NaN (nothing folded yet): False
+            self.epoch += 1
+            self.clock = t
+        self.clock = t if not self.clock >= t else self.clock
+        fin = np.flatnonzero(np.isfinite(fm))
         keep = np.zeros(ids.size, dtype=bool)
-        keep[np.unique(ids, return_index=True)[1]] = True  # each nozzle's first entry
-        keep &= np.isfinite(fm)
+        keep[fin[np.unique(ids[fin], return_index=True)[1]]] = True  # each nozzle's first finite entry
         at = np.searchsorted(self.ids, ids)
         seen = at < self.ids.size
         seen[seen] = self.ids[at[seen]] == ids[seen]
-        last = np.full(ids.size, np.nan)
-        last[seen] = self.t[at[seen]]
-        with np.errstate(invalid="ignore"):  # NaN: never updated, folded
-            older = last >= t
-            restart = keep & older & (last - t >= reset_after_s)
-        keep &= ~older | restart
+        seen[seen] = self.n_updates[at[seen]] > 0
+        other_clock = np.zeros(ids.size, dtype=bool)
+        other_clock[seen] = self.nozzle_epoch[at[seen]] != self.epoch
+        older = np.zeros(ids.size, dtype=bool)
+        older[seen] = self.t[at[seen]] >= t
+        restart = keep & other_clock
+        keep &= restart | ~older
         if restart.any():
             r = at[restart]
             self.x[r], self.P[r], self.t[r], self.n_updates[r] = 0.0, 0.0, np.nan, 0
@@ -524,6 +536,7 @@ class FmTrendBank:
         out = np.full((3, ids.size), np.nan)
         if keep.any():
             out[:, keep] = self.update(t, ids[keep], fm[keep], fm_std[keep])
+            self.nozzle_epoch[np.searchsorted(self.ids, ids[keep])] = self.epoch
         return out[0], out[1], out[2], keep, restart
 
     def trend(self, nozzle: int) -> FmTrend:

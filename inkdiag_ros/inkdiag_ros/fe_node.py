@@ -76,6 +76,7 @@ class FeNode(Node):
             baselines=self.baselines, trend_accel_std=c["trend_accel_std"], trend_rel_floor=c["trend_rel_floor"])
         self.frames_malformed = 0
         self.estimates_published = 0
+        self._restarts_said = 0  # DryingTracker.trend_restarts already logged
         self._pub = self.create_publisher(ESTIMATES_MSG_TYPE, topics.FM_ESTIMATES, RELIABLE_QOS)
         self._array_pub = self.create_publisher(ESTIMATES_ARRAY_MSG_TYPE, topics.FM_ESTIMATES_ARRAY,
                                                 RELIABLE_QOS)
@@ -132,6 +133,10 @@ class FeNode(Node):
         self.get_logger().warning(f"dropped a malformed {what}: {exc}", throttle_duration_sec=1.0)
 
     def _publish(self, results) -> None:
+        if self.tracker.trend_restarts > self._restarts_said:  # rare, and not to be hidden by the throttle below
+            self.get_logger().warning(f"{self.tracker.trend_restarts - self._restarts_said} nozzle trend(s) restarted: "
+                                      "the trace stamps went back (a restarted controller clock, a replayed recording)")
+            self._restarts_said = self.tracker.trend_restarts
         for r in results:
             if r.note:
                 self.get_logger().warning(f"frame {r.frame_id}: {r.note}", throttle_duration_sec=5.0)

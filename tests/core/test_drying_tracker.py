@@ -231,3 +231,11 @@ def test_a_restarted_clock_restarts_the_trends_instead_of_freezing_them():
         assert np.isfinite(e.columns["fm_rate"]).all() == (k in (2, 4))  # a rate from a trend's second frame
     assert tr.trend_restarts == 2 and tr.rows_stale == 0 and tr.trends.n_updates.tolist() == [2, 2]
     assert tr.trends.t.tolist() == [1.5, 1.5]
+    # a nozzle first seen again on the new clock restarts too, though its old stamp (100.5) is not 10 s after
+    # this one: range 1's nozzles, last at 100.5, listed at 95
+    tr = DryingTracker()
+    for k, stamp, r in ((1, 100.0, 1), (2, 100.5, 1), (3, 1.0, 0), (4, 95.0, 1)):
+        _traces(tr, _frame(k), k, r, stamp=stamp)
+        e, = _drying(tr, k, r, DRIED[r])
+        assert np.isfinite(e.columns["fm_trend"]).all() and (("restarted" in e.note) == (k == 4))
+    assert tr.trend_restarts == 3 and tr.rows_stale == 0

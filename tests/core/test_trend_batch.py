@@ -200,8 +200,17 @@ def test_fold_newer_folds_each_nozzle_once_and_only_after_its_last_update():
     assert not folded.any() and np.isnan(rate).all() and bank.t.tolist() == [1.0, 1.0]
     _, rate, _, folded, _ = bank.fold_newer(2.0, [5], [-6e5], [1e4])
     assert folded.all() and rate[0] < 0 and bank.n_updates.tolist() == [1, 2]
-    trend, rate, _, folded, restarted = bank.fold_newer(-8.0, [5, 3], [-7e5, -7e5], [1e4] * 2, reset_after_s=10.0)
-    assert folded.tolist() == [True, False] and restarted.tolist() == [True, False]  # 3 is only 9 s back
-    assert trend[0] == -7e5 and np.isnan(rate[0]) and bank.n_updates.tolist() == [1, 1] and bank.t[1] == -8.0
+    _, _, _, folded, restarted = bank.fold_newer(-7.0, [5], [-7e5], [1e4], reset_after_s=10.0)  # 9 s back: late
+    assert not folded.any() and not restarted.any() and bank.epoch == 0
+    # 10 s before the latest frame folded (2 s): a new clock. Each nozzle's trend restarts at its next entry,
+    # also nozzle 3's (last at 1 s, 9 s after -8 s) and one whose last update is before the new stamp
+    trend, rate, _, folded, restarted = bank.fold_newer(-8.0, [5], [-7e5], [1e4])
+    assert folded.all() and restarted.all() and trend[0] == -7e5 and np.isnan(rate[0]) and bank.epoch == 1
+    _, _, _, folded, restarted = bank.fold_newer(-7.5, [3, 5], [-7e5, -7e5], [1e4] * 2)
+    assert folded.tolist() == [True, True] and restarted.tolist() == [True, False]
+    assert bank.n_updates.tolist() == [1, 2] and bank.t.tolist() == [-7.5, -7.5]
+    # a NaN entry does not hide the nozzle's next one
+    _, _, _, folded, _ = bank.fold_newer(-7.0, [3, 3], [np.nan, -7e5], [1e4] * 2)
+    assert folded.tolist() == [False, True]
     with pytest.raises(ValueError):
         bank.fold_newer(float("nan"), [5], [-6e5], [1e4])

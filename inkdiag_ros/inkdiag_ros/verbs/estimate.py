@@ -395,5 +395,7 @@ def _say_unfolded(counts) -> None:
               "fm_rate empty): their nozzle's trend was already updated at that stamp or later (listed twice in a "
               "frame, frames of one stamp, or in a bag a frame out of time order)", file=sys.stderr)
     if restarted:
-        print(f"inkdiag estimate: note: {restarted} nozzle trend(s) restarted where the stamps went back 10 s or more "
-              "(a restarted clock)", file=sys.stderr)
+        from inkdiag_core.trend import CLOCK_RESET_S
+
+        print(f"inkdiag estimate: note: {restarted} nozzle trend(s) restarted where the bag's stamps went back "
+              f"{CLOCK_RESET_S:g} s or more (a restarted clock)", file=sys.stderr)
