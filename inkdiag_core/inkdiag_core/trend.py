@@ -388,6 +388,12 @@ class FmTrendBank:
         or it was its first update).
     y : ndarray, shape (m,)
         Residual of each nozzle's last update, 1/s (NaN likewise).
+    clock : float
+        The latest frame time :meth:`fold_newer` was given, s (NaN before the first).
+    epoch : int
+        How often :meth:`fold_newer` found the clock restarted.
+    nozzle_epoch : ndarray of int64, shape (m,)
+        ``epoch`` at each nozzle's last update (-1 before the first).
     """
 
     def __init__(self, accel_std: float = 5e3, rel_floor: float = 0.05, fm_deep: float | None = None):
@@ -403,9 +409,9 @@ class FmTrendBank:
         self.n_updates = np.empty(0, dtype=np.int64)
         self.K = np.empty((0, 2))
         self.y = np.empty(0)
-        self.epoch = 0  # fold_newer's clock: the latest stamp folded (s), and how often it restarted
+        self.epoch = 0
         self.clock = math.nan
-        self.nozzle_epoch = np.empty(0, dtype=np.int64)  # each nozzle's at its last fold_newer (-1: none)
+        self.nozzle_epoch = np.empty(0, dtype=np.int64)
 
     def __len__(self) -> int:
         return int(self.ids.size)
@@ -474,6 +480,7 @@ class FmTrendBank:
             self.x[g], self.P[g], self.t[g], self.n_updates[g] = x, P, tl, n
             upd = np.isfinite(fm[sel])
             self.K[g[upd]], self.y[g[upd]] = K[upd], y[upd]
+            self.nozzle_epoch[g[upd]] = self.epoch
             out[0, sel] = np.where(n >= 1, x[:, 0], np.nan)
             out[1, sel] = np.where(n >= 2, x[:, 1], np.nan)
             out[2, sel] = eta_deep(x, n, self.fm_deep)
@@ -536,7 +543,6 @@ class FmTrendBank:
         out = np.full((3, ids.size), np.nan)
         if keep.any():
             out[:, keep] = self.update(t, ids[keep], fm[keep], fm_std[keep])
-            self.nozzle_epoch[np.searchsorted(self.ids, ids[keep])] = self.epoch
         return out[0], out[1], out[2], keep, restart
 
     def trend(self, nozzle: int) -> FmTrend:

@@ -76,7 +76,7 @@ class FeNode(Node):
             baselines=self.baselines, trend_accel_std=c["trend_accel_std"], trend_rel_floor=c["trend_rel_floor"])
         self.frames_malformed = 0
         self.estimates_published = 0
-        self._restarts_said = 0  # DryingTracker.trend_restarts already logged
+        self._clocks_said = 0  # the trend bank's clock restarts (epoch) already logged
         self._pub = self.create_publisher(ESTIMATES_MSG_TYPE, topics.FM_ESTIMATES, RELIABLE_QOS)
         self._array_pub = self.create_publisher(ESTIMATES_ARRAY_MSG_TYPE, topics.FM_ESTIMATES_ARRAY,
                                                 RELIABLE_QOS)
@@ -133,10 +133,12 @@ class FeNode(Node):
         self.get_logger().warning(f"dropped a malformed {what}: {exc}", throttle_duration_sec=1.0)
 
     def _publish(self, results) -> None:
-        if self.tracker.trend_restarts > self._restarts_said:  # rare, and not to be hidden by the throttle below
-            self.get_logger().warning(f"{self.tracker.trend_restarts - self._restarts_said} nozzle trend(s) restarted: "
-                                      "the trace stamps went back (a restarted controller clock, a replayed recording)")
-            self._restarts_said = self.tracker.trend_restarts
+        if self.tracker.trends.epoch > self._clocks_said:  # its own call site: the notes' throttle cannot hide it
+            self.get_logger().warning(
+                f"the trace stamps went back to {self.tracker.trends.clock:.3f} s (a restarted controller clock, a "
+                "replayed recording; often: two clocks publishing here): each nozzle's f_m trend restarts at its next "
+                "frame", throttle_duration_sec=5.0)
+            self._clocks_said = self.tracker.trends.epoch
         for r in results:
             if r.note:
                 self.get_logger().warning(f"frame {r.frame_id}: {r.note}", throttle_duration_sec=5.0)

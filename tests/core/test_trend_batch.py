@@ -209,6 +209,11 @@ def test_fold_newer_folds_each_nozzle_once_and_only_after_its_last_update():
     _, _, _, folded, restarted = bank.fold_newer(-7.5, [3, 5], [-7e5, -7e5], [1e4] * 2)
     assert folded.tolist() == [True, True] and restarted.tolist() == [True, False]
     assert bank.n_updates.tolist() == [1, 2] and bank.t.tolist() == [-7.5, -7.5]
+    # a nozzle updated by update() is on the bank's clock too: not restarted by its next fold_newer
+    other = FmTrendBank()
+    other.update(1.0, [7], [-5e5], [1e4])
+    _, rate, _, folded, restarted = other.fold_newer(2.0, [7], [-6e5], [1e4])
+    assert folded.all() and not restarted.any() and rate[0] < 0
     # a NaN entry does not hide the nozzle's next one
     _, _, _, folded, _ = bank.fold_newer(-7.0, [3, 3], [np.nan, -7e5], [1e4] * 2)
     assert folded.tolist() == [False, True]

@@ -376,8 +376,9 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
 
 def _fold_frame(trends, t, grp, cols) -> tuple:
     """One frame's estimates (rows ``grp`` of ``cols``, stamp ``t``, s) folded into ``trends`` as fe's tracker folds
-    them (:meth:`inkdiag_core.FmTrendBank.fold_newer`: each nozzle once, only after its last update; a clock 10 s
-    or more back restarts its trend). The rows left out keep NaN trend columns. Returns ``(left out, restarted)``."""
+    them (:meth:`inkdiag_core.FmTrendBank.fold_newer`: each nozzle once, only after its last update; a frame
+    ``CLOCK_RESET_S`` or more before the latest one starts a new clock, and each nozzle's trend restarts at its
+    next frame). The rows left out keep NaN trend columns. Returns ``(left out, restarted)``."""
     import numpy as np
 
     trend, rate, eta, folded, restarted = trends.fold_newer(t, cols["nozzle"][grp], cols["fm"][grp],
