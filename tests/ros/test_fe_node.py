@@ -147,3 +147,30 @@ def test_fe_node_exits_2_on_a_bad_head_profile(tmp_path):
                           f"head_profile:={tmp_path / 'missing.yaml'}"], capture_output=True, text=True,
                          timeout=60, env=env)
     assert res.returncode == 2 and "no such head profile" in res.stderr, res.stderr
+
+
+def test_fe_folds_a_repeated_frame_once_and_restarts_its_trends_on_a_restarted_clock(ros):
+    """A controller that sends a frame twice, then restarts its clock: the repeat's estimate has no trend; the
+    frame on the new clock restarts the trend (no rate yet) and fe notes the restart once."""
+    from inkdiag_ros.fe_node import FeNode
+
+    fe = ros.add(FeNode(context=ros.context, namespace="/h"))
+    probe = ros.node("probe", namespace="/h")
+    tpub = probe.create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
+    dpub = probe.create_publisher(DRYING_MSG_TYPE, topics.DRYING_NOZZLES, RELIABLE_QOS)
+    est = collect(ros, probe, ESTIMATES_MSG_TYPE, topics.FM_ESTIMATES, RELIABLE_QOS, decode_estimates)
+    ros.spin_until(lambda: tpub.get_subscription_count() and dpub.get_subscription_count(), 10, "fe")
+    r = simulate({FaultClass.DEEPLY_DRIED: 2}, seed=4)
+    for k, (fid, stamp) in enumerate([(1, 100.0), (2, 100.5), (2, 100.5), (3, 1.0)]):
+        dpub.publish(encode_drying(DryingNozzles(fid, stamp, (0, 1), ("deeply_dried",) * 2, 0, 2)))
+        ros.spin_until(lambda: fe.tracker.drying_received > k, 5, "the drying list")
+        msg = encode_traces(r.traces, first_nozzle=0, frame_id=fid, stamp=stamp)
+        while len(est) <= k:  # best effort: again until it is estimated
+            tpub.publish(msg)
+            ros.spin_for(0.1)
+    trend = [e.column("fm_trend") for e in est]
+    rate = [e.column("fm_rate") for e in est]
+    assert np.isfinite(trend[1]).all() and np.isfinite(rate[1]).all()  # the second frame: a rate
+    assert np.isnan(trend[2]).all() and fe.tracker.rows_stale == 2  # frame 2 again: not folded twice
+    assert np.isfinite(trend[3]).all() and np.isnan(rate[3]).all()  # the new clock: restarted
+    assert fe.tracker.trend_restarts == 2 and fe.tracker.trends.epoch == 1 and fe._clocks_said == 1
