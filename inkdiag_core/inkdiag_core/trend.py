@@ -44,7 +44,7 @@ __all__ = [
 #: Floor of a measurement variance, (1/s)^2: keeps the update finite for fm = 0, fm_std = 0.
 R_FLOOR = 1e-12
 
-#: A frame this much (s) or more before the latest one :meth:`FmTrendBank.fold_newer` has folded is a
+#: A frame this much (s) or more before the latest one :meth:`FmTrendBank.fold_newer` was given is a
 #: restarted clock (a controller restarted, a recording replayed again), not a late frame: every nozzle's
 #: trend restarts at its next frame. fe joins a range's frames in the order its drying lists come, so a late
 #: frame is one that overtook another in transit: milliseconds to a few frames at several frames a second.
@@ -493,7 +493,7 @@ class FmTrendBank:
         nozzle's last one as a level update). A monitor must not: a frame sent twice, or arriving
         after a later one, would count as a new measurement. Here a nozzle's first finite entry is
         folded in if ``t`` is after its last update; an entry at or before it is left out (stale).
-        A ``t`` ``reset_after_s`` or more before the latest frame folded here restarts the clock (a
+        A ``t`` ``reset_after_s`` or more before the latest frame given here restarts the clock (a
         controller restarted, a recording replayed again): from then on each nozzle's trend
         restarts (its old state dropped) at its first entry on the new clock, whatever its last
         update's time, so no trend spans two clocks.

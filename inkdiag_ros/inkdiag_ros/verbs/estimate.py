@@ -320,7 +320,7 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
     method = "vp" if args.method == "vp" else "vp_cal"
     n = n_bad = n_seen = 0
     unfolded = (0, 0)
-    seen = []  # each chunk's (nozzle, frame_id, stamp) of the rows estimated: repeats are said at the end
+    seen = []  # each chunk's (nozzle, frame_id, stamp) of the rows selected: repeats are said at the end
     why, notes = {}, set()
     with open_csv_out(args.out) as f:
         w = csv.writer(f)
