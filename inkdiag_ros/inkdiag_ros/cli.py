@@ -140,7 +140,8 @@ def _check_out(args) -> None:
                                   f"written over the {what} input")
             if (value and name in RECORDING_ARGS and Path(value).is_dir()
                     and Path(value).resolve() in Path(out).resolve().parents):
-                raise OSError(f"--out {out} is inside the {what} input {value} (a bag directory): writing there "
+                kind = "a bag directory" if (Path(value) / "metadata.yaml").is_file() else "a directory"
+                raise OSError(f"--out {out} is inside the {what} input {value} ({kind}): writing there "
                               "would change or destroy the recording; write it elsewhere")
         if Path(out).is_dir() and not args._makes_out_dir:
             raise OSError(f"--out {out} is a directory; give the output file's name")

@@ -296,6 +296,15 @@ def test_baselines_file_round_trip_and_refusals(tmp_path):
              meta=np.array('{"format": "something-else"}'))
     with pytest.raises(BaselineFileError, match="not an inkdiag baselines file"):
         NozzleBaselines.load(tmp_path / "other.npz")
+    # not an .npz at all: said so (numpy's own message would suggest loading pickles unsafely)
+    import pickle
+
+    (tmp_path / "pickled.npz").write_bytes(pickle.dumps({"kpis": 1}))
+    (tmp_path / "empty.npz").write_bytes(b"")
+    for name, what in (("pickled.npz", "it starts with b'\\x80"), ("empty.npz", "an empty file")):
+        with pytest.raises(BaselineFileError) as exc:
+            NozzleBaselines.load(tmp_path / name)
+        assert f"is not an inkdiag baselines file: not an .npz archive ({what}" in str(exc.value)
 
 
 def test_recorder_takes_each_nozzles_healthy_fm_from_its_first_fm_frames():

@@ -134,6 +134,11 @@ def test_an_out_inside_the_bag_is_refused_and_the_bag_kept(tmp_path, sim, fdi_mo
             f"inkdiag label: error: --out {out} is inside the RECORDING input {bag} (a bag directory): writing "
             "there would change or destroy the recording; write it elsewhere"], r.stderr
     assert {f: f.read_bytes() for f in bag.iterdir()} == before
+    plain = tmp_path / "plain"  # a directory that is no bag is not called one
+    plain.mkdir()
+    r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "label", str(plain), "--model", str(fdi_model),
+                        "--out", str(plain / "x.csv")], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and f"inside the RECORDING input {plain} (a directory): writing" in r.stderr, r.stderr
     # replay of a topic the bag does not have: one line naming the ones it has (not a traceback)
     r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "replay", str(bag), "--topics", "/nope"],
                        capture_output=True, text=True, timeout=60, env=_env(os.environ.get("ROS_DOMAIN_ID", "0")))

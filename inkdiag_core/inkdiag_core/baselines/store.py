@@ -306,6 +306,14 @@ class NozzleBaselines:
         if not path.is_file():
             raise BaselineFileError(f"no baselines file at {path}")
         try:
+            with open(path, "rb") as f:
+                magic = f.read(4)
+        except OSError as exc:
+            raise BaselineFileError(f"{path}: cannot read it ({exc.strerror})") from None
+        if not magic.startswith((b"PK\x03\x04", b"PK\x05\x06")):  # not a zip: numpy would talk of pickles
+            raise BaselineFileError(f"{path} is not an inkdiag baselines file: not an .npz archive ("
+                                    + (f"it starts with {magic!r})" if magic else "an empty file)"))
+        try:
             with np.load(path, allow_pickle=False) as z:
                 arrays = {k: z[k] for k in ("nozzle_ids", "kpis", "meta")}
                 fm = z["fm"] if "fm" in z.files else None
