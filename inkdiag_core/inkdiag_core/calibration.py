@@ -132,13 +132,20 @@ small along the direction the data pin least (``docs/calibration.md``)."""
 MAX_RESIDUAL_REL = 0.15
 """A mean-trace fit whose RMS residual exceeds this fraction of the trace's RMS is refused."""
 
-MAX_MODE_MISFIT = 0.01
+MODE_MISFIT_WARNING = 0.01
 """A fit whose mean trace rings more than this fraction away from the recorded mean trace's dominant
-frequency (both read by :func:`inkdiag_core.extract_kpis`) is refused: the channel model cannot ring as
-the traces do, and the restrictor and actuator it found are not the head's. Healthy traces of the heads
-of ``tests/foreign_head.py`` fit within 0.02 % (30 and 300 traces, seeds 1 and 2); 50 traces of deeply
-dried or partially blocked nozzles that the restrictor's bounds let through fit 2.5-3.5 % off (h16, h20,
-seeds 31 and 32; 2026-11-27)."""
+frequency (both read by :func:`inkdiag_core.extract_kpis`; the report's
+``mean_trace_recorded_vs_fitted.mode_misfit_rel``) is written with a warning (``inkdiag calibrate``):
+the channel model and the drive do not reproduce the traces' mode. Healthy traces of the heads of
+``tests/foreign_head.py`` fit within 0.02 % (30 and 300 traces, seeds 1 and 2); 50 traces of deeply dried or
+partially blocked nozzles that the restrictor's bounds let through 2.5-3.5 % off (h16, h20, seeds 31 and
+32); healthy traces with the nominal drive's rise and fall 0.6 or 1.5 times the head's (dwell 1.2 or 0.8
+times) 0.5-1.8 % off (h20, h16, h5, seed 4; 2026-11-27). So a drive that is not quite the head's can
+reach it too, and it warns rather than refuses."""
+
+MAX_MODE_MISFIT = 0.05
+"""Beyond this fraction (see :data:`MODE_MISFIT_WARNING`) calibration refuses: no channel of the model
+rings as the traces do."""
 
 _PARAMS = ("B_act", "I_r", "R_r")
 _BOUNDS_REL = {"B_act": (1e-3, 1e3), "I_r": (0.02, 50.0), "R_r": (0.01, 100.0)}  # of B_liq, I_n, R_n
@@ -661,7 +668,8 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
                f"damping {z_fit:.3f}): the traces are not what the nominal channel and drive give")
         raise CalibrationError(f"cannot calibrate: {why}")
     kp_mean_fit = extract_kpis(mean_fit, fs)[0]
-    if not abs(kp_mean_fit[1] / f_rec - 1.0) <= MAX_MODE_MISFIT:
+    mode_misfit = float(kp_mean_fit[1] / f_rec - 1.0)
+    if not abs(mode_misfit) <= MAX_MODE_MISFIT:
         raise CalibrationError(
             f"cannot calibrate: the best fit's mean trace rings at {kp_mean_fit[1] / 1e3:.1f} kHz, the recorded one at "
             f"{f_rec / 1e3:.1f} kHz (damping {kp_mean[2]:.3f}): the channel model cannot ring as these traces do. Are "
@@ -791,6 +799,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
             "dominant_frequency_hz": [float(kp_mean[1]), float(kp_mean_fit[1])],
             "damping_ratio": [float(kp_mean[2]), float(kp_mean_fit[2])],
             "amplitude_v": [float(kp_mean[3]), float(kp_mean_fit[3])],
+            "mode_misfit_rel": mode_misfit,
         },
         "recorded_vs_fitted": {
             "dominant_frequency_hz": [med(kp_rec, 1), med(kp_fit, 1)],

@@ -293,18 +293,23 @@ def test_the_restrictor_split_of_an_independent_head_is_not_dephased():
     assert abs(math.log(ch["B_act"] / true["B_act"])) < 0.1
 
 
-def test_faulty_traces_a_restrictor_within_its_bounds_cannot_fit_are_refused_by_their_mode():
+def test_faulty_traces_a_restrictor_within_its_bounds_lets_through_show_in_the_mode_misfit():
     """Independent code's h16 head: 50 deeply dried traces given as healthy ones fit with a restrictor within
     the bounds above, but the fitted mean trace rings 3.5 % above the recorded one (healthy traces: within
-    0.02 %); that profile labelled 297 of 300 healthy traces a fault. Refused, saying why."""
+    0.02 %); that profile labelled 297 of 300 healthy traces a fault. The report's mode_misfit_rel says so
+    (inkdiag calibrate warns above MODE_MISFIT_WARNING); a healthy recording's is far below it."""
     import foreign_head as fh
+
+    from inkdiag_core.calibration import MAX_MODE_MISFIT, MODE_MISFIT_WARNING
 
     nominal = HeadProfile.from_dict({"schema": "inkdiag.head_profile", "schema_version": 1,
                                      **fh.nominal_profile("h16")})
     dried = fh.simulate_foreign("h16", {"deeply_dried": 50}, seed=31)
-    with pytest.raises(CalibrationError, match="mean trace rings at 13[0-9.]+ kHz, the recorded one at 13[0-9.]+ kHz "
-                                               ".*cannot ring as these traces do. Are they healthy"):
-        calibrate(nominal, dried["traces"], dried["sample_rate_hz"], seed=1)
+    mt = calibrate(nominal, dried["traces"], dried["sample_rate_hz"], seed=1).report["mean_trace_recorded_vs_fitted"]
+    assert 2 * MODE_MISFIT_WARNING < mt["mode_misfit_rel"] < MAX_MODE_MISFIT
+    healthy = fh.simulate_foreign("h16", {"healthy_nozzle": 50}, seed=31)
+    mt = calibrate(nominal, healthy["traces"], healthy["sample_rate_hz"], seed=1).report["mean_trace_recorded_vs_fitted"]
+    assert abs(mt["mode_misfit_rel"]) < 0.1 * MODE_MISFIT_WARNING
 
 
 @pytest.mark.parametrize("seed", [0, 11])

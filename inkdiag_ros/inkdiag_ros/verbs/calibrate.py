@@ -260,7 +260,7 @@ def run(args) -> int:
     import sys
     from pathlib import Path
 
-    from inkdiag_core.calibration import calibrate
+    from inkdiag_core.calibration import MODE_MISFIT_WARNING, calibrate
     from inkdiag_core.head_profile import HeadProfile
     from ..bags import is_bag, report_stats, stream_recording
 
@@ -358,6 +358,14 @@ def run(args) -> int:
         print(f"inkdiag calibrate: note: the empty channels' actuator is assumed like the default head's, "
               f"{act['f_act_hz'] / 1e3:.0f} kHz at this B_act (another head's may differ: give --empty DRY.npz, or "
               "channel.f_act from a datasheet)", file=sys.stdout)
+    mt = report["mean_trace_recorded_vs_fitted"]
+    if abs(mt["mode_misfit_rel"]) > MODE_MISFIT_WARNING:
+        f_rec, f_fit = mt["dominant_frequency_hz"]
+        print(f"inkdiag calibrate: warning: the fitted mean trace rings {100 * mt['mode_misfit_rel']:+.1f} % off the "
+              f"recorded one ({f_fit / 1e3:.1f} against {f_rec / 1e3:.1f} kHz; healthy traces fired with the head's "
+              "drive fit within 0.1 %): are they healthy nozzles (dried or partially blocked ones ring lower and "
+              "damped), and is the profile's drive the head's (a rise and fall off by a half moves it 1-2 %)? The "
+              "profile is written; check the fit report before training on it", file=sys.stderr)
     ref = max(rr["noise_floor"], rr["simulated_per_trace_median"])  # what a healthy trace of this head leaves
     if rr["per_trace_median"] > MISFIT_WARNING * ref:
         print(f"inkdiag calibrate: warning: the median trace leaves {100 * rr['per_trace_median']:.1f} % of its RMS "
