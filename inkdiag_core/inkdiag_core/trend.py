@@ -432,14 +432,18 @@ class FmTrendBank:
                 out[old] = a
                 return out
 
-            self.x, self.P = grow(self.x, 0.0), grow(self.P, 0.0)
-            self.P[np.searchsorted(ids, new), 0, 0] = np.inf
-            self.P[np.searchsorted(ids, new), 1, 1] = np.inf
-            self.t, self.n_updates = grow(self.t, np.nan), grow(self.n_updates, 0)
-            self.K, self.y = grow(self.K, np.nan), grow(self.y, np.nan)
+            self.x, self.P, self.t = grow(self.x, 0.0), grow(self.P, 0.0), grow(self.t, np.nan)
+            self.n_updates, self.K, self.y = grow(self.n_updates, 0), grow(self.K, np.nan), grow(self.y, np.nan)
             self.nozzle_epoch = grow(self.nozzle_epoch, -1)
             self.ids = ids
+            self._clear(np.searchsorted(ids, new))
         return np.searchsorted(self.ids, nozzles)
+
+    def _clear(self, rows) -> None:
+        """Rows ``rows`` as a nozzle before its first update (a new one, or one whose trend restarts)."""
+        self.x[rows], self.P[rows], self.t[rows], self.n_updates[rows] = 0.0, 0.0, np.nan, 0
+        self.P[rows, 0, 0] = self.P[rows, 1, 1] = np.inf
+        self.K[rows], self.y[rows] = np.nan, np.nan
 
     def update(self, t: float, nozzles, fm, fm_std):
         """Fold one frame's estimates in.
@@ -536,10 +540,7 @@ class FmTrendBank:
         restart = keep & other_clock
         keep &= restart | ~older
         if restart.any():
-            r = at[restart]
-            self.x[r], self.P[r], self.t[r], self.n_updates[r] = 0.0, 0.0, np.nan, 0
-            self.P[r, 0, 0] = self.P[r, 1, 1] = np.inf
-            self.K[r], self.y[r] = np.nan, np.nan
+            self._clear(at[restart])
         out = np.full((3, ids.size), np.nan)
         if keep.any():
             out[:, keep] = self.update(t, ids[keep], fm[keep], fm_std[keep])

@@ -239,11 +239,8 @@ def run(args) -> int:
           + _to(args.out), file=summary_stream(args.out))
     for note in sorted(notes):
         print(f"inkdiag estimate: note: {note}", file=sys.stderr)
-    if n_repeated := repeated_pairs(rec.nozzle[rows], frames, stamps):
-        print(repeated_pairs_warning("estimate", n_repeated, "each is estimated"), file=sys.stderr)
-    _say_unfolded(unfolded)
-    if said := units_warning("estimate", int(np.sum(reasons == "out_of_range")), n, tracker.max_abs_v):
-        print(said, file=sys.stderr)
+    _say_after([(rec.nozzle[rows], frames, stamps)], unfolded, int(np.sum(reasons == "out_of_range")), n,
+               tracker.max_abs_v)
     est = ~bad
     k = int(np.count_nonzero(est & ~np.isfinite(stamps)))
     if k:  # said, not silent: those rows' trend columns are empty
@@ -366,11 +363,7 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
           + _against(tracker, n - n_bad, notes) + _to(args.out), file=summary_stream(args.out))
     for note in sorted(notes):
         print(f"inkdiag estimate: note: {note}", file=sys.stderr)
-    if seen and (n_repeated := repeated_pairs(*(np.concatenate(c) for c in zip(*seen)))):
-        print(repeated_pairs_warning("estimate", n_repeated, "each is estimated"), file=sys.stderr)
-    _say_unfolded(unfolded)
-    if said := units_warning("estimate", why.get("out_of_range", 0), n, tracker.max_abs_v):
-        print(said, file=sys.stderr)
+    _say_after(seen, unfolded, why.get("out_of_range", 0), n, tracker.max_abs_v)
     return 0
 
 
@@ -387,10 +380,17 @@ def _fold_frame(trends, t, grp, cols) -> tuple:
     return int(grp.size - np.count_nonzero(folded)), int(np.count_nonzero(restarted))
 
 
-def _say_unfolded(counts) -> None:
+def _say_after(keys, unfolded, n_out_of_range, n, max_abs_v) -> None:
+    """The warnings and notes after the CSV (both paths): rows repeating a (nozzle, frame_id, stamp) of ``keys``
+    (chunks of those columns), rows not folded into or restarting trends (``unfolded``), a recording in other
+    units."""
     import sys
 
-    stale, restarted = counts
+    import numpy as np
+
+    if keys and (n_repeated := repeated_pairs(*(np.concatenate(c) for c in zip(*keys)))):
+        print(repeated_pairs_warning("estimate", n_repeated, "each is estimated"), file=sys.stderr)
+    stale, restarted = unfolded
     if stale:
         print(f"inkdiag estimate: note: {stale} row(s) estimated but not folded into their nozzle's trend (fm_trend, "
               "fm_rate empty): their nozzle's trend was already updated at that stamp or later (listed twice in a "
@@ -400,3 +400,5 @@ def _say_unfolded(counts) -> None:
 
         print(f"inkdiag estimate: note: {restarted} nozzle trend(s) restarted where the bag's stamps went back "
               f"{CLOCK_RESET_S:g} s or more (a restarted clock)", file=sys.stderr)
+    if said := units_warning("estimate", n_out_of_range, n, max_abs_v):
+        print(said, file=sys.stderr)

@@ -136,7 +136,6 @@ def label_stream(labeller, chunks):
 
 
 def run(args) -> int:
-    import array
     import collections
     import csv
     import itertools
@@ -170,12 +169,12 @@ def run(args) -> int:
     del rec
     n_rows = n_invalid = n_failed = n_base = n_out_of_range = 0
     per_class = collections.Counter()
-    nozzles, frame_ids, stamps = array.array("q"), array.array("q"), []
+    keys = []  # each chunk's (nozzle, frame_id, stamp) columns: repeats are said at the end
     with open_csv_out(args.out) as out:
         w = csv.writer(out, lineterminator="\n")
         w.writerow(COLUMNS)
-        for row, nozzle, fid, cls, conf, reason, base in label_stream(labeller, _stamps_of(itertools.chain([first], chunks),
-                                                                                    stamps)):
+        for row, nozzle, fid, cls, conf, reason, base in label_stream(labeller, _keys_of(itertools.chain([first], chunks),
+                                                                                  keys)):
             if cls == "invalid":
                 n_invalid += 1
                 n_failed += reason == "labelling_failed"
@@ -183,8 +182,6 @@ def run(args) -> int:
             else:
                 per_class[cls] += 1
             w.writerow((row, nozzle, fid, cls, "" if conf != conf else f"{conf:.6f}", reason, int(base)))
-            nozzles.append(nozzle)
-            frame_ids.append(fid)
             n_rows += 1
             n_base += bool(base)
     report_stats(args.recording, stats)
@@ -199,7 +196,7 @@ def run(args) -> int:
           file=summary_stream(args.out))
     if said := units_warning("label", n_out_of_range, n_rows, max_abs_v):
         print(said, file=sys.stderr)
-    if n_repeated := repeated_pairs(nozzles, frame_ids, np.concatenate(stamps) if stamps else np.empty(0)):
+    if keys and (n_repeated := repeated_pairs(*(np.concatenate(c) for c in zip(*keys)))):
         print(repeated_pairs_warning("label", n_repeated, "each is labelled" + (
             " against that nozzle's baseline" if baselines is not None else "")), file=sys.stderr)
     said = _one_fault_class_dominates(per_class, head)
@@ -208,10 +205,10 @@ def run(args) -> int:
     return 1 if n_failed else 0
 
 
-def _stamps_of(chunks, stamps: list):
-    """``chunks`` as they come, each chunk's ``stamp`` column appended to ``stamps``."""
+def _keys_of(chunks, keys: list):
+    """``chunks`` as they come, each chunk's ``(nozzle, frame_id, stamp)`` columns appended to ``keys``."""
     for first_row, rec in chunks:
-        stamps.append(rec.stamp)
+        keys.append((rec.nozzle, rec.frame_id, rec.stamp))
         yield first_row, rec
 
 
