@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import math
 import sys
 from pathlib import Path
 
@@ -327,14 +328,15 @@ CHUNK_ROWS = 16384
 
 
 def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | None = None,
-                    max_rows: int = CHUNK_ROWS):
+                    max_rows: int = CHUNK_ROWS, sampling=None):
     """Stream a bag's trace frames in chunks of whole frames, each a :class:`inkdiag_core.Recording`.
 
     Memory stays bounded by one chunk whatever the length of the bag: the offline
     verbs label, estimate and calibrate chunk by chunk. Rows are the frames' nozzles
     in bag order: ``nozzle`` from each frame's header, ``frame_id`` and ``stamp`` (s)
-    from its header. Frames of another sample rate or samples per trace than the first
-    decoded frame are skipped (``stats.skip``, with the reason and the frame id).
+    from its header. Frames of another sample rate or samples per trace than ``sampling``
+    (without it: than the first decoded frame) are skipped (``stats.skip``, with the
+    reason and the frame id): a bad frame first in the bag costs only itself.
 
     Parameters
     ----------
@@ -342,6 +344,11 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
         As :func:`iter_bag_frames`.
     max_rows : int
         Rows per chunk at most; a frame is never split (a frame larger than this is a chunk alone).
+    sampling : (float, int, str), optional
+        The sample rate (Hz, compared within 1e-9 relative, as
+        :meth:`inkdiag_core.HeadProfile.check_traces` does), the samples per trace and whose they
+        are (for the reason, e.g. ``"the model's head 'default'"``) of the head the caller reads
+        the bag for.
 
     Yields
     ------
@@ -360,6 +367,8 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
     stats = stats if stats is not None else BagFrames()
     blocks, n_rows, first_row = [], 0, 0
     fs = n_s = None
+    if sampling is not None:
+        want_fs, want_n, whose = float(sampling[0]), int(sampling[1]), str(sampling[2])
 
     def chunk():
         return Recording.from_arrays(np.concatenate([b[0] for b in blocks]), fs,
@@ -370,7 +379,13 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
 
     try:
         for frame in iter_bag_frames(bag_dir, topic=topic, stats=stats):
-            if fs is None:
+            if sampling is not None:
+                if not (math.isclose(frame.sample_rate_hz, want_fs, rel_tol=1e-9) and frame.n_samples == want_n):
+                    stats.skip(stats.n_messages - 1, f"sampled at {frame.sample_rate_hz:.10g} Hz x {frame.n_samples}, "
+                               f"not at {whose} {want_fs:.10g} Hz x {want_n}", frame.frame_id)
+                    continue
+                fs, n_s = (frame.sample_rate_hz, frame.n_samples) if fs is None else (fs, n_s)
+            elif fs is None:
                 fs, n_s = frame.sample_rate_hz, frame.n_samples
             elif frame.sample_rate_hz != fs or frame.n_samples != n_s:
                 stats.skip(stats.n_messages - 1, f"sampled at {frame.sample_rate_hz:.10g} Hz x {frame.n_samples}, "
@@ -394,13 +409,14 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
         raise RecordingError(f"{bag_dir}: {what} on {stats.topic}")
 
 
-def read_bag_recording(bag_dir, *, topic: str | None = None, stats: BagFrames | None = None) -> Recording:
+def read_bag_recording(bag_dir, *, topic: str | None = None, stats: BagFrames | None = None,
+                       sampling=None) -> Recording:
     """Read a bag's trace frames into one :class:`inkdiag_core.Recording` (as ``load_recording`` gives).
 
     The whole bag in memory: the offline verbs stream it with :func:`iter_bag_chunks`
-    instead. Rows, skipped frames and errors as :func:`iter_bag_chunks`.
+    instead. Rows, skipped frames (``sampling``) and errors as :func:`iter_bag_chunks`.
     """
-    chunks = [c for _, c in iter_bag_chunks(bag_dir, topic=topic, stats=stats)]
+    chunks = [c for _, c in iter_bag_chunks(bag_dir, topic=topic, stats=stats, sampling=sampling)]
     if len(chunks) == 1:
         return chunks[0]
     return Recording.from_arrays(np.concatenate([c.traces for c in chunks]), chunks[0].sample_rate_hz,
@@ -409,14 +425,14 @@ def read_bag_recording(bag_dir, *, topic: str | None = None, stats: BagFrames | 
                                  stamp=np.concatenate([c.stamp for c in chunks]), source=str(bag_dir))
 
 
-def load_recording(path, *, topic: str | None = None, stats: BagFrames | None = None) -> Recording:
+def load_recording(path, *, topic: str | None = None, stats: BagFrames | None = None, sampling=None) -> Recording:
     """A recording from an ``.npz`` file or a rosbag2 bag directory (dispatch on what ``path`` is).
 
-    ``topic`` and ``stats``: for a bag, as :func:`read_bag_recording`; an ``.npz``
+    ``topic``, ``stats`` and ``sampling``: for a bag, as :func:`read_bag_recording`; an ``.npz``
     has no topics (``topic`` given for one is an error).
     """
     if is_bag(path):
-        return read_bag_recording(path, topic=topic, stats=stats)
+        return read_bag_recording(path, topic=topic, stats=stats, sampling=sampling)
     if topic is not None:
         raise RecordingError(f"{path}: --topic is for a bag directory; this is not one")
     return load_npz_recording(path)
@@ -633,8 +649,11 @@ def skip_reporter(path, file=None, limit: int = MAX_SKIPS_REPORTED):
     return report
 
 
-def stream_recording(path, topic: str | None = None, *, max_rows: int = CHUNK_ROWS, file=None):
+def stream_recording(path, topic: str | None = None, *, max_rows: int = CHUNK_ROWS, file=None, sampling=None):
     """The offline verbs' reader: a recording (``.npz`` or bag) as chunks of whole frames.
+
+    ``sampling``: a bag's frames of another sampling are skipped (:func:`iter_bag_chunks`); an
+    ``.npz`` has one sample rate, which the caller checks.
 
     Returns
     -------
@@ -647,7 +666,7 @@ def stream_recording(path, topic: str | None = None, *, max_rows: int = CHUNK_RO
     """
     stats = BagFrames(report=skip_reporter(path, file))
     if is_bag(path):
-        return stats, iter_bag_chunks(path, topic=topic, stats=stats, max_rows=max_rows)
+        return stats, iter_bag_chunks(path, topic=topic, stats=stats, max_rows=max_rows, sampling=sampling)
     if topic is not None:
         raise RecordingError(f"{path}: --topic is for a bag directory; this is not one")
     return stats, iter([(0, load_npz_recording(path))])
@@ -661,11 +680,11 @@ def report_stats(path, stats: BagFrames, file=None) -> None:
         print(f"{path}: {stats.summary()}", file=file or sys.stderr)
 
 
-def load_and_report(path, topic: str | None = None, *, file=None) -> Recording:
+def load_and_report(path, topic: str | None = None, *, file=None, sampling=None) -> Recording:
     """:func:`load_recording` for the offline verbs: a bag's frame counts and skipped frames go to ``file`` (stderr)."""
     import sys
 
     stats = BagFrames(report=skip_reporter(path, file))
-    rec = load_recording(path, topic=topic, stats=stats)
+    rec = load_recording(path, topic=topic, stats=stats, sampling=sampling)
     report_stats(path, stats, file or sys.stderr)
     return rec

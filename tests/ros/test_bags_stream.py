@@ -94,6 +94,34 @@ def test_label_reports_each_bad_frame_on_stderr_and_labels_the_others(tmp_path, 
     assert list(rows[0])[:6] == ["row", "nozzle", "frame_id", "class", "confidence", "reason"]
 
 
+def test_a_bad_first_frame_costs_only_itself(tmp_path, sim, fdi_model):
+    """A bag whose first frame has another length than the head's: label, estimate and baseline skip it and
+    read the others (the head's sampling, not the first frame's, decides; helper-69's QA)."""
+    x = sim.traces[:8].astype(np.float32)
+    bag = write_bag(tmp_path / "bag", [(0, x[:, :500])] + [(8 * k, x) for k in range(1, 5)])
+    out = tmp_path / "l.csv"
+    r = _cli("label", bag, "--model", fdi_model, "--out", out)
+    assert r.returncode == 0, r.stderr
+    assert "sampled at 10000000 Hz x 500, not at the model's head 'default', 10000000 Hz x 512" in r.stderr
+    with open(out, newline="") as f:
+        assert sorted({int(r["frame_id"]) for r in csv.DictReader(f)}) == [1, 2, 3, 4]
+    default = HeadProfile.default()
+    prof = tmp_path / "head.yaml"
+    default.save(prof)
+    r = _cli("estimate", bag, "--profile", prof, "--out", tmp_path / "fm.csv")
+    assert r.returncode == 0, r.stderr
+    assert "sampled at 10000000 Hz x 500, not at profile 'default', 10000000 Hz x 512" in r.stderr
+    r = _cli("train", "--profile", prof, "--data", bag, "--labels", out, "--n-per-class", 60, "--out",
+             tmp_path / "m.joblib", "--quiet")  # label's CSV numbers the rows of the frames it read: train reads those
+    assert r.returncode == 0 and f"32 of the 32 rows of {bag} named" in r.stdout, r.stderr
+    same = write_bag(tmp_path / "same", [(0, x[:, :500])] + [(0, x)] * 4)  # the same nozzles in every frame
+    r = _cli("baseline", same, "--profile", prof, "--frames", 4, "--out", tmp_path / "b.npz")
+    assert r.returncode == 0 and "message 0 (frame 0) skipped" in r.stderr, r.stderr
+    bad = write_bag(tmp_path / "bad", [(0, x[:, :500])] * 2)  # no frame of the head's sampling: said, exit 2
+    r = _cli("label", bad, "--model", fdi_model, "--out", tmp_path / "l2.csv")
+    assert r.returncode == 2 and "no valid trace frame" in r.stderr and "x 500, not at" in r.stderr, r.stderr
+
+
 def test_estimate_on_a_bag_streams_the_rows_the_npz_gives(tmp_path, capsys):
     from inkdiag_core import save_recording
     from inkdiag_ros import cli

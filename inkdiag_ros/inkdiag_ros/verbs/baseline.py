@@ -70,7 +70,8 @@ def run(args) -> int:
     profile = HeadProfile.load(args.profile)
     recorder = BaselineRecorder(n_frames=args.frames, fm_frames=fm_frames, profile=profile,  # nominal: refused
                                 max_abs_v=args.max_abs_v)
-    stats, chunks = stream_recording(args.recording, args.topic)
+    stats, chunks = stream_recording(args.recording, args.topic,  # a bag's frames of another sampling: skipped
+                                     sampling=(profile.sample_rate_hz, profile.n_samples, f"profile {profile.name!r},"))
     n_rows = n_used = n_other = 0
     nozzles = np.zeros(0, np.int64)  # every nozzle id the recording has, usable rows or not
     for _, rec in chunks:  # a bag with no trace frame: RecordingError

@@ -278,7 +278,8 @@ def run(args) -> int:
     empty = _fault_rows(args.empty, "--empty", "empty_channel_1") if args.empty else None
     if empty is not None:
         nominal.check_traces(empty.traces, empty.sample_rate_hz, what=f"{args.empty}")
-    stats, chunks = stream_recording(args.healthy, args.topic)
+    stats, chunks = stream_recording(args.healthy, args.topic,  # a bag's frames of another sampling: skipped
+                                     sampling=(nominal.sample_rate_hz, nominal.n_samples, f"profile {nominal.name!r},"))
     _, rec = next(chunks)  # a bag with no trace frame: RecordingError
     nominal.check_traces(rec.traces, rec.sample_rate_hz, what=f"{args.healthy}")
     fs, traces, note, left_out = rec.sample_rate_hz, rec.traces, "", 0

@@ -176,7 +176,8 @@ def run(args) -> int:
     if not profile.is_complete:
         raise ProfileError(f"{args.profile}: a nominal profile ({', '.join(profile.missing)} missing): run "
                            "inkdiag calibrate first on recorded healthy traces of the head")
-    stats, chunks = stream_recording(args.recording, args.topic, max_rows=_BAG_CHUNK_ROWS)
+    stats, chunks = stream_recording(args.recording, args.topic, max_rows=_BAG_CHUNK_ROWS,  # a bag's others: skipped
+                                     sampling=(profile.sample_rate_hz, profile.n_samples, f"profile {profile.name!r},"))
     bag = bool(is_bag(args.recording))
     pick = bag_row_picker(args.rows) if bag else None  # before the bag is read: a bad spec costs nothing
     first_row, rec = next(chunks)  # a bag with no trace frame: RecordingError

@@ -151,7 +151,9 @@ def run(args) -> int:
 
     detector = load_detector(args.model)  # ModelFileError (a ValueError): missing, tampered, other versions
     head = detector.profile if detector.profile is not None else HeadProfile.default()
-    stats, chunks = stream_recording(args.recording, args.topic, max_rows=BATCH_ROWS)
+    stats, chunks = stream_recording(args.recording, args.topic, max_rows=BATCH_ROWS,  # a bag's others: skipped
+                                     sampling=(detector.sample_rate_hz_, detector.n_features_in_,
+                                               f"the model's head {head.name!r},"))
     first = next(chunks)  # a bag with no trace frame: RecordingError
     rec = first[1]
     same_rate = math.isclose(rec.sample_rate_hz, detector.sample_rate_hz_, rel_tol=1e-9)  # as check_traces

@@ -150,7 +150,10 @@ def run(args) -> int:
         raise ValueError("--baseline with --data: recorded rows have no per-nozzle baselines; train the baseline "
                          "branch on simulated rows only (leave out --data) or train without --baseline")
     table = read_labels_csv(args.labels) if args.labels else None  # checked before a large recording is read
-    data = load_and_report(args.data, args.topic) if args.data else None
+    data = None
+    if args.data:  # a bag's frames of another sampling: skipped, as label skips them (its CSV's rows)
+        data = load_and_report(args.data, args.topic,
+                               sampling=(profile.sample_rate_hz, profile.n_samples, f"profile {profile.name!r},"))
     if data is not None:
         profile.check_traces(data.traces, data.sample_rate_hz, what=args.data)
         if table is not None:
