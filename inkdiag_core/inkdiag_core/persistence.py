@@ -198,7 +198,7 @@ def load_model(path, *, check_versions: bool = True, as_pipeline: bool = True):
     ------
     ModelFileError
         Missing file or manifest, bad manifest, size or sha256 mismatch,
-        library version mismatch.
+        library version mismatch, a file that matches its manifest but does not unpickle.
     """
     path = Path(path)
     manifest = read_manifest(path)
@@ -227,7 +227,12 @@ def load_model(path, *, check_versions: bool = True, as_pipeline: bool = True):
                 f"model file {path} was written with other library versions: {detail}; "
                 "retrain it (scripts/run does) instead of loading it"
             )
-    model = joblib.load(path)
+    try:
+        model = joblib.load(path)
+    except Exception as exc:  # noqa: BLE001 - bytes that match their manifest and still do not unpickle
+        why = " ".join(f"{type(exc).__name__}: {exc}".split())[:200]
+        raise ModelFileError(f"model file {path} matches its manifest but does not load ({why}): damaged "
+                             "before its manifest was written, or both edited; train it again") from None
     if as_pipeline and manifest.get("config", {}).get("estimator") == DETECTOR_ESTIMATOR:
         from .detector import FaultDetector
 

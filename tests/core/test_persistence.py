@@ -44,6 +44,25 @@ def test_truncated_file_is_refused(saved):
         load_model(path)
 
 
+@pytest.mark.parametrize("damage", ["zeroed half", "truncated", "not a pickle"])
+def test_damaged_file_whose_manifest_matches_it_is_a_model_file_error(saved, damage):
+    """A file damaged and its manifest's sha256 and size rewritten to match (helper-68's QA: a KeyError
+    traceback, exit 1): a ModelFileError naming the file, as every other refused file."""
+    path, _, _ = saved
+    data = path.read_bytes()
+    data = {"zeroed half": data[:len(data) // 2] + bytes(len(data) - len(data) // 2),
+            "truncated": data[:len(data) * 2 // 3], "not a pickle": b"hello, not a model"}[damage]
+    path.write_bytes(data)
+    import hashlib
+
+    mpath = path.with_name(path.name + ".manifest.json")
+    manifest = json.loads(mpath.read_text())
+    manifest.update(sha256=hashlib.sha256(data).hexdigest(), size_bytes=len(data))
+    mpath.write_text(json.dumps(manifest))
+    with pytest.raises(ModelFileError, match=f"model file {path} matches its manifest but does not load"):
+        load_model(path)
+
+
 def test_missing_file_or_manifest_is_refused(saved, tmp_path):
     path, _, _ = saved
     with pytest.raises(ModelFileError, match="does not exist"):
