@@ -453,7 +453,7 @@ def _warm_up_kernels() -> None:
     warm_up()
 
 
-def load_labeller(model_path, baseline_path=None, **checks):
+def load_labeller(model_path, baseline_path=None, *, n_nozzles: int = 0, **checks):
     """A :class:`FrameLabeller` of a model file, with the head's baselines if they load and fit.
 
     What a node does at start: the model must load (:func:`inkdiag_core.load_detector`,
@@ -466,6 +466,9 @@ def load_labeller(model_path, baseline_path=None, **checks):
         A FaultDetector file.
     baseline_path : str or Path, optional
         The head's recorded baselines (:meth:`NozzleBaselines.load`); empty or None: none.
+    n_nozzles : int
+        The head's nozzles (ids ``0 .. n_nozzles - 1``): baselines none of whose nozzles is one of them
+        are left out (another head's, or another numbering). 0: no check.
     **checks
         ``sample_rate_hz``, ``n_samples``, ``max_abs_v``, ``profile`` as for :class:`FrameLabeller`.
 
@@ -487,6 +490,12 @@ def load_labeller(model_path, baseline_path=None, **checks):
     if not baseline_path:
         return labeller, None
     try:
-        return FrameLabeller(labeller.detector, NozzleBaselines.load(baseline_path), **checks), None
+        baselines = NozzleBaselines.load(baseline_path)
+        ids = baselines.nozzle_ids
+        if n_nozzles > 0 and ids.size and not np.any(ids < n_nozzles):
+            raise LabellerConfigError(
+                f"{baseline_path} holds the baselines of {ids.size} nozzles, ids {int(ids.min())}..{int(ids.max())}: "
+                f"none of this head's nozzles 0..{n_nozzles - 1} (n_nozzles {n_nozzles}); record them on this head")
+        return FrameLabeller(labeller.detector, baselines, **checks), None
     except (BaselineFileError, LabellerConfigError, OSError) as exc:
         return labeller, exc

@@ -71,7 +71,7 @@ class FdiNode(Node):
         try:
             labeller, baseline_error = load_labeller(c["model_path"], c["baseline_path"], max_abs_v=c["max_abs_sample_v"],
                                                      sample_rate_hz=c["sample_rate_hz"], n_samples=c["n_samples"],
-                                                     profile=self.head)
+                                                     profile=self.head, n_nozzles=c["n_nozzles"])
         except (ModelFileError, LabellerConfigError) as exc:  # runs unlabelled; /diagnostics says why (ERROR)
             self._config_error(f"FDI model not loaded: {exc}")
             return None

@@ -173,7 +173,7 @@ def test_fdi_classifies_nozzles_with_a_baseline_against_it(ros, tmp_path, fdi_mo
 
 
 @pytest.mark.parametrize("case", ["missing file", "only the file", "plain model", "tampered file",
-                                  "damaged file", "other sample count"])
+                                  "damaged file", "other sample count", "another head's nozzles"])
 def test_fdi_without_usable_baselines_labels_without_them_and_says_why(ros, tmp_path, fdi_model,
                                                                        baseline_model, case):
     good = NozzleBaselines(np.arange(5), np.ones((5, 7)), 10e6, 512, 8).save(tmp_path / "b.npz")
@@ -192,12 +192,17 @@ def test_fdi_without_usable_baselines_labels_without_them_and_says_why(ros, tmp_
         "damaged file": {"baseline_path": str(good)},
         "other sample count": {"baseline_path": str(NozzleBaselines(np.arange(5), np.ones((5, 7)), 10e6, 256, 8)
                                                     .save(tmp_path / "b256.npz"))},
+        # recorded on a head numbered 100..104 (helper-69's QA: fdi said nothing and no row met a baseline)
+        "another head's nozzles": {"n_nozzles": 5, "baseline_path": str(NozzleBaselines(
+            np.arange(100, 105), np.ones((5, 7)), 10e6, 512, 8).save(tmp_path / "b100.npz"))},
     }[case]
     model = fdi_model if case in ("only the file", "plain model") else baseline_model
     fdi, labels, diag = _fdi(ros, model, **params)
     assert fdi.labeller is not None and not fdi.labeller.uses_baselines
     ros.spin_until(lambda: diag, 5, "diagnostics")
     assert diag[-1]["level"] == "warn" and "per-nozzle baselines not used" in diag[-1]["config_error"]
+    if case == "another head's nozzles":
+        assert "ids 100..104: none of this head's nozzles 0..4 (n_nozzles 5)" in diag[-1]["config_error"]
     pub = ros.node("controller", namespace="/h").create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
     ros.spin_until(lambda: pub.get_subscription_count() > 0, 10, "fdi's subscription")
     frame = simulate_nozzles(["healthy_nozzle"] * 5, seed=HEAD, frame_seed=1).traces
