@@ -54,6 +54,10 @@ def test_printhead_sim_rejects_bad_scenarios_and_runtime_changes(ros):
             P("fault_nozzles", value=[1]), P("fault_classes", value=["melted"])])
     with pytest.raises(ValueError, match="outside this head's nozzles"):
         PrintheadSim(context=ros.context, parameter_overrides=[P("drying_nozzles", value=[64])])
+    with pytest.raises(ValueError, match=r"fault_nozzles lists \[3\] more than once"):  # the later one won
+        PrintheadSim(context=ros.context, parameter_overrides=[
+            P("fault_nozzles", value=[3, 3, 11]), P("fault_classes", value=["fully_blocked", "mature_air_bubble",
+                                                                            "deeply_dried"])])
     sim = ros.add(PrintheadSim(context=ros.context))
     res = sim.set_parameters([P("n_nozzles", value=8)])[0]
     assert not res.successful and "fixed at start" in res.reason

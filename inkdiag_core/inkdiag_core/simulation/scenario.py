@@ -92,6 +92,9 @@ class HeadScenario:
             if out:
                 raise ValueError(f"{name} {out} outside this head's nozzles "
                                  f"{first_nozzle}..{first_nozzle + n_nozzles - 1}")
+            twice = sorted({x for x in lst if lst.count(x) > 1})
+            if twice:  # the later entry would silently win (a nozzle has one condition)
+                raise ValueError(f"{name} lists {twice} more than once: give each nozzle once")
         if set(fault_nozzles) & set(drying_nozzles):
             raise ValueError(f"nozzles both faulty and drying: {sorted(set(fault_nozzles) & set(drying_nozzles))}")
         if not (math.isfinite(faults_start_s) and faults_start_s >= 0.0):
