@@ -81,6 +81,7 @@ __all__ = [
     "SENSOR_UNITS",
     "SPREAD_KEYS",
     "implausible_values",
+    "same_sample_rate",
 ]
 
 SCHEMA = "inkdiag.head_profile"
@@ -108,6 +109,13 @@ named where a profile or a calibration fails (a value in other units: ``mu`` in 
 
 MIN_PLAUSIBLE_RATE_HZ = 1e5
 """A sample rate below this (Hz) is named where a profile fails (MHz written as Hz)."""
+
+
+def same_sample_rate(recorded_hz, head_hz) -> bool:
+    """Whether a recording's sample rate is the head's: within 1e-9 relative, or the head's rate
+    rounded to float32 (a trace message's header carries it so, and the nodes compare it so)."""
+    recorded_hz, head_hz = float(recorded_hz), float(head_hz)
+    return math.isclose(recorded_hz, head_hz, rel_tol=1e-9) or recorded_hz == float(np.float32(head_hz))
 
 
 def implausible_values(channel) -> list:
@@ -605,7 +613,7 @@ class HeadProfile:
         """
         shape = np.shape(traces)
         length = f" x {shape[1]} samples" if len(shape) == 2 else ""
-        if not math.isclose(float(sample_rate_hz), self.sample_rate_hz, rel_tol=1e-9):
+        if not same_sample_rate(sample_rate_hz, self.sample_rate_hz):
             raise ProfileError(f"{what} is sampled at {float(sample_rate_hz):.10g} Hz{length}; profile {self.name!r} "
                                f"is {self.sample_rate_hz:.10g} Hz x {self.n_samples} samples")
         if len(shape) != 2 or shape[1] != self.n_samples:

@@ -26,7 +26,10 @@ import datetime as _dt
 import hashlib
 import json
 import os
+import pickle
 import platform
+import struct
+import zlib
 from pathlib import Path
 
 import joblib
@@ -68,6 +71,10 @@ def manifest_path(path) -> Path:
     """The manifest file beside model file ``path``: ``<name>.joblib.manifest.json``."""
     path = Path(path)
     return path.with_name(path.name + ".manifest.json")
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(f"{type(exc).__name__}: {exc}".split())[:200]
 
 
 def _sha256(path: Path) -> str:
@@ -198,7 +205,8 @@ def load_model(path, *, check_versions: bool = True, as_pipeline: bool = True):
     ------
     ModelFileError
         Missing file or manifest, bad manifest, size or sha256 mismatch,
-        library version mismatch, a file that matches its manifest but does not unpickle.
+        library version mismatch, a file that matches its manifest but does not unpickle (or names
+        classes this version of inkdiag does not have).
     """
     path = Path(path)
     manifest = read_manifest(path)
@@ -229,10 +237,13 @@ def load_model(path, *, check_versions: bool = True, as_pipeline: bool = True):
             )
     try:
         model = joblib.load(path)
-    except Exception as exc:  # noqa: BLE001 - bytes that match their manifest and still do not unpickle
-        why = " ".join(f"{type(exc).__name__}: {exc}".split())[:200]
-        raise ModelFileError(f"model file {path} matches its manifest but does not load ({why}): damaged "
-                             "before its manifest was written, or both edited; train it again") from None
+    except (ImportError, AttributeError) as exc:  # a class or module the pickle names is not in this inkdiag
+        raise ModelFileError(f"model file {path} needs {_one_line(exc)}: written by another version of inkdiag? "
+                             "train it again") from exc
+    except (pickle.UnpicklingError, EOFError, KeyError, IndexError, ValueError, TypeError, struct.error,
+            zlib.error) as exc:  # bytes that match their manifest and still do not unpickle
+        raise ModelFileError(f"model file {path} matches its manifest but does not load ({_one_line(exc)}): "
+                             "damaged before its manifest was written, or both edited; train it again") from exc
     if as_pipeline and manifest.get("config", {}).get("estimator") == DETECTOR_ESTIMATOR:
         from .detector import FaultDetector
 

@@ -22,12 +22,12 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-import math
 import sys
 from pathlib import Path
 
 import numpy as np
 
+from inkdiag_core.head_profile import same_sample_rate
 from inkdiag_core.recording import Recording, RecordingError
 from inkdiag_core.recording import load_recording as load_npz_recording
 
@@ -166,7 +166,7 @@ class BagFrames:
         Messages read on it.
     skipped : list of (int, str)
         ``(message index, reason)`` of the first :data:`MAX_SKIPS_KEPT` messages that are
-        not a valid trace frame (or of another sampling than the first frame).
+        not a valid trace frame (or of another sampling than the reader's, :func:`iter_bag_chunks`).
     n_skipped : int
         All skipped messages.
     report : callable, optional
@@ -325,6 +325,8 @@ def iter_bag_frames(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
 
 #: Rows per chunk :func:`iter_bag_chunks` yields at most by default (whole frames; 32 MB of 512-sample traces).
 CHUNK_ROWS = 16384
+#: Trace frames of another sampling than the reader's, before any of its own, after which a bag is refused.
+MAX_OFF_SAMPLING = 100
 
 
 def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | None = None,
@@ -345,10 +347,11 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
     max_rows : int
         Rows per chunk at most; a frame is never split (a frame larger than this is a chunk alone).
     sampling : (float, int, str), optional
-        The sample rate (Hz, compared within 1e-9 relative, as
-        :meth:`inkdiag_core.HeadProfile.check_traces` does), the samples per trace and whose they
-        are (for the reason, e.g. ``"the model's head 'default'"``) of the head the caller reads
-        the bag for.
+        The sample rate (Hz, compared as :func:`inkdiag_core.head_profile.same_sample_rate` does), the
+        samples per trace and whose they are (for the reason, e.g. ``"the model's head 'default',"``)
+        of the head the caller reads the bag for. A bag whose first :data:`MAX_OFF_SAMPLING` trace
+        frames are all of another sampling is refused there, before the rest is read: a recording of
+        another head, not a few bad frames.
 
     Yields
     ------
@@ -369,6 +372,7 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
     fs = n_s = None
     if sampling is not None:
         want_fs, want_n, whose = float(sampling[0]), int(sampling[1]), str(sampling[2])
+        n_off = 0
 
     def chunk():
         return Recording.from_arrays(np.concatenate([b[0] for b in blocks]), fs,
@@ -380,9 +384,14 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
     try:
         for frame in iter_bag_frames(bag_dir, topic=topic, stats=stats):
             if sampling is not None:
-                if not (math.isclose(frame.sample_rate_hz, want_fs, rel_tol=1e-9) and frame.n_samples == want_n):
-                    stats.skip(stats.n_messages - 1, f"sampled at {frame.sample_rate_hz:.10g} Hz x {frame.n_samples}, "
-                               f"not at {whose} {want_fs:.10g} Hz x {want_n}", frame.frame_id)
+                if not (same_sample_rate(frame.sample_rate_hz, want_fs) and frame.n_samples == want_n):
+                    off = (f"sampled at {frame.sample_rate_hz:.10g} Hz x {frame.n_samples}, not at {whose} "
+                           f"{want_fs:.10g} Hz x {want_n}")
+                    n_off += 1
+                    if fs is None and n_off >= MAX_OFF_SAMPLING:  # not one good frame yet: another head's bag
+                        raise RecordingError(f"{bag_dir}: its first {n_off} trace frames on {stats.topic} are {off}: "
+                                             "a recording of another head?")
+                    stats.skip(stats.n_messages - 1, off, frame.frame_id)
                     continue
                 fs, n_s = (frame.sample_rate_hz, frame.n_samples) if fs is None else (fs, n_s)
             elif fs is None:

@@ -63,6 +63,22 @@ def test_damaged_file_whose_manifest_matches_it_is_a_model_file_error(saved, dam
         load_model(path)
 
 
+def test_a_model_naming_a_class_this_code_lacks_is_a_model_file_error(tmp_path, monkeypatch):
+    """A pickle whose module is gone (a model of another inkdiag version): said so, not 'damaged'."""
+    import sys
+
+    (tmp_path / "gone_mod.py").write_text("class Model:\n    pass\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import gone_mod
+
+    path = tmp_path / "m.joblib"
+    save_model(gone_mod.Model(), path)
+    monkeypatch.delitem(sys.modules, "gone_mod")
+    (tmp_path / "gone_mod.py").unlink()
+    with pytest.raises(ModelFileError, match="needs ModuleNotFoundError: .*gone_mod.*another version of inkdiag"):
+        load_model(path)
+
+
 def test_missing_file_or_manifest_is_refused(saved, tmp_path):
     path, _, _ = saved
     with pytest.raises(ModelFileError, match="does not exist"):

@@ -122,6 +122,28 @@ def test_a_bad_first_frame_costs_only_itself(tmp_path, sim, fdi_model):
     assert r.returncode == 2 and "no valid trace frame" in r.stderr and "x 500, not at" in r.stderr, r.stderr
 
 
+def test_a_bag_of_another_heads_sampling_is_refused_without_reading_it_all(tmp_path, sim):
+    """The first MAX_OFF_SAMPLING frames all of another sampling: refused there (another head's bag, not bad frames);
+    a rate that is the head's rounded to float32 (as a trace header carries it) is the head's."""
+    from inkdiag_core.head_profile import same_sample_rate
+    from inkdiag_core.recording import RecordingError
+    from inkdiag_ros.bags import MAX_OFF_SAMPLING, BagFrames, iter_bag_chunks
+
+    x = sim.traces[:2].astype(np.float32)
+    bag = write_bag(tmp_path / "bag", [(0, x[:, :500])] * MAX_OFF_SAMPLING + [(0, x)] * 3)
+    stats = BagFrames()
+    with pytest.raises(RecordingError, match=f"its first {MAX_OFF_SAMPLING} trace frames on .* are sampled at "
+                                             r"10000000 Hz x 500, not at the head 10000000 Hz x 512: a recording"):
+        list(iter_bag_chunks(bag, stats=stats, sampling=(10e6, 512, "the head")))
+    assert stats.n_messages == MAX_OFF_SAMPLING  # not read to the end
+    ok = write_bag(tmp_path / "ok", [(0, x[:, :500])] * (MAX_OFF_SAMPLING - 1) + [(0, x)] * 3)
+    chunks = list(iter_bag_chunks(ok, sampling=(10e6, 512, "the head")))
+    assert sum(c.n_rows for _, c in chunks) == 6
+    rate = 4166666.67  # not a float32: its header carries 4166666.75
+    assert same_sample_rate(float(np.float32(rate)), rate) and not same_sample_rate(4166667.5, rate)
+    assert same_sample_rate(10e6 * (1 + 1e-10), 10e6) and not same_sample_rate(10e6 * (1 + 1e-6), 10e6)
+
+
 def test_estimate_on_a_bag_streams_the_rows_the_npz_gives(tmp_path, capsys):
     from inkdiag_core import save_recording
     from inkdiag_ros import cli

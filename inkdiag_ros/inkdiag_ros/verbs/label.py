@@ -139,12 +139,11 @@ def run(args) -> int:
     import collections
     import csv
     import itertools
-    import math
     import sys
 
     import numpy as np
     from inkdiag_core import FrameLabeller, LabellerConfigError, NozzleBaselines, load_detector
-    from inkdiag_core.head_profile import HeadProfile
+    from inkdiag_core.head_profile import HeadProfile, same_sample_rate
     from ..bags import report_stats, stream_recording
     from . import (NO_BASELINE_HINT, open_csv_out, repeated_pairs, repeated_pairs_warning, summary_stream,
                    units_warning)
@@ -156,7 +155,7 @@ def run(args) -> int:
                                                f"the model's head {head.name!r},"))
     first = next(chunks)  # a bag with no trace frame: RecordingError
     rec = first[1]
-    same_rate = math.isclose(rec.sample_rate_hz, detector.sample_rate_hz_, rel_tol=1e-9)  # as check_traces
+    same_rate = same_sample_rate(rec.sample_rate_hz, detector.sample_rate_hz_)  # as check_traces
     if not same_rate or rec.n_samples != detector.n_features_in_:
         raise LabellerConfigError(
             f"{args.recording} is sampled at {rec.sample_rate_hz:.10g} Hz x {rec.n_samples} samples; the model is for "
