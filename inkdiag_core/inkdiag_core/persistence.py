@@ -26,10 +26,7 @@ import datetime as _dt
 import hashlib
 import json
 import os
-import pickle
 import platform
-import struct
-import zlib
 from pathlib import Path
 
 import joblib
@@ -205,8 +202,8 @@ def load_model(path, *, check_versions: bool = True, as_pipeline: bool = True):
     ------
     ModelFileError
         Missing file or manifest, bad manifest, size or sha256 mismatch,
-        library version mismatch, a file that matches its manifest but does not unpickle (or names
-        classes this version of inkdiag does not have).
+        library version mismatch, a file that matches its manifest but does not unpickle (damaged,
+        too large for the memory, or naming classes this version of inkdiag does not have).
     """
     path = Path(path)
     manifest = read_manifest(path)
@@ -238,10 +235,13 @@ def load_model(path, *, check_versions: bool = True, as_pipeline: bool = True):
     try:
         model = joblib.load(path)
     except (ImportError, AttributeError) as exc:  # a class or module the pickle names is not in this inkdiag
-        raise ModelFileError(f"model file {path} needs {_one_line(exc)}: written by another version of inkdiag? "
-                             "train it again") from exc
-    except (pickle.UnpicklingError, EOFError, KeyError, IndexError, ValueError, TypeError, struct.error,
-            zlib.error) as exc:  # bytes that match their manifest and still do not unpickle
+        raise ModelFileError(f"model file {path} needs {_one_line(exc)}: written by another version of inkdiag, "
+                             "or damaged; train it again") from exc
+    except MemoryError as exc:  # a damaged length field asks for more than there is; or a model too large
+        raise ModelFileError(f"model file {path} does not load (MemoryError): damaged, or too large for this "
+                             "machine's memory") from exc
+    except Exception as exc:  # noqa: BLE001 - bytes that match their manifest and still do not unpickle: any
+        # of pickle's, numpy's or a decompressor's errors (joblib picks one from the first bytes)
         raise ModelFileError(f"model file {path} matches its manifest but does not load ({_one_line(exc)}): "
                              "damaged before its manifest was written, or both edited; train it again") from exc
     if as_pipeline and manifest.get("config", {}).get("estimator") == DETECTOR_ESTIMATOR:

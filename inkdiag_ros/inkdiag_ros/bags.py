@@ -364,8 +364,9 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
     ------
     RecordingError
         As :func:`iter_bag_frames` (a bag that breaks off: after the chunk of the frames
-        read before it); and, once the bag is read, a bag with no decodable trace frame
-        (empty, or every frame skipped: the first reasons are given).
+        read before it); a bag whose first :data:`MAX_OFF_SAMPLING` trace frames are all of
+        another sampling than ``sampling``; and, once the bag is read, a bag with no decodable
+        trace frame (empty, or every frame skipped: the first reasons are given).
     """
     stats = stats if stats is not None else BagFrames()
     blocks, n_rows, first_row = [], 0, 0
@@ -388,10 +389,10 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
                     off = (f"sampled at {frame.sample_rate_hz:.10g} Hz x {frame.n_samples}, not at {whose} "
                            f"{want_fs:.10g} Hz x {want_n}")
                     n_off += 1
+                    stats.skip(stats.n_messages - 1, off, frame.frame_id)
                     if fs is None and n_off >= MAX_OFF_SAMPLING:  # not one good frame yet: another head's bag
                         raise RecordingError(f"{bag_dir}: its first {n_off} trace frames on {stats.topic} are {off}: "
                                              "a recording of another head?")
-                    stats.skip(stats.n_messages - 1, off, frame.frame_id)
                     continue
                 fs, n_s = (frame.sample_rate_hz, frame.n_samples) if fs is None else (fs, n_s)
             elif fs is None:
@@ -407,7 +408,7 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
             # a copy: the frame is a view into its message
             blocks.append((np.array(frame.traces), np.asarray(frame.nozzle_ids, np.int64), frame.frame_id, frame.stamp))
             n_rows += frame.n_nozzles
-    except RecordingError:  # the bag broke off: the frames read before it are still given
+    except RecordingError:  # the bag broke off (or is another head's): the frames read before it are still given
         if blocks:
             yield first_row, chunk()
         raise

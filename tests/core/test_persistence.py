@@ -79,6 +79,20 @@ def test_a_model_naming_a_class_this_code_lacks_is_a_model_file_error(tmp_path, 
         load_model(path)
 
 
+@pytest.mark.parametrize("error", [MemoryError(), OSError("Invalid data stream")])
+def test_what_unpickling_raises_on_damaged_bytes_is_a_model_file_error(saved, monkeypatch, error):
+    """A damaged length field asks for more memory than there is; damaged first bytes pick a decompressor
+    (bz2: OSError): said of the file, not a traceback (helper-71's byte flips)."""
+    import joblib
+
+    def fail(*_a, **_k):
+        raise error
+
+    monkeypatch.setattr(joblib, "load", fail)
+    with pytest.raises(ModelFileError, match=f"model file {saved[0]} .*{type(error).__name__}"):
+        load_model(saved[0])
+
+
 def test_missing_file_or_manifest_is_refused(saved, tmp_path):
     path, _, _ = saved
     with pytest.raises(ModelFileError, match="does not exist"):

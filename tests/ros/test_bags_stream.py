@@ -135,7 +135,7 @@ def test_a_bag_of_another_heads_sampling_is_refused_without_reading_it_all(tmp_p
     with pytest.raises(RecordingError, match=f"its first {MAX_OFF_SAMPLING} trace frames on .* are sampled at "
                                              r"10000000 Hz x 500, not at the head 10000000 Hz x 512: a recording"):
         list(iter_bag_chunks(bag, stats=stats, sampling=(10e6, 512, "the head")))
-    assert stats.n_messages == MAX_OFF_SAMPLING  # not read to the end
+    assert stats.n_messages == stats.n_skipped == MAX_OFF_SAMPLING  # not read to the end
     ok = write_bag(tmp_path / "ok", [(0, x[:, :500])] * (MAX_OFF_SAMPLING - 1) + [(0, x)] * 3)
     chunks = list(iter_bag_chunks(ok, sampling=(10e6, 512, "the head")))
     assert sum(c.n_rows for _, c in chunks) == 6
