@@ -32,13 +32,14 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "loopback = inkdiag_ros.loopback:main",
-            "printhead_sim = inkdiag_ros.printhead_sim:main",
-            "fdi = inkdiag_ros.fdi_node:main",
-            "fe = inkdiag_ros.fe_node:main",
-            "record_baseline = inkdiag_ros.baseline_node:main",
-            "graph = inkdiag_ros.graph:main",
-            "echo = inkdiag_ros.echo:main",
+            # the nodes through _launch: a stop while they import exits 0, as once they run
+            "loopback = inkdiag_ros._launch:loopback",
+            "printhead_sim = inkdiag_ros._launch:printhead_sim",
+            "fdi = inkdiag_ros._launch:fdi",
+            "fe = inkdiag_ros._launch:fe",
+            "record_baseline = inkdiag_ros._launch:record_baseline",
+            "graph = inkdiag_ros._launch:graph",
+            "echo = inkdiag_ros._launch:echo",
             "inkdiag = inkdiag_ros.cli:main",
         ],
     },

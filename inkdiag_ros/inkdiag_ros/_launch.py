@@ -1,0 +1,40 @@
+"""The nodes' console entry points: a stop during start-up ends the process with status 0.
+
+Importing a node's module (rclpy, numpy, scipy, scikit-learn, numba) takes seconds: 3.3-3.7 s
+per node here (``python -c "import inkdiag_ros.fdi_node"`` and the others, 2026-11-27, beside a test
+run), more on a loaded machine. Python's own handlers
+would turn a Ctrl-C in that time into a ``KeyboardInterrupt`` traceback (exit status 130) and
+a SIGTERM into status 143, where a running node stops with 0 (``docs/nodes.md``). Each entry
+point here ends the process with status 0 on either signal while it imports its node, then
+gives the signals back to Python's handlers and runs the node, which installs its own
+(:func:`inkdiag_ros._spin.stop_on_signals`).
+(``python -m inkdiag_ros.<node>`` imports before any code of ours runs: it keeps Python's.)
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib
+import signal
+
+
+def _stop_at_once(signum, frame):  # noqa: ARG001 - a signal handler's signature
+    raise SystemExit(0)
+
+
+def _run(module: str):
+    old = {sig: signal.signal(sig, _stop_at_once) for sig in (signal.SIGINT, signal.SIGTERM)}
+    main = importlib.import_module(f"inkdiag_ros.{module}").main
+    for sig, handler in old.items():  # the node's own from here on, as without this module
+        signal.signal(sig, handler)
+    return main()
+
+
+# the console scripts of inkdiag_ros/setup.py (`inkdiag` itself imports little before it parses its arguments)
+loopback = functools.partial(_run, "loopback")
+printhead_sim = functools.partial(_run, "printhead_sim")
+fdi = functools.partial(_run, "fdi_node")
+fe = functools.partial(_run, "fe_node")
+record_baseline = functools.partial(_run, "baseline_node")
+graph = functools.partial(_run, "graph")
+echo = functools.partial(_run, "echo")
