@@ -23,7 +23,9 @@ def _stop_at_once(signum, frame):  # noqa: ARG001 - a signal handler's signature
 
 
 def _run(module: str):
-    old = {sig: signal.signal(sig, _stop_at_once) for sig in (signal.SIGINT, signal.SIGTERM)}
+    # a signal the process was started ignoring (a shell's background job: SIGINT) stays ignored
+    old = {sig: signal.signal(sig, _stop_at_once) for sig in (signal.SIGINT, signal.SIGTERM)
+           if signal.getsignal(sig) is not signal.SIG_IGN}
     main = importlib.import_module(f"inkdiag_ros.{module}").main
     for sig, handler in old.items():  # the node's own from here on, as without this module
         signal.signal(sig, handler)

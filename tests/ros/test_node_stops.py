@@ -239,7 +239,7 @@ def test_a_node_asked_for_help_prints_its_parameters_and_does_not_start(tmp_path
     assert not (tmp_path / "B").exists()  # printhead_sim --record: no bag begun
 
 
-@pytest.mark.parametrize("name", ["fdi", "fe", "printhead_sim", "record_baseline"])
+@pytest.mark.parametrize("name", ["fdi", "fe", "printhead_sim", "record_baseline", "graph", "echo", "loopback"])
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_a_node_stopped_while_it_imports_exits_0(ros, fdi_model, name, sig):
     """The console scripts (inkdiag_ros._launch): a stop in the seconds the imports take ends the process with
@@ -251,12 +251,36 @@ def test_a_node_stopped_while_it_imports_exits_0(ros, fdi_model, name, sig):
     exe = shutil.which(name)
     assert exe, f"{name}: the console script is not installed"
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    pr = subprocess.Popen([exe, "--ros-args", "-p", f"model_path:={fdi_model}"] if name == "fdi" else [exe], env=env,
-                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    time.sleep(0.3)  # the imports take seconds (3.3-3.7 s on a quiet machine)
+    args = {"fdi": ["--ros-args", "-p", f"model_path:={fdi_model}"], "echo": ["labels"]}.get(name, [])
+    pr = subprocess.Popen([exe, *args], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    time.sleep(0.8)  # past the entry point's first lines (0.14 s), within the imports (3.3-3.7 s here)
     pr.send_signal(sig)
     out = pr.communicate(timeout=30)[0]
-    assert pr.returncode == 0 and "Traceback" not in out, (pr.returncode, out[-2000:])
+    assert pr.returncode == 0 and out == "", (pr.returncode, out[-2000:])  # nothing: stopped before it ran
+
+
+def test_the_entry_point_gives_the_signals_back_before_the_node_runs(monkeypatch):
+    """_launch._run: the node's main() sees the handlers the process had (Python's, or a signal it was started
+    ignoring), not the import-time ones; a signal ignored at start is not taken over even while importing."""
+    import types
+
+    from inkdiag_ros import _launch
+
+    seen = {}
+    mod = types.ModuleType("inkdiag_ros._stub_node")
+    mod.main = lambda: seen.update({s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}) or 7
+    monkeypatch.setitem(sys.modules, "inkdiag_ros._stub_node", mod)
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        assert _launch._run("_stub_node") == 7 and seen == before
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        taken = []
+        monkeypatch.setattr(importlib, "import_module", lambda name: taken.append(signal.getsignal(signal.SIGINT)) or mod)
+        _launch._run("_stub_node")
+        assert taken == [signal.SIG_IGN] and seen[signal.SIGINT] is signal.SIG_IGN
+    finally:
+        for s, h in before.items():
+            signal.signal(s, h)
 
 
 def test_a_console_script_node_once_running_stops_as_python_m_does(ros, fdi_model):
@@ -268,9 +292,9 @@ def test_a_console_script_node_once_running_stops_as_python_m_does(ros, fdi_mode
     pr = subprocess.Popen([shutil.which("fdi"), "--ros-args", "-p", f"model_path:={fdi_model}"], env=env,
                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     seen = []
-    for line in pr.stdout:  # up: its model loaded, spinning
+    for line in pr.stdout:  # up: its model loaded, spinning (pytest's timeout bounds the wait)
         seen.append(line)
-        if "FDI model" in line and "loaded" in line:
+        if "FDI model" in line and "loaded from" in line:
             break
     pr.send_signal(signal.SIGINT)
     rest = pr.communicate(timeout=30)[0]
