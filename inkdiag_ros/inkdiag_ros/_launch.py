@@ -13,6 +13,7 @@ gives the signals back to Python's handlers and runs the node, which installs it
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import importlib
 import signal
@@ -22,14 +23,25 @@ def _stop_at_once(signum, frame):  # noqa: ARG001 - a signal handler's signature
     raise SystemExit(0)
 
 
-def _run(module: str):
-    # a signal the process was started ignoring (a shell's background job: SIGINT) stays ignored
+@contextlib.contextmanager
+def stop_means_exit_0():
+    """Within: SIGINT and SIGTERM raise ``SystemExit(0)`` (``finally`` blocks run); a signal the
+    process was started ignoring (a shell's background job: SIGINT) stays ignored. The handlers
+    before it are back after it (inside, a node's own may replace them for a while, as
+    :func:`inkdiag_ros._spin.stop_on_signals` does, restoring these)."""
     old = {sig: signal.signal(sig, _stop_at_once) for sig in (signal.SIGINT, signal.SIGTERM)
            if signal.getsignal(sig) is not signal.SIG_IGN}
-    main = importlib.import_module(f"inkdiag_ros.{module}").main
-    for sig, handler in old.items():  # the node's own from here on, as without this module
-        signal.signal(sig, handler)
-    return main()
+    try:
+        yield
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
+def _run(module: str):
+    with stop_means_exit_0():
+        main = importlib.import_module(f"inkdiag_ros.{module}").main
+    return main()  # with Python's handlers, as without this module, until the node installs its own
 
 
 # the console scripts of inkdiag_ros/setup.py (`inkdiag` itself imports little before it parses its arguments)

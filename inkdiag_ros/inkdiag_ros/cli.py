@@ -72,6 +72,16 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     """Run ``inkdiag``; returns the exit status (0 done, 1 failed, or its output's reader gone, 2 bad input,
     130 interrupted)."""
+    words = sys.argv[1:] if argv is None else list(argv)
+    if words[:1] == ["printer"]:  # a printer stopped at any time is status 0 (docs/scaling.md), also while it
+        from ._launch import stop_means_exit_0  # imports (seconds) and starts its children: not 143 or 130
+
+        with stop_means_exit_0():
+            return _main(argv)
+    return _main(argv)
+
+
+def _main(argv) -> int:
     args, extra = build_parser().parse_known_args(argv)
     if extra:  # said by the verb's parser: "inkdiag VERB: error: ...", as every other usage error
         args._parser.error(f"unrecognized arguments: {' '.join(extra)}")

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.resources
+import math
 import sys
 import time
 
@@ -272,6 +273,8 @@ def main(args=None) -> int:
                         help="write a rosbag2 bag (MCAP) of the head's topics: traces, labels, drying_nozzles, "
                         "fm_estimates, fm_estimates/array, /diagnostics, ground_truth (a new directory)")
     ns = parser.parse_args(remove_ros_args(argv)[1:])
+    if not (math.isfinite(ns.duration) and ns.duration >= 0):
+        parser.error(f"--duration must be a number of seconds >= 0 (0: until Ctrl-C), got {ns.duration:g}")
     if ns.record:
         try:
             check_new_bag(ns.record)

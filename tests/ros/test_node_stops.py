@@ -239,6 +239,12 @@ def test_a_node_asked_for_help_prints_its_parameters_and_does_not_start(tmp_path
     assert not (tmp_path / "B").exists()  # printhead_sim --record: no bag begun
 
 
+def _sigint_as_a_terminal_gives_it():
+    """In the child before it execs: SIGINT not ignored (a test run started as a shell's background job passes
+    SIGINT ignored to its children, and a signal the process was started ignoring stays ignored: _launch)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.parametrize("name", ["fdi", "fe", "printhead_sim", "record_baseline", "graph", "echo", "loopback"])
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_a_node_stopped_while_it_imports_exits_0(ros, fdi_model, name, sig):
@@ -252,7 +258,8 @@ def test_a_node_stopped_while_it_imports_exits_0(ros, fdi_model, name, sig):
     assert exe, f"{name}: the console script is not installed"
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     args = {"fdi": ["--ros-args", "-p", f"model_path:={fdi_model}"], "echo": ["labels"]}.get(name, [])
-    pr = subprocess.Popen([exe, *args], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    pr = subprocess.Popen([exe, *args], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                          preexec_fn=_sigint_as_a_terminal_gives_it)
     time.sleep(0.8)  # past the entry point's first lines (0.14 s), within the imports (3.3-3.7 s here)
     pr.send_signal(sig)
     out = pr.communicate(timeout=30)[0]
@@ -290,7 +297,8 @@ def test_a_console_script_node_once_running_stops_as_python_m_does(ros, fdi_mode
 
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     pr = subprocess.Popen([shutil.which("fdi"), "--ros-args", "-p", f"model_path:={fdi_model}"], env=env,
-                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                          preexec_fn=_sigint_as_a_terminal_gives_it)
     seen = []
     for line in pr.stdout:  # up: its model loaded, spinning (pytest's timeout bounds the wait)
         seen.append(line)
@@ -299,3 +307,36 @@ def test_a_console_script_node_once_running_stops_as_python_m_does(ros, fdi_mode
     pr.send_signal(signal.SIGINT)
     rest = pr.communicate(timeout=30)[0]
     assert pr.returncode == 0 and "Traceback" not in rest, (pr.returncode, "".join(seen) + rest)
+
+
+@pytest.mark.parametrize("at_s", [0.3, 3.0])
+def test_inkdiag_printer_stopped_at_any_time_exits_0(ros, fdi_model, at_s):
+    """docs/scaling.md: SIGTERM gives 0, also while `inkdiag printer` imports and starts its children (helper-73's
+    QA: 143 before its header line); its children are gone after it."""
+    import shutil
+    import subprocess
+    import time
+
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    pr = subprocess.Popen([shutil.which("inkdiag"), "printer", "--heads", "2", "--processes", "2", "--simulate",
+                           "--model", str(fdi_model)], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                          text=True)
+    time.sleep(at_s)
+    pr.send_signal(signal.SIGTERM)
+    out = pr.communicate(timeout=60)[0]
+    assert pr.returncode == 0 and "Traceback" not in out, (pr.returncode, out[-2000:])
+    pids = [int(p) for p in out.split("(pids ", 1)[1].split(")", 1)[0].split(", ")] if "(pids " in out else []
+    deadline = time.monotonic() + 10
+    while any(os.path.exists(f"/proc/{p}") for p in pids) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(os.path.exists(f"/proc/{p}") for p in pids), out
+
+
+@pytest.mark.parametrize("value", ["-1", "nan", "inf"])
+def test_graph_refuses_a_duration_that_is_not_a_number_of_seconds(value):
+    """helper-73's QA: --duration -1 ran until killed, nan stopped at once with 0 frames and exit 0."""
+    import subprocess
+
+    r = subprocess.run([sys.executable, "-m", "inkdiag_ros.graph", "--duration", value], capture_output=True,
+                       text=True, timeout=60, env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
+    assert r.returncode == 2 and "graph: error: --duration must be a number of seconds >= 0" in r.stderr, r.stderr
