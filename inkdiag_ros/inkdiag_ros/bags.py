@@ -370,10 +370,9 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
     """
     stats = stats if stats is not None else BagFrames()
     blocks, n_rows, first_row = [], 0, 0
-    fs = n_s = None
-    if sampling is not None:
-        want_fs, want_n, whose = float(sampling[0]), int(sampling[1]), str(sampling[2])
-        n_off = 0
+    fs = None  # the chunks' sample rate: the first frame kept's
+    want = None if sampling is None else (float(sampling[0]), int(sampling[1]), str(sampling[2]))
+    n_off = 0
 
     def chunk():
         return Recording.from_arrays(np.concatenate([b[0] for b in blocks]), fs,
@@ -384,23 +383,20 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
 
     try:
         for frame in iter_bag_frames(bag_dir, topic=topic, stats=stats):
-            if sampling is not None:
-                if not (same_sample_rate(frame.sample_rate_hz, want_fs) and frame.n_samples == want_n):
-                    off = (f"sampled at {frame.sample_rate_hz:.10g} Hz x {frame.n_samples}, not at {whose} "
-                           f"{want_fs:.10g} Hz x {want_n}")
-                    n_off += 1
-                    stats.skip(stats.n_messages - 1, off, frame.frame_id)
-                    if fs is None and n_off >= MAX_OFF_SAMPLING:  # not one good frame yet: another head's bag
-                        raise RecordingError(f"{bag_dir}: its first {n_off} trace frames on {stats.topic} are {off}: "
-                                             "a recording of another head?")
-                    continue
-                fs, n_s = (frame.sample_rate_hz, frame.n_samples) if fs is None else (fs, n_s)
-            elif fs is None:
-                fs, n_s = frame.sample_rate_hz, frame.n_samples
-            elif frame.sample_rate_hz != fs or frame.n_samples != n_s:
-                stats.skip(stats.n_messages - 1, f"sampled at {frame.sample_rate_hz:.10g} Hz x {frame.n_samples}, "
-                           f"the bag's first frame at {fs:.10g} Hz x {n_s}", frame.frame_id)
+            if want is None:  # no sampling given: the first decoded frame's
+                want = (frame.sample_rate_hz, frame.n_samples, "the bag's first frame,")
+            want_fs, want_n, whose = want
+            if not (same_sample_rate(frame.sample_rate_hz, want_fs) and frame.n_samples == want_n):
+                off = (f"sampled at {frame.sample_rate_hz:.10g} Hz x {frame.n_samples}, not at {whose} "
+                       f"{want_fs:.10g} Hz x {want_n}")
+                n_off += 1
+                stats.skip(stats.n_messages - 1, off, frame.frame_id)
+                if fs is None and n_off >= MAX_OFF_SAMPLING:  # not one good frame yet: another head's bag
+                    raise RecordingError(f"{bag_dir}: its first {n_off} trace frames on {stats.topic} are {off}: "
+                                         "a recording of another head?")
                 continue
+            if fs is None:
+                fs = frame.sample_rate_hz
             if blocks and n_rows + frame.n_nozzles > max_rows:
                 yield first_row, chunk()
                 first_row += n_rows
