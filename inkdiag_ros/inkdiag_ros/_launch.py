@@ -17,10 +17,7 @@ import contextlib
 import functools
 import importlib
 import signal
-
-
-def _stop_at_once(signum, frame):  # noqa: ARG001 - a signal handler's signature
-    raise SystemExit(0)
+import sys
 
 
 @contextlib.contextmanager
@@ -28,14 +25,32 @@ def stop_means_exit_0():
     """Within: SIGINT and SIGTERM raise ``SystemExit(0)`` (``finally`` blocks run); a signal the
     process was started ignoring (a shell's background job: SIGINT) stays ignored. The handlers
     before it are back after it (inside, a node's own may replace them for a while, as
-    :func:`inkdiag_ros._spin.stop_on_signals` does, restoring these)."""
-    old = {sig: signal.signal(sig, _stop_at_once) for sig in (signal.SIGINT, signal.SIGTERM)
+    :func:`inkdiag_ros._spin.stop_on_signals` does, restoring these).
+
+    Where the handler's ``SystemExit`` lands in code whose exceptions Python ignores (a weakref
+    callback of the import machinery: "Exception ignored in ... _get_module_lock", seen once in a
+    CI run), it is not printed, and the process exits at the end of the block instead."""
+    asked = []
+
+    def stop(signum, frame):  # noqa: ARG001 - a signal handler's signature
+        asked.append(signum)
+        raise SystemExit(0)
+
+    def unraisable(u, hook=sys.unraisablehook):  # the ignored SystemExit: not a traceback on the way out
+        if not isinstance(u.exc_value, SystemExit):
+            hook(u)
+
+    old = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)
            if signal.getsignal(sig) is not signal.SIG_IGN}
+    old_hook, sys.unraisablehook = sys.unraisablehook, unraisable
     try:
         yield
     finally:
+        sys.unraisablehook = old_hook
         for sig, handler in old.items():
             signal.signal(sig, handler)
+    if asked:  # the stop's SystemExit was swallowed on the way (above): exit now
+        raise SystemExit(0)
 
 
 def _run(module: str):
