@@ -120,7 +120,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
 
     Open set: with ``unknown_rate`` (default 0.01) each branch also gets a per-class
     split-conformal layer (:class:`inkdiag_core.openset.ConformalOpenSet`): per class the
-    squared Mahalanobis distance (robust, regularised covariance) of the trace's
+    squared Mahalanobis distance (regularised covariance) of the trace's
     open-set features (the KPIs, the energy fraction the KPIs' damped sinusoid leaves
     unexplained and, in the baseline branch, the KPIs relative to the nozzle's own
     healthy baseline) gives a conformal p-value ``p_c``; a row below every class's
@@ -403,8 +403,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         _, first = np.unique(Xt.view(np.dtype((np.void, Xt.dtype.itemsize * Xt.shape[1]))).ravel(),
                              return_index=True)
         cal = train[np.sort(first)]
-        return ConformalOpenSet(rate).fit(F[val], y[val], F[cal], y[cal], self.classes_,
-                                          random_state=self.random_state)
+        return ConformalOpenSet(rate).fit(F[val], y[val], F[cal], y[cal], self.classes_)
 
     # -- inference ------------------------------------------------------------------------
 

@@ -13,11 +13,17 @@ test in front of the answer:
    resonance, crosstalk or a cut pulse all leave energy outside it). With a nozzle's
    healthy baseline the KPIs relative to it are added (:func:`baseline_openset_features`).
 2. **Nonconformity** (:class:`ConformalOpenSet`): per class ``c`` the squared
-   Mahalanobis distance of the standardized features to that class, with a robust
-   (minimum covariance determinant) covariance regularised by a ridge (0.05 in units of
-   the features' robust scale over all classes: it keeps a class's ellipsoid from being
-   narrower than the difference between our simulator and another generator's traces
-   of the same class), fitted on held-out known rows.
+   Mahalanobis distance of the standardized features to that class, with the covariance
+   of all the class's fit rows regularised by a ridge (0.05 in units of the features'
+   robust scale over all classes: it keeps a class's ellipsoid from being narrower than
+   the difference between our simulator and another generator's traces of the same
+   class), fitted on held-out known rows. All its rows, not a robust core: the calibration
+   rows set each class's threshold from the top of their scores, and a class with a long
+   tail in one direction (a calibrated head's empty channels: weak or near-silent traces
+   from the fault physics that healthy traces cannot pin, ``docs/calibration.md``) then
+   gets a radius of that tail's size in *every* direction under a robust (minimum
+   covariance determinant) covariance that leaves the tail out; under the plain one the
+   ellipsoid is long only along the tail (``reports/unknown.md``).
 3. **Calibration**: the scores of a split of known rows held out from that fit, kept
    sorted per class (:class:`inkdiag_core.FaultDetector` fits the class models on its
    validation split and calibrates on its training split: the score does not involve the
@@ -74,10 +80,12 @@ UNKNOWN = "unknown"
 #: Version of :func:`openset_features` / :func:`baseline_openset_features` (2: without the
 #: dc offset). A :class:`ConformalOpenSet` fitted on other features cannot score these.
 OPENSET_FEATURES_VERSION = 2
-#: Arithmetic of :meth:`ConformalOpenSet.scores` (2: row by row,
+#: Scores of :meth:`ConformalOpenSet.scores` (3: each class's covariance of all its fit rows; 2: of their
+#: minimum-covariance-determinant core, scored alike; 2 and 3 row by row,
 #: :func:`inkdiag_core._kernels.mahalanobis_scores`; 1: numpy's matrix products of the batch,
-#: whose summation order for a row depends on the batch). A layer scores test rows as it scored its calibration rows.
-OPENSET_SCORES_VERSION = 2
+#: whose summation order for a row depends on the batch). A layer scores test rows as it scored its calibration
+#: rows: a layer of version 2 labels as it did (the default model is retrained, :mod:`inkdiag_core.model_cache`).
+OPENSET_SCORES_VERSION = 3
 
 _TINY = 1e-30
 # Added to the diagonal of each class covariance, in standardized units (the features' robust
@@ -85,7 +93,8 @@ _TINY = 1e-30
 # Our simulator's classes are tighter than the gap to another generator's traces of the same
 # class: with 1e-3, tests/foreign_head.py's fully_blocked traces (head h20, an independent
 # simulator) were 28.5 % unknown; 0.03: 3.0 %; 0.05: 1.0 % (max over the 12 classes, 200 each),
-# while our own mild ad-hoc crosstalk stayed 92 % unknown (97 % at 0.03, 46 % at 0.3).
+# while our own mild ad-hoc crosstalk stayed 92 % unknown (97 % at 0.03, 46 % at 0.3); measured with the
+# robust (MCD) class covariances of scores version 2.
 _RIDGE = 0.05
 _MIN_FIT_ROWS = 4  # fewer training rows of a class: no model for it (its p-value is 1)
 _POW_BLOCK = 32  # z**k = (z**32)**a * z**b in _unexplained_fraction_numpy (the kernel's blocks too)
@@ -311,7 +320,7 @@ class ConformalOpenSet:
     center_, scale_ : ndarray of float64, shape (d,)
         Standardization of the features (median and IQR-based scale of the fit rows).
     means_ : ndarray of float64, shape (n_classes, d)
-        Robust class centres (standardized units).
+        Class centres (standardized units).
     whiten_ : ndarray of float64, shape (n_classes, d, d)
         Per class a matrix ``W`` with ``W W^T`` the inverse regularised covariance.
     calibration_ : list of ndarray of float32
@@ -327,7 +336,7 @@ class ConformalOpenSet:
         self.rate = rate
         self.delta = delta
 
-    def fit(self, X_fit, y_fit, X_cal, y_cal, classes, *, random_state=0):
+    def fit(self, X_fit, y_fit, X_cal, y_cal, classes):
         """Fit the class models on ``(X_fit, y_fit)`` and calibrate on ``(X_cal, y_cal)``.
 
         Parameters
@@ -340,14 +349,12 @@ class ConformalOpenSet:
         y_cal : ndarray, shape (n_cal,)
         classes : array_like, shape (n_classes,)
             Class order of the p-value columns (the classifier's ``classes_``).
-        random_state : int or None
-            Seed of the minimum covariance determinant.
 
         Returns
         -------
         self
         """
-        from sklearn.covariance import EmpiricalCovariance, MinCovDet
+        from sklearn.covariance import EmpiricalCovariance
 
         rate = check_unknown_rate(self.rate)
         if rate is None:
@@ -373,15 +380,7 @@ class ConformalOpenSet:
             Zc = Z[y_fit == c]
             if Zc.shape[0] < _MIN_FIT_ROWS:
                 continue
-            est = None
-            if Zc.shape[0] > 2 * d + 2:
-                try:
-                    with np.errstate(all="ignore"):
-                        est = MinCovDet(random_state=random_state).fit(Zc)
-                except (ValueError, np.linalg.LinAlgError):
-                    est = None
-            if est is None or not np.isfinite(est.covariance_).all():
-                est = EmpiricalCovariance().fit(Zc)
+            est = EmpiricalCovariance().fit(Zc)  # all the class's rows (module docstring)
             cov = est.covariance_ + _RIDGE * np.eye(d)
             prec = np.linalg.inv(cov)
             prec = (prec + prec.T) / 2

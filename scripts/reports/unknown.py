@@ -158,8 +158,8 @@ def main():
              "simulated traces per class, RF 50 trees on KPI_Y, FNR <= 0.5 %, both branches, `unknown_rate` 0.01). "
              "The held-out conditions come from `inkdiag_core.simulation.heldout` (never in training). "
              "Cells: mean over the seeds (min-max), %.", "",
-             "The layer (`FaultDetector`, `inkdiag_core.openset`): per known class a robust Mahalanobis "
-             "distance (MCD covariance + a 0.05 ridge in standardized units) on the 7 KPIs (scale ones in log, "
+             "The layer (`FaultDetector`, `inkdiag_core.openset`): per known class a Mahalanobis "
+             "distance (the covariance of all the class's fit rows + a 0.05 ridge in standardized units) on the 7 KPIs (scale ones in log, "
              "phase as cos/sin) and log10 of the energy fraction the KPI sinusoid leaves unexplained (the baseline "
              "branch adds the KPIs relative to the nozzle's own healthy baseline); conformal p-values per class, "
              "class models fitted on the validation split, calibrated on the training split; `unknown` when every "

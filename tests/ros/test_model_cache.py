@@ -73,16 +73,22 @@ def test_a_default_from_before_max_features_is_retrained(tmp_path, monkeypatch):
                                         "(max_features='sqrt', now None); retraining"]
 
 
-def test_a_default_whose_open_set_layer_scores_by_matrix_products_is_retrained(tmp_path, monkeypatch):
-    """A default from before the row-by-row scores (OPENSET_SCORES_VERSION 1) is retrained once."""
+@pytest.mark.parametrize("old", [1, 2])
+def test_a_default_whose_open_set_layer_is_of_an_older_scores_version_is_retrained(tmp_path, monkeypatch, old):
+    """A default from before the row-by-row scores (OPENSET_SCORES_VERSION 1), or whose class models are the
+    robust cores of their rows (2), is retrained once."""
     import inkdiag_core.model_cache as cache
     from inkdiag_core import save_detector
+    from inkdiag_core.openset import OPENSET_SCORES_VERSION
 
     default = tmp_path / "fdi_default.joblib"
     train_default_model(default, n_per_class=30, baseline=True)
     det = load_detector(default)
     for layer in (det.openset_, det.baseline_openset_):
-        del layer.scores_version_  # as a layer pickled before the attribute
+        if old == 1:
+            del layer.scores_version_  # as a layer pickled before the attribute
+        else:
+            layer.scores_version_ = old
     manifest = json.loads(open(str(default) + ".manifest.json").read())
     save_detector(det, default, config={k: v for k, v in default_config().items()
                                         if k not in det.get_params() and k not in ("baseline",)})
@@ -94,4 +100,4 @@ def test_a_default_whose_open_set_layer_scores_by_matrix_products_is_retrained(t
     assert not stale
     open(str(default) + ".manifest.json", "w").write(json.dumps(m))
     ensure_default_model(default, progress=False, log=logs.append)
-    assert len(calls) == 1 and "open-set scores version=1, now 2" in logs[-1], logs
+    assert len(calls) == 1 and f"open-set scores version={old}, now {OPENSET_SCORES_VERSION}" in logs[-1], logs
