@@ -130,10 +130,14 @@ class Scorecard:
 
     def format(self) -> str:
         ls, fs = self.label_scores(), self.fm_scores()
-        lines = ["scorecard against the simulator's ground truth",
-                 f"  labels: {ls['frames']} frames, {ls['nozzle_labels']} nozzle labels, "
-                 f"accuracy {100 * ls['accuracy']:.1f} %; {ls['unknown']} called unknown; fault detection: "
-                 f"missed {100 * ls['fd_missed']:.2f} %, false alarms {100 * ls['fd_false_alarms']:.2f} %"]
+        lines = ["scorecard against the simulator's ground truth"]
+        if ls["nozzle_labels"]:
+            lines.append(f"  labels: {ls['frames']} frames, {ls['nozzle_labels']} nozzle labels, "
+                         f"accuracy {_pct(ls['accuracy'], 1)}; {ls['unknown']} called unknown; fault detection: "
+                         f"missed {_pct(ls['fd_missed'], 2, 'no faulty nozzle')}, "
+                         f"false alarms {_pct(ls['fd_false_alarms'], 2, 'no healthy nozzle')}")
+        else:
+            lines.append("  labels: no labelled frame matched a frame of the ground truth")
         for c, (ok, n) in ls["per_class"].items():
             lines.append(f"    {c:<24} {ok:>6}/{n:<6} {100 * ok / n:5.1f} %  unknown {ls['unknown_per_class'][c]}")
         if fs["estimates"]:
@@ -148,3 +152,10 @@ class Scorecard:
         else:
             lines.append("  f_m: no estimate matched a drying nozzle of the ground truth")
         return "\n".join(lines)
+
+
+def _pct(fraction: float, digits: int, none: str = "") -> str:
+    """``fraction`` in per cent with ``digits`` decimals, or ``n/a (none)`` where it is NaN (nothing to count)."""
+    if np.isnan(fraction):
+        return f"n/a ({none})" if none else "n/a"
+    return f"{100 * fraction:.{digits}f} %"
