@@ -554,7 +554,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         (:func:`inkdiag_core._kernels.detector_tail`), or None where that call does not apply
         (the loop in :meth:`label` then labels them): a forest on KPI_Y (the plain branch) or on the
         baseline branch's features, and an open-set layer (if any) of today's features and scores
-        (``scores_version_`` 2). ``scripts/bench fdi``: from the KPIs on 2.0-2.1x the loop's speed at the
+        (``scores_version_`` 2 or later). ``scripts/bench fdi``: from the KPIs on 2.0-2.1x the loop's speed at the
         gate's 72 leftover rows, 3.0x at 8, 1.1x at 1,600 (a worst-case pass). The same labels as the
         loop, bit for bit: classes, confidences, P(faulty), validity and unknown scores (both score a row
         alone, :func:`inkdiag_core._kernels.mahalanobis_scores`). The tail's logs, cosines and sines are

@@ -101,10 +101,13 @@ def ensure_default_model(path=DEFAULT_MODEL, *, progress=True, log=print):
             layers = [getattr(obj, a, None) for a in ("openset_", "baseline_openset_")]
             versions = {getattr(x, "features_version_", 1) for x in layers if x is not None}
             if versions - {OPENSET_FEATURES_VERSION}:
+                if path.name not in DEFAULT_FEATURES:  # it cannot label today's features: say so, never train over it
+                    raise ModelFileError(obj.openset_outdated() or f"{path}: open-set features version "
+                                         f"{min(versions)}, now {OPENSET_FEATURES_VERSION}: retrain it (inkdiag train)")
                 stale["open-set features version"] = (min(versions), OPENSET_FEATURES_VERSION)
             scoring = {getattr(x, "scores_version_", 1) for x in layers if x is not None}
-            if scoring - {OPENSET_SCORES_VERSION}:  # labels as before, but not row by row (nor compiled)
-                stale["open-set scores version"] = (min(scoring), OPENSET_SCORES_VERSION)
+            if scoring - {OPENSET_SCORES_VERSION} and path.name in DEFAULT_FEATURES:  # labels as it was calibrated
+                stale["open-set scores version"] = (min(scoring), OPENSET_SCORES_VERSION)  # (a user's: as it is)
             if not stale:
                 return path
             log(f"inkdiag: cached model trained with other settings than the default "

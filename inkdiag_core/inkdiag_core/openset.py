@@ -23,7 +23,7 @@ test in front of the answer:
    from the fault physics that healthy traces cannot pin, ``docs/calibration.md``) then
    gets a radius of that tail's size in *every* direction under a robust (minimum
    covariance determinant) covariance that leaves the tail out; under the plain one the
-   ellipsoid is long only along the tail (``reports/unknown.md``).
+   ellipsoid is long only along the tail (``reports/heads.md``, off-class traces; ``tests/core/test_openset.py``).
 3. **Calibration**: the scores of a split of known rows held out from that fit, kept
    sorted per class (:class:`inkdiag_core.FaultDetector` fits the class models on its
    validation split and calibrates on its training split: the score does not involve the

@@ -101,3 +101,27 @@ def test_a_default_whose_open_set_layer_is_of_an_older_scores_version_is_retrain
     open(str(default) + ".manifest.json", "w").write(json.dumps(m))
     ensure_default_model(default, progress=False, log=logs.append)
     assert len(calls) == 1 and f"open-set scores version={old}, now {OPENSET_SCORES_VERSION}" in logs[-1], logs
+
+
+def test_a_users_model_with_an_older_open_set_layer_is_kept_or_refused_never_trained_over(tmp_path, monkeypatch):
+    """Only the default file is retrained for its layer's versions: a user's model of scores version 2 labels as
+    it was calibrated and is kept; one of older open-set features cannot label and is refused (ModelFileError)."""
+    import inkdiag_core.model_cache as cache
+    from inkdiag_core import save_detector
+
+    mine = tmp_path / "mine.joblib"
+    train_default_model(mine, n_per_class=30, baseline=True)
+    calls, logs = [], []
+    monkeypatch.setattr(cache, "train_default_model", lambda path, **kw: calls.append(path))
+    det = load_detector(mine)
+    for layer in (det.openset_, det.baseline_openset_):
+        layer.scores_version_ = 2
+    save_detector(det, mine)
+    assert ensure_default_model(mine, progress=False, log=logs.append) == mine and not calls and not logs
+    for layer in (det.openset_, det.baseline_openset_):
+        layer.features_version_ = 1
+    save_detector(det, mine)
+    before = mine.read_bytes()
+    with pytest.raises(ModelFileError, match="open-set layer was fitted on the features of an older inkdiag"):
+        ensure_default_model(mine, progress=False, log=logs.append)
+    assert not calls and not logs and mine.read_bytes() == before
