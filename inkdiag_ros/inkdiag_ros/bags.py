@@ -37,7 +37,7 @@ from msg_defs.qos import DIAGNOSTICS_QOS, RELIABLE_QOS, TRACES_QOS
 __all__ = ["TRACES_TYPE", "HEAD_TOPICS", "BagFrames", "is_bag", "head_topics", "ros_type_name",
            "msg_class", "qos_to_rosbags", "qos_from_rosbags", "iter_bag_frames", "iter_bag_chunks",
            "read_bag_recording", "load_recording", "stream_recording", "report_stats", "BagRecorder",
-           "InProcessRecording", "recording_node", "pop_record_arg", "check_new_bag"]
+           "InProcessRecording", "recording_node", "pop_record_arg", "check_new_bag", "first_line"]
 
 #: The rosbag2 type name of a trace frame.
 TRACES_TYPE = "std_msgs/msg/Float32MultiArray"
@@ -211,7 +211,7 @@ def _open_reader(bag_dir):
         reader = Reader(p)
         reader.open()
     except Exception as exc:  # rosbags' ReaderError, or a storage error of a damaged file
-        raise RecordingError(f"{src}: cannot open the bag{_listed(p)}: {_one_line(exc)}") from None
+        raise RecordingError(f"{src}: cannot open the bag{_listed(p)}: {first_line(exc)}") from None
     return reader
 
 
@@ -238,7 +238,8 @@ def _files(bag: Path) -> str:
         return ""
 
 
-def _one_line(exc) -> str:
+def first_line(exc) -> str:
+    """The first line of an exception's message, or its type's name when the message is empty (for one-line errors)."""
     text = str(exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__
 
@@ -307,16 +308,16 @@ def iter_bag_frames(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
                 break
             except Exception as exc:  # a truncated or damaged storage file
                 raise RecordingError(f"{src}: truncated or corrupt bag{_files(Path(bag_dir))}: {stats.n_messages} "
-                                     f"messages on {stats.topic} readable, then: {_one_line(exc)}") from None
+                                     f"messages on {stats.topic} readable, then: {first_line(exc)}") from None
             i = stats.n_messages
             stats.n_messages += 1
             try:
                 frame = decode_traces(deserialize_message(bytes(raw), TRACE_MSG_TYPE))
             except FrameError as exc:
-                stats.skip(i, _one_line(exc))
+                stats.skip(i, first_line(exc))
                 continue
             except Exception as exc:  # CDR that does not deserialise as a Float32MultiArray
-                stats.skip(i, f"not a serialised {TRACES_TYPE}: {_one_line(exc)}")
+                stats.skip(i, f"not a serialised {TRACES_TYPE}: {first_line(exc)}")
                 continue
             yield frame
     finally:

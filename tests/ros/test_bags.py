@@ -265,3 +265,13 @@ def test_replay_into_fdi_gives_one_labels_message_per_traces_message(tmp_path, s
     ids = [m.frame_id for m in labels]
     assert len(ids) == fdi.stats.frames_received >= 6 and ids == sorted(set(ids)) and set(ids) <= set(range(8)), ids
     assert all(m.n_nozzles == 6 for m in labels)
+
+
+def test_an_error_of_no_message_is_named_by_its_type_in_one_line():
+    """inkdiag replay and the bag readers say why a bag does not open in one line, also when the reader's
+    exception has no message (replay took the first line of an empty text: an IndexError traceback)."""
+    from inkdiag_ros.bags import first_line
+
+    assert first_line(KeyError()) == "KeyError"
+    assert first_line(ValueError("  \n")) == "ValueError"
+    assert first_line(ValueError("bad header\nat byte 12")) == "bad header"

@@ -65,7 +65,7 @@ def run(args) -> int:
     from inkdiag_core.recording import RecordingError
 
     from .._spin import stop_on_signals, tear_down
-    from ..bags import TRACES_TYPE, is_bag, msg_class, qos_from_rosbags
+    from ..bags import TRACES_TYPE, first_line, is_bag, msg_class, qos_from_rosbags
 
     if not args.as_fast_as_possible and not args.rate > 0:
         raise ValueError(f"--rate must be > 0, got {args.rate!r}")
@@ -76,7 +76,7 @@ def run(args) -> int:
         reader = Reader(bag)
         reader.open()
     except Exception as exc:
-        raise RecordingError(f"{bag}: cannot open the bag: {str(exc).strip().splitlines()[0]}") from None
+        raise RecordingError(f"{bag}: cannot open the bag: {first_line(exc)}") from None
     conns = [c for c in reader.connections if _selected(c.topic, args.topics)]
     if not conns:
         has = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
