@@ -650,7 +650,7 @@ def _scores(Z, w_all, mu_w, out):
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _detector_tail(kpis, base, x, fs, tiny, eps, roots, nodes, threshold, value, healthy, fd_threshold,
                    has_layer, center, scale, w_all, mu_w, cal, starts, modelled, levels, rate, rate_bound,
-                   ok, idx, conf, pf, uscore):
+                   log_min_amp, weak_q, ok, idx, conf, pf, uscore):
     n = kpis.shape[0]
     has_base = base.shape[0] == n and base.shape[1] == 7
     p = 13 if has_base else 7
@@ -722,6 +722,13 @@ def _detector_tail(kpis, base, x, fs, tiny, eps, roots, nodes, threshold, value,
         F[5] = math.cos(feats[4])
         F[6] = math.sin(feats[4])
         F[7] = math.log10(_floor(u[i], 1e-12))
+        if F[2] < log_min_amp:  # a weak row (ConformalOpenSet._judged): against the chosen class's weak rows
+            uscore[i] = 1.0 - weak_q[best_c]
+            if 1.0 - uscore[i] <= rate_bound:
+                conf[i] = uscore[i]
+                pf[i] = 1.0
+                idx[i] = -1
+            continue
         if has_base:
             F[8] = math.log(_floor(feats[7], tiny))
             F[9] = feats[8]
@@ -866,17 +873,19 @@ def detector_tail(kpis, base, x, sample_rate_hz, forest, healthy, fd_threshold, 
                          f"{kpis.shape}, {base.shape} and {x.shape}")
     if layer is None:
         f32, f64 = np.zeros((1, 1), np.float32), np.zeros(1)
-        layer = (f64, f64, f32, f32[0], f32[0], np.zeros(2, np.int64), np.zeros(1, bool), f64, 0.0, 0.0, 1e-30)
+        layer = (f64, f64, f32, f32[0], f32[0], np.zeros(2, np.int64), np.zeros(1, bool), f64, 0.0, 0.0, 1e-30,
+                 -np.inf, f64)
         has_layer = False
     else:
         has_layer = True
-    center, scale, w_all, mu_w, cal, starts, modelled, levels, rate, rate_bound, tiny = layer
+    center, scale, w_all, mu_w, cal, starts, modelled, levels, rate, rate_bound, tiny, log_min_amp, weak_q = layer
     ok, idx = np.empty(n, bool), np.empty(n, np.int64)
     conf, pf, uscore = np.empty(n), np.empty(n), np.full(n, np.nan)
     if n:
         _detector_tail(kpis, base, x, float(sample_rate_hz), float(tiny), float(eps), roots, nodes, threshold, value,
                        np.require(healthy, bool, ["C", "W"]), float(fd_threshold), has_layer, center, scale, w_all,
-                       mu_w, cal, starts, modelled, levels, float(rate), float(rate_bound), ok, idx, conf, pf, uscore)
+                       mu_w, cal, starts, modelled, levels, float(rate), float(rate_bound), float(log_min_amp), weak_q,
+                       ok, idx, conf, pf, uscore)
     return ok, idx, conf, pf, uscore
 
 

@@ -403,7 +403,23 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         _, first = np.unique(Xt.view(np.dtype((np.void, Xt.dtype.itemsize * Xt.shape[1]))).ravel(),
                              return_index=True)
         cal = train[np.sort(first)]
-        return ConformalOpenSet(rate).fit(F[val], y[val], F[cal], y[cal], self.classes_)
+        return ConformalOpenSet(rate).fit(F[val], y[val], F[cal], y[cal], self.classes_,
+                                          noise_v=self._noise_level(X, F, y))
+
+    def _noise_level(self, X, F, y):
+        """The head's noise standard deviation, V, from the training traces: the median over the healthy classes'
+        rows of what their KPI sinusoid leaves unexplained, ``sqrt(unexplained fraction * AC energy / n_samples)``
+        (a healthy trace is one damped sinusoid and noise). None without healthy rows or a finite value."""
+        h = np.flatnonzero(np.isin(y, self.classes_[_healthy_classes(tuple(self.classes_.tolist()))]))
+        if h.size == 0:
+            return None
+        x = np.asarray(X[h], dtype=np.float64)
+        ac = ((x - x.mean(axis=1, keepdims=True)) ** 2).sum(axis=1)
+        with np.errstate(all="ignore"):
+            rms = np.sqrt(10.0 ** F[h, 7] * ac / x.shape[1])
+        rms = rms[np.isfinite(rms)]
+        noise = float(np.median(rms)) if rms.size else np.nan
+        return noise if np.isfinite(noise) and noise > 0 else None
 
     # -- inference ------------------------------------------------------------------------
 
@@ -537,7 +553,7 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
                         if len(pipeline) > 2:  # knn: the features before its scaler
                             feats = pipeline[0].transform(Xr)
                         F = self._openset_features(feats if sel else feats[ok], Xt if sel else Xt[ok], not plain)
-                    score = layer.unknown_score(F)
+                    score = layer.unknown_score(F, chosen=idx)
                     unk = layer.is_unknown(score)
                     cls[unk] = UNKNOWN
                     conf = np.where(unk, score, conf)

@@ -24,6 +24,17 @@ test in front of the answer:
    gets a radius of that tail's size in *every* direction under a robust (minimum
    covariance determinant) covariance that leaves the tail out; under the plain one the
    ellipsoid is long only along the tail (``reports/heads.md``, off-class traces; ``tests/core/test_openset.py``).
+   **Rows too weak to judge**: a row whose fitted sinusoid's amplitude is below
+   :data:`SNR_FLOOR` times the head's noise (``noise_v``: :class:`inkdiag_core.FaultDetector`
+   estimates it from its healthy training traces) has KPIs that mostly measure the noise: such rows
+   are left out of the class models and of the Mahalanobis calibration (a calibrated head's
+   near-silent empty channels would otherwise scatter over every direction and widen those classes
+   everywhere). A weak row is judged by its weakness alone, against the class the classifier chose:
+   ``p = (1 + #weak calibration rows of c) / (n_c + 1)`` over all of ``c``'s calibration rows, and
+   the row is unknown when ``p <= a_c`` (the training-conditional level of ``n_c``): a class that
+   is never weak (the healthy ones; every class of the default head) does not take a weak row,
+   while a calibrated head's empty channels, weak in a share of their rows, do. So noise alone is
+   unknown on the default head, as before, and never healthy on a calibrated one.
 3. **Calibration**: the scores of a split of known rows held out from that fit, kept
    sorted per class (:class:`inkdiag_core.FaultDetector` fits the class models on its
    validation split and calibrates on its training split: the score does not involve the
@@ -63,6 +74,7 @@ import numpy as np
 __all__ = [
     "OPENSET_FEATURES_VERSION",
     "OPENSET_SCORES_VERSION",
+    "SNR_FLOOR",
     "UNKNOWN",
     "ConformalOpenSet",
     "DEFAULT_DELTA",
@@ -80,13 +92,17 @@ UNKNOWN = "unknown"
 #: Version of :func:`openset_features` / :func:`baseline_openset_features` (2: without the
 #: dc offset). A :class:`ConformalOpenSet` fitted on other features cannot score these.
 OPENSET_FEATURES_VERSION = 2
-#: Scores of :meth:`ConformalOpenSet.scores` (3: each class's covariance of all its fit rows; 2: of their
-#: minimum-covariance-determinant core, scored alike; 2 and 3 row by row,
+#: Scores of :meth:`ConformalOpenSet.scores` (3: each class's covariance of all its fit rows, rows below
+#: :data:`SNR_FLOOR` not judged; 2: the classes' minimum-covariance-determinant cores, every row judged, scored alike; 2 and 3 row by row,
 #: :func:`inkdiag_core._kernels.mahalanobis_scores`; 1: numpy's matrix products of the batch,
 #: whose summation order for a row depends on the batch). A layer scores test rows as it scored its calibration
 #: rows: a layer of version 2 labels as it did (the default model is retrained, :mod:`inkdiag_core.model_cache`).
 OPENSET_SCORES_VERSION = 3
 
+#: A row whose fitted amplitude is below this many times the head's noise standard deviation is not judged
+#: (module docstring). 3: pure noise of the sensor's standard deviation fits a sinusoid of about 1-2 sigma.
+SNR_FLOOR = 3.0
+_AMPLITUDE = 2  # the open-set features' column of log(amplitude / V)
 _TINY = 1e-30
 # Added to the diagonal of each class covariance, in standardized units (the features' robust
 # scale over all classes): a class is never narrower than ~0.22 of that scale in any direction.
@@ -327,6 +343,13 @@ class ConformalOpenSet:
         Per class its calibration scores (:meth:`scores`), sorted (possibly empty).
     modelled_ : ndarray of bool, shape (n_classes,)
         Classes with a model (>= 4 fit rows); the others get p-value 1.
+    noise_v_ : float or None
+        The head's noise standard deviation, V (``fit``'s ``noise_v``); rows whose amplitude is below
+        :data:`SNR_FLOOR` times it are weak (module docstring). None: no row is.
+    weak_q_ : ndarray of float64, shape (n_classes,), or None
+        Per class the ``q`` of a weak row chosen as that class (``min(1, p rate / a)`` of its weak p-value;
+        1 for a class without a model or a level): the row is unknown where it is ``<= rate``. None without
+        ``noise_v_``.
     levels_ : ndarray of float64, shape (n_classes,)
         Per class the p-value level ``a_c`` at or below which the class calls a row unlike it
         (:func:`training_conditional_level` of its calibration count; 0: never).
@@ -336,7 +359,7 @@ class ConformalOpenSet:
         self.rate = rate
         self.delta = delta
 
-    def fit(self, X_fit, y_fit, X_cal, y_cal, classes):
+    def fit(self, X_fit, y_fit, X_cal, y_cal, classes, *, noise_v=None):
         """Fit the class models on ``(X_fit, y_fit)`` and calibrate on ``(X_cal, y_cal)``.
 
         Parameters
@@ -349,6 +372,10 @@ class ConformalOpenSet:
         y_cal : ndarray, shape (n_cal,)
         classes : array_like, shape (n_classes,)
             Class order of the p-value columns (the classifier's ``classes_``).
+        noise_v : float, optional
+            The head's noise standard deviation, V: rows of amplitude (column 2, ``log`` V) below
+            :data:`SNR_FLOOR` times it are left out of fit and calibration and never called unknown.
+            None: every row is judged.
 
         Returns
         -------
@@ -359,11 +386,14 @@ class ConformalOpenSet:
         rate = check_unknown_rate(self.rate)
         if rate is None:
             raise ValueError("ConformalOpenSet needs a rate in (0, 1)")
+        if noise_v is not None and not (np.isfinite(noise_v) and noise_v > 0):
+            raise ValueError(f"noise_v must be a positive number of volts or None, got {noise_v!r}")
+        self.noise_v_ = None if noise_v is None else float(noise_v)
         X_fit = np.asarray(X_fit, dtype=np.float64)
         X_cal = np.asarray(X_cal, dtype=np.float64)
         y_fit, y_cal = np.asarray(y_fit), np.asarray(y_cal)
         self.classes_ = np.asarray(classes)
-        ok = np.isfinite(X_fit).all(axis=1)
+        ok = np.isfinite(X_fit).all(axis=1) & self._judged(X_fit)
         X_fit, y_fit = X_fit[ok], y_fit[ok]
         d = X_fit.shape[1]
         self.center_ = np.median(X_fit, axis=0)
@@ -391,12 +421,36 @@ class ConformalOpenSet:
             self.__dict__.pop(cache, None)
         self.features_version_ = OPENSET_FEATURES_VERSION
         self.scores_version_ = OPENSET_SCORES_VERSION
-        cal_ok = np.isfinite(X_cal).all(axis=1)
+        cal_ok = np.isfinite(X_cal).all(axis=1) & self._judged(X_cal)
         S = self.scores(X_cal[cal_ok])
         yc = y_cal[cal_ok]
         self.calibration_ = [np.sort(S[yc == c, i]) for i, c in enumerate(self.classes_)]
         self.levels_ = self._levels()
+        self.weak_q_ = None
+        if self.noise_v_ is not None:  # a weak row against each class: (1 + its weak rows) / (all its rows + 1)
+            finite = np.isfinite(X_cal).all(axis=1)
+            weak = finite & ~self._judged(X_cal)
+            delta = float(getattr(self, "delta", DEFAULT_DELTA))
+            self.weak_q_ = np.ones(len(self.classes_))
+            for i, c in enumerate(self.classes_):
+                n_all, n_weak = int((finite & (y_cal == c)).sum()), int((weak & (y_cal == c)).sum())
+                a = training_conditional_level(n_all, rate, delta) if self.modelled_[i] else 0.0
+                if a > 0:
+                    self.weak_q_[i] = min(1.0, (1.0 + n_weak) / (n_all + 1.0) * (rate / a))
         return self
+
+    def _log_min_amplitude(self) -> float:
+        """``log`` of the smallest amplitude the layer judges, V (-inf: every row; a layer without ``noise_v_``)."""
+        noise = getattr(self, "noise_v_", None)
+        return -np.inf if noise is None else float(np.log(SNR_FLOOR * noise))
+
+    def _judged(self, X):
+        """Rows the layer judges: amplitude (``log``, column 2) at least :data:`SNR_FLOOR` noise sigmas (bool (n,))."""
+        X = np.asarray(X, dtype=np.float64)
+        if getattr(self, "noise_v_", None) is None:  # any feature rows (not only the open-set features)
+            return np.ones(X.shape[0], dtype=bool)
+        with np.errstate(invalid="ignore"):
+            return ~(X[:, _AMPLITUDE] < self._log_min_amplitude())
 
     def _levels(self):
         delta = float(getattr(self, "delta", DEFAULT_DELTA))  # a layer pickled before delta existed
@@ -473,10 +527,12 @@ class ConformalOpenSet:
     def _tail_params(self):
         """What :func:`inkdiag_core._kernels.detector_tail` needs of this layer, or None where its scores are
         not the kernel's (its calibration in another precision, or by numpy's matrix products):
-        ``(center, scale, w_all, mu_w, cal, starts, modelled, levels, rate, rate_bound, tiny)``, as :meth:`scores`,
+        ``(center, scale, w_all, mu_w, cal, starts, modelled, levels, rate, rate_bound, tiny, log_min_amplitude,
+        weak_q)``, as :meth:`scores`,
         :meth:`_p_of_scores`, :meth:`unknown_score` and :meth:`is_unknown` use them: the whitening ``w_all``
         (d, k * d) and the centres ``mu_w`` (k * d) in float32, as :meth:`scores` builds them; ``tiny``
-        the floor of the features' logs (:func:`openset_features`)."""
+        the floor of the features' logs (:func:`openset_features`); ``log_min_amplitude`` the ``log`` of the
+        smallest amplitude judged by the Mahalanobis scores, V (-inf: every row), ``weak_q`` :attr:`weak_q_`."""
         table = self._calibration_table()
         if table is None or getattr(self, "scores_version_", 1) < 2:
             return None
@@ -486,7 +542,9 @@ class ConformalOpenSet:
         if levels is None:  # a layer fitted before the training-conditional levels
             levels = self.levels_ = self._levels()
         # built again whenever one of the arrays (or the rate) it comes from is another object
-        key = (table, self.center_, self.scale_, self._w_all, self._mu_w, self.modelled_, levels, self.rate)
+        weak_q = getattr(self, "weak_q_", None)
+        key = (table, self.center_, self.scale_, self._w_all, self._mu_w, self.modelled_, levels, self.rate,
+               getattr(self, "noise_v_", None), weak_q)
         cached = self.__dict__.get("_tail")
         if cached is not None and len(cached[0]) == len(key) and all(a is b for a, b in zip(cached[0], key)):
             return cached[1]
@@ -496,7 +554,8 @@ class ConformalOpenSet:
 
         params = (c(self.center_, np.float64), c(self.scale_, np.float64), c(self._w_all, np.float32),
                   c(self._mu_w, np.float32), c(table[0], np.float32), c(table[1], np.int64),
-                  c(self.modelled_, bool), c(levels, np.float64), float(self.rate), self.rate * (1 + 1e-12), _TINY)
+                  c(self.modelled_, bool), c(levels, np.float64), float(self.rate), self.rate * (1 + 1e-12), _TINY,
+                  self._log_min_amplitude(), c(np.ones(len(levels)) if weak_q is None else weak_q, np.float64))
         self._tail = (key, params)
         return params
 
@@ -517,12 +576,14 @@ class ConformalOpenSet:
         P[~np.isfinite(S).all(axis=1)] = np.nan
         return P
 
-    def unknown_score(self, X):
+    def unknown_score(self, X, chosen=None):
         """``1 - max_c q_c`` per row, (n,), in [0, 1); NaN for non-finite features.
 
         ``q_c = min(1, p_c * rate / a_c)``: the class's p-value scaled so that ``q_c <= rate``
         exactly where ``p_c <= a_c`` (:attr:`levels_`; 1 for a class that never calls a row
-        unlike it, or has no model). A row is unknown when this is ``>= 1 - rate``.
+        unlike it, or has no model). A row is unknown when this is ``>= 1 - rate``. A weak row
+        (module docstring): ``1 - weak_q_[chosen]``, against the class the classifier chose (``chosen``:
+        column indices, (n,)); without ``chosen``, against every class (``1 - max_c weak_q_``).
         """
         P = self.p_values(X)
         levels = getattr(self, "levels_", None)
@@ -531,7 +592,12 @@ class ConformalOpenSet:
         with np.errstate(divide="ignore", invalid="ignore"):
             Q = np.where(levels > 0, np.minimum(1.0, P * (float(self.rate) / np.where(levels > 0, levels, 1.0))), 1.0)
         Q[np.isnan(P)] = np.nan
-        return 1.0 - Q.max(axis=1)
+        out = 1.0 - Q.max(axis=1)
+        weak = ~self._judged(X)
+        if weak.any():  # the weak rows: by their weakness alone
+            q = self.weak_q_
+            out[weak] = 1.0 - (q.max() if chosen is None else q[np.asarray(chosen)[weak]])
+        return out
 
     def is_unknown(self, score):
         """Rows whose :meth:`unknown_score` makes them unknown (``max_c q_c <= rate``), bool (n,)."""

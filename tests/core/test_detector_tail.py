@@ -1,9 +1,11 @@
 """FaultDetector.label's compiled tail (_kernels.detector_tail) labels as the numpy loop it replaces."""
 
+import copy
+
 import numpy as np
 import pytest
 
-from inkdiag_core import FaultClass, FaultDetector, _kernels, baseline_training_kpis, simulate
+from inkdiag_core import FaultClass, FaultDetector, HeadProfile, _kernels, baseline_training_kpis, simulate
 
 SEED = 21
 
@@ -24,17 +26,19 @@ def detector(data):
 
 @pytest.fixture(scope="module")
 def rows():
-    """Every class, new nozzles, some rows far outside every class (unknown), one whose energy overflows float32."""
+    """Every class, new nozzles, some rows far outside every class (unknown), some too weak for the open-set layer
+    to judge (never unknown), one whose energy overflows float32."""
     sim = simulate({c: 12 for c in FaultClass}, seed=SEED + 1)
     base = baseline_training_kpis(sim, SEED + 1)
     x = sim.traces.astype(np.float32)
     rng = np.random.default_rng(SEED)
     odd = x[:6] * rng.uniform(4.0, 9.0, (6, 1)).astype(np.float32)  # far too strong: unlike every class
     huge = x[6:8] * np.float32(1e30)  # its KPI energy (~1e54 V^2 s) is not finite in float32: not classified
-    x = np.concatenate([x, odd, x[8:9], huge])
+    weak = np.concatenate([x[9:11] * np.float32(0.01), rng.normal(0.0, 0.006, (2, x.shape[1])).astype(np.float32)])
+    x = np.concatenate([x, odd, weak, x[8:9], huge])
     zero = base[8:9].copy()
     zero[0, 1] = -1e-30  # a frequency ratio of k / 0: infinite, the row not classified (and no other lost)
-    base = np.concatenate([base, base[:6], zero, base[6:8]])
+    base = np.concatenate([base, base[:6], base[9:13], zero, base[6:8]])
     base[::3] = np.nan  # a third of the rows have no baseline: the plain branch
     base[-3], base[-2] = zero[0], base[7]  # the zero baseline and one overflowing trace on the baseline branch,
     base[-1] = np.nan  # the other on the plain one
@@ -43,6 +47,8 @@ def rows():
 
 #: The rows of ``rows`` that are not classified: the zero baseline, the two overflowing traces.
 BAD = [-3, -2, -1]
+#: The rows of ``rows`` too weak for the open-set layer to judge.
+WEAK = slice(-7, -3)
 
 
 @pytest.fixture
@@ -81,6 +87,7 @@ def test_the_tail_labels_every_row_as_the_numpy_loop(detector, rows, dtype, monk
     ok[BAD] = False
     np.testing.assert_array_equal(fast.valid, ok)  # the bad rows alone are left out, on both branches
     assert np.isfinite(fast.unknown_score[ok]).all()
+    assert (fast.classes[WEAK] == "unknown").all()  # weak, and no class of the default head ever is
     many, many_base = np.concatenate([x] * 4), np.concatenate([base] * 4)  # > 256 rows a branch: one call still
     _assert_same(_label(detector, many, many_base, True, monkeypatch),
                  _label(detector, many, many_base, False, monkeypatch))
@@ -140,3 +147,35 @@ def test_detector_tail_refuses_mismatched_shapes():
     with pytest.raises(ValueError, match="detector_tail"):
         _kernels.detector_tail(np.ones((2, 7)), np.ones((3, 7)), np.zeros((2, 8), np.float32), 1.0, forest,
                                np.array([True, False]), 0.5, None, eps=1e-30)
+
+
+def test_weak_rows_are_judged_by_their_weakness_on_either_path(detector, rows, monkeypatch):
+    """A row whose sinusoid is below SNR_FLOOR noise sigmas (noise_v_, estimated from the healthy training traces) is
+    weak: against the chosen class's weak calibration rows. No class of the default head is ever weak, so it is
+    unknown (P(faulty) 1), on the tail and on the loop alike; with classes that are weak in a share of their rows
+    the classifier's class stands."""
+    from inkdiag_core.openset import SNR_FLOOR
+
+    assert detector.openset_.noise_v_ == pytest.approx(HeadProfile.default().noise_std_v(), rel=0.05)
+    x, base = rows
+    weak = WEAK
+    amp = np.exp(detector._openset_features(detector.pipeline_[0].transform(x[weak]), x[weak], False)[:, 2])
+    assert (amp < SNR_FLOOR * detector.openset_.noise_v_).all()
+    for layer in (detector.openset_, detector.baseline_openset_):
+        assert (layer.weak_q_ <= layer.rate).all()
+    for tail in (True, False):
+        out = _label(detector, x[weak], base[weak], tail, monkeypatch)
+        assert (out.classes == "unknown").all() and (out.p_faulty == 1.0).all() and out.valid.all()
+    accepting = copy.deepcopy(detector)
+    for layer in (accepting.openset_, accepting.baseline_openset_):
+        layer.weak_q_ = np.ones_like(layer.weak_q_)  # every class weak in many of its rows: the classifier's class
+        layer.__dict__.pop("_tail", None)
+    fast, slow = (_label(accepting, x[weak], base[weak], tail, monkeypatch) for tail in (True, False))
+    _assert_same(fast, slow)
+    assert "unknown" not in fast.classes.tolist() and (fast.unknown_score == 0.0).all()
+    before, chosen = fast.classes.copy(), fast.classes[0]  # that class never weak: a weak row chosen as it is unknown
+    for layer in (accepting.openset_, accepting.baseline_openset_):
+        layer.weak_q_ = np.where(layer.classes_ == chosen, 0.0, 1.0)
+    fast, slow = (_label(accepting, x[weak], base[weak], tail, monkeypatch) for tail in (True, False))
+    _assert_same(fast, slow)
+    assert ((fast.classes == "unknown") == (before == chosen)).all() and fast.classes[0] == "unknown"

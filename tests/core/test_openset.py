@@ -325,3 +325,34 @@ def test_a_layer_calibrated_by_matrix_products_scores_as_it_was_calibrated(det, 
     assert not calls and (got.classes != None).all()  # noqa: E711 - labelled, by the loop
     np.testing.assert_array_equal(got.classes, det.label(x).classes)
     assert calls  # the current layer: the tail
+
+
+def test_rows_below_the_snr_floor_are_judged_by_their_weakness_alone():
+    """With the head's noise, a row whose amplitude (column 2, log V) is below SNR_FLOOR noise sigmas is weak: left
+    out of the class models and the Mahalanobis calibration, and unknown only if its class is never weak."""
+    from inkdiag_core.openset import SNR_FLOOR
+
+    rng = np.random.default_rng(4)
+    X = rng.normal(size=(1200, 3))
+    X[:, 2] = np.log(0.1) + 0.1 * X[:, 2]  # amplitude about 0.1 V
+    weak = rng.random(1200) < 0.1
+    X[weak, 2] = np.log(0.001)  # 1 mV: below 3 sigmas of 1 mV noise
+    X[weak, :2] += rng.normal(0.0, 30.0, (int(weak.sum()), 2))  # their other features: noise, far off
+    y = np.full(1200, "a")
+    fit = np.arange(1200) % 4 == 0
+    plain = ConformalOpenSet(0.01).fit(X[fit], y[fit], X[~fit], y[~fit], np.array(["a"]))
+    floored = ConformalOpenSet(0.01).fit(X[fit], y[fit], X[~fit], y[~fit], np.array(["a"]), noise_v=1e-3)
+    assert floored.noise_v_ == 1e-3 and plain.noise_v_ is None
+    assert floored.calibration_[0].size == int((~fit & ~weak).sum()) < plain.calibration_[0].size
+    q = np.array([[0.0, 8.0, np.log(0.1)], [0.0, 8.0, np.log(SNR_FLOOR * 1e-3 * 0.9)]])
+    assert floored.is_unknown(floored.unknown_score(q)).tolist() == [True, False]  # "a" is weak in 10 % of its rows
+    n_all = int((~fit).sum())
+    assert floored.weak_q_[0] == pytest.approx((1 + int((~fit & weak).sum())) / (n_all + 1) * 0.01 / floored.levels_[0],
+                                               rel=0.2)  # levels_ counts the judged rows only
+    assert floored.unknown_score(q, chosen=np.array([0, 0]))[1] == 1.0 - floored.weak_q_[0]
+    assert not plain.is_unknown(plain.unknown_score(q))[0]  # the weak rows' spread widened the class
+    strong = ConformalOpenSet(0.01).fit(X[fit & ~weak], y[fit & ~weak], X[~fit & ~weak], y[~fit & ~weak],
+                                        np.array(["a"]), noise_v=1e-3)
+    assert strong.weak_q_[0] <= 0.01 and strong.is_unknown(strong.unknown_score(q, chosen=np.array([0, 0]))).all()
+    with pytest.raises(ValueError, match="noise_v"):
+        ConformalOpenSet(0.01).fit(X[fit], y[fit], X[~fit], y[~fit], np.array(["a"]), noise_v=0.0)
