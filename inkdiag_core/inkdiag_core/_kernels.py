@@ -848,8 +848,9 @@ def detector_tail(kpis, base, x, sample_rate_hz, forest, healthy, fd_threshold, 
     healthy : ndarray of bool, shape (n_classes,)
     fd_threshold : float
     layer : tuple or None
-        :meth:`inkdiag_core.openset.ConformalOpenSet._tail_params` (its last item the open-set
-        features' floor); None: no open-set layer.
+        :meth:`inkdiag_core.openset.ConformalOpenSet._tail_params` (the open-set features' floor, the log of
+        the smallest amplitude its Mahalanobis scores judge and the weak rows' per-class ``q`` last); None: no
+        open-set layer.
     eps : float
         The relative features' denominator offset (:data:`inkdiag_core.baselines.features.RELATIVE_EPS`).
 

@@ -93,14 +93,14 @@ UNKNOWN = "unknown"
 #: dc offset). A :class:`ConformalOpenSet` fitted on other features cannot score these.
 OPENSET_FEATURES_VERSION = 2
 #: Scores of :meth:`ConformalOpenSet.scores` (3: each class's covariance of all its fit rows, rows below
-#: :data:`SNR_FLOOR` not judged; 2: the classes' minimum-covariance-determinant cores, every row judged, scored alike; 2 and 3 row by row,
+#: :data:`SNR_FLOOR` judged by their weakness alone; 2: the classes' minimum-covariance-determinant cores, every row judged, scored alike; 2 and 3 row by row,
 #: :func:`inkdiag_core._kernels.mahalanobis_scores`; 1: numpy's matrix products of the batch,
 #: whose summation order for a row depends on the batch). A layer scores test rows as it scored its calibration
 #: rows: a layer of version 2 labels as it did (the default model is retrained, :mod:`inkdiag_core.model_cache`).
 OPENSET_SCORES_VERSION = 3
 
-#: A row whose fitted amplitude is below this many times the head's noise standard deviation is not judged
-#: (module docstring). 3: pure noise of the sensor's standard deviation fits a sinusoid of about 1-2 sigma.
+#: A row whose fitted amplitude is below this many times the head's noise standard deviation is weak: judged by
+#: that weakness alone (module docstring). 3: pure noise of the sensor's standard deviation fits a sinusoid of about 1-2 sigma.
 SNR_FLOOR = 3.0
 _AMPLITUDE = 2  # the open-set features' column of log(amplitude / V)
 _TINY = 1e-30
@@ -374,8 +374,8 @@ class ConformalOpenSet:
             Class order of the p-value columns (the classifier's ``classes_``).
         noise_v : float, optional
             The head's noise standard deviation, V: rows of amplitude (column 2, ``log`` V) below
-            :data:`SNR_FLOOR` times it are left out of fit and calibration and never called unknown.
-            None: every row is judged.
+            :data:`SNR_FLOOR` times it are weak: left out of the class models and the Mahalanobis
+            calibration, and judged by their weakness alone (:attr:`weak_q_`). None: no row is weak.
 
         Returns
         -------
