@@ -722,13 +722,6 @@ def _detector_tail(kpis, base, x, fs, tiny, eps, roots, nodes, threshold, value,
         F[5] = math.cos(feats[4])
         F[6] = math.sin(feats[4])
         F[7] = math.log10(_floor(u[i], 1e-12))
-        if F[2] < log_min_amp:  # a weak row (ConformalOpenSet._judged): against the chosen class's weak rows
-            uscore[i] = 1.0 - weak_q[best_c]
-            if 1.0 - uscore[i] <= rate_bound:
-                conf[i] = uscore[i]
-                pf[i] = 1.0
-                idx[i] = -1
-            continue
         if has_base:
             F[8] = math.log(_floor(feats[7], tiny))
             F[9] = feats[8]
@@ -740,6 +733,18 @@ def _detector_tail(kpis, base, x, fs, tiny, eps, roots, nodes, threshold, value,
         # per class the squared Mahalanobis distance (ConformalOpenSet.scores), its p-value (_p_values)
         # and the row's unknown score 1 - max_c min(1, p_c rate / a_c) (ConformalOpenSet.unknown_score)
         _row_scores(z, w_all, mu_w, S)
+        if F[2] < log_min_amp:  # a weak row (ConformalOpenSet._judged) of finite scores: against the chosen class's
+            finite_s = True  # weak rows alone
+            for c in range(k):
+                if not np.isfinite(S[c]):
+                    finite_s = False
+            if finite_s:
+                uscore[i] = 1.0 - weak_q[best_c]
+                if 1.0 - uscore[i] <= rate_bound:
+                    conf[i] = uscore[i]
+                    pf[i] = 1.0
+                    idx[i] = -1
+                continue
         q_max = 0.0
         for c in range(k):
             s = S[c]

@@ -414,10 +414,12 @@ class FaultDetector(ClassifierMixin, BaseEstimator):
         h = np.flatnonzero(np.isin(y, self.classes_[_healthy_classes(tuple(self.classes_.tolist()))]))
         if h.size == 0:
             return None
-        x = np.asarray(X[h], dtype=np.float64)
-        ac = ((x - x.mean(axis=1, keepdims=True)) ** 2).sum(axis=1)
+        ac = np.empty(h.size)
+        for a in range(0, h.size, 1024):  # 1,024 rows at a time in float64: a long trace's copies stay small
+            x = np.asarray(X[h[a:a + 1024]], dtype=np.float64)
+            ac[a:a + 1024] = ((x - x.mean(axis=1, keepdims=True)) ** 2).sum(axis=1)
         with np.errstate(all="ignore"):
-            rms = np.sqrt(10.0 ** F[h, 7] * ac / x.shape[1])
+            rms = np.sqrt(10.0 ** F[h, 7] * ac / X.shape[1])
         rms = rms[np.isfinite(rms)]
         noise = float(np.median(rms)) if rms.size else np.nan
         return noise if np.isfinite(noise) and noise > 0 else None

@@ -52,7 +52,14 @@ calibration rows (drawn from the same distribution: the same head and conditions
 training), the probability that a row of ``c`` is called ``unknown``, *for the layer one
 training run fitted*, is at most ``rate`` with probability at least ``1 - delta`` over the
 calibration draw (the rate of a fitted layer is ``Beta(m_c + 1, n_c - m_c)``-distributed;
-``P(Beta > rate) = P(Binomial(n_c, rate) <= m_c) <= delta``). The plain split-conformal rule
+``P(Beta > rate) = P(Binomial(n_c, rate) <= m_c) <= delta``). With a noise floor that holds for
+the class's rows above the floor (the Mahalanobis test, calibrated on them); its weak rows add the
+weakness test's own share, which fires only for a class weak in at most its level's share of its
+calibration rows: together at most about ``2 rate`` with probability ``1 - 2 delta`` in the worst
+case (a class weak in about ``rate`` of its rows), ``rate`` for a class never weak (every class
+of the default head) or weak in many rows. A weak row is judged against the class the classifier
+chose, so a weak row of a class the classifier mistakes for a class never weak is ``unknown``
+(a wrong class either way). The plain split-conformal rule
 (``max_c p_c <= rate``) bounds it only on average over training runs, and with ~300
 calibration rows per class one fitted layer's rate spread so that a single class of a
 single training seed read 2.67 % at ``rate = 0.01`` (``reports/unknown.md``, before).
@@ -92,12 +99,12 @@ UNKNOWN = "unknown"
 #: Version of :func:`openset_features` / :func:`baseline_openset_features` (2: without the
 #: dc offset). A :class:`ConformalOpenSet` fitted on other features cannot score these.
 OPENSET_FEATURES_VERSION = 2
-#: Scores of :meth:`ConformalOpenSet.scores` (3: each class's covariance of all its fit rows, rows below
-#: :data:`SNR_FLOOR` judged by their weakness alone; 2: the classes' minimum-covariance-determinant cores, every row judged, scored alike; 2 and 3 row by row,
+#: Scores of :meth:`ConformalOpenSet.scores` (4: each class's covariance of all its fit rows, rows below
+#: :data:`SNR_FLOOR` judged by their weakness alone; 3: the covariance of all rows, every row judged; 2: the classes' minimum-covariance-determinant cores, every row judged, scored alike; 2 and 3 row by row,
 #: :func:`inkdiag_core._kernels.mahalanobis_scores`; 1: numpy's matrix products of the batch,
 #: whose summation order for a row depends on the batch). A layer scores test rows as it scored its calibration
-#: rows: a layer of version 2 labels as it did (the default model is retrained, :mod:`inkdiag_core.model_cache`).
-OPENSET_SCORES_VERSION = 3
+#: rows: a layer of version 2 or 3 labels as it did (the default model is retrained, :mod:`inkdiag_core.model_cache`).
+OPENSET_SCORES_VERSION = 4
 
 #: A row whose fitted amplitude is below this many times the head's noise standard deviation is weak: judged by
 #: that weakness alone (module docstring). 3: pure noise of the sensor's standard deviation fits a sinusoid of about 1-2 sigma.
@@ -593,7 +600,7 @@ class ConformalOpenSet:
             Q = np.where(levels > 0, np.minimum(1.0, P * (float(self.rate) / np.where(levels > 0, levels, 1.0))), 1.0)
         Q[np.isnan(P)] = np.nan
         out = 1.0 - Q.max(axis=1)
-        weak = ~self._judged(X)
+        weak = ~self._judged(X) & np.isfinite(P).all(axis=1)  # finite features, as the weak rows fit() counted
         if weak.any():  # the weak rows: by their weakness alone
             q = self.weak_q_
             out[weak] = 1.0 - (q.max() if chosen is None else q[np.asarray(chosen)[weak]])
