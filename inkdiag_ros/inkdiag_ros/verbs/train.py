@@ -18,6 +18,9 @@ class is called 'unknown' with probability at most that rate, for the model
 this run trains, with 90 % confidence (per-class training-conditional
 conformal p-values; a class needs (1 - R)**n <= 0.1 calibration rows n, 230
 for the default rate: the training three quarters of --n-per-class >= 307).
+Traces that ring below 3 noise sigmas are judged by that weakness alone: for
+a class weak in about R of its rows the bound is about 2 R with 80 %
+confidence (docs/cli.md).
 
 With --data, the head's own labelled recordings join the simulated rows: an
 .npz with a 'label' array, or any recording (.npz or rosbag2 bag) with
