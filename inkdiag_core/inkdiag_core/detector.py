@@ -95,8 +95,9 @@ class DetectorLabels(NamedTuple):
     unknown_score : ndarray of float64, (n,) -- ``1 - max_c q_c``, the row's largest
         per-class conformal p-value, scaled to the class's training-conditional level
         (:meth:`inkdiag_core.openset.ConformalOpenSet.unknown_score`), subtracted from 1 (in [0, 1); the row
-        is ``"unknown"`` when it is ``>= 1 - unknown_rate``; a row whose ringing is below the layer's noise floor:
-        against the chosen class alone, by that weakness, :data:`inkdiag_core.openset.SNR_FLOOR`); NaN where not valid or where
+        is ``"unknown"`` when it is ``>= 1 - unknown_rate``; a row whose ringing is below the layer's noise floor,
+        :data:`inkdiag_core.openset.SNR_FLOOR`: against the chosen class alone, by that weakness); NaN where not
+        valid or where
         the row's branch has no open-set layer (``unknown_rate`` None, or a model file
         from before the layer) or the row's open-set features are not finite (then it
         keeps its classifier's class)
