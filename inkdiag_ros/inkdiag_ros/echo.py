@@ -21,6 +21,8 @@ from rclpy.utilities import remove_ros_args
 import msg_defs
 from msg_defs import topics
 
+from ._spin import shutting_down, stop_on_signals
+
 TYPES = {
     topics.TRACES: (msg_defs.TRACE_MSG_TYPE, msg_defs.TRACES_QOS),
     topics.GROUND_TRUTH: (msg_defs.TRUTH_MSG_TYPE, msg_defs.RELIABLE_QOS),
@@ -84,8 +86,6 @@ def main(args=None) -> int:
     ap.add_argument("--once", action="store_true")
     ap.add_argument("--max-items", type=int, default=16)
     ns = ap.parse_args(remove_ros_args(argv)[1:])
-    rclpy.init(args=argv)
-    node = Node("echo", namespace=ns.namespace)
     done = []
     mtype, qos = TYPES[ns.topic]
 
@@ -95,15 +95,24 @@ def main(args=None) -> int:
         print(to_yaml(msg, max_items=ns.max_items) + "\n---", flush=True)
         done.append(1)
 
-    node.create_subscription(mtype, ns.topic, on_msg, qos)
-    try:
-        while rclpy.ok() and not (ns.once and done):
-            rclpy.spin_once(node, timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    with stop_on_signals() as stop:  # a stop while rclpy starts ends it with 0, as the nodes (_spin.spin_node)
+        rclpy.init(args=argv)
+        node = None
+        try:
+            node = Node("echo", namespace=ns.namespace)
+            stop.attach(node)
+            node.create_subscription(mtype, ns.topic, on_msg, qos)
+            while rclpy.ok() and not stop.requested and not (ns.once and done):
+                rclpy.spin_once(node, timeout_sec=0.1)
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        except Exception:  # a signal while the node was built: rclpy invalidated what it was building
+            if not (stop.requested or shutting_down(rclpy.utilities.get_default_context())):
+                raise
+        finally:
+            if node is not None:
+                node.destroy_node()
+            rclpy.try_shutdown()
     return 0
 
 
