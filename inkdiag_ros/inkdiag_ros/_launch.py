@@ -22,7 +22,9 @@ import sys
 
 @contextlib.contextmanager
 def stop_means_exit_0():
-    """Within: SIGINT and SIGTERM raise ``SystemExit(0)`` (``finally`` blocks run); a signal the
+    """Within: SIGINT and SIGTERM raise ``SystemExit(0)`` (``finally`` blocks run), and any exception leaving the
+    block after one is that exit (the ``SystemExit`` may come out as another: an ``ImportError`` from a C
+    extension's init, an rclpy error of a context the stop invalidated); a signal the
     process was started ignoring (a shell's background job: SIGINT) stays ignored. The handlers
     before it are back after it (inside, a node's own may replace them for a while, as
     :func:`inkdiag_ros._spin.stop_on_signals` does, restoring these).
@@ -45,6 +47,10 @@ def stop_means_exit_0():
     old_hook, sys.unraisablehook = sys.unraisablehook, unraisable
     try:
         yield
+    except BaseException:
+        if asked:  # what the stop's SystemExit became on its way out is that stop: pybind11 turns it into an
+            raise SystemExit(0) from None  # ImportError in rclpy's C extension's init (seen: a traceback, 1)
+        raise
     finally:
         sys.unraisablehook = old_hook
         for sig, handler in old.items():

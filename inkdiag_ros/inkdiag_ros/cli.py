@@ -78,7 +78,12 @@ def main(argv=None) -> int:
 
         with stop_means_exit_0():
             return _main(argv)
-    return _main(argv)
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:  # Ctrl-C while it imports (seconds, before _main's own handling): one line too
+        verb = f" {words[0]}" if words[:1] and words[0] in VERBS else ""
+        print(f"inkdiag{verb}: interrupted", file=sys.stderr)
+        return 130
 
 
 def _main(argv) -> int:

@@ -309,10 +309,11 @@ def test_a_console_script_node_once_running_stops_as_python_m_does(ros, fdi_mode
     assert pr.returncode == 0 and "Traceback" not in rest, (pr.returncode, "".join(seen) + rest)
 
 
-@pytest.mark.parametrize("at_s", [0.3, 3.0])
+@pytest.mark.parametrize("at_s", [0.3, 3.0, "header+0.12", "header+0.3"])
 def test_inkdiag_printer_stopped_at_any_time_exits_0(ros, fdi_model, at_s):
     """docs/scaling.md: SIGTERM gives 0, also while `inkdiag printer` imports and starts its children (helper-73's
-    QA: 143 before its header line); its children are gone after it."""
+    QA: 143 before its header line) and as it imports rclpy or builds its monitor's node after that line
+    ("header+S": S s after it; an ImportError or RCLError traceback and 1 before); its children are gone after it."""
     import shutil
     import subprocess
     import time
@@ -321,9 +322,14 @@ def test_inkdiag_printer_stopped_at_any_time_exits_0(ros, fdi_model, at_s):
     pr = subprocess.Popen([shutil.which("inkdiag"), "printer", "--heads", "2", "--processes", "2", "--simulate",
                            "--model", str(fdi_model)], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                           text=True)
-    time.sleep(at_s)
+    head = ""
+    if str(at_s).startswith("header+"):
+        head = pr.stdout.readline()
+        time.sleep(float(at_s.split("+")[1]))
+    else:
+        time.sleep(at_s)
     pr.send_signal(signal.SIGTERM)
-    out = pr.communicate(timeout=60)[0]
+    out = head + pr.communicate(timeout=60)[0]
     assert pr.returncode == 0 and "Traceback" not in out, (pr.returncode, out[-2000:])
     pids = [int(p) for p in out.split("(pids ", 1)[1].split(")", 1)[0].split(", ")] if "(pids " in out else []
     deadline = time.monotonic() + 10
@@ -362,3 +368,41 @@ def test_a_stop_whose_exit_was_swallowed_still_exits_at_the_end_of_the_block(cap
     assert got.value.code == 0 and reached and capsys.readouterr().err == "" and sys.unraisablehook is before
     with stop_means_exit_0():  # no signal: nothing happens
         pass
+
+
+@pytest.mark.parametrize("at_s", [0.5, 2.5])
+def test_inkdiag_record_interrupted_at_any_time_says_so_in_one_line(ros, tmp_path, at_s):
+    """Ctrl-C of `inkdiag record` while it imports (seconds): 'interrupted' and 130, not a KeyboardInterrupt
+    traceback; once it has started (or as its node is built), 0 with a valid bag."""
+    import shutil
+    import subprocess
+    import time
+
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    pr = subprocess.Popen([shutil.which("inkdiag"), "record", str(tmp_path / "bag")], env=env,
+                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    time.sleep(at_s)
+    pr.send_signal(signal.SIGINT)
+    out = pr.communicate(timeout=60)[0]
+    assert "Traceback" not in out, out[-2000:]
+    assert (pr.returncode, out.strip()) == (130, "inkdiag record: interrupted") or (
+        pr.returncode == 0 and "wrote 0 messages" in out and (tmp_path / "bag" / "metadata.yaml").is_file()), out
+
+
+def test_a_stop_that_comes_out_as_another_exception_still_exits_0():
+    """CI: a SIGTERM while rclpy's C extension initialised came out of the import as an ImportError (pybind11
+    turns any error of a module's init into one): a traceback and status 1. After a stop, whatever leaves the
+    block is that stop; without one, an error goes on up as it is."""
+    from inkdiag_ros._launch import stop_means_exit_0
+
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(SystemExit) as got:
+        with stop_means_exit_0():
+            try:
+                signal.raise_signal(signal.SIGTERM)
+            except SystemExit as exc:  # as pybind11's module init does
+                raise ImportError("initialization failed") from exc
+    assert got.value.code == 0 and signal.getsignal(signal.SIGTERM) is before
+    with pytest.raises(ImportError):
+        with stop_means_exit_0():
+            raise ImportError("no stop: a real error")

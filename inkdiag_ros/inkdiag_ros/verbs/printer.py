@@ -160,10 +160,11 @@ def _monitor(args, children) -> list:
 
     with stop_on_signals() as stop:
         rclpy.init()
-        node = Node("printer_monitor")
-        executor = SingleThreadedExecutor(context=node.context)
-        executor.add_node(node)
-        try:
+        node = executor = None
+        try:  # the node is built inside: a signal now invalidates the context under it (RCLError), a stop
+            node = Node("printer_monitor")
+            executor = SingleThreadedExecutor(context=node.context)
+            executor.add_node(node)
             stop.attach(node)
             node.create_subscription(DIAGNOSTICS_MSG_TYPE, "/diagnostics", on_diag, DIAGNOSTICS_QOS)
             t0 = time.monotonic()
@@ -181,8 +182,8 @@ def _monitor(args, children) -> list:
                     next_print += 1.0
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
-        except Exception:  # a signal shut the context down as spin_once built its wait set (RCLError): a stop
-            if not (stop.requested or shutting_down(node.context)):
+        except Exception:  # a signal shut the context down as the node or spin_once's wait set was built (RCLError)
+            if not (stop.requested or shutting_down(rclpy.utilities.get_default_context())):
                 raise
         finally:
             tear_down(executor, [node])

@@ -40,7 +40,7 @@ def run(args) -> int:
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rosbags.rosbag2 import StoragePlugin, Writer
 
-    from .._spin import stop_on_signals, tear_down
+    from .._spin import shutting_down, stop_on_signals, tear_down
     from ..bags import BagRecorder, check_new_bag, head_topics
 
     if args.duration is not None and not args.duration > 0:
@@ -65,6 +65,9 @@ def run(args) -> int:
                     executor.spin_once(timeout_sec=0.1 if end is None else max(0.0, min(0.1, end - time.monotonic())))
                 except ExternalShutdownException:  # SIGINT/SIGTERM through rclpy's handler
                     break
+        except Exception:  # a signal as the node was built: rclpy invalidated the context under it (RCLError)
+            if not (stop.requested or shutting_down(rclpy.utilities.get_default_context())):
+                raise
         finally:
             if rec is not None:
                 rec.finish()

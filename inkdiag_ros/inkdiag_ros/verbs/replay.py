@@ -64,7 +64,7 @@ def run(args) -> int:
     from msg_defs.qos import RELIABLE_QOS, TRACES_QOS
     from inkdiag_core.recording import RecordingError
 
-    from .._spin import stop_on_signals, tear_down
+    from .._spin import shutting_down, stop_on_signals, tear_down
     from ..bags import TRACES_TYPE, first_line, is_bag, msg_class, qos_from_rosbags
 
     if not args.as_fast_as_possible and not args.rate > 0:
@@ -126,6 +126,9 @@ def run(args) -> int:
             for pub in pubs.values() if rclpy.ok() else ():  # reliable topics: let the subscribers have them before we go
                 if pub.qos_profile.reliability == ReliabilityPolicy.RELIABLE and pub.get_subscription_count():
                     pub.wait_for_all_acked(rclpy.duration.Duration(seconds=5.0))
+        except Exception:  # a signal as the node was built: rclpy invalidated the context under it (RCLError)
+            if not (stop.requested or shutting_down(rclpy.utilities.get_default_context())):
+                raise
         finally:
             reader.close()
             tear_down(executor, [node])
