@@ -1,0 +1,66 @@
+"""The bundled echo (README: "read every output with `ros2 topic echo` (or the bundled `echo`)"): what it
+prints for a message on an inkdiag topic, a real process against a real publisher."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+
+def _echo(ros, args, publish, timeout=30.0):
+    """Run echo with ``args`` while ``publish()`` sends a message every 0.1 s; its exit status and output."""
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    pr = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.echo", *args], env=env, stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + timeout
+    try:
+        while pr.poll() is None:
+            if time.monotonic() > deadline:
+                pytest.fail(f"echo {' '.join(args)} printed nothing in {timeout:g} s")
+            publish()
+            ros.spin_for(0.1)
+        out, err = pr.communicate(timeout=10)
+    finally:
+        if pr.poll() is None:
+            pr.kill()
+            pr.communicate()
+    return pr.returncode, out, err
+
+
+def test_echo_labels_once_prints_the_json_as_ros2_topic_echo_does(ros):
+    from msg_defs import LABELS_MSG_TYPE, RELIABLE_QOS, LabelsReport, decode_labels, encode_labels
+
+    node = ros.node("labels_pub", namespace="/head_42")
+    pub = node.create_publisher(LABELS_MSG_TYPE, "labels", RELIABLE_QOS)
+    report = LabelsReport.from_arrays(frame_id=7, stamp=12.5, first_nozzle=200, model_id="m-1",
+                                      classes=np.array(["healthy_nozzle", "deeply_dried"], dtype=object),
+                                      confidence=np.array([0.9, 0.75]), valid=np.array([True, True]),
+                                      reasons=np.array(["", ""], dtype=object))
+    status, out, err = _echo(ros, ["labels", "--namespace", "/head_42", "--once"],
+                             lambda: pub.publish(encode_labels(report)))
+    assert status == 0 and err == "", err
+    assert out.endswith("\n---\n") and out.count("---") == 1, out
+    assert out.startswith("data: '{")
+    import yaml
+
+    echoed = yaml.safe_load(out.split("---")[0])["data"]  # ros2's layout: the string as one YAML scalar
+    assert decode_labels(type(encode_labels(report))(data=echoed)) == report
+
+
+def test_echo_diagnostics_cuts_long_arrays_and_prints_every_status(ros):
+    from msg_defs import DIAGNOSTICS_MSG_TYPE, DIAGNOSTICS_QOS, build_diagnostics
+
+    node = ros.node("diag_pub")
+    pub = node.create_publisher(DIAGNOSTICS_MSG_TYPE, "/diagnostics", DIAGNOSTICS_QOS)
+    msg = build_diagnostics(namespace="/head_42", level="warn", message="3 frames dropped",
+                            values={"frames_per_s": 5.0}, counts={"healthy_nozzle": 190, "deeply_dried": 2})
+    status, out, err = _echo(ros, ["/diagnostics", "--once", "--max-items", "2"], lambda: pub.publish(msg))
+    assert status == 0 and err == "", err
+    assert "hardware_id: /head_42" in out and "message: 3 frames dropped" in out, out
+    n_values = len(msg.status[0].values)
+    assert n_values > 2 and out.count("- key: ") == 2 and "- '...'" in out, out
