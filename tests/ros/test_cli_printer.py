@@ -117,3 +117,13 @@ def test_a_bad_option_is_one_line_and_exit_status_2(ros, tmp_path, fdi_model, ar
     lines = err.strip().splitlines()
     assert proc.returncode == 2, err
     assert len(lines) == 1 and lines[0].startswith("inkdiag printer: error: ") and match in lines[0], lines
+
+
+def test_the_summary_says_the_heads_are_starting_until_one_reports():
+    from inkdiag_ros.verbs.printer import summary
+
+    assert "heads up 0/2 (starting: no head's /diagnostics yet) |" in summary({}, 2, 1.0, 5.0)
+    up = summary({"head_00": (4.9, {"frames_per_s": 5, "traces_per_s": 320, "level": "ok"})}, 2, 2.0, 5.0)
+    assert "heads up 1/2 |" in up and "320 traces/s" in up and "starting" not in up
+    gone = summary({"head_00": (0.0, {"frames_per_s": 5, "level": "ok"})}, 2, 60.0, 60.0)  # stale, not starting
+    assert "heads up 0/2 |" in gone
