@@ -291,7 +291,12 @@ def main(args=None) -> int:
     if ns.train_if_missing:
         from inkdiag_core.model_cache import DEFAULT_MODEL, ensure_default_model
 
-        ns.model = str(ensure_default_model(ns.model or DEFAULT_MODEL))
+        try:
+            ns.model = str(ensure_default_model(ns.model or DEFAULT_MODEL))
+        except KeyboardInterrupt:  # Ctrl-C in the first run's training (a minute): one line, no traceback
+            print("graph: interrupted while training the default model (nothing written; the next run trains it)",
+                  file=sys.stderr)
+            return 130
     baseline = None
     if ns.baseline:
         path = ns.baseline_path or f"baselines/{ns.namespace.strip('/').replace('/', '_') or 'head'}.npz"

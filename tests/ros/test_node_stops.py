@@ -406,3 +406,23 @@ def test_a_stop_that_comes_out_as_another_exception_still_exits_0():
     with pytest.raises(ImportError):
         with stop_means_exit_0():
             raise ImportError("no stop: a real error")
+
+
+def test_graph_interrupted_while_it_trains_the_default_model_says_so_and_writes_nothing(tmp_path):
+    """scripts/run's first run trains the default model (seconds): a Ctrl-C then is one line and 130, not a
+    KeyboardInterrupt traceback, and leaves no model file behind (the next run trains it)."""
+    import subprocess
+
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    model = tmp_path / "models" / "fdi_default.joblib"
+    pr = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.graph", "--train-if-missing", "--model", str(model)],
+                          env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    seen = ""
+    while "training the default FDI model" not in seen:  # tqdm's bar: no newline to read a line up to
+        ch = pr.stderr.read(1)
+        assert ch, seen
+        seen += ch
+    pr.send_signal(signal.SIGINT)
+    err = seen + pr.communicate(timeout=60)[1]
+    assert pr.returncode == 130 and "Traceback" not in err, (pr.returncode, err[-2000:])
+    assert "graph: interrupted while training the default model" in err and not model.exists()
