@@ -232,6 +232,9 @@ def _run(duration_s, *, namespace, model_path, out, context, baseline, own, reco
                 next_print += 1.0
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:  # a signal shut the context down as a node was built (RCLError, NotInitializedException)
+        if not shutting_down(executor.context):
+            raise
     finally:
         if own:  # before anything is destroyed (_spin.quiet_signal_handling)
             quiet_signal_handling()

@@ -426,3 +426,21 @@ def test_graph_interrupted_while_it_trains_the_default_model_says_so_and_writes_
     err = seen + pr.communicate(timeout=60)[1]
     assert pr.returncode == 130 and "Traceback" not in err, (pr.returncode, err[-2000:])
     assert "graph: interrupted while training the default model" in err and not model.exists()
+
+
+@pytest.mark.parametrize("after_s", [0.2, 0.5])
+def test_graph_stopped_while_it_builds_its_nodes_exits_0(ros, fdi_model, after_s):
+    """helper-77's QA: a Ctrl-C of `graph` (no --baseline) just after its header line, as it built the fdi node,
+    gave an RCLError or NotInitializedException traceback and status 1 (both delays failed before)."""
+    import subprocess
+    import time
+
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    pr = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.graph", "--duration", "20", "--model", str(fdi_model)],
+                          env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    head = pr.stdout.readline()
+    assert head.startswith("inkdiag graph:"), head
+    time.sleep(after_s)
+    pr.send_signal(signal.SIGINT)
+    out, err = pr.communicate(timeout=60)
+    assert pr.returncode == 0 and "Traceback" not in err, (pr.returncode, err[-2000:])
