@@ -79,6 +79,10 @@ def test_nominal_profile_loads_and_says_what_is_missing():
      r"1 us = 1\.0e-6"),
     (lambda d: d["drive"].update(dwell_s=0.9e-3), r"drive\.dwell_s: 0\.0009 s is longer than 100 us"),  # us as ms
     (lambda d: d["drive"].update(switch_delay_s=2e-3), r"drive\.switch_delay_s: 0\.002 s is longer"),
+    # millivolts written as volts (helper-76's QA: trained without complaint, 31 % right), kilovolts
+    (lambda d: d["drive"].update(amplitude_v=28000.0), r"drive\.amplitude_v: 28000 V is outside 1-500 V, a piezo "
+     r"drive's range \(about 10-150 V\): the profile's amplitude is in volts, not mV"),
+    (lambda d: d["drive"].update(amplitude_v=0.025), r"drive\.amplitude_v: 0\.025 V is outside 1-500 V"),
     # a complete profile whose physics fails names the value in other units (a QA walkthrough: MHz as Hz, mPa s)
     (lambda d: d["sampling"].update(sample_rate_hz=16), r"above the Nyquist frequency 0\.0 kHz .*\(implausible: "
      r"sampling\.sample_rate_hz 16 Hz \(an inkjet head's: 100000 Hz or more\): a value in other units\?"),
@@ -97,6 +101,9 @@ def test_the_longest_drive_segment_is_accepted():
     doc = HeadProfile.default().to_dict()
     doc["drive"].update(dwell_s=1e-4)  # at the bound
     assert HeadProfile.from_dict(doc).drive.dwell_s == 1e-4
+    for volts in (1.0, 500.0):  # the amplitude's bounds
+        doc["drive"].update(amplitude_v=volts)
+        assert HeadProfile.from_dict(doc).drive.amplitude_v == volts
 
 
 def test_physics_checks_of_a_complete_profile():
