@@ -412,3 +412,20 @@ def test_the_reported_actuator_is_the_one_the_profile_simulates():
     assert a["source"] == "nominal profile (channel.f_act)" and a["f_act_hz"] == 1.5e6 and a["warning"] is None
     fe = {"frequency_hz": 1.1e6, "damping_ratio": 0.06}
     assert "a third too low" in _actuator(HeadProfile.default(), fe, 5.198e-21)["warning"]
+
+
+def test_an_assumed_actuator_trains_over_a_wider_resonance_spread_than_a_given_one(result, recorded):
+    """Without --empty traces or the nominal's channel.f_act the empty channels' actuator is the default head's
+    rule, which the independent heads' dry actuators missed by up to 20 %: its resonance spread is
+    ASSUMED_ACTUATOR_RESONANCE_REL; a given (or measured) actuator keeps UNSEEN_PHYSICS_SPREADS' narrower one."""
+    from inkdiag_core.calibration import ASSUMED_ACTUATOR_RESONANCE_REL, UNSEEN_PHYSICS_SPREADS
+
+    narrow = UNSEEN_PHYSICS_SPREADS["actuator_resonance_rel"]
+    assert ASSUMED_ACTUATOR_RESONANCE_REL > narrow
+    assert result.profile.spreads().actuator_resonance_rel == ASSUMED_ACTUATOR_RESONANCE_REL
+    assert result.report["unseen_physics_spreads"]["actuator_resonance_rel"] == ASSUMED_ACTUATOR_RESONANCE_REL
+    assert result.report["actuator"]["source"].startswith("assumed")
+    given = calibrate(nominal_of(TRUE).replace(channel={"f_act": 2.0e6}), recorded.traces, TRUE.sample_rate_hz)
+    assert given.report["actuator"]["source"] == "nominal profile (channel.f_act)"
+    assert given.profile.spreads().actuator_resonance_rel == narrow
+    assert given.report["unseen_physics_spreads"] == UNSEEN_PHYSICS_SPREADS
