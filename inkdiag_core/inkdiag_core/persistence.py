@@ -116,6 +116,7 @@ def _save(model, path, *, config, scores):
     json.dumps(manifest)  # fail before writing anything if config/scores are not JSON
     fd, tmp = temp_beside(path)
     os.close(fd)
+    mtmp = None
     try:
         joblib.dump(model, tmp)
         manifest["sha256"] = _sha256(Path(tmp))
@@ -126,9 +127,10 @@ def _save(model, path, *, config, scores):
             json.dump(manifest, f, indent=2, sort_keys=True)
         os.replace(tmp, path)
         os.replace(mtmp, mpath)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    finally:  # stopped half-way (an error, a Ctrl-C): neither temporary file stays
+        for left in (tmp, mtmp):
+            if left is not None and os.path.exists(left):
+                os.remove(left)
     return mpath, manifest
 
 

@@ -22,9 +22,9 @@ import sys
 
 @contextlib.contextmanager
 def stop_means_exit_0():
-    """Within: SIGINT and SIGTERM raise ``SystemExit(0)`` (``finally`` blocks run), and any exception leaving the
-    block after one is that exit (the ``SystemExit`` may come out as another: an ``ImportError`` from a C
-    extension's init, an rclpy error of a context the stop invalidated); a signal the
+    """Within: SIGINT and SIGTERM raise ``SystemExit(0)`` (``finally`` blocks run), also when that exit leaves the
+    block as another exception (:func:`came_from_a_stop`: an ``ImportError`` from rclpy's C extension's init);
+    any other error after a stop goes on up as it is; a signal the
     process was started ignoring (a shell's background job: SIGINT) stays ignored. The handlers
     before it are back after it (inside, a node's own may replace them for a while, as
     :func:`inkdiag_ros._spin.stop_on_signals` does, restoring these).
@@ -47,9 +47,9 @@ def stop_means_exit_0():
     old_hook, sys.unraisablehook = sys.unraisablehook, unraisable
     try:
         yield
-    except BaseException:
-        if asked:  # what the stop's SystemExit became on its way out is that stop: pybind11 turns it into an
-            raise SystemExit(0) from None  # ImportError in rclpy's C extension's init (seen: a traceback, 1)
+    except BaseException as exc:
+        if asked and came_from_a_stop(exc):  # the stop's SystemExit on its way out, maybe as another exception
+            raise SystemExit(0) from None
         raise
     finally:
         sys.unraisablehook = old_hook
@@ -57,6 +57,25 @@ def stop_means_exit_0():
             signal.signal(sig, handler)
     if asked:  # the stop's SystemExit was swallowed on the way (above): exit now
         raise SystemExit(0)
+
+
+def in_chain(exc: BaseException | None, *types) -> bool:
+    """Whether ``exc`` or one of its causes (``__cause__``, else ``__context__``, in turn) is of one of ``types``."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, types):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
+def came_from_a_stop(exc: BaseException) -> bool:
+    """Whether ``exc`` is a stop's ``SystemExit`` or ``KeyboardInterrupt``, has one in its chain of causes, or is an
+    ``ImportError``: pybind11 turns whatever a module's init raises into an ``ImportError`` ("initialization
+    failed", the cause attached), and rclpy's ``rpyutils`` re-raises it as "The C extension ... isn't present"
+    (a SIGTERM 0.12 s after ``inkdiag printer``'s header line: a traceback and status 1)."""
+    return in_chain(exc, SystemExit, KeyboardInterrupt, ImportError)
 
 
 def _run(module: str):

@@ -80,10 +80,16 @@ def main(argv=None) -> int:
             return _main(argv)
     try:
         return _main(argv)
+    except Exception as exc:  # a Ctrl-C in a C extension's init (rclpy's) comes out as an ImportError it caused
+        from ._launch import in_chain
+
+        if not in_chain(exc, KeyboardInterrupt):
+            raise
     except KeyboardInterrupt:  # Ctrl-C while it imports (seconds, before _main's own handling): one line too
-        verb = f" {words[0]}" if words[:1] and words[0] in VERBS else ""
-        print(f"inkdiag{verb}: interrupted", file=sys.stderr)
-        return 130
+        pass
+    verb = f" {words[0]}" if words[:1] and words[0] in VERBS else ""
+    print(f"inkdiag{verb}: interrupted", file=sys.stderr)
+    return 130
 
 
 def _main(argv) -> int:

@@ -296,8 +296,8 @@ def main(args=None) -> int:
 
         try:
             ns.model = str(ensure_default_model(ns.model or DEFAULT_MODEL))
-        except KeyboardInterrupt:  # Ctrl-C in the first run's training (a minute): one line, no traceback
-            print("graph: interrupted while training the default model (nothing written; the next run trains it)",
+        except KeyboardInterrupt:  # Ctrl-C in the first run's training (seconds): one line, no traceback
+            print("graph: interrupted while checking or training the default model (a model is written only whole)",
                   file=sys.stderr)
             return 130
     baseline = None
@@ -307,7 +307,7 @@ def main(args=None) -> int:
     print(f"inkdiag graph: printhead_sim -> fdi -> fe in {ns.namespace}, "
           f"{'until Ctrl-C' if ns.duration <= 0 else f'{ns.duration:g} s'} (Ctrl-C stops early)"
           + (f"; per-nozzle baselines recorded in the first {ns.commissioning:g} s" if baseline else "")
-          + (f"; recording its topics into {ns.record}" if ns.record else ""))
+          + (f"; recording its topics into {ns.record}" if ns.record else ""), flush=True)
     try:
         score = run(ns.duration, namespace=ns.namespace, model_path=ns.model, args=argv[:1] + ros_args,
                     baseline=baseline, record=ns.record)

@@ -329,7 +329,7 @@ def test_inkdiag_printer_stopped_at_any_time_exits_0(ros, fdi_model, at_s):
     else:
         time.sleep(at_s)
     pr.send_signal(signal.SIGTERM)
-    out = head + pr.communicate(timeout=60)[0]
+    out = head + _finish(pr)[0]
     assert pr.returncode == 0 and "Traceback" not in out, (pr.returncode, out[-2000:])
     pids = [int(p) for p in out.split("(pids ", 1)[1].split(")", 1)[0].split(", ")] if "(pids " in out else []
     deadline = time.monotonic() + 10
@@ -370,6 +370,16 @@ def test_a_stop_whose_exit_was_swallowed_still_exits_at_the_end_of_the_block(cap
         pass
 
 
+def _finish(pr, timeout=60):
+    """``pr.communicate(timeout=...)``; a process still running after it is killed (no leftover on a CI box)."""
+    try:
+        return pr.communicate(timeout=timeout)
+    finally:
+        if pr.poll() is None:
+            pr.kill()
+            pr.communicate()
+
+
 @pytest.mark.parametrize("at_s", [0.5, 2.5])
 def test_inkdiag_record_interrupted_at_any_time_says_so_in_one_line(ros, tmp_path, at_s):
     """Ctrl-C of `inkdiag record` while it imports (seconds): 'interrupted' and 130, not a KeyboardInterrupt
@@ -383,7 +393,7 @@ def test_inkdiag_record_interrupted_at_any_time_says_so_in_one_line(ros, tmp_pat
                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     time.sleep(at_s)
     pr.send_signal(signal.SIGINT)
-    out = pr.communicate(timeout=60)[0]
+    out = _finish(pr)[0]
     assert "Traceback" not in out, out[-2000:]
     assert (pr.returncode, out.strip()) == (130, "inkdiag record: interrupted") or (
         pr.returncode == 0 and "wrote 0 messages" in out and (tmp_path / "bag" / "metadata.yaml").is_file()), out
@@ -406,6 +416,36 @@ def test_a_stop_that_comes_out_as_another_exception_still_exits_0():
     with pytest.raises(ImportError):
         with stop_means_exit_0():
             raise ImportError("no stop: a real error")
+    with pytest.raises(RuntimeError, match="after the stop"):  # a stop does not hide an error of its own
+        with stop_means_exit_0():
+            try:
+                signal.raise_signal(signal.SIGTERM)
+            except SystemExit:
+                pass
+            raise RuntimeError("a real error after the stop")
+
+
+def test_inkdiag_says_interrupted_for_a_ctrl_c_that_comes_out_as_another_exception(monkeypatch, capsys):
+    """helper-78's review: a Ctrl-C in rclpy's C extension's init reaches the verb as an ImportError caused by the
+    KeyboardInterrupt; that is 'interrupted' and 130 too; an ImportError of its own is not."""
+    from inkdiag_ros import cli
+
+    def ctrl_c_in_init(argv):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as exc:
+            raise ImportError("initialization failed") from exc
+
+    monkeypatch.setattr(cli, "_main", ctrl_c_in_init)
+    assert cli.main(["record", "bag"]) == 130
+    assert capsys.readouterr().err == "inkdiag record: interrupted\n"
+
+    def broken(argv):
+        raise ImportError("a module really missing")
+
+    monkeypatch.setattr(cli, "_main", broken)
+    with pytest.raises(ImportError, match="really missing"):
+        cli.main(["record", "bag"])
 
 
 def test_graph_interrupted_while_it_trains_the_default_model_says_so_and_writes_nothing(tmp_path):
@@ -423,9 +463,10 @@ def test_graph_interrupted_while_it_trains_the_default_model_says_so_and_writes_
         assert ch, seen
         seen += ch
     pr.send_signal(signal.SIGINT)
-    err = seen + pr.communicate(timeout=60)[1]
+    err = seen + _finish(pr)[1]
     assert pr.returncode == 130 and "Traceback" not in err, (pr.returncode, err[-2000:])
-    assert "graph: interrupted while training the default model" in err and not model.exists()
+    assert "graph: interrupted while checking or training the default model" in err and not model.exists()
+    assert not model.parent.exists() or not any(model.parent.iterdir())  # no temporary file left either
 
 
 @pytest.mark.parametrize("after_s", [0.2, 0.5])
@@ -435,12 +476,13 @@ def test_graph_stopped_while_it_builds_its_nodes_exits_0(ros, fdi_model, after_s
     import subprocess
     import time
 
-    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               PYTHONUNBUFFERED="1")  # its header line now, not at exit (else the signal finds it gone)
     pr = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.graph", "--duration", "20", "--model", str(fdi_model)],
                           env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     head = pr.stdout.readline()
     assert head.startswith("inkdiag graph:"), head
     time.sleep(after_s)
     pr.send_signal(signal.SIGINT)
-    out, err = pr.communicate(timeout=60)
+    err = _finish(pr)[1]
     assert pr.returncode == 0 and "Traceback" not in err, (pr.returncode, err[-2000:])

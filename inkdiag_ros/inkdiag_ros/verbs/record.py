@@ -53,21 +53,24 @@ def run(args) -> int:
         writer.open()
         node = executor = rec = None
         try:
-            node = rclpy.create_node("inkdiag_record")
-            stop.attach(node)
-            rec = BagRecorder(node, writer, wanted)
-            executor = SingleThreadedExecutor()
-            executor.add_node(node)
-            print(f"recording {', '.join(wanted)} into {bag}", file=sys.stderr, flush=True)
-            end = None if args.duration is None else time.monotonic() + args.duration
-            while not stop.requested and rclpy.ok() and (end is None or time.monotonic() < end):
-                try:
-                    executor.spin_once(timeout_sec=0.1 if end is None else max(0.0, min(0.1, end - time.monotonic())))
-                except ExternalShutdownException:  # SIGINT/SIGTERM through rclpy's handler
-                    break
-        except Exception:  # a signal as the node was built: rclpy invalidated the context under it (RCLError)
-            if not (stop.requested or shutting_down(rclpy.utilities.get_default_context())):
-                raise
+            try:
+                node = rclpy.create_node("inkdiag_record")
+                stop.attach(node)
+                rec = BagRecorder(node, writer, wanted)
+                executor = SingleThreadedExecutor()
+                executor.add_node(node)
+            except Exception:  # a signal as the node was built: rclpy invalidated the context under it (RCLError)
+                if not (stop.requested or shutting_down(rclpy.utilities.get_default_context())):
+                    raise
+            else:
+                print(f"recording {', '.join(wanted)} into {bag}", file=sys.stderr, flush=True)
+                end = None if args.duration is None else time.monotonic() + args.duration
+                while not stop.requested and rclpy.ok() and (end is None or time.monotonic() < end):
+                    try:
+                        executor.spin_once(timeout_sec=0.1 if end is None else
+                                           max(0.0, min(0.1, end - time.monotonic())))
+                    except ExternalShutdownException:  # SIGINT/SIGTERM through rclpy's handler
+                        break
         finally:
             if rec is not None:
                 rec.finish()

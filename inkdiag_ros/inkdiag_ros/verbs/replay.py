@@ -87,48 +87,50 @@ def run(args) -> int:
         rclpy.init()
         node = executor = None
         try:
-            node = rclpy.create_node("inkdiag_replay")
-            stop.attach(node)
-            executor = SingleThreadedExecutor()
-            executor.add_node(node)
-            pubs = {}
-            for c in conns:
-                default = TRACES_QOS if c.msgtype == TRACES_TYPE else RELIABLE_QOS
-                offered = c.ext.offered_qos_profiles
-                qos = qos_from_rosbags(offered[0] if offered else None, default)
-                pubs[c.id] = node.create_publisher(msg_class(c.msgtype), remap(c.topic, args.namespace), qos)
-            _wait_for_subscribers(executor, node, list(pubs.values()), args.wait_s, stop)
-            print(f"replaying {sum(c.msgcount for c in conns)} messages of {', '.join(sorted({c.topic for c in conns}))} "
-                  f"from {bag}", file=sys.stderr, flush=True)
-            while not stop.requested and rclpy.ok():
-                t_bag0 = t_wall0 = None
-                for c, ts, raw in reader.messages(connections=conns):
-                    if stop.requested:
-                        break
-                    if t_bag0 is None:
-                        t_bag0, t_wall0 = ts, time.monotonic()
-                    if not args.as_fast_as_possible:
-                        due = t_wall0 + (ts - t_bag0) * 1e-9 / args.rate
-                        while not stop.requested and time.monotonic() < due:
-                            try:
-                                executor.spin_once(timeout_sec=min(0.05, max(0.0, due - time.monotonic())))
-                            except ExternalShutdownException:
-                                stop.requested = True
-                    try:
-                        pubs[c.id].publish(bytes(raw))
-                    except Exception:
-                        if stop.requested or not rclpy.ok():  # a signal took the context down meanwhile
+            try:
+                node = rclpy.create_node("inkdiag_replay")
+                stop.attach(node)
+                executor = SingleThreadedExecutor()
+                executor.add_node(node)
+                pubs = {}
+                for c in conns:
+                    default = TRACES_QOS if c.msgtype == TRACES_TYPE else RELIABLE_QOS
+                    offered = c.ext.offered_qos_profiles
+                    qos = qos_from_rosbags(offered[0] if offered else None, default)
+                    pubs[c.id] = node.create_publisher(msg_class(c.msgtype), remap(c.topic, args.namespace), qos)
+            except Exception:  # a signal as the node was built: rclpy invalidated the context under it (RCLError)
+                if not (stop.requested or shutting_down(rclpy.utilities.get_default_context())):
+                    raise
+            else:
+                _wait_for_subscribers(executor, node, list(pubs.values()), args.wait_s, stop)
+                print(f"replaying {sum(c.msgcount for c in conns)} messages of "
+                      f"{', '.join(sorted({c.topic for c in conns}))} from {bag}", file=sys.stderr, flush=True)
+                while not stop.requested and rclpy.ok():
+                    t_bag0 = t_wall0 = None
+                    for c, ts, raw in reader.messages(connections=conns):
+                        if stop.requested:
                             break
-                        raise
-                    n_sent += 1
-                if not args.loop:
-                    break
-            for pub in pubs.values() if rclpy.ok() else ():  # reliable topics: let the subscribers have them before we go
-                if pub.qos_profile.reliability == ReliabilityPolicy.RELIABLE and pub.get_subscription_count():
-                    pub.wait_for_all_acked(rclpy.duration.Duration(seconds=5.0))
-        except Exception:  # a signal as the node was built: rclpy invalidated the context under it (RCLError)
-            if not (stop.requested or shutting_down(rclpy.utilities.get_default_context())):
-                raise
+                        if t_bag0 is None:
+                            t_bag0, t_wall0 = ts, time.monotonic()
+                        if not args.as_fast_as_possible:
+                            due = t_wall0 + (ts - t_bag0) * 1e-9 / args.rate
+                            while not stop.requested and time.monotonic() < due:
+                                try:
+                                    executor.spin_once(timeout_sec=min(0.05, max(0.0, due - time.monotonic())))
+                                except ExternalShutdownException:
+                                    stop.requested = True
+                        try:
+                            pubs[c.id].publish(bytes(raw))
+                        except Exception:
+                            if stop.requested or not rclpy.ok():  # a signal took the context down meanwhile
+                                break
+                            raise
+                        n_sent += 1
+                    if not args.loop:
+                        break
+                for pub in pubs.values() if rclpy.ok() else ():  # reliable topics: the subscribers have them first
+                    if pub.qos_profile.reliability == ReliabilityPolicy.RELIABLE and pub.get_subscription_count():
+                        pub.wait_for_all_acked(rclpy.duration.Duration(seconds=5.0))
         finally:
             reader.close()
             tear_down(executor, [node])
