@@ -135,7 +135,7 @@ trace's amplitude, which the fit absorbs)."""
 
 PLAUSIBLE_DRIVE_AMPLITUDE_V = (1.0, 500.0)
 """Range of ``drive.amplitude_v`` a profile accepts, V. A piezo inkjet drive swings about 10-150 V (every
-shipped profile 18-28 V): a value outside is in other units (millivolts written as volts, or kilovolts),
+profile in this repository, shipped or in its tests, 18-28 V): a value outside is in other units (millivolts written as volts, or kilovolts),
 which training would otherwise take without complaint (a model trained on a 28,000 V drive labelled a
 20 MHz head's traces 31 % right, helper-76's QA)."""
 
@@ -316,8 +316,9 @@ class HeadProfile:
         drive = DriveWaveform(**{k: _number(f"{source}: drive", k, v, DRIVE_UNITS[k]) for k, v in dr.items()})
         lo, hi = PLAUSIBLE_DRIVE_AMPLITUDE_V
         if not lo <= drive.amplitude_v <= hi:
+            unit = "mV" if drive.amplitude_v > hi else "kV"
             raise ProfileError(f"{source}: drive.amplitude_v: {drive.amplitude_v:g} V is outside {lo:g}-{hi:g} V, a "
-                               "piezo drive's range (about 10-150 V): the profile's amplitude is in volts, not mV")
+                               f"piezo drive's range (about 10-150 V): the profile's amplitude is in volts, not {unit}")
         for k in ("rise_s", "dwell_s", "fall_s", "switch_delay_s"):
             if getattr(drive, k) > MAX_DRIVE_TIME_S:
                 raise ProfileError(

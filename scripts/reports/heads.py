@@ -539,7 +539,8 @@ def write_report(results, args, log, elapsed):
         "- *true*: the head's true channel, drive, sensor and spreads (`tests/foreign_head.py`), plus the "
         "spreads a calibrated profile trains over for the physics healthy traces cannot show (the empty "
         "channel's actuator, `calibration.UNSEEN_PHYSICS_SPREADS`), and the head's actuator resonance and "
-        "damping (`channel.f_act`, `zeta_act`): the two rows differ by calibration only. The foreign "
+        "damping (`channel.f_act`, `zeta_act`): the two rows differ by calibration only (which assumes the "
+        "actuator and so trains over a wider resonance spread, `calibration.ASSUMED_ACTUATOR_RESONANCE_REL`). The foreign "
         "simulator's other fault constants (the ink film's loss, the ink-temperature law) stay unknown to both.",
         "- partially_blocked (a particle in the bore: resistance and inertance) and the dried classes "
         "(resistance only) overlap in frequency and damping where the head's spreads between nozzles and "

@@ -429,3 +429,7 @@ def test_an_assumed_actuator_trains_over_a_wider_resonance_spread_than_a_given_o
     assert given.report["actuator"]["source"] == "nominal profile (channel.f_act)"
     assert given.profile.spreads().actuator_resonance_rel == narrow
     assert given.report["unseen_physics_spreads"] == UNSEEN_PHYSICS_SPREADS
+    own = calibrate(nominal_of(TRUE).replace(spreads_overrides={"actuator_resonance_rel": 0.03}), recorded.traces,
+                    TRUE.sample_rate_hz)  # a nominal's own value wins (docs/calibration.md: its spreads are kept)
+    assert own.profile.spreads().actuator_resonance_rel == 0.03
+    assert own.report["unseen_physics_spreads"]["actuator_resonance_rel"] == 0.03

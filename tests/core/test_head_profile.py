@@ -82,7 +82,7 @@ def test_nominal_profile_loads_and_says_what_is_missing():
     # millivolts written as volts (helper-76's QA: trained without complaint, 31 % right), kilovolts
     (lambda d: d["drive"].update(amplitude_v=28000.0), r"drive\.amplitude_v: 28000 V is outside 1-500 V, a piezo "
      r"drive's range \(about 10-150 V\): the profile's amplitude is in volts, not mV"),
-    (lambda d: d["drive"].update(amplitude_v=0.025), r"drive\.amplitude_v: 0\.025 V is outside 1-500 V"),
+    (lambda d: d["drive"].update(amplitude_v=0.025), r"drive\.amplitude_v: 0\.025 V is outside 1-500 V.*in volts, not kV"),
     # a complete profile whose physics fails names the value in other units (a QA walkthrough: MHz as Hz, mPa s)
     (lambda d: d["sampling"].update(sample_rate_hz=16), r"above the Nyquist frequency 0\.0 kHz .*\(implausible: "
      r"sampling\.sample_rate_hz 16 Hz \(an inkjet head's: 100000 Hz or more\): a value in other units\?"),
