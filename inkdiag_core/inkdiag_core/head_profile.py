@@ -135,9 +135,9 @@ trace's amplitude, which the fit absorbs)."""
 
 PLAUSIBLE_DRIVE_AMPLITUDE_V = (1.0, 500.0)
 """Range of ``drive.amplitude_v`` a profile accepts, V. A piezo inkjet drive swings about 10-150 V (every
-profile in this repository, shipped or in its tests, 18-28 V): a value outside is in other units (millivolts written as volts, or kilovolts),
-which training would otherwise take without complaint (a model trained on a 28,000 V drive labelled a
-20 MHz head's traces 31 % right, helper-76's QA)."""
+profile in this repository, shipped or in its tests, 18-28 V): a value outside is in other units (millivolts
+written as volts, or kilovolts), which training would otherwise take without complaint (a model trained on a
+28,000 V drive labelled a 20 MHz head's traces 31 % right, helper-76's QA)."""
 
 SAMPLING_UNITS = {"sample_rate_hz": "Hz", "n_samples": "samples"}
 

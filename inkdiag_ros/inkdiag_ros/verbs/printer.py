@@ -201,8 +201,8 @@ def summary(latest: dict, n_heads: int, t: float, now: float) -> str:
         if d.get("level") != "ok":
             levels[d.get("level")] = levels.get(d.get("level"), 0) + 1
     starting = "" if latest else " (starting: no head's /diagnostics yet)"
-    return (f"t={t:6.1f}s heads up {len(fresh)}/{n_heads}{starting} | {fps:7.1f} frames/s labelled ({tps:,.0f} traces/s)"
-            f" | dropped+failed {bad}" + "".join(f" | {k} {v}" for k, v in sorted(levels.items())))
+    return (f"t={t:6.1f}s heads up {len(fresh)}/{n_heads}{starting} | {fps:7.1f} frames/s labelled "
+            f"({tps:,.0f} traces/s) | dropped+failed {bad}" + "".join(f" | {k} {v}" for k, v in sorted(levels.items())))
 
 
 def _stop(children) -> None:
