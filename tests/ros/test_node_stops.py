@@ -390,7 +390,8 @@ def test_inkdiag_record_interrupted_at_any_time_says_so_in_one_line(ros, tmp_pat
 
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     pr = subprocess.Popen([shutil.which("inkdiag"), "record", str(tmp_path / "bag")], env=env,
-                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                          preexec_fn=_sigint_as_a_terminal_gives_it)
     time.sleep(at_s)
     pr.send_signal(signal.SIGINT)
     out = _finish(pr)[0]
@@ -456,7 +457,8 @@ def test_graph_interrupted_while_it_trains_the_default_model_says_so_and_writes_
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     model = tmp_path / "models" / "fdi_default.joblib"
     pr = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.graph", "--train-if-missing", "--model", str(model)],
-                          env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                          env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                          preexec_fn=_sigint_as_a_terminal_gives_it)
     seen = ""
     while "training the default FDI model" not in seen:  # tqdm's bar: no newline to read a line up to
         ch = pr.stderr.read(1)
@@ -479,10 +481,13 @@ def test_graph_stopped_while_it_builds_its_nodes_exits_0(ros, fdi_model, after_s
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                PYTHONUNBUFFERED="1")  # its header line now, not at exit (else the signal finds it gone)
     pr = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.graph", "--duration", "20", "--model", str(fdi_model)],
-                          env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                          env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                          preexec_fn=_sigint_as_a_terminal_gives_it)
+    t0 = time.monotonic()
     head = pr.stdout.readline()
     assert head.startswith("inkdiag graph:"), head
     time.sleep(after_s)
     pr.send_signal(signal.SIGINT)
     err = _finish(pr)[1]
     assert pr.returncode == 0 and "Traceback" not in err, (pr.returncode, err[-2000:])
+    assert time.monotonic() - t0 < 15, "it ran its 20 s: the SIGINT did not stop it"
