@@ -85,6 +85,12 @@ class StopRequest:
         if self.requested:  # a signal while the node was being built
             self._gc.trigger()
 
+    def explains_an_error(self, context=None) -> bool:
+        """Whether an error just raised is this stop's doing: a signal arrived, or ``context`` (default: rclpy's
+        default context) is or soon goes down (:func:`shutting_down`), as when a signal invalidates the context
+        under a node being built (RCLError) or a callback publishing."""
+        return self.requested or shutting_down(rclpy.utilities.get_default_context() if context is None else context)
+
     def _on_signal(self, signum, frame):
         self.requested = True
         gc = self._gc
@@ -262,7 +268,7 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, eve
                 early = 2
                 return early
             except Exception:  # a signal while it was built: rclpy invalidated its publishers
-                if not (stop.requested or shutting_down(rclpy.utilities.get_default_context())):
+                if not stop.explains_an_error():
                     raise
                 early = 0 if exit_code is None else 1
                 return early
@@ -275,7 +281,7 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, eve
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         except Exception:
-            if node is None or not (stop.requested or shutting_down(node.context)):
+            if node is None or not stop.explains_an_error(node.context):
                 raise
         finally:
             status = _deadline_status(early, exit_code, node)

@@ -21,7 +21,7 @@ from rclpy.utilities import remove_ros_args
 import msg_defs
 from msg_defs import topics
 
-from ._spin import shutting_down, stop_on_signals
+from ._spin import stop_on_signals
 
 TYPES = {
     topics.TRACES: (msg_defs.TRACE_MSG_TYPE, msg_defs.TRACES_QOS),
@@ -107,7 +107,7 @@ def main(args=None) -> int:
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         except Exception:  # a signal while the node was built: rclpy invalidated what it was building
-            if not (stop.requested or shutting_down(rclpy.utilities.get_default_context())):
+            if not stop.explains_an_error():
                 raise
         finally:
             if node is not None:

@@ -148,7 +148,7 @@ def _monitor(args, children) -> list:
 
     from msg_defs import DIAGNOSTICS_MSG_TYPE, DIAGNOSTICS_QOS, diagnostics_values
 
-    from .._spin import shutting_down, stop_on_signals, tear_down
+    from .._spin import stop_on_signals, tear_down
 
     latest = {}  # head namespace -> (arrival time, values)
     wanted = {f"{i:02d}" for i in range(args.first_head, args.first_head + args.heads)}
@@ -183,7 +183,7 @@ def _monitor(args, children) -> list:
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         except Exception:  # a signal shut the context down as the node or spin_once's wait set was built (RCLError)
-            if not (stop.requested or shutting_down(rclpy.utilities.get_default_context())):
+            if not stop.explains_an_error():
                 raise
         finally:
             tear_down(executor, [node])
@@ -234,8 +234,7 @@ def worker_main(argv=None) -> int:
     from rclpy.parameter import Parameter
     from rclpy.utilities import remove_ros_args
 
-    from .._spin import (TEARDOWN_DEADLINE_S, freeze_startup_objects, make_executor, shutting_down, stop_on_signals,
-                         tear_down)
+    from .._spin import TEARDOWN_DEADLINE_S, freeze_startup_objects, make_executor, stop_on_signals, tear_down
     from ..allocator import PeriodicRelease, keep_freed_memory
     from ..blas import limit_blas_threads
     from ..graph import default_params_file
@@ -283,13 +282,13 @@ def worker_main(argv=None) -> int:
                 executor.spin_once(timeout_sec=0.5)
                 release()
         except (ValueError, ParameterException) as exc:
-            if not (stop.requested or shutting_down(ctx)):
+            if not stop.explains_an_error(ctx):
                 print(f"{prog}: {exc}", file=sys.stderr)
                 status = 2
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         except Exception:
-            if not (stop.requested or shutting_down(ctx)):
+            if not stop.explains_an_error(ctx):
                 raise
         finally:  # a process of its own (started by run_printer): bounded like every node process
             tear_down(executor, nodes, deadline_s=TEARDOWN_DEADLINE_S,

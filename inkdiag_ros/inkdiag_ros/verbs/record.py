@@ -40,7 +40,7 @@ def run(args) -> int:
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rosbags.rosbag2 import StoragePlugin, Writer
 
-    from .._spin import shutting_down, stop_on_signals, tear_down
+    from .._spin import stop_on_signals, tear_down
     from ..bags import BagRecorder, check_new_bag, head_topics
 
     if args.duration is not None and not args.duration > 0:
@@ -60,7 +60,7 @@ def run(args) -> int:
                 executor = SingleThreadedExecutor()
                 executor.add_node(node)
             except Exception:  # a signal as the node was built: rclpy invalidated the context under it (RCLError)
-                if not (stop.requested or shutting_down(rclpy.utilities.get_default_context())):
+                if not stop.explains_an_error():
                     raise
             else:
                 print(f"recording {', '.join(wanted)} into {bag}", file=sys.stderr, flush=True)

@@ -64,7 +64,7 @@ def run(args) -> int:
     from msg_defs.qos import RELIABLE_QOS, TRACES_QOS
     from inkdiag_core.recording import RecordingError
 
-    from .._spin import shutting_down, stop_on_signals, tear_down
+    from .._spin import stop_on_signals, tear_down
     from ..bags import TRACES_TYPE, first_line, is_bag, msg_class, qos_from_rosbags
 
     if not args.as_fast_as_possible and not args.rate > 0:
@@ -99,7 +99,7 @@ def run(args) -> int:
                     qos = qos_from_rosbags(offered[0] if offered else None, default)
                     pubs[c.id] = node.create_publisher(msg_class(c.msgtype), remap(c.topic, args.namespace), qos)
             except Exception:  # a signal as the node was built: rclpy invalidated the context under it (RCLError)
-                if not (stop.requested or shutting_down(rclpy.utilities.get_default_context())):
+                if not stop.explains_an_error():
                     raise
             else:
                 _wait_for_subscribers(executor, node, list(pubs.values()), args.wait_s, stop)
