@@ -31,12 +31,17 @@ def stop_means_exit_0():
 
     Where the handler's ``SystemExit`` lands in code whose exceptions Python ignores (a weakref
     callback of the import machinery: "Exception ignored in ... _get_module_lock", seen once in a
-    CI run), it is not printed, and the process exits at the end of the block instead."""
+    CI run), it is not printed, and the process exits at the end of the block instead; a
+    :func:`inkdiag_ros._spin.stop_on_signals` entered after that within the block starts with the stop
+    requested (``inkdiag printer`` runs until stopped inside this block: a CI run's printer, whose
+    SIGTERM was swallowed as it imported, ran on until killed)."""
     asked = []
 
     def stop(signum, frame):  # noqa: ARG001 - a signal handler's signature
         asked.append(signum)
         raise SystemExit(0)
+
+    stop.asked = asked  # what a handler installed over this one reads (stop_on_signals: a stop already asked)
 
     def unraisable(u, hook=sys.unraisablehook):  # the ignored SystemExit: not a traceback on the way out
         if not isinstance(u.exc_value, SystemExit):

@@ -118,15 +118,29 @@ def stop_on_signals():
     waiting without a timeout: nothing wakes it again but traffic or a timer (issue 12:
     fe, which has no timer, ignored its first signal now and then). Handlers restored
     on exit.
+
+    Entered where a handler that records stops (``asked``, as :func:`inkdiag_ros._launch.stop_means_exit_0`'s)
+    has recorded one, the stop starts requested. After a stop, an error in the finalizer of an rclpy
+    object is not printed: an object a stop left half built (a ``SingleThreadedExecutor`` whose
+    ``__init__`` met the context going down: "Exception ignored in ... Executor.__del__", an
+    ``AttributeError`` traceback, in a CI run).
     """
     stop = StopRequest()
     if threading.current_thread() is not threading.main_thread():
         yield stop
         return
     old = {sig: signal.signal(sig, stop._on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    stop.requested = any(getattr(h, "asked", None) for h in old.values())  # _launch.stop_means_exit_0's, swallowed
+
+    def unraisable(u, hook=sys.unraisablehook):
+        if not (stop.requested and getattr(u.object, "__module__", "").startswith("rclpy.")):
+            hook(u)
+
+    old_hook, sys.unraisablehook = sys.unraisablehook, unraisable
     try:
         yield stop
     finally:
+        sys.unraisablehook = old_hook
         for sig, handler in old.items():
             signal.signal(sig, handler)
 

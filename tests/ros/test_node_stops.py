@@ -370,6 +370,50 @@ def test_a_stop_whose_exit_was_swallowed_still_exits_at_the_end_of_the_block(cap
         pass
 
 
+def test_a_stop_swallowed_before_stop_on_signals_is_requested_there():
+    """A CI run's printer, SIGTERMed 0.3 s after its start, ran on until killed: the SIGTERM's SystemExit was
+    swallowed as the printer imported (inside stop_means_exit_0) and its monitor's stop_on_signals, entered
+    after, started with no stop. Entered after a swallowed stop, it starts with the stop requested."""
+    from inkdiag_ros._launch import stop_means_exit_0
+    from inkdiag_ros._spin import stop_on_signals
+
+    with pytest.raises(SystemExit) as got:
+        with stop_means_exit_0():
+            try:
+                signal.raise_signal(signal.SIGTERM)
+            except SystemExit:  # where Python ignores it
+                pass
+            with stop_on_signals() as stop:
+                requested = stop.requested
+    assert got.value.code == 0 and requested
+    with stop_means_exit_0(), stop_on_signals() as stop:  # no signal: no stop
+        assert not stop.requested
+
+
+def test_after_a_stop_a_half_built_rclpy_objects_finalizer_error_is_not_printed(monkeypatch):
+    """A CI run's printer, SIGTERMed as its monitor built its executor, printed "Exception ignored in
+    <function Executor.__del__>" and an AttributeError traceback (the half-built executor had no _sigint_gc)."""
+    import types
+
+    from rclpy.executors import Executor
+
+    from inkdiag_ros._spin import stop_on_signals
+
+    seen = []
+    monkeypatch.setattr(sys, "unraisablehook", seen.append)
+
+    def ignored(obj):
+        return types.SimpleNamespace(exc_type=AttributeError, exc_value=AttributeError("_sigint_gc"),
+                                     exc_traceback=None, err_msg=None, object=obj)
+
+    with stop_on_signals() as stop:
+        sys.unraisablehook(ignored(Executor.__del__))  # before a stop: printed
+        stop._on_signal(signal.SIGTERM, None)
+        sys.unraisablehook(ignored(Executor.__del__))  # after it: not
+        sys.unraisablehook(ignored(_finish))  # not rclpy's: printed
+    assert [u.object for u in seen] == [Executor.__del__, _finish] and sys.unraisablehook == seen.append
+
+
 def _finish(pr, timeout=60):
     """``pr.communicate(timeout=...)``; a process still running after it is killed (no leftover on a CI box)."""
     try:

@@ -145,6 +145,7 @@ def _monitor(args, children) -> list:
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.node import Node
+    from rclpy.signals import SignalHandlerOptions
 
     from msg_defs import DIAGNOSTICS_MSG_TYPE, DIAGNOSTICS_QOS, diagnostics_values
 
@@ -159,9 +160,13 @@ def _monitor(args, children) -> list:
                 latest[name.split(": ", 1)[1]] = (time.monotonic(), d)
 
     with stop_on_signals() as stop:
-        rclpy.init()
+        if stop.requested:  # a stop whose SystemExit was swallowed as this process imported
+            return []
+        # no rclpy signal handlers: a signal sets ``stop.requested`` and never takes the context down under the
+        # node or the executor being built (RCLError, and a half-built executor's AttributeError traceback)
+        rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
         node = executor = None
-        try:  # the node is built inside: a signal now invalidates the context under it (RCLError), a stop
+        try:
             node = Node("printer_monitor")
             executor = SingleThreadedExecutor(context=node.context)
             executor.add_node(node)
@@ -182,9 +187,6 @@ def _monitor(args, children) -> list:
                     next_print += 1.0
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
-        except Exception:  # a signal shut the context down as the node or spin_once's wait set was built (RCLError)
-            if not stop.explains_an_error():
-                raise
         finally:
             tear_down(executor, [node])
     return []
