@@ -43,8 +43,10 @@ def _scalar(v) -> str:
         except ValueError:
             pass
         return v if plain else "'" + v.replace("'", "''") + "'"
-    if isinstance(v, bytes):
-        return repr(v)
+    if isinstance(v, bytes):  # a byte field (a DiagnosticStatus's level): its characters, as ros2 prints them
+        import yaml
+
+        return yaml.safe_dump({"v": "".join(map(chr, v))}, width=float("inf"))[3:].rstrip("\n")  # b'\x01': "\x01"
     if isinstance(v, float):
         return repr(v)
     return str(v)
