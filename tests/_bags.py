@@ -28,9 +28,11 @@ def frame_msg(ts, traces, *, first, frame_id, stamp_s, data_offset=HEADER_LEN):
     return ma["std_msgs/msg/Float32MultiArray"](layout=layout, data=np.concatenate([head, traces.ravel()]))
 
 
-def write_bag(path, frames, *, version=9, bad_frame=None, traces_type="std_msgs/msg/Float32MultiArray", stamps=None):
+def write_bag(path, frames, *, version=9, bad_frame=None, traces_type="std_msgs/msg/Float32MultiArray", stamps=None,
+              writer=None):
     """A rosbag2 MCAP bag written by rosbags directly: ``frames`` is a list of (first_nozzle, traces); frame ``k``
-    has frame_id ``k`` and stamp ``stamps[k]`` s (default ``100 + k``)."""
+    has frame_id ``k`` and stamp ``stamps[k]`` s (default ``100 + k``). ``writer(path, version)``: the writer
+    (default: rosbags' own)."""
     from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
     from rosbags.rosbag2 import StoragePlugin, Writer
 
@@ -38,7 +40,7 @@ def write_bag(path, frames, *, version=9, bad_frame=None, traces_type="std_msgs/
     qos = Qos(QosHistory.KEEP_LAST, 32, QosReliability.BEST_EFFORT, QosDurability.VOLATILE, QosTime(0, 0),
               QosTime(0, 0), QosLiveliness.AUTOMATIC, QosTime(0, 0), False)
     t0 = 1_700_000_000_000_000_000
-    with Writer(path, version=version, storage_plugin=StoragePlugin.MCAP) as w:
+    with (writer(path, version) if writer else Writer(path, version=version, storage_plugin=StoragePlugin.MCAP)) as w:
         conn = w.add_connection(f"{NS}/traces", traces_type, typestore=ts, offered_qos_profiles=[qos])
         other = w.add_connection(f"{NS}/labels", "std_msgs/msg/String", typestore=ts)
         for k, (first, x) in enumerate(frames):
@@ -115,6 +117,26 @@ def assert_two_readers_agree(bag):
     for x, y in zip(a, b):
         assert x == y, (x[:2], y[:2])
     return a
+
+
+def flip_a_trace_byte(bag):
+    """Flip one bit of a trace sample in the middle of a traces message of the bag's first MCAP chunk (no length or
+    header touched: the message still decodes, as a slightly different trace); returns the MCAP file."""
+    import struct
+    from pathlib import Path
+
+    path = next(Path(bag).glob("*.mcap"))
+    b = bytearray(path.read_bytes())
+    off = 8  # after the magic: the first record is the Header, then schemas, channels, the first Chunk
+    while b[off] != 0x06:
+        off += 9 + struct.unpack_from("<Q", b, off + 1)[0]
+    comp = struct.unpack_from("<I", b, off + 37)[0]
+    pos = off + 41 + comp + 8
+    while not (b[pos] == 0x05 and struct.unpack_from("<Q", b, pos + 1)[0] > 1000):  # a traces Message record
+        pos += 9 + struct.unpack_from("<Q", b, pos + 1)[0]
+    b[pos + 9 + struct.unpack_from("<Q", b, pos + 1)[0] // 2] ^= 0x01  # a low mantissa bit of a float32 sample
+    path.write_bytes(bytes(b))
+    return path
 
 
 def corrupt_a_record(bag):

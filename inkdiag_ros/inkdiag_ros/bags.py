@@ -21,6 +21,7 @@ the relative names :func:`head_topics` resolves under a namespace.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import importlib
 import sys
 from pathlib import Path
@@ -37,7 +38,7 @@ from msg_defs.qos import DIAGNOSTICS_QOS, RELIABLE_QOS, TRACES_QOS
 __all__ = ["TRACES_TYPE", "HEAD_TOPICS", "BagFrames", "is_bag", "head_topics", "ros_type_name",
            "msg_class", "qos_to_rosbags", "qos_from_rosbags", "iter_bag_frames", "iter_bag_chunks",
            "read_bag_recording", "load_recording", "stream_recording", "report_stats", "BagRecorder",
-           "InProcessRecording", "recording_node", "pop_record_arg", "check_new_bag", "first_line"]
+           "InProcessRecording", "recording_node", "pop_record_arg", "check_new_bag", "bag_writer", "first_line"]
 
 #: The rosbag2 type name of a trace frame.
 TRACES_TYPE = "std_msgs/msg/Float32MultiArray"
@@ -531,6 +532,48 @@ def pop_record_arg(argv):
     return argv, None
 
 
+def bag_writer(bag_dir, version: int = 8):
+    """A rosbag2 MCAP writer (``rosbags.rosbag2.Writer``, not opened) for a new bag, whose chunks carry their
+    CRC-32: ``inkdiag record`` and ``--record`` write with it.
+
+    rosbags' own MCAP writer leaves every chunk's ``uncompressed_crc`` at 0 ("not computed"): a byte
+    flipped inside a trace of such a bag reads as a plausible trace and is labelled without a word. With
+    the CRC, readers that check it (rosbags, the ``mcap`` library, ``ros2 bag``) refuse the damaged chunk:
+    the offline verbs say "truncated or corrupt bag ... Chunk checksum mismatch" (exit status 2).
+    """
+    from rosbags.rosbag2 import StoragePlugin
+
+    return _crc_writer_class()(bag_dir, version=version, storage_plugin=StoragePlugin.MCAP)
+
+
+@functools.cache
+def _crc_writer_class():  # built on first use: rosbags is imported only then, as everywhere here
+    from binascii import crc32
+
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2.storage_mcap import McapWriter
+
+    class CrcMcapWriter(McapWriter):
+        def close_chunk(self) -> None:
+            crc = crc32(self.chunk.bio.getbuffer())  # of the chunk's uncompressed records, as MCAP defines it
+            start = self.bio.tell()  # the Chunk record is the first thing close_chunk writes
+            super().close_chunk()
+            end = self.bio.tell()
+            self.bio.seek(start + _CHUNK_CRC_OFFSET)
+            self.bio.write(crc.to_bytes(4, "little"))
+            self.bio.seek(end)
+
+    class CrcWriter(Writer):
+        STORAGE_PLUGINS = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: CrcMcapWriter}
+
+    return CrcWriter
+
+
+#: Where a Chunk record's ``uncompressed_crc`` sits: opcode (1 byte), record length (8), message start and end
+#: times and uncompressed size (8 each).
+_CHUNK_CRC_OFFSET = 1 + 8 + 3 * 8
+
+
 def check_new_bag(bag_dir) -> Path:
     """``bag_dir`` as a Path, refused if it exists or its parent does not (a bag goes into a new directory)."""
     bag = Path(bag_dir)
@@ -562,10 +605,8 @@ class InProcessRecording:
     """
 
     def __init__(self, node, bag_dir, names=None, *, metadata_version: int = 8):
-        from rosbags.rosbag2 import StoragePlugin, Writer
-
         self.bag = check_new_bag(bag_dir)
-        self.writer = Writer(self.bag, version=metadata_version, storage_plugin=StoragePlugin.MCAP)
+        self.writer = bag_writer(self.bag, metadata_version)
         self.writer.open()
         try:
             self.recorder = BagRecorder(node, self.writer, head_topics(node.get_namespace(), names))

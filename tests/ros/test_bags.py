@@ -16,7 +16,7 @@ import pytest
 
 from inkdiag_core import FaultClass, HeadProfile, RecordingError
 
-from _bags import FS, NS, assert_two_readers_agree, corrupt_a_record, write_bag
+from _bags import FS, NS, assert_two_readers_agree, corrupt_a_record, flip_a_trace_byte, write_bag
 
 
 @pytest.fixture(scope="module")
@@ -122,6 +122,34 @@ def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim, fdi_model):
     nometa.mkdir()
     (nometa / mcap.name).write_bytes(next(bag.glob("*.mcap")).read_bytes())
     _one_line_error(nometa, "a bag directory without its metadata.yaml")
+
+
+def test_a_bag_inkdiag_writes_carries_chunk_crcs_and_a_flipped_trace_bit_is_refused(tmp_path, sim):
+    """rosbags' writer leaves the MCAP chunks' CRCs at 0: a bit flipped in a trace of such a bag read as a
+    plausible trace, labelled without a word. inkdiag's writer (record, --record) stamps them; the offline
+    verbs then refuse the damaged chunk in one line (exit status 2)."""
+    from mcap.reader import make_reader
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader
+
+    from inkdiag_ros.bags import bag_writer, read_bag_recording
+
+    x = sim.traces[:8].astype(np.float32)
+    for name, writer in (("plain", None), ("crc", bag_writer)):
+        bag = write_bag(tmp_path / name, [(0, x)] * 100, version=8, writer=writer)  # two 1 MB chunks
+        with open(next(bag.glob("*.mcap")), "rb") as f:
+            crcs = [r.uncompressed_crc for r in StreamReader(f, emit_chunks=True).records if isinstance(r, Chunk)]
+            f.seek(0)
+            n_read = sum(1 for _ in make_reader(f, validate_crcs=True).iter_messages())  # the mcap library agrees
+        assert len(crcs) == 2 and all(crcs) == (writer is not None) and n_read == 200, (name, crcs, n_read)
+        assert len(read_bag_recording(bag).traces) == 800  # intact: every row, whichever writer
+        flip_a_trace_byte(bag)
+    assert len(read_bag_recording(tmp_path / "plain").traces) == 800  # rosbags' own: the flip goes unseen
+    msg = _one_line_error(tmp_path / "crc", "truncated or corrupt bag")
+    assert "Chunk checksum mismatch" in msg, msg
+    r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "label", str(tmp_path / "crc"), "--model",
+                        "none.joblib", "--out", "-"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
 
 
 def test_an_out_inside_the_bag_is_refused_and_the_bag_kept(tmp_path, sim, fdi_model):

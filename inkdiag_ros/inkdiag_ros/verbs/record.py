@@ -38,10 +38,9 @@ def run(args) -> int:
 
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-    from rosbags.rosbag2 import StoragePlugin, Writer
 
     from .._spin import stop_on_signals, tear_down
-    from ..bags import BagRecorder, check_new_bag, head_topics
+    from ..bags import BagRecorder, bag_writer, check_new_bag, head_topics
 
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be > 0 s, got {args.duration!r}")
@@ -49,7 +48,7 @@ def run(args) -> int:
     bag = check_new_bag(args.bag)
     with stop_on_signals() as stop:
         rclpy.init()
-        writer = Writer(bag, version=args.metadata_version, storage_plugin=StoragePlugin.MCAP)
+        writer = bag_writer(bag, args.metadata_version)
         writer.open()
         node = executor = rec = None
         try:
