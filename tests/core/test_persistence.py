@@ -162,3 +162,26 @@ def test_a_filesystem_that_refuses_modes_still_gets_the_files(tmp_path, monkeypa
     save_model(LogisticRegression().fit([[0.0], [1.0]], [0, 1]), tmp_path / "m.joblib")
     assert load_model(tmp_path / "m.joblib") is not None
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.joblib", "m.joblib.manifest.json"]
+
+
+@pytest.mark.parametrize("stage", ["model", "manifest"])
+def test_a_save_stopped_half_way_leaves_no_file_behind(tmp_path, monkeypatch, stage):
+    """A Ctrl-C while `graph --train-if-missing` (scripts/run's first run) saves the default model: neither the
+    model, its manifest nor a temporary file stays (the next run trains it again, rather than refusing a model
+    without its manifest)."""
+    import joblib
+
+    from inkdiag_core import persistence
+
+    def stopped(*args, **kwargs):
+        with open(args[1], "w") as f:  # half written
+            f.write("{")
+        raise KeyboardInterrupt
+
+    if stage == "model":
+        monkeypatch.setattr(joblib, "dump", lambda model, path, *a, **k: stopped(model, path))
+    else:
+        monkeypatch.setattr(persistence.json, "dump", lambda doc, f, **k: (f.write("{"), stopped(doc, f.name)))
+    with pytest.raises(KeyboardInterrupt):
+        save_model(LogisticRegression().fit([[0.0], [1.0]], [0, 1]), tmp_path / "models" / "m.joblib")
+    assert list((tmp_path / "models").iterdir()) == []
