@@ -538,8 +538,8 @@ def bag_writer(bag_dir, version: int = 8):
 
     rosbags' own MCAP writer leaves every chunk's ``uncompressed_crc`` at 0 ("not computed"): a byte
     flipped inside a trace of such a bag reads as a plausible trace and is labelled without a word. With
-    the CRC, readers that check it (rosbags, the ``mcap`` library, ``ros2 bag``) refuse the damaged chunk:
-    the offline verbs say "truncated or corrupt bag ... Chunk checksum mismatch" (exit status 2).
+    the CRC, readers that check it (rosbags; the ``mcap`` library with ``validate_crcs``) refuse the damaged
+    chunk: the offline verbs say "truncated or corrupt bag ... Chunk checksum mismatch" (exit status 2).
     """
     from rosbags.rosbag2 import StoragePlugin
 
