@@ -9,7 +9,7 @@ import pytest
 
 from inkdiag_core import HeadProfile
 from inkdiag_core.head_profile import NOMINAL_CHANNEL_KEYS
-from inkdiag_core.recording import Recording, save_recording
+from inkdiag_core.recording import Recording, load_recording, save_recording
 from inkdiag_ros import cli
 
 TRUE = HeadProfile.default().replace(
@@ -60,6 +60,9 @@ def test_calibrate_end_to_end(files, tmp_path):
     from inkdiag_core.estimation.vp_calibration import vp_cal_needs_fit
     assert p.calibration["vp_cal"]["profile_sha256"] == p.sha256 and not vp_cal_needs_fit(p)
     assert "vp_cal constants fitted in" in r.stdout
+    # a nominal without the ADC: the default head's assumed, and said (helper-79's QA: it was silent)
+    assert "note: the ADC is assumed like the default head's, +-2 V, 12 bits (sensor.adc_range_v, sensor.adc_bits " \
+           "not in" in r.stdout and "beyond the ADC" not in r.stderr, (r.stdout, r.stderr)
     # healthy traces alone leave the restrictor's split to the prior: said, with what pins it
     by = p.calibration["determined_by"]["I_r"]
     ratio = report["identifiability"]["parameters"]["I_r"]["ratio_to_I_n"]
@@ -178,6 +181,20 @@ def test_a_foreign_head_through_the_cli(tmp_path, capsys, head, tol_dried):
         f_true = np.median(true.simulate({cls: 100}, seed=5).frequency_hz)
         f_cal = np.median(p.simulate({cls: 100}, seed=5).frequency_hz)
         assert abs(f_cal / f_true - 1) < tol_dried, cls
+
+
+def test_healthy_traces_beyond_the_profiles_adc_range_are_calibrated_with_a_warning(files, tmp_path, capsys):
+    """Traces of a head whose ADC reads wider than the one the profile has (here the default head's +-2 V, assumed):
+    training would simulate clipping the head never does. Said on stderr; the profile is written."""
+    rec = load_recording(files / "healthy.npz")
+    peak = np.percentile(np.abs(rec.traces).max(axis=1), 90)
+    save_recording(tmp_path / "wide.npz", Recording.from_arrays(rec.traces * (2.5 / peak), rec.sample_rate_hz))
+    status = cli.main(["calibrate", str(tmp_path / "wide.npz"), "--nominal", str(files / "nominal.yaml"),
+                       "--out", str(tmp_path / "head.yaml"), "--no-vp-cal"])
+    err = capsys.readouterr().err
+    assert status == 0 and "warning: one in ten healthy traces reaches 2.5 V or more, beyond the ADC range of +-2 V " \
+                           "the profile has (assumed): give sensor.adc_range_v" in err, err
+    assert (tmp_path / "head.yaml").exists()
 
 
 def test_faulty_traces_given_as_healthy_are_calibrated_with_a_warning(tmp_path, capsys):

@@ -359,6 +359,7 @@ def run(args) -> int:
         print(f"inkdiag calibrate: note: the empty channels' actuator is assumed like the default head's, "
               f"{act['f_act_hz'] / 1e3:.0f} kHz at this B_act (another head's may differ: give --empty DRY.npz, or "
               "channel.f_act from a datasheet)", file=sys.stdout)
+    _adc_notes(nominal, traces, args.nominal)
     mt = report["mean_trace_recorded_vs_fitted"]
     if abs(mt["mode_misfit_rel"]) > MODE_MISFIT_WARNING:
         f_rec, f_fit = mt["dominant_frequency_hz"]
@@ -402,6 +403,33 @@ def _plot(result, path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
+
+
+def _adc_notes(nominal, traces, nominal_path) -> None:
+    """A note when the nominal profile gives no ADC (the default head's is assumed: healthy traces cannot tell it,
+    docs/calibration.md), and a warning when the healthy traces (one in ten or more: not a glitch) reach past the
+    ADC's range the profile has."""
+    import sys
+
+    import numpy as np
+
+    peaks = np.abs(np.where(np.isfinite(traces), traces, 0.0)).max(axis=1, initial=0.0)
+    peak_v = float(np.percentile(peaks, 90)) if peaks.size else 0.0
+
+    missing = [k for k in ("adc_range_v", "adc_bits") if k not in nominal.sensor]
+    if missing:
+        print(f"inkdiag calibrate: note: the ADC is assumed like the default head's, +-{nominal.adc_range_v:g} V"
+              + (f", {nominal.adc_bits} bits" if nominal.adc_bits is not None else "")
+              + f" ({', '.join('sensor.' + k for k in missing)} not in {nominal_path}: healthy traces cannot tell "
+              f"them; training simulates this ADC's clipping and quantisation, and labelling calls a sample beyond "
+              f"{nominal.max_abs_v:g} V out_of_range): give the head's from its datasheet", file=sys.stdout)
+    if peak_v > nominal.adc_range_v:
+        print(f"inkdiag calibrate: warning: one in ten healthy traces reaches {peak_v:.3g} V or more, beyond the ADC "
+              f"range of "
+              f"+-{nominal.adc_range_v:g} V the profile has"
+              + (" (assumed)" if "adc_range_v" in missing else "")
+              + f": give sensor.adc_range_v (V) in {nominal_path} from the head's datasheet, or check the recording's "
+              "scale (volts, not millivolts or ADC counts)", file=sys.stderr)
 
 
 def _markdown(r) -> str:
