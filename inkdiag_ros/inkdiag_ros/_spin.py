@@ -105,6 +105,13 @@ def _no_op():
     pass
 
 
+def _half_built(u) -> bool:
+    """Whether an unraisable error is an rclpy object's finalizer missing an attribute its ``__init__`` never set."""
+    module, name = getattr(u.object, "__module__", None), getattr(u.object, "__qualname__", None)
+    return (u.exc_type is AttributeError and isinstance(module, str) and module.startswith("rclpy.")
+            and isinstance(name, str) and name.endswith(".__del__"))
+
+
 @contextlib.contextmanager
 def stop_on_signals():
     """Record SIGINT and SIGTERM in a :class:`StopRequest`, for a spin loop that cannot miss them.
@@ -120,20 +127,21 @@ def stop_on_signals():
     on exit.
 
     Entered where a handler that records stops (``asked``, as :func:`inkdiag_ros._launch.stop_means_exit_0`'s)
-    has recorded one, the stop starts requested. After a stop, an error in the finalizer of an rclpy
-    object is not printed: an object a stop left half built (a ``SingleThreadedExecutor`` whose
-    ``__init__`` met the context going down: "Exception ignored in ... Executor.__del__", an
-    ``AttributeError`` traceback, in a CI run).
+    has recorded one, the stop starts requested. After a stop, an ``AttributeError`` in the finalizer
+    (``__del__``) of an rclpy object is not printed: an object a stop left half built (a
+    ``SingleThreadedExecutor`` whose ``__init__`` met the context going down: "Exception ignored in
+    ... Executor.__del__", an ``AttributeError`` traceback, in a CI run); other errors are.
     """
     stop = StopRequest()
     if threading.current_thread() is not threading.main_thread():
         yield stop
         return
     old = {sig: signal.signal(sig, stop._on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    stop.requested = any(getattr(h, "asked", None) for h in old.values())  # _launch.stop_means_exit_0's, swallowed
+    if any(getattr(h, "asked", None) for h in old.values()):  # _launch.stop_means_exit_0's, swallowed
+        stop.requested = True  # (never set back: a signal may have landed since the install above)
 
     def unraisable(u, hook=sys.unraisablehook):
-        if not (stop.requested and getattr(u.object, "__module__", "").startswith("rclpy.")):
+        if not (stop.requested and _half_built(u)):
             hook(u)
 
     old_hook, sys.unraisablehook = sys.unraisablehook, unraisable

@@ -411,7 +411,30 @@ def test_after_a_stop_a_half_built_rclpy_objects_finalizer_error_is_not_printed(
         stop._on_signal(signal.SIGTERM, None)
         sys.unraisablehook(ignored(Executor.__del__))  # after it: not
         sys.unraisablehook(ignored(_finish))  # not rclpy's: printed
-    assert [u.object for u in seen] == [Executor.__del__, _finish] and sys.unraisablehook == seen.append
+        other = ignored(Executor.__del__)
+        other.exc_type = ValueError  # not a half-built object's missing attribute: printed
+        sys.unraisablehook(other)
+        sys.unraisablehook(ignored([].append))  # a builtin's __module__ is None (helper-80: the hook crashed)
+    assert [u.object for u in seen] == [Executor.__del__, _finish, Executor.__del__, seen[-1].object]
+    assert seen[-1].exc_type is AttributeError and sys.unraisablehook == seen.append
+
+
+def test_a_signal_as_stop_on_signals_installs_its_handlers_is_not_lost(monkeypatch):
+    """helper-80: a SIGTERM between stop_on_signals installing its handler and reading the handler it replaced was
+    set back to no stop (nothing would wake the loop again)."""
+    from inkdiag_ros._spin import stop_on_signals
+
+    real = signal.signal
+
+    def install_then_signal(sig, handler):
+        old = real(sig, handler)
+        if sig == signal.SIGTERM and getattr(handler, "__name__", "") == "_on_signal":
+            signal.raise_signal(signal.SIGTERM)  # its handler runs before the next line of stop_on_signals
+        return old
+
+    monkeypatch.setattr(signal, "signal", install_then_signal)
+    with stop_on_signals() as stop:
+        assert stop.requested
 
 
 def _finish(pr, timeout=60):

@@ -208,17 +208,23 @@ def summary(latest: dict, n_heads: int, t: float, now: float) -> str:
 
 
 def _stop(children) -> None:
-    """SIGTERM every child still running; kill what is left after :data:`STOP_GRACE_S`."""
-    for _, p in children:
-        if p.poll() is None:
-            p.send_signal(signal.SIGTERM)
-    deadline = time.monotonic() + STOP_GRACE_S
-    for _, p in children:
-        try:
-            p.wait(timeout=max(deadline - time.monotonic(), 0.01))
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
+    """SIGTERM every child still running; kill what is left after :data:`STOP_GRACE_S`. A second SIGINT or SIGTERM
+    meanwhile does not cut this short (a child past the grace is killed all the same)."""
+    old = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        for _, p in children:
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + STOP_GRACE_S
+        for _, p in children:
+            try:
+                p.wait(timeout=max(deadline - time.monotonic(), 0.01))
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
 
 
 # --- a child process: several nodes on one executor -------------------------------------------------
