@@ -415,7 +415,6 @@ def _adc_notes(nominal, traces, nominal_path) -> None:
 
     peaks = np.abs(np.where(np.isfinite(traces), traces, 0.0)).max(axis=1, initial=0.0)
     peak_v = float(np.percentile(peaks, 90)) if peaks.size else 0.0
-
     missing = [k for k in ("adc_range_v", "adc_bits") if k not in nominal.sensor]
     if missing:
         print(f"inkdiag calibrate: note: the ADC is assumed like the default head's, +-{nominal.adc_range_v:g} V"
@@ -425,8 +424,7 @@ def _adc_notes(nominal, traces, nominal_path) -> None:
               f"{nominal.max_abs_v:g} V out_of_range): give the head's from its datasheet", file=sys.stdout)
     if peak_v > nominal.adc_range_v:
         print(f"inkdiag calibrate: warning: one in ten healthy traces reaches {peak_v:.3g} V or more, beyond the ADC "
-              f"range of "
-              f"+-{nominal.adc_range_v:g} V the profile has"
+              f"range of +-{nominal.adc_range_v:g} V the profile has"
               + (" (assumed)" if "adc_range_v" in missing else "")
               + f": give sensor.adc_range_v (V) in {nominal_path} from the head's datasheet, or check the recording's "
               "scale (volts, not millivolts or ADC counts)", file=sys.stderr)
