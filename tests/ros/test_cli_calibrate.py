@@ -325,7 +325,7 @@ def test_empty_channel_traces_through_the_cli(tmp_path, capsys):
     assert "note: the empty channels' actuator is assumed like the default head's" in capsys.readouterr().out
     assert cli.main([*args, "--empty", str(tmp_path / "empty.npz"), "--out", str(tmp_path / "head.yaml")]) == 0
     out = capsys.readouterr()
-    assert "actuator (empty channels)" in out.out and "assumed" not in out.out and "warning" not in out.err
+    assert "actuator (empty channels)" in out.out and "actuator is assumed" not in out.out and "warning" not in out.err
     assert "(measured on empty channels)" in (tmp_path / "head.fit.md").read_text()
     # film-loaded channels (empty_channel_2) given as dry ones: calibrated, with a warning
     film = fh.simulate_foreign(head, {"empty_channel_2": 40}, 4)
