@@ -272,7 +272,7 @@ def test_replay_into_fdi_gives_one_labels_message_per_traces_message(tmp_path, s
 
     frames = [(0, sim.traces[i:i + 6].astype(np.float32)) for i in range(0, 6 * 8, 6)]
     bag = write_bag(tmp_path / "bag", frames)
-    ros.add(FdiNode(context=ros.context, namespace="/h", parameter_overrides=[
+    fdi = ros.add(FdiNode(context=ros.context, namespace="/h", parameter_overrides=[
         P("model_path", value=str(fdi_model)), P("n_nozzles", value=64)]))
     probe = ros.node("probe", namespace="/h")
     labels = collect(ros, probe, LABELS_MSG_TYPE, topics.LABELS, RELIABLE_QOS, decode_labels)
@@ -281,17 +281,23 @@ def test_replay_into_fdi_gives_one_labels_message_per_traces_message(tmp_path, s
                             stderr=subprocess.PIPE, text=True)
     try:
         ros.spin_until(lambda: proc.poll() is not None, timeout=60, what="the replay to end")
-        ros.spin_for(2.0)
+        # the node, spun by this thread, may be behind the replay (a CI run: 2 of 8 frames taken 2 s after it
+        # ended): what its reader holds (depth 32) is taken once it gets the thread; best effort, so not all may come
+        deadline = time.monotonic() + 20.0
+        while fdi.stats.frames_received < len(frames) and time.monotonic() < deadline:
+            ros.spin_for(0.1)
+        ros.spin_for(1.0)
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert proc.returncode == 0, proc.stderr.read()
+    err = proc.stderr.read()
+    assert proc.returncode == 0, err
     # one labels message per traces message fdi received (traces is best effort: one may be lost in transport)
-    fdi = next(n for n in ros.nodes if isinstance(n, FdiNode))
     assert fdi.wait_idle(10.0)
     ros.spin_for(0.5)
     ids = [m.frame_id for m in labels]
-    assert len(ids) == fdi.stats.frames_received >= 6 and ids == sorted(set(ids)) and set(ids) <= set(range(8)), ids
+    assert len(ids) == fdi.stats.frames_received >= 6 and ids == sorted(set(ids)) and set(ids) <= set(range(8)), (
+        ids, fdi.stats.frames_received, err)  # the replay's own count too (a CI run once read 2 of 8, unexplained)
     assert all(m.n_nozzles == 6 for m in labels)
 
 
