@@ -134,7 +134,7 @@ def flip_a_trace_byte(bag):
     pos = off + 41 + comp + 8
     while not (b[pos] == 0x05 and struct.unpack_from("<Q", b, pos + 1)[0] > 1000):  # a traces Message record
         pos += 9 + struct.unpack_from("<Q", b, pos + 1)[0]
-    b[pos + 9 + struct.unpack_from("<Q", b, pos + 1)[0] // 2] ^= 0x01  # a low mantissa bit of a float32 sample
+    b[pos + 9 + struct.unpack_from("<Q", b, pos + 1)[0] // 2] ^= 0x01  # a byte of a sample mid-message: one bit
     path.write_bytes(bytes(b))
     return path
 
