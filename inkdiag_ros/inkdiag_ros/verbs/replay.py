@@ -9,8 +9,8 @@ history, depth; the first offered profile), spaced as recorded (--rate scales th
 time: 2 is twice as fast), or back to back with --as-fast-as-possible.
 
 Before the first message it waits (up to --wait-s) until its publishers are
-matched by subscribers: a replay that published at once would lose its first
-messages to discovery. Reliable topics are waited on to be acknowledged at the end.
+matched by subscribers, and 1 s more for their side of the match: a replay
+that published at once would lose its first messages to discovery. Reliable topics are waited on to be acknowledged at the end.
 
 --namespace NS moves the head's topics: the first name component of every topic
 that has more than one (/head_00/traces -> NS/traces; /diagnostics stays).
@@ -138,8 +138,16 @@ def run(args) -> int:
     return 0
 
 
+# A publisher counts a subscriber as soon as its own side has matched it; the subscriber's side
+# matches the publisher a little later, and a best-effort reader drops what comes before. 0.2 s
+# was once too short for an fdi node on a loaded CI machine (2 of 8 frames taken); probe
+# (a writer publishing at once on its match, two CPU burners): 5 of 8 taken in 1 run of 6.
+READER_MATCH_GRACE_S = 1.0
+
+
 def _wait_for_subscribers(executor, node, pubs, wait_s, stop):
-    """Spin until every publisher is matched, or some are and 1 s more passed, or ``wait_s`` ran out."""
+    """Spin until every publisher is matched, or some are and 1 s more passed, or ``wait_s`` ran out; then,
+    if any is matched, ``READER_MATCH_GRACE_S`` more for the subscribers' side of the match."""
     import time
 
     deadline = time.monotonic() + wait_s
@@ -156,5 +164,10 @@ def _wait_for_subscribers(executor, node, pubs, wait_s, stop):
             executor.spin_once(timeout_sec=0.05)
         except Exception:  # the context went down (a signal)
             return
-    if any(p.get_subscription_count() > 0 for p in pubs):
-        time.sleep(0.2)  # the subscriber side may still be completing its own match
+    if any(p.get_subscription_count() > 0 for p in pubs):  # the readers' side matches after the writers':
+        grace = time.monotonic() + READER_MATCH_GRACE_S   # best-effort samples before it are dropped unseen
+        while not stop.requested and time.monotonic() < grace:
+            try:
+                executor.spin_once(timeout_sec=0.05)
+            except Exception:  # the context went down (a signal)
+                return
