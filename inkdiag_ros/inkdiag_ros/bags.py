@@ -199,7 +199,8 @@ class BagFrames:
         return s
 
 
-def _open_reader(bag_dir):
+def open_reader(bag_dir):
+    """An open ``rosbags`` Reader of ``bag_dir``; RecordingError (one line, naming it) if it is none or does not open."""
     from rosbags.rosbag2 import Reader
 
     src = str(bag_dir)
@@ -207,6 +208,9 @@ def _open_reader(bag_dir):
     if not p.exists():
         raise RecordingError(f"{src}: no such bag")
     if not is_bag(p):
+        if p.is_dir() and (any(p.glob("*.mcap")) or any(p.glob("*.db3"))):  # its recorder died before closing it
+            raise RecordingError(f"{src}: a bag directory without its metadata.yaml (a recorder stopped before it "
+                                 "closed the bag writes none): not readable as a rosbag2 bag")
         raise RecordingError(f"{src}: not a rosbag2 bag (a directory with a metadata.yaml)")
     try:
         reader = Reader(p)
@@ -228,7 +232,7 @@ def _listed(bag: Path) -> str:
         return ""
 
 
-def _files(bag: Path) -> str:
+def storage_files(bag: Path) -> str:
     """`` (FILE, ...)``: the bag's storage files metadata.yaml lists, or nothing if it cannot be read."""
     try:
         import yaml
@@ -298,7 +302,7 @@ def iter_bag_frames(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
 
     src = str(bag_dir)
     stats = stats if stats is not None else BagFrames()
-    reader = _open_reader(bag_dir)
+    reader = open_reader(bag_dir)
     try:
         stats.topic, conns = _traces_connections(reader, topic, src)
         it = reader.messages(connections=conns)
@@ -308,7 +312,7 @@ def iter_bag_frames(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
             except StopIteration:
                 break
             except Exception as exc:  # a truncated or damaged storage file
-                raise RecordingError(f"{src}: truncated or corrupt bag{_files(Path(bag_dir))}: {stats.n_messages} "
+                raise RecordingError(f"{src}: truncated or corrupt bag{storage_files(Path(bag_dir))}: {stats.n_messages} "
                                      f"messages on {stats.topic} readable, then: {first_line(exc)}") from None
             i = stats.n_messages
             stats.n_messages += 1

@@ -124,6 +124,50 @@ def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim, fdi_model):
     _one_line_error(nometa, "a bag directory without its metadata.yaml")
 
 
+def test_replay_of_a_bad_bag_is_one_line_and_status_2(tmp_path, sim, capsys):
+    """replay said a bag that breaks off in a traceback (exit 1); an empty bag replayed "0 messages" (exit 0)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    from inkdiag_ros.cli import main
+
+    x = sim.traces[:8].astype(np.float32)
+    corrupt = corrupt_a_record(write_bag(tmp_path / "corrupt", [(0, x)] * 100))  # two 1 MB chunks
+    r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "replay", str(tmp_path / "corrupt"),
+                        "--as-fast-as-possible", "--wait-s", "0"], capture_output=True, text=True, timeout=60,
+                       env=_env(os.environ.get("ROS_DOMAIN_ID", "0")))
+    last = r.stderr.strip().splitlines()[-1]
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    import re
+
+    m = re.fullmatch(re.escape(f"inkdiag replay: error: {tmp_path / 'corrupt'}: truncated or corrupt bag ({corrupt}): ")
+                     + r"(\d+) messages replayed, then: .+", last)
+    assert m and 0 < int(m.group(1)) < 200, last  # the traces and labels messages before the damaged one went out
+
+    def error(*argv):
+        capsys.readouterr()
+        assert main(["replay", *map(str, argv)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("inkdiag replay: error: "), err
+        return err[0]
+
+    assert error(write_bag(tmp_path / "empty", [])).endswith(f"no messages on {NS}/labels, {NS}/traces to replay")
+    nometa = tmp_path / "nometa"
+    nometa.mkdir()
+    (nometa / corrupt.name).write_bytes(corrupt.read_bytes())
+    assert "a bag directory without its metadata.yaml" in error(nometa)
+    assert "--wait-s must be a number of seconds >= 0, got nan" in error(tmp_path / "empty", "--wait-s", "nan")
+    assert "--rate must be a number > 0, got inf" in error(tmp_path / "empty", "--rate", "inf")
+    # a topic of a type not installed here: named, with the way round it (before any node is made)
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    ts.register(get_types_from_msg("string data", "foo_msgs/msg/Bar"))
+    with Writer(tmp_path / "custom", version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conn = w.add_connection(f"{NS}/foo", "foo_msgs/msg/Bar", typestore=ts)
+        w.write(conn, 1, ts.serialize_cdr(ts.types["foo_msgs/msg/Bar"](data="x"), "foo_msgs/msg/Bar"))
+    assert error(tmp_path / "custom").endswith(
+        f"topic {NS}/foo: message type foo_msgs/msg/Bar is not installed here; leave it out with --topics")
+
+
 def test_a_bag_inkdiag_writes_carries_chunk_crcs_and_a_flipped_trace_bit_is_refused(tmp_path, sim):
     """rosbags' writer leaves the MCAP chunks' CRCs at 0: a bit flipped in a trace of such a bag read as a
     plausible trace, labelled without a word. inkdiag's writer (record, --record) stamps them; the offline

@@ -52,6 +52,7 @@ def _selected(topic: str, wanted) -> bool:
 
 
 def run(args) -> int:
+    import math
     import sys
     import time
     from pathlib import Path
@@ -59,29 +60,35 @@ def run(args) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.qos import ReliabilityPolicy
-    from rosbags.rosbag2 import Reader
 
     from msg_defs.qos import RELIABLE_QOS, TRACES_QOS
     from inkdiag_core.recording import RecordingError
 
     from .._spin import stop_on_signals, tear_down
-    from ..bags import TRACES_TYPE, first_line, is_bag, msg_class, qos_from_rosbags
+    from ..bags import TRACES_TYPE, msg_class, open_reader, qos_from_rosbags
 
-    if not args.as_fast_as_possible and not args.rate > 0:
-        raise ValueError(f"--rate must be > 0, got {args.rate!r}")
+    if not args.as_fast_as_possible and not (math.isfinite(args.rate) and args.rate > 0):
+        raise ValueError(f"--rate must be a number > 0, got {args.rate!r}")
+    if not (math.isfinite(args.wait_s) and args.wait_s >= 0):
+        raise ValueError(f"--wait-s must be a number of seconds >= 0, got {args.wait_s!r}")
     bag = Path(args.bag)
-    if not is_bag(bag):
-        raise RecordingError(f"{bag}: not a rosbag2 bag (a directory with a metadata.yaml)")
+    reader = open_reader(bag)  # no such bag, not a bag, one that does not open: RecordingError, one line
     try:
-        reader = Reader(bag)
-        reader.open()
-    except Exception as exc:
-        raise RecordingError(f"{bag}: cannot open the bag: {first_line(exc)}") from None
-    conns = [c for c in reader.connections if _selected(c.topic, args.topics)]
-    if not conns:
-        has = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
-        reader.close()  # its connections are gone once closed: listed before
-        raise RecordingError(f"{bag}: no topic to replay (it has {has})")
+        conns = [c for c in reader.connections if _selected(c.topic, args.topics)]
+        if not conns:
+            has = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
+            raise RecordingError(f"{bag}: no topic to replay (it has {has})")
+        if not sum(c.msgcount for c in conns):
+            raise RecordingError(f"{bag}: no messages on {', '.join(sorted({c.topic for c in conns}))} to replay")
+        classes = {}
+        for c in conns:  # before any node: a topic of a type not installed here is named, with the way round it
+            try:
+                classes[c.id] = msg_class(c.msgtype)
+            except ValueError as exc:
+                raise RecordingError(f"{bag}: topic {c.topic}: {exc}; leave it out with --topics") from None
+    except BaseException:
+        reader.close()
+        raise
     n_sent = 0
     with stop_on_signals() as stop:
         rclpy.init()
@@ -97,7 +104,7 @@ def run(args) -> int:
                     default = TRACES_QOS if c.msgtype == TRACES_TYPE else RELIABLE_QOS
                     offered = c.ext.offered_qos_profiles
                     qos = qos_from_rosbags(offered[0] if offered else None, default)
-                    pubs[c.id] = node.create_publisher(msg_class(c.msgtype), remap(c.topic, args.namespace), qos)
+                    pubs[c.id] = node.create_publisher(classes[c.id], remap(c.topic, args.namespace), qos)
             except Exception:  # a signal as the node was built: rclpy invalidated the context under it (RCLError)
                 if not stop.explains_an_error():
                     raise
@@ -107,7 +114,7 @@ def run(args) -> int:
                       f"{', '.join(sorted({c.topic for c in conns}))} from {bag}", file=sys.stderr, flush=True)
                 while not stop.requested and rclpy.ok():
                     t_bag0 = t_wall0 = None
-                    for c, ts, raw in reader.messages(connections=conns):
+                    for c, ts, raw in _broken_off_at(reader.messages(connections=conns), bag, lambda: n_sent):
                         if stop.requested:
                             break
                         if t_bag0 is None:
@@ -143,6 +150,25 @@ def run(args) -> int:
 # was once too short for an fdi node on a loaded CI machine (2 of 8 frames taken); probe
 # (a writer publishing at once on its match, two CPU burners): 5 of 8 taken in 1 run of 6.
 READER_MATCH_GRACE_S = 1.0
+
+
+def _broken_off_at(messages, bag, n_sent):
+    """``messages``, with a storage file that breaks off (truncated, a chunk's CRC) raised as one line that says
+    how many messages went out before (``n_sent()``)."""
+    from inkdiag_core.recording import RecordingError
+
+    from ..bags import first_line, storage_files
+
+    it = iter(messages)
+    while True:
+        try:
+            item = next(it)
+        except StopIteration:
+            return
+        except Exception as exc:  # rosbags' ReaderError, or a storage error of a damaged file
+            raise RecordingError(f"{bag}: truncated or corrupt bag{storage_files(bag)}: {n_sent()} messages "
+                                 f"replayed, then: {first_line(exc)}") from None
+        yield item
 
 
 def _wait_for_subscribers(executor, node, pubs, wait_s, stop):
