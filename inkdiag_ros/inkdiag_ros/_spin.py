@@ -234,6 +234,58 @@ def close_outputs(nodes) -> None:
         raise errors[0]
 
 
+@contextlib.contextmanager
+def _stderr_held():
+    """The process's stderr (file descriptor 2, where rcl logs) into a temporary file meanwhile; yields a list
+    that holds what was written there, once restored."""
+    import tempfile
+
+    sys.stderr.flush()
+    written = []
+    saved = os.dup(2)
+    try:
+        with tempfile.TemporaryFile() as held:
+            os.dup2(held.fileno(), 2)
+            try:
+                yield written
+            finally:
+                os.dup2(saved, 2)
+                held.seek(0)
+                written.append(held.read())
+    finally:
+        os.close(saved)
+
+
+def ros_args_error(argv) -> str | None:
+    """Why rcl cannot parse the ROS arguments of ``argv`` (after ``--ros-args``), in one line; None if it can.
+
+    A bad ``-p``, ``-r`` or ``--params-file`` (a missing file) made ``rclpy.init`` raise, a traceback
+    with exit status 1, after rcl's own log line. Checked first, that log held back: the caller
+    prints this one line and exits 2, as for a parameter the node refuses.
+    """
+    import re
+
+    from rclpy.utilities import remove_ros_args
+
+    argv = [str(a) for a in argv]
+    if "--ros-args" not in argv:
+        return None
+    why = None
+    with _stderr_held() as written:
+        try:
+            remove_ros_args(argv)
+        except Exception as exc:  # noqa: BLE001 - rclpy's RCLInvalidROSArgsError (an RCLError)
+            text = str(exc).strip()
+            text = text.splitlines()[0] if text else type(exc).__name__
+            why = "bad ROS arguments: " + re.sub(r",? at /\S+:\d+", "", text).removeprefix(
+                "Failed to parse ROS arguments: ")
+            if re.search(r"'-p [^']*:='", text):  # `-p name:=` (the shell ate the quotes of name:='')
+                why += "; an empty string is written -p \"NAME:=''\""
+    if why is None and written[0]:  # parsed: whatever rcl said all the same goes out
+        os.write(2, written[0])
+    return why
+
+
 def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, events: bool = False,
               teardown_deadline_s: float | None = TEARDOWN_DEADLINE_S) -> int:
     """Init rclpy, spin one ``node_cls()`` until Ctrl-C / SIGTERM / shutdown, clean up.
@@ -274,10 +326,13 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, eve
         except BrokenPipeError:  # `fdi --help | head`: the reader had enough; no traceback at exit either
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    prog = prog or os.path.basename(sys.argv[0] or "node")
+    if why := ros_args_error(argv):
+        print(f"{prog}: {why}", file=sys.stderr)
+        return 2
     keep_freed_memory()
     release = PeriodicRelease()
     limit_blas_threads()
-    prog = prog or os.path.basename(sys.argv[0] or "node")
     with stop_on_signals() as stop:
         rclpy.init(args=args)
         node = executor = None

@@ -21,7 +21,7 @@ from rclpy.utilities import remove_ros_args
 import msg_defs
 from msg_defs import topics
 
-from ._spin import stop_on_signals
+from ._spin import ros_args_error, stop_on_signals
 
 TYPES = {
     topics.TRACES: (msg_defs.TRACE_MSG_TYPE, msg_defs.TRACES_QOS),
@@ -87,6 +87,8 @@ def main(args=None) -> int:
     ap.add_argument("--namespace", default="/head_00")
     ap.add_argument("--once", action="store_true")
     ap.add_argument("--max-items", type=int, default=16)
+    if why := ros_args_error(argv):
+        ap.error(why)
     ns = ap.parse_args(remove_ros_args(argv)[1:])
     done = []
     mtype, qos = TYPES[ns.topic]

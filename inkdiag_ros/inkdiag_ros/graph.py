@@ -49,7 +49,7 @@ from msg_defs import (
     topics,
 )
 
-from ._spin import close_outputs, quiet_signal_handling, shutting_down, sigint_as_shutdown
+from ._spin import close_outputs, quiet_signal_handling, ros_args_error, shutting_down, sigint_as_shutdown
 from .allocator import PeriodicRelease, keep_freed_memory
 from .blas import limit_blas_threads
 from .bags import HEAD_TOPICS, InProcessRecording, check_new_bag
@@ -275,6 +275,8 @@ def main(args=None) -> int:
     parser.add_argument("--record", default=None, metavar="BAG_DIR",
                         help="write a rosbag2 bag (MCAP) of the head's topics: traces, labels, drying_nozzles, "
                         "fm_estimates, fm_estimates/array, /diagnostics, ground_truth (a new directory)")
+    if why := ros_args_error(argv):
+        parser.error(why)
     ns = parser.parse_args(remove_ros_args(argv)[1:])
     if not (math.isfinite(ns.duration) and ns.duration >= 0):
         parser.error(f"--duration must be a number of seconds >= 0 (0: until Ctrl-C), got {ns.duration:g}")

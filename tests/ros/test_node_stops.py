@@ -239,6 +239,41 @@ def test_a_node_asked_for_help_prints_its_parameters_and_does_not_start(tmp_path
     assert not (tmp_path / "B").exists()  # printhead_sim --record: no bag begun
 
 
+@pytest.mark.parametrize(("module", "ros_args", "says"), [
+    ("inkdiag_ros.fdi_node", ["-p", "model_path"], "Couldn't parse parameter override rule: '-p model_path'"),
+    ("inkdiag_ros.baseline_node", ["-p", "head_profile:="], "an empty string is written -p \"NAME:=''\""),
+])
+def test_ros_arguments_rcl_cannot_parse_are_one_line_and_status_2(tmp_path, module, ros_args, says):
+    """rclpy.init raised on them: rcl's log line, a traceback, exit status 1 (helper-82's QA)."""
+    import subprocess
+
+    r = subprocess.run([sys.executable, "-m", module, "--ros-args", *ros_args], capture_output=True, text=True,
+                       timeout=60, cwd=tmp_path, env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and "bad ROS arguments: " in lines[0] and says in lines[0], r.stderr
+
+
+def test_bad_ros_arguments_are_found_before_anything_starts(tmp_path, capfd, fdi_model):
+    from inkdiag_ros import echo, graph
+    from inkdiag_ros._spin import ros_args_error
+    from inkdiag_ros.cli import main
+
+    assert ros_args_error(["fdi", "--ros-args", "-r", "__ns:=/h", "-p", "n_nozzles:=8"]) is None
+    assert ros_args_error(["fdi"]) is None
+    assert ros_args_error(["x", "--ros-args", "--params-file", str(tmp_path / "none.yaml")]) == (
+        f"bad ROS arguments: Couldn't parse params file: '--params-file {tmp_path / 'none.yaml'}'. "
+        "Error: Error opening YAML file")
+    assert capfd.readouterr().err == ""  # rcl's own log of it held back
+    for run in (graph.main, echo.main):
+        with pytest.raises(SystemExit) as exc:
+            run(["prog", *(["labels"] if run is echo.main else []), "--ros-args", "-r", "badremap"])
+        assert exc.value.code == 2 and "bad ROS arguments: Couldn't parse remap rule: '-r badremap'" in capfd.readouterr().err
+    capfd.readouterr()
+    assert main(["printer", "--heads", "1", "--model", str(fdi_model), "--ros-args", "-p", "x"]) == 2  # no child started
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("inkdiag printer: error: bad ROS arguments: "), err
+
+
 def _sigint_as_a_terminal_gives_it():
     """In the child before it execs: SIGINT not ignored (a test run started as a shell's background job passes
     SIGINT ignored to its children, and a signal the process was started ignoring stays ignored: _launch)."""

@@ -94,6 +94,10 @@ def _check(args) -> None:
         raise ValueError(f"--duration must be >= 0 s, got {args.duration}")
     if not os.path.isfile(args.model):
         raise ValueError(f"model file {args.model} not found (pass --model, or train one: inkdiag train)")
+    from .._spin import ros_args_error
+
+    if why := ros_args_error(["inkdiag", "--ros-args", *args.ros_args]):  # before any child: each would say it
+        raise ValueError(why)
 
 
 def _die_with_parent() -> None:  # children get SIGTERM if the printer process dies (Linux)
