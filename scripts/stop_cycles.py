@@ -13,7 +13,7 @@ after the signal is slow; one still running 5 s after that is a hang (it gets th
 signal again, SIGKILL 5 s later; ``--dump``: py-spy dumps it first, if installed).
 ``--unfed`` also cycles fdi, fe and record_baseline without their upstream nodes
 (nothing arrives to wake them). One busy-loop process per core runs throughout
-(``--busy``). Prints per node and signal: stops, hangs, slow stops, exits with a status the node does not document (record_baseline: 0, or 1 when stopped before a baseline was complete),
+(``--busy``). Prints per node and signal: stops, hangs, slow stops, exits with a status the node does not document (record_baseline: 0, or 1 when stopped before any nozzle's baseline was complete),
 and exit-time percentiles (ms) of the stops that exited by themselves.
 
 Runs on the ``ROS_DOMAIN_ID`` of its environment (scripts/_bootstrap.sh sets one) with

@@ -15,8 +15,8 @@ the fe node subtracts (its ``baseline_path``; the raw ``vp`` reading,
 nozzle's healthy reference trace (the sample-wise median of the same rows), which
 the fdi node's healthy gate (:class:`inkdiag_core.HealthyGate`) fits each new row to;
 the node keeps those rows until it writes (float32: a 2,656-nozzle head at
-``n_frames`` 8 holds 44 MB). At ``timeout_s`` it writes the nozzles that are complete, says which are
-not, and exits with status 1 if none is. The fdi node uses the file
+``n_frames`` 8 holds 44 MB). At ``timeout_s``, or stopped by SIGINT / SIGTERM, it writes the nozzles
+that are complete, says how many, and exits with status 1 if none is. The fdi node uses the file
 (``baseline_path``, classified by its model's baseline branch),
 and so does the fe node (``baseline_path``).
 
@@ -50,7 +50,8 @@ PARAMS = (
     ("fm_frames", 3, "also record each nozzle's healthy f_m (for fe): the median over its first "
      "fm_frames valid rows, at most n_frames; 0: none (about 1 ms of CPU per row)", int, (0, 1000)),
     ("n_nozzles", 0, "nozzles to wait for (0: until timeout_s)", int, (0, 2**24)),
-    ("timeout_s", 60.0, "give up waiting after this long, s; writes the complete nozzles", float, (0.1, 86400.0)),
+    ("timeout_s", 60.0, "give up waiting after this long, s; writes the complete nozzles (so does a SIGINT or "
+     "SIGTERM)", float, (0.1, 86400.0)),
     HEAD_PROFILE_PARAM,
     ("n_samples", 0, "samples per trace; other frames are rejected; 0: the head profile's (else it must be "
      "the profile's)", int, (0, 65536)),
@@ -110,37 +111,54 @@ class BaselineRecorderNode(Node):
         if self.done:
             return
         if time.monotonic() - self._t0 >= self.config["timeout_s"]:
-            self._finish(timed_out=True)
+            self._finish(f"timed out after {self.config['timeout_s']:g} s")
             return
         self.get_logger().info(f"{self.frames} frames, {self.recorder.n_complete} nozzles complete",
                                throttle_duration_sec=5.0)
 
-    def _finish(self, timed_out: bool = False) -> None:
+    def exit_status(self) -> int:
+        """0 once the file is written, else 1. A stop (SIGINT, SIGTERM) before it was writes the nozzles that
+        are complete, as ``timeout_s`` does."""
+        if not self.done:
+            self._finish(f"stopped after {time.monotonic() - self._t0:.1f} s")
+        return 0 if self.written else 1
+
+    def _say(self, level: str, text: str) -> None:  # after a signal the context is down: no rosout, plain stderr
+        if not self.context.ok():
+            print(f"record_baseline: {text}", file=sys.stderr, flush=True)
+        elif level == "info":  # one call site per severity: rclpy refuses a call site whose severity changes
+            self.get_logger().info(text)
+        elif level == "warning":
+            self.get_logger().warning(text)
+        else:
+            self.get_logger().error(text)
+
+    def _finish(self, early: str | None = None) -> None:
+        """Write the complete nozzles' baselines; ``early``: why before ``n_nozzles`` were (timed out, stopped)."""
         self.done = True
         baselines = self.recorder.baselines()
-        if timed_out:
-            self.get_logger().warning(
-                f"timed out after {self.config['timeout_s']:g} s with {self.frames} frames: "
-                f"{len(baselines)} nozzles complete" + (f" of {self.config['n_nozzles']}" if self.config["n_nozzles"] else ""))
+        if early:
+            want = self.config["n_nozzles"]
+            self._say("warning", f"{early} with {self.frames} frames: {len(baselines)} nozzles complete"
+                      + (f" of {want}" if want else ""))
         if len(baselines) == 0:
-            self.get_logger().error("no nozzle has enough valid frames: nothing written")
+            self._say("error", "no nozzle has enough valid frames: nothing written")
             return
         path = Path(self.config["output_path"])
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             self.written = baselines.save(path)
         except OSError as exc:
-            self.get_logger().error(f"could not write {path}: {exc}")
+            self._say("error", f"could not write {path}: {exc}")
             return
         ids = baselines.nozzle_ids
-        self.get_logger().info(f"wrote the baselines of {len(baselines)} nozzles ({ids[0]}..{ids[-1]}) "
-                               f"to {path}")
+        self._say("info", f"wrote the baselines of {len(baselines)} nozzles ({ids[0]}..{ids[-1]}) to {path}")
 
 
 def main(args=None) -> int:
     """Exit status 0 once the file is written, 1 if nothing could be, 2 for bad parameters."""
     return spin_node(BaselineRecorderNode, args, until=lambda node: node.done,
-                     exit_code=lambda node: 0 if node.written else 1, prog="record_baseline")
+                     exit_code=BaselineRecorderNode.exit_status, prog="record_baseline")
 
 
 if __name__ == "__main__":

@@ -293,3 +293,37 @@ def test_record_baseline_on_a_head_profile_stores_its_hash(ros, tmp_path):
     assert b.head_sha256 == prof.sha256 and (b.sample_rate_hz, b.n_samples) == (20e6, 1024)
     fm = np.stack([estimate_fm_batch(f, prof, 20e6, method="vp").fm for f in frames])  # the raw reading fe takes off
     np.testing.assert_allclose(b.fm, np.median(fm, axis=0), rtol=1e-5)
+
+
+@pytest.mark.timeout(120)
+def test_record_baseline_stopped_writes_the_complete_nozzles_and_says_so(ros, tmp_path):
+    """Waiting for timeout_s (n_nozzles 0), a stop wrote nothing and exited 1 without a word (helper-82's QA):
+    it now finishes as the timeout does, with the nozzles complete so far."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "b.npz"
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    proc = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.baseline_node", "--ros-args", "-r", "__ns:=/st",
+                             "-p", f"output_path:={out}", "-p", "n_frames:=2", "-p", "fm_frames:=1",
+                             "-p", "timeout_s:=60.0"], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    try:
+        pub = ros.node("controller", namespace="/st").create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
+        ros.spin_until(lambda: pub.get_subscription_count() > 0, 60, "record_baseline's subscription")
+        ros.spin_for(1.0)  # its side of the match (best effort)
+        frames = [simulate_nozzles(["healthy_nozzle"] * 8, seed=HEAD, frame_seed=f).traces for f in range(6)]
+        for k, f in enumerate(frames):
+            pub.publish(encode_traces(f, first_nozzle=0, frame_id=k))
+            ros.spin_for(0.1)
+        ros.spin_for(1.0)
+        proc.send_signal(signal.SIGTERM)
+        text = proc.communicate(timeout=30)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0 and "Traceback" not in text, text
+    assert "stopped after" in text and "8 nozzles complete" in text and "wrote the baselines of 8 nozzles" in text, text
+    assert list(NozzleBaselines.load(out).nozzle_ids) == list(range(8))

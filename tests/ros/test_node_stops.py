@@ -3,7 +3,7 @@
 The cycles of scripts/stop_cycles.py, two per signal and node: start the node as a
 process (with its upstream nodes running), wait until it works, signal it, and
 require exit status 0 within 2 s (record_baseline: 0 or its documented 1, stopped
-before it wrote anything), no traceback. One busy-loop process per core runs
+before any nozzle was complete), no traceback. One busy-loop process per core runs
 throughout (the fe node missed about one stop in three that way).
 """
 
