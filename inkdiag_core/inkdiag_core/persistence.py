@@ -149,7 +149,8 @@ def read_manifest(path) -> dict:
     path = Path(path)
     mpath = manifest_path(path)
     if not path.is_file():
-        raise ModelFileError(f"model file {path} does not exist")
+        raise ModelFileError(f"model file {path} " + ("is a directory, not a model file" if path.is_dir() else
+                                                      "does not exist" if not path.exists() else "is not a regular file"))
     if not mpath.is_file():
         if _looks_like_a_profile(path):
             raise ModelFileError(f"model file {path} is a head profile (YAML), not a model: a model is the "

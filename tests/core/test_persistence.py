@@ -97,6 +97,8 @@ def test_missing_file_or_manifest_is_refused(saved, tmp_path):
     path, _, _ = saved
     with pytest.raises(ModelFileError, match="does not exist"):
         load_model(tmp_path / "nope.joblib")
+    with pytest.raises(ModelFileError, match=f"model file {tmp_path} is a directory, not a model file"):
+        load_model(tmp_path)  # it exists: not "does not exist" (helper-82's QA: fdi -p model_path:=models)
     path.with_name(path.name + ".manifest.json").unlink()
     with pytest.raises(ModelFileError, match="no manifest"):
         load_model(path)
