@@ -32,6 +32,7 @@ import errno
 import importlib
 import os
 import sys
+import tempfile
 from pathlib import Path
 
 __all__ = ["INPUT_ARGS", "VERBS", "build_parser", "main"]
@@ -114,9 +115,11 @@ def _main(argv) -> int:
         return 1
     except (InputError, ValueError, OSError) as exc:  # bad input: one line, status 2
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        if (isinstance(exc, OSError) and exc.filename is None and exc.errno in _WRITE_ERRNOS
-                and getattr(args, "out", None)):  # a full disk says no file name: the output is the one written
-            msg = f"--out {args.out}: {exc.strerror or msg}"
+        out = getattr(args, "out", None)
+        if isinstance(exc, OSError) and out and (
+                (exc.filename is None and exc.errno in _WRITE_ERRNOS)  # a full disk says no file name
+                or str(exc.filename or "").startswith(str(out))):  # the output, or its temporary file beside it
+            msg = f"--out {out}: {exc.strerror or msg}"
         print(f"inkdiag {args.verb}: error: {msg}", file=sys.stderr)
         return 2
 
@@ -166,12 +169,19 @@ def _check_out(args) -> None:
                               "would change or destroy the recording; write it elsewhere")
         if Path(out).is_dir() and not args._makes_out_dir:
             raise OSError(f"--out {out} is a directory; give the output file's name")
-    if out and out != "-" and not args._makes_out_dir:
+    if out and out != "-":
         parent = Path(out).parent
-        if not parent.is_dir():
-            raise OSError(f"{parent}: no such directory for --out")
-        if not os.access(parent, os.W_OK):
-            raise OSError(f"{parent}: not writable, for --out")
+        if not args._makes_out_dir:
+            if not parent.is_dir():
+                raise OSError(f"{parent}: no such directory for --out")
+            if not os.access(parent, os.W_OK):
+                raise OSError(f"{parent}: not writable, for --out")
+        while not parent.exists() and parent != parent.parent:  # the verb makes the rest of the way
+            parent = parent.parent
+        try:  # what access() does not tell (root, a read-only mount, /sys, /proc): a file made there and removed
+            tempfile.TemporaryFile(dir=parent).close()
+        except OSError as exc:
+            raise OSError(f"--out {out}: its directory {parent} takes no new file ({exc.strerror or exc})") from None
 
 
 if __name__ == "__main__":

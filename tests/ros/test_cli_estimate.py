@@ -164,6 +164,22 @@ def test_out_dash_is_for_the_csv_verbs_only(head, tmp_path, monkeypatch):
     assert not (tmp_path / "-").exists()
 
 
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs /proc (a directory that takes no new file)")
+def test_an_out_whose_directory_takes_no_file_is_refused_before_the_work(head, capsys):
+    """Run as root (access() says yes) or on a read-only mount, train and calibrate found it out after their
+    work, and said the raw OSError of a temporary file's name (helper-81's QA)."""
+    from inkdiag_ros.cli import main
+
+    d, p, r = head
+    for argv in (["estimate", str(d / "rec.npz"), "--profile", str(d / "head.yaml"), "--out", "/proc/fm.csv"],
+                 ["train", "--profile", str(d / "head.yaml"), "--out", "/proc/new/dir/m.joblib"]):  # train mkdirs
+        capsys.readouterr()
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(
+            f"inkdiag {argv[0]}: error: --out {argv[-1]}: its directory /proc takes no new file ("), err
+
+
 def test_estimate_says_how_many_rows_were_relative_to_their_nozzles_baseline(head, tmp_path):
     """--baselines of nozzles 0..3 on a recording of nozzles 0..7: the summary counts the rows taken relative
     to their nozzle's healthy f_m and the rows without one, and says where the ids come from."""
