@@ -17,11 +17,11 @@ def typestore():
     return get_typestore(Stores.ROS2_JAZZY)
 
 
-def frame_msg(ts, traces, *, first, frame_id, stamp_s, data_offset=HEADER_LEN):
-    """A trace frame built with rosbags' own message classes (no rclpy, no msg_defs encoder)."""
+def frame_msg(ts, traces, *, first, frame_id, stamp_s, data_offset=HEADER_LEN, fs=FS):
+    """A trace frame built with rosbags' own message classes (no rclpy, no msg_defs encoder); ``fs`` Hz."""
     ma = ts.types
     n, s = traces.shape
-    head = np.array([SCHEMA_VERSION, first, frame_id, 0, FS, stamp_s, 0, 0], dtype=np.float32)
+    head = np.array([SCHEMA_VERSION, first, frame_id, 0, fs, stamp_s, 0, 0], dtype=np.float32)
     layout = ma["std_msgs/msg/MultiArrayLayout"](
         dim=[ma["std_msgs/msg/MultiArrayDimension"](label="nozzle", size=n, stride=n * s),
              ma["std_msgs/msg/MultiArrayDimension"](label="sample", size=s, stride=s)], data_offset=data_offset)
@@ -29,7 +29,7 @@ def frame_msg(ts, traces, *, first, frame_id, stamp_s, data_offset=HEADER_LEN):
 
 
 def write_bag(path, frames, *, version=9, bad_frame=None, traces_type="std_msgs/msg/Float32MultiArray", stamps=None,
-              writer=None):
+              writer=None, fs=FS):
     """A rosbag2 MCAP bag written by rosbags directly: ``frames`` is a list of (first_nozzle, traces); frame ``k``
     has frame_id ``k`` and stamp ``stamps[k]`` s (default ``100 + k``). ``writer(path, version)``: the writer
     (default: rosbags' own)."""
@@ -48,7 +48,7 @@ def write_bag(path, frames, *, version=9, bad_frame=None, traces_type="std_msgs/
                 msg = ts.types["std_msgs/msg/String"](data="not traces")
             else:
                 msg = frame_msg(ts, x, first=first, frame_id=k, stamp_s=100 + k if stamps is None else stamps[k],
-                                data_offset=3 if k == bad_frame else HEADER_LEN)
+                                data_offset=3 if k == bad_frame else HEADER_LEN, fs=fs)
             w.write(conn, t0 + k * 100_000_000, ts.serialize_cdr(msg, traces_type))
             w.write(other, t0 + k * 100_000_000 + 1, ts.serialize_cdr(ts.types["std_msgs/msg/String"](data="{}"),
                                                                        "std_msgs/msg/String"))

@@ -236,7 +236,13 @@ def test_blocked_traces_through_the_cli(files, tmp_path, capsys):
     (tmp_path / "bag").mkdir()
     (tmp_path / "bag" / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
     assert cli.main([*args, "--blocked", str(tmp_path / "bag"), "--out", str(tmp_path / "x.yaml")]) == 2
-    assert "--blocked takes an .npz recording" in capsys.readouterr().err
+    assert f"{tmp_path / 'bag'}: cannot open the bag" in capsys.readouterr().err
+    # a bag, as everywhere a recording is taken (it was refused): no label column, so every row
+    from _bags import write_bag
+
+    write_bag(tmp_path / "blocked_bag", [(0, sim.traces[5:].astype(np.float32))], fs=TRUE.sample_rate_hz)
+    assert cli.main([*args, "--blocked", str(tmp_path / "blocked_bag"), "--out", str(tmp_path / "hb.yaml")]) == 0
+    assert HeadProfile.load(tmp_path / "hb.yaml").calibration["n_blocked_traces"] == 30
 
 
 def test_blocked_rows_from_a_label_csv(files, tmp_path, capsys):

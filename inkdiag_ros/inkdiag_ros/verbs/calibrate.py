@@ -77,13 +77,14 @@ def add_arguments(parser) -> None:
                         help="nominal head profile: sampling, drive, channel rho, mu, r_n, L_n, V_ch, c")
     parser.add_argument("--out", metavar="HEAD.yaml", required=True, help="complete head profile to write")
     parser.add_argument("--blocked", metavar="BLOCKED", default=None,
-                        help="recording (.npz) of fully blocked nozzles of the head: pins the restrictor")
+                        help="recording (.npz, or a bag read whole) of fully blocked nozzles of the head: pins the restrictor")
     parser.add_argument("--blocked-labels", metavar="LABELS.csv", default=None,
                         help="inkdiag label's CSV of the --blocked recording: its rows labelled fully_blocked are "
                         "used (a recording of the head's faults labelled by a first model, instead of its own label "
                         "column)")
     parser.add_argument("--empty", metavar="EMPTY", default=None,
-                        help="recording (.npz) of empty channels of the head (no ink: purged dry): the actuator's own "
+                        help="recording (.npz, or a bag read whole) of empty channels of the head (no ink: purged dry): the "
+                        "actuator's own "
                         "resonance, which the empty-channel classes are simulated from")
     parser.add_argument("--report-dir", metavar="DIR", default=None,
                         help="where to write the fit report (default: beside --out)")
@@ -157,14 +158,11 @@ def bag_sample(chunks, nominal, *, max_rows: int = MAX_BAG_ROWS, seed: int = 0):
 
 
 def _fault_rows(path, option, cls, labels_csv=None):
-    """The recording at ``path`` (an .npz) given as ``option``, its rows labelled ``cls`` where it has labels:
-    those of ``labels_csv`` (``inkdiag label``'s CSV of that recording) when given, else its own label column."""
-    from inkdiag_core import load_recording
+    """The recording at ``path`` (an .npz, or a bag read whole, its rows numbered as ``inkdiag label`` numbers
+    them) given as ``option``, its rows labelled ``cls`` where it has labels: those of ``labels_csv`` (``inkdiag
+    label``'s CSV of that recording) when given, else its own label column (a bag has none: every row)."""
+    from ..bags import load_recording
 
-    from ..bags import is_bag
-
-    if is_bag(path):
-        raise ValueError(f"{option} {path}: a rosbag2 bag; {option} takes an .npz recording (a few dozen traces)")
     rec = load_recording(path)
     label = rec.label if labels_csv is None else _csv_classes(labels_csv, rec, f"{option} {path}")
     if label is not None:
