@@ -10,7 +10,8 @@ time: 2 is twice as fast), or back to back with --as-fast-as-possible.
 
 Before the first message it waits (up to --wait-s) until its publishers are
 matched by subscribers, and 1 s more for their side of the match: a replay
-that published at once would lose its first messages to discovery. Reliable topics are waited on to be acknowledged at the end.
+that published at once would lose its first messages to discovery. Reliable
+topics are waited on to be acknowledged at the end.
 
 --namespace NS moves the head's topics: the first name component of every topic
 that has more than one (/head_00/traces -> NS/traces; /diagnostics stays).
