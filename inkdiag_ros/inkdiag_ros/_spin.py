@@ -263,6 +263,7 @@ def ros_args_error(argv) -> str | None:
     with exit status 1, after rcl's own log line. Checked first, that log held back: the caller
     prints this one line and exits 2, as for a parameter the node refuses.
     """
+    import ast
     import re
 
     from rclpy.utilities import remove_ros_args
@@ -270,17 +271,30 @@ def ros_args_error(argv) -> str | None:
     argv = [str(a) for a in argv]
     if "--ros-args" not in argv:
         return None
-    why = None
-    with _stderr_held() as written:
+
+    def why_not():
         try:
             remove_ros_args(argv)
-        except Exception as exc:  # noqa: BLE001 - rclpy's RCLInvalidROSArgsError (an RCLError)
+        except Exception as exc:  # noqa: BLE001 - rclpy's RCLInvalidROSArgsError, UnknownROSArgsError
+            if type(exc).__name__ == "UnknownROSArgsError":  # its text: the list's repr, "['--foo']"
+                try:
+                    return "unknown ROS arguments: " + " ".join(map(str, ast.literal_eval(str(exc))))
+                except (ValueError, SyntaxError, TypeError):
+                    return f"unknown ROS arguments: {exc}"
             text = str(exc).strip()
             text = text.splitlines()[0] if text else type(exc).__name__
             why = "bad ROS arguments: " + re.sub(r",? at /\S+:\d+", "", text).removeprefix(
                 "Failed to parse ROS arguments: ")
             if re.search(r"'-p [^']*:='", text):  # `-p name:=` (the shell ate the quotes of name:='')
                 why += "; an empty string is written -p \"NAME:=''\""
+            return why
+        return None
+
+    try:
+        with _stderr_held() as written:
+            why = why_not()
+    except OSError:  # no temporary file, or no fd 2, to hold rcl's log in: it is not held back
+        return why_not()
     if why is None and written[0]:  # parsed: whatever rcl said all the same goes out
         os.write(2, written[0])
     return why

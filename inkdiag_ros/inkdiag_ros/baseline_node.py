@@ -120,7 +120,10 @@ class BaselineRecorderNode(Node):
         """0 once the file is written, else 1. A stop (SIGINT, SIGTERM) before it was writes the nozzles that
         are complete, as ``timeout_s`` does."""
         if not self.done:
-            self._finish(f"stopped after {time.monotonic() - self._t0:.1f} s")
+            try:
+                self._finish(f"stopped after {time.monotonic() - self._t0:.1f} s")
+            except Exception as exc:  # noqa: BLE001 - said here: spin_node may ask before it could raise it
+                self._say("error", f"could not write the baselines: {type(exc).__name__}: {exc}")
         return 0 if self.written else 1
 
     def _say(self, level: str, text: str) -> None:  # after a signal the context is down: no rosout, plain stderr

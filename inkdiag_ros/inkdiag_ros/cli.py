@@ -116,9 +116,9 @@ def _main(argv) -> int:
     except (InputError, ValueError, OSError) as exc:  # bad input: one line, status 2
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         out = getattr(args, "out", None)
-        if isinstance(exc, OSError) and out and (
+        if isinstance(exc, OSError) and out and out != "-" and (
                 (exc.filename is None and exc.errno in _WRITE_ERRNOS)  # a full disk says no file name
-                or str(exc.filename or "").startswith(str(out))):  # the output, or its temporary file beside it
+                or _is_out_or_beside(exc.filename, out)):
             msg = f"--out {out}: {exc.strerror or msg}"
         print(f"inkdiag {args.verb}: error: {msg}", file=sys.stderr)
         return 2
@@ -126,6 +126,16 @@ def _main(argv) -> int:
 
 #: Errors only writing raises (a full disk or quota, a file too large, a read-only file system).
 _WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS})
+
+
+def _is_out_or_beside(filename, out: str) -> bool:
+    """``filename`` (an OSError's) is ``out``, its temporary file beside it (``OUT.xxxx.tmp``,
+    ``_fileio.temp_beside``) or a directory on the way to it (``train`` makes them)."""
+    if not filename or not isinstance(filename, (str, os.PathLike)):
+        return False
+    f, o = Path(filename).resolve(), Path(out).resolve()
+    return (f == o or (f.parent == o.parent and f.name.startswith(o.name + ".") and f.name.endswith(".tmp"))
+            or (f in o.parents and not f.exists()))
 
 
 def _same_path(a: str, b: str) -> bool:
@@ -178,8 +188,9 @@ def _check_out(args) -> None:
                 raise OSError(f"{parent}: not writable, for --out")
         while not parent.exists() and parent != parent.parent:  # the verb makes the rest of the way
             parent = parent.parent
-        try:  # what access() does not tell (root, a read-only mount, /sys, /proc): a file made there and removed
-            tempfile.TemporaryFile(dir=parent).close()
+        try:  # what access() does not tell (root, a read-only mount, /sys, /proc): a file made there and removed;
+            if not os.path.exists(out) or os.path.isfile(out):  # not for a FIFO, /dev/fd/N: opened as they are
+                tempfile.TemporaryFile(dir=parent).close()
         except OSError as exc:
             raise OSError(f"--out {out}: its directory {parent} takes no new file ({exc.strerror or exc})") from None
 

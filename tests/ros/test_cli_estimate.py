@@ -176,8 +176,35 @@ def test_an_out_whose_directory_takes_no_file_is_refused_before_the_work(head, c
         capsys.readouterr()
         assert main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and err[0].startswith(
-            f"inkdiag {argv[0]}: error: --out {argv[-1]}: its directory /proc takes no new file ("), err
+        probed = f"inkdiag {argv[0]}: error: --out {argv[-1]}: its directory /proc takes no new file ("
+        denied = f"inkdiag {argv[0]}: error: /proc: not writable, for --out"  # not root: access() says so first
+        assert len(err) == 1 and (err[0].startswith(probed) or (os.geteuid() != 0 and err[0] == denied)), err
+    for fd_dir in ("/dev/fd", "/proc/self/fd"):  # a pipe, as a shell's >(gzip > x.gz) gives: not probed, written
+        r, w = os.pipe()
+        try:
+            assert main(["estimate", str(d / "rec.npz"), "--profile", str(d / "head.yaml"), "--rows", "0",
+                         "--out", f"{fd_dir}/{w}"]) == 0, capsys.readouterr().err
+            os.close(w)
+            with os.fdopen(r, "rb") as f:
+                assert f.read().decode().splitlines()[0].startswith("row,nozzle,fm,")
+        finally:
+            for fd in (r, w):
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+
+
+def test_an_oserror_is_said_as_outs_only_when_it_is_about_the_output(tmp_path, monkeypatch):
+    from inkdiag_ros.cli import _is_out_or_beside
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "head.yaml").write_text("x")
+    assert _is_out_or_beside(str(tmp_path / "m.joblib.q11g331j.tmp"), "m.joblib")  # relative --out, absolute temp
+    assert _is_out_or_beside("m.joblib", str(tmp_path / "m.joblib"))
+    assert _is_out_or_beside(str(tmp_path / "new"), "new/dir/m.joblib")  # a directory train was to make
+    assert not _is_out_or_beside(str(tmp_path / "head.yaml"), "head")  # an input named like it
+    assert not _is_out_or_beside(str(tmp_path), "m.joblib") and not _is_out_or_beside(None, "m.joblib")
 
 
 def test_estimate_says_how_many_rows_were_relative_to_their_nozzles_baseline(head, tmp_path):

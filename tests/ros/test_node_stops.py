@@ -260,6 +260,7 @@ def test_bad_ros_arguments_are_found_before_anything_starts(tmp_path, capfd, fdi
 
     assert ros_args_error(["fdi", "--ros-args", "-r", "__ns:=/h", "-p", "n_nozzles:=8"]) is None
     assert ros_args_error(["fdi"]) is None
+    assert ros_args_error(["fdi", "--ros-args", "--foo", "bar"]) == "unknown ROS arguments: --foo bar"
     assert ros_args_error(["x", "--ros-args", "--params-file", str(tmp_path / "none.yaml")]) == (
         f"bad ROS arguments: Couldn't parse params file: '--params-file {tmp_path / 'none.yaml'}'. "
         "Error: Error opening YAML file")

@@ -71,8 +71,8 @@ example:
 
 def add_arguments(parser) -> None:
     parser.add_argument("healthy", metavar="HEALTHY", help="recording (.npz, or a rosbag2 bag directory) of healthy traces, volts")
-    parser.add_argument("--topic", default=None, metavar="TOPIC", help="traces topic of a bag (default: its one "
-                        "Float32MultiArray topic ending in /traces)")
+    parser.add_argument("--topic", default=None, metavar="TOPIC", help="traces topic of a bag, of every bag given "
+                        "(default: its one Float32MultiArray topic ending in /traces)")
     parser.add_argument("--nominal", metavar="NOMINAL.yaml", required=True,
                         help="nominal head profile: sampling, drive, channel rho, mu, r_n, L_n, V_ch, c")
     parser.add_argument("--out", metavar="HEAD.yaml", required=True, help="complete head profile to write")
@@ -157,13 +157,13 @@ def bag_sample(chunks, nominal, *, max_rows: int = MAX_BAG_ROWS, seed: int = 0):
     return store[:m][keep], n_read, n_screened
 
 
-def _fault_rows(path, option, cls, labels_csv=None):
+def _fault_rows(path, option, cls, labels_csv=None, topic=None):
     """The recording at ``path`` (an .npz, or a bag read whole, its rows numbered as ``inkdiag label`` numbers
     them) given as ``option``, its rows labelled ``cls`` where it has labels: those of ``labels_csv`` (``inkdiag
     label``'s CSV of that recording) when given, else its own label column (a bag has none: every row)."""
-    from ..bags import load_recording
+    from ..bags import is_bag, load_recording
 
-    rec = load_recording(path)
+    rec = load_recording(path, topic=topic if is_bag(path) else None)  # --topic: of every bag given
     label = rec.label if labels_csv is None else _csv_classes(labels_csv, rec, f"{option} {path}")
     if label is not None:
         keep = label == cls
@@ -270,10 +270,11 @@ def run(args) -> int:
     # before a long bag is read
     if args.blocked_labels and not args.blocked:
         raise ValueError("--blocked-labels needs --blocked: the recording those labels are of")
-    blocked = _fault_rows(args.blocked, "--blocked", "fully_blocked", args.blocked_labels) if args.blocked else None
+    blocked = (_fault_rows(args.blocked, "--blocked", "fully_blocked", args.blocked_labels, args.topic)
+               if args.blocked else None)
     if blocked is not None:
         nominal.check_traces(blocked.traces, blocked.sample_rate_hz, what=f"{args.blocked}")
-    empty = _fault_rows(args.empty, "--empty", "empty_channel_1") if args.empty else None
+    empty = _fault_rows(args.empty, "--empty", "empty_channel_1", topic=args.topic) if args.empty else None
     if empty is not None:
         nominal.check_traces(empty.traces, empty.sample_rate_hz, what=f"{args.empty}")
     stats, chunks = stream_recording(args.healthy, args.topic,  # a bag's frames of another sampling: skipped

@@ -92,10 +92,10 @@ def run(args) -> int:
         raise
     n_sent = 0
     with stop_on_signals() as stop:
-        rclpy.init()
         node = executor = None
         try:
             try:
+                rclpy.init()
                 node = rclpy.create_node("inkdiag_replay")
                 stop.attach(node)
                 executor = SingleThreadedExecutor()
@@ -111,8 +111,9 @@ def run(args) -> int:
                     raise
             else:
                 _wait_for_subscribers(executor, node, list(pubs.values()), args.wait_s, stop)
-                print(f"replaying {sum(c.msgcount for c in conns)} messages of "
-                      f"{', '.join(sorted({c.topic for c in conns}))} from {bag}", file=sys.stderr, flush=True)
+                if not stop.requested:
+                    print(f"replaying {sum(c.msgcount for c in conns)} messages of "
+                          f"{', '.join(sorted({c.topic for c in conns}))} from {bag}", file=sys.stderr, flush=True)
                 while not stop.requested and rclpy.ok():
                     t_bag0 = t_wall0 = None
                     for c, ts, raw in _broken_off_at(reader.messages(connections=conns), bag, lambda: n_sent):
@@ -180,7 +181,10 @@ def _wait_for_subscribers(executor, node, pubs, wait_s, stop):
     deadline = time.monotonic() + wait_s
     first_match = None
     while not stop.requested and time.monotonic() < deadline:
-        matched = [p.get_subscription_count() > 0 for p in pubs]
+        try:
+            matched = [p.get_subscription_count() > 0 for p in pubs]
+        except Exception:  # the context went down (a signal)
+            return
         if all(matched):
             break
         if any(matched):
@@ -191,8 +195,12 @@ def _wait_for_subscribers(executor, node, pubs, wait_s, stop):
             executor.spin_once(timeout_sec=0.05)
         except Exception:  # the context went down (a signal)
             return
-    if any(p.get_subscription_count() > 0 for p in pubs):  # the readers' side matches after the writers':
-        grace = time.monotonic() + READER_MATCH_GRACE_S   # best-effort samples before it are dropped unseen
+    try:
+        matched = not stop.requested and any(p.get_subscription_count() > 0 for p in pubs)
+    except Exception:  # the context went down (a signal)
+        return
+    if matched:  # the readers' side matches after the writers': best-effort samples before it are dropped unseen
+        grace = time.monotonic() + READER_MATCH_GRACE_S
         while not stop.requested and time.monotonic() < grace:
             try:
                 executor.spin_once(timeout_sec=0.05)
