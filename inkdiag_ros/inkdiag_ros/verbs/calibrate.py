@@ -77,15 +77,15 @@ def add_arguments(parser) -> None:
                         help="nominal head profile: sampling, drive, channel rho, mu, r_n, L_n, V_ch, c")
     parser.add_argument("--out", metavar="HEAD.yaml", required=True, help="complete head profile to write")
     parser.add_argument("--blocked", metavar="BLOCKED", default=None,
-                        help="recording (.npz, or a bag read whole) of fully blocked nozzles of the head: pins the restrictor")
+                        help="recording (.npz, or a bag read whole) of fully blocked nozzles of the head: pins the "
+                        "restrictor")
     parser.add_argument("--blocked-labels", metavar="LABELS.csv", default=None,
                         help="inkdiag label's CSV of the --blocked recording: its rows labelled fully_blocked are "
                         "used (a recording of the head's faults labelled by a first model, instead of its own label "
                         "column)")
     parser.add_argument("--empty", metavar="EMPTY", default=None,
-                        help="recording (.npz, or a bag read whole) of empty channels of the head (no ink: purged dry): the "
-                        "actuator's own "
-                        "resonance, which the empty-channel classes are simulated from")
+                        help="recording (.npz, or a bag read whole) of empty channels of the head (no ink: purged "
+                        "dry): the actuator's own resonance, which the empty-channel classes are simulated from")
     parser.add_argument("--report-dir", metavar="DIR", default=None,
                         help="where to write the fit report (default: beside --out)")
     parser.add_argument("--name", default=None, help="name of the calibrated profile (default: the nominal's)")
