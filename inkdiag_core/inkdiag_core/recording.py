@@ -159,6 +159,15 @@ class Recording:
         return cls(t, float(fs), nozzle, frame, st, lab, source)
 
 
+def refuse_an_unclosed_bag(path) -> None:
+    """Raise :class:`RecordingError` if the directory ``path`` holds a bag's storage files but no
+    metadata.yaml (its recorder stopped before it closed the bag); else nothing."""
+    path = Path(path)
+    if path.is_dir() and (any(path.glob("*.mcap")) or any(path.glob("*.db3"))):
+        raise RecordingError(f"{path}: a bag directory without its metadata.yaml (a recorder stopped before it "
+                             "closed the bag writes none): not readable as a rosbag2 bag")
+
+
 def load_recording(path) -> Recording:
     """Read a recording (``.npz``, see the module docstring).
 
@@ -180,9 +189,7 @@ def load_recording(path) -> Recording:
         if (path / "metadata.yaml").is_file():  # the core cannot decode the wire's trace frames (msg_defs does)
             raise RecordingError(f"{src}: is a rosbag2 bag; read it with inkdiag_ros.bags.load_recording "
                                  "(the inkdiag verbs do)")
-        if any(path.glob("*.mcap")) or any(path.glob("*.db3")):  # a bag whose recorder died before closing it
-            raise RecordingError(f"{src}: a bag directory without its metadata.yaml (a recorder stopped before it "
-                                 "closed the bag writes none): not readable as a rosbag2 bag")
+        refuse_an_unclosed_bag(path)
         raise RecordingError(f"{src}: is a directory; a recording is an .npz file or a rosbag2 bag directory")
     if not path.is_file():  # a pipe or a device: np.load needs to seek, and the check below reads
         raise RecordingError(f"{src}: not a regular file; a recording is an .npz file or a rosbag2 bag directory")

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from inkdiag_core.head_profile import same_sample_rate
-from inkdiag_core.recording import Recording, RecordingError
+from inkdiag_core.recording import Recording, RecordingError, refuse_an_unclosed_bag
 from inkdiag_core.recording import load_recording as load_npz_recording
 
 from msg_defs import topics
@@ -208,9 +208,7 @@ def open_reader(bag_dir):
     if not p.exists():
         raise RecordingError(f"{src}: no such bag")
     if not is_bag(p):
-        if p.is_dir() and (any(p.glob("*.mcap")) or any(p.glob("*.db3"))):  # its recorder died before closing it
-            raise RecordingError(f"{src}: a bag directory without its metadata.yaml (a recorder stopped before it "
-                                 "closed the bag writes none): not readable as a rosbag2 bag")
+        refuse_an_unclosed_bag(p)
         raise RecordingError(f"{src}: not a rosbag2 bag (a directory with a metadata.yaml)")
     try:
         reader = Reader(p)

@@ -1,32 +1,16 @@
 """record_baseline: record a printhead's per-nozzle healthy baselines from its trace frames.
 
-Run it while the head is known to jet (after a purge, at commissioning): it
-subscribes to ``traces`` (sensor-data QoS) in the head's namespace, keeps each
-nozzle's first ``n_frames`` valid rows (:class:`inkdiag_core.BaselineRecorder`:
-any nozzle ranges, in any order; invalid rows, and rows beyond 5x the head's
-ADC range (fdi's default ``max_abs_sample_v``), are skipped) and, once
-``n_nozzles`` nozzles are complete, writes their baselines (median KPIs) to
-``output_path`` (:class:`inkdiag_core.NozzleBaselines`, a checked ``.npz``) and
-exits. With ``fm_frames`` > 0 (the default) the file also holds each nozzle's
-healthy f_m reading, the median over its first ``fm_frames`` valid rows, which
-the fe node subtracts (its ``baseline_path``; the raw ``vp`` reading,
-:data:`inkdiag_core.baselines.FM_METHOD`); it costs about 1 ms of CPU per row (a
-2,656-nozzle head: about 10 s for 3 frames). The file also holds each
-nozzle's healthy reference trace (the sample-wise median of the same rows), which
-the fdi node's healthy gate (:class:`inkdiag_core.HealthyGate`) fits each new row to;
-the node keeps those rows until it writes (float32: a 2,656-nozzle head at
-``n_frames`` 8 holds 44 MB). At ``timeout_s``, or stopped by SIGINT / SIGTERM, it writes the nozzles
-that are complete, says how many, and exits with status 1 if none is. The fdi node uses the file
-(``baseline_path``, classified by its model's baseline branch),
-and so does the fe node (``baseline_path``).
-
-The head is ``head_profile`` (a complete :class:`inkdiag_core.HeadProfile` YAML file; empty:
-the shipped default head): frames of another sampling are rejected, the f_m readings use its
-model, and the file records its sha256. A nominal profile, a bad file or a ``sample_rate_hz`` /
-``n_samples`` that is not the profile's stops the node at start (one line, exit status 2).
+Run it while the head is known to jet (after a purge, at commissioning): it subscribes to
+``traces`` in the head's namespace, keeps each nozzle's first ``n_frames`` valid rows
+(:class:`inkdiag_core.BaselineRecorder`: any nozzle ranges, in any order; invalid rows and
+rows beyond 5x the head's ADC range skipped) and, once ``n_nozzles`` are complete, writes
+their baselines (median KPIs, healthy f_m for fe, reference traces for fdi's healthy gate:
+:class:`inkdiag_core.NozzleBaselines`) to ``output_path`` and exits 0. At ``timeout_s``, or
+stopped by SIGINT / SIGTERM, it writes the nozzles complete so far and exits 1 if there are
+none. ``head_profile`` is the head (empty: the default one); a bad or nominal profile, or a
+sampling not the profile's, stops it at start (one line, exit status 2). docs/nodes.md.
 
     record_baseline --ros-args -r __ns:=/head_07 -p output_path:=baselines/head_07.npz -p n_nozzles:=2656
-    record_baseline --ros-args -p output_path:=b.npz -p head_profile:=heads/my_head.yaml
 """
 
 from __future__ import annotations
