@@ -325,8 +325,9 @@ def test_replay_into_fdi_gives_one_labels_message_per_traces_message(tmp_path, s
                             stderr=subprocess.PIPE, text=True)
     try:
         ros.spin_until(lambda: proc.poll() is not None, timeout=60, what="the replay to end")
-        # the node, spun by this thread, may be behind the replay (a CI run: 2 of 8 frames taken 2 s after it
-        # ended): what its reader holds (depth 32) is taken once it gets the thread; best effort, so not all may come
+        # the node, spun by this thread, may take what its reader holds (depth 32) after the replay ended. A CI
+        # run once saw 2 of 8 frames: replay then waited only 0.2 s after its writer matched, and a best-effort
+        # reader drops what comes before its own side of the match (replay.READER_MATCH_GRACE_S, now 1 s)
         deadline = time.monotonic() + 20.0
         while fdi.stats.frames_received < len(frames) and time.monotonic() < deadline:
             ros.spin_for(0.1)

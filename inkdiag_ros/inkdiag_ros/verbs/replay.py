@@ -180,29 +180,37 @@ def _wait_for_subscribers(executor, node, pubs, wait_s, stop):
 
     deadline = time.monotonic() + wait_s
     first_match = None
-    while not stop.requested and time.monotonic() < deadline:
-        try:
-            matched = [p.get_subscription_count() > 0 for p in pubs]
-        except Exception:  # the context went down (a signal)
-            return
-        if all(matched):
-            break
+
+    def waiting() -> bool:
+        nonlocal first_match
+        matched = _matched(pubs)
+        if matched is None or all(matched):
+            return False
         if any(matched):
             first_match = first_match or time.monotonic()
             if time.monotonic() - first_match > 1.0:
-                break
+                return False
+        return time.monotonic() < deadline
+
+    if _spin_while(executor, stop, waiting) and not stop.requested and any(_matched(pubs) or ()):
+        # the readers' side matches after the writers': best-effort samples before it are dropped unseen
+        grace = time.monotonic() + READER_MATCH_GRACE_S
+        _spin_while(executor, stop, lambda: time.monotonic() < grace)
+
+
+def _matched(pubs) -> list | None:
+    """Whether each publisher has a subscriber; None once the context went down (a signal)."""
+    try:
+        return [p.get_subscription_count() > 0 for p in pubs]
+    except Exception:  # noqa: BLE001 - the context went down
+        return None
+
+
+def _spin_while(executor, stop, keep_going) -> bool:
+    """Spin in 50 ms steps while no stop is requested and ``keep_going()``; False if the context went down."""
+    while not stop.requested and keep_going():
         try:
             executor.spin_once(timeout_sec=0.05)
-        except Exception:  # the context went down (a signal)
-            return
-    try:
-        matched = not stop.requested and any(p.get_subscription_count() > 0 for p in pubs)
-    except Exception:  # the context went down (a signal)
-        return
-    if matched:  # the readers' side matches after the writers': best-effort samples before it are dropped unseen
-        grace = time.monotonic() + READER_MATCH_GRACE_S
-        while not stop.requested and time.monotonic() < grace:
-            try:
-                executor.spin_once(timeout_sec=0.05)
-            except Exception:  # the context went down (a signal)
-                return
+        except Exception:  # noqa: BLE001 - the context went down (a signal)
+            return False
+    return True
