@@ -180,6 +180,7 @@ def _vp_batch(sc, key, Ys, fm_bounds, n_grid, max_iter, tol):
     B, dB, lam, V, _ = _vp_basis(sc, f, N, deriv=True)
     fac = _vp_factor(B)
     theta, res, R = _vp_solve(B, Ys, fac)
+    active = np.ones(n, bool)  # each row stops at its own convergence: its estimate does not depend on the batch
     for it in range(max_iter + 1):
         # Gauss-Newton on f with the linear parameters projected out (Kaufman)
         J = (theta[:, None, :3] @ dB)[:, 0, :]
@@ -188,13 +189,14 @@ def _vp_batch(sc, key, Ys, fm_bounds, n_grid, max_iter, tol):
         if it == max_iter:
             break
         d = np.where(JJ > 0, np.einsum("nk,nk->n", tJ, res) / JJ, 0.0)
-        if (np.abs(d) < tol).all():  # scaled units: 1e-8 per us = 0.01 1/s; J, tJ stay f's
+        active &= ~(np.abs(d) < tol)  # scaled units: 1e-8 per us = 0.01 1/s; J, tJ stay f's
+        if not active.any():
             break
         f_new = np.minimum(np.maximum(f + d, f_lo), f_hi)
         B2, dB2, lam2, V2, _ = _vp_basis(sc, f_new, N, deriv=True)
         fac2 = _vp_factor(B2)
         th2, res2, R2 = _vp_solve(B2, Ys, fac2)
-        acc = R2 <= R
+        acc = (R2 <= R) & active
         if acc.all():
             f, B, dB, lam, V, fac, theta, res, R = f_new, B2, dB2, lam2, V2, fac2, th2, res2, R2
             continue
@@ -206,8 +208,9 @@ def _vp_batch(sc, key, Ys, fm_bounds, n_grid, max_iter, tol):
             fac = np.where(a2, fac2, fac)
             theta, res, R = np.where(a1, th2, theta), np.where(a1, res2, res), np.where(acc, R2, R)
         # a rejected step is halved next time through the bracket
-        f_lo = np.where(~acc & (d < 0), np.maximum(f_lo, f + 0.5 * d), f_lo)
-        f_hi = np.where(~acc & (d > 0), np.minimum(f_hi, f + 0.5 * d), f_hi)
+        rej = active & ~acc
+        f_lo = np.where(rej & (d < 0), np.maximum(f_lo, f + 0.5 * d), f_lo)
+        f_hi = np.where(rej & (d > 0), np.minimum(f_hi, f + 0.5 * d), f_hi)
     sigma2 = R / max(N - 5, 1)
     std = np.sqrt(sigma2 / JJ)
     # initial state from the modal coefficients: y_k = sum_j (C V)_j m_j mu_j^k
@@ -286,6 +289,7 @@ def _pair_refit(sc, Ys, fs, iters):
     sig, w = sig0.copy(), w0.copy()
     res, R, tJ = fit(sig, w)
     cap = 0.05 * np.abs(w0)
+    active = pair.copy()  # each row stops at its own convergence: its fit does not depend on the batch
     for _ in range(iters):
         G = tJ @ tJ.transpose(0, 2, 1)
         g = (tJ @ res[:, :, None])[..., 0]
@@ -294,10 +298,11 @@ def _pair_refit(sc, Ys, fs, iters):
         d1 = np.where(ok, (G[:, 1, 1] * g[:, 0] - G[:, 0, 1] * g[:, 1]) / det, 0.0)
         d2 = np.where(ok, (G[:, 0, 0] * g[:, 1] - G[:, 0, 1] * g[:, 0]) / det, 0.0)
         d1, d2 = np.minimum(np.maximum(d1, -cap), cap), np.minimum(np.maximum(d2, -cap), cap)
-        if (np.maximum(np.abs(d1), np.abs(d2)) < _PAIR_TOL * np.abs(w0)).all():
+        active &= ~(np.maximum(np.abs(d1), np.abs(d2)) < _PAIR_TOL * np.abs(w0))
+        if not active.any():
             break  # converged (Gauss-Newton: steps ~1e-4, 1e-7, 1e-10 of w0): skip the fit
         res2, R2, tJ2 = fit(sig + d1, w + d2)
-        acc = (R2 <= R) & pair
+        acc = (R2 <= R) & active
         sig, w = np.where(acc, sig + d1, sig), np.where(acc, w + d2, w)
         res = np.where(acc[:, None], res2, res)
         R = np.where(acc, R2, R)
