@@ -6,7 +6,7 @@ import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["temp_beside"]
+__all__ = ["refuse_to_replace", "temp_beside"]
 
 
 def temp_beside(path) -> tuple[int, str]:
@@ -25,12 +25,24 @@ def temp_beside(path) -> tuple[int, str]:
         Its path.
     """
     path = Path(path)
+    refuse_to_replace(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
     try:
         os.fchmod(fd, 0o666 & ~_umask())
     except OSError:  # a filesystem without modes: the file is written all the same
         pass
     return fd, tmp
+
+
+def refuse_to_replace(path) -> None:
+    """Raise :class:`OSError` if ``path`` exists and is not a regular file (nor a link): a device such as
+    ``/dev/null``, a pipe, a socket or a directory, which a rename would replace for every user of it
+    (a link is replaced itself, not what it points to)."""
+    path = Path(path)
+    if os.path.lexists(path) and not path.is_symlink() and not path.is_file():
+        kind = "a directory" if path.is_dir() else "not a regular file (a device, pipe or socket)"
+        raise OSError(f"{path} is {kind}: a file written there is renamed into place, which would replace "
+                      "it; give a file's name")
 
 
 def _umask() -> int:

@@ -34,7 +34,7 @@ import numpy
 import scipy
 import sklearn
 
-from ._fileio import temp_beside
+from ._fileio import refuse_to_replace, temp_beside
 from ._version import __version__
 
 __all__ = ["ModelFileError", "save_model", "load_model", "save_detector", "load_detector", "read_manifest",
@@ -114,6 +114,7 @@ def _save(model, path, *, config, scores):
         "scores": scores or {},
     }
     json.dumps(manifest)  # fail before writing anything if config/scores are not JSON
+    refuse_to_replace(manifest_path(path))
     fd, tmp = temp_beside(path)
     os.close(fd)
     mtmp = None

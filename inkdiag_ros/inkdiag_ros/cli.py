@@ -15,7 +15,8 @@ A RECORDING is an .npz file or a rosbag2 bag directory (see docs/bags.md).
 Each subcommand is a module of :mod:`inkdiag_ros.verbs` with ``HELP`` (one
 line), ``DESCRIPTION``, ``add_arguments(parser)``, ``run(args) -> int`` and optionally
 ``MAKES_OUT_DIR`` (True: ``run`` creates its ``--out``'s directory), ``OUT_STDOUT``
-(True: ``--out -`` is standard output; elsewhere ``-`` is refused) and
+(True: ``--out -`` is standard output; elsewhere ``-`` is refused), ``REPLACES_OUT`` (True: ``run``
+writes a file beside ``--out`` and renames it over ``--out``, so a device, pipe or socket there is refused) and
 ``extra_outputs(args)`` (the files ``run`` writes beside ``--out``, never over an input); the
 modules import the core only inside ``run``, so ``--help`` is fast. Bad input
 (a missing file, another schema, a recording of another sampling, a profile
@@ -66,6 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
         module.add_arguments(p)
         p.set_defaults(_run=module.run, _makes_out_dir=getattr(module, "MAKES_OUT_DIR", False),
                        _out_stdout=getattr(module, "OUT_STDOUT", False),
+                       _replaces_out=getattr(module, "REPLACES_OUT", False),
                        _extra_outputs=getattr(module, "extra_outputs", None), _parser=p)
     return parser
 
@@ -179,6 +181,14 @@ def _check_out(args) -> None:
                               "would change or destroy the recording; write it elsewhere")
         if Path(out).is_dir() and not args._makes_out_dir:
             raise OSError(f"--out {out} is a directory; give the output file's name")
+        if args._replaces_out:
+            from inkdiag_core._fileio import refuse_to_replace
+
+            for o in outs:
+                try:
+                    refuse_to_replace(o)
+                except OSError as exc:
+                    raise OSError(f"--out {exc}" if o == out else f"--out {out}: beside it, {exc}") from None
     if out and out != "-":
         parent = Path(out).parent
         if not args._makes_out_dir:

@@ -2,6 +2,7 @@
 
 import csv
 import os
+import stat
 import subprocess
 import sys
 
@@ -193,6 +194,32 @@ def test_an_out_whose_directory_takes_no_file_is_refused_before_the_work(head, c
                     os.close(fd)
                 except OSError:
                     pass
+
+
+def test_train_and_baseline_refuse_an_out_that_is_a_fifo_rather_than_rename_over_it(head, tmp_path, capsys):
+    """train and baseline write beside --out and rename into place: over a FIFO or a device (/dev/null as root)
+    that replaced the node for every user of it (helper-84's QA: /dev/full became a regular file)."""
+    from inkdiag_core.persistence import save_model
+    from inkdiag_ros.cli import main
+
+    d, p, r = head
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    for argv in (["train", "--profile", str(d / "head.yaml"), "--n-per-class", "8", "--quiet", "--out", str(fifo)],
+                 ["baseline", str(d / "rec.npz"), "--profile", str(d / "head.yaml"), "--out", str(fifo)]):
+        capsys.readouterr()
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [f"inkdiag {argv[0]}: error: --out {fifo} is not a regular file (a device, pipe or socket): "
+                       "a file written there is renamed into place, which would replace it; give a file's name"], err
+        assert stat.S_ISFIFO(os.lstat(fifo).st_mode)
+    assert not (tmp_path / "fifo.manifest.json").exists()
+    with pytest.raises(OSError, match="is not a regular file"):  # the core refuses it too
+        save_model({"a": 1}, fifo)
+    (tmp_path / "m.joblib.manifest.json").mkdir()  # a directory where the manifest goes: refused before the model
+    with pytest.raises(OSError, match="is a directory"):
+        save_model({"a": 1}, tmp_path / "m.joblib")
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode) and not (tmp_path / "m.joblib").exists()
 
 
 def test_an_oserror_is_said_as_outs_only_when_it_is_about_the_output(tmp_path, monkeypatch):

@@ -1,5 +1,6 @@
 """``inkdiag baseline``: a head's per-nozzle healthy baselines from a recording, as record_baseline writes them."""
 
+REPLACES_OUT = True  # its file is written beside --out and renamed over it
 MAX_FRAMES = 1000
 """Largest --frames (the record_baseline node's n_frames range)."""
 

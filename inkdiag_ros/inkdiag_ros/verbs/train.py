@@ -1,6 +1,7 @@
 """``inkdiag train``: a FaultDetector for one head, from its complete profile (and labelled recordings)."""
 
 HELP = "train a fault detector for a head from its complete profile"
+REPLACES_OUT = True  # its file is written beside --out and renamed over it
 MAKES_OUT_DIR = True  # save_detector creates the model's directory: cli does not require it to exist
 DESCRIPTION = """\
 Train a fault detector (FaultDetector .joblib + .manifest.json) for the head of
