@@ -48,6 +48,19 @@ NOT_CLASSES = ("invalid", UNKNOWN)
 LABEL_VALUES = frozenset(c.value for c in FaultClass) | frozenset(NOT_CLASSES)
 
 
+def _as_float32(t):
+    """``t`` as C-contiguous float32; a finite sample beyond float32's range (a float64 1e300) becomes the
+    largest float32 of its sign, not inf, so that screening calls its row out of range, not non-finite."""
+    if t.dtype == np.float32:
+        return np.ascontiguousarray(t)
+    with np.errstate(over="ignore"):
+        out = np.ascontiguousarray(t, dtype=np.float32)
+    big = np.isinf(out) & np.isfinite(t)
+    if big.any():
+        out[big] = np.copysign(np.finfo(np.float32).max, t[big])
+    return out
+
+
 class RecordingError(InputError):
     """A recording that cannot be read (a ``ValueError``)."""
 
@@ -108,7 +121,7 @@ class Recording:
             raise RecordingError(f"{source}: traces must be floating-point volts (float32), got dtype {t.dtype}"
                                  + (": convert ADC counts or millivolts to volts first" if t.dtype.kind in "iu"
                                     else ""))
-        t = np.ascontiguousarray(t, dtype=np.float32)
+        t = _as_float32(t)
         fs = sample_rate_hz
         if isinstance(fs, np.ndarray):
             if fs.size != 1:

@@ -184,3 +184,23 @@ def test_labels_from_csv_takes_empty_cells_beyond_the_header(tmp_path):
     rec = Recording.from_arrays(np.random.default_rng(0).normal(size=(2, 64)).astype(np.float32), 10e6)
     labelled, n_named = labels_from_csv(rec, _csv(tmp_path / "l.csv", "row,class\n0,ok_signal,,\n1,deeply_dried, \n"))
     assert n_named == 2 and list(labelled.label) == ["ok_signal", "deeply_dried"]
+
+
+def test_float64_samples_beyond_float32s_range_stay_finite_and_are_out_of_range():
+    """A float64 recording with a finite sample of 1e300: converted to float32 it was inf, with numpy's overflow
+    warning on stderr, and screening called the row non_finite (helper-84's QA). Now it is the largest float32 of
+    its sign: screening says out_of_range; NaN and inf rows are still non_finite; the other rows are untouched."""
+    import warnings
+
+    from inkdiag_core import screen_traces
+
+    x = np.sin(np.arange(64 * 5, dtype=np.float64) / 3.0).reshape(5, 64) * 0.3
+    x[1, 7], x[2, 9], x[3, 0], x[4, 4] = 1e300, -1e300, np.nan, np.inf
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no RuntimeWarning leaks
+        rec = Recording.from_arrays(x, 10e6)
+    assert rec.traces.dtype == np.float32
+    assert rec.traces[1, 7] == np.finfo(np.float32).max and rec.traces[2, 9] == -np.finfo(np.float32).max
+    np.testing.assert_array_equal(rec.traces[0], x[0].astype(np.float32))
+    valid, reasons = screen_traces(rec.traces, max_abs_v=10.0)
+    assert reasons.tolist() == ["", "out_of_range", "out_of_range", "non_finite", "non_finite"]
