@@ -120,6 +120,10 @@ than the design ratios are from it (a factor of 2 let ``I_r`` reach 1.8 times it
 true value on the default head simulated independently; measured with the mean of the
 typical 20 % without a floor in samples, the method before 2026-11-25)."""
 
+NOISE_ONLY_RATIO = 3.0
+"""The typical traces' mean must be more than this many times the rms their scatter about it leaves in a mean
+(rms / sqrt(count)): about 1 for traces of noise alone, 25 and more for healthy ringing."""
+
 TYPICAL_FRACTION = 0.05
 """Fraction of the traces, nearest the median frequency and damping, whose mean is fitted (but see
 :data:`TYPICAL_MIN_SAMPLES`). Fewer traces dephase less: their frequencies are closer."""
@@ -574,6 +578,11 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     missing = [k for k in NOMINAL_CHANNEL_KEYS if k not in nominal.channel]
     if missing:
         raise ProfileError(f"nominal profile {nominal.name!r}: channel.{missing[0]} is missing")
+    given = [k for k in ("r_r", "L_r") if k in nominal.channel]
+    if len(given) == 1:  # else silently fitted over
+        other = "L_r" if given == ["r_r"] else "r_r"
+        raise ProfileError(f"nominal profile {nominal.name!r}: channel.{given[0]} without channel.{other}: give both "
+                           "(the restrictor is kept) or neither (calibration fits it)")
     if name is not None and (not isinstance(name, str) or not name):  # as a profile's name must be
         raise ProfileError(f"the calibrated profile's name must be a non-empty string, got {name!r}")
     nominal.check_traces(traces, sample_rate_hz, what="the recording")
@@ -596,6 +605,12 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     if not (mean_rms > 0 and f_rec > 0):
         raise CalibrationError("the recorded traces do not oscillate (their mean trace is flat): are they healthy "
                                "nozzles fired with the profile's drive?")
+    scatter = float(np.sqrt(np.mean(_rms_ac(y[typical] - mean) ** 2) / typical.size))  # what a mean keeps of noise
+    if mean_rms <= NOISE_ONLY_RATIO * scatter:
+        raise CalibrationError(
+            f"the recorded traces do not ring above their noise (their mean over {typical.size} traces, "
+            f"{mean_rms:.3g} V rms, is no more than the {scatter:.3g} V their scatter leaves in such a mean): are they "
+            "healthy nozzles fired with the profile's drive, in volts?")
     reach = _reachable(known)
     if not (reach[0] * 0.98 <= f_rec <= reach[1] * 1.02):
         odd = implausible_values(nominal.channel)

@@ -118,6 +118,22 @@ def test_flat_traces_are_refused():
         calibrate(nominal_of(TRUE), np.full((50, 1024), 0.01, np.float32), 20e6)
 
 
+def test_traces_of_noise_alone_are_said_not_to_ring(recorded):
+    """White noise: its strongest spectral peak lies anywhere, and calibration blamed the nominal channel ("outside
+    what the nominal channel can reach") though the profile was right (helper-84's QA)."""
+    noise = np.random.default_rng(0).normal(0.0, 0.01, recorded.traces.shape).astype(np.float32)
+    with pytest.raises(CalibrationError, match="the recorded traces do not ring above their noise"):
+        calibrate(nominal_of(TRUE), noise, TRUE.sample_rate_hz)
+
+
+@pytest.mark.parametrize("key", ["r_r", "L_r"])
+def test_half_a_restrictor_in_the_nominal_profile_is_refused(recorded, key):
+    """Given alone, r_r or L_r was fitted over without a word (helper-84's QA)."""
+    other = "L_r" if key == "r_r" else "r_r"
+    with pytest.raises(ProfileError, match=f"channel.{key} without channel.{other}: give both"):
+        calibrate(nominal_of(TRUE).replace(channel={key: TRUE.channel[key]}), recorded.traces, TRUE.sample_rate_hz)
+
+
 def test_a_mode_the_nominal_channel_cannot_reach_is_refused(recorded):
     # a chamber 1000 x larger: its liquid compliance alone puts the mode far below the recording's
     nominal = nominal_of(TRUE).replace(channel={"V_ch": 3e-9})
