@@ -620,6 +620,12 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
             + (f"implausible: {'; '.join(odd)}, a value in other units? " if odd else "")
             + "check channel.r_n, L_n, V_ch, c, rho, mu (SI units: m, m^3, m/s, kg/m^3, Pa s) and the sampling")
 
+    f_act = nominal.channel.get("f_act")
+    if f_act is not None and empty is None and not f_act > EMPTY_MIN_RATIO * f_rec:
+        raise CalibrationError(
+            f"the nominal profile's channel.f_act, {f_act / 1e3:.4g} kHz, is not above {EMPTY_MIN_RATIO:g} times the "
+            f"recorded healthy mode ({f_rec / 1e3:.1f} kHz), as an actuator's own resonance is (7.5-9.6 times on the "
+            "heads measured): it is in Hz (a value in kHz?)")
     fe = None if empty is None else _empty_measurement(nominal, empty, sample_rate_hz, f_rec)
     fb = None
     if blocked is not None:
