@@ -174,10 +174,12 @@ def _check_out(args) -> None:
                                       "input")
                     raise OSError(f"--out {out} writes {o}, which is also the {what} input{extra}: it would be "
                                   f"written over the {what} input")
-            if (value and name in RECORDING_ARGS and Path(value).is_dir()
-                    and Path(value).resolve() in Path(out).resolve().parents):
+            inside = [o for o in outs if value and name in RECORDING_ARGS and Path(value).is_dir()
+                      and Path(value).resolve() in Path(o).resolve().parents]
+            if inside:
                 kind = "a bag directory" if (Path(value) / "metadata.yaml").is_file() else "a directory"
-                raise OSError(f"--out {out} is inside the {what} input {value} ({kind}): writing there "
+                what_out = f"--out {out}" if inside[0] == out else f"--out {out} writes {inside[0]}, which"
+                raise OSError(f"{what_out} is inside the {what} input {value} ({kind}): writing there "
                               "would change or destroy the recording; write it elsewhere")
         if Path(out).is_dir() and not args._makes_out_dir:
             raise OSError(f"--out {out} is a directory; give the output file's name")

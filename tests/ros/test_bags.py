@@ -206,6 +206,16 @@ def test_an_out_inside_the_bag_is_refused_and_the_bag_kept(tmp_path, sim, fdi_mo
             f"inkdiag label: error: --out {out} is inside the RECORDING input {bag} (a bag directory): writing "
             "there would change or destroy the recording; write it elsewhere"], r.stderr
     assert {f: f.read_bytes() for f in bag.iterdir()} == before
+    nominal = tmp_path / "nominal.yaml"  # calibrate's fit report, written into the bag by --report-dir (helper-84)
+    nominal.write_text("schema: inkdiag.head_profile\n")
+    r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "calibrate", str(bag), "--nominal", str(nominal),
+                        "--out", str(tmp_path / "h.yaml"), "--report-dir", str(bag)],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        f"inkdiag calibrate: error: --out {tmp_path / 'h.yaml'} writes {bag / 'h.fit.json'}, which is inside the "
+        f"HEALTHY input {bag} (a bag directory): writing there would change or destroy the recording; write it "
+        "elsewhere"], r.stderr
+    assert {f: f.read_bytes() for f in bag.iterdir()} == before
     plain = tmp_path / "plain"  # a directory that is no bag is not called one
     plain.mkdir()
     r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "label", str(plain), "--model", str(fdi_model),
