@@ -377,6 +377,11 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
     fs = None  # the chunks' sample rate: the first frame kept's
     want = None if sampling is None else (float(sampling[0]), int(sampling[1]), str(sampling[2]))
     n_off = 0
+    held = []  # frames of another sampling before the first kept one: reported once one is (else one error says it)
+
+    def another_head():
+        return RecordingError(f"{bag_dir}: {'its first' if n_off >= MAX_OFF_SAMPLING else 'all its'} {n_off} trace "
+                              f"frames on {stats.topic} are {held[0][1]}: a recording of another head?")
 
     def chunk():
         return Recording.from_arrays(np.concatenate([b[0] for b in blocks]), fs,
@@ -394,13 +399,17 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
                 off = (f"sampled at {frame.sample_rate_hz:.10g} Hz x {frame.n_samples}, not at {whose} "
                        f"{want_fs:.10g} Hz x {want_n}")
                 n_off += 1
-                stats.skip(stats.n_messages - 1, off, frame.frame_id)
-                if fs is None and n_off >= MAX_OFF_SAMPLING:  # not one good frame yet: another head's bag
-                    raise RecordingError(f"{bag_dir}: its first {n_off} trace frames on {stats.topic} are {off}: "
-                                         "a recording of another head?")
+                if fs is not None:
+                    stats.skip(stats.n_messages - 1, off, frame.frame_id)
+                    continue
+                held.append((stats.n_messages - 1, off, frame.frame_id))
+                if n_off >= MAX_OFF_SAMPLING:  # not one good frame yet: another head's bag
+                    raise another_head()
                 continue
             if fs is None:
                 fs = frame.sample_rate_hz
+                for h in held:
+                    stats.skip(*h)
             if blocks and n_rows + frame.n_nozzles > max_rows:
                 yield first_row, chunk()
                 first_row += n_rows
@@ -414,6 +423,8 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
         raise
     if blocks:
         yield first_row, chunk()
+    elif first_row == 0 and fs is None and held:
+        raise another_head()
     elif first_row == 0:
         what = "no messages" if stats.n_messages == 0 else f"no valid trace frame ({stats.summary()})"
         raise RecordingError(f"{bag_dir}: {what} on {stats.topic}")

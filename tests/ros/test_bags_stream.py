@@ -117,9 +117,11 @@ def test_a_bad_first_frame_costs_only_itself(tmp_path, sim, fdi_model):
     same = write_bag(tmp_path / "same", [(0, x[:, :500])] + [(0, x)] * 4)  # the same nozzles in every frame
     r = _cli("baseline", same, "--profile", prof, "--frames", 4, "--out", tmp_path / "b.npz")
     assert r.returncode == 0 and "message 0 (frame 0) skipped" in r.stderr, r.stderr
-    bad = write_bag(tmp_path / "bad", [(0, x[:, :500])] * 2)  # no frame of the head's sampling: said, exit 2
-    r = _cli("label", bad, "--model", fdi_model, "--out", tmp_path / "l2.csv")
-    assert r.returncode == 2 and "no valid trace frame" in r.stderr and "x 500, not at" in r.stderr, r.stderr
+    bad = write_bag(tmp_path / "bad", [(0, x[:, :500])] * 2)  # no frame of the head's sampling: one line, exit 2
+    r = _cli("label", bad, "--model", fdi_model, "--out", tmp_path / "l2.csv")  # (was a line per frame, then a
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [  # summary repeating them: helper-84's QA)
+        f"inkdiag label: error: {bad}: all its 2 trace frames on {NS}/traces are sampled at 10000000 Hz x 500, not "
+        "at the model's head 'default', 10000000 Hz x 512: a recording of another head?"], r.stderr
 
 
 def test_a_bag_of_another_heads_sampling_is_refused_without_reading_it_all(tmp_path, sim):
@@ -135,10 +137,12 @@ def test_a_bag_of_another_heads_sampling_is_refused_without_reading_it_all(tmp_p
     with pytest.raises(RecordingError, match=f"its first {MAX_OFF_SAMPLING} trace frames on .* are sampled at "
                                              r"10000000 Hz x 500, not at the head 10000000 Hz x 512: a recording"):
         list(iter_bag_chunks(bag, stats=stats, sampling=(10e6, 512, "the head")))
-    assert stats.n_messages == stats.n_skipped == MAX_OFF_SAMPLING  # not read to the end
+    assert stats.n_messages == MAX_OFF_SAMPLING and stats.n_skipped == 0  # not read to the end; one error says it
     ok = write_bag(tmp_path / "ok", [(0, x[:, :500])] * (MAX_OFF_SAMPLING - 1) + [(0, x)] * 3)
-    chunks = list(iter_bag_chunks(ok, sampling=(10e6, 512, "the head")))
+    stats = BagFrames()
+    chunks = list(iter_bag_chunks(ok, stats=stats, sampling=(10e6, 512, "the head")))
     assert sum(c.n_rows for _, c in chunks) == 6
+    assert stats.n_skipped == MAX_OFF_SAMPLING - 1 and stats.skipped[0][0] == 0  # reported once a frame is kept
     rate = 4166666.67  # not a float32: its header carries 4166666.75
     assert same_sample_rate(float(np.float32(rate)), rate) and not same_sample_rate(4166667.5, rate)
     assert same_sample_rate(10e6 * (1 + 1e-10), 10e6) and not same_sample_rate(10e6 * (1 + 1e-6), 10e6)

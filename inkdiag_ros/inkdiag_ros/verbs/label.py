@@ -27,8 +27,8 @@ CSV columns: row, nozzle, frame_id, class, confidence, reason, baseline
 
 A bag is streamed: read, labelled and written a chunk of whole frames at a
 time (16384 rows at most), in bounded memory whatever its length; a message
-that is not a valid trace frame (or of another sampling than the bag's first
-frame) is reported on stderr with its message index and why, and skipped.
+that is not a valid trace frame (or of another sampling than the model's
+head) is reported on stderr with its message index and why, and skipped.
 
 example:
   inkdiag label recording.npz --model models/head.joblib --out labels.csv
