@@ -287,7 +287,7 @@ def read_labels_csv(path) -> LabelTable:
     ------
     RecordingError
         A missing or unreadable file, a header without ``class`` or without ``row`` and
-        ``nozzle``, a column named twice, a class that is not one, a value that is not an
+        ``nozzle``, no line after the header, a column named twice, a class that is not one, a value that is not an
         integer, or a row (nozzle, nozzle in a frame) named twice; naming the file and line.
     """
     path = Path(path)
@@ -340,6 +340,8 @@ def read_labels_csv(path) -> LabelTable:
                 lines.append(line)
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise RecordingError(f"{src}: cannot read the labels CSV: {exc}") from None
+    if not classes:  # else "no row is usable" once the recording is read, blaming its rows
+        raise RecordingError(f"{src}: a header and no labelled line: it names no row")
     key = "row" if "row" in at else ("nozzle+frame_id" if "frame_id" in at else "nozzle")
     arrays = {name: (np.asarray(v, dtype=np.int64) if name in at else None) for name, v in ints.items()}
     table = LabelTable(src, key, arrays["row"], arrays["nozzle"], arrays["frame_id"],

@@ -134,6 +134,8 @@ def test_labels_from_csv_by_row_by_nozzle_and_by_nozzle_and_frame(tmp_path):
 @pytest.mark.parametrize("text, message", [
     ("row;class\n0;ok_signal\n", "needs a header with a 'class' column and a 'row' or 'nozzle' column"),
     ("", "needs a header"),
+    ("row,class\n", "l.csv: a header and no labelled line: it names no row"),  # was "no row is usable" (helper-84)
+    ("nozzle,class\n\n , \n", "l.csv: a header and no labelled line"),
     ("row,class\n0,clogged\n", "l.csv:2: class 'clogged' is not a class"),
     ("row,class\n0,ok_signal\n6,ok_signal\n", "l.csv:3: row 6 is not a row of recording (0..5)"),
     ("row,class\n-1,ok_signal\n", "l.csv:2: row -1 is not a row"),
