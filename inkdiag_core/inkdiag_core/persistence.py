@@ -157,7 +157,7 @@ def read_manifest(path) -> dict:
             raise ModelFileError(f"model file {path} is a head profile (YAML), not a model: a model is the "
                                  "MODEL.joblib `inkdiag train` writes (with its manifest beside it)")
         raise ModelFileError(
-            f"model file {path} has no manifest {mpath.name}: refusing to unpickle an unverified file"
+            f"model file {path} has no manifest ({mpath} is missing): refusing to unpickle an unverified file"
         )
     try:
         manifest = json.loads(mpath.read_text())
