@@ -24,10 +24,11 @@ import sys
 def stop_means_exit_0():
     """Within: SIGINT and SIGTERM raise ``SystemExit(0)`` (``finally`` blocks run), also when that exit leaves the
     block as another exception (:func:`came_from_a_stop`: an ``ImportError`` from rclpy's C extension's init);
-    any other error after a stop goes on up as it is; a signal the
-    process was started ignoring (a shell's background job: SIGINT) stays ignored. The handlers
-    before it are back after it (inside, a node's own may replace them for a while, as
-    :func:`inkdiag_ros._spin.stop_on_signals` does, restoring these).
+    any other error after a stop goes on up as it is. A signal the process was started ignoring (a
+    shell's background job: SIGINT) is taken too, as the running node takes it
+    (:func:`inkdiag_ros._spin.stop_on_signals`, and rclpy): ``fdi ... &`` then ``kill -INT`` stopped a running node
+    but not one still importing, which ran on (helper-85's QA). The handlers before it are back after it (inside, a
+    node's own may replace them for a while, as :func:`inkdiag_ros._spin.stop_on_signals` does, restoring these).
 
     Where the handler's ``SystemExit`` lands in code whose exceptions Python ignores (a weakref
     callback of the import machinery: "Exception ignored in ... _get_module_lock", seen once in a
@@ -47,8 +48,7 @@ def stop_means_exit_0():
         if not isinstance(u.exc_value, SystemExit):
             hook(u)
 
-    old = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)
-           if signal.getsignal(sig) is not signal.SIG_IGN}
+    old = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     old_hook, sys.unraisablehook = sys.unraisablehook, unraisable
     try:
         yield
