@@ -45,7 +45,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "boxes: each runs its range), default 0")
     p.add_argument("--processes", type=int, default=1, help="OS processes P running the fdi nodes (1 .. N)")
     p.add_argument("--model", default=None,
-                   help="FaultDetector model file for every head (default: models/fdi_default.joblib)")
+                   help="FaultDetector model file for every head (default: models/fdi_default.joblib in the "
+                        "current directory, as scripts/run trains it in the repository's root)")
     p.add_argument("--baselines", default=None, metavar="DIR_OR_PATTERN",
                    help="per-head baselines: a pattern with {i} (the head index), e.g. "
                         "baselines/head_{i:02d}.npz, or a directory holding head_00.npz ...; every file must exist")
