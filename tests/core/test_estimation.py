@@ -288,9 +288,11 @@ def test_vp_cal_on_independent_physics_based_data(model):
 
 @pytest.mark.parametrize("method", ["vp", "vp_cal"])
 def test_a_rows_estimate_does_not_depend_on_the_batch_it_is_in(model, method):
-    """Each row's Gauss-Newton stops at its own convergence, not when the whole batch's has: a row
-    estimated alone, in a small batch or in the whole recording gets the same f_m (to rounding).
-    Before, rows in a batch kept iterating with the slowest one (about 1e-7 relative apart)."""
+    """Each row's Gauss-Newton stops at its own convergence, not when the whole batch's has, and its grid
+    search projects it alone (one BLAS product of every row rounds by the batch's size, which moved the start
+    by ~1e-13 and, with OPENBLAS_CORETYPE=Prescott, the end by ~1e-8: helper-86's review): a row estimated
+    alone, in a small batch or in the whole recording gets the same f_m. Before, rows in a batch kept
+    iterating with the slowest one (about 1e-7 relative apart)."""
     from inkdiag_core.fe_datasets import nonlinear_set
 
     ds = nonlinear_set(40, seed=5, sample_rate_hz=FS)

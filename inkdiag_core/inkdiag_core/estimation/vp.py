@@ -166,7 +166,7 @@ def _vp_batch(sc, key, Ys, fm_bounds, n_grid, max_iter, tol):
     n, N = Ys.shape
     lo, hi = fm_bounds
     grid, Qcat = _vp_grid(key, N, float(lo), float(hi), int(n_grid))
-    P = Ys @ Qcat  # (n, 4G)
+    P = (Ys[:, None, :] @ Qcat)[:, 0, :]  # (n, 4G), row by row: one BLAS product of all rows rounds by batch size
     E = np.einsum("ngi,ngi->ng", P.reshape(n, -1, 4), P.reshape(n, -1, 4))
     Rg = np.einsum("nk,nk->n", Ys, Ys)[:, None] - E
     i = np.minimum(np.maximum(np.argmin(Rg, axis=1), 1), grid.size - 2)
@@ -209,8 +209,9 @@ def _vp_batch(sc, key, Ys, fm_bounds, n_grid, max_iter, tol):
             theta, res, R = np.where(a1, th2, theta), np.where(a1, res2, res), np.where(acc, R2, R)
         # a rejected step is halved next time through the bracket
         rej = active & ~acc
-        f_lo = np.where(rej & (d < 0), np.maximum(f_lo, f + 0.5 * d), f_lo)
-        f_hi = np.where(rej & (d > 0), np.minimum(f_hi, f + 0.5 * d), f_hi)
+        half = f + 0.5 * (f_new - f)  # half the step tried (d clipped to the bracket): each rejection halves it again
+        f_lo = np.where(rej & (d < 0), np.maximum(f_lo, half), f_lo)
+        f_hi = np.where(rej & (d > 0), np.minimum(f_hi, half), f_hi)
     sigma2 = R / max(N - 5, 1)
     std = np.sqrt(sigma2 / JJ)
     # initial state from the modal coefficients: y_k = sum_j (C V)_j m_j mu_j^k
