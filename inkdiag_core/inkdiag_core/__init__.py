@@ -142,6 +142,10 @@ from .recording import (  # noqa: E402
 __all__ += ["LabelTable", "Recording", "RecordingError", "labels_from_csv", "load_recording", "read_labels_csv",
             "save_recording"]
 
+from ._fileio import refuse_to_replace  # noqa: E402
+
+__all__ += ["refuse_to_replace"]
+
 from .gate import GateResult, HealthyGate  # noqa: E402
 
 __all__ += ["GateResult", "HealthyGate"]

@@ -35,11 +35,11 @@ def temp_beside(path) -> tuple[int, str]:
 
 
 def refuse_to_replace(path) -> None:
-    """Raise :class:`OSError` if ``path`` exists and is not a regular file (nor a link): a device such as
-    ``/dev/null``, a pipe, a socket or a directory, which a rename would replace for every user of it
-    (a link is replaced itself, not what it points to)."""
+    """Raise :class:`OSError` if ``path`` is, or links to, something that exists and is not a regular file: a
+    device such as ``/dev/null``, a pipe, a socket or a directory, which a rename would replace for every user of
+    it (``/dev/stdout`` is a link to one). A link to a regular file, or to nothing, may be replaced."""
     path = Path(path)
-    if os.path.lexists(path) and not path.is_symlink() and not path.is_file():
+    if os.path.exists(path) and not os.path.isfile(path):
         kind = "a directory" if path.is_dir() else "not a regular file (a device, pipe or socket)"
         raise OSError(f"{path} is {kind}: a file written there is renamed into place, which would replace "
                       "it; give a file's name")

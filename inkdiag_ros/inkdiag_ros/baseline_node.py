@@ -21,7 +21,7 @@ from pathlib import Path
 
 from rclpy.node import Node
 
-from inkdiag_core import BaselineRecorder
+from inkdiag_core import BaselineRecorder, refuse_to_replace
 from msg_defs import TRACE_MSG_TYPE, TRACES_QOS, FrameError, decode_traces, topics
 
 from . import _params
@@ -53,6 +53,10 @@ class BaselineRecorderNode(Node):
         self.add_on_set_parameters_callback(lambda params: _params.fixed_at_start(params))
         if not self.config["output_path"]:
             raise ValueError("output_path is required (-p output_path:=baselines/head.npz)")
+        try:  # a directory, device or pipe there: said now, not after the recording
+            refuse_to_replace(self.config["output_path"])
+        except OSError as exc:
+            raise ValueError(f"output_path: {exc}") from None
         c = self.config
         self.profile = head_from_parameters(c)  # bad, nominal or contradicting: ValueError, exit 2 at start
         self.recorder = BaselineRecorder(n_frames=c["n_frames"], sample_rate_hz=c["sample_rate_hz"],

@@ -184,7 +184,7 @@ def _check_out(args) -> None:
         if Path(out).is_dir() and not args._makes_out_dir:
             raise OSError(f"--out {out} is a directory; give the output file's name")
         if args._replaces_out:
-            from inkdiag_core._fileio import refuse_to_replace
+            from inkdiag_core import refuse_to_replace
 
             for o in outs:
                 try:

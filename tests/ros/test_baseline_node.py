@@ -252,6 +252,8 @@ def test_record_baseline_survives_bad_frames_and_an_unwritable_path(ros, tmp_pat
      "no such head profile file"),
     (["--ros-args", "-p", "output_path:=/tmp/never_written.npz", "-p", "sample_rate_hz:=20000000.0"],
      "but head profile 'default'"),
+    (["--ros-args", "-p", "output_path:=/tmp"], "output_path: /tmp is a directory"),  # at start, not after recording
+    (["--ros-args", "-p", "output_path:=/dev/null"], "output_path: /dev/null is not a regular file"),
 ])
 def test_record_baseline_refuses_bad_parameters_without_a_traceback(ros, args, match):
     import os

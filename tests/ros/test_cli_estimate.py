@@ -216,6 +216,12 @@ def test_train_and_baseline_refuse_an_out_that_is_a_fifo_rather_than_rename_over
     assert not (tmp_path / "fifo.manifest.json").exists()
     with pytest.raises(OSError, match="is not a regular file"):  # the core refuses it too
         save_model({"a": 1}, fifo)
+    (tmp_path / "to_fifo").symlink_to(fifo)  # a link to one (as /dev/stdout is): refused too (helper-86's review)
+    with pytest.raises(OSError, match="to_fifo is not a regular file"):
+        save_model({"a": 1}, tmp_path / "to_fifo")
+    (tmp_path / "dangling").symlink_to(tmp_path / "nothing")  # a link to nothing, or to a file: replaced, as before
+    save_model({"a": 1}, tmp_path / "dangling")
+    assert (tmp_path / "dangling").is_file() and not (tmp_path / "dangling").is_symlink()
     (tmp_path / "m.joblib.manifest.json").mkdir()  # a directory where the manifest goes: refused before the model
     with pytest.raises(OSError, match="is a directory"):
         save_model({"a": 1}, tmp_path / "m.joblib")
