@@ -378,10 +378,13 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
     want = None if sampling is None else (float(sampling[0]), int(sampling[1]), str(sampling[2]))
     n_off = 0
     held = []  # frames of another sampling before the first kept one: reported once one is (else one error says it)
+    refused = None
 
     def another_head():
+        kinds = len({h[1] for h in held})
+        how = held[0][1] if kinds == 1 else f"of {kinds} other samplings (the first {held[0][1]})"
         return RecordingError(f"{bag_dir}: {'its first' if n_off >= MAX_OFF_SAMPLING else 'all its'} {n_off} trace "
-                              f"frames on {stats.topic} are {held[0][1]}: a recording of another head?")
+                              f"frames on {stats.topic} are {how}: a recording of another head?")
 
     def chunk():
         return Recording.from_arrays(np.concatenate([b[0] for b in blocks]), fs,
@@ -404,12 +407,14 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
                     continue
                 held.append((stats.n_messages - 1, off, frame.frame_id))
                 if n_off >= MAX_OFF_SAMPLING:  # not one good frame yet: another head's bag
-                    raise another_head()
+                    refused = another_head()
+                    raise refused
                 continue
             if fs is None:
                 fs = frame.sample_rate_hz
                 for h in held:
                     stats.skip(*h)
+                held.clear()
             if blocks and n_rows + frame.n_nozzles > max_rows:
                 yield first_row, chunk()
                 first_row += n_rows
@@ -417,9 +422,12 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
             # a copy: the frame is a view into its message
             blocks.append((np.array(frame.traces), np.asarray(frame.nozzle_ids, np.int64), frame.frame_id, frame.stamp))
             n_rows += frame.n_nozzles
-    except RecordingError:  # the bag broke off (or is another head's): the frames read before it are still given
+    except RecordingError as exc:  # the bag broke off (or is another head's): the frames read before it are given
         if blocks:
             yield first_row, chunk()
+        if exc is not refused:  # broke off: the frames held back are reported, as skipped
+            for h in held:
+                stats.skip(*h)
         raise
     if blocks:
         yield first_row, chunk()

@@ -148,6 +148,38 @@ def test_a_bag_of_another_heads_sampling_is_refused_without_reading_it_all(tmp_p
     assert same_sample_rate(10e6 * (1 + 1e-10), 10e6) and not same_sample_rate(10e6 * (1 + 1e-6), 10e6)
 
 
+def test_frames_of_another_sampling_held_back_are_reported_when_the_bag_breaks_off(monkeypatch):
+    """Frames of another sampling before the first kept one are held back (one error says it if none is kept); a
+    bag that breaks off meanwhile reports them as skipped, with its own error (helper-86's review: they were lost)."""
+    import types
+
+    import inkdiag_ros.bags as bags
+    from inkdiag_core.recording import RecordingError
+
+    def frames(bag_dir, topic=None, stats=None):
+        stats.topic = "/t"
+        for i, n in enumerate((500, 500, 256)):
+            stats.n_messages += 1
+            yield types.SimpleNamespace(sample_rate_hz=10e6, n_samples=n, frame_id=i, nozzle_ids=np.arange(2),
+                                        traces=np.zeros((2, n), np.float32), n_nozzles=2, stamp=0.0)
+        if broken:
+            raise RecordingError("bag: truncated or corrupt bag: 3 messages readable, then: boom")
+
+    monkeypatch.setattr(bags, "iter_bag_frames", frames)
+    for broken in (True, False):
+        seen = []
+        stats = bags.BagFrames(report=lambda *a: seen.append(a))
+        with pytest.raises(RecordingError) as exc:
+            list(bags.iter_bag_chunks("bag", stats=stats, sampling=(10e6, 512, "the head")))
+        if broken:
+            assert str(exc.value).endswith("then: boom") and [a[0] for a in seen] == [0, 1, 2]
+            assert stats.n_skipped == 3
+        else:
+            assert str(exc.value) == ("bag: all its 3 trace frames on /t are of 2 other samplings (the first sampled "
+                                      "at 10000000 Hz x 500, not at the head 10000000 Hz x 512): a recording of "
+                                      "another head?") and seen == []
+
+
 def test_estimate_on_a_bag_streams_the_rows_the_npz_gives(tmp_path, capsys):
     from inkdiag_core import save_recording
     from inkdiag_ros import cli
@@ -267,11 +299,12 @@ def test_train_on_a_bag_with_the_labels_csv_that_label_wrote_and_a_user_correcte
     r = _cli("train", "--profile", tmp_path / "head.yaml", "--out", tmp_path / "s.joblib", "--data", bag,
              "--labels", tmp_path / "short.csv", "--n-per-class", 40, "--unknown-rate", 0, "--quiet")
     assert r.returncode == 0 and "names 30 of the 72 rows" in r.stderr and "another recording?" in r.stderr
-    # label's header alone: no usable row, said as such
+    # label's header alone: it names no row, said as such (before the bag is read)
     (tmp_path / "header.csv").write_text(",".join(rows[0]) + "\n")
     r = _cli("train", "--profile", tmp_path / "head.yaml", "--out", tmp_path / "h.joblib", "--data", bag,
              "--labels", tmp_path / "header.csv", "--quiet")
-    assert r.returncode == 2 and "no row is usable" in r.stderr, r.stderr
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        f"inkdiag train: error: {tmp_path / 'header.csv'}: a header and no labelled line: it names no row"], r.stderr
     # an --out whose manifest would be written over the labels: refused before any work
     (tmp_path / "m4.joblib.manifest.json").write_bytes((tmp_path / "short.csv").read_bytes())
     r = _cli("train", "--profile", tmp_path / "head.yaml", "--out", tmp_path / "m4.joblib", "--data", bag,
