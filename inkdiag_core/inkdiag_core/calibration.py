@@ -609,8 +609,8 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     if mean_rms <= NOISE_ONLY_RATIO * scatter:
         raise CalibrationError(
             f"the recorded traces do not ring above their noise (their mean over {typical.size} traces, "
-            f"{mean_rms:.3g} V rms, is no more than the {scatter:.3g} V their scatter leaves in such a mean): are they "
-            "healthy nozzles fired with the profile's drive, in volts?")
+            f"{mean_rms:.3g} V rms, is no more than {NOISE_ONLY_RATIO:g} times the {scatter:.3g} V their scatter "
+            "leaves in such a mean): are they healthy nozzles fired with the profile's drive, in volts?")
     reach = _reachable(known)
     if not (reach[0] * 0.98 <= f_rec <= reach[1] * 1.02):
         odd = implausible_values(nominal.channel)

@@ -55,8 +55,9 @@ def _as_float32(t):
         return np.ascontiguousarray(t)
     with np.errstate(over="ignore"):
         out = np.ascontiguousarray(t, dtype=np.float32)
-    big = np.isinf(out) & np.isfinite(t)
+    big = np.isinf(out)
     if big.any():
+        big &= np.isfinite(t)
         out[big] = np.copysign(np.finfo(np.float32).max, t[big])
     return out
 
