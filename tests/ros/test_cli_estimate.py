@@ -313,3 +313,86 @@ def test_a_recording_in_millivolts_is_told_about_units(head, tmp_path):
     assert "warning: 8 of 8 rows have a sample beyond" in res.stderr and "in volts (not millivolts" in res.stderr
     res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--out", tmp_path / "ok.csv")
     assert res.returncode == 0 and "in volts" not in res.stderr
+
+
+def _labels_csv(path, rec_npz, classes, *, nozzle_offset=0):
+    """A labels CSV as ``inkdiag label`` writes it (row, nozzle, frame_id, class, ...) for ``rec_npz``, with
+    ``classes`` per row; ``nozzle_offset``: its nozzle column off by that much (the labels of another recording)."""
+    z = np.load(rec_npz)
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["row", "nozzle", "frame_id", "class", "confidence", "reason", "baseline"])
+        for i, c in enumerate(classes):
+            w.writerow([i, int(z["nozzle"][i]) + nozzle_offset, int(z["frame_id"][i]), c, "0.9", "", 0])
+    return path
+
+
+def test_estimate_takes_the_rows_a_labels_csv_calls_dried(head, tmp_path):
+    d, p, r = head
+    # the model's labels, not the recording's: rows 5 and 9 called healthy, row 0 (healthy) called deeply dried,
+    # row 1 invalid
+    classes = ["deeply_dried", "invalid", "healthy_nozzle", "healthy_nozzle"] + ["slightly_dried"] * 12
+    classes[5] = classes[9] = "healthy_nozzle"
+    labels = _labels_csv(tmp_path / "labels.csv", d / "rec.npz", classes)
+    res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--labels", labels, "--out", tmp_path / "a.csv")
+    assert res.returncode == 0, res.stderr
+    picked = [0, 4, 6, 7, 8, *range(10, 16)]
+    _, rows = read_csv(tmp_path / "a.csv")
+    assert [int(x["row"]) for x in rows] == picked
+    res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--rows", ",".join(map(str, picked)),
+                  "--out", tmp_path / "b.csv")
+    assert res.returncode == 0, res.stderr
+    assert read_csv(tmp_path / "b.csv")[1] == rows  # the same rows, the same numbers
+    res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--labels", labels, "--rows", "deeply_dried",
+                  "--out", "-")
+    assert res.returncode == 0, res.stderr
+    assert [int(x.split(",")[0]) for x in res.stdout.splitlines()[1:]] == [0]
+
+
+def test_estimate_refuses_labels_of_another_recording_or_with_row_indices(head, tmp_path):
+    d, p, r = head
+    out = tmp_path / "fm.csv"
+    other = _labels_csv(tmp_path / "other.csv", d / "rec.npz", ["deeply_dried"] * 16, nozzle_offset=1)
+    good = _labels_csv(tmp_path / "good.csv", d / "rec.npz", ["deeply_dried"] * 16)
+    cases = [
+        (("--labels", other), "other.csv:2: row 0 is nozzle 0 in "),
+        (("--labels", good, "--rows", "0:4"), "--rows 0:4 with --labels: --labels picks rows by their class"),
+        (("--labels", tmp_path / "missing.csv"), "no such labels file"),
+    ]
+    for args, message in cases:
+        res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", *args, "--out", out)
+        assert res.returncode == 2, (args, res.stderr)
+        assert res.stderr.startswith("inkdiag estimate: error: ") and message in res.stderr, res.stderr
+        assert len(res.stderr.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_estimate_takes_a_labels_csv_of_a_bag(head, tmp_path):
+    from _bags import write_bag
+
+    d, p, r = head
+    z = np.load(d / "rec.npz")
+    bag = write_bag(tmp_path / "bag", [(0, z["traces"][:8]), (0, z["traces"][8:])], fs=p.sample_rate_hz)
+    same = tmp_path / "same.npz"  # the bag's frames (ids 0, 1 at 100 s, 101 s) as an .npz
+    save_recording(same, Recording.from_arrays(z["traces"], p.sample_rate_hz, nozzle=z["nozzle"],
+                                               frame_id=np.repeat([0, 1], 8), stamp=np.repeat([100.0, 101.0], 8)))
+    classes = ["healthy_nozzle"] * 4 + ["intermediately_dried"] * 12
+    classes[12] = "unknown"
+    labels = _labels_csv(tmp_path / "labels.csv", same, classes)
+    res = run_cli(bag, "--profile", d / "head.yaml", "--labels", labels, "--out", tmp_path / "bag.csv")
+    assert res.returncode == 0, res.stderr
+    _, rows = read_csv(tmp_path / "bag.csv")
+    assert [int(x["row"]) for x in rows] == [*range(4, 12), *range(13, 16)]
+    res = run_cli(same, "--profile", d / "head.yaml", "--labels", labels, "--out", tmp_path / "npz.csv")
+    assert res.returncode == 0, res.stderr
+    assert read_csv(tmp_path / "npz.csv")[1] == rows  # the bag's rows estimated as the .npz's
+    # a bag has no label column; labels of another recording; a CSV naming rows the bag lacks
+    other = _labels_csv(tmp_path / "other.csv", same, classes, nozzle_offset=2)
+    with open(tmp_path / "long.csv", "w") as f:
+        f.write(open(labels).read() + "16,0,2,deeply_dried,0.9,,0\n")
+    for args, message in [(("--rows", "dried"), "a bag has no label column; give the rows' classes with --labels"),
+                          (("--labels", other), "other.csv:2: row 0 is nozzle 0 in the bag, the CSV says 2"),
+                          (("--labels", tmp_path / "long.csv"), "row 16 is beyond the bag's 16 rows")]:
+        res = run_cli(bag, "--profile", d / "head.yaml", *args, "--out", tmp_path / "x.csv")
+        assert res.returncode == 2, (args, res.stderr)
+        last = res.stderr.strip().splitlines()[-1]  # after the bag's own report, where it was read
+        assert last.startswith("inkdiag estimate: error: ") and message in last, res.stderr

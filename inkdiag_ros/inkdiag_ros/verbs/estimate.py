@@ -1,6 +1,6 @@
 """``inkdiag estimate``: f_m, its standard deviation and the nozzle viscosity of recorded traces.
 
-    inkdiag estimate RECORDING --profile HEAD.yaml [--rows ROWS] [--method vp_cal] \
+    inkdiag estimate RECORDING --profile HEAD.yaml [--rows ROWS] [--labels LABELS.csv] [--method vp_cal] \
         [--baselines B.npz] --out FM.csv
 
 The fe node's code path on a recording: a :class:`inkdiag_core.DryingTracker` on
@@ -42,8 +42,10 @@ the same. fm_trend and fm_rate are filled when the recording has stamps
 ROWS: comma-separated indices and ranges START:STOP (STOP excluded, either
 may be omitted), e.g. 0:100 or 3,7,9 or 0:10,50; or a class name
 (dried = the three dried classes, or one FaultClass value such as
-deeply_dried) to take the rows whose label is that (the recording needs a
-label column). Default: every row.
+deeply_dried) to take the rows whose label is that: the recording's label
+column, or with --labels LABELS.csv the class of each row in that CSV
+(`inkdiag label`'s output for this recording, or your own: columns row or
+nozzle [, frame_id] and class). Default: every row; with --labels, dried.
 
 Exit status 2 with a one-line message for bad input: a missing or
 unreadable file, a nominal profile (run inkdiag calibrate first), a
@@ -65,7 +67,11 @@ def add_arguments(parser) -> None:
                         help="complete head profile (from inkdiag calibrate, or the shipped default)")
     parser.add_argument("--out", required=True, metavar="FM.csv", help="CSV file to write ('-': stdout)")
     parser.add_argument("--rows", default=None, metavar="ROWS",
-                        help="rows to estimate: 0:100, 3,7,9, dried or a class name (default: all)")
+                        help="rows to estimate: 0:100, 3,7,9, dried or a class name (default: all; with "
+                             "--labels: dried)")
+    parser.add_argument("--labels", default=None, metavar="LABELS.csv",
+                        help="the class of each row (inkdiag label's CSV of this recording) for --rows dried or a "
+                             "class name, as the fe node estimates what fdi labels dried")
     parser.add_argument("--method", default="vp_cal", choices=("vp_cal", "vp"),
                         help="estimator (default vp_cal, as the fe node; vp: without the mismatch correction)")
     parser.add_argument("--baselines", default=None, metavar="B.npz",
@@ -91,10 +97,10 @@ def select_rows(spec, n: int, labels=None):
         return np.arange(n, dtype=np.int64)
     spec = spec.strip()
     classes = {c.value for c in FaultClass}
-    if spec == "dried" or spec in classes:
+    if (want := _class_values(spec)) is not None:
         if labels is None:
-            raise InputError(f"--rows {spec}: the recording has no label column")
-        want = ({c.value for c in FaultClass if c.value.endswith("_dried")} if spec == "dried" else {spec})
+            raise InputError(f"--rows {spec}: the recording has no label column; give the rows' classes with "
+                             "--labels LABELS.csv (inkdiag label's CSV of the recording)")
         return np.flatnonzero(np.isin(labels, sorted(want))).astype(np.int64)
     out = []
     for part in spec.split(","):
@@ -176,12 +182,17 @@ def run(args) -> int:
     if not profile.is_complete:
         raise ProfileError(f"{args.profile}: a nominal profile ({', '.join(profile.missing)} missing): run "
                            "inkdiag calibrate first on recorded healthy traces of the head")
+    table = _labels_table(args)  # before the recording is read: a bad CSV or --rows costs nothing
     stats, chunks = stream_recording(args.recording, args.topic, max_rows=_BAG_CHUNK_ROWS,  # a bag's others: skipped
                                      sampling=(profile.sample_rate_hz, profile.n_samples, f"profile {profile.name!r},"))
     bag = bool(is_bag(args.recording))
-    pick = bag_row_picker(args.rows) if bag else None  # before the bag is read: a bad spec costs nothing
+    pick = bag_row_picker(args.rows, table) if bag else None  # before the bag is read: a bad spec costs nothing
     first_row, rec = next(chunks)  # a bag with no trace frame: RecordingError
     profile.check_traces(rec.traces, rec.sample_rate_hz, what=f"{args.recording}")
+    if table is not None and not bag:
+        from inkdiag_core import labels_from_csv
+
+        rec = labels_from_csv(rec, table)[0]  # the CSV's classes for the recording's own
     rows = None if bag else select_rows(args.rows, rec.n_rows, rec.label)
     baselines = None
     if args.baselines:
@@ -252,30 +263,73 @@ def run(args) -> int:
     return 0
 
 
-def bag_row_picker(spec):
+def _class_values(spec):
+    """The class values ``--rows`` names (``dried``: the three dried classes), or None: ``spec`` names rows."""
+    from inkdiag_core import FaultClass
+
+    spec = spec.strip()
+    if spec == "dried":
+        return {c.value for c in FaultClass if c.value.endswith("_dried")}
+    return {spec} if spec in {c.value for c in FaultClass} else None
+
+
+def _labels_table(args):
+    """``--labels``'s CSV read and checked (None without it); ``args.rows`` defaults to ``dried`` with it.
+
+    Raises
+    ------
+    inkdiag_core.checks.InputError
+        A CSV :func:`inkdiag_core.read_labels_csv` refuses, or ``--rows`` indices beside it.
+    """
+    from inkdiag_core import read_labels_csv
+    from inkdiag_core.checks import InputError
+
+    if args.labels is None:
+        return None
+    if args.rows is None:
+        args.rows = "dried"
+    elif _class_values(args.rows) is None:
+        raise InputError(f"--rows {args.rows} with --labels: --labels picks rows by their class; give --rows dried "
+                         "or a class name, or leave out --labels to give row indices")
+    return read_labels_csv(args.labels)
+
+
+def bag_row_picker(spec, labels=None):
     """``--rows`` for a streamed bag, whose row count is not known in advance.
+
+    Parameters
+    ----------
+    spec : str or None
+        ``--rows``.
+    labels : inkdiag_core.recording.LabelTable, optional
+        ``--labels``'s CSV, whose ``row`` column names the bag's rows (``spec``: a class).
 
     Returns
     -------
     callable
         ``pick(start, n)`` -> the selected indices (int64, increasing) among rows
         ``start .. start + n - 1``; its attribute ``max_index`` is the largest index
-        the spec names explicitly (-1 if none), checked against the bag's rows at the end.
+        the spec (or the CSV) names explicitly (-1 if none), checked against the bag's rows
+        at the end; its method ``check(start, nozzle, frame_id)`` refuses a CSV whose
+        ``nozzle`` or ``frame_id`` is not that of rows ``start ..`` (another recording's).
 
     Raises
     ------
     inkdiag_core.checks.InputError
-        A malformed spec, or a class name (a bag has no label column).
+        A malformed spec, a class name without ``labels`` (a bag has no label column), a CSV
+        that names rows by nozzle.
     """
     import numpy as np
-    from inkdiag_core import FaultClass
     from inkdiag_core.checks import InputError
 
+    if labels is not None:
+        return _labelled_picker(spec, labels)
     parts, max_index = [], -1
     if spec is not None:
         spec = spec.strip()
-        if spec == "dried" or spec in {c.value for c in FaultClass}:
-            raise InputError(f"--rows {spec}: a bag has no label column")
+        if _class_values(spec) is not None:
+            raise InputError(f"--rows {spec}: a bag has no label column; give the rows' classes with --labels "
+                             "LABELS.csv (inkdiag label's CSV of the bag)")
         for part in spec.split(","):
             part = part.strip()
             m = re.fullmatch(r"(\d*)\s*:\s*(\d*)", part)
@@ -302,6 +356,41 @@ def bag_row_picker(spec):
         return idx[keep]
 
     pick.max_index = max_index
+    pick.check = lambda start, nozzle, frame_id: None
+    return pick
+
+
+def _labelled_picker(spec, table):
+    """:func:`bag_row_picker` of the rows ``table`` (a labels CSV naming rows by ``row``) gives a class of ``spec``."""
+    import numpy as np
+    from inkdiag_core.checks import InputError
+
+    if table.key != "row":
+        raise InputError(f"--labels {table.source}: names rows by {table.key.replace('+', ' and ')}; on a bag the "
+                         "labels CSV names each row by its row number (a 'row' column, as inkdiag label writes)")
+    order = np.argsort(table.row, kind="stable")
+    named = table.row[order]  # increasing, distinct (read_labels_csv refuses a row named twice)
+    wanted = named[np.isin(table.classes[order], sorted(_class_values(spec)))]
+
+    def pick(start, n):
+        return wanted[np.searchsorted(wanted, start):np.searchsorted(wanted, start + n)]
+
+    def check(start, nozzle, frame_id):
+        lo, hi = np.searchsorted(named, [start, start + len(nozzle)])
+        for name, have in (("nozzle", nozzle), ("frame_id", frame_id)):
+            col = getattr(table, name)
+            if col is None:
+                continue
+            j = order[lo:hi]
+            got = have[named[lo:hi] - start]
+            bad = np.flatnonzero((col[j] != np.iinfo(np.int64).min) & (col[j] != got))  # int64 min: a cell left empty
+            if bad.size:
+                k = j[bad[0]]
+                raise InputError(f"{table.source}:{table.lines[k]}: row {table.row[k]} is {name} {got[bad[0]]} in "
+                                 f"the bag, the CSV says {col[k]}: labels of another recording?")
+
+    pick.max_index = int(named[-1]) if named.size else -1
+    pick.check = check
     return pick
 
 
@@ -325,6 +414,7 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
         w.writerow(HEADER)
         for first_row, rec in chunks:
             n_seen = first_row + rec.n_rows
+            pick.check(first_row, rec.nozzle, rec.frame_id)
             sel = pick(first_row, rec.n_rows) - first_row
             if not sel.size:
                 continue
@@ -357,8 +447,10 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
             n_bad += int((reasons != "").sum())
     report_stats(args.recording, stats)
     if pick.max_index >= n_seen:
-        raise InputError(f"--rows {args.rows}: row {pick.max_index} is beyond the bag's {n_seen} rows "
-                         f"({n} rows estimated into {'stdout' if args.out == '-' else args.out})")
+        what = f"--labels {args.labels}" if args.labels else f"--rows {args.rows}"
+        raise InputError(f"{what}: row {pick.max_index} is beyond the bag's {n_seen} rows ({n} rows estimated into "
+                         f"{'stdout' if args.out == '-' else args.out})"
+                         + (": labels of another recording?" if args.labels else ""))
     print(f"inkdiag estimate: {n - n_bad} of {n} rows estimated ({method}, head {profile.name!r})"
           + (f"; not estimated: {', '.join(f'{k} {v}' for k, v in sorted(why.items()))}" if n_bad else "")
           + _against(tracker, n - n_bad, notes) + _to(args.out), file=summary_stream(args.out))
