@@ -38,7 +38,8 @@ from msg_defs.qos import DIAGNOSTICS_QOS, RELIABLE_QOS, TRACES_QOS
 __all__ = ["TRACES_TYPE", "HEAD_TOPICS", "BagFrames", "is_bag", "head_topics", "ros_type_name",
            "msg_class", "qos_to_rosbags", "qos_from_rosbags", "iter_bag_frames", "iter_bag_chunks",
            "read_bag_recording", "load_recording", "stream_recording", "report_stats", "BagRecorder",
-           "InProcessRecording", "recording_node", "pop_record_arg", "check_new_bag", "bag_writer", "first_line"]
+           "InProcessRecording", "recording_node", "pop_record_arg", "check_new_bag", "bag_writer", "first_line",
+           "check_topic_names"]
 
 #: The rosbag2 type name of a trace frame.
 TRACES_TYPE = "std_msgs/msg/Float32MultiArray"
@@ -83,7 +84,27 @@ def head_topics(namespace: str, names=None) -> dict:
             raise ValueError(f"unknown topic {name!r}: expected one of {', '.join(known)}")
         full = rel if rel.startswith("/") else f"{ns}/{rel}"
         out[full] = known[rel]
+    check_topic_names(out, f"--namespace {namespace}")
     return out
+
+
+def check_topic_names(names, what: str) -> None:
+    """Refuse a topic name ROS would refuse (a token starting with a digit, a '-', '//'), before any node or file.
+
+    Raises
+    ------
+    ValueError
+        One line naming ``what`` (e.g. ``--namespace /2head``), the topic and why.
+    """
+    from rclpy.exceptions import InvalidTopicNameException
+    from rclpy.validate_full_topic_name import validate_full_topic_name
+
+    for name in names:
+        try:
+            validate_full_topic_name(name)
+        except InvalidTopicNameException as exc:
+            why = str(exc).splitlines()[0].removeprefix("Invalid topic name: ").rstrip(":")
+            raise ValueError(f"{what}: {name} is not a ROS topic name ({why})") from None
 
 
 def is_bag(path) -> bool:

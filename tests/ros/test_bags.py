@@ -291,6 +291,52 @@ def test_record_a_live_printhead_sim_and_read_it_back_with_rosbags_and_load_reco
     assert_two_readers_agree(bag)
 
 
+def test_replay_and_record_refuse_bad_or_colliding_topic_names_and_say_a_topic_nobody_takes(tmp_path, sim, ros,
+                                                                                              capsys):
+    """An invalid --namespace was a traceback (exit 1), and record left a bag behind; two heads' traces replayed
+    under one --namespace were published on one topic, mixed; a replay nobody took said it replayed (helper-87)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from _bags import frame_msg, typestore
+    from inkdiag_ros.cli import main
+
+    x = sim.traces[:8].astype(np.float32)
+    bag = write_bag(tmp_path / "bag", [(0, x)] * 2)
+    two = tmp_path / "two"  # two heads' traces topics
+    ts = typestore()
+    with Writer(two, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        for k, ns in enumerate(("/head_00", "/head_01")):
+            conn = w.add_connection(f"{ns}/traces", "std_msgs/msg/Float32MultiArray", typestore=ts)
+            w.write(conn, 1_700_000_000_000_000_000 + k, ts.serialize_cdr(
+                frame_msg(ts, x, first=0, frame_id=0, stamp_s=100), "std_msgs/msg/Float32MultiArray"))
+
+    def error(*argv):
+        capsys.readouterr()
+        assert main([*map(str, argv)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"inkdiag {argv[0]}: error: "), err
+        return err[0]
+
+    assert "--namespace /2head: /2head/labels is not a ROS topic name (topic name must not have a token that " \
+           "starts with a number)" in error("replay", bag, "--namespace", "/2head", "--wait-s", "0")
+    assert "--namespace /no-body: /no-body/traces is not a ROS topic name" in error(
+        "record", tmp_path / "rec", "--namespace", "/no-body", "--duration", "1")
+    assert not (tmp_path / "rec").exists()  # nothing left behind to be in the way of the corrected command
+    assert error("replay", two, "--namespace", "/h").endswith(
+        "--namespace /h: /head_00/traces and /head_01/traces would both be published as /h/traces, one head's "
+        "messages mixed with another's: replay one head at a time (--topics /head_00/traces ...)")
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "replay", str(two), "--as-fast-as-possible",
+                        "--wait-s", "0.5"], capture_output=True, text=True, timeout=60, env=env)
+    assert r.returncode == 0, r.stderr
+    assert "inkdiag replay: warning: no subscriber on /head_00/traces, /head_01/traces after 0.5 s: its messages " \
+           "go to no node" in r.stderr, r.stderr
+    r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "replay", str(two), "--as-fast-as-possible",
+                        "--wait-s", "0", "--namespace", "/h", "--topics", "/head_01/traces"],
+                       capture_output=True, text=True, timeout=60, env=env)
+    assert r.returncode == 0 and "replaying 1 messages of /head_01/traces as /h/traces from" in r.stderr, r.stderr
+
+
 def test_replay_into_a_subscriber_delivers_every_traces_message(tmp_path, sim, ros):
     from msg_defs import TRACE_MSG_TYPE, TRACES_QOS, decode_traces
 

@@ -46,6 +46,30 @@ def remap(topic: str, namespace) -> str:
     return "/" + "/".join(([ns] if ns else []) + parts[1:])
 
 
+def _targets(conns, namespace) -> dict:
+    """Each recorded topic of ``conns`` -> the topic it is published on (:func:`remap`).
+
+    Raises
+    ------
+    ValueError
+        A name ROS refuses (``--namespace /2head``), or two recorded topics published as one
+        (two heads' traces under one ``--namespace``: a node would take them for one head's).
+    """
+    from ..bags import check_topic_names
+
+    targets = {c.topic: remap(c.topic, namespace) for c in conns}
+    check_topic_names(sorted(set(targets.values())), f"--namespace {namespace}" if namespace else "the bag")
+    by_target = {}
+    for topic, target in sorted(targets.items()):
+        by_target.setdefault(target, []).append(topic)
+    for target, topics in by_target.items():
+        if len(topics) > 1:
+            raise ValueError(f"--namespace {namespace}: {' and '.join(topics)} would both be published as {target}, "
+                             "one head's messages mixed with another's: replay one head at a time "
+                             f"(--topics {topics[0]} ...)")
+    return targets
+
+
 def _selected(topic: str, wanted) -> bool:
     if not wanted:
         return True
@@ -81,6 +105,7 @@ def run(args) -> int:
             raise RecordingError(f"{bag}: no topic to replay (it has {has})")
         if not sum(c.msgcount for c in conns):
             raise RecordingError(f"{bag}: no messages on {', '.join(sorted({c.topic for c in conns}))} to replay")
+        targets = _targets(conns, args.namespace)  # bad or colliding names: ValueError, before any node
         classes = {}
         for c in conns:  # before any node: a topic of a type not installed here is named, with the way round it
             try:
@@ -105,7 +130,7 @@ def run(args) -> int:
                     default = TRACES_QOS if c.msgtype == TRACES_TYPE else RELIABLE_QOS
                     offered = c.ext.offered_qos_profiles
                     qos = qos_from_rosbags(offered[0] if offered else None, default)
-                    pubs[c.id] = node.create_publisher(classes[c.id], remap(c.topic, args.namespace), qos)
+                    pubs[c.id] = node.create_publisher(classes[c.id], targets[c.topic], qos)
             except Exception:  # a signal as the node was built: rclpy invalidated the context under it (RCLError)
                 if not stop.explains_an_error():
                     raise
@@ -113,7 +138,13 @@ def run(args) -> int:
                 _wait_for_subscribers(executor, node, list(pubs.values()), args.wait_s, stop)
                 if not stop.requested:
                     print(f"replaying {sum(c.msgcount for c in conns)} messages of "
-                          f"{', '.join(sorted({c.topic for c in conns}))} from {bag}", file=sys.stderr, flush=True)
+                          + ", ".join(t if targets[t] == t else f"{t} as {targets[t]}" for t in sorted(targets))
+                          + f" from {bag}", file=sys.stderr, flush=True)
+                    alone = sorted({targets[c.topic] for c in conns if not pubs[c.id].get_subscription_count()})
+                    if alone:  # said, not silent: those messages go to nobody
+                        print(f"inkdiag replay: warning: no subscriber on {', '.join(alone)} after {args.wait_s:g} s: "
+                              "its messages go to no node (is the node's namespace the one the topic is under?)",
+                              file=sys.stderr, flush=True)
                 while not stop.requested and rclpy.ok():
                     t_bag0 = t_wall0 = None
                     for c, ts, raw in _broken_off_at(reader.messages(connections=conns), bag, lambda: n_sent):
