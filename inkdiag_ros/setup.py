@@ -39,7 +39,7 @@ setup(
             "fe = inkdiag_ros._launch:fe",
             "record_baseline = inkdiag_ros._launch:record_baseline",
             "graph = inkdiag_ros._launch:graph",
-            "echo = inkdiag_ros._launch:echo",
+            "inkdiag_echo = inkdiag_ros._launch:echo",  # not `echo`: it would shadow coreutils echo on the PATH
             "inkdiag = inkdiag_ros.cli:main",
         ],
     },

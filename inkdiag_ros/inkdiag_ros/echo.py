@@ -1,6 +1,6 @@
 """echo: print messages of an inkdiag topic as ``ros2 topic echo`` does (there is no ros2 CLI here).
 
-    python -m inkdiag_ros.echo labels --namespace /head_00 [--once] [--max-items 16]
+    python -m inkdiag_ros.echo labels --namespace /head_00 [--once] [--max-items 128]
 
 Topics: traces, ground_truth, labels, drying_nozzles, fm_estimates,
 fm_estimates/array, /diagnostics (types and QoS from msg_defs). Messages are
@@ -82,11 +82,11 @@ def to_yaml(msg, indent: int = 0, max_items: int = 16) -> str:
 
 def main(args=None) -> int:
     argv = list(sys.argv if args is None else args)
-    ap = argparse.ArgumentParser(prog="echo", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="inkdiag_echo", description=__doc__.splitlines()[0])
     ap.add_argument("topic", choices=sorted(TYPES))
     ap.add_argument("--namespace", default="/head_00")
     ap.add_argument("--once", action="store_true")
-    ap.add_argument("--max-items", type=int, default=16)
+    ap.add_argument("--max-items", type=int, default=128)  # ros2 topic echo's --truncate-length
     if why := ros_args_error(argv):
         ap.error(why)
     ns = ap.parse_args(remove_ros_args(argv)[1:])

@@ -67,3 +67,20 @@ def test_echo_diagnostics_cuts_long_arrays_at_max_items(ros):
     assert yaml.safe_load(out.split("---")[0])["status"][0]["level"] == "\x01", out  # WARN, as ros2 prints a byte
     n_values = len(msg.status[0].values)
     assert n_values > 2 and out.count("- key: ") == 2 and "- '...'" in out, out
+
+
+def test_echo_shows_all_of_an_fdi_diagnostics_by_default(ros):
+    """The default --max-items was 16: the fdi node's /diagnostics has more values, and the counts came last, cut
+    (helper-88); now ros2 topic echo's 128."""
+    from msg_defs import DIAGNOSTICS_MSG_TYPE, DIAGNOSTICS_QOS, build_diagnostics
+
+    node = ros.node("diag_pub_all")
+    pub = node.create_publisher(DIAGNOSTICS_MSG_TYPE, "/diagnostics", DIAGNOSTICS_QOS)
+    msg = build_diagnostics(namespace="/head_43", level="ok", message="ok", gate_cleared=180,
+                            values={f"value_{i}": float(i) for i in range(20)},
+                            counts={"healthy_nozzle": 190, "deeply_dried": 2})
+    n_values = len(msg.status[0].values)
+    assert n_values > 16
+    status, out, err = _echo(ros, ["/diagnostics", "--once"], lambda: pub.publish(msg))
+    assert status == 0 and out.count("- key: ") == n_values and "'...'" not in out, out
+    assert "key: count.gate_cleared" in out, out

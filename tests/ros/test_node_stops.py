@@ -286,7 +286,7 @@ def _sigint_as_a_scripts_background_job_gets_it():
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-@pytest.mark.parametrize("name", ["fdi", "fe", "printhead_sim", "record_baseline", "graph", "echo", "loopback"])
+@pytest.mark.parametrize("name", ["fdi", "fe", "printhead_sim", "record_baseline", "graph", "inkdiag_echo", "loopback"])
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_a_node_stopped_while_it_imports_exits_0(ros, fdi_model, name, sig, start=_sigint_as_a_terminal_gives_it):
     """The console scripts (inkdiag_ros._launch): a stop in the seconds the imports take ends the process with
@@ -298,7 +298,7 @@ def test_a_node_stopped_while_it_imports_exits_0(ros, fdi_model, name, sig, star
     exe = shutil.which(name)
     assert exe, f"{name}: the console script is not installed"
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    args = {"fdi": ["--ros-args", "-p", f"model_path:={fdi_model}"], "echo": ["labels"]}.get(name, [])
+    args = {"fdi": ["--ros-args", "-p", f"model_path:={fdi_model}"], "inkdiag_echo": ["labels"]}.get(name, [])
     pr = subprocess.Popen([exe, *args], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                           preexec_fn=start)
     time.sleep(0.8)  # past the entry point's first lines (0.14 s), within the imports (3.3-3.7 s here)
