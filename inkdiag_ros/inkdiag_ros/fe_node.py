@@ -9,10 +9,10 @@ the listed rows, estimates their f_m in one batch on the head profile's model an
 ``fm_estimates/array`` (Float64MultiArray), reliable, per frame and range with estimates.
 
 ``baseline_path``: the head's baselines with healthy f_m (``record_baseline``), each
-estimate relative to its nozzle's healthy reading (``reports/fe.md``); a file that does
-not load, has no f_m or belongs to another head is logged and not used.
-``head_profile`` (empty: the shipped default head): frames of another sampling are
-malformed; a bad or nominal profile stops the node at start (exit status 2).
+estimate relative to its nozzle's healthy reading (``reports/fe.md``); one without f_m is
+logged and not used. ``head_profile`` (empty: the shipped default head): frames of another
+sampling are malformed. A bad or nominal profile, or baselines that do not load or are of
+another head, stop the node at start (exit status 2).
 docs/nodes.md has the details.
 
     fe --ros-args -r __ns:=/head_00
@@ -92,9 +92,8 @@ class FeNode(Node):
         try:
             baselines = NozzleBaselines.load(path)
             baselines.check_head(self.profile)
-        except BaselineFileError as exc:
-            self.get_logger().error(f"f_m baselines not used: {exc}")
-            return None
+        except BaselineFileError as exc:  # a wrong parameter: exit 2 at start, as a bad head_profile
+            raise ValueError(f"baseline_path: {exc}") from None
         n_fm = 0 if baselines.fm is None else int((~np.isnan(baselines.fm)).sum())
         if not n_fm:
             self.get_logger().error(f"f_m baselines not used: {path} holds no healthy f_m "
@@ -143,8 +142,13 @@ class FeNode(Node):
             if r.note:
                 self.get_logger().warning(f"frame {r.frame_id}: {r.note}", throttle_duration_sec=5.0)
             out = FmEstimates.from_columns(r.frame_id, r.stamp, first_nozzle=r.first_nozzle, **r.columns)
-            self._pub.publish(encode_estimates(out))
-            self._array_pub.publish(encode_estimates_array(out))
+            try:
+                self._pub.publish(encode_estimates(out))
+                self._array_pub.publish(encode_estimates_array(out))
+            except Exception:  # a stop while a burst was estimated: the context went down, nothing to publish to
+                if self.context.ok():
+                    raise
+                return
             self.estimates_published += 1
 
 

@@ -93,9 +93,11 @@ def test_fe_takes_each_estimate_relative_to_its_nozzles_healthy_fm(ros, tmp_path
     (tmp_path / "junk.npz").write_bytes(b"junk")
     fe = ros.add(FeNode(context=ros.context, namespace="/h",
                         parameter_overrides=[P("baseline_path", value=str(rec.written))]))
-    bare = ros.add(FeNode(context=ros.context, namespace="/other",
-                          parameter_overrides=[P("baseline_path", value=str(tmp_path / "junk.npz"))]))
-    assert fe.baselines is not None and bare.baselines is None  # a bad file: runs without, says why
+    assert fe.baselines is not None
+    for bad in ("junk.npz", "missing.npz"):  # a wrong parameter: refused at start (exit 2), as a bad head_profile
+        with pytest.raises(ValueError, match=f"baseline_path: .*{bad}"):  # (it ran on without, one log line said)
+            FeNode(context=ros.context, namespace="/other",
+                   parameter_overrides=[P("baseline_path", value=str(tmp_path / bad))])
     probe = ros.node("probe", namespace="/h")
     tpub = probe.create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
     dpub = probe.create_publisher(DRYING_MSG_TYPE, topics.DRYING_NOZZLES, RELIABLE_QOS)
@@ -329,3 +331,27 @@ def test_record_baseline_stopped_writes_the_complete_nozzles_and_says_so(ros, tm
     assert proc.returncode == 0 and "Traceback" not in text, text
     assert "stopped after" in text and "8 nozzles complete" in text and "wrote the baselines of 8 nozzles" in text, text
     assert list(NozzleBaselines.load(out).nozzle_ids) == list(range(8))
+
+
+def test_fe_stopped_while_it_publishes_a_burst_does_not_fail_its_callback():
+    """A SIGINT/SIGTERM under load took the context down while fe published a burst's estimates: the executor
+    logged FATAL 'Failed to publish: publisher's context is invalid' with a traceback (helper-88, 3 stops of 5)."""
+    import rclpy
+
+    from inkdiag_ros.fe_node import FeNode
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(__import__("os").environ.get("ROS_DOMAIN_ID", "0")))
+    fe = FeNode(context=ctx, namespace="/stopping")
+    classes = np.array(["healthy_nozzle"] * 8, dtype=object)
+    classes[[2, 5]] = FaultClass.DEEPLY_DRIED.value
+    frame = simulate_nozzles(classes, seed=HEAD, frame_seed=3).traces
+    fe.tracker.add_drying(4, [2, 5], first_nozzle=0, n_nozzles=8)
+    out = fe.tracker.add_traces(frame, first_nozzle=0, frame_id=4, stamp=1.0, sample_rate_hz=10e6)
+    assert out and out[0].columns["fm"].size == 2
+    fe._publish(out)  # running: published
+    assert fe.estimates_published == 1
+    rclpy.shutdown(context=ctx)  # the signal's shutdown, before the callback's next publish
+    fe._publish(out)  # nothing to publish to: no error
+    assert fe.estimates_published == 1
+    fe.destroy_node()

@@ -1,4 +1,4 @@
-"""The bundled echo (README: "read every output with `ros2 topic echo` (or the bundled `echo`)"): what it
+"""The bundled echo (README: "read every output with `ros2 topic echo` (or the bundled `inkdiag_echo`)"): what it
 prints for a message on an inkdiag topic, a real process against a real publisher."""
 
 from __future__ import annotations
