@@ -66,18 +66,17 @@ class FdiNode(Node):
 
     def _load_labeller(self):
         if not (c := self.config)["model_path"]:
-            self._config_error("no FDI model: no model_path given")
-            return None
+            return self._config_error("no FDI model: no model_path given")  # None: runs unlabelled
         try:
             labeller, baseline_error = load_labeller(c["model_path"], c["baseline_path"], max_abs_v=c["max_abs_sample_v"],
                                                      sample_rate_hz=c["sample_rate_hz"], n_samples=c["n_samples"],
                                                      profile=self.head, n_nozzles=c["n_nozzles"])
         except (ModelFileError, LabellerConfigError) as exc:  # runs unlabelled; /diagnostics says why (ERROR)
-            self._config_error(f"FDI model not loaded: {exc}")
-            return None
+            return self._config_error(f"FDI model not loaded: {exc}")
         self.get_logger().info(f"FDI model {labeller.model_id} loaded from {c['model_path']}")
-        if baseline_error is not None:
-            self._config_error(f"per-nozzle baselines not used: {baseline_error}")
+        if why := (f"per-nozzle baselines not used: {baseline_error}" if baseline_error is not None else
+                   labeller.uses_baselines and labeller.baselines.gain_mismatch(self.head)):  # used, but unlike its head
+            self._config_error(why)
         elif labeller.uses_baselines:
             self.get_logger().info(f"per-nozzle baselines of {len(labeller.baselines)} nozzles from {c['baseline_path']}")
         return labeller

@@ -130,9 +130,9 @@ class FdiStats:
         w_rows, w_faulty = self.traces_labelled - self._fault_window[0], self.rows_faulty - self._fault_window[1]
         if w_rows >= MOSTLY_FAULTY_MIN_ROWS:  # judged on the rows since the last judgement; held until the next
             self._mostly_faulty = "" if w_faulty <= MOSTLY_FAULTY * w_rows else (
-                f"{100 * w_faulty / w_rows:.0f} % of the last {w_rows} rows were faults or unknown: a failing head, "
-                "or a model or baselines that are not this head's (another head, renumbered nozzles: record the "
-                "baselines again)")
+                f"{100 * w_faulty / w_rows:.0f} % of the last {w_rows} rows were faults or unknown: a failing head, a "
+                "sensor gain other than the head profile's, or a model or baselines that are not this head's (another "
+                "head, renumbered nozzles: record the baselines again)")
             self._fault_window = (self.traces_labelled, self.rows_faulty)
         warnings = [w for w in (
             self.config_error,

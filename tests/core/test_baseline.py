@@ -1,5 +1,7 @@
 """Per-nozzle healthy baselines: twins, baseline KPIs, the baseline feature set."""
 
+import re
+
 import numpy as np
 import pytest
 from sklearn.utils.estimator_checks import parametrize_with_checks
@@ -440,3 +442,23 @@ def test_f_m_readings_say_their_estimator(tmp_path):
         NozzleBaselines.load(tmp_path / "unsaid.npz")
     with pytest.raises(ValueError, match="fm_method"):
         NozzleBaselines(np.arange(3), np.ones((3, 7)), FS, 512, 4, fm=np.zeros(3), fm_method="vp_cal")
+
+
+@pytest.mark.parametrize("n", [8, 64])
+def test_gain_mismatch_says_a_head_whose_healthy_amplitude_is_not_its_profiles(n):
+    from inkdiag_core import HeadProfile
+    from inkdiag_core.baselines import GAIN_MISMATCH_LOG
+
+    assert GAIN_MISMATCH_LOG == 0.06  # docs/controller.md's 0.9 and 1.1 fall beyond it
+
+    p = HeadProfile.default()
+    frames = np.stack([simulate_nozzles([FaultClass.HEALTHY_NOZZLE] * n, seed=21, frame_seed=f).traces
+                       for f in range(3)], axis=1)
+    for gain, said in ((1.0, False), (0.97, False), (0.8, True), (1.25, True), (-1.0, False)):
+        b = NozzleBaselines(np.arange(n), baseline_kpis(gain * frames, p.sample_rate_hz), p.sample_rate_hz,
+                            p.n_samples, 3)
+        got = b.gain_mismatch(p)
+        assert bool(got) == said, (gain, got)  # (a sign flip is not seen: the amplitude KPI is a magnitude)
+        if said:  # the ratio, as far as n nozzles and the profile's 256 simulated ones tell it
+            assert abs(float(re.search(r"ring at ([0-9.]+)x the amplitude", got).group(1)) - gain) < 0.05, got
+    assert NozzleBaselines(np.arange(2), np.ones((2, 7)), p.sample_rate_hz, p.n_samples, 3).gain_mismatch(p) == ""

@@ -212,6 +212,26 @@ def test_fdi_without_usable_baselines_labels_without_them_and_says_why(ros, tmp_
     assert labels[-1].n_nozzles == 5
 
 
+def test_fdi_says_baselines_of_a_head_ringing_at_another_amplitude_than_its_profiles(ros, tmp_path, baseline_model):
+    """A sensor gain other than the profile's turns faults into unknown; baselines recorded at that gain show it,
+    and /diagnostics says it (WARN) while they are used (helper-88)."""
+    from inkdiag_core import baseline_kpis
+
+    frames = np.stack([simulate_nozzles(["healthy_nozzle"] * 32, seed=HEAD, frame_seed=f).traces for f in range(3)],
+                      axis=1)
+    for gain, warned in ((1.0, False), (0.8, True)):
+        path = NozzleBaselines(np.arange(32), baseline_kpis(gain * frames, 10e6), 10e6, 512, 3).save(
+            tmp_path / f"b{gain}.npz")
+        fdi, labels, diag = _fdi(ros, baseline_model, baseline_path=str(path))
+        assert fdi.labeller.uses_baselines
+        assert ("x the amplitude of the healthy nozzles of head 'default': a sensor gain other than the profile's?"
+                in (fdi.stats.config_error or "")) == warned, fdi.stats.config_error
+    # (both nodes are in /h: the WARN is the second's)
+    ros.spin_until(lambda: any(d["level"] == "warn" and "a sensor gain other than" in d["config_error"]
+                               for d in diag), 5,
+                   "the warning on /diagnostics")
+
+
 def test_scenario_keeps_the_head_healthy_until_the_faults_start():
     from inkdiag_core.simulation.scenario import HeadScenario
 

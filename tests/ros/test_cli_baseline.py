@@ -132,3 +132,23 @@ def test_help(capsys):
         main(["baseline", "--help"])
     out = capsys.readouterr().out
     assert stop.value.code == 0 and "--profile" in out and "--fm-frames" in out and "record_baseline" in out
+
+
+def test_a_head_ringing_at_another_amplitude_than_its_profiles_is_warned_about(work, tmp_path, capsys):
+    """The model reads the amplitude: a controller whose analog gain is not the profile's had its faults called
+    unknown, and docs/controller.md said the gain need not be calibrated (helper-88). Its baselines say so."""
+    d, head, _ = work
+    n = 48
+    frames = [simulate_nozzles([FaultClass.HEALTHY_NOZZLE] * n, seed=5, frame_seed=f).traces for f in range(3)]
+    said = {}
+    for gain in (1.0, 0.85):
+        save_recording(tmp_path / "c.npz", Recording.from_arrays(
+            gain * np.concatenate(frames), head.sample_rate_hz, nozzle=np.tile(np.arange(n), 3)))
+        capsys.readouterr()
+        assert main(["baseline", str(tmp_path / "c.npz"), "--profile", str(d / "head.yaml"), "--out",
+                     str(tmp_path / f"b{gain}.npz"), "--frames", "3"]) == 0
+        said[gain] = capsys.readouterr().err
+    assert said[1.0] == ""
+    assert said[0.85].startswith("inkdiag baseline: warning: the baselines' 48 healthy nozzles ring at 0.8") and \
+        "x the amplitude of the healthy nozzles of head 'default': a sensor gain other than the profile's?" in said[0.85]
+    assert NozzleBaselines.load(tmp_path / "b0.85.npz").gain_mismatch(head) in said[0.85]  # written all the same

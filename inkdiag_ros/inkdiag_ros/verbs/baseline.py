@@ -100,4 +100,6 @@ def run(args) -> int:
           + (f" ({n_other} not labelled healthy_nozzle)" if n_other else "")
           + (f"; {short} nozzles with fewer than {min_frames} usable rows left out" if short else "")
           + f"; wrote {args.out}", file=sys.stdout)
+    if why := baselines.gain_mismatch(profile):
+        print(f"inkdiag baseline: warning: {why}", file=sys.stderr)
     return 0

@@ -203,6 +203,8 @@ def run(args) -> int:
     said = _one_fault_class_dominates(per_class, head)
     if said:
         print(f"inkdiag label: warning: {said}", file=sys.stderr)
+    if baselines is not None and (said := baselines.gain_mismatch(head)):
+        print(f"inkdiag label: warning: {said}", file=sys.stderr)
     return 1 if n_failed else 0
 
 
