@@ -205,6 +205,9 @@ class DryingTracker:
     trend_restarts : int
         Nozzle trends restarted since the stamps went back :data:`~inkdiag_core.trend.CLOCK_RESET_S` or
         more (a restarted clock: a controller restarted, a recording replayed again).
+    trends_recovered : int
+        Nozzle trends restarted because a drying list of a known range left the nozzle out (it
+        recovered, e.g. purged): if it dries again, its trend starts anew, not from where it was.
     rows_invalid : int
         Listed rows that screening rejected (not estimated).
     estimates, estimates_with_baseline : int
@@ -246,7 +249,7 @@ class DryingTracker:
         self.traces_received = self.drying_received = 0
         self.ranges_joined = self.ranges_estimated = 0
         self.traces_unmatched = self.drying_unmatched = 0
-        self.rows_stale = self.trend_restarts = 0
+        self.rows_stale = self.trend_restarts = self.trends_recovered = 0
         self.rows_invalid = self.estimates = self.estimates_with_baseline = 0
 
     @property
@@ -332,6 +335,9 @@ class DryingTracker:
             raise ValueError(f"drying nozzles {ids[0]}..{ids[-1]} are outside the range "
                              f"{first}..{first + n_nozzles - 1}")
         self.drying_received += 1
+        if n_nozzles is not None:  # the range's nozzles not listed are not drying: a recovered one's trend restarts
+            span = np.arange(first, first + n_nozzles, dtype=np.int64)
+            self.trends_recovered += self.trends.forget(span[~np.isin(span, ids)] if ids.size else span)
         self._drop_stale_traces(frame_id, first)
         t = self._traces.pop((frame_id, first), None)
         if t is not None:

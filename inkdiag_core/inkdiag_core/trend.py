@@ -445,6 +445,23 @@ class FmTrendBank:
         self.P[rows, 0, 0] = self.P[rows, 1, 1] = np.inf
         self.K[rows], self.y[rows] = np.nan, np.nan
 
+    def forget(self, nozzles) -> int:
+        """Restart the trends of ``nozzles`` (ids; those without a trend are ignored): their next estimate
+        starts a new one, as a nozzle's first does (a nozzle that recovered, then dries again).
+
+        Returns
+        -------
+        int
+            How many trends were restarted (nozzles with at least one update).
+        """
+        ids = np.asarray(nozzles, dtype=np.int64).reshape(-1)
+        rows = np.searchsorted(self.ids, ids)
+        rows = rows[(rows < self.ids.size) & (self.ids[np.minimum(rows, self.ids.size - 1)] == ids)] \
+            if self.ids.size else rows[:0]
+        rows = rows[self.n_updates[rows] > 0]
+        self._clear(rows)
+        return int(rows.size)
+
     def update(self, t: float, nozzles, fm, fm_std):
         """Fold one frame's estimates in.
 

@@ -68,7 +68,31 @@ def test_a_nozzle_is_estimated_in_its_first_dried_frame_and_not_after_it_recover
         (e,) = _drying(tr, f, 0, ids)
         got[f] = e.nozzles.tolist()
     assert got == lists
-    assert tr.trends.trends[5].n_updates == 2 and tr.trends.trends[2].n_updates == 2
+    assert tr.trends.trends[5].n_updates == 2
+    # 2's trend (frames 1, 2) ended with frame 3's list, which leaves it out: it recovered
+    assert tr.trends_recovered == 1 and tr.trends.n_updates[tr.trends.ids == 2] == 0
+
+
+def test_a_nozzle_that_recovers_and_dries_again_starts_a_new_trend():
+    """helper-88: a nozzle dried, was purged (healthy, left out of its range's lists), dried again: its trend went on
+    from the old drying, fm_rate the wrong sign for 6 frames and no ETA."""
+    tr = DryingTracker()
+    lists = {1: [2], 2: [2], 3: [], 4: [2]}
+    got = {}
+    for f, ids in lists.items():
+        x = _frame(f, {0: ids})
+        _traces(tr, x, f, 0)
+        out = _drying(tr, f, 0, ids)
+        got[f] = {int(n): (fm, trend, rate) for e in out for n, fm, trend, rate in zip(
+            e.nozzles, e.columns["fm"], e.columns["fm_trend"], e.columns["fm_rate"])}
+    assert np.isfinite(got[2][2][2])  # its second frame of the first drying: a rate
+    assert got[3] == {} and tr.trends_recovered == 1
+    fm, trend, rate = got[4][2]
+    assert trend == fm and np.isnan(rate)  # a new trend: its first estimate, no rate yet
+    # a list that leaves out a nozzle it never listed, or one without a range, restarts nothing
+    _drying(tr, 5, 1, [])
+    tr.add_drying(5, [], first_nozzle=None)
+    assert tr.trends_recovered == 1 and tr.trends.n_updates[tr.trends.ids == 2] == 1
 
 
 def test_an_empty_list_releases_its_range_and_a_list_without_traces_is_counted_not_estimated():
@@ -213,9 +237,11 @@ def test_a_repeated_or_late_frame_is_estimated_but_not_folded_into_the_trends():
         np.testing.assert_array_equal(e.columns["fm"], direct.fm)  # the estimates themselves are given
     np.testing.assert_array_equal(tr.trends.x, ref.trends.x)  # the trends of frames 1, 2, 4, in order
     np.testing.assert_array_equal(tr.trends.n_updates, [3, 3])
-    # frame 3 listed no dried nozzle; frame 2 comes after it, and its nozzles' trends last moved at frame 1
+    # frame 3 listed no dried nozzle (they recovered: their trends of frame 1 end); frame 2 comes after it and is
+    # folded, as a new trend (the list of a range is taken as its nozzles' state when it comes)
     tr, out = run([1, 3, 2], listed=lambda k: [] if k == 3 else DRIED[0])
-    assert tr.rows_stale == 0 and [e.note for e in out] == ["", ""] and tr.trends.n_updates.tolist() == [2, 2]
+    assert tr.rows_stale == 0 and [e.note for e in out] == ["", ""] and tr.trends.n_updates.tolist() == [1, 1]
+    assert tr.trends_recovered == 2
 
 
 def test_a_restarted_clock_restarts_the_trends_instead_of_freezing_them():
