@@ -7,6 +7,7 @@ from .baselines import (  # noqa: F401
     BASELINE_FORMAT_VERSION,
     DEFAULT_MAX_NOZZLES,
     FM_METHOD,
+    GAIN_MISMATCH_LOG,
     N_KPIS,
     RELATIVE_NAMES,
     BaselineFileError,
@@ -19,6 +20,6 @@ from .baselines import (  # noqa: F401
     with_baseline,
 )
 
-__all__ = ["BASELINE_FORMAT", "BASELINE_FORMAT_VERSION", "DEFAULT_MAX_NOZZLES", "FM_METHOD", "N_KPIS",
+__all__ = ["BASELINE_FORMAT", "BASELINE_FORMAT_VERSION", "DEFAULT_MAX_NOZZLES", "FM_METHOD", "GAIN_MISMATCH_LOG", "N_KPIS",
            "RELATIVE_NAMES", "BaselineFileError", "BaselineKpis", "BaselineRecorder", "NozzleBaselines", "baseline_kpis",
            "baseline_training_kpis", "baseline_training_rows", "with_baseline"]

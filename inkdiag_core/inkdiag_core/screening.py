@@ -18,8 +18,10 @@ __all__ = ["CLIP_S", "INVALID_REASONS", "clip_run_samples", "screen_traces", "sc
 
 #: Shortest plateau at a row's extreme that reads as ADC clipping, s (5 samples at 10 MHz).
 CLIP_S = 0.5e-6
-#: A clipped run is never shorter than this many samples, whatever the sample rate.
-MIN_CLIP_RUN = 3
+#: A clipped run is never shorter than this many samples, whatever the sample rate. With 3, a
+#: 5 MHz head's 10-bit ADC repeated one code three times at the peak of 1.0 % of its healthy
+#: traces (tests/foreign_head.py's h5, 3000 healthy traces, seed 2; helper-87): 0.05 % with 4.
+MIN_CLIP_RUN = 4
 
 #: Reason codes of invalid rows. The first four are :func:`screen_traces`'s, in the order
 #: of precedence used when several apply; ``"non_finite_features"`` is a row that passed
@@ -34,9 +36,9 @@ _REASONS = np.array(("",) + INVALID_REASONS[:4], dtype=object)
 def clip_run_samples(sample_rate_hz: float = 10e6, clip_s: float = CLIP_S) -> int:
     """The clipped-run length in samples at a sample rate: ``max(3, ceil(clip_s * sample_rate_hz))``.
 
-    5 samples at 10 MHz (the length tuned there), 10 at 20 MHz, 3 at 5 MHz
-    (never fewer than 3: with 2, a quantised healthy peak repeating one ADC
-    code would read as clipped).
+    5 samples at 10 MHz (the length tuned there), 10 at 20 MHz, 4 at 5 MHz
+    (never fewer than :data:`MIN_CLIP_RUN`, 4: with fewer, a quantised healthy
+    peak repeating one ADC code reads as clipped).
 
     Parameters
     ----------

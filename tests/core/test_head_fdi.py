@@ -97,7 +97,22 @@ def test_a_default_profile_builds_the_same_features_as_no_profile():
 def test_the_clipped_run_is_a_duration():
     assert clip_run_samples(10e6) == 5  # as tuned at 10 MHz
     assert clip_run_samples(20e6) == 10
-    assert clip_run_samples(5e6) == 3  # never below 3 samples
+    assert clip_run_samples(5e6) == 4  # never below 4 samples
+    assert clip_run_samples(2e6) == 4
+
+
+def test_a_5_mhz_heads_quantised_healthy_peaks_are_not_clipped():
+    """helper-87: a 5 MHz x 256 head with a 10-bit ADC had 1 % of its healthy traces called clipped (3 equal codes
+    at the peak, 0.86 V against a 2 V rail); a saturated trace still is."""
+    from foreign_head import simulate_foreign
+
+    s = simulate_foreign("h5", {"healthy_nozzle": 2000}, seed=2)
+    x, fs = s["traces"], s["sample_rate_hz"]
+    assert fs == 5e6
+    reasons = screen_traces(x, sample_rate_hz=fs)[1]
+    assert np.mean(reasons == "clipped") <= 0.002, np.mean(reasons == "clipped")
+    sat = np.clip(x[:20] * 2.0, -0.9 * np.abs(x[:20]).max(axis=1, keepdims=True), None)  # overdriven into a rail
+    assert (screen_traces(sat, sample_rate_hz=fs)[1] == "clipped").mean() >= 0.9
     # a 7-sample plateau (0.35 us at 20 MHz) is not clipping at 20 MHz; at 10 MHz it would be
     x = np.sin(np.linspace(0, 40, 1024))[None, :].repeat(2, axis=0)
     x[:, 100:107] = x.max() + 0.1
