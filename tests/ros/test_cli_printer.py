@@ -101,6 +101,16 @@ def test_a_child_that_dies_is_reported_and_the_command_exits_non_zero(ros, fdi_m
     assert not _alive(pids[0]), "the other child outlived the command"
 
 
+def test_a_parameter_the_nodes_refuse_is_exit_status_2(ros, fdi_model):
+    """helper-88: --ros-args -p n_nozzles:=-1, refused by every fdi process (status 2), made the command exit 1."""
+    proc = _start(ros, "--heads", "2", "--processes", "2", "--model", str(fdi_model), "--duration", "20",
+                  "--ros-args", "-p", "n_nozzles:=-1")
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2, (out, err)
+    assert err.count("n_nozzles") >= 2 and "exited with status 2 (bad input: its own line above says which)" in err, err
+    assert "Traceback" not in err, err
+
+
 @pytest.mark.parametrize("argv, match", [
     (["--heads", "0"], "--heads must be"),
     (["--heads", "2", "--first-head", "99"], "--first-head must be 0 .. 98"),

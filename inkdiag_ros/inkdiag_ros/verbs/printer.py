@@ -27,7 +27,8 @@ Prints once a second: heads whose /diagnostics arrived in the last 2.5 s, and th
 frames and traces labelled per second summed over the heads (from their
 /diagnostics). Ctrl-C or SIGTERM stops every process (exit status 0); a process
 that dies is reported with its exit status and the command exits 1; bad options
-are one line on stderr and exit status 2.
+are one line on stderr and exit status 2, as are parameters the node processes refuse
+(each process says why, exit status 2 for the command).
 
 Example: inkdiag printer --heads 4 --processes 2 --baselines baselines/head_{i:02d}.npz
 """
@@ -141,7 +142,10 @@ def run(args) -> int:
     finally:
         _stop(children)
     for what, proc in died:
-        print(f"inkdiag printer: {what} exited with status {proc.returncode}", file=sys.stderr)
+        print(f"inkdiag printer: {what} exited with status {proc.returncode}"
+              + (" (bad input: its own line above says which)" if proc.returncode == 2 else ""), file=sys.stderr)
+    if died and all(proc.returncode == 2 for _, proc in died):  # e.g. --ros-args -p n_nozzles:=-1: bad input
+        return 2
     return 1 if died else 0
 
 
