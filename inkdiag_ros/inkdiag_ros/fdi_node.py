@@ -48,6 +48,7 @@ class FdiNode(Node):
         c["max_abs_sample_v"] = c["max_abs_sample_v"] or self.head.max_abs_v
         self.stats = FdiStats()
         self.labeller = self._load_labeller()
+        self.stats.gate_in_use = bool(self.labeller and self.labeller.uses_gate)  # /diagnostics: its clear rate
         self.model_id = self.labeller.model_id if self.labeller else "none"
         self._max_id = c["n_nozzles"] - 1 if c["n_nozzles"] > 0 else None
         self._labels_pub = self.create_publisher(LABELS_MSG_TYPE, topics.LABELS, RELIABLE_QOS)

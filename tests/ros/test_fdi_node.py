@@ -297,6 +297,30 @@ def test_diagnostics_counts_invalid_from_the_start():
     assert counts == {"healthy_nozzle": 3, "invalid": 1} and stats.rows_invalid == 1
 
 
+def test_diagnostics_warn_when_the_healthy_gate_clears_few_healthy_rows():
+    """helper-88: another head's baselines on /head_01 cleared 14 of 64 rows a frame and made a quarter of them faults
+    or unknown, under the half that warns: /diagnostics said OK. On a head whose baselines are its own the gate clears
+    about 99 % of its healthy rows; under half is a warning. Not without a gate, nor for rows without a baseline."""
+    from inkdiag_ros.stats import FdiStats
+
+    def run(gate, cleared, n_baseline=64, n=20):
+        stats = FdiStats()
+        stats.gate_in_use = gate
+        stats.period(True)
+        for _ in range(n):  # 64 rows a frame, 50 healthy
+            stats.received()
+            stats.labelled({"healthy_nozzle": 50, "unknown": 7, "deeply_dried": 7}, 64, n_baseline, cleared)
+        return stats.period(True)[:2]
+
+    assert run(True, 49)[0] == "ok"  # 49 of 50 cleared
+    level, message = run(True, 14)
+    assert level == "warn" and message.startswith("the healthy gate cleared 280 of the last 1000 healthy rows with a "
+                                                  "baseline (about 99 % on a head whose baselines are its own)"), message
+    assert run(False, 0)[0] == "ok"  # no gate (baselines without reference traces): nothing to judge
+    assert run(True, 0, n_baseline=10)[0] == "ok"  # 10 rows with a baseline, 14 not healthy: none surely healthy
+    assert run(True, 14, n=15)[0] == "ok"  # 750 rows: not judged yet
+
+
 def test_diagnostics_warn_when_most_rows_are_faults():
     """Rows mostly faults or unknown (baselines of another head make every nozzle look unlike its own) are WARN,
     judged on the rows since the last judgement (a small head's over several periods) and held until the next;
