@@ -178,8 +178,9 @@ def refuse_an_unclosed_bag(path) -> None:
     metadata.yaml (its recorder stopped before it closed the bag); else nothing."""
     path = Path(path)
     if path.is_dir() and (any(path.glob("*.mcap")) or any(path.glob("*.db3"))):
-        raise RecordingError(f"{path}: a bag directory without its metadata.yaml (a recorder stopped before it "
-                             "closed the bag writes none): not readable as a rosbag2 bag")
+        raise RecordingError(f"{path}: a bag directory without its metadata.yaml (a recorder writes it when it "
+                             "closes the bag: one still recording, or stopped before it closed the bag, has none): "
+                             "not readable as a rosbag2 bag")
 
 
 def load_recording(path) -> Recording:
@@ -210,6 +211,9 @@ def load_recording(path) -> Recording:
     try:
         with open(path, "rb") as f:
             magic = f.read(6)
+        if magic.startswith(b"\x89MCAP") or (magic.startswith(b"SQLite") and path.suffix == ".db3"):
+            raise RecordingError(f"{src}: a rosbag2 storage file: give the bag's directory ({path.parent}, with its "
+                                 "metadata.yaml), not the file inside it")
         if not magic.startswith((b"PK\x03\x04", b"PK\x05\x06", b"\x93NUMPY")):  # a zip (.npz) or an .npy
             raise RecordingError(f"{src}: not an .npz archive (a zip of numpy arrays): "
                                  + (f"it starts with {magic!r}" if magic else "an empty file"))

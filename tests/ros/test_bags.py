@@ -121,7 +121,11 @@ def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim, fdi_model):
     nometa = tmp_path / "nometa"
     nometa.mkdir()
     (nometa / mcap.name).write_bytes(next(bag.glob("*.mcap")).read_bytes())
-    _one_line_error(nometa, "a bag directory without its metadata.yaml")
+    _one_line_error(nometa, re.escape("a bag directory without its metadata.yaml (a recorder writes it when it "
+                                      "closes the bag: one still recording"))
+    # the storage file given instead of its bag directory (helper-87: "not an .npz archive ... b'\\x89MCAP0'")
+    assert _one_line_error(nometa / mcap.name, "a rosbag2 storage file: give the bag's directory").endswith(
+        f"({nometa}, with its metadata.yaml), not the file inside it")
 
 
 def test_replay_of_a_bad_bag_is_one_line_and_status_2(tmp_path, sim, capsys):
