@@ -396,3 +396,39 @@ def test_estimate_takes_a_labels_csv_of_a_bag(head, tmp_path):
         assert res.returncode == 2, (args, res.stderr)
         last = res.stderr.strip().splitlines()[-1]  # after the bag's own report, where it was read
         assert last.startswith("inkdiag estimate: error: ") and message in last, res.stderr
+
+
+def test_a_nozzle_the_labels_call_recovered_starts_a_new_trend_as_in_fe(tmp_path):
+    """fe ends a nozzle's trend when its range's drying list leaves it out (it recovered); estimate with class --rows
+    does the same (the rows not of the class), in an .npz and in a bag; with row indices it does not."""
+    from inkdiag_core import simulate_nozzles
+    from _bags import write_bag
+
+    dried = {0: [2], 1: [2], 2: [], 3: [2]}  # nozzle 2 dries, is purged (frame 2), dries again
+    frames = []
+    for f, ids in dried.items():
+        classes = np.array(["healthy_nozzle"] * 4, dtype=object)
+        classes[ids] = "deeply_dried"
+        frames.append((classes, simulate_nozzles(classes, seed=4, frame_seed=f).traces))
+    x = np.concatenate([t for _, t in frames])
+    label = np.concatenate([c for c, _ in frames]).astype(str)
+    save_recording(tmp_path / "r.npz", Recording.from_arrays(
+        x, 10e6, nozzle=np.tile(np.arange(4), 4), frame_id=np.repeat(np.arange(4), 4),
+        stamp=np.repeat(100.0 + np.arange(4), 4), label=label))
+    bag = write_bag(tmp_path / "bag", [(0, t) for _, t in frames])  # frame k at stamp 100 + k
+    with open(tmp_path / "l.csv", "w") as f:
+        f.write("row,class\n" + "".join(f"{i},{c}\n" for i, c in enumerate(label)))
+    profile = tmp_path / "default.yaml"
+    HeadProfile.default().save(profile)
+
+    def nozzle_2(*args):
+        res = run_cli(*args, "--profile", profile, "--out", "-")
+        assert res.returncode == 0, res.stderr
+        rows = [dict(zip(COLUMNS, line.split(","))) for line in res.stdout.splitlines()[1:]]
+        return [(int(r["row"]), r["fm"] == r["fm_trend"], r["fm_rate"] != "") for r in rows if r["nozzle"] == "2"]
+
+    restarted = [(2, True, False), (6, False, True), (14, True, False)]  # frame 3: a first estimate again
+    assert nozzle_2(tmp_path / "r.npz", "--rows", "dried") == restarted
+    assert nozzle_2(tmp_path / "r.npz", "--labels", tmp_path / "l.csv") == restarted
+    assert nozzle_2(bag, "--labels", tmp_path / "l.csv") == restarted
+    assert nozzle_2(tmp_path / "r.npz", "--rows", "2,6,14")[2] == (14, False, True)  # indices: one trend throughout

@@ -224,17 +224,10 @@ def run(args) -> int:
         cols = {k: np.empty(0) for k in ("nozzle", "fm", "fm_std", "d_mu", "viscosity", "fm_trend", "fm_rate",
                                          "eta_deeply_dried_s")}
     # trends: each frame's estimates in time order (stamp, then frame_id), as fe would have seen them
-    unfolded = (0, 0)
     stamps = rec.stamp[rows]
     frames = rec.frame_id[rows]
-    ok = (reasons == "") & np.isfinite(stamps)
-    if ok.any():
-        order = np.lexsort((frames[ok], stamps[ok]))
-        idx = np.flatnonzero(ok)[order]
-        keys = np.stack([stamps[idx], frames[idx].astype(float)], axis=1)
-        bounds = np.flatnonzero(np.any(keys[1:] != keys[:-1], axis=1)) + 1
-        for grp in np.split(idx, bounds):  # one trend update per frame
-            unfolded = np.add(unfolded, _fold_frame(tracker.trends, float(stamps[grp[0]]), grp, cols))
+    left_out = _left_out(args, rec.n_rows, rows)
+    unfolded = _trend_steps(tracker.trends, rec, rows, left_out, reasons == "", cols, time_order=True)
     with open_csv_out(args.out) as f:
         w = csv.writer(f)
         w.writerow(["row", "nozzle", "fm", "fm_std", "d_mu", "viscosity", "frame_id", "stamp", "fm_trend",
@@ -416,7 +409,10 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
             n_seen = first_row + rec.n_rows
             pick.check(first_row, rec.nozzle, rec.frame_id)
             sel = pick(first_row, rec.n_rows) - first_row
+            left_out = _left_out(args, rec.n_rows, sel)
             if not sel.size:
+                unfolded = np.add(unfolded, _trend_steps(tracker.trends, rec, sel, left_out, np.zeros(0, bool), {},
+                                                         time_order=False))
                 continue
             cols, reasons = {}, np.empty(sel.size, dtype=object)
             for s0 in range(0, sel.size, _CHUNK):
@@ -430,12 +426,9 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
                     notes.add(r.note)
             stamps, frames = rec.stamp[sel], rec.frame_id[sel]
             seen.append((rec.nozzle[sel], frames, stamps))
-            ok = (reasons == "") & np.isfinite(stamps)
-            if ok.any():  # each frame's trend update in bag order (one message is one frame)
-                idx = np.flatnonzero(ok)
-                keys = np.stack([stamps[idx], frames[idx].astype(float)], axis=1)
-                for grp in np.split(idx, np.flatnonzero(np.any(keys[1:] != keys[:-1], axis=1)) + 1):
-                    unfolded = np.add(unfolded, _fold_frame(tracker.trends, float(stamps[grp[0]]), grp, cols))
+            # each frame's trend update in bag order (one message is one frame's range)
+            unfolded = np.add(unfolded, _trend_steps(tracker.trends, rec, sel, left_out, reasons == "", cols,
+                                                     time_order=False))
             for i in range(sel.size):  # formatting only
                 w.writerow([first_row + int(sel[i]), int(rec.nozzle[sel[i]]), _fmt(cols["fm"][i]),
                             _fmt(cols["fm_std"][i]), _fmt(cols["d_mu"][i]), _fmt(cols["viscosity"][i]),
@@ -458,6 +451,43 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
         print(f"inkdiag estimate: note: {note}", file=sys.stderr)
     _say_after(seen, unfolded, why.get("out_of_range", 0), n, tracker.max_abs_v)
     return 0
+
+
+def _left_out(args, n: int, selected):
+    """Rows (of ``n``) a class ``--rows`` leaves out, whose nozzles fe would take as recovered (their drying lists
+    leave them out); none for row indices or every row (an int64 array)."""
+    import numpy as np
+
+    if args.rows is None or _class_values(args.rows) is None:
+        return np.zeros(0, dtype=np.int64)
+    keep = np.ones(n, dtype=bool)
+    keep[selected] = False
+    return np.flatnonzero(keep)
+
+
+def _trend_steps(trends, rec, rows, left_out, estimated, cols, *, time_order: bool) -> tuple:
+    """The trend steps of the frames of ``rec``'s rows ``rows`` (their ``estimated`` ones folded in; ``cols``:
+    their columns, filled) and ``left_out`` (whose nozzles' trends end, as fe ends a nozzle's trend when its
+    range's list leaves it out), frame by frame: in time order (stamp, frame_id: an .npz) or in the rows' order
+    (a bag, its frames as received). Rows without a finite stamp take no step. Returns ``(left out, restarted)``
+    as :func:`_fold_frame`."""
+    import numpy as np
+
+    n = len(rows)
+    at = np.concatenate([np.asarray(rows, dtype=np.int64), left_out])  # recording rows; the first n: ``cols``'
+    fold = np.zeros(at.size, dtype=bool)
+    fold[:n] = estimated
+    use = np.flatnonzero((fold | (np.arange(at.size) >= n)) & np.isfinite(rec.stamp[at]))
+    stamps, frames = rec.stamp[at[use]], rec.frame_id[at[use]].astype(float)
+    use = use[np.lexsort((frames, stamps)) if time_order else np.argsort(at[use], kind="stable")]
+    keys = np.stack([rec.stamp[at[use]], rec.frame_id[at[use]].astype(float)], axis=1)
+    unfolded = (0, 0)
+    for grp in np.split(use, np.flatnonzero(np.any(keys[1:] != keys[:-1], axis=1)) + 1):  # one step per frame
+        if grp.size:
+            trends.forget(rec.nozzle[at[grp[grp >= n]]])
+            if (mine := grp[grp < n]).size:
+                unfolded = np.add(unfolded, _fold_frame(trends, float(rec.stamp[at[grp[0]]]), mine, cols))
+    return unfolded
 
 
 def _fold_frame(trends, t, grp, cols) -> tuple:
