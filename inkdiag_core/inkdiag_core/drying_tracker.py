@@ -143,6 +143,7 @@ class _Traces:
 @dataclass
 class _Drying:
     nozzles: np.ndarray  # sorted unique int64
+    ranged: bool = False  # the list of one range (first_nozzle given): what it leaves out is not drying
     matched: bool = False
 
 
@@ -206,8 +207,9 @@ class DryingTracker:
         Nozzle trends restarted since the stamps went back :data:`~inkdiag_core.trend.CLOCK_RESET_S` or
         more (a restarted clock: a controller restarted, a recording replayed again).
     trends_recovered : int
-        Nozzle trends restarted because a drying list of a known range left the nozzle out (it
-        recovered, e.g. purged): if it dries again, its trend starts anew, not from where it was.
+        Nozzle trends ended because the drying list of their range (one with ``first_nozzle``) left
+        the nozzle out (it recovered, e.g. purged): if it dries again, its trend starts anew. Only
+        for a trace screening accepts and a frame after the trend's last update.
     rows_invalid : int
         Listed rows that screening rejected (not estimated).
     estimates, estimates_with_baseline : int
@@ -289,7 +291,7 @@ class DryingTracker:
         t = _Traces(x, float(stamp), float(sample_rate_hz))
         d = self._drying.pop((frame_id, first), None)
         if d is not None:
-            return self._join(frame_id, first, t, d.nozzles)
+            return self._join(frame_id, first, t, d.nozzles, ranged=d.ranged)
         d = self._drying.get((frame_id, None))
         if d is not None and self._in_range(d.nozzles, first, x.shape[0]).size:
             d.matched = True
@@ -335,14 +337,11 @@ class DryingTracker:
             raise ValueError(f"drying nozzles {ids[0]}..{ids[-1]} are outside the range "
                              f"{first}..{first + n_nozzles - 1}")
         self.drying_received += 1
-        if n_nozzles is not None:  # the range's nozzles not listed are not drying: a recovered one's trend restarts
-            span = np.arange(first, first + n_nozzles, dtype=np.int64)
-            self.trends_recovered += self.trends.forget(span[~np.isin(span, ids)] if ids.size else span)
         self._drop_stale_traces(frame_id, first)
         t = self._traces.pop((frame_id, first), None)
         if t is not None:
-            return self._join(frame_id, first, t, ids)
-        self._hold_drying((frame_id, first), _Drying(ids))
+            return self._join(frame_id, first, t, ids, ranged=True)
+        self._hold_drying((frame_id, first), _Drying(ids, ranged=True))
         return []
 
     def _add_unranged(self, frame_id, ids) -> list:
@@ -378,10 +377,13 @@ class DryingTracker:
     def _in_range(ids, first, n):
         return ids[(ids >= first) & (ids < first + n)]
 
-    def _join(self, frame_id, first, t: _Traces, nozzles) -> list:
-        """Estimate the listed nozzles of one trace message; [] when none is valid there."""
+    def _join(self, frame_id, first, t: _Traces, nozzles, *, ranged: bool = False) -> list:
+        """Estimate the listed nozzles of one trace message; [] when none is valid there. ``ranged``: the list is
+        this range's own, so a nozzle of the range it leaves out is not drying (:meth:`_recovered`)."""
         self.ranges_joined += 1
         x = t.traces
+        if ranged:
+            self._recovered(first, x, nozzles, t)
         ids = self._in_range(nozzles, first, x.shape[0])[: self.max_estimates]
         r = self.estimate_rows(np.array(x[ids - first]), ids, stamp=t.stamp, sample_rate_hz=t.sample_rate_hz)
         ok = r.reasons == ""
@@ -390,6 +392,22 @@ class DryingTracker:
         self.ranges_estimated += 1
         cols = {k: v[ok] for k, v in r.columns.items()}
         return [RangeEstimates(frame_id, t.stamp, first, int(x.shape[0]), cols, r.note)]
+
+    def _recovered(self, first, x, listed, t: _Traces) -> None:
+        """End the trends of the range's nozzles its list leaves out (they recovered, e.g. purged): only those whose
+        trace screening accepts (a clipped or non-finite row is not news of a recovery: fdi cannot label it) and
+        whose trend was last updated before this frame's stamp (a late frame is not news either)."""
+        if not (len(self.trends) and math.isfinite(t.stamp)):
+            return
+        span = np.arange(first, first + x.shape[0], dtype=np.int64)
+        rows = np.searchsorted(self.trends.ids, span)
+        has = rows < self.trends.ids.size
+        has[has] = (self.trends.ids[rows[has]] == span[has]) & (self.trends.n_updates[rows[has]] > 0)
+        gone = span[has & ~np.isin(span, listed)]
+        if gone.size:
+            valid = screen_traces(np.asarray(x[gone - first]), sample_rate_hz=t.sample_rate_hz,
+                                  max_abs_v=self.max_abs_v)[0]
+            self.trends_recovered += self.trends.forget(gone[valid], before=t.stamp)
 
     def estimate_rows(self, traces, nozzles, *, stamp: float, sample_rate_hz: float) -> RowEstimates:
         """Screen some rows of one frame, estimate f_m of the valid ones in one batch, update their trends.

@@ -34,7 +34,7 @@ _REASONS = np.array(("",) + INVALID_REASONS[:4], dtype=object)
 
 
 def clip_run_samples(sample_rate_hz: float = 10e6, clip_s: float = CLIP_S) -> int:
-    """The clipped-run length in samples at a sample rate: ``max(3, ceil(clip_s * sample_rate_hz))``.
+    """The clipped-run length in samples at a sample rate: ``max(MIN_CLIP_RUN, ceil(clip_s * sample_rate_hz))``.
 
     5 samples at 10 MHz (the length tuned there), 10 at 20 MHz, 4 at 5 MHz
     (never fewer than :data:`MIN_CLIP_RUN`, 4: with fewer, a quantised healthy

@@ -445,9 +445,16 @@ class FmTrendBank:
         self.P[rows, 0, 0] = self.P[rows, 1, 1] = np.inf
         self.K[rows], self.y[rows] = np.nan, np.nan
 
-    def forget(self, nozzles) -> int:
+    def forget(self, nozzles, before: float = math.inf) -> int:
         """Restart the trends of ``nozzles`` (ids; those without a trend are ignored): their next estimate
         starts a new one, as a nozzle's first does (a nozzle that recovered, then dries again).
+
+        Parameters
+        ----------
+        nozzles : array_like of int
+        before : float
+            Only trends last updated before this time, s (a frame's stamp: news of a recovery older than
+            a trend's last estimate, a late frame's, does not end it).
 
         Returns
         -------
@@ -458,7 +465,7 @@ class FmTrendBank:
         rows = np.searchsorted(self.ids, ids)
         rows = rows[(rows < self.ids.size) & (self.ids[np.minimum(rows, self.ids.size - 1)] == ids)] \
             if self.ids.size else rows[:0]
-        rows = rows[self.n_updates[rows] > 0]
+        rows = rows[(self.n_updates[rows] > 0) & (self.t[rows] < before)]
         self._clear(rows)
         return int(rows.size)
 

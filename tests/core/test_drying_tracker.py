@@ -265,3 +265,27 @@ def test_a_restarted_clock_restarts_the_trends_instead_of_freezing_them():
         e, = _drying(tr, k, r, DRIED[r])
         assert np.isfinite(e.columns["fm_trend"]).all() and (("restarted" in e.note) == (k == 4))
     assert tr.trend_restarts == 3 and tr.rows_stale == 0
+
+
+def test_a_late_list_or_an_unreadable_trace_does_not_end_a_trend():
+    """helper-89: a list of an older frame (late), or a range whose trace of the nozzle screening refuses (fdi labels
+    it invalid, not dried), is no news of a recovery: the trend goes on."""
+    tr = DryingTracker()
+    for f in (1, 2):
+        _traces(tr, _frame(f, {0: [2]}), f, 0)
+        _drying(tr, f, 0, [2])
+    late = _frame(0, {0: []})
+    _traces(tr, late, 0, 0, stamp=0.5)  # frame 0, stamped before the trend's updates, comes last
+    _drying(tr, 0, 0, [])
+    clipped = _frame(3, {0: [2]})
+    clipped[2, 100:140] = clipped[2].max()
+    _traces(tr, clipped, 3, 0)
+    assert _drying(tr, 3, 0, []) == []
+    nan = _frame(4, {0: [2]})
+    nan[2, 7] = np.nan
+    _drying(tr, 4, 0, [])  # the list first, then the traces
+    _traces(tr, nan, 4, 0)
+    assert tr.trends_recovered == 0 and tr.trends.n_updates[tr.trends.ids == 2] == 2
+    _traces(tr, _frame(5, {0: []}), 5, 0)  # a readable healthy trace, left out: recovered
+    _drying(tr, 5, 0, [])
+    assert tr.trends_recovered == 1 and tr.trends.n_updates[tr.trends.ids == 2] == 0

@@ -398,7 +398,7 @@ def test_estimate_takes_a_labels_csv_of_a_bag(head, tmp_path):
         assert last.startswith("inkdiag estimate: error: ") and message in last, res.stderr
 
 
-def test_a_nozzle_the_labels_call_recovered_starts_a_new_trend_as_in_fe(tmp_path):
+def test_a_nozzle_the_labels_call_recovered_starts_a_new_trend_as_in_fe(tmp_path, monkeypatch, capsys):
     """fe ends a nozzle's trend when its range's drying list leaves it out (it recovered); estimate with class --rows
     does the same (the rows not of the class), in an .npz and in a bag; with row indices it does not."""
     from inkdiag_core import simulate_nozzles
@@ -432,3 +432,14 @@ def test_a_nozzle_the_labels_call_recovered_starts_a_new_trend_as_in_fe(tmp_path
     assert nozzle_2(tmp_path / "r.npz", "--labels", tmp_path / "l.csv") == restarted
     assert nozzle_2(bag, "--labels", tmp_path / "l.csv") == restarted
     assert nozzle_2(tmp_path / "r.npz", "--rows", "2,6,14")[2] == (14, False, True)  # indices: one trend throughout
+    # a bag read one frame a chunk (helper-89): the frame without a dried row is a chunk with none selected
+    from inkdiag_ros.cli import main
+    from inkdiag_ros.verbs import estimate
+
+    monkeypatch.setattr(estimate, "_BAG_CHUNK_ROWS", 4)
+    capsys.readouterr()
+    assert main(["estimate", str(bag), "--profile", str(profile), "--labels", str(tmp_path / "l.csv"), "--out",
+                 str(tmp_path / "chunked.csv")]) == 0
+    _, rows = read_csv(tmp_path / "chunked.csv")
+    assert [(int(r["row"]), r["fm"] == r["fm_trend"], r["fm_rate"] != "") for r in rows if r["nozzle"] == "2"] \
+        == restarted

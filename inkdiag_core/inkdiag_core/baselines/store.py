@@ -211,9 +211,13 @@ class NozzleBaselines:
         -------
         str
             "" when the two agree within :data:`GAIN_MISMATCH_LOG` (or three standard errors of
-            their medians, if more: few nozzles), or when there are fewer than 3 nozzles; else one
-            line saying the ratio and what to do.
+            their medians, if more: few nozzles), or when it cannot tell (fewer than 3 nozzles with
+            an amplitude, a nominal profile, or baselines of another sampling: refused elsewhere);
+            else one line saying the ratio and what to do.
         """
+        if (not profile.is_complete or self.sample_rate_hz != profile.sample_rate_hz
+                or self.n_samples != profile.n_samples):
+            return ""
         col = KPI_NAMES.index("amplitude")
         amp = np.abs(self.kpis[:, col])
         amp = amp[amp > 0]
@@ -223,7 +227,7 @@ class NozzleBaselines:
                                   profile.sample_rate_hz)[:, col])
         la, lr = np.log(amp), np.log(ref[ref > 0])
         d = float(np.median(la) - np.median(lr))
-        se = 1.2533 * float(np.hypot(la.std() / np.sqrt(la.size), lr.std() / np.sqrt(lr.size)))  # of a median
+        se = 1.2533 * float(np.hypot(la.std(ddof=1) / np.sqrt(la.size), lr.std(ddof=1) / np.sqrt(lr.size)))  # a median's
         if abs(d) <= max(GAIN_MISMATCH_LOG, 3.0 * se):
             return ""
         return (f"the baselines' {amp.size} healthy nozzles ring at {np.exp(d):.2f}x the amplitude of the healthy "

@@ -227,7 +227,7 @@ def run(args) -> int:
     stamps = rec.stamp[rows]
     frames = rec.frame_id[rows]
     left_out = _left_out(args, rec.n_rows, rows)
-    unfolded = _trend_steps(tracker.trends, rec, rows, left_out, reasons == "", cols, time_order=True)
+    unfolded = _trend_steps(tracker, rec, rows, left_out, reasons == "", cols, time_order=True)
     with open_csv_out(args.out) as f:
         w = csv.writer(f)
         w.writerow(["row", "nozzle", "fm", "fm_std", "d_mu", "viscosity", "frame_id", "stamp", "fm_trend",
@@ -411,7 +411,7 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
             sel = pick(first_row, rec.n_rows) - first_row
             left_out = _left_out(args, rec.n_rows, sel)
             if not sel.size:
-                unfolded = np.add(unfolded, _trend_steps(tracker.trends, rec, sel, left_out, np.zeros(0, bool), {},
+                unfolded = np.add(unfolded, _trend_steps(tracker, rec, sel, left_out, np.zeros(0, bool), {},
                                                          time_order=False))
                 continue
             cols, reasons = {}, np.empty(sel.size, dtype=object)
@@ -427,7 +427,7 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
             stamps, frames = rec.stamp[sel], rec.frame_id[sel]
             seen.append((rec.nozzle[sel], frames, stamps))
             # each frame's trend update in bag order (one message is one frame's range)
-            unfolded = np.add(unfolded, _trend_steps(tracker.trends, rec, sel, left_out, reasons == "", cols,
+            unfolded = np.add(unfolded, _trend_steps(tracker, rec, sel, left_out, reasons == "", cols,
                                                      time_order=False))
             for i in range(sel.size):  # formatting only
                 w.writerow([first_row + int(sel[i]), int(rec.nozzle[sel[i]]), _fmt(cols["fm"][i]),
@@ -465,14 +465,22 @@ def _left_out(args, n: int, selected):
     return np.flatnonzero(keep)
 
 
-def _trend_steps(trends, rec, rows, left_out, estimated, cols, *, time_order: bool) -> tuple:
+def _trend_steps(tracker, rec, rows, left_out, estimated, cols, *, time_order: bool) -> tuple:
     """The trend steps of the frames of ``rec``'s rows ``rows`` (their ``estimated`` ones folded in; ``cols``:
     their columns, filled) and ``left_out`` (whose nozzles' trends end, as fe ends a nozzle's trend when its
-    range's list leaves it out), frame by frame: in time order (stamp, frame_id: an .npz) or in the rows' order
-    (a bag, its frames as received). Rows without a finite stamp take no step. Returns ``(left out, restarted)``
-    as :func:`_fold_frame`."""
+    range's list leaves it out: rows screening accepts, of nozzles not folded in that frame, trends last updated
+    before it), frame by frame: in time order (stamp, frame_id: an .npz) or in the rows' order (a bag, its frames
+    as received). Rows without a finite stamp take no step. Returns ``(left out, restarted)`` as
+    :func:`_fold_frame`."""
     import numpy as np
+    from inkdiag_core import screen_traces
 
+    trends = tracker.trends
+    # only nozzles that have a trend, or may get one here (a bag's earlier chunks gave the bank its trends)
+    left_out = left_out[np.isin(rec.nozzle[left_out], np.union1d(trends.ids, rec.nozzle[rows]))]
+    if left_out.size:
+        left_out = left_out[screen_traces(rec.traces[left_out], sample_rate_hz=rec.sample_rate_hz,
+                                          max_abs_v=tracker.max_abs_v)[0]]
     n = len(rows)
     at = np.concatenate([np.asarray(rows, dtype=np.int64), left_out])  # recording rows; the first n: ``cols``'
     fold = np.zeros(at.size, dtype=bool)
@@ -484,9 +492,10 @@ def _trend_steps(trends, rec, rows, left_out, estimated, cols, *, time_order: bo
     unfolded = (0, 0)
     for grp in np.split(use, np.flatnonzero(np.any(keys[1:] != keys[:-1], axis=1)) + 1):  # one step per frame
         if grp.size:
-            trends.forget(rec.nozzle[at[grp[grp >= n]]])
-            if (mine := grp[grp < n]).size:
-                unfolded = np.add(unfolded, _fold_frame(trends, float(rec.stamp[at[grp[0]]]), mine, cols))
+            mine, t = grp[grp < n], float(rec.stamp[at[grp[0]]])
+            trends.forget(np.setdiff1d(rec.nozzle[at[grp[grp >= n]]], rec.nozzle[at[mine]]), before=t)
+            if mine.size:
+                unfolded = np.add(unfolded, _fold_frame(trends, t, mine, cols))
     return unfolded
 
 

@@ -140,7 +140,8 @@ def run(args) -> int:
                     print(f"replaying {sum(c.msgcount for c in conns)} messages of "
                           + ", ".join(t if targets[t] == t else f"{t} as {targets[t]}" for t in sorted(targets))
                           + f" from {bag}", file=sys.stderr, flush=True)
-                    alone = sorted({targets[c.topic] for c in conns if not pubs[c.id].get_subscription_count()})
+                    alone = sorted({targets[c.topic] for c in conns  # the traces: what a replay is for
+                                    if c.msgtype == TRACES_TYPE and not pubs[c.id].get_subscription_count()})
                     if alone:  # said, not silent: those messages go to nobody
                         print(f"inkdiag replay: warning: no subscriber on {', '.join(alone)} after {args.wait_s:g} s: "
                               "its messages go to no node (is the node's namespace the one the topic is under?)",
