@@ -394,20 +394,38 @@ class DryingTracker:
         return [RangeEstimates(frame_id, t.stamp, first, int(x.shape[0]), cols, r.note)]
 
     def _recovered(self, first, x, listed, t: _Traces) -> None:
-        """End the trends of the range's nozzles its list leaves out (they recovered, e.g. purged): only those whose
-        trace screening accepts (a clipped or non-finite row is not news of a recovery: fdi cannot label it) and
-        whose trend was last updated before this frame's stamp (a late frame is not news either)."""
-        if not (len(self.trends) and math.isfinite(t.stamp)):
-            return
+        """:meth:`end_recovered` of the range's nozzles with a trend that its list leaves out."""
         span = np.arange(first, first + x.shape[0], dtype=np.int64)
-        rows = np.searchsorted(self.trends.ids, span)
-        has = rows < self.trends.ids.size
-        has[has] = (self.trends.ids[rows[has]] == span[has]) & (self.trends.n_updates[rows[has]] > 0)
-        gone = span[has & ~np.isin(span, listed)]
+        gone = span[np.isin(span, self.trends.ids) & ~np.isin(span, listed)]
         if gone.size:
-            valid = screen_traces(np.asarray(x[gone - first]), sample_rate_hz=t.sample_rate_hz,
-                                  max_abs_v=self.max_abs_v)[0]
-            self.trends_recovered += self.trends.forget(gone[valid], before=t.stamp)
+            self.end_recovered(gone, x[gone - first], stamp=t.stamp, sample_rate_hz=t.sample_rate_hz)
+
+    def end_recovered(self, nozzles, traces, *, stamp: float, sample_rate_hz: float) -> int:
+        """End the trends of ``nozzles`` that a drying list left out (they recovered, e.g. purged): only those
+        whose row of ``traces`` screening accepts (a clipped or non-finite row is no news of a recovery: fdi labels
+        it invalid, not healthy) and whose trend was last updated before ``stamp`` (a late frame is no news either).
+
+        Parameters
+        ----------
+        nozzles : array_like of int, shape (m,)
+        traces : array_like, shape (m, n_samples)
+            Their traces in that frame, V.
+        stamp : float
+            The frame's time, s (NaN: nothing ends).
+        sample_rate_hz : float
+
+        Returns
+        -------
+        int
+            Trends ended (also added to :attr:`trends_recovered`).
+        """
+        ids = np.asarray(nozzles, dtype=np.int64).reshape(-1)
+        if not (ids.size and math.isfinite(stamp)):
+            return 0
+        valid = screen_traces(np.asarray(traces), sample_rate_hz=sample_rate_hz, max_abs_v=self.max_abs_v)[0]
+        k = self.trends.forget(ids[valid], before=stamp)
+        self.trends_recovered += k
+        return k
 
     def estimate_rows(self, traces, nozzles, *, stamp: float, sample_rate_hz: float) -> RowEstimates:
         """Screen some rows of one frame, estimate f_m of the valid ones in one batch, update their trends.

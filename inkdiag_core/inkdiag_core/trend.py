@@ -463,8 +463,8 @@ class FmTrendBank:
         """
         ids = np.asarray(nozzles, dtype=np.int64).reshape(-1)
         rows = np.searchsorted(self.ids, ids)
-        rows = rows[(rows < self.ids.size) & (self.ids[np.minimum(rows, self.ids.size - 1)] == ids)] \
-            if self.ids.size else rows[:0]
+        known = rows < self.ids.size
+        rows = rows[known][self.ids[rows[known]] == ids[known]]
         rows = rows[(self.n_updates[rows] > 0) & (self.t[rows] < before)]
         self._clear(rows)
         return int(rows.size)

@@ -468,19 +468,15 @@ def _left_out(args, n: int, selected):
 def _trend_steps(tracker, rec, rows, left_out, estimated, cols, *, time_order: bool) -> tuple:
     """The trend steps of the frames of ``rec``'s rows ``rows`` (their ``estimated`` ones folded in; ``cols``:
     their columns, filled) and ``left_out`` (whose nozzles' trends end, as fe ends a nozzle's trend when its
-    range's list leaves it out: rows screening accepts, of nozzles not folded in that frame, trends last updated
-    before it), frame by frame: in time order (stamp, frame_id: an .npz) or in the rows' order (a bag, its frames
+    range's list leaves it out: :meth:`inkdiag_core.DryingTracker.end_recovered` of the nozzles not folded in that
+    frame), frame by frame: in time order (stamp, frame_id: an .npz) or in the rows' order (a bag, its frames
     as received). Rows without a finite stamp take no step. Returns ``(left out, restarted)`` as
     :func:`_fold_frame`."""
     import numpy as np
-    from inkdiag_core import screen_traces
 
     trends = tracker.trends
     # only nozzles that have a trend, or may get one here (a bag's earlier chunks gave the bank its trends)
     left_out = left_out[np.isin(rec.nozzle[left_out], np.union1d(trends.ids, rec.nozzle[rows]))]
-    if left_out.size:
-        left_out = left_out[screen_traces(rec.traces[left_out], sample_rate_hz=rec.sample_rate_hz,
-                                          max_abs_v=tracker.max_abs_v)[0]]
     n = len(rows)
     at = np.concatenate([np.asarray(rows, dtype=np.int64), left_out])  # recording rows; the first n: ``cols``'
     fold = np.zeros(at.size, dtype=bool)
@@ -493,7 +489,9 @@ def _trend_steps(tracker, rec, rows, left_out, estimated, cols, *, time_order: b
     for grp in np.split(use, np.flatnonzero(np.any(keys[1:] != keys[:-1], axis=1)) + 1):  # one step per frame
         if grp.size:
             mine, t = grp[grp < n], float(rec.stamp[at[grp[0]]])
-            trends.forget(np.setdiff1d(rec.nozzle[at[grp[grp >= n]]], rec.nozzle[at[mine]]), before=t)
+            gone = at[grp[grp >= n]]
+            gone = gone[~np.isin(rec.nozzle[gone], rec.nozzle[at[mine]])]  # not a nozzle folded in this frame
+            tracker.end_recovered(rec.nozzle[gone], rec.traces[gone], stamp=t, sample_rate_hz=rec.sample_rate_hz)
             if mine.size:
                 unfolded = np.add(unfolded, _fold_frame(trends, t, mine, cols))
     return unfolded
