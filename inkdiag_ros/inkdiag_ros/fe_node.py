@@ -12,8 +12,7 @@ the listed rows, estimates their f_m in one batch on the head profile's model an
 estimate relative to its nozzle's healthy reading (``reports/fe.md``); one without f_m is
 logged and not used. ``head_profile`` (empty: the shipped default head): frames of another
 sampling are malformed. A bad or nominal profile, or baselines that do not load or are of
-another head, stop the node at start (exit status 2).
-docs/nodes.md has the details.
+another head, stop the node at start (exit status 2). docs/nodes.md has the details.
 
     fe --ros-args -r __ns:=/head_00
 """
@@ -78,8 +77,7 @@ class FeNode(Node):
         self.estimates_published = 0
         self._clocks_said = 0  # the trend bank's clock restarts (epoch) already logged
         self._pub = self.create_publisher(ESTIMATES_MSG_TYPE, topics.FM_ESTIMATES, RELIABLE_QOS)
-        self._array_pub = self.create_publisher(ESTIMATES_ARRAY_MSG_TYPE, topics.FM_ESTIMATES_ARRAY,
-                                                RELIABLE_QOS)
+        self._array_pub = self.create_publisher(ESTIMATES_ARRAY_MSG_TYPE, topics.FM_ESTIMATES_ARRAY, RELIABLE_QOS)
         self._drying_sub = self.create_subscription(DRYING_MSG_TYPE, topics.DRYING_NOZZLES,
                                                     self._on_drying, RELIABLE_QOS)
         # raw: the 2 MB of a 1,024-nozzle frame are viewed in the taken bytes, not converted to a message
@@ -115,6 +113,8 @@ class FeNode(Node):
         except (ValueError, OverflowError) as exc:  # MessageError is a ValueError; the tracker's checks too
             self._malformed("drying_nozzles message", exc)
             return
+        if d.dropped:  # its other entries are used
+            self._malformed("part of a drying_nozzles message", d.dropped)
         self._publish(out)
 
     def _on_traces(self, msg: bytes) -> None:

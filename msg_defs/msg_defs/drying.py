@@ -15,11 +15,15 @@ has no dried nozzle, e.g. that a nozzle recovered)::
 message's); every listed nozzle lies in it. Both are optional, together: a
 message without them (written before they existed) covers an unknown range
 of its frame, and a subscriber matches it on ``frame_id`` alone.
+
+A bad entry (an id that is not an integer in the range, a class that is not
+a dried one) costs only itself: :func:`decode_drying` keeps the others and
+says what it left out in ``DryingNozzles.dropped``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from std_msgs.msg import String
 
@@ -44,6 +48,8 @@ class DryingNozzles:
     classes: tuple = ()
     first_nozzle: int | None = None  # the labelled range; None: unknown
     n_nozzles: int | None = None
+    #: what :func:`decode_drying` left out (its bad entries), for the log; "" when nothing
+    dropped: str = field(default="", compare=False)
 
     def __post_init__(self):
         if (self.first_nozzle is None) != (self.n_nozzles is None):
@@ -91,26 +97,32 @@ def _drying_text(d: DryingNozzles) -> str:
 
 
 def decode_drying(msg) -> DryingNozzles:
-    """Parse and validate a ``drying_nozzles`` message; raise :class:`MessageError` otherwise."""
+    """Parse and validate a ``drying_nozzles`` message; raise :class:`MessageError` for a message that
+    cannot be read (not JSON, another schema, a missing or mistyped field, ``classes`` not one per
+    nozzle). An entry whose id is not an integer in [0, 2**24) and in the labelled range, or whose class
+    is not a dried one, is left out alone: the result keeps the other entries and says which it left
+    out in ``dropped``."""
     s = DRYING_SCHEMA
     doc = _json.load(msg, s)
     frame_id = _json.field(doc, s, "frame_id", int, nonneg=True)
     stamp = _json.field(doc, s, "stamp", float, nonneg=True)
     nozzles = _json.field(doc, s, "nozzles", list)
     classes = _json.field(doc, s, "classes", list)
-    if not all(isinstance(x, int) and not isinstance(x, bool) and 0 <= x < MAX_NOZZLE_ID for x in nozzles):
-        raise MessageError(f"{s}: nozzles must be integers in [0, 2**24), got {nozzles!r:.80}")
-    if len(classes) != len(nozzles) or not all(c in DRIED_CLASSES for c in classes):
-        raise MessageError(
-            f"{s}: classes must be one dried class per nozzle ({', '.join(DRIED_CLASSES)}), "
-            f"got {len(classes)} for {len(nozzles)} nozzles: {classes!r:.80}"
-        )
+    if len(classes) != len(nozzles):
+        raise MessageError(f"{s}: classes must be one dried class per nozzle ({', '.join(DRIED_CLASSES)}), "
+                           f"got {len(classes)} for {len(nozzles)} nozzles: {classes!r:.80}")
     first = n = None
     if "first_nozzle" in doc or "n_nozzles" in doc:  # the range: both or neither
         first = _json.field(doc, s, "first_nozzle", int, nonneg=True)
         n = _json.field(doc, s, "n_nozzles", int, nonneg=True)
-        outside = [x for x in nozzles if not first <= x < first + n]
-        if outside:
-            raise MessageError(f"{s}: nozzles {outside!r:.60} are outside the labelled range "
-                               f"first_nozzle {first}, n_nozzles {n}")
-    return DryingNozzles(frame_id, stamp, tuple(nozzles), tuple(classes), first, n)
+    lo, hi = (0, MAX_NOZZLE_ID) if first is None else (first, min(first + n, MAX_NOZZLE_ID))
+    keep = [type(x) is int and lo <= x < hi and c in DRIED_CLASSES for x, c in zip(nozzles, classes)]
+    dropped = ""
+    if not all(keep):
+        bad = [(x, c) for x, c, k in zip(nozzles, classes, keep) if not k]
+        where = "[0, 2**24)" if first is None else f"the labelled range first_nozzle {first}, n_nozzles {n}"
+        dropped = (f"{s}: left out {len(bad)} of {len(nozzles)} entries, ids not integers in {where} or classes "
+                   f"not one of {', '.join(DRIED_CLASSES)}: {bad!r:.100}")
+        nozzles = [x for x, k in zip(nozzles, keep) if k]
+        classes = [c for c, k in zip(classes, keep) if k]
+    return DryingNozzles(frame_id, stamp, tuple(nozzles), tuple(classes), first, n, dropped)

@@ -86,9 +86,27 @@ def test_not_json_and_wrong_type():
 
 def test_drying_validation():
     bad = json.loads(encode_drying(DryingNozzles(1, 2.0, (3,), ("deeply_dried",))).data)
-    bad["classes"] = ["fully_blocked"]
-    with pytest.raises(MessageError, match="dried class"):
+    bad["classes"] = ["fully_blocked", "deeply_dried"]
+    with pytest.raises(MessageError, match="dried class per nozzle"):  # 2 classes for 1 nozzle: no pairs
         decode_drying(String(data=json.dumps(bad)))
+
+
+def test_a_bad_drying_entry_costs_only_itself():
+    """One bad entry (an id outside the range or not an integer, a class not dried) is left out; the
+    list's other nozzles are kept and ``dropped`` says what was left out."""
+    good = DryingNozzles(1, 2.0, (200, 205, 399), ("deeply_dried", "slightly_dried", "intermediately_dried"),
+                         first_nozzle=200, n_nozzles=200)
+    assert decode_drying(encode_drying(good)).dropped == ""
+    doc = json.loads(encode_drying(good).data)
+    doc["nozzles"] = [200, 400, 205, True, 2.5, 399, 201, 1 << 24]
+    doc["classes"] = ["deeply_dried", "deeply_dried", "slightly_dried", "deeply_dried", "deeply_dried",
+                      "intermediately_dried", "fully_blocked", "deeply_dried"]
+    d = decode_drying(String(data=json.dumps(doc)))
+    assert d == good  # dropped is not compared
+    assert "left out 5 of 8" in d.dropped and "400" in d.dropped and "fully_blocked" in d.dropped
+    del doc["first_nozzle"], doc["n_nozzles"]  # no range: any id in [0, 2**24)
+    d = decode_drying(String(data=json.dumps(doc)))
+    assert d.nozzles == (200, 400, 205, 399) and "left out 4 of 8" in d.dropped
 
 
 def _estimates():
@@ -154,8 +172,8 @@ def test_drying_says_its_range_and_a_message_without_one_still_decodes():
     with pytest.raises(MessageError, match="missing field 'n_nozzles'"):
         decode_drying(String(data=json.dumps(half)))
     outside = dict(doc, first_nozzle=102, n_nozzles=2)  # 101 and 105 are not in 102..103
-    with pytest.raises(MessageError, match="outside the labelled range"):
-        decode_drying(String(data=json.dumps(outside)))
+    left = decode_drying(String(data=json.dumps(outside)))
+    assert left.nozzles == () and left.first_nozzle == 102 and "left out 2 of 2" in left.dropped
 
 
 def test_estimates_json_says_its_first_nozzle():
