@@ -111,6 +111,34 @@ def test_a_parameter_the_nodes_refuse_is_exit_status_2(ros, fdi_model):
     assert "Traceback" not in err, err
 
 
+@pytest.mark.timeout(90)
+def test_heads_another_node_already_runs_stop_the_printer_with_status_2(ros, fdi_model):
+    """helper-88 #9: two printers over overlapping heads on one domain both labelled /head_06 unseen. An fdi node
+    already in /head_06 (here a plain node of that name) makes the printer stop in its first seconds, exit 2."""
+    ros.node("fdi", namespace="/head_06")
+    proc = _start(ros, "--heads", "2", "--first-head", "5", "--model", str(fdi_model), "--duration", "60",
+                  "--ros-args", "--log-level", "warn")
+    try:
+        ros.spin_until(lambda: proc.poll() is not None, timeout=60, what="the printer to stop")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    out, err = proc.communicate(timeout=10)
+    assert proc.returncode == 2, (out, err)
+    assert "/head_06/fdi runs twice on ROS_DOMAIN_ID" in err and "/head_05" not in err, err
+    assert "Traceback" not in err, err
+
+
+def test_duplicated_nodes_are_a_namespaces_node_seen_twice():
+    from inkdiag_ros.verbs.printer import duplicated_nodes
+
+    graph = [("fdi", "/head_00"), ("fdi", "/head_01"), ("fdi", "/head_01"), ("fdi", "/head_09"), ("fdi", "/head_09"),
+             ("printhead_sim", "/head_00"), ("printhead_sim", "/head_00"), ("probe", "/head_00"), ("probe", "/head_00")]
+    assert duplicated_nodes(graph, {"/head_00", "/head_01"}, {"fdi"}) == ["/head_01/fdi"]
+    assert duplicated_nodes(graph, {"/head_00", "/head_01"}, {"fdi", "printhead_sim"}) == [
+        "/head_00/printhead_sim", "/head_01/fdi"]
+
+
 @pytest.mark.parametrize("argv, match", [
     (["--heads", "0"], "--heads must be"),
     (["--heads", "2", "--first-head", "99"], "--first-head must be 0 .. 98"),

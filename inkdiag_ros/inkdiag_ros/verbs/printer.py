@@ -28,7 +28,9 @@ frames and traces labelled per second summed over the heads (from their
 /diagnostics). Ctrl-C or SIGTERM stops every process (exit status 0); a process
 that dies is reported with its exit status and the command exits 1; bad options
 are one line on stderr and exit status 2, as are parameters the node processes refuse
-(each process says why, exit status 2 for the command).
+(each process says why, exit status 2 for the command), and heads that another
+printer (or node) on the same domain already runs: within its first 30 s, a printer
+that finds one of its nodes (/head_03/fdi) twice in the ROS graph stops (exit status 2).
 
 Example: inkdiag printer --heads 4 --processes 2 --baselines baselines/head_{i:02d}.npz
 """
@@ -37,6 +39,9 @@ Example: inkdiag printer --heads 4 --processes 2 --baselines baselines/head_{i:0
 STALE_S = 2.5
 #: Seconds the processes get to stop on SIGTERM before they are killed.
 STOP_GRACE_S = 1.5
+#: Seconds after the start during which a second node of the same name in one of this printer's namespaces (another
+#: printer's, or a lone node's, on the same heads and domain) stops it; a printer that has run longer keeps running.
+CONFLICT_WINDOW_S = 30.0
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -138,9 +143,12 @@ def run(args) -> int:
               f"in {args.processes} processes (pids {', '.join(str(p.pid) for _, p in children[:len(groups)])})"
               + (", simulated printheads in one more" if args.simulate else "")
               + f"; {'until Ctrl-C' if args.duration <= 0 else f'{args.duration:g} s'}", flush=True)
-        died = _monitor(args, children)
+        died, conflict = _monitor(args, children)
     finally:
         _stop(children)
+    if conflict:
+        print(f"inkdiag printer: error: {conflict}", file=sys.stderr)
+        return 2
     for what, proc in died:
         print(f"inkdiag printer: {what} exited with status {proc.returncode}"
               + (" (bad input: its own line above says which)" if proc.returncode == 2 else ""), file=sys.stderr)
@@ -149,8 +157,21 @@ def run(args) -> int:
     return 1 if died else 0
 
 
-def _monitor(args, children) -> list:
-    """Print the summary once a second until the duration, a signal or a child's death; the dead children."""
+def duplicated_nodes(names_and_namespaces, namespaces, names) -> list:
+    """``"/head_03/fdi"`` for each node name of ``names`` that runs more than once in one of ``namespaces``
+    (two printers, or a printer and a lone node, on the same heads), sorted."""
+    seen: dict = {}
+    for name, ns in names_and_namespaces:
+        if name in names and ns in namespaces:
+            seen[f"{ns}/{name}"] = seen.get(f"{ns}/{name}", 0) + 1
+    return sorted(k for k, v in seen.items() if v > 1)
+
+
+def _monitor(args, children) -> tuple:
+    """Print the summary once a second until the duration, a signal or a child's death.
+
+    Returns ``(died, conflict)``: the dead children, and why this printer must not run ("" if it may): within
+    :data:`CONFLICT_WINDOW_S` of its start, a node of its heads' namespaces runs twice on the domain."""
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.node import Node
@@ -162,6 +183,8 @@ def _monitor(args, children) -> list:
 
     latest = {}  # head namespace -> (arrival time, values)
     wanted = {f"{i:02d}" for i in range(args.first_head, args.first_head + args.heads)}
+    namespaces = {f"/head_{i}" for i in wanted}
+    names = {"fdi", "printhead_sim"} if args.simulate else {"fdi"}
 
     def on_diag(msg):
         for name, d in diagnostics_values(msg).items():
@@ -170,7 +193,7 @@ def _monitor(args, children) -> list:
 
     with stop_on_signals() as stop:
         if stop.requested:  # a stop whose SystemExit was swallowed as this process imported
-            return []
+            return [], ""
         # no rclpy signal handlers: a signal sets ``stop.requested`` and never takes the context down under the
         # node or the executor being built (RCLError, and a half-built executor's AttributeError traceback)
         rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
@@ -187,18 +210,25 @@ def _monitor(args, children) -> list:
                 executor.spin_once(timeout_sec=0.1)
                 died = [(w, p) for w, p in children if p.poll() is not None]
                 if died:
-                    return died
+                    return died, ""
                 now = time.monotonic()
                 if args.duration > 0 and now - t0 >= args.duration:
                     break
                 if now >= next_print:
+                    twice = (duplicated_nodes(node.get_node_names_and_namespaces(), namespaces, names)
+                             if now - t0 <= CONFLICT_WINDOW_S else [])
+                    if twice:
+                        domain = os.environ.get("ROS_DOMAIN_ID", "0")
+                        return [], (f"{', '.join(twice)} run{'s' if len(twice) == 1 else ''} twice on ROS_DOMAIN_ID "
+                                    f"{domain}: another inkdiag printer (or node) has these heads; stopped this one. "
+                                    "Give each box its own heads (--first-head) or its own ROS_DOMAIN_ID")
                     print(summary(latest, args.heads, now - t0, now), flush=True)
                     next_print += 1.0
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         finally:
             tear_down(executor, [node])
-    return []
+    return [], ""
 
 
 def summary(latest: dict, n_heads: int, t: float, now: float) -> str:
