@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import zipfile
 import zlib
@@ -29,8 +30,8 @@ from .._fileio import temp_beside
 from ..kpis import KPI_NAMES, InvalidTraceError, extract_kpis
 from .features import N_KPIS
 
-__all__ = ["BASELINE_FORMAT", "BASELINE_FORMAT_VERSION", "FM_METHOD", "GAIN_MISMATCH_LOG", "BaselineFileError",
-           "NozzleBaselines"]
+__all__ = ["BASELINE_FORMAT", "BASELINE_FORMAT_VERSION", "FM_METHOD", "GAIN_MISMATCH_LOG", "PHASE_MISMATCH_RAD",
+           "BaselineFileError", "NozzleBaselines"]
 
 BASELINE_FORMAT = "inkdiag-nozzle-baselines"
 BASELINE_FORMAT_VERSION = 5  # 5: the estimator of the f_m readings ("fm_method"); 4: optional reference
@@ -45,6 +46,11 @@ FM_METHOD = "vp"
 #: :meth:`NozzleBaselines.gain_mismatch` speaks: at a gain of 0.9 (log -0.105) the default model
 #: called 22 % of the default head's deeply dried nozzles unknown; at 1.1, 17 % of its fully blocked.
 GAIN_MISMATCH_LOG = 0.06
+#: Phase difference (rad) between a head's healthy ringing and its profile's beyond which
+#: :meth:`NozzleBaselines.gain_mismatch` speaks: a quarter period. An inverted sensor sign is pi
+#: (the default model then called every class of the default head ``unknown``); healthy nozzles of
+#: one head agree within about 0.05 rad (circular standard deviation, 256 traces of the default head).
+PHASE_MISMATCH_RAD = math.pi / 2
 
 
 def _default_head_sha256() -> str:
@@ -192,12 +198,14 @@ class NozzleBaselines:
                                     f"not on head profile{name} (sha256 {sha[:12]}): record them again on this head")
 
     def gain_mismatch(self, profile, *, n_sim: int = 256, seed: int = 0) -> str:
-        """Whether these healthy nozzles ring at the amplitude ``profile``'s healthy nozzles ring at.
+        """Whether these healthy nozzles ring at the amplitude and in the phase ``profile``'s healthy nozzles do.
 
         The amplitude KPI scales with the sensor gain, and a model trained on ``profile``
         reads it: a head whose analog gain is not the profile's has its faults called
         ``unknown`` (docs/controller.md). The baselines' median log amplitude is compared
-        with that of ``n_sim`` healthy traces simulated on ``profile``.
+        with that of ``n_sim`` healthy traces simulated on ``profile``; so is their mean
+        phase (circular): beyond :data:`PHASE_MISMATCH_RAD` the sensor's sign is inverted
+        (pi) or the sensing window starts at another delay than the profile's.
 
         Parameters
         ----------
@@ -211,9 +219,9 @@ class NozzleBaselines:
         -------
         str
             "" when the two agree within :data:`GAIN_MISMATCH_LOG` (or three standard errors of
-            their medians, if more: few nozzles), or when it cannot tell (fewer than 3 nozzles with
-            an amplitude, a nominal profile, or baselines of another sampling: refused elsewhere);
-            else one line saying the ratio and what to do.
+            their medians, if more: few nozzles) and :data:`PHASE_MISMATCH_RAD`, or when it cannot
+            tell (fewer than 3 nozzles with an amplitude, a nominal profile, or baselines of another
+            sampling: refused elsewhere); else one line saying the ratio or the phase, and what to do.
         """
         if (not profile.is_complete or self.sample_rate_hz != profile.sample_rate_hz
                 or self.n_samples != profile.n_samples):
@@ -223,11 +231,20 @@ class NozzleBaselines:
         amp = amp[amp > 0]
         if amp.size < 3:
             return ""
-        ref = np.abs(extract_kpis(profile.simulate({"healthy_nozzle": n_sim}, seed=seed).traces,
-                                  profile.sample_rate_hz)[:, col])
+        sim = extract_kpis(profile.simulate({"healthy_nozzle": n_sim}, seed=seed).traces, profile.sample_rate_hz)
+        ref = np.abs(sim[:, col])
         la, lr = np.log(amp), np.log(ref[ref > 0])
         d = float(np.median(la) - np.median(lr))
         se = 1.2533 * float(np.hypot(la.std(ddof=1) / np.sqrt(la.size), lr.std(ddof=1) / np.sqrt(lr.size)))  # a median's
+        ph = KPI_NAMES.index("phase_rad")
+        mine = self.kpis[:, ph][np.isfinite(self.kpis[:, ph]) & (np.abs(self.kpis[:, col]) > 0)]
+        dphi = float(np.angle(np.exp(1j * mine).mean() * np.conj(np.exp(1j * sim[:, ph]).mean()))) if mine.size >= 3 else 0.0
+        if abs(dphi) > PHASE_MISMATCH_RAD:
+            return (f"the baselines' {mine.size} healthy nozzles ring {abs(dphi):.2f} rad out of phase with the healthy "
+                    f"nozzles of head {profile.name!r}: " + ("an inverted sensor sign? " if abs(dphi) > 2.5 else "")
+                    + "the model reads the phase (every class then reads as unknown): negate the samples if the "
+                    "sensor's sign is inverted; else the sensing window starts at another delay than the profile's "
+                    "drive.switch_delay_s: calibrate this head's own profile (inkdiag calibrate) and train on it")
         if abs(d) <= max(GAIN_MISMATCH_LOG, 3.0 * se):
             return ""
         return (f"the baselines' {amp.size} healthy nozzles ring at {np.exp(d):.2f}x the amplitude of the healthy "
