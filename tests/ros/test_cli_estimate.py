@@ -1,10 +1,28 @@
-"""``inkdiag estimate`` end to end, as a user runs it: a subprocess on files."""
+"""``inkdiag estimate`` end to end, as a user runs it, on files.
 
+Most tests call the command in this process (:func:`run_inproc`: ``inkdiag_ros.cli.main`` with stdout and
+stderr captured, argparse's SystemExit taken as the status), which checks the same status, output and files
+without a second or two of imports per call. These stay a subprocess (:func:`run_cli`), where the process
+itself is the point:
+
+- ``test_estimate_writes_the_columns_and_reports_bad_rows``: the command as a user runs it, ``python -m
+  inkdiag_ros.cli`` (its ``__main__``, the real exit status);
+- ``test_a_full_disk_names_the_output``: a write error is one line and status 2 from the real process
+  (nothing more at interpreter exit, such as an unflushed file's "Exception ignored");
+- ``test_a_reader_that_stops_early_is_one_line_and_status_1``: a closed pipe and buffered stdout flushed at
+  exit, which only a real process has.
+"""
+
+import contextlib
 import csv
+import io
 import os
 import stat
 import subprocess
 import sys
+import tempfile
+import warnings
+from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -20,6 +38,75 @@ def run_cli(*args, timeout=300):
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
     return subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "estimate", *map(str, args)],
                           capture_output=True, text=True, timeout=timeout, env=env)
+
+
+class Ran(NamedTuple):
+    """What the tests read of ``subprocess.run``'s result."""
+
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+#: A fresh interpreter's warning filters (no -W, no PYTHONWARNINGS): as the subprocess of run_cli has them,
+#: not pytest's (filterwarnings in pytest.ini, "always" for deprecations).
+_PYTHON_FILTERS = (("default", DeprecationWarning, "__main__"), ("ignore", DeprecationWarning, ""),
+                   ("ignore", PendingDeprecationWarning, ""), ("ignore", ImportWarning, ""),
+                   ("ignore", ResourceWarning, ""))
+
+
+def _warning_to_stderr(message, category, filename, lineno, file=None, line=None):
+    sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))  # the redirected one
+
+
+@contextlib.contextmanager
+def _nothing_below_sys_streams():
+    """Fail if anything writes to file descriptors 1 or 2 directly (C code, a stream bound before the redirect):
+    run_inproc would not see it, where run_cli's subprocess would."""
+    saved = [os.dup(1), os.dup(2)]
+    with tempfile.TemporaryFile() as raw:
+        try:
+            for fd in (1, 2):
+                os.dup2(raw.fileno(), fd)
+            yield
+        finally:
+            for fd, keep in zip((1, 2), saved):
+                os.dup2(keep, fd)
+                os.close(keep)
+        raw.seek(0)
+        escaped = raw.read().decode(errors="replace")
+    assert not escaped, f"output that escaped run_inproc's redirect of sys.stdout/sys.stderr: {escaped!r}"
+
+
+def run_inproc(*args):
+    """:func:`run_cli` in this process: ``inkdiag estimate ARGS`` through ``inkdiag_ros.cli.main``, its
+    sys.stdout and sys.stderr captured, a SystemExit (argparse's usage errors) taken as the exit status, Python's
+    own warning filters and warnings printed on the captured stderr, as the subprocess would. (Compared with
+    run_cli's results call by call when this was written: the same status, stdout and stderr.)"""
+    from inkdiag_ros.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with _nothing_below_sys_streams(), warnings.catch_warnings():
+        warnings.resetwarnings()
+        for action, category, module in reversed(_PYTHON_FILTERS):  # each inserted at the front
+            warnings.filterwarnings(action, category=category, module=module)
+        warnings.showwarning = _warning_to_stderr
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                status = main(["estimate", *map(str, args)])
+            except SystemExit as exc:  # as the interpreter takes it
+                status = exc.code
+                if isinstance(status, str):
+                    print(status, file=sys.stderr)
+                    status = 1
+            sys.stdout.flush()
+            sys.stderr.flush()
+    return Ran(0 if status is None else int(status), _as_read_from_a_pipe(out), _as_read_from_a_pipe(err))
+
+
+def _as_read_from_a_pipe(stream: io.StringIO) -> str:
+    """As subprocess.run(text=True) reads a pipe: universal newlines (the csv module writes "\r\n")."""
+    return stream.getvalue().replace("\r\n", "\n").replace("\r", "\n")
 
 
 def read_csv(path):
@@ -84,11 +171,11 @@ def test_estimate_writes_the_columns_and_reports_bad_rows(head):
 def test_estimate_selects_rows(head):
     d, p, r = head
     out = d / "sel.csv"
-    res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--out", out, "--rows", "0:2,9", "--method", "vp")
+    res = run_inproc(d / "rec.npz", "--profile", d / "head.yaml", "--out", out, "--rows", "0:2,9", "--method", "vp")
     assert res.returncode == 0, res.stderr
     _, rows = read_csv(out)
     assert [int(x["row"]) for x in rows] == [0, 1, 9] and {x["method"] for x in rows} == {"vp"}
-    res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--out", out, "--rows", "dried")
+    res = run_inproc(d / "rec.npz", "--profile", d / "head.yaml", "--out", out, "--rows", "dried")
     assert res.returncode == 0, res.stderr
     assert [int(x["row"]) for x in read_csv(out)[1]] == list(range(4, 16))
     # a label column from `inkdiag label` (it writes 'invalid' and 'unknown'), CSV to standard output
@@ -96,7 +183,7 @@ def test_estimate_selects_rows(head):
     z["label"] = z["label"].astype(object)
     z["label"][[0, 5]] = ["invalid", "unknown"]
     np.savez(d / "relabelled.npz", **dict(z, label=z["label"].astype(str)))
-    res = run_cli(d / "relabelled.npz", "--profile", d / "head.yaml", "--out", "-", "--rows", "dried")
+    res = run_inproc(d / "relabelled.npz", "--profile", d / "head.yaml", "--out", "-", "--rows", "dried")
     assert res.returncode == 0, res.stderr
     lines = res.stdout.splitlines()
     assert lines[0] == ",".join(COLUMNS) and [int(x.split(",")[0]) for x in lines[1:]] == [4, *range(6, 16)]
@@ -124,7 +211,7 @@ def test_estimate_bad_input_is_one_line_and_status_2(head, tmp_path):
         ((d / "rec.npz", "--profile", d / "head.yaml", "--max-abs-v", "nan"), "--max-abs-v must be a number > 0 V"),
     ]
     for args, message in cases:
-        res = run_cli(*args, "--out", out)
+        res = run_inproc(*args, "--out", out)
         assert res.returncode == 2, (args, res.stderr)
         assert res.stderr.startswith("inkdiag estimate: error: ") and message in res.stderr, res.stderr
         assert len(res.stderr.strip().splitlines()) == 1 and not out.exists()
@@ -249,7 +336,7 @@ def test_estimate_says_how_many_rows_were_relative_to_their_nozzles_baseline(hea
     rec = BaselineRecorder(n_frames=1, fm_frames=1, profile=p)
     rec.add(0, p.simulate({"healthy_nozzle": 4}, seed=21).traces)
     rec.baselines().save(tmp_path / "b.npz")
-    res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--baselines", tmp_path / "b.npz",
+    res = run_inproc(d / "rec.npz", "--profile", d / "head.yaml", "--baselines", tmp_path / "b.npz",
                   "--out", tmp_path / "fm.csv")
     assert res.returncode == 0, res.stderr
     assert "13 of 16 rows estimated" in res.stdout
@@ -265,7 +352,7 @@ def test_rows_without_a_finite_stamp_are_said_to_have_no_trend(head, tmp_path):
     stamp[[8, 9]] = np.nan
     save_recording(tmp_path / "rec.npz", Recording.from_arrays(rec["traces"], p.sample_rate_hz, nozzle=rec["nozzle"],
                                                                frame_id=rec["frame_id"], stamp=stamp))
-    res = run_cli(tmp_path / "rec.npz", "--profile", d / "head.yaml", "--out", tmp_path / "fm.csv")
+    res = run_inproc(tmp_path / "rec.npz", "--profile", d / "head.yaml", "--out", tmp_path / "fm.csv")
     assert res.returncode == 0, res.stderr
     assert "note: 2 of the 13 estimated rows have no finite stamp: fm_trend, fm_rate and eta_deeply_dried_s are " \
            "empty for them" in res.stderr, res.stderr
@@ -281,7 +368,7 @@ def test_a_nozzle_given_twice_at_one_stamp_is_estimated_twice_but_measured_once(
     rec = np.load(d / "rec.npz", allow_pickle=True)
     save_recording(tmp_path / "dup.npz", Recording.from_arrays(
         rec["traces"], p.sample_rate_hz, nozzle=np.zeros(16, int), frame_id=rec["frame_id"], stamp=rec["stamp"]))
-    res = run_cli(tmp_path / "dup.npz", "--profile", d / "head.yaml", "--out", tmp_path / "fm.csv")
+    res = run_inproc(tmp_path / "dup.npz", "--profile", d / "head.yaml", "--out", tmp_path / "fm.csv")
     assert res.returncode == 0, res.stderr
     assert "warning: 14 row(s) repeat the nozzle, frame_id and stamp of an earlier row; each is estimated" \
         in res.stderr
@@ -290,7 +377,7 @@ def test_a_nozzle_given_twice_at_one_stamp_is_estimated_twice_but_measured_once(
     assert all(x["fm"] != "" for x in rows if not x["reason"])
     assert [x["frame_id"] for x in trended] == ["5", "6"]  # the first estimated row of each frame
     assert trended[0]["fm_rate"] == "" and trended[1]["fm_rate"] != ""  # a rate over the 0.5 s between frames
-    res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--rows", "12,12,12", "--out", tmp_path / "fm3.csv")
+    res = run_inproc(d / "rec.npz", "--profile", d / "head.yaml", "--rows", "12,12,12", "--out", tmp_path / "fm3.csv")
     assert res.returncode == 0 and "warning: 2 row(s) repeat" in res.stderr and "2 row(s) estimated but not " \
         "folded into their nozzle's trend" in res.stderr, res.stderr
     _, rows = read_csv(tmp_path / "fm3.csv")
@@ -298,7 +385,7 @@ def test_a_nozzle_given_twice_at_one_stamp_is_estimated_twice_but_measured_once(
     # frames told apart by their stamps alone (no frame_id column): no repeat, every row trended
     save_recording(tmp_path / "st.npz", Recording.from_arrays(rec["traces"], p.sample_rate_hz, nozzle=rec["nozzle"],
                                                               stamp=rec["stamp"]))
-    res2 = run_cli(tmp_path / "st.npz", "--profile", d / "head.yaml", "--out", tmp_path / "st.csv")
+    res2 = run_inproc(tmp_path / "st.npz", "--profile", d / "head.yaml", "--out", tmp_path / "st.csv")
     assert res2.returncode == 0 and "repeat" not in res2.stderr and "not folded" not in res2.stderr, res2.stderr
     assert fm == pytest.approx([fm[0]] * 3, rel=1e-12) and [x["fm_trend"] != "" for x in rows] == [True, False, False]
     assert all(x["fm_rate"] == "" for x in rows)
@@ -308,10 +395,10 @@ def test_a_recording_in_millivolts_is_told_about_units(head, tmp_path):
     """As inkdiag label does: every row out_of_range is a recording in other units, said on stderr."""
     d, p, r = head
     save_recording(tmp_path / "mv.npz", Recording.from_arrays(r.traces[:8] * 1e3, p.sample_rate_hz))
-    res = run_cli(tmp_path / "mv.npz", "--profile", d / "head.yaml", "--out", tmp_path / "fm.csv")
+    res = run_inproc(tmp_path / "mv.npz", "--profile", d / "head.yaml", "--out", tmp_path / "fm.csv")
     assert res.returncode == 0, res.stderr
     assert "warning: 8 of 8 rows have a sample beyond" in res.stderr and "in volts (not millivolts" in res.stderr
-    res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--out", tmp_path / "ok.csv")
+    res = run_inproc(d / "rec.npz", "--profile", d / "head.yaml", "--out", tmp_path / "ok.csv")
     assert res.returncode == 0 and "in volts" not in res.stderr
 
 
@@ -334,16 +421,16 @@ def test_estimate_takes_the_rows_a_labels_csv_calls_dried(head, tmp_path):
     classes = ["deeply_dried", "invalid", "healthy_nozzle", "healthy_nozzle"] + ["slightly_dried"] * 12
     classes[5] = classes[9] = "healthy_nozzle"
     labels = _labels_csv(tmp_path / "labels.csv", d / "rec.npz", classes)
-    res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--labels", labels, "--out", tmp_path / "a.csv")
+    res = run_inproc(d / "rec.npz", "--profile", d / "head.yaml", "--labels", labels, "--out", tmp_path / "a.csv")
     assert res.returncode == 0, res.stderr
     picked = [0, 4, 6, 7, 8, *range(10, 16)]
     _, rows = read_csv(tmp_path / "a.csv")
     assert [int(x["row"]) for x in rows] == picked
-    res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--rows", ",".join(map(str, picked)),
+    res = run_inproc(d / "rec.npz", "--profile", d / "head.yaml", "--rows", ",".join(map(str, picked)),
                   "--out", tmp_path / "b.csv")
     assert res.returncode == 0, res.stderr
     assert read_csv(tmp_path / "b.csv")[1] == rows  # the same rows, the same numbers
-    res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", "--labels", labels, "--rows", "deeply_dried",
+    res = run_inproc(d / "rec.npz", "--profile", d / "head.yaml", "--labels", labels, "--rows", "deeply_dried",
                   "--out", "-")
     assert res.returncode == 0, res.stderr
     assert [int(x.split(",")[0]) for x in res.stdout.splitlines()[1:]] == [0]
@@ -360,7 +447,7 @@ def test_estimate_refuses_labels_of_another_recording_or_with_row_indices(head, 
         (("--labels", tmp_path / "missing.csv"), "no such labels file"),
     ]
     for args, message in cases:
-        res = run_cli(d / "rec.npz", "--profile", d / "head.yaml", *args, "--out", out)
+        res = run_inproc(d / "rec.npz", "--profile", d / "head.yaml", *args, "--out", out)
         assert res.returncode == 2, (args, res.stderr)
         assert res.stderr.startswith("inkdiag estimate: error: ") and message in res.stderr, res.stderr
         assert len(res.stderr.strip().splitlines()) == 1 and not out.exists()
@@ -378,11 +465,11 @@ def test_estimate_takes_a_labels_csv_of_a_bag(head, tmp_path):
     classes = ["healthy_nozzle"] * 4 + ["intermediately_dried"] * 12
     classes[12] = "unknown"
     labels = _labels_csv(tmp_path / "labels.csv", same, classes)
-    res = run_cli(bag, "--profile", d / "head.yaml", "--labels", labels, "--out", tmp_path / "bag.csv")
+    res = run_inproc(bag, "--profile", d / "head.yaml", "--labels", labels, "--out", tmp_path / "bag.csv")
     assert res.returncode == 0, res.stderr
     _, rows = read_csv(tmp_path / "bag.csv")
     assert [int(x["row"]) for x in rows] == [*range(4, 12), *range(13, 16)]
-    res = run_cli(same, "--profile", d / "head.yaml", "--labels", labels, "--out", tmp_path / "npz.csv")
+    res = run_inproc(same, "--profile", d / "head.yaml", "--labels", labels, "--out", tmp_path / "npz.csv")
     assert res.returncode == 0, res.stderr
     assert read_csv(tmp_path / "npz.csv")[1] == rows  # the bag's rows estimated as the .npz's
     # a bag has no label column; labels of another recording; a CSV naming rows the bag lacks
@@ -392,7 +479,7 @@ def test_estimate_takes_a_labels_csv_of_a_bag(head, tmp_path):
     for args, message in [(("--rows", "dried"), "a bag has no label column; give the rows' classes with --labels"),
                           (("--labels", other), "other.csv:2: row 0 is nozzle 0 in the bag, the CSV says 2"),
                           (("--labels", tmp_path / "long.csv"), "row 16 is beyond the bag's 16 rows")]:
-        res = run_cli(bag, "--profile", d / "head.yaml", *args, "--out", tmp_path / "x.csv")
+        res = run_inproc(bag, "--profile", d / "head.yaml", *args, "--out", tmp_path / "x.csv")
         assert res.returncode == 2, (args, res.stderr)
         last = res.stderr.strip().splitlines()[-1]  # after the bag's own report, where it was read
         assert last.startswith("inkdiag estimate: error: ") and message in last, res.stderr
@@ -422,7 +509,7 @@ def test_a_nozzle_the_labels_call_recovered_starts_a_new_trend_as_in_fe(tmp_path
     HeadProfile.default().save(profile)
 
     def nozzle_2(*args):
-        res = run_cli(*args, "--profile", profile, "--out", "-")
+        res = run_inproc(*args, "--profile", profile, "--out", "-")
         assert res.returncode == 0, res.stderr
         rows = [dict(zip(COLUMNS, line.split(","))) for line in res.stdout.splitlines()[1:]]
         return [(int(r["row"]), r["fm"] == r["fm_trend"], r["fm_rate"] != "") for r in rows if r["nozzle"] == "2"]
