@@ -9,6 +9,7 @@ from .baselines import (  # noqa: F401
     FM_METHOD,
     GAIN_MISMATCH_LOG,
     N_KPIS,
+    PHASE_MISMATCH_RAD,
     RELATIVE_NAMES,
     BaselineFileError,
     BaselineKpis,
@@ -21,5 +22,5 @@ from .baselines import (  # noqa: F401
 )
 
 __all__ = ["BASELINE_FORMAT", "BASELINE_FORMAT_VERSION", "DEFAULT_MAX_NOZZLES", "FM_METHOD", "GAIN_MISMATCH_LOG", "N_KPIS",
-           "RELATIVE_NAMES", "BaselineFileError", "BaselineKpis", "BaselineRecorder", "NozzleBaselines", "baseline_kpis",
+           "PHASE_MISMATCH_RAD", "RELATIVE_NAMES", "BaselineFileError", "BaselineKpis", "BaselineRecorder", "NozzleBaselines", "baseline_kpis",
            "baseline_training_kpis", "baseline_training_rows", "with_baseline"]

@@ -27,9 +27,10 @@ One module per job:
 
 from .features import N_KPIS, RELATIVE_NAMES, BaselineKpis, baseline_kpis, with_baseline
 from .recorder import DEFAULT_MAX_NOZZLES, FM_METHOD, BaselineRecorder
-from .store import BASELINE_FORMAT, BASELINE_FORMAT_VERSION, GAIN_MISMATCH_LOG, BaselineFileError, NozzleBaselines
+from .store import (BASELINE_FORMAT, BASELINE_FORMAT_VERSION, GAIN_MISMATCH_LOG, PHASE_MISMATCH_RAD, BaselineFileError,
+                    NozzleBaselines)
 from .training import baseline_training_kpis, baseline_training_rows
 
 __all__ = ["BASELINE_FORMAT", "BASELINE_FORMAT_VERSION", "DEFAULT_MAX_NOZZLES", "FM_METHOD", "GAIN_MISMATCH_LOG", "N_KPIS",
-           "RELATIVE_NAMES", "BaselineFileError", "BaselineKpis", "BaselineRecorder", "NozzleBaselines", "baseline_kpis",
+           "PHASE_MISMATCH_RAD", "RELATIVE_NAMES", "BaselineFileError", "BaselineKpis", "BaselineRecorder", "NozzleBaselines", "baseline_kpis",
            "baseline_training_kpis", "baseline_training_rows", "with_baseline"]
