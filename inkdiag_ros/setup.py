@@ -24,7 +24,11 @@ setup(
     # rosbags: rosbag2 bags (MCAP) for inkdiag record / replay and the offline verbs
     # (inkdiag_ros.bags); pure Python, no rclpy. Writer(version=8|9, storage_plugin=MCAP) and
     # add_connection(offered_qos_profiles=[Qos]) as used there are in 0.10 (0.11.9 tested).
-    install_requires=["numpy>=1.26", "threadpoolctl>=3.1", "tqdm>=4.66", "rosbags>=0.10"],
+    # mcap (Foxglove's MCAP library, which rosbag2's own MCAP storage follows): a bag rosbags cannot open (an MCAP
+    # file without its summary: a recorder killed, a copy cut short; no metadata.yaml) is read record by record from
+    # each file's start (inkdiag_ros.bags.SalvageReader: StreamReader(emit_chunks=True), breakup_chunk) rather than
+    # lost whole; 1.6.0 tested.
+    install_requires=["numpy>=1.26", "threadpoolctl>=3.1", "tqdm>=4.66", "rosbags>=0.10", "mcap>=1.1"],
     zip_safe=True,
     maintainer="inkdiag developers",
     maintainer_email="inkdiag@example.com",

@@ -39,7 +39,7 @@ __all__ = ["TRACES_TYPE", "HEAD_TOPICS", "BagFrames", "is_bag", "head_topics", "
            "msg_class", "qos_to_rosbags", "qos_from_rosbags", "iter_bag_frames", "iter_bag_chunks",
            "read_bag_recording", "load_recording", "stream_recording", "report_stats", "BagRecorder",
            "InProcessRecording", "recording_node", "pop_record_arg", "check_new_bag", "bag_writer", "first_line",
-           "check_topic_names"]
+           "check_topic_names", "is_unclosed_bag", "SalvageReader"]
 
 #: The rosbag2 type name of a trace frame.
 TRACES_TYPE = "std_msgs/msg/Float32MultiArray"
@@ -108,9 +108,10 @@ def check_topic_names(names, what: str) -> None:
 
 
 def is_bag(path) -> bool:
-    """Whether ``path`` is a rosbag2 directory (it has a ``metadata.yaml``)."""
+    """Whether ``path`` is a rosbag2 directory: it has a ``metadata.yaml``, or MCAP storage files without one
+    (:func:`is_unclosed_bag`: the offline verbs read what they hold, :class:`SalvageReader`)."""
     p = Path(path)
-    return p.is_dir() and (p / "metadata.yaml").is_file()
+    return p.is_dir() and ((p / "metadata.yaml").is_file() or is_unclosed_bag(p))
 
 
 def ros_type_name(msg_type) -> str:
@@ -201,6 +202,7 @@ class BagFrames:
     skipped: list = dataclasses.field(default_factory=list)
     n_skipped: int = 0
     report: object = None
+    salvaged: list | None = None  # a bag rosbags cannot open, read by a SalvageReader: what it found lost
 
     def skip(self, index: int, why: str, frame_id=None) -> None:
         """Count message ``index`` as skipped for ``why`` (and report it)."""
@@ -217,26 +219,128 @@ class BagFrames:
         if n_skip:
             s += f"; skipped {n_skip}: " + "; ".join(
                 f"message {i}: {why}" for i, why in self.skipped[:3]) + (" ..." if n_skip > 3 else "")
+        if self.salvaged is not None:
+            s += ("; read from its MCAP files as they are (a bag its recorder did not close, or a file cut short): "
+                  + ("; ".join(self.salvaged) if self.salvaged else "no damage found"))
         return s
 
 
-def open_reader(bag_dir):
-    """An open ``rosbags`` Reader of ``bag_dir``; RecordingError (one line, naming it) if it is none or does not open."""
+def open_reader(bag_dir, *, salvage: bool = False):
+    """An open ``rosbags`` Reader of ``bag_dir``; RecordingError (one line, naming it) if it is none or does not open.
+
+    ``salvage``: a bag that does not open (an MCAP file without its summary: a recorder that died, a
+    copy cut short) or has no ``metadata.yaml`` (its recorder stopped before it closed the bag) is read
+    by a :class:`SalvageReader` instead, if it has MCAP files.
+    """
     from rosbags.rosbag2 import Reader
 
     src = str(bag_dir)
     p = Path(bag_dir)
     if not p.exists():
         raise RecordingError(f"{src}: no such bag")
-    if not is_bag(p):
+    if not (p / "metadata.yaml").is_file():
+        if salvage and is_unclosed_bag(p):
+            return SalvageReader(p)
         refuse_an_unclosed_bag(p)
         raise RecordingError(f"{src}: not a rosbag2 bag (a directory with a metadata.yaml)")
     try:
         reader = Reader(p)
         reader.open()
     except Exception as exc:  # rosbags' ReaderError, or a storage error of a damaged file
+        if salvage and any(p.glob("*.mcap")):
+            return SalvageReader(p)
         raise RecordingError(f"{src}: cannot open the bag{_listed(p)}: {first_line(exc)}") from None
     return reader
+
+
+def is_unclosed_bag(path) -> bool:
+    """Whether ``path`` is a directory of MCAP storage files without a ``metadata.yaml`` (a bag whose recorder
+    stopped, or has not yet stopped, before it closed the bag)."""
+    p = Path(path)
+    return p.is_dir() and not (p / "metadata.yaml").exists() and any(p.glob("*.mcap"))
+
+
+@dataclasses.dataclass(frozen=True)
+class _Connection:
+    topic: str
+    msgtype: str
+
+
+class SalvageReader:
+    """The messages a bag's MCAP storage files still hold when ``rosbags`` cannot open the bag.
+
+    A recorder that died (power lost, SIGKILL) leaves its last file without the MCAP summary
+    that ``rosbags`` needs to open it, and no ``metadata.yaml``; a copy cut short does the same.
+    This reads each file from its start with the ``mcap`` library's stream reader (no summary
+    needed), the files in name order (rosbag2 numbers them), chunk by chunk, each chunk's CRC
+    checked: a damaged chunk costs only its own messages, and a file stops where it is cut off.
+    Same interface as the part of ``rosbags``' Reader that :func:`iter_bag_frames` uses:
+    :attr:`connections` and :meth:`messages`, in file order. :attr:`damage` says what was lost.
+    """
+
+    def __init__(self, bag: Path):
+        self.files = sorted(Path(bag).glob("*.mcap"))
+        self.damage: list = []  # one line per file that is cut off, per damaged chunk
+        self._said = set()
+        conns = {}
+        for _, ch, schema_name in self._records(messages=False):
+            conns.setdefault((ch.topic, schema_name), _Connection(ch.topic, schema_name))
+        self.connections = list(conns.values())  # what the files say of their damage is said once (both passes meet it)
+
+    def _records(self, messages: bool):
+        """``(file_index, channel, schema_name)`` per Channel record met (``messages`` False), or
+        ``(channel, schema_name, message)`` per Message record (``messages`` True)."""
+        from mcap.exceptions import McapError
+        from mcap.records import Channel, Chunk, Message, Schema
+        from mcap.stream_reader import StreamReader, breakup_chunk
+
+        for k, path in enumerate(self.files):
+            schemas, channels, n_msgs = {}, {}, 0
+            with open(path, "rb") as f:
+                records = StreamReader(f, emit_chunks=True, record_size_limit=1 << 30).records
+                while True:
+                    try:
+                        rec = next(records)
+                    except StopIteration:
+                        break
+                    except (McapError, EOFError, ValueError, OSError) as exc:  # cut off here, or garbage from here
+                        self._say(f"{path}: cut off after {n_msgs} messages of all its topics ({first_line(exc)})")
+                        break
+                    inner = [rec]
+                    if isinstance(rec, Chunk):
+                        try:
+                            inner = breakup_chunk(rec, validate_crc=True)
+                        except Exception as exc:  # noqa: BLE001 - a damaged chunk: its messages are lost, not the rest
+                            self._say(f"{path}: a damaged chunk skipped ({first_line(exc)})")
+                            continue
+                    for r in inner:
+                        if isinstance(r, Schema):
+                            schemas[r.id] = r.name
+                        elif isinstance(r, Channel):
+                            channels[r.id] = r
+                            if not messages:
+                                yield k, r, schemas.get(r.schema_id, "")
+                        elif isinstance(r, Message) and r.channel_id in channels:
+                            n_msgs += 1
+                            if messages:
+                                ch = channels[r.channel_id]
+                                yield ch, schemas.get(ch.schema_id, ""), r
+
+    def _say(self, line: str) -> None:
+        if line not in self._said:
+            self._said.add(line)
+            self.damage.append(line)
+
+    def messages(self, connections=()):
+        """``(connection, log_time_ns, rawdata)`` of each message on ``connections``' topics, in file order."""
+        wanted = {(c.topic, c.msgtype): c for c in connections}
+        for ch, schema_name, msg in self._records(messages=True):
+            conn = wanted.get((ch.topic, schema_name))
+            if conn is not None:
+                yield conn, msg.log_time, msg.data
+
+    def close(self) -> None:
+        pass
 
 
 def _listed(bag: Path) -> str:
@@ -321,7 +425,13 @@ def iter_bag_frames(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
 
     src = str(bag_dir)
     stats = stats if stats is not None else BagFrames()
-    reader = open_reader(bag_dir)
+    reader = open_reader(bag_dir, salvage=True)
+    if isinstance(reader, SalvageReader):
+        if not reader.connections:  # not even a complete channel record: nothing to read
+            what = "not a closed rosbag2 bag" if not (Path(src) / "metadata.yaml").is_file() else "cannot open the bag"
+            raise RecordingError(f"{src}: {what}{_listed(Path(src))}, and its MCAP files hold no complete message "
+                                 f"either: {'; '.join(reader.damage) or 'no topics'}")
+        stats.salvaged = reader.damage  # filled as the files are read
     try:
         stats.topic, conns = _traces_connections(reader, topic, src)
         it = reader.messages(connections=conns)

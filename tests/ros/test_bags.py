@@ -6,6 +6,7 @@ truncated or empty bag, a directory that is no bag and a traces topic of another
 
 import csv
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -76,6 +77,29 @@ def _one_line_error(bag, match):
     return str(info.value)
 
 
+def test_a_bag_whose_recorder_died_gives_the_frames_its_files_still_hold(tmp_path, sim, fdi_model):
+    """A recorder killed (or a copy cut short) leaves an MCAP file without its summary, which rosbags cannot open,
+    and often no metadata.yaml: the offline verbs read the complete chunks from the file's start (the mcap
+    library's stream reader), say what was cut off, and lose nothing else (was: refused, every frame lost)."""
+    x = sim.traces[:8].astype(np.float32)
+    bag = write_bag(tmp_path / "ok", [(0, x)] * 100)
+    mcap = next(bag.glob("*.mcap"))
+    for name, keep_meta in (("cut", True), ("killed", False)):
+        d = tmp_path / name
+        d.mkdir()
+        if keep_meta:
+            (d / "metadata.yaml").write_bytes((bag / "metadata.yaml").read_bytes())
+        (d / mcap.name).write_bytes(mcap.read_bytes()[: mcap.stat().st_size * 2 // 3])
+        r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "label", str(d), "--model", str(fdi_model),
+                            "--out", str(tmp_path / f"{name}.csv")], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        n = int(re.search(r"(\d+) of \1 messages on /head_00/traces decoded; read from its MCAP files as they are",
+                          r.stderr).group(1))
+        assert 30 < n < 100 and f"{d / mcap.name}: cut off after" in r.stderr, r.stderr
+        with open(tmp_path / f"{name}.csv") as f:
+            assert sum(1 for _ in f) == 1 + 8 * n  # every frame the file still holds, labelled
+
+
 def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim, fdi_model):
     x = sim.traces[:8].astype(np.float32)
     bag = write_bag(tmp_path / "ok", [(0, x)] * 3)
@@ -86,12 +110,11 @@ def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim, fdi_model):
         (trunc / f.name).write_bytes(f.read_bytes())
     mcap = next(trunc.glob("*.mcap"))
     mcap.write_bytes(mcap.read_bytes()[: mcap.stat().st_size * 2 // 3])
-    msg = _one_line_error(trunc, "cannot open the bag")
-    assert str(mcap) in msg and "0 of the 6 messages" in msg
+    msg = _one_line_error(trunc, "cannot open the bag")  # nor does the MCAP file hold one complete message
+    assert str(mcap) in msg and "0 of the 6 messages" in msg and "hold no complete message either" in msg
     # corrupt: it opens, then breaks off; names the file and how many messages were read first
     corrupt = corrupt_a_record(write_bag(tmp_path / "corrupt", [(0, x)] * 100))  # two 1 MB chunks
     msg = _one_line_error(tmp_path / "corrupt", "truncated or corrupt bag")
-    import re
 
     n_ok = int(re.search(r"(\d+) messages on /head_00/traces readable", msg).group(1))
     assert str(corrupt) in msg and 0 < n_ok < 100, msg
@@ -117,12 +140,16 @@ def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim, fdi_model):
         f"inkdiag label: error: {msg}"], r.stderr  # the frames before it were labelled and written
     with open(tmp_path / "c.csv") as f:
         assert sum(1 for _ in f) == 1 + 8 * n_ok
-    # a bag whose recorder died before it wrote metadata.yaml: said so
+    # a bag whose recorder died before it wrote metadata.yaml: read from its MCAP file, and said so
     nometa = tmp_path / "nometa"
     nometa.mkdir()
     (nometa / mcap.name).write_bytes(next(bag.glob("*.mcap")).read_bytes())
-    _one_line_error(nometa, re.escape("a bag directory without its metadata.yaml (a recorder writes it when it "
-                                      "closes the bag: one still recording"))
+    from inkdiag_ros.bags import BagFrames, load_recording
+
+    stats = BagFrames()
+    assert load_recording(nometa, stats=stats).traces.shape == (24, x.shape[1])
+    assert stats.summary().endswith("3 of 3 messages on /head_00/traces decoded; read from its MCAP files as they "
+                                    "are (a bag its recorder did not close, or a file cut short): no damage found")
     # the storage file given instead of its bag directory (helper-87: "not an .npz archive ... b'\\x89MCAP0'")
     assert _one_line_error(nometa / mcap.name, "a rosbag2 storage file: give the bag's directory").endswith(
         f"({nometa}, with its metadata.yaml), not the file inside it")
@@ -142,8 +169,6 @@ def test_replay_of_a_bad_bag_is_one_line_and_status_2(tmp_path, sim, capsys):
                        env=_env(os.environ.get("ROS_DOMAIN_ID", "0")))
     last = r.stderr.strip().splitlines()[-1]
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
-    import re
-
     m = re.fullmatch(re.escape(f"inkdiag replay: error: {tmp_path / 'corrupt'}: truncated or corrupt bag ({corrupt}): ")
                      + r"(\d+) messages replayed, then: .+", last)
     assert m and 0 < int(m.group(1)) < 200, last  # the traces and labels messages before the damaged one went out
