@@ -260,6 +260,24 @@ def is_unclosed_bag(path) -> bool:
     return p.is_dir() and not (p / "metadata.yaml").exists() and any(p.glob("*.mcap"))
 
 
+def _storage_order(bag: Path) -> list:
+    """The bag's MCAP files in recording order: ``metadata.yaml``'s list where it names them all, else by name
+    with a numbered suffix in numeric order (rosbag2's ``run_2.mcap`` before ``run_10.mcap``)."""
+    import re
+
+    files = list(bag.glob("*.mcap"))
+    try:
+        import yaml
+
+        listed = [bag / f for f in yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+                  ["relative_file_paths"]]
+        if sorted(listed) == sorted(files):
+            return listed
+    except Exception:  # noqa: BLE001 - no or an unreadable metadata.yaml: by name
+        pass
+    return sorted(files, key=lambda f: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", f.name)])
+
+
 @dataclasses.dataclass(frozen=True)
 class _Connection:
     topic: str
@@ -279,18 +297,17 @@ class SalvageReader:
     """
 
     def __init__(self, bag: Path):
-        self.files = sorted(Path(bag).glob("*.mcap"))
+        self.files = _storage_order(Path(bag))
         self.damage: list = []  # one line per file that is cut off, per damaged chunk
-        self._said = set()
+        self._said = set()  # what the files say of their damage is said once (both passes meet it)
         conns = {}
         for _, ch, schema_name in self._records(messages=False):
             conns.setdefault((ch.topic, schema_name), _Connection(ch.topic, schema_name))
-        self.connections = list(conns.values())  # what the files say of their damage is said once (both passes meet it)
+        self.connections = list(conns.values())
 
     def _records(self, messages: bool):
         """``(file_index, channel, schema_name)`` per Channel record met (``messages`` False), or
         ``(channel, schema_name, message)`` per Message record (``messages`` True)."""
-        from mcap.exceptions import McapError
         from mcap.records import Channel, Chunk, Message, Schema
         from mcap.stream_reader import StreamReader, breakup_chunk
 
@@ -303,7 +320,7 @@ class SalvageReader:
                         rec = next(records)
                     except StopIteration:
                         break
-                    except (McapError, EOFError, ValueError, OSError) as exc:  # cut off here, or garbage from here
+                    except Exception as exc:  # noqa: BLE001 - cut off here, or garbage from here: the file ends
                         self._say(f"{path}: cut off after {n_msgs} messages of all its topics ({first_line(exc)})")
                         break
                     inner = [rec]

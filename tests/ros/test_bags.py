@@ -439,3 +439,21 @@ def test_an_error_of_no_message_is_named_by_its_type_in_one_line():
     assert first_line(KeyError()) == "KeyError"
     assert first_line(ValueError("  \n")) == "ValueError"
     assert first_line(ValueError("bad header\nat byte 12")) == "bad header"
+
+
+def test_salvage_reads_split_files_in_recording_order_and_garbage_ends_only_its_file(tmp_path, sim):
+    """rosbag2 numbers split files run_0 .. run_10: read in that order, not by name; a file of garbage (a header
+    cut inside its first bytes) is one line of damage, not a traceback, and the other files are read."""
+    from inkdiag_ros.bags import BagFrames, SalvageReader, _storage_order, load_recording
+
+    for n in ("run_10.mcap", "run_2.mcap", "run_0.mcap"):
+        (tmp_path / n).write_bytes(b"\x89MCAP0\r\n\x01")
+    assert [f.name for f in _storage_order(tmp_path)] == ["run_0.mcap", "run_2.mcap", "run_10.mcap"]
+    r = SalvageReader(tmp_path)
+    assert r.connections == [] and len(r.damage) == 3 and all("cut off after 0 messages" in d for d in r.damage)
+    x = sim.traces[:8].astype(np.float32)
+    good = next(write_bag(tmp_path / "ok", [(0, x)] * 5).glob("*.mcap"))
+    (tmp_path / "run_1.mcap").write_bytes(good.read_bytes())  # between the broken ones
+    stats = BagFrames()
+    assert load_recording(tmp_path, stats=stats).traces.shape == (40, x.shape[1])
+    assert "5 of 5 messages" in stats.summary() and stats.summary().count("cut off after 0 messages") == 3
