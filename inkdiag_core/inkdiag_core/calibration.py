@@ -25,8 +25,8 @@ of a healthy trace depends on three unknowns: the total compliance ``B_t`` (so
 restrictor's radius and length follow: ``R_r / I_r = 8 mu / (rho r_r^2)``,
 ``I_r = rho L_r / (pi r_r^2)``). The complex pole pair (frequency, damping) gives two
 numbers; the real pole and the modal amplitudes (their ratio, their phase against
-the drive) carry the third, weakly. So ``B_act`` is pinned by the data, ``I_r`` and
-``R_r`` in part: a prior from the default head's design ratios
+the drive) carry the third, weakly. So the data pin the healthy mode, and ``I_r``,
+``R_r`` and ``B_act`` (which moves with ``I_r`` along the weak direction) in part: a prior from the default head's design ratios
 (``I_r = 1.03 I_n``, ``R_r = R_n / 2``, a log-normal of standard deviation
 ``ln 1.25``, see :data:`PRIOR_SD_LOG`) regularises the direction the data leave
 open. A nominal profile that gives the restrictor (``r_r`` and ``L_r``) keeps it, and

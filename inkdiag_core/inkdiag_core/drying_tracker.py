@@ -304,7 +304,7 @@ class DryingTracker:
         return []
 
     def add_drying(self, frame_id: int, nozzles, *, first_nozzle: int | None = None,
-                   n_nozzles: int | None = None) -> list:
+                   n_nozzles: int | None = None, complete: bool = True) -> list:
         """One drying list: the nozzles labelled dried in one range of frame ``frame_id``.
 
         Parameters
@@ -318,6 +318,9 @@ class DryingTracker:
             the list applies to every range of the frame.
         n_nozzles : int, optional
             Nozzles in the labelled range (checked: ids must lie in it).
+        complete : bool
+            False: entries of the list were left out as unreadable (``msg_defs.DryingNozzles.dropped``),
+            so a nozzle it leaves out may still be drying: no trend of the range ends as recovered.
 
         Returns
         -------
@@ -340,8 +343,8 @@ class DryingTracker:
         self._drop_stale_traces(frame_id, first)
         t = self._traces.pop((frame_id, first), None)
         if t is not None:
-            return self._join(frame_id, first, t, ids, ranged=True)
-        self._hold_drying((frame_id, first), _Drying(ids, ranged=True))
+            return self._join(frame_id, first, t, ids, ranged=bool(complete))
+        self._hold_drying((frame_id, first), _Drying(ids, ranged=bool(complete)))
         return []
 
     def _add_unranged(self, frame_id, ids) -> list:

@@ -109,12 +109,12 @@ class FeNode(Node):
     def _on_drying(self, msg) -> None:
         try:
             d = decode_drying(msg)
-            out = self.tracker.add_drying(d.frame_id, d.nozzles, first_nozzle=d.first_nozzle, n_nozzles=d.n_nozzles)
+            out = self.tracker.add_drying(d.frame_id, d.nozzles, first_nozzle=d.first_nozzle, n_nozzles=d.n_nozzles,
+                                          complete=not d.dropped)  # entries dropped: no trend ends as recovered
         except (ValueError, OverflowError) as exc:  # MessageError is a ValueError; the tracker's checks too
             self._malformed("drying_nozzles message", exc)
             return
-        if d.dropped:  # its other entries are used
-            self._malformed("part of a drying_nozzles message", d.dropped)
+        _ = d.dropped and self._malformed("part of a drying_nozzles message", d.dropped)  # the rest is used
         self._publish(out)
 
     def _on_traces(self, msg: bytes) -> None:

@@ -464,4 +464,9 @@ def test_gain_mismatch_says_a_head_whose_healthy_amplitude_is_not_its_profiles(n
             assert abs(float(re.search(r"ring ([0-9.]+) rad out of phase", got).group(1)) - np.pi) < 0.1, got
         elif said:  # the ratio, as far as n nozzles and the profile's 256 simulated ones tell it
             assert abs(float(re.search(r"ring at ([0-9.]+)x the amplitude", got).group(1)) - gain) < 0.05, got
+    for shift, said in ((1, False), (3, True)):  # a later sensing window: 0.15 rad a sample at 237 kHz, 10 MHz
+        late = np.concatenate([frames[..., shift:], frames[..., -1:].repeat(shift, axis=-1)], axis=-1)
+        got = NozzleBaselines(np.arange(n), baseline_kpis(late, p.sample_rate_hz), p.sample_rate_hz, p.n_samples,
+                              3).gain_mismatch(p)
+        assert ("out of phase" in got and "switch_delay_s" in got) == said, (shift, got)
     assert NozzleBaselines(np.arange(2), np.ones((2, 7)), p.sample_rate_hz, p.n_samples, 3).gain_mismatch(p) == ""

@@ -95,6 +95,27 @@ def test_a_nozzle_that_recovers_and_dries_again_starts_a_new_trend():
     assert tr.trends_recovered == 1 and tr.trends.n_updates[tr.trends.ids == 2] == 1
 
 
+@pytest.mark.parametrize("traces_first", [True, False], ids=["traces_first", "drying_first"])
+def test_a_list_with_entries_left_out_ends_no_trend(traces_first):
+    """helper-93: an entry fe could not read (an id written 3.0, a class it does not know) was left out of the list,
+    and its nozzle's trend ended as recovered. A list that is not complete ends no trend; the next complete one does."""
+    tr = DryingTracker()
+    for f in (1, 2):
+        _traces(tr, _frame(f, {0: [2]}), f, 0)
+        _drying(tr, f, 0, [2])
+    x = _frame(3, {0: [2]})
+    if traces_first:
+        _traces(tr, x, 3, 0)
+        tr.add_drying(3, [], first_nozzle=0, n_nozzles=RANGE, complete=False)
+    else:
+        tr.add_drying(3, [], first_nozzle=0, n_nozzles=RANGE, complete=False)
+        _traces(tr, x, 3, 0)
+    assert tr.trends_recovered == 0 and 2 in tr.trends.ids
+    _traces(tr, _frame(4, {0: []}), 4, 0)
+    _drying(tr, 4, 0, [])
+    assert tr.trends_recovered == 1
+
+
 def test_an_empty_list_releases_its_range_and_a_list_without_traces_is_counted_not_estimated():
     x = _frame(2)
     tr = DryingTracker(max_pending=2)

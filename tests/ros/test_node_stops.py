@@ -1,12 +1,12 @@
 """Every node process stops on SIGINT and on SIGTERM, repeatedly, under CPU contention.
 
-The cycles of scripts/stop_cycles.py, two per signal and node: start the node as a
+The cycles of scripts/stop_cycles.py (how many per signal: below): start the node as a
 process (with its upstream nodes running), wait until it works, signal it, and
 require exit status 0 within 2 s (record_baseline: 0 or its documented 1, stopped
 before any nozzle was complete), no traceback. One busy-loop process per core runs
 throughout (the fe node missed about one stop in three that way). fe and fdi, which
-spin the events executor and take bursts of frames, get two cycles per signal; the
-other nodes one (suite time).
+spin the events executor and take bursts of frames, and graph, which runs both in one
+process, get two cycles per signal; printhead_sim and record_baseline one (suite time).
 """
 
 import importlib
@@ -30,7 +30,7 @@ _spec.loader.exec_module(stop_cycles)
 def test_node_process_stops_on_every_signal_under_contention(ros, fdi_model, name):
     with stop_cycles.StopCycles(ros.context, ros.domain_id, model_path=str(fdi_model), hang_s=2.0,
                                 grace_s=3.0) as sc:
-        stops = sc.run(name, cycles=4 if name in ("fe", "fdi") else 2, signals=(signal.SIGINT, signal.SIGTERM))
+        stops = sc.run(name, cycles=4 if name in ("fe", "fdi", "graph") else 2, signals=(signal.SIGINT, signal.SIGTERM))
     report = stop_cycles.summary(stops)
     for s in stops:
         assert not s.hung, f"{name} ignored {s.sig}:\n{report}\n{s.output[-3000:]}"

@@ -30,7 +30,8 @@ that dies is reported with its exit status and the command exits 1; bad options
 are one line on stderr and exit status 2, as are parameters the node processes refuse
 (each process says why, exit status 2 for the command), and heads that another
 printer (or node) on the same domain already runs: within its first 30 s, a printer
-that finds one of its nodes (/head_03/fdi) twice in the ROS graph stops (exit status 2).
+that finds one of its nodes (/head_03/fdi) twice in the ROS graph stops (exit status 2;
+two printers started within 30 s of each other both stop).
 
 Example: inkdiag printer --heads 4 --processes 2 --baselines baselines/head_{i:02d}.npz
 """
