@@ -260,6 +260,17 @@ def is_unclosed_bag(path) -> bool:
     return p.is_dir() and not (p / "metadata.yaml").exists() and any(p.glob("*.mcap"))
 
 
+def _bag_info(bag: Path) -> dict:
+    """``metadata.yaml``'s ``rosbag2_bagfile_information``, or {} when there is none or it cannot be read."""
+    try:
+        import yaml
+
+        info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        return info if isinstance(info, dict) else {}
+    except Exception:  # noqa: BLE001 - missing, unreadable, not YAML, another layout: nothing to say
+        return {}
+
+
 def _storage_order(bag: Path) -> list:
     """The bag's MCAP files in recording order: ``metadata.yaml``'s list where it names them all, else by name
     with a numbered suffix in numeric order (rosbag2's ``run_2.mcap`` before ``run_10.mcap``)."""
@@ -267,13 +278,10 @@ def _storage_order(bag: Path) -> list:
 
     files = list(bag.glob("*.mcap"))
     try:
-        import yaml
-
-        listed = [bag / f for f in yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
-                  ["relative_file_paths"]]
-        if sorted(listed) == sorted(files):
+        listed = [bag / f for f in _bag_info(bag).get("relative_file_paths", [])]
+        if listed and sorted(listed) == sorted(files):
             return listed
-    except Exception:  # noqa: BLE001 - no or an unreadable metadata.yaml: by name
+    except TypeError:  # not a list of names
         pass
     return sorted(files, key=lambda f: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", f.name)])
 
@@ -363,23 +371,18 @@ class SalvageReader:
 def _listed(bag: Path) -> str:
     """`` (FILE, 0 of the N messages metadata.yaml lists readable: truncated or corrupt)`` where it says so."""
     try:
-        import yaml
-
-        info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        info = _bag_info(bag)
         files = ", ".join(str(bag / f) for f in info.get("relative_file_paths", []))
         return f" ({files}: 0 of the {int(info['message_count'])} messages metadata.yaml lists readable)"
-    except Exception:
+    except Exception:  # noqa: BLE001 - metadata.yaml does not say
         return ""
 
 
 def storage_files(bag: Path) -> str:
     """`` (FILE, ...)``: the bag's storage files metadata.yaml lists, or nothing if it cannot be read."""
     try:
-        import yaml
-
-        info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
-        return " (" + ", ".join(str(bag / f) for f in info["relative_file_paths"]) + ")"
-    except Exception:
+        return " (" + ", ".join(str(bag / f) for f in _bag_info(bag)["relative_file_paths"]) + ")"
+    except Exception:  # noqa: BLE001 - metadata.yaml does not say
         return ""
 
 
