@@ -119,17 +119,21 @@ def assert_two_readers_agree(bag):
     return a
 
 
-def flip_a_trace_byte(bag):
-    """Flip one bit of a trace sample in the middle of a traces message of the bag's first MCAP chunk (no length or
-    header touched: the message still decodes, as a slightly different trace); returns the MCAP file."""
+def flip_a_trace_byte(bag, chunk: int = 0):
+    """Flip one bit of a trace sample in the middle of a traces message of the bag's MCAP chunk ``chunk`` (in file
+    order; -1: the last) (no length or header touched: the message still decodes, as a slightly different trace);
+    returns the MCAP file."""
     import struct
     from pathlib import Path
 
+    from mcap.reader import make_reader
+
     path = next(Path(bag).glob("*.mcap"))
+    with open(path, "rb") as f:
+        starts = sorted(c.chunk_start_offset for c in make_reader(f).get_summary().chunk_indexes)
     b = bytearray(path.read_bytes())
-    off = 8  # after the magic: the first record is the Header, then schemas, channels, the first Chunk
-    while b[off] != 0x06:
-        off += 9 + struct.unpack_from("<Q", b, off + 1)[0]
+    off = starts[chunk]
+    assert b[off] == 0x06  # a Chunk record: opcode, length, start, end, uncompressed size, crc, compression, records
     comp = struct.unpack_from("<I", b, off + 37)[0]
     pos = off + 41 + comp + 8
     while not (b[pos] == 0x05 and struct.unpack_from("<Q", b, pos + 1)[0] > 1000):  # a traces Message record

@@ -24,6 +24,7 @@ import dataclasses
 import functools
 import importlib
 import sys
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -202,7 +203,7 @@ class BagFrames:
     skipped: list = dataclasses.field(default_factory=list)
     n_skipped: int = 0
     report: object = None
-    salvaged: list | None = None  # a bag rosbags cannot open, read by a SalvageReader: what it found lost
+    salvaged: list | None = None  # read by a SalvageReader (a bag that did not open, or past a damaged chunk)
 
     def skip(self, index: int, why: str, frame_id=None) -> None:
         """Count message ``index`` as skipped for ``why`` (and report it)."""
@@ -220,8 +221,8 @@ class BagFrames:
             s += f"; skipped {n_skip}: " + "; ".join(
                 f"message {i}: {why}" for i, why in self.skipped[:3]) + (" ..." if n_skip > 3 else "")
         if self.salvaged is not None:
-            s += ("; read from its MCAP files as they are (a bag its recorder did not close, or a file cut short): "
-                  + ("; ".join(self.salvaged) if self.salvaged else "no damage found"))
+            s += ("; read from its MCAP files as they are (a bag its recorder did not close, a file cut short, or a "
+                  "damaged chunk): " + ("; ".join(self.salvaged) if self.salvaged else "no damage found"))
         return s
 
 
@@ -293,13 +294,17 @@ class _Connection:
 
 
 class SalvageReader:
-    """The messages a bag's MCAP storage files still hold when ``rosbags`` cannot open the bag.
+    """The messages a bag's MCAP storage files still hold when ``rosbags`` cannot open the bag, or
+    cannot read on past a damaged chunk.
 
     A recorder that died (power lost, SIGKILL) leaves its last file without the MCAP summary
     that ``rosbags`` needs to open it, and no ``metadata.yaml``; a copy cut short does the same.
     This reads each file from its start with the ``mcap`` library's stream reader (no summary
-    needed), the files in name order (rosbag2 numbers them), chunk by chunk, each chunk's CRC
-    checked: a damaged chunk costs only its own messages, and a file stops where it is cut off.
+    needed), the files in recording order (:func:`_storage_order`), chunk by chunk, each chunk's CRC
+    checked: a damaged chunk costs only its own messages (how many: the message index records that
+    follow it, where the file has them), and a file stops where it is cut off. A file's channels are
+    those of its whole first pass (a chunk after a damaged one may use a channel the damaged one
+    declared; a closed file repeats them all in its summary).
     Same interface as the part of ``rosbags``' Reader that :func:`iter_bag_frames` uses:
     :attr:`connections` and :meth:`messages`, in file order. :attr:`damage` says what was lost.
     """
@@ -308,19 +313,24 @@ class SalvageReader:
         self.files = _storage_order(Path(bag))
         self.damage: list = []  # one line per file that is cut off, per damaged chunk
         self._said = set()  # what the files say of their damage is said once (both passes meet it)
+        self._channels = [{} for _ in self.files]  # per file: channel id -> (channel, schema name), first pass
         conns = {}
-        for _, ch, schema_name in self._records(messages=False):
+        for k, ch, schema_name in self._records(messages=False):
+            self._channels[k].setdefault(ch.id, (ch, schema_name))
             conns.setdefault((ch.topic, schema_name), _Connection(ch.topic, schema_name))
         self.connections = list(conns.values())
 
     def _records(self, messages: bool):
         """``(file_index, channel, schema_name)`` per Channel record met (``messages`` False), or
         ``(channel, schema_name, message)`` per Message record (``messages`` True)."""
-        from mcap.records import Channel, Chunk, Message, Schema
+        from mcap.records import Channel, Chunk, Message, MessageIndex, Schema
         from mcap.stream_reader import StreamReader, breakup_chunk
 
         for k, path in enumerate(self.files):
-            schemas, channels, n_msgs = {}, {}, 0
+            schemas, n_msgs = {}, 0
+            channels = {i: ch for i, (ch, _) in self._channels[k].items()} if messages else {}
+            names = {i: name for i, (_, name) in self._channels[k].items()} if messages else {}
+            chunk = None  # the last chunk's [why it is damaged or None, messages read from it, messages its index lists]
             with open(path, "rb") as f:
                 records = StreamReader(f, emit_chunks=True, record_size_limit=1 << 30).records
                 while True:
@@ -331,13 +341,20 @@ class SalvageReader:
                     except Exception as exc:  # noqa: BLE001 - cut off here, or garbage from here: the file ends
                         self._say(f"{path}: cut off after {n_msgs} messages of all its topics ({first_line(exc)})")
                         break
+                    if chunk is not None:
+                        if isinstance(rec, MessageIndex):  # the chunk's own: how many messages it held
+                            chunk[2] += len(rec.records)
+                            continue
+                        self._check_chunk(path, *chunk)
+                        chunk = None
                     inner = [rec]
                     if isinstance(rec, Chunk):
                         try:
                             inner = breakup_chunk(rec, validate_crc=True)
                         except Exception as exc:  # noqa: BLE001 - a damaged chunk: its messages are lost, not the rest
-                            self._say(f"{path}: a damaged chunk skipped ({first_line(exc)})")
+                            chunk = [first_line(exc), 0, 0]
                             continue
+                        chunk = [None, sum(isinstance(r, Message) for r in inner), 0]
                     for r in inner:
                         if isinstance(r, Schema):
                             schemas[r.id] = r.name
@@ -349,7 +366,19 @@ class SalvageReader:
                             n_msgs += 1
                             if messages:
                                 ch = channels[r.channel_id]
-                                yield ch, schemas.get(ch.schema_id, ""), r
+                                yield ch, schemas.get(ch.schema_id, names.get(r.channel_id, "")), r
+            if chunk is not None:
+                self._check_chunk(path, *chunk)
+
+    def _check_chunk(self, path, why, n_read: int, n_listed: int) -> None:
+        """Say a chunk that did not read (``why``), or gave fewer messages than its message index lists (its
+        records end early: a record that claims a wrong length)."""
+        if why is not None:
+            lost = f"its {n_listed} messages of all topics lost" if n_listed else "its messages lost"
+            self._say(f"{path}: a damaged chunk skipped ({why}): {lost}")
+        elif n_read < n_listed:
+            self._say(f"{path}: a damaged chunk: {n_read} of the {n_listed} messages of all topics its index lists "
+                      "read (its records end early)")
 
     def _say(self, line: str) -> None:
         if line not in self._said:
@@ -413,6 +442,15 @@ def _traces_connections(reader, topic, src):
     return topic, sel
 
 
+def _unread(messages, read: Counter):
+    """``messages`` but those whose log time is in ``read`` (as many of each as it counts)."""
+    for conn, t_ns, raw in messages:
+        if read[t_ns] > 0:
+            read[t_ns] -= 1
+            continue
+        yield conn, t_ns, raw
+
+
 def iter_bag_frames(bag_dir, *, topic: str | None = None, stats: BagFrames | None = None):
     """Stream the trace frames of a bag, one decoded frame per message, in bag order.
 
@@ -431,13 +469,17 @@ def iter_bag_frames(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
     msg_defs.TraceFrame
         Traces (n_nozzles, n_samples) float32, V, first nozzle, frame id, sample rate
         (Hz) and stamp (s). A message that is not a valid trace frame is skipped
-        and recorded in ``stats`` (it never costs the other frames).
+        and recorded in ``stats`` (it never costs the other frames). An MCAP bag that
+        ``rosbags`` cannot open, or cannot read on past a damaged chunk, is read by a
+        :class:`SalvageReader` (from there on: a frame is yielded once); ``stats.salvaged``
+        says what was lost.
 
     Raises
     ------
     RecordingError
         Not a bag, a bag that cannot be opened, no such traces topic, a topic of
-        another type, or a bag that breaks off (says how many messages were read).
+        another type, or a bag without MCAP files that breaks off (says how many
+        messages were read).
     """
     from rclpy.serialization import deserialize_message
 
@@ -455,14 +497,23 @@ def iter_bag_frames(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
     try:
         stats.topic, conns = _traces_connections(reader, topic, src)
         it = reader.messages(connections=conns)
+        read = Counter()  # the log times of the messages read: not read again past a damaged chunk
         while True:
             try:
-                _, _, raw = next(it)
+                _, t_ns, raw = next(it)
             except StopIteration:
                 break
             except Exception as exc:  # a truncated or damaged storage file
-                raise RecordingError(f"{src}: truncated or corrupt bag{storage_files(Path(bag_dir))}: {stats.n_messages} "
-                                     f"messages on {stats.topic} readable, then: {first_line(exc)}") from None
+                why = (f"{src}: truncated or corrupt bag{storage_files(Path(bag_dir))}: {stats.n_messages} "
+                       f"messages on {stats.topic} readable, then: {first_line(exc)}")
+                if isinstance(reader, SalvageReader) or not any(Path(src).glob("*.mcap")):
+                    raise RecordingError(why) from None
+                reader.close()  # a damaged chunk of a bag that opened: on past it, as a bag that does not open
+                reader = SalvageReader(Path(src))
+                stats.salvaged = reader.damage
+                it = _unread(reader.messages(connections=_traces_connections(reader, stats.topic, src)[1]), read)
+                continue
+            read[t_ns] += 1
             i = stats.n_messages
             stats.n_messages += 1
             try:
@@ -711,7 +762,7 @@ def bag_writer(bag_dir, version: int = 8):
     rosbags' own MCAP writer leaves every chunk's ``uncompressed_crc`` at 0 ("not computed"): a byte
     flipped inside a trace of such a bag reads as a plausible trace and is labelled without a word. With
     the CRC, readers that check it (rosbags; the ``mcap`` library with ``validate_crcs``) refuse the damaged
-    chunk: the offline verbs say "truncated or corrupt bag ... Chunk checksum mismatch" (exit status 2).
+    chunk: the offline verbs leave its messages out and say so (:func:`iter_bag_frames`).
     """
     from rosbags.rosbag2 import StoragePlugin
 

@@ -101,6 +101,8 @@ def test_a_bag_whose_recorder_died_gives_the_frames_its_files_still_hold(tmp_pat
 
 
 def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim, fdi_model):
+    from inkdiag_ros.bags import BagFrames, load_recording
+
     x = sim.traces[:8].astype(np.float32)
     bag = write_bag(tmp_path / "ok", [(0, x)] * 3)
     # truncated: rosbags reads nothing without the MCAP summary; says so and how many were listed
@@ -112,12 +114,15 @@ def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim, fdi_model):
     mcap.write_bytes(mcap.read_bytes()[: mcap.stat().st_size * 2 // 3])
     msg = _one_line_error(trunc, "cannot open the bag")  # nor does the MCAP file hold one complete message
     assert str(mcap) in msg and "0 of the 6 messages" in msg and "hold no complete message either" in msg
-    # corrupt: it opens, then breaks off; names the file and how many messages were read first
+    # corrupt: it opens, then breaks off in its last chunk: the messages before it read, that chunk's lost (said)
     corrupt = corrupt_a_record(write_bag(tmp_path / "corrupt", [(0, x)] * 100))  # two 1 MB chunks
-    msg = _one_line_error(tmp_path / "corrupt", "truncated or corrupt bag")
-
-    n_ok = int(re.search(r"(\d+) messages on /head_00/traces readable", msg).group(1))
-    assert str(corrupt) in msg and 0 < n_ok < 100, msg
+    stats = BagFrames()
+    got = load_recording(tmp_path / "corrupt", stats=stats)
+    n_ok = int(re.match(r"(\d+) of \1 messages on /head_00/traces decoded; ", stats.summary()).group(1))
+    assert 30 < n_ok < 100 and got.traces.shape[0] == 8 * n_ok, stats.summary()
+    assert f"{corrupt}: a damaged chunk: 4 of the 73 messages of all topics its index lists read (its records end " \
+        "early)" in stats.summary()  # of the traces: the second in the chunk claims a wrong length
+    np.testing.assert_array_equal(got.frame_id[::8], np.arange(n_ok))  # none read twice, in order
     # empty: a traces topic with no message
     assert "no messages on /head_00/traces" in _one_line_error(write_bag(tmp_path / "empty", []), "no messages")
     # the traces topic of another type
@@ -136,20 +141,18 @@ def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim, fdi_model):
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
     r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "label", str(tmp_path / "corrupt"), "--model",
                         str(fdi_model), "--out", str(tmp_path / "c.csv")], capture_output=True, text=True, timeout=60)
-    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
-        f"inkdiag label: error: {msg}"], r.stderr  # the frames before it were labelled and written
+    assert r.returncode == 0 and f"{tmp_path / 'corrupt'}: {stats.summary()}" in r.stderr, r.stderr
     with open(tmp_path / "c.csv") as f:
-        assert sum(1 for _ in f) == 1 + 8 * n_ok
+        assert sum(1 for _ in f) == 1 + 8 * n_ok  # every frame read labelled and written
     # a bag whose recorder died before it wrote metadata.yaml: read from its MCAP file, and said so
     nometa = tmp_path / "nometa"
     nometa.mkdir()
     (nometa / mcap.name).write_bytes(next(bag.glob("*.mcap")).read_bytes())
-    from inkdiag_ros.bags import BagFrames, load_recording
-
     stats = BagFrames()
     assert load_recording(nometa, stats=stats).traces.shape == (24, x.shape[1])
     assert stats.summary().endswith("3 of 3 messages on /head_00/traces decoded; read from its MCAP files as they "
-                                    "are (a bag its recorder did not close, or a file cut short): no damage found")
+                                    "are (a bag its recorder did not close, a file cut short, or a damaged chunk): "
+                                    "no damage found")
     # the storage file given instead of its bag directory (helper-87: "not an .npz archive ... b'\\x89MCAP0'")
     assert _one_line_error(nometa / mcap.name, "a rosbag2 storage file: give the bag's directory").endswith(
         f"({nometa}, with its metadata.yaml), not the file inside it")
@@ -197,15 +200,16 @@ def test_replay_of_a_bad_bag_is_one_line_and_status_2(tmp_path, sim, capsys):
         f"topic {NS}/foo: message type foo_msgs/msg/Bar is not installed here; leave it out with --topics")
 
 
-def test_a_bag_inkdiag_writes_carries_chunk_crcs_and_a_flipped_trace_bit_is_refused(tmp_path, sim):
+def test_a_bag_inkdiag_writes_chunk_crcs_and_a_flipped_trace_bit_costs_only_its_chunk(tmp_path, sim, fdi_model):
     """rosbags' writer leaves the MCAP chunks' CRCs at 0: a bit flipped in a trace of such a bag read as a
     plausible trace, labelled without a word. inkdiag's writer (record, --record) stamps them; the offline
-    verbs then refuse the damaged chunk in one line (exit status 2)."""
+    verbs then leave the damaged chunk out, say so, and read the other chunks (was: the read ended there,
+    exit status 2, the frames after it lost)."""
     from mcap.reader import make_reader
     from mcap.records import Chunk
     from mcap.stream_reader import StreamReader
 
-    from inkdiag_ros.bags import bag_writer, read_bag_recording
+    from inkdiag_ros.bags import BagFrames, bag_writer, read_bag_recording
 
     x = sim.traces[:8].astype(np.float32)
     for name, writer in (("plain", None), ("crc", bag_writer)):
@@ -218,11 +222,23 @@ def test_a_bag_inkdiag_writes_carries_chunk_crcs_and_a_flipped_trace_bit_is_refu
         assert len(read_bag_recording(bag).traces) == 800  # intact: every row, whichever writer
         flip_a_trace_byte(bag)
     assert len(read_bag_recording(tmp_path / "plain").traces) == 800  # rosbags' own: the flip goes unseen
-    msg = _one_line_error(tmp_path / "crc", "truncated or corrupt bag")
-    assert "Chunk checksum mismatch" in msg, msg
+    out = tmp_path / "labels.csv"
     r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "label", str(tmp_path / "crc"), "--model",
-                        "none.joblib", "--out", "-"], capture_output=True, text=True, timeout=60)
-    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+                        str(fdi_model), "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "crc.mcap: a damaged chunk skipped (crc validation failed" in r.stderr, r.stderr
+    n_lost = int(re.search(r"a damaged chunk skipped \(.*\): its (\d+) messages of all topics lost", r.stderr).group(1))
+    with open(out) as f:
+        frame_ids = sorted({int(row["frame_id"]) for row in csv.DictReader(f)})
+    assert frame_ids == list(range(100 - len(frame_ids), 100)) and n_lost == 2 * (100 - len(frame_ids)) - 1, (
+        frame_ids, n_lost)  # the first chunk's traces and labels messages (one labels message in the next chunk)
+    # damage in the last chunk: the frames before it read by rosbags, the rest past it by the salvage reader
+    bag = write_bag(tmp_path / "last", [(0, x)] * 100, version=8, writer=bag_writer)
+    flip_a_trace_byte(bag, chunk=-1)
+    stats = BagFrames()
+    got = read_bag_recording(bag, stats=stats)
+    n = got.traces.shape[0] // 8
+    assert 30 < n < 100 and "a damaged chunk skipped (crc validation failed" in stats.summary(), stats.summary()
+    np.testing.assert_array_equal(got.frame_id[::8], np.arange(n))  # each once, in order
 
 
 def test_an_out_inside_the_bag_is_refused_and_the_bag_kept(tmp_path, sim, fdi_model):
