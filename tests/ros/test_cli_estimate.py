@@ -105,7 +105,7 @@ def run_inproc(*args):
 
 
 def _as_read_from_a_pipe(stream: io.StringIO) -> str:
-    """As subprocess.run(text=True) reads a pipe: universal newlines (the csv module writes "\r\n")."""
+    """As subprocess.run(text=True) reads a pipe: universal newlines."""
     return stream.getvalue().replace("\r\n", "\n").replace("\r", "\n")
 
 
@@ -147,7 +147,7 @@ def test_estimate_writes_the_columns_and_reports_bad_rows(head):
     assert "13 of 16 rows estimated" in res.stdout
     assert "finite stamp" not in res.stderr  # every row stamped
     header, rows = read_csv(out)
-    assert header == COLUMNS
+    assert header == COLUMNS and b"\r" not in out.read_bytes()  # "\n" line ends, as inkdiag label writes
     assert [int(x["row"]) for x in rows] == list(range(16))
     assert [x["reason"] for x in rows[:4]] == ["", "non_finite", "flat", "clipped"]
     for x in rows[1:4]:
@@ -175,6 +175,7 @@ def test_estimate_selects_rows(head):
     assert res.returncode == 0, res.stderr
     _, rows = read_csv(out)
     assert [int(x["row"]) for x in rows] == [0, 1, 9] and {x["method"] for x in rows} == {"vp"}
+    assert b"\r" not in out.read_bytes()
     res = run_inproc(d / "rec.npz", "--profile", d / "head.yaml", "--out", out, "--rows", "dried")
     assert res.returncode == 0, res.stderr
     assert [int(x["row"]) for x in read_csv(out)[1]] == list(range(4, 16))

@@ -229,7 +229,7 @@ def run(args) -> int:
     left_out = _left_out(args, rec.n_rows, rows)
     unfolded = _trend_steps(tracker, rec, rows, left_out, reasons == "", cols, time_order=True)
     with open_csv_out(args.out) as f:
-        w = csv.writer(f)
+        w = csv.writer(f, lineterminator="\n")  # as label writes: no "\r\n" in a pipe
         w.writerow(["row", "nozzle", "fm", "fm_std", "d_mu", "viscosity", "frame_id", "stamp", "fm_trend",
                     "fm_rate", "eta_deeply_dried_s", "method", "reason"])
         for i in range(n):  # formatting only
@@ -403,7 +403,7 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
     seen = []  # each chunk's (nozzle, frame_id, stamp) of the rows selected: repeats are said at the end
     why, notes = {}, set()
     with open_csv_out(args.out) as f:
-        w = csv.writer(f)
+        w = csv.writer(f, lineterminator="\n")  # as label writes: no "\r\n" in a pipe
         w.writerow(HEADER)
         for first_row, rec in chunks:
             n_seen = first_row + rec.n_rows
