@@ -155,6 +155,40 @@ def test_recorder_gives_each_nozzle_the_median_of_its_first_frames():
     assert (b.sample_rate_hz, b.n_samples, b.n_frames) == (FS, 512, 8)
 
 
+def test_a_nozzle_whose_phase_lies_near_pi_gets_its_own_phase_as_baseline():
+    """The phase KPI is wrapped to (-pi, pi]: a nozzle near +-pi has rows at 3.14 and -3.14 rad, whose plain
+    median came out near 0, and then every healthy trace of it looked pi off its baseline (a head whose sensing
+    delay puts its healthy phase there: 2 of these 400 nozzles). The median is taken on the circle there."""
+    from scipy.signal import hilbert
+
+    from inkdiag_core import extract_kpis
+    from inkdiag_core.baselines.features import PHASE, median_kpis
+
+    frames = _head_frames(400, 8, head_seed=0)
+    turn = np.pi - np.median(extract_kpis(frames[0], FS)[:, PHASE])  # the healthy phase turned to about pi
+    frames = [np.real(hilbert(f, axis=1) * np.exp(1j * turn)).astype(np.float32) for f in frames]
+    rec = BaselineRecorder(n_frames=8)
+    for f in frames:
+        rec.add(0, f)
+    base = rec.baselines().kpis
+    np.testing.assert_array_equal(base, baseline_kpis(np.stack(frames, axis=1), FS))
+    rows = np.stack([extract_kpis(f, FS) for f in frames], axis=1)
+    wraps = np.ptp(rows[:, :, PHASE], axis=1) > np.pi
+    off = np.abs(np.angle(np.exp(1j * (rows[:, :, PHASE] - base[:, PHASE, None]))))
+    assert wraps.sum() >= 2 and off.max() < 0.05, (wraps.sum(), off.max())  # each row near its baseline
+    plain = np.median(rows, axis=1)
+    np.testing.assert_array_equal(base[~wraps], plain[~wraps])  # elsewhere the plain median, bit for bit
+    np.testing.assert_array_equal(np.delete(base[wraps], PHASE, 1), np.delete(plain[wraps], PHASE, 1))
+    # the rule alone: both sides of pi, a NaN row left out, a nozzle with no row at all
+    k = np.zeros((3, 4, 7))
+    k[0, :, PHASE] = [3.1, -3.1, 3.12, -3.13]
+    k[1, :, PHASE] = [0.1, 0.2, np.nan, 0.3]
+    k[2] = np.nan
+    with pytest.warns(RuntimeWarning, match="All-NaN slice"):  # np.nanmedian's, of the third nozzle
+        got = median_kpis(k, skip_nan=True)
+    assert abs(abs(got[0, PHASE]) - np.pi) < 0.05 and got[1, PHASE] == pytest.approx(0.2) and np.isnan(got[2]).all()
+
+
 def test_recorder_skips_invalid_and_excluded_rows_and_waits_for_enough_frames():
     frames = _head_frames(6, 4)
     rec = BaselineRecorder(n_frames=3)

@@ -1,6 +1,7 @@
 """Baseline features: a trace's KPIs relative to its nozzle's own healthy KPIs.
 
-- :func:`baseline_kpis`: a nozzle's baseline, the median KPIs over a few healthy frames;
+- :func:`baseline_kpis`: a nozzle's baseline, the median KPIs over a few healthy frames
+  (:func:`median_kpis`: the phase's on the circle where it wraps);
 - :func:`with_baseline`: the input rows of a baseline pipeline, ``[trace, baseline]``;
 - :class:`BaselineKpis`: transformer from those rows to KPI_Y plus the relative
   features (:data:`RELATIVE_NAMES`).
@@ -8,13 +9,15 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from sklearn.base import BaseEstimator, TransformerMixin
 from sklearn.utils.validation import check_is_fitted, validate_data
 
 from ..kpis import KPI_NAMES, MIN_KPI_SAMPLES, extract_kpis, kpis_of_checked
 
-__all__ = ["N_KPIS", "RELATIVE_NAMES", "BaselineKpis", "baseline_kpis", "with_baseline"]
+__all__ = ["N_KPIS", "RELATIVE_NAMES", "BaselineKpis", "baseline_kpis", "median_kpis", "with_baseline"]
 
 #: KPIs per baseline row (the columns of :data:`inkdiag_core.KPI_NAMES`).
 N_KPIS = len(KPI_NAMES)
@@ -46,7 +49,49 @@ def baseline_kpis(frames, sample_rate_hz: float) -> np.ndarray:
     if f.ndim != 3 or f.shape[1] < 1:
         raise ValueError(f"frames must be (n_nozzles, n_frames >= 1, n_samples), got shape {f.shape}")
     n, k, m = f.shape
-    return np.median(extract_kpis(f.reshape(n * k, m), sample_rate_hz).reshape(n, k, N_KPIS), axis=1)
+    return median_kpis(extract_kpis(f.reshape(n * k, m), sample_rate_hz).reshape(n, k, N_KPIS))
+
+
+#: Column of ``phase_rad`` in :data:`inkdiag_core.KPI_NAMES`.
+PHASE = KPI_NAMES.index("phase_rad")
+
+
+def median_kpis(kpis, *, skip_nan: bool = False) -> np.ndarray:
+    """Each nozzle's median KPIs over its rows; the phase's median taken on the circle where it wraps.
+
+    The phase is wrapped to ``(-pi, pi]``: a nozzle whose phase lies near ``+-pi`` has rows on both
+    sides (3.14 and -3.14 rad), whose plain median can come out near 0 (the mean of the middle two),
+    and every healthy trace of it then looks ``pi`` off its baseline. Where a nozzle's phases span more
+    than ``pi``, the median is taken of their offsets from their circular mean (wrapped), and wrapped
+    back; elsewhere it is the plain median (the same values as ``np.median``).
+
+    Parameters
+    ----------
+    kpis : array_like, shape (n_nozzles, n_rows, n_columns)
+        Each nozzle's rows; columns of :data:`inkdiag_core.KPI_NAMES` first (more columns are taken
+        plainly).
+    skip_nan : bool
+        Rows with NaN left out, column by column (``np.nanmedian``); a nozzle with none gives NaN.
+
+    Returns
+    -------
+    ndarray, shape (n_nozzles, n_columns)
+    """
+    x = np.asarray(kpis, dtype=float)
+    median = np.nanmedian if skip_nan else np.median
+    out = median(x, axis=1)
+    phase = x[:, :, PHASE]
+    if x.shape[1] == 0:
+        return out
+    with warnings.catch_warnings():  # a nozzle whose phases are all NaN (skip_nan): not one that wraps
+        warnings.simplefilter("ignore", RuntimeWarning)
+        wraps = np.flatnonzero(np.nanmax(phase, axis=1) - np.nanmin(phase, axis=1) > np.pi)
+    if wraps.size:
+        p = phase[wraps]
+        centre = np.angle(np.nansum(np.exp(1j * p), axis=1))
+        offsets = np.angle(np.exp(1j * (p - centre[:, None])))  # NaN stays NaN
+        out[wraps, PHASE] = np.angle(np.exp(1j * (centre + median(offsets, axis=1))))
+    return out
 
 
 def with_baseline(traces, baseline) -> np.ndarray:

@@ -10,7 +10,7 @@ from .. import checks
 from ..estimation import estimate_fm_batch
 from ..kpis import MIN_KPI_SAMPLES, InvalidTraceError, extract_kpis
 from ..screening import screen_traces
-from .features import N_KPIS
+from .features import N_KPIS, median_kpis
 from .store import FM_METHOD, NozzleBaselines
 
 __all__ = ["DEFAULT_MAX_NOZZLES", "FM_METHOD", "BaselineRecorder"]
@@ -240,7 +240,7 @@ class BaselineRecorder:
     def baselines(self, min_frames: int | None = None) -> NozzleBaselines:
         """The baselines of the nozzles with at least ``min_frames`` rows (default ``n_frames``).
 
-        Each is the median over the nozzle's rows (up to ``n_frames``), KPI by KPI.
+        Each is the median over the nozzle's rows (up to ``n_frames``), KPI by KPI (:func:`median_kpis`).
         """
         need = self.n_frames if min_frames is None else int(min_frames)
         if not 1 <= need <= self.n_frames:
@@ -259,7 +259,7 @@ class BaselineRecorder:
         if ok.any():
             with warnings.catch_warnings():  # a nozzle whose f_m rows were all non-finite: NaN
                 warnings.simplefilter("ignore", RuntimeWarning)
-                med = np.nanmedian(stack, axis=1)
+                med = median_kpis(stack, skip_nan=True)  # the phase's on the circle where it wraps
         else:
             med = np.empty((0, N_KPIS + 1))
         reference = None
