@@ -223,7 +223,7 @@ class NozzleBaselines:
             "" when the two agree within :data:`GAIN_MISMATCH_LOG` (or three standard errors of
             their medians, if more: few nozzles) and :data:`PHASE_MISMATCH_RAD`, or when it cannot
             tell (fewer than 3 nozzles with an amplitude, a nominal profile, or baselines of another
-            sampling: refused elsewhere); else one line saying the ratio or the phase, and what to do.
+            sampling: refused elsewhere); else one line saying the phase, the ratio or both, and what to do.
         """
         if (not profile.is_complete or self.sample_rate_hz != profile.sample_rate_hz
                 or self.n_samples != profile.n_samples):
@@ -241,19 +241,22 @@ class NozzleBaselines:
         ph = KPI_NAMES.index("phase_rad")
         mine = self.kpis[:, ph][np.isfinite(self.kpis[:, ph]) & (np.abs(self.kpis[:, col]) > 0)]
         dphi = float(np.angle(np.exp(1j * mine).mean() * np.conj(np.exp(1j * sim[:, ph]).mean()))) if mine.size >= 3 else 0.0
+        said = []
         if abs(dphi) > PHASE_MISMATCH_RAD:
-            return (f"the baselines' {mine.size} healthy nozzles ring {abs(dphi):.2f} rad out of phase with the healthy "
-                    f"nozzles of head {profile.name!r}: " + ("an inverted sensor sign? " if abs(dphi) > 2.5 else "")
-                    + "the model reads the phase (classes then read as unknown): negate the samples if the "
-                    "sensor's sign is inverted; else the sensing window starts at another delay than the profile's "
-                    "drive.switch_delay_s: give the controller's sensing delay as drive.switch_delay_s in the nominal "
-                    "profile, calibrate (inkdiag calibrate) and train on that profile")
-        if abs(d) <= max(GAIN_MISMATCH_LOG, 3.0 * se):
-            return ""
-        return (f"the baselines' {amp.size} healthy nozzles ring at {np.exp(d):.2f}x the amplitude of the healthy "
+            said.append(
+                f"the baselines' {mine.size} healthy nozzles ring {abs(dphi):.2f} rad out of phase with the healthy "
+                f"nozzles of head {profile.name!r}: " + ("an inverted sensor sign? " if abs(dphi) > 2.5 else "")
+                + "the model reads the phase (classes then read as unknown): negate the samples if the "
+                "sensor's sign is inverted; else the sensing window starts at another delay than the profile's "
+                "drive.switch_delay_s: give the controller's sensing delay as drive.switch_delay_s in the nominal "
+                "profile, calibrate (inkdiag calibrate) and train on that profile")
+        if abs(d) > max(GAIN_MISMATCH_LOG, 3.0 * se):
+            said.append(
+                f"the baselines' {amp.size} healthy nozzles ring at {np.exp(d):.2f}x the amplitude of the healthy "
                 f"nozzles of head {profile.name!r}: a sensor gain other than the profile's? The model reads the "
                 "amplitude (faults then read as unknown): calibrate this head's own profile (inkdiag calibrate) and "
                 "train on it, or scale the samples to the profile's volts")
+        return "; and ".join(said)
 
     def __len__(self) -> int:
         return int(self.nozzle_ids.size)
