@@ -287,6 +287,22 @@ def _storage_order(bag: Path) -> list:
     return sorted(files, key=lambda f: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", f.name)])
 
 
+def _summary_channels(path):
+    """An MCAP file's channels from its summary section, ``{id: (channel, schema name)}``; None when it has none or
+    it does not read (a file cut off before its end: its records are scanned instead)."""
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+    except Exception:  # noqa: BLE001 - no footer, a damaged summary: scanned from the start
+        return None
+    if summary is None or not summary.channels:
+        return None
+    return {i: (ch, summary.schemas[ch.schema_id].name if ch.schema_id in summary.schemas else "")
+            for i, ch in summary.channels.items()}
+
+
 @dataclasses.dataclass(frozen=True)
 class _Connection:
     topic: str
@@ -303,8 +319,8 @@ class SalvageReader:
     needed), the files in recording order (:func:`_storage_order`), chunk by chunk, each chunk's CRC
     checked: a damaged chunk costs only its own messages (how many: the message index records that
     follow it, where the file has them), and a file stops where it is cut off. A file's channels are
-    those of its whole first pass (a chunk after a damaged one may use a channel the damaged one
-    declared; a closed file repeats them all in its summary).
+    those its summary section lists, or, in a file without one (cut off), those of a first pass over
+    its records (a chunk after a damaged one may use a channel the damaged one declared).
     Same interface as the part of ``rosbags``' Reader that :func:`iter_bag_frames` uses:
     :attr:`connections` and :meth:`messages`, in file order. :attr:`damage` says what was lost.
     """
@@ -313,24 +329,32 @@ class SalvageReader:
         self.files = _storage_order(Path(bag))
         self.damage: list = []  # one line per file that is cut off, per damaged chunk
         self._said = set()  # what the files say of their damage is said once (both passes meet it)
-        self._channels = [{} for _ in self.files]  # per file: channel id -> (channel, schema name), first pass
-        conns = {}
-        for k, ch, schema_name in self._records(messages=False):
+        self._channels = [_summary_channels(f) for f in self.files]  # per file: channel id -> (channel, schema name)
+        for k, ch, schema_name in self._records(messages=False, files=[k for k, c in enumerate(self._channels)
+                                                                      if c is None]):
+            self._channels[k] = self._channels[k] or {}
             self._channels[k].setdefault(ch.id, (ch, schema_name))
-            conns.setdefault((ch.topic, schema_name), _Connection(ch.topic, schema_name))
+        conns = {}
+        for chans in self._channels:
+            for ch, schema_name in (chans or {}).values():
+                conns.setdefault((ch.topic, schema_name), _Connection(ch.topic, schema_name))
         self.connections = list(conns.values())
 
-    def _records(self, messages: bool):
-        """``(file_index, channel, schema_name)`` per Channel record met (``messages`` False), or
-        ``(channel, schema_name, message)`` per Message record (``messages`` True)."""
+    def _records(self, messages: bool, files=None):
+        """``(file_index, channel, schema_name)`` per Channel record met (``messages`` False; the files of
+        index in ``files``, default all), or ``(channel, schema_name, message)`` per Message record
+        (``messages`` True)."""
         from mcap.records import Channel, Chunk, Message, MessageIndex, Schema
         from mcap.stream_reader import StreamReader, breakup_chunk
 
         for k, path in enumerate(self.files):
+            if files is not None and k not in files:
+                continue
             schemas, n_msgs = {}, 0
-            channels = {i: ch for i, (ch, _) in self._channels[k].items()} if messages else {}
-            names = {i: name for i, (_, name) in self._channels[k].items()} if messages else {}
-            chunk = None  # the last chunk's [why it is damaged or None, messages read from it, messages its index lists]
+            known = (self._channels[k] or {}) if messages else {}
+            channels = {i: ch for i, (ch, _) in known.items()}
+            names = {i: name for i, (_, name) in known.items()}
+            chunk = None  # the last chunk: [why it is damaged or None, messages read from it, messages its index lists]
             with open(path, "rb") as f:
                 records = StreamReader(f, emit_chunks=True, record_size_limit=1 << 30).records
                 while True:

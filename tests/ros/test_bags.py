@@ -209,7 +209,7 @@ def test_a_bag_inkdiag_writes_chunk_crcs_and_a_flipped_trace_bit_costs_only_its_
     from mcap.records import Chunk
     from mcap.stream_reader import StreamReader
 
-    from inkdiag_ros.bags import BagFrames, bag_writer, read_bag_recording
+    from inkdiag_ros.bags import BagFrames, SalvageReader, bag_writer, read_bag_recording
 
     x = sim.traces[:8].astype(np.float32)
     for name, writer in (("plain", None), ("crc", bag_writer)):
@@ -239,6 +239,9 @@ def test_a_bag_inkdiag_writes_chunk_crcs_and_a_flipped_trace_bit_costs_only_its_
     n = got.traces.shape[0] // 8
     assert 30 < n < 100 and "a damaged chunk skipped (crc validation failed" in stats.summary(), stats.summary()
     np.testing.assert_array_equal(got.frame_id[::8], np.arange(n))  # each once, in order
+    salvage = SalvageReader(bag)  # the file's summary gives its channels: no chunk read (twice) to find them
+    assert salvage.damage == [] and {c.topic for c in salvage.connections} == {f"{NS}/traces", f"{NS}/labels"}
+    assert sum(1 for _ in salvage.messages(salvage.connections)) == 2 * n - 1 and len(salvage.damage) == 1
 
 
 def test_an_out_inside_the_bag_is_refused_and_the_bag_kept(tmp_path, sim, fdi_model):
