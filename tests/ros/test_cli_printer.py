@@ -129,6 +129,47 @@ def test_heads_another_node_already_runs_stop_the_printer_with_status_2(ros, fdi
     assert "Traceback" not in err, err
 
 
+@pytest.mark.timeout(90)
+def test_of_two_printers_on_the_same_heads_the_later_stops_and_the_earlier_runs_on(ros, fdi_model):
+    """helper-93 #4: two printers started within 30 s of each other over overlapping heads both stopped. The graph
+    here holds another printer's monitor over head 06 that started after this one (its start time in its name) and
+    a second /head_06/fdi: this printer runs on (the other stops); SIGTERM then ends it with status 0."""
+    from inkdiag_ros.verbs.printer import monitor_name
+
+    ros.node("fdi", namespace="/head_06")
+    ros.node(monitor_name(6, 1, time.time_ns() + 10**15, 1))  # started after any printer started now
+    proc = _start(ros, "--heads", "2", "--first-head", "5", "--model", str(fdi_model), "--duration", "60",
+                  "--ros-args", "--log-level", "warn")
+    lines = []
+    try:
+        for line in proc.stdout:  # its summary lines, one a second, past the first graph checks
+            lines.append(line)
+            if line.startswith("t=") and float(line[2:].split("s", 1)[0]) >= 4.0:
+                break
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0 and "runs twice" not in err, ("".join(lines) + out, err)
+
+
+def test_which_printer_started_first_is_read_from_the_monitors_names():
+    from inkdiag_ros.verbs.printer import monitor_name, started_first
+
+    me = monitor_name(4, 4, 2000, 7)  # heads 04..07
+    assert me == "printer_monitor_h04_07_t2000_p7"
+    graph = [(monitor_name(0, 4, 1000, 9), "/"),  # heads 00..03: no overlap
+             (monitor_name(6, 2, 1000, 9), "/"),  # 06..07, earlier
+             (monitor_name(7, 1, 2000, 3), "/"),  # same start, lower pid: earlier
+             (monitor_name(2, 3, 3000, 1), "/"),  # 02..04, later
+             (monitor_name(4, 1, 2000, 8), "/"),  # same start, higher pid: later
+             (me, "/"), ("fdi", "/head_05"), ("printer_monitor", "/")]
+    assert started_first(graph, me) == (sorted([monitor_name(6, 2, 1000, 9), monitor_name(7, 1, 2000, 3)]),
+                                        sorted([monitor_name(2, 3, 3000, 1), monitor_name(4, 1, 2000, 8)]))
+    assert started_first([(me, "/")], me) == ([], [])
+
+
 def test_duplicated_nodes_are_a_namespaces_node_seen_twice():
     from inkdiag_ros.verbs.printer import duplicated_nodes
 

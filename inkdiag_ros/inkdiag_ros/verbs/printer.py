@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -30,8 +31,9 @@ that dies is reported with its exit status and the command exits 1; bad options
 are one line on stderr and exit status 2, as are parameters the node processes refuse
 (each process says why, exit status 2 for the command), and heads that another
 printer (or node) on the same domain already runs: within its first 30 s, a printer
-that finds one of its nodes (/head_03/fdi) twice in the ROS graph stops (exit status 2;
-two printers started within 30 s of each other both stop).
+that finds one of its nodes (/head_03/fdi) twice in the ROS graph stops (exit status 2),
+unless another printer over some of its heads started after it: that one stops, this one
+runs on (the ROS graph names each printer's heads and start time in its monitor node's name).
 
 Example: inkdiag printer --heads 4 --processes 2 --baselines baselines/head_{i:02d}.npz
 """
@@ -41,7 +43,8 @@ STALE_S = 2.5
 #: Seconds the processes get to stop on SIGTERM before they are killed.
 STOP_GRACE_S = 1.5
 #: Seconds after the start during which a second node of the same name in one of this printer's namespaces (another
-#: printer's, or a lone node's, on the same heads and domain) stops it; a printer that has run longer keeps running.
+#: printer's, or a lone node's, on the same heads and domain) stops it, unless another printer over some of its heads
+#: started after it (:func:`started_first`); a printer that has run longer keeps running.
 CONFLICT_WINDOW_S = 30.0
 
 
@@ -158,6 +161,29 @@ def run(args) -> int:
     return 1 if died else 0
 
 
+_MONITOR = re.compile(r"printer_monitor_h(\d+)_(\d+)_t(\d+)_p(\d+)")
+
+
+def monitor_name(first_head: int, n_heads: int, started_ns: int, pid: int) -> str:
+    """The ROS name of a printer's monitor node: its heads, its start (ns since the epoch) and process id, so that
+    printers that find each other's nodes in the ROS graph can tell which of them started first."""
+    return f"printer_monitor_h{first_head:02d}_{first_head + n_heads - 1:02d}_t{started_ns}_p{pid}"
+
+
+def started_first(names_and_namespaces, mine: str) -> tuple:
+    """``(earlier, later)``: the other printers' monitor names (:func:`monitor_name`) in the graph whose heads overlap
+    ``mine``'s and that started before it, and after it (by start time, then process id)."""
+    me = _MONITOR.fullmatch(mine)
+    first, last, key = int(me[1]), int(me[2]), (int(me[3]), int(me[4]))
+    earlier, later = [], []
+    for name, _ in names_and_namespaces:
+        m = _MONITOR.fullmatch(name)
+        if m is None or name == mine or int(m[2]) < first or int(m[1]) > last:
+            continue
+        (earlier if (int(m[3]), int(m[4])) < key else later).append(name)
+    return sorted(earlier), sorted(later)
+
+
 def duplicated_nodes(names_and_namespaces, namespaces, names) -> list:
     """``"/head_03/fdi"`` for each node name of ``names`` that runs more than once in one of ``namespaces``
     (two printers, or a printer and a lone node, on the same heads), sorted."""
@@ -172,7 +198,8 @@ def _monitor(args, children) -> tuple:
     """Print the summary once a second until the duration, a signal or a child's death.
 
     Returns ``(died, conflict)``: the dead children, and why this printer must not run ("" if it may): within
-    :data:`CONFLICT_WINDOW_S` of its start, a node of its heads' namespaces runs twice on the domain."""
+    :data:`CONFLICT_WINDOW_S` of its start, a node of its heads' namespaces runs twice on the domain, and no other
+    printer over some of its heads started after it (:func:`started_first`; then that one stops)."""
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.node import Node
@@ -200,7 +227,7 @@ def _monitor(args, children) -> tuple:
         rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
         node = executor = None
         try:
-            node = Node("printer_monitor")
+            node = Node(me := monitor_name(args.first_head, args.heads, time.time_ns(), os.getpid()))
             executor = SingleThreadedExecutor(context=node.context)
             executor.add_node(node)
             stop.attach(node)
@@ -216,12 +243,15 @@ def _monitor(args, children) -> tuple:
                 if args.duration > 0 and now - t0 >= args.duration:
                     break
                 if now >= next_print:
-                    twice = (duplicated_nodes(node.get_node_names_and_namespaces(), namespaces, names)
-                             if now - t0 <= CONFLICT_WINDOW_S else [])
-                    if twice:
+                    graph = node.get_node_names_and_namespaces() if now - t0 <= CONFLICT_WINDOW_S else []
+                    twice = duplicated_nodes(graph, namespaces, names)
+                    earlier, later = started_first(graph, me) if twice else ([], [])
+                    if twice and (earlier or not later):  # a later printer alone: it stops, this one runs on
                         domain = os.environ.get("ROS_DOMAIN_ID", "0")
+                        who = ("another inkdiag printer started before this one" if earlier else
+                               "another inkdiag printer (or node)")
                         return [], (f"{', '.join(twice)} run{'s' if len(twice) == 1 else ''} twice on ROS_DOMAIN_ID "
-                                    f"{domain}: another inkdiag printer (or node) has these heads; stopped this one. "
+                                    f"{domain}: {who} has these heads; stopped this one. "
                                     "Give each box its own heads (--first-head) or its own ROS_DOMAIN_ID")
                     print(summary(latest, args.heads, now - t0, now), flush=True)
                     next_print += 1.0
