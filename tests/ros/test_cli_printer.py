@@ -170,6 +170,17 @@ def test_which_printer_started_first_is_read_from_the_monitors_names():
     assert started_first([(me, "/")], me) == ([], [])
 
 
+def test_the_conflict_window_counts_from_when_all_of_a_printers_nodes_are_up():
+    """helper-93 #5: the 30 s counted from the monitor's start; a printer whose nodes came up late (a loaded box)
+    looked for duplicates before they were there, and stopped looking."""
+    from inkdiag_ros.verbs.printer import all_up
+
+    graph = [("fdi", "/head_00"), ("printhead_sim", "/head_00"), ("fdi", "/head_01"), ("fdi", "/head_02")]
+    assert all_up(graph, {"/head_00", "/head_01"}, {"fdi"})
+    assert not all_up(graph, {"/head_00", "/head_01"}, {"fdi", "printhead_sim"})
+    assert not all_up(graph, {"/head_00", "/head_03"}, {"fdi"}) and all_up(graph, set(), {"fdi"})
+
+
 def test_duplicated_nodes_are_a_namespaces_node_seen_twice():
     from inkdiag_ros.verbs.printer import duplicated_nodes
 

@@ -30,7 +30,7 @@ frames and traces labelled per second summed over the heads (from their
 that dies is reported with its exit status and the command exits 1; bad options
 are one line on stderr and exit status 2, as are parameters the node processes refuse
 (each process says why, exit status 2 for the command), and heads that another
-printer (or node) on the same domain already runs: within its first 30 s, a printer
+printer (or node) on the same domain already runs: until 30 s after all its nodes are up, a printer
 that finds one of its nodes (/head_03/fdi) twice in the ROS graph stops (exit status 2),
 unless another printer over some of its heads started after it: that one stops, this one
 runs on (the ROS graph names each printer's heads and start time in its monitor node's name).
@@ -42,9 +42,9 @@ Example: inkdiag printer --heads 4 --processes 2 --baselines baselines/head_{i:0
 STALE_S = 2.5
 #: Seconds the processes get to stop on SIGTERM before they are killed.
 STOP_GRACE_S = 1.5
-#: Seconds after the start during which a second node of the same name in one of this printer's namespaces (another
-#: printer's, or a lone node's, on the same heads and domain) stops it, unless another printer over some of its heads
-#: started after it (:func:`started_first`); a printer that has run longer keeps running.
+#: Seconds, from when all of a printer's nodes are first seen in the ROS graph, during which a second node of the same
+#: name in one of its namespaces (another printer's, or a lone node's, on the same heads and domain) stops it, unless
+#: another printer over some of its heads started after it (:func:`started_first`); later it keeps running.
 CONFLICT_WINDOW_S = 30.0
 
 
@@ -184,6 +184,11 @@ def started_first(names_and_namespaces, mine: str) -> tuple:
     return sorted(earlier), sorted(later)
 
 
+def all_up(names_and_namespaces, namespaces, names) -> bool:
+    """Whether every node name of ``names`` runs in every one of ``namespaces``."""
+    return {(ns, n) for ns in namespaces for n in names} <= {(ns, n) for n, ns in names_and_namespaces}
+
+
 def duplicated_nodes(names_and_namespaces, namespaces, names) -> list:
     """``"/head_03/fdi"`` for each node name of ``names`` that runs more than once in one of ``namespaces``
     (two printers, or a printer and a lone node, on the same heads), sorted."""
@@ -197,9 +202,9 @@ def duplicated_nodes(names_and_namespaces, namespaces, names) -> list:
 def _monitor(args, children) -> tuple:
     """Print the summary once a second until the duration, a signal or a child's death.
 
-    Returns ``(died, conflict)``: the dead children, and why this printer must not run ("" if it may): within
-    :data:`CONFLICT_WINDOW_S` of its start, a node of its heads' namespaces runs twice on the domain, and no other
-    printer over some of its heads started after it (:func:`started_first`; then that one stops)."""
+    Returns ``(died, conflict)``: the dead children, and why this printer must not run ("" if it may): until
+    :data:`CONFLICT_WINDOW_S` after all its nodes are up, a node of its heads' namespaces runs twice on the domain,
+    and no other printer over some of its heads started after it (:func:`started_first`; then that one stops)."""
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.node import Node
@@ -233,7 +238,7 @@ def _monitor(args, children) -> tuple:
             stop.attach(node)
             node.create_subscription(DIAGNOSTICS_MSG_TYPE, "/diagnostics", on_diag, DIAGNOSTICS_QOS)
             t0 = time.monotonic()
-            next_print = t0 + 1.0
+            next_print, up_at = t0 + 1.0, None  # up_at: when every node of this printer's heads was first seen
             while not stop.requested and node.context.ok():
                 executor.spin_once(timeout_sec=0.1)
                 died = [(w, p) for w, p in children if p.poll() is not None]
@@ -243,7 +248,10 @@ def _monitor(args, children) -> tuple:
                 if args.duration > 0 and now - t0 >= args.duration:
                     break
                 if now >= next_print:
-                    graph = node.get_node_names_and_namespaces() if now - t0 <= CONFLICT_WINDOW_S else []
+                    graph = node.get_node_names_and_namespaces() if up_at is None or now - up_at <= CONFLICT_WINDOW_S \
+                        else []
+                    if up_at is None and all_up(graph, namespaces, names):  # the window counts from here
+                        up_at = now
                     twice = duplicated_nodes(graph, namespaces, names)
                     earlier, later = started_first(graph, me) if twice else ([], [])
                     if twice and (earlier or not later):  # a later printer alone: it stops, this one runs on
