@@ -89,11 +89,20 @@ def _run(module: str):
     return main()  # with Python's handlers, as without this module, until the node installs its own
 
 
+def _console(module: str):
+    """A console script: :func:`_run`, then the process ends as ``python -m`` ends it
+    (:func:`inkdiag_ros._spin.exit_now`: the nodes down, not the interpreter's teardown too)."""
+    status = _run(module)
+    from ._spin import exit_now
+
+    exit_now(status)
+
+
 # the console scripts of inkdiag_ros/setup.py (`inkdiag` itself imports little before it parses its arguments)
-loopback = functools.partial(_run, "loopback")
-printhead_sim = functools.partial(_run, "printhead_sim")
-fdi = functools.partial(_run, "fdi_node")
-fe = functools.partial(_run, "fe_node")
-record_baseline = functools.partial(_run, "baseline_node")
-graph = functools.partial(_run, "graph")
-echo = functools.partial(_run, "echo")
+loopback = functools.partial(_console, "loopback")
+printhead_sim = functools.partial(_console, "printhead_sim")
+fdi = functools.partial(_console, "fdi_node")
+fe = functools.partial(_console, "fe_node")
+record_baseline = functools.partial(_console, "baseline_node")
+graph = functools.partial(_console, "graph")
+echo = functools.partial(_console, "echo")

@@ -26,7 +26,7 @@ from msg_defs import TRACE_MSG_TYPE, TRACES_QOS, FrameError, decode_traces, topi
 
 from . import _params
 from ._head import HEAD_PROFILE_PARAM, head_from_parameters
-from ._spin import spin_node
+from ._spin import exit_now, spin_node
 
 PARAMS = (
     ("output_path", "", "where to write the baselines (.npz)", str, None),
@@ -155,4 +155,4 @@ def main(args=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    exit_now(main())  # the nodes down: not the interpreter's teardown too

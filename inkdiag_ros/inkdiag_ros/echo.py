@@ -21,7 +21,7 @@ from rclpy.utilities import remove_ros_args
 import msg_defs
 from msg_defs import topics
 
-from ._spin import ros_args_error, stop_on_signals
+from ._spin import exit_now, ros_args_error, stop_on_signals
 
 TYPES = {
     topics.TRACES: (msg_defs.TRACE_MSG_TYPE, msg_defs.TRACES_QOS),
@@ -121,4 +121,4 @@ def main(args=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    exit_now(main())  # the nodes down: not the interpreter's teardown too

@@ -5,7 +5,6 @@ baselines of another ``head_profile``: refused. docs/parameters.md; topics, coun
 
 from __future__ import annotations
 
-import sys
 
 import numpy as np
 from rclpy.node import Node
@@ -17,7 +16,7 @@ from msg_defs import (DIAGNOSTICS_MSG_TYPE, DIAGNOSTICS_QOS, DRYING_MSG_TYPE, LA
 
 from . import _params
 from ._head import HEAD_PROFILE_PARAM, SAMPLING_PARAMS, head_from_parameters
-from ._spin import spin_node, take_into
+from ._spin import exit_now, spin_node, take_into
 from .labelling_backend import InlinePipeline, LabellingPipeline, ThreadBackend, make_backend
 from .stats import FdiStats
 
@@ -157,4 +156,4 @@ def main(args=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    exit_now(main())  # the nodes down: not the interpreter's teardown too

@@ -19,13 +19,12 @@ another head, stop the node at start (exit status 2). docs/nodes.md has the deta
 
 from __future__ import annotations
 
-import sys
 
 import numpy as np
 from rclpy.node import Node
 
 from ._head import HEAD_PROFILE_PARAM, head_from_parameters
-from ._spin import spin_node
+from ._spin import exit_now, spin_node
 
 from inkdiag_core import BaselineFileError, DryingTracker, NozzleBaselines
 from msg_defs import (
@@ -157,4 +156,4 @@ def main(args=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    exit_now(main())  # the nodes down: not the interpreter's teardown too

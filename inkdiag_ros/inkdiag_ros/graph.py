@@ -49,7 +49,7 @@ from msg_defs import (
     topics,
 )
 
-from ._spin import close_outputs, quiet_signal_handling, ros_args_error, shutting_down, sigint_as_shutdown
+from ._spin import close_outputs, exit_now, quiet_signal_handling, ros_args_error, shutting_down, sigint_as_shutdown
 from .allocator import PeriodicRelease, keep_freed_memory
 from .blas import limit_blas_threads
 from .bags import HEAD_TOPICS, InProcessRecording, check_new_bag
@@ -321,4 +321,4 @@ def main(args=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    exit_now(main())  # the nodes down: not the interpreter's teardown too

@@ -23,7 +23,7 @@ from rclpy.utilities import remove_ros_args
 from inkdiag_core import InkChannelModel
 from msg_defs import RELIABLE_QOS, TRACE_MSG_TYPE, decode_traces, encode_traces, topics
 
-from ._spin import tear_down
+from ._spin import exit_now, tear_down
 
 
 def model_frame(n_nozzles: int, n_samples: int, sample_rate_hz: float, seed: int) -> np.ndarray:
@@ -121,4 +121,4 @@ def main(args=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    exit_now(main())  # the nodes down: not the interpreter's teardown too

@@ -23,7 +23,7 @@ import time
 import numpy as np
 from rclpy.node import Node
 
-from ._spin import spin_node
+from ._spin import exit_now, spin_node
 from .bags import pop_record_arg, recording_node
 
 from msg_defs import (
@@ -157,4 +157,4 @@ def main(args=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    exit_now(main())  # the nodes down: not the interpreter's teardown too
