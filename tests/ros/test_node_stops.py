@@ -6,8 +6,9 @@ require exit status 0 within 2 s (record_baseline: 0 or its documented 1, stoppe
 before any nozzle was complete), no traceback. One busy-loop process per core runs
 throughout (the fe node missed about one stop in three that way). fe and fdi, which
 spin the events executor and take bursts of frames, get two cycles per signal; graph,
-printhead_sim and record_baseline one (suite time; graph's SIGTERM stops took 2.0-2.6 s
-under this contention in a CI run of 2026-11-28, one beyond the 2 s bound: open).
+printhead_sim and record_baseline one (suite time). A stop's time was mostly the interpreter's
+own teardown after the node's (graph's SIGTERM stops took 2.0-2.6 s in a CI run of 2026-11-28);
+node processes now end at once after theirs (inkdiag_ros._spin.exit_now).
 """
 
 import importlib
