@@ -24,7 +24,6 @@ import dataclasses
 import functools
 import importlib
 import sys
-from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -466,12 +465,14 @@ def _traces_connections(reader, topic, src):
     return topic, sel
 
 
-def _unread(messages, read: Counter):
-    """``messages`` but those whose log time is in ``read`` (as many of each as it counts)."""
+def _unread(messages, last_ns, n_at_last: int):
+    """``messages`` but those ``rosbags`` gave already: it gives a bag's messages in log-time order, so those before
+    ``last_ns`` (the log time of the last it gave; None: none) and the first ``n_at_last`` at it."""
     for conn, t_ns, raw in messages:
-        if read[t_ns] > 0:
-            read[t_ns] -= 1
-            continue
+        if last_ns is not None and t_ns <= last_ns:
+            if t_ns < last_ns or n_at_last > 0:
+                n_at_last -= t_ns == last_ns
+                continue
         yield conn, t_ns, raw
 
 
@@ -521,7 +522,7 @@ def iter_bag_frames(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
     try:
         stats.topic, conns = _traces_connections(reader, topic, src)
         it = reader.messages(connections=conns)
-        read = Counter()  # the log times of the messages read: not read again past a damaged chunk
+        last = (None, 0)  # the log time of the last message read, and how many were read at it
         while True:
             try:
                 _, t_ns, raw = next(it)
@@ -533,11 +534,15 @@ def iter_bag_frames(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
                 if isinstance(reader, SalvageReader) or not any(Path(src).glob("*.mcap")):
                     raise RecordingError(why) from None
                 reader.close()  # a damaged chunk of a bag that opened: on past it, as a bag that does not open
-                reader = SalvageReader(Path(src))
+                try:
+                    reader = SalvageReader(Path(src))
+                    salvaged = _traces_connections(reader, stats.topic, src)[1]
+                except Exception:  # noqa: BLE001 - its files do not read either (permissions...): as before
+                    raise RecordingError(why) from None
                 stats.salvaged = reader.damage
-                it = _unread(reader.messages(connections=_traces_connections(reader, stats.topic, src)[1]), read)
+                it = _unread(reader.messages(connections=salvaged), *last)
                 continue
-            read[t_ns] += 1
+            last = (t_ns, last[1] + 1 if t_ns == last[0] else 1)
             i = stats.n_messages
             stats.n_messages += 1
             try:
