@@ -17,7 +17,7 @@ from sklearn.utils.validation import check_is_fitted, validate_data
 
 from ..kpis import KPI_NAMES, MIN_KPI_SAMPLES, extract_kpis, kpis_of_checked
 
-__all__ = ["N_KPIS", "RELATIVE_NAMES", "BaselineKpis", "baseline_kpis", "median_kpis", "with_baseline"]
+__all__ = ["N_KPIS", "RELATIVE_NAMES", "BaselineKpis", "baseline_kpis", "with_baseline"]
 
 #: KPIs per baseline row (the columns of :data:`inkdiag_core.KPI_NAMES`).
 N_KPIS = len(KPI_NAMES)
