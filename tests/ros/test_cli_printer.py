@@ -170,25 +170,57 @@ def test_which_printer_started_first_is_read_from_the_monitors_names():
     assert started_first([(me, "/")], me) == ([], [])
 
 
-def test_the_conflict_window_counts_from_when_all_of_a_printers_nodes_are_up():
-    """helper-93 #5: the 30 s counted from the monitor's start; a printer whose nodes came up late (a loaded box)
-    looked for duplicates before they were there, and stopped looking."""
-    from inkdiag_ros.verbs.printer import all_up
+def test_the_conflict_watch_stops_a_printer_for_a_lone_node_an_earlier_printer_or_a_later_one_that_stays():
+    """helper-96: a duplicate seen before the other printer's monitor is in the graph stopped the earlier printer;
+    a later printer whose clock is behind ran on beside it for good; a lone node on one head went unsaid when a
+    later printer covered another. Now: a lone duplicate stops after DUPLICATE_GRACE_S, an earlier printer at once,
+    a later printer's duplicate only if it is still there after LATER_GRACE_S; each head on its own."""
+    from inkdiag_ros.verbs.printer import DUPLICATE_GRACE_S, LATER_GRACE_S, ConflictWatch, monitor_name
 
-    graph = [("fdi", "/head_00"), ("printhead_sim", "/head_00"), ("fdi", "/head_01"), ("fdi", "/head_02")]
-    assert all_up(graph, {"/head_00", "/head_01"}, {"fdi"})
-    assert not all_up(graph, {"/head_00", "/head_01"}, {"fdi", "printhead_sim"})
-    assert not all_up(graph, {"/head_00", "/head_03"}, {"fdi"}) and all_up(graph, set(), {"fdi"})
+    me = monitor_name(0, 4, 2000, 7)  # heads 00..03
+    ns = {f"/head_{i:02d}" for i in range(4)}
+    own = [("fdi", n) for n in sorted(ns)]
+
+    def watch(*graphs_at):
+        w = ConflictWatch(me, ns, {"fdi"})
+        return [w.check([(me, "/"), *g], t) for t, g in graphs_at]
+
+    lone = own + [("fdi", "/head_01")]
+    got = watch((0, lone), (1, lone), (DUPLICATE_GRACE_S, lone))
+    assert got[:2] == ["", ""] and got[2].startswith("/head_01/fdi runs twice") and "printer (or node)" in got[2]
+    assert watch((0, lone), (2, own), (DUPLICATE_GRACE_S + 1, lone)) == ["", "", ""]  # gone and back: anew
+    earlier = lone + [(monitor_name(1, 1, 1000, 9), "/")]
+    assert "started before this one" in watch((0, earlier))[0]
+    later = lone + [(monitor_name(1, 1, 3000, 9), "/")]
+    got = watch((0, later), (DUPLICATE_GRACE_S, later), (LATER_GRACE_S - 1, later), (LATER_GRACE_S, later))
+    assert got[:3] == ["", "", ""] and "started after this one did not stop" in got[3], got
+    other_head = lone + [(monitor_name(3, 1, 3000, 9), "/"), ("fdi", "/head_03")]  # the later printer covers 03 only
+    got = watch((0, other_head), (DUPLICATE_GRACE_S, other_head))
+    assert got[0] == "" and got[1].startswith("/head_01/fdi, /head_03/fdi run twice"), got
 
 
-def test_duplicated_nodes_are_a_namespaces_node_seen_twice():
-    from inkdiag_ros.verbs.printer import duplicated_nodes
+def test_the_conflict_watch_ends_30_s_after_the_printers_own_nodes_are_up():
+    """helper-93 #5 and helper-96: the 30 s counted from the monitor's start (nodes slow to come up were not
+    watched), then from when every node name was in the graph, another printer's included. Now from when each runs
+    more often than at the first check, before this printer's could; at most WATCH_MAX_S after the start."""
+    from inkdiag_ros.verbs.printer import CONFLICT_WINDOW_S, WATCH_MAX_S, ConflictWatch, monitor_name
 
-    graph = [("fdi", "/head_00"), ("fdi", "/head_01"), ("fdi", "/head_01"), ("fdi", "/head_09"), ("fdi", "/head_09"),
-             ("printhead_sim", "/head_00"), ("printhead_sim", "/head_00"), ("probe", "/head_00"), ("probe", "/head_00")]
-    assert duplicated_nodes(graph, {"/head_00", "/head_01"}, {"fdi"}) == ["/head_01/fdi"]
-    assert duplicated_nodes(graph, {"/head_00", "/head_01"}, {"fdi", "printhead_sim"}) == [
-        "/head_00/printhead_sim", "/head_01/fdi"]
+    me = monitor_name(0, 1, 2000, 7)
+    other = [("fdi", "/head_00")]  # another printer's node, there before ours
+    w = ConflictWatch(me, {"/head_00"}, {"fdi"})
+    assert w.check(other, 0) == "" and w.open
+    w.check(other, 50)
+    assert w.open  # ours not up yet: still watched
+    w.check(other * 2, 60)  # ours up
+    assert w.open
+    w.check(other * 2, 60 + CONFLICT_WINDOW_S + 1)
+    assert not w.open
+    never = ConflictWatch(me, {"/head_00"}, {"fdi"})
+    never.check([], 0)
+    never.check([], WATCH_MAX_S - 1)
+    assert never.open
+    never.check([], WATCH_MAX_S + 1)
+    assert not never.open
 
 
 @pytest.mark.parametrize("argv, match", [

@@ -30,10 +30,10 @@ frames and traces labelled per second summed over the heads (from their
 that dies is reported with its exit status and the command exits 1; bad options
 are one line on stderr and exit status 2, as are parameters the node processes refuse
 (each process says why, exit status 2 for the command), and heads that another
-printer (or node) on the same domain already runs: until 30 s after all its nodes are up, a printer
-that finds one of its nodes (/head_03/fdi) twice in the ROS graph stops (exit status 2),
-unless another printer over some of its heads started after it: that one stops, this one
-runs on (the ROS graph names each printer's heads and start time in its monitor node's name).
+printer (or node) on the same domain already runs: until 30 s after its nodes are up, a printer
+that finds one of its nodes (/head_03/fdi) twice in the ROS graph stops (exit status 2), unless
+another printer over that head started after it: that one stops, this one runs on (the ROS graph
+names each printer's heads and start time in its monitor node's name; docs/scaling.md).
 
 Example: inkdiag printer --heads 4 --processes 2 --baselines baselines/head_{i:02d}.npz
 """
@@ -42,10 +42,16 @@ Example: inkdiag printer --heads 4 --processes 2 --baselines baselines/head_{i:0
 STALE_S = 2.5
 #: Seconds the processes get to stop on SIGTERM before they are killed.
 STOP_GRACE_S = 1.5
-#: Seconds, from when all of a printer's nodes are first seen in the ROS graph, during which a second node of the same
-#: name in one of its namespaces (another printer's, or a lone node's, on the same heads and domain) stops it, unless
-#: another printer over some of its heads started after it (:func:`started_first`); later it keeps running.
+#: Seconds, from when all of a printer's nodes are up in the ROS graph, during which a second node of the same name in
+#: one of its namespaces (another printer's, or a lone node's, on the same heads and domain) stops it
+#: (:class:`ConflictWatch`); later it keeps running.
 CONFLICT_WINDOW_S = 30.0
+#: At most this long after its start a printer watches the graph, its own nodes up or not (:class:`ConflictWatch`).
+WATCH_MAX_S = 120.0
+#: Seconds a node of its heads runs twice, no printer started later covering that head, before a printer stops.
+DUPLICATE_GRACE_S = 3.0
+#: Seconds a printer that started later, over that head, gets to stop before this one stops too.
+LATER_GRACE_S = 15.0
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -131,6 +137,7 @@ def run(args) -> int:
     base = [sys.executable, "-m", __name__]
     ros = ["--ros-args", *args.ros_args]
     children = []  # (description, Popen)
+    started_ns = time.time_ns()  # before any child: the start other printers compare theirs with (monitor_name)
     try:
         for k, group in enumerate(groups):
             cmd = base + ["--role", "fdi", "--heads", ",".join(map(str, group)), "--model", args.model,
@@ -147,7 +154,7 @@ def run(args) -> int:
               f"in {args.processes} processes (pids {', '.join(str(p.pid) for _, p in children[:len(groups)])})"
               + (", simulated printheads in one more" if args.simulate else "")
               + f"; {'until Ctrl-C' if args.duration <= 0 else f'{args.duration:g} s'}", flush=True)
-        died, conflict = _monitor(args, children)
+        died, conflict = _monitor(args, children, started_ns)
     finally:
         _stop(children)
     if conflict:
@@ -184,27 +191,77 @@ def started_first(names_and_namespaces, mine: str) -> tuple:
     return sorted(earlier), sorted(later)
 
 
-def all_up(names_and_namespaces, namespaces, names) -> bool:
-    """Whether every node name of ``names`` runs in every one of ``namespaces``."""
-    return {(ns, n) for ns in namespaces for n in names} <= {(ns, n) for n, ns in names_and_namespaces}
+class ConflictWatch:
+    """Whether a printer must stop because another printer (or a lone node) runs some of its heads.
+
+    Fed the ROS graph once a second (:meth:`check`). A node of this printer's heads that runs twice stops it:
+    at once when another printer over some of its heads started before it (:func:`started_first`); after
+    :data:`DUPLICATE_GRACE_S` of being seen when no printer explains it (a lone node, or a printer whose monitor
+    is not in the graph yet); after :data:`LATER_GRACE_S` when a printer that started later covers that head
+    (it stops on seeing this one; still there, its clock may be behind this one's). The watch ends
+    :data:`CONFLICT_WINDOW_S` after this printer's own nodes are up (every node name more often in its
+    namespaces than at the first check, before they could start), or :data:`WATCH_MAX_S` after the start.
+
+    Parameters
+    ----------
+    me : str
+        This printer's monitor name (:func:`monitor_name`).
+    namespaces, names : set of str
+        Its heads' namespaces (``/head_03``) and the node names it runs in each.
+    """
+
+    def __init__(self, me: str, namespaces, names):
+        self.me, self.namespaces, self.names = me, set(namespaces), set(names)
+        self._base = None  # per (namespace, name): how often it ran at the first check
+        self._t0 = self._up_at = None
+        self._seen: dict = {}  # duplicate -> when first seen (while it lasts)
+
+    @property
+    def open(self) -> bool:
+        """Whether the graph should still be watched."""
+        return self._t0 is None or (self._now - self._t0 <= WATCH_MAX_S and (
+            self._up_at is None or self._now - self._up_at <= CONFLICT_WINDOW_S))
+
+    def check(self, names_and_namespaces, now: float) -> str:
+        """Why this printer must stop ("" if it may run on), from the graph at ``now`` (s, monotonic)."""
+        self._now = now
+        if self._t0 is None:
+            self._t0 = now
+        count: dict = {}
+        for name, ns in names_and_namespaces:
+            if name in self.names and ns in self.namespaces:
+                count[ns, name] = count.get((ns, name), 0) + 1
+        mine = [(ns, n) for ns in self.namespaces for n in self.names]
+        if self._base is None:
+            self._base = {k: count.get(k, 0) for k in mine}
+        if self._up_at is None and all(count.get(k, 0) > self._base[k] for k in mine):
+            self._up_at = now
+        twice = sorted(f"{ns}/{n}" for (ns, n), c in count.items() if c > 1)
+        self._seen = {d: self._seen.get(d, now) for d in twice}
+        if not twice:
+            return ""
+        earlier, later = started_first(names_and_namespaces, self.me)
+        covered = {h for m in later for h in range(int(_MONITOR.fullmatch(m)[1]), int(_MONITOR.fullmatch(m)[2]) + 1)}
+        late = [d for d in twice if int(d.split("/")[1].split("_")[1]) in covered]
+        if earlier:
+            who = "another inkdiag printer started before this one"
+        elif any(now - self._seen[d] >= DUPLICATE_GRACE_S for d in twice if d not in late):
+            who = "another inkdiag printer (or node)"
+        elif any(now - self._seen[d] >= LATER_GRACE_S for d in late):
+            who = (f"an inkdiag printer that started after this one did not stop in {LATER_GRACE_S:g} s (its clock "
+                   "behind this one's?) and")
+        else:
+            return ""
+        domain = os.environ.get("ROS_DOMAIN_ID", "0")
+        return (f"{', '.join(twice)} run{'s' if len(twice) == 1 else ''} twice on ROS_DOMAIN_ID {domain}: {who} has "
+                "these heads; stopped this one. Give each box its own heads (--first-head) or its own ROS_DOMAIN_ID")
 
 
-def duplicated_nodes(names_and_namespaces, namespaces, names) -> list:
-    """``"/head_03/fdi"`` for each node name of ``names`` that runs more than once in one of ``namespaces``
-    (two printers, or a printer and a lone node, on the same heads), sorted."""
-    seen: dict = {}
-    for name, ns in names_and_namespaces:
-        if name in names and ns in namespaces:
-            seen[f"{ns}/{name}"] = seen.get(f"{ns}/{name}", 0) + 1
-    return sorted(k for k, v in seen.items() if v > 1)
-
-
-def _monitor(args, children) -> tuple:
+def _monitor(args, children, started_ns: int) -> tuple:
     """Print the summary once a second until the duration, a signal or a child's death.
 
-    Returns ``(died, conflict)``: the dead children, and why this printer must not run ("" if it may): until
-    :data:`CONFLICT_WINDOW_S` after all its nodes are up, a node of its heads' namespaces runs twice on the domain,
-    and no other printer over some of its heads started after it (:func:`started_first`; then that one stops)."""
+    Returns ``(died, conflict)``: the dead children, and why this printer must not run ("" if it may): another
+    printer or node runs some of its heads (:class:`ConflictWatch`)."""
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.node import Node
@@ -232,13 +289,13 @@ def _monitor(args, children) -> tuple:
         rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
         node = executor = None
         try:
-            node = Node(me := monitor_name(args.first_head, args.heads, time.time_ns(), os.getpid()))
+            node = Node(me := monitor_name(args.first_head, args.heads, started_ns, os.getpid()))
             executor = SingleThreadedExecutor(context=node.context)
             executor.add_node(node)
             stop.attach(node)
             node.create_subscription(DIAGNOSTICS_MSG_TYPE, "/diagnostics", on_diag, DIAGNOSTICS_QOS)
             t0 = time.monotonic()
-            next_print, up_at = t0 + 1.0, None  # up_at: when every node of this printer's heads was first seen
+            next_print, watch = t0 + 1.0, ConflictWatch(me, namespaces, names)
             while not stop.requested and node.context.ok():
                 executor.spin_once(timeout_sec=0.1)
                 died = [(w, p) for w, p in children if p.poll() is not None]
@@ -248,19 +305,8 @@ def _monitor(args, children) -> tuple:
                 if args.duration > 0 and now - t0 >= args.duration:
                     break
                 if now >= next_print:
-                    graph = node.get_node_names_and_namespaces() if up_at is None or now - up_at <= CONFLICT_WINDOW_S \
-                        else []
-                    if up_at is None and all_up(graph, namespaces, names):  # the window counts from here
-                        up_at = now
-                    twice = duplicated_nodes(graph, namespaces, names)
-                    earlier, later = started_first(graph, me) if twice else ([], [])
-                    if twice and (earlier or not later):  # a later printer alone: it stops, this one runs on
-                        domain = os.environ.get("ROS_DOMAIN_ID", "0")
-                        who = ("another inkdiag printer started before this one" if earlier else
-                               "another inkdiag printer (or node)")
-                        return [], (f"{', '.join(twice)} run{'s' if len(twice) == 1 else ''} twice on ROS_DOMAIN_ID "
-                                    f"{domain}: {who} has these heads; stopped this one. "
-                                    "Give each box its own heads (--first-head) or its own ROS_DOMAIN_ID")
+                    if watch.open and (why := watch.check(node.get_node_names_and_namespaces(), now)):
+                        return [], why
                     print(summary(latest, args.heads, now - t0, now), flush=True)
                     next_print += 1.0
         except (KeyboardInterrupt, ExternalShutdownException):
