@@ -129,29 +129,34 @@ def test_heads_another_node_already_runs_stop_the_printer_with_status_2(ros, fdi
     assert "Traceback" not in err, err
 
 
-@pytest.mark.timeout(90)
-def test_of_two_printers_on_the_same_heads_the_later_stops_and_the_earlier_runs_on(ros, fdi_model):
-    """helper-93 #4: two printers started within 30 s of each other over overlapping heads both stopped. The graph
-    here holds another printer's monitor over head 06 that started after this one (its start time in its name) and
-    a second /head_06/fdi: this printer runs on (the other stops); SIGTERM then ends it with status 0."""
-    from inkdiag_ros.verbs.printer import monitor_name
-
-    ros.node("fdi", namespace="/head_06")
-    ros.node(monitor_name(6, 1, time.time_ns() + 10**15, 1))  # started after any printer started now
-    proc = _start(ros, "--heads", "2", "--first-head", "5", "--model", str(fdi_model), "--duration", "60",
-                  "--ros-args", "--log-level", "warn")
-    lines = []
+@pytest.mark.timeout(120)
+def test_of_two_printers_on_overlapping_heads_the_later_stops_and_the_earlier_runs_on(ros, fdi_model):
+    """helper-93 #4: two printers started within 30 s of each other over overlapping heads both stopped; helper-96
+    #7: two live printers, not a stand-in monitor. B over heads 06-07 starts once A (05-06) is up: B exits 2 naming
+    /head_06/fdi and the printer before it; A runs on (its summary lines go on) and stops on SIGTERM with 0."""
+    args = ("--model", str(fdi_model), "--duration", "90", "--ros-args", "--log-level", "warn")
+    a = _start(ros, "--heads", "2", "--first-head", "5", *args)
+    b = None
     try:
-        for line in proc.stdout:  # its summary lines, one a second, past the first graph checks
-            lines.append(line)
-            if line.startswith("t=") and float(line[2:].split("s", 1)[0]) >= 4.0:
+        for line in a.stdout:  # A's nodes up: both heads' /diagnostics arrive
+            if "heads up 2/2" in line:
                 break
-        proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=30)
+        b = _start(ros, "--heads", "2", "--first-head", "6", *args)
+        out_b, err_b = b.communicate(timeout=60)
+        assert b.returncode == 2, (out_b, err_b)
+        assert "/head_06/fdi runs twice" in err_b and "another inkdiag printer started before this one" in err_b, err_b
+        more = []
+        for line in a.stdout:  # A after B is gone: three more summary lines (EOF here if A had stopped)
+            more.append(line)
+            if len(more) == 3:
+                break
+        a.send_signal(signal.SIGTERM)
+        out_a, err_a = a.communicate(timeout=30)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 0 and "runs twice" not in err, ("".join(lines) + out, err)
+        for p in (a, b):
+            if p is not None and p.poll() is None:
+                p.kill()
+    assert len(more) == 3 and a.returncode == 0 and "runs twice" not in err_a, (more, out_a, err_a)
 
 
 def test_which_printer_started_first_is_read_from_the_monitors_names():
