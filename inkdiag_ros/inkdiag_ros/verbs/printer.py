@@ -177,17 +177,22 @@ def monitor_name(first_head: int, n_heads: int, started_ns: int, pid: int) -> st
     return f"printer_monitor_h{first_head:02d}_{first_head + n_heads - 1:02d}_t{started_ns}_p{pid}"
 
 
+def _monitor_fields(name: str):
+    """``(first_head, last_head, (started_ns, pid))`` of a :func:`monitor_name`, or None for another name."""
+    m = _MONITOR.fullmatch(name)
+    return None if m is None else (int(m[1]), int(m[2]), (int(m[3]), int(m[4])))
+
+
 def started_first(names_and_namespaces, mine: str) -> tuple:
     """``(earlier, later)``: the other printers' monitor names (:func:`monitor_name`) in the graph whose heads overlap
     ``mine``'s and that started before it, and after it (by start time, then process id)."""
-    me = _MONITOR.fullmatch(mine)
-    first, last, key = int(me[1]), int(me[2]), (int(me[3]), int(me[4]))
+    first, last, key = _monitor_fields(mine)
     earlier, later = [], []
     for name, _ in names_and_namespaces:
-        m = _MONITOR.fullmatch(name)
-        if m is None or name == mine or int(m[2]) < first or int(m[1]) > last:
+        f = _monitor_fields(name)
+        if f is None or name == mine or f[1] < first or f[0] > last:
             continue
-        (earlier if (int(m[3]), int(m[4])) < key else later).append(name)
+        (earlier if f[2] < key else later).append(name)
     return sorted(earlier), sorted(later)
 
 
@@ -241,7 +246,7 @@ class ConflictWatch:
         if not twice:
             return ""
         earlier, later = started_first(names_and_namespaces, self.me)
-        covered = {h for m in later for h in range(int(_MONITOR.fullmatch(m)[1]), int(_MONITOR.fullmatch(m)[2]) + 1)}
+        covered = {h for m in later for h in range(_monitor_fields(m)[0], _monitor_fields(m)[1] + 1)}
         late = [d for d in twice if int(d.split("/")[1].split("_")[1]) in covered]
         if earlier:
             who = "another inkdiag printer started before this one"
