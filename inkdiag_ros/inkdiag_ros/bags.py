@@ -719,8 +719,8 @@ class BagRecorder:
         self.typestore = get_typestore(Stores.ROS2_JAZZY)
         self.connections = {}
         self.counts = dict.fromkeys(wanted, 0)
-        self._subs = [node.create_subscription(msg_class(t), topic, self._callback(topic), qos, raw=True)
-                      for topic, (t, qos) in wanted.items()]
+        self._subs = {topic: node.create_subscription(msg_class(t), topic, self._callback(topic), qos, raw=True)
+                      for topic, (t, qos) in wanted.items()}
 
     def _offered(self, topic):
         """The QoS profiles the topic's publishers offer (the subscription's own when none is seen)."""
@@ -747,19 +747,42 @@ class BagRecorder:
             self.counts[topic] += 1
         return on_message
 
+    def drain(self) -> int:
+        """Write the messages received but not yet handed to a callback; returns how many.
+
+        A stop (SIGINT/SIGTERM) ends the spin loop between two callbacks: a frame's trace message
+        could be in the bag and its ground truth, received a moment later, still queued on its
+        subscription. Call it once the executor is down. At most a queue's depth per topic (a
+        publisher in another process goes on publishing meanwhile).
+        """
+        from ._spin import take_queued
+
+        n = 0
+        for topic, sub in self._subs.items():
+            write = self._callback(topic)
+            try:
+                for raw in take_queued(sub, max(self.wanted[topic][1].depth, 1)):
+                    write(raw)
+                    n += 1
+            except Exception:  # the node or its context is gone already: nothing more to take
+                pass
+        return n
+
     def finish(self):
-        """Add the topics that had no message (so the metadata lists every recorded topic)."""
+        """Write what is still queued (:meth:`drain`) and add the topics that had no message (so the metadata
+        lists every recorded topic)."""
+        self.drain()
         for topic in self.wanted:
             self.connection(topic)
 
     def destroy(self):
         """Drop the subscriptions (no message is written after this)."""
-        for sub in self._subs:
+        for sub in self._subs.values():
             try:
                 self.node.destroy_subscription(sub)
             except Exception:  # the node or its context is gone already
                 pass
-        self._subs = []
+        self._subs = {}
 
 
 def pop_record_arg(argv):
@@ -871,10 +894,10 @@ class InProcessRecording:
         """Stop recording and close the bag; returns the messages written per topic."""
         if not self._closed:
             self._closed = True
-            self.recorder.destroy()
             try:
                 self.recorder.finish()
             finally:
+                self.recorder.destroy()
                 self.writer.close()
         return dict(self.recorder.counts)
 

@@ -177,3 +177,40 @@ def test_a_recorded_live_graph_replayed_into_a_fresh_fdi_gives_the_live_labels(t
     assert len(common) >= 0.9 * n_traces, (len(common), n_traces, sorted(live_labels), sorted(replayed))
     assert [replayed[k] for k in common] == [live_labels[k] for k in common]
     assert sum(len(live_labels[k]["faults"]) for k in common) > 0  # the head's faults were labelled
+
+
+@pytest.mark.parametrize("context_down_first", [False, True], ids=["stopped", "context-down"])
+def test_a_closing_recording_writes_what_is_still_queued_on_its_subscriptions(tmp_path, ros, context_down_first):
+    """A stop lands between two callbacks: a frame's traces recorded, its ground truth still queued. Closing the
+    recording takes what is queued (the recorder's node is never spun here), also once a signal took the context
+    down, as rclpy's handler does before the node's outputs are closed."""
+    import rclpy
+    from rclpy.node import Node
+
+    from _helpers import collect
+    from inkdiag_ros.bags import InProcessRecording
+    from msg_defs import RELIABLE_QOS, TRACE_MSG_TYPE, TRACES_QOS, TRUTH_MSG_TYPE, topics
+
+    rec_node = Node("recorder", namespace=NS, context=ros.context)  # not in the executor: nothing is handed on
+    try:
+        rec = InProcessRecording(rec_node, tmp_path / "b", ["traces", "ground_truth"])
+        src = ros.node("src", namespace=NS)
+        pubs = [src.create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS),
+                src.create_publisher(TRUTH_MSG_TYPE, topics.GROUND_TRUTH, RELIABLE_QOS)]
+        probe = ros.node("probe", namespace=NS)
+        seen = [collect(ros, probe, TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS),
+                collect(ros, probe, TRUTH_MSG_TYPE, topics.GROUND_TRUTH, RELIABLE_QOS)]
+        ros.spin_until(lambda: all(p.get_subscription_count() == 2 for p in pubs), what="both subscriptions matched")
+        for i in range(3):
+            pubs[0].publish(TRACE_MSG_TYPE(data=[float(i)] * 4))
+            pubs[1].publish(TRUTH_MSG_TYPE(data=f"frame {i}"))
+        ros.spin_until(lambda: all(len(s) == 3 for s in seen), what="the probe's 6 messages")
+        if context_down_first:
+            rclpy.try_shutdown(context=ros.context)
+        counts = rec.close()
+    finally:
+        rec_node.destroy_node()
+    assert counts == {f"{NS}/traces": 3, f"{NS}/ground_truth": 3}, counts
+    got = _read(tmp_path / "b")
+    assert [m.data for _, m in got[f"{NS}/ground_truth"]] == [f"frame {i}" for i in range(3)]
+    assert [list(m.data) for _, m in got[f"{NS}/traces"]] == [[float(i)] * 4 for i in range(3)]
