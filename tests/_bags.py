@@ -29,10 +29,11 @@ def frame_msg(ts, traces, *, first, frame_id, stamp_s, data_offset=HEADER_LEN, f
 
 
 def write_bag(path, frames, *, version=9, bad_frame=None, traces_type="std_msgs/msg/Float32MultiArray", stamps=None,
-              writer=None, fs=FS):
+              writer=None, fs=FS, log_ns=None):
     """A rosbag2 MCAP bag written by rosbags directly: ``frames`` is a list of (first_nozzle, traces); frame ``k``
     has frame_id ``k`` and stamp ``stamps[k]`` s (default ``100 + k``). ``writer(path, version)``: the writer
-    (default: rosbags' own)."""
+    (default: rosbags' own). ``log_ns(k)``: the log time of frame ``k``'s traces and labels messages, ns (default:
+    0.1 s apart, the labels message 1 ns after its traces)."""
     from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
     from rosbags.rosbag2 import StoragePlugin, Writer
 
@@ -49,9 +50,9 @@ def write_bag(path, frames, *, version=9, bad_frame=None, traces_type="std_msgs/
             else:
                 msg = frame_msg(ts, x, first=first, frame_id=k, stamp_s=100 + k if stamps is None else stamps[k],
                                 data_offset=3 if k == bad_frame else HEADER_LEN, fs=fs)
-            w.write(conn, t0 + k * 100_000_000, ts.serialize_cdr(msg, traces_type))
-            w.write(other, t0 + k * 100_000_000 + 1, ts.serialize_cdr(ts.types["std_msgs/msg/String"](data="{}"),
-                                                                       "std_msgs/msg/String"))
+            t = (t0 + k * 100_000_000, t0 + k * 100_000_000 + 1) if log_ns is None else (log_ns(k), log_ns(k))
+            w.write(conn, t[0], ts.serialize_cdr(msg, traces_type))
+            w.write(other, t[1], ts.serialize_cdr(ts.types["std_msgs/msg/String"](data="{}"), "std_msgs/msg/String"))
     return path
 
 

@@ -20,6 +20,7 @@ the relative names :func:`head_topics` resolves under a namespace.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import importlib
@@ -220,9 +221,14 @@ class BagFrames:
             s += f"; skipped {n_skip}: " + "; ".join(
                 f"message {i}: {why}" for i, why in self.skipped[:3]) + (" ..." if n_skip > 3 else "")
         if self.salvaged is not None:
-            s += ("; read from its MCAP files as they are (a bag its recorder did not close, a file cut short, or a "
-                  "damaged chunk): " + ("; ".join(self.salvaged) if self.salvaged else "no damage found"))
+            s += "; " + salvage_note(self.salvaged)
         return s
+
+
+def salvage_note(damage) -> str:
+    """What a :class:`SalvageReader` says of a bag, ``damage`` its :attr:`SalvageReader.damage` lines."""
+    return ("read from its MCAP files as they are (a bag its recorder did not close, a file cut short, or a damaged "
+            "chunk): " + ("; ".join(damage) if damage else "no damage found"))
 
 
 def open_reader(bag_dir, *, salvage: bool = False):
@@ -476,6 +482,46 @@ def _unread(messages, last_ns, n_at_last: int):
         yield conn, t_ns, raw
 
 
+def check_salvage_has_topics(reader, src) -> None:
+    """RecordingError if ``reader`` is a :class:`SalvageReader` that found no complete channel record (none to read)."""
+    if isinstance(reader, SalvageReader) and not reader.connections:
+        what = "not a closed rosbag2 bag" if not (Path(src) / "metadata.yaml").is_file() else "cannot open the bag"
+        raise RecordingError(f"{src}: {what}{_listed(Path(src))}, and its MCAP files hold no complete message "
+                             f"either: {'; '.join(reader.damage) or 'no topics'}")
+
+
+def read_on(reader, conns, bag: Path, reselect, broken_off, on_salvage=None):
+    """Yield ``(connection, log_time_ns, raw)`` of ``reader.messages(connections=conns)``, read on past damage.
+
+    Where ``rosbags`` cannot read on (a damaged chunk of an MCAP bag it opened), the rest is read by a
+    :class:`SalvageReader` of ``bag`` (its connections: ``reselect(salvage_reader)``; ``on_salvage(salvage_reader)``
+    is called at the switch), skipping what was read already (:func:`_unread`): each message once. Where
+    it cannot read on (a SalvageReader's own file, a bag without MCAP files), ``broken_off(exc)`` is raised
+    (an exception, one line). The caller closes ``reader``.
+    """
+    it = reader.messages(connections=conns)
+    last = (None, 0)  # the log time of the last message read, and how many were read at it
+    while True:
+        try:
+            item = next(it)
+        except StopIteration:
+            return
+        except Exception as exc:  # a truncated or damaged storage file
+            if isinstance(reader, SalvageReader) or not any(bag.glob("*.mcap")):
+                raise broken_off(exc) from None
+            try:  # a damaged chunk of a bag that opened: on past it, as a bag that does not open
+                reader = SalvageReader(bag)
+                conns = reselect(reader)
+            except Exception:  # noqa: BLE001 - its files do not read either (permissions...): as before
+                raise broken_off(exc) from None
+            if on_salvage is not None:
+                on_salvage(reader)
+            it = _unread(reader.messages(connections=conns), *last)
+            continue
+        last = (item[1], last[1] + 1 if item[1] == last[0] else 1)
+        yield item
+
+
 def iter_bag_frames(bag_dir, *, topic: str | None = None, stats: BagFrames | None = None):
     """Stream the trace frames of a bag, one decoded frame per message, in bag order.
 
@@ -512,37 +558,22 @@ def iter_bag_frames(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
 
     src = str(bag_dir)
     stats = stats if stats is not None else BagFrames()
+
+    def broken_off(exc):
+        return RecordingError(f"{src}: truncated or corrupt bag{storage_files(Path(src))}: {stats.n_messages} "
+                              f"messages on {stats.topic} readable, then: {first_line(exc)}")
+
+    def on_salvage(salvage_reader):
+        stats.salvaged = salvage_reader.damage  # filled as the files are read
+
     reader = open_reader(bag_dir, salvage=True)
-    if isinstance(reader, SalvageReader):
-        if not reader.connections:  # not even a complete channel record: nothing to read
-            what = "not a closed rosbag2 bag" if not (Path(src) / "metadata.yaml").is_file() else "cannot open the bag"
-            raise RecordingError(f"{src}: {what}{_listed(Path(src))}, and its MCAP files hold no complete message "
-                                 f"either: {'; '.join(reader.damage) or 'no topics'}")
-        stats.salvaged = reader.damage  # filled as the files are read
-    try:
+    with contextlib.closing(reader):
+        check_salvage_has_topics(reader, src)
+        if isinstance(reader, SalvageReader):
+            on_salvage(reader)
         stats.topic, conns = _traces_connections(reader, topic, src)
-        it = reader.messages(connections=conns)
-        last = (None, 0)  # the log time of the last message read, and how many were read at it
-        while True:
-            try:
-                _, t_ns, raw = next(it)
-            except StopIteration:
-                break
-            except Exception as exc:  # a truncated or damaged storage file
-                why = (f"{src}: truncated or corrupt bag{storage_files(Path(bag_dir))}: {stats.n_messages} "
-                       f"messages on {stats.topic} readable, then: {first_line(exc)}")
-                if isinstance(reader, SalvageReader) or not any(Path(src).glob("*.mcap")):
-                    raise RecordingError(why) from None
-                reader.close()  # a damaged chunk of a bag that opened: on past it, as a bag that does not open
-                try:
-                    reader = SalvageReader(Path(src))
-                    salvaged = _traces_connections(reader, stats.topic, src)[1]
-                except Exception:  # noqa: BLE001 - its files do not read either (permissions...): as before
-                    raise RecordingError(why) from None
-                stats.salvaged = reader.damage
-                it = _unread(reader.messages(connections=salvaged), *last)
-                continue
-            last = (t_ns, last[1] + 1 if t_ns == last[0] else 1)
+        for _, _, raw in read_on(reader, conns, Path(src), lambda r: _traces_connections(r, stats.topic, src)[1],
+                                 broken_off, on_salvage):
             i = stats.n_messages
             stats.n_messages += 1
             try:
@@ -554,8 +585,6 @@ def iter_bag_frames(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
                 stats.skip(i, f"not a serialised {TRACES_TYPE}: {first_line(exc)}")
                 continue
             yield frame
-    finally:
-        reader.close()
 
 
 #: Rows per chunk :func:`iter_bag_chunks` yields at most by default (whole frames; 32 MB of 512-sample traces).

@@ -13,6 +13,9 @@ matched by subscribers, and 1 s more for their side of the match: a replay
 that published at once would lose its first messages to discovery. Reliable
 topics are waited on to be acknowledged at the end.
 
+A bag its recorder did not close, a file cut short or a damaged chunk (MCAP) is
+read on past, as `inkdiag label` reads it: the last line says what was lost.
+
 --namespace NS moves the head's topics: the first name component of every topic
 that has more than one (/head_00/traces -> NS/traces; /diagnostics stays).
 --topics keeps only those topics (relative names as in `inkdiag record`, or the
@@ -90,32 +93,50 @@ def run(args) -> int:
     from inkdiag_core.recording import RecordingError
 
     from .._spin import stop_on_signals, tear_down
-    from ..bags import TRACES_TYPE, msg_class, open_reader, qos_from_rosbags
+    from ..bags import (TRACES_TYPE, SalvageReader, check_salvage_has_topics, first_line, msg_class, open_reader,
+                        qos_from_rosbags, read_on, salvage_note, storage_files)
 
     if not args.as_fast_as_possible and not (math.isfinite(args.rate) and args.rate > 0):
         raise ValueError(f"--rate must be a number > 0, got {args.rate!r}")
     if not (math.isfinite(args.wait_s) and args.wait_s >= 0):
         raise ValueError(f"--wait-s must be a number of seconds >= 0, got {args.wait_s!r}")
     bag = Path(args.bag)
-    reader = open_reader(bag)  # no such bag, not a bag, one that does not open: RecordingError, one line
+    # no such bag, not a bag, one that opens neither with rosbags nor from its MCAP files: RecordingError, one line
+    reader = open_reader(bag, salvage=True)
+    # read from its MCAP files as they are (a bag that did not open, or past a damaged chunk): the SalvageReaders
+    # of this pass over the bag, and what they found (lines, in order; None: rosbags read it all)
+    salvage, damage = [], None
+
+    def selected(r):
+        if isinstance(r, SalvageReader):
+            salvage.append(r)
+        return [c for c in r.connections if _selected(c.topic, args.topics)]
+
     try:
-        conns = [c for c in reader.connections if _selected(c.topic, args.topics)]
+        check_salvage_has_topics(reader, bag)
+        conns = selected(reader)
         if not conns:
             has = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
             raise RecordingError(f"{bag}: no topic to replay (it has {has})")
-        if not sum(c.msgcount for c in conns):
+        n_listed = None if salvage else sum(c.msgcount for c in conns)  # salvaged: not known before it is read
+        if n_listed == 0:
             raise RecordingError(f"{bag}: no messages on {', '.join(sorted({c.topic for c in conns}))} to replay")
         targets = _targets(conns, args.namespace)  # bad or colliding names: ValueError, before any node
         classes = {}
         for c in conns:  # before any node: a topic of a type not installed here is named, with the way round it
             try:
-                classes[c.id] = msg_class(c.msgtype)
+                classes[c.topic, c.msgtype] = msg_class(c.msgtype)
             except ValueError as exc:
                 raise RecordingError(f"{bag}: topic {c.topic}: {exc}; leave it out with --topics") from None
     except BaseException:
         reader.close()
         raise
     n_sent = 0
+
+    def broken_off(exc):
+        return RecordingError(f"{bag}: truncated or corrupt bag{storage_files(bag)}: {n_sent} messages replayed, "
+                              f"then: {first_line(exc)}")
+
     with stop_on_signals() as stop:
         node = executor = None
         try:
@@ -126,29 +147,29 @@ def run(args) -> int:
                 executor = SingleThreadedExecutor()
                 executor.add_node(node)
                 pubs = {}
-                for c in conns:
+                for c in conns:  # read from the MCAP files as they are: the wire contract's QoS
                     default = TRACES_QOS if c.msgtype == TRACES_TYPE else RELIABLE_QOS
-                    offered = c.ext.offered_qos_profiles
+                    offered = getattr(getattr(c, "ext", None), "offered_qos_profiles", None)
                     qos = qos_from_rosbags(offered[0] if offered else None, default)
-                    pubs[c.id] = node.create_publisher(classes[c.id], targets[c.topic], qos)
+                    pubs[c.topic, c.msgtype] = node.create_publisher(classes[c.topic, c.msgtype], targets[c.topic], qos)
             except Exception:  # a signal as the node was built: rclpy invalidated the context under it (RCLError)
                 if not stop.explains_an_error():
                     raise
             else:
                 _wait_for_subscribers(executor, node, list(pubs.values()), args.wait_s, stop)
                 if not stop.requested:
-                    print(f"replaying {sum(c.msgcount for c in conns)} messages of "
+                    print(f"replaying {'the' if n_listed is None else n_listed} messages of "
                           + ", ".join(t if targets[t] == t else f"{t} as {targets[t]}" for t in sorted(targets))
                           + f" from {bag}", file=sys.stderr, flush=True)
-                    alone = sorted({targets[c.topic] for c in conns  # the traces: what a replay is for
-                                    if c.msgtype == TRACES_TYPE and not pubs[c.id].get_subscription_count()})
+                    alone = sorted({targets[topic] for (topic, msgtype), pub in pubs.items()  # the traces: what a
+                                    if msgtype == TRACES_TYPE and not pub.get_subscription_count()})  # replay is for
                     if alone:  # said, not silent: those messages go to nobody
                         print(f"inkdiag replay: warning: no subscriber on {', '.join(alone)} after {args.wait_s:g} s: "
                               "its messages go to no node (is the node's namespace the one the topic is under?)",
                               file=sys.stderr, flush=True)
                 while not stop.requested and rclpy.ok():
                     t_bag0 = t_wall0 = None
-                    for c, ts, raw in _broken_off_at(reader.messages(connections=conns), bag, lambda: n_sent):
+                    for c, ts, raw in read_on(reader, conns, bag, selected, broken_off):
                         if stop.requested:
                             break
                         if t_bag0 is None:
@@ -160,13 +181,17 @@ def run(args) -> int:
                                     executor.spin_once(timeout_sec=min(0.05, max(0.0, due - time.monotonic())))
                                 except ExternalShutdownException:
                                     stop.requested = True
+                        pub = pubs.get((c.topic, c.msgtype))  # None: a topic only the MCAP files list
+                        if pub is None:
+                            continue
                         try:
-                            pubs[c.id].publish(bytes(raw))
+                            pub.publish(bytes(raw))
                         except Exception:
                             if stop.requested or not rclpy.ok():  # a signal took the context down meanwhile
                                 break
                             raise
                         n_sent += 1
+                    damage = _found(salvage, damage)
                     if not args.loop:
                         break
                 for pub in pubs.values() if rclpy.ok() else ():  # reliable topics: the subscribers have them first
@@ -175,8 +200,19 @@ def run(args) -> int:
         finally:
             reader.close()
             tear_down(executor, [node])
-    print(f"replayed {n_sent} messages from {bag}", file=sys.stderr)
+    damage = _found(salvage, damage)
+    print(f"replayed {n_sent} messages from {bag}" + (f"; {salvage_note(list(damage))}" if damage is not None else ""),
+          file=sys.stderr)
     return 0
+
+
+def _found(salvage: list, damage):
+    """``damage`` (a dict of lines, or None) with the lines of the SalvageReaders in ``salvage``, which is emptied."""
+    for r in salvage:
+        damage = {} if damage is None else damage
+        damage.update(dict.fromkeys(r.damage))
+    salvage.clear()
+    return damage
 
 
 # A publisher counts a subscriber as soon as its own side has matched it; the subscriber's side
@@ -184,25 +220,6 @@ def run(args) -> int:
 # was once too short for an fdi node on a loaded CI machine (2 of 8 frames taken); probe
 # (a writer publishing at once on its match, two CPU burners): 5 of 8 taken in 1 run of 6.
 READER_MATCH_GRACE_S = 1.0
-
-
-def _broken_off_at(messages, bag, n_sent):
-    """``messages``, with a storage file that breaks off (truncated, a chunk's CRC) raised as one line that says
-    how many messages went out before (``n_sent()``)."""
-    from inkdiag_core.recording import RecordingError
-
-    from ..bags import first_line, storage_files
-
-    it = iter(messages)
-    while True:
-        try:
-            item = next(it)
-        except StopIteration:
-            return
-        except Exception as exc:  # rosbags' ReaderError, or a storage error of a damaged file
-            raise RecordingError(f"{bag}: truncated or corrupt bag{storage_files(bag)}: {n_sent()} messages "
-                                 f"replayed, then: {first_line(exc)}") from None
-        yield item
 
 
 def _wait_for_subscribers(executor, node, pubs, wait_s, stop):
