@@ -172,6 +172,9 @@ def run(args) -> int:
                     for c, ts, raw in read_on(reader, conns, bag, selected, broken_off):
                         if stop.requested:
                             break
+                        pub = pubs.get((c.topic, c.msgtype))  # None: a topic only the MCAP files list
+                        if pub is None:
+                            continue
                         if t_bag0 is None:
                             t_bag0, t_wall0 = ts, time.monotonic()
                         if not args.as_fast_as_possible:
@@ -181,9 +184,6 @@ def run(args) -> int:
                                     executor.spin_once(timeout_sec=min(0.05, max(0.0, due - time.monotonic())))
                                 except ExternalShutdownException:
                                     stop.requested = True
-                        pub = pubs.get((c.topic, c.msgtype))  # None: a topic only the MCAP files list
-                        if pub is None:
-                            continue
                         try:
                             pub.publish(bytes(raw))
                         except Exception:
