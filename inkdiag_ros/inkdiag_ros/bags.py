@@ -310,8 +310,26 @@ def _summary_channels(path):
 
 @dataclasses.dataclass(frozen=True)
 class _Connection:
+    """A topic of a :class:`SalvageReader`: as much of a ``rosbags`` Connection as the readers here use."""
+
     topic: str
     msgtype: str
+    offered_qos_profiles: tuple = ()  # rosbags.interfaces.Qos, from the MCAP channel record's metadata
+
+    @property
+    def ext(self):  # rosbags' ``connection.ext.offered_qos_profiles``
+        return self
+
+
+def _channel_qos(channel) -> tuple:
+    """The QoS profiles an MCAP channel record says its publishers offered (rosbag2 writes them into each
+    channel's metadata); () when it says none or they do not parse."""
+    from rosbags.rosbag2.metadata import parse_qos
+
+    try:
+        return tuple(parse_qos((channel.metadata or {}).get("offered_qos_profiles", "")))
+    except Exception:  # noqa: BLE001 - not YAML, another layout: msg_defs' profile for its kind of topic instead
+        return ()
 
 
 class SalvageReader:
@@ -342,7 +360,8 @@ class SalvageReader:
         conns = {}
         for chans in self._channels:
             for ch, schema_name in (chans or {}).values():
-                conns.setdefault((ch.topic, schema_name), _Connection(ch.topic, schema_name))
+                if (ch.topic, schema_name) not in conns:
+                    conns[ch.topic, schema_name] = _Connection(ch.topic, schema_name, _channel_qos(ch))
         self.connections = list(conns.values())
 
     def _records(self, messages: bool, files=None):
@@ -781,21 +800,27 @@ class BagRecorder:
 
         A stop (SIGINT/SIGTERM) ends the spin loop between two callbacks: a frame's trace message
         could be in the bag and its ground truth, received a moment later, still queued on its
-        subscription. Call it once the executor is down. At most a queue's depth per topic (a
-        publisher in another process goes on publishing meanwhile).
+        subscription. Call it once the executor is down. They are written in the order they were
+        received, each stamped with its receive time (as a callback would have stamped it). At most
+        a queue's depth per topic (a publisher in another process goes on publishing meanwhile).
         """
-        from ._spin import take_queued
-
-        n = 0
+        queued = []
         for topic, sub in self._subs.items():
-            write = self._callback(topic)
-            try:
-                for raw in take_queued(sub, max(self.wanted[topic][1].depth, 1)):
-                    write(raw)
-                    n += 1
-            except Exception:  # the node or its context is gone already: nothing more to take
-                pass
-        return n
+            for _ in range(max(self.wanted[topic][1].depth, 1)):
+                try:
+                    with sub.handle:
+                        taken = sub.handle.take_message(sub.msg_type, sub.raw)
+                except Exception:  # the node or its context is gone already: nothing more to take
+                    break
+                if taken is None:
+                    break
+                raw, info = taken
+                stamp = info.get("received_timestamp") or self.node.get_clock().now().nanoseconds
+                queued.append((stamp, len(queued), topic, raw))
+        for stamp, _, topic, raw in sorted(queued):
+            self.writer.write(self.connection(topic), stamp, raw)
+            self.counts[topic] += 1
+        return len(queued)
 
     def finish(self):
         """Write what is still queued (:meth:`drain`) and add the topics that had no message (so the metadata

@@ -302,6 +302,24 @@ def test_replay_reads_on_past_damage_as_the_offline_verbs_do(tmp_path, sim, ros)
     (nometa / corrupt.name).write_bytes(corrupt.read_bytes())
     rc, n2, err = _replayed(nometa)
     assert rc == 0 and n2 == n and "a bag its recorder did not close, a file cut short, or a damaged chunk" in err, err
+    # the QoS each channel record says its publishers offered (rosbags' reader of the intact bag agrees)
+    from rosbags.rosbag2 import Reader
+
+    from inkdiag_ros.bags import SalvageReader
+
+    with Reader(tmp_path / "corrupt") as r:
+        recorded = {c.topic: c.ext.offered_qos_profiles for c in r.connections}
+    assert {c.topic: list(c.ext.offered_qos_profiles) for c in SalvageReader(nometa).connections} == recorded
+    assert recorded[f"{NS}/traces"][0].depth == 32  # write_bag's, not msg_defs' default
+    # nothing but a damaged chunk: exit 2, one line, also with --loop (it re-read the files at full speed, exit 0)
+    bad = write_bag(tmp_path / "bad", [(0, x)] * 10, version=8, writer=bag_writer)  # one chunk
+    flip_a_trace_byte(bad)
+    for args in (("--loop",),):
+        rc, n3, err = _replayed(bad, *args)
+        lines = err.strip().splitlines()
+        assert rc == 2 and n3 is None and "Traceback" not in err and lines[-1].startswith(
+            f"inkdiag replay: error: {bad}: no messages on {NS}/labels, {NS}/traces to replay; read from its MCAP "
+            "files as they are") and "a damaged chunk skipped (crc validation failed" in lines[-1], err
 
 
 def test_a_bag_inkdiag_writes_chunk_crcs_and_a_flipped_trace_bit_costs_only_its_chunk(tmp_path, sim, fdi_model):

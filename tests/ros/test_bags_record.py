@@ -203,10 +203,14 @@ def test_a_closing_recording_writes_what_is_still_queued_on_its_subscriptions(tm
         ros.spin_until(lambda: all(p.get_subscription_count() == 2 for p in pubs), what="both subscriptions matched")
         for i in range(3):
             pubs[0].publish(TRACE_MSG_TYPE(data=[float(i)] * 4))
+            time.sleep(0.002)  # receive times a clock's tick apart, in the order published
             pubs[1].publish(TRUTH_MSG_TYPE(data=f"frame {i}"))
+            time.sleep(0.002)
         ros.spin_until(lambda: all(len(s) == 3 for s in seen), what="the probe's 6 messages")
         if context_down_first:
             rclpy.try_shutdown(context=ros.context)
+        time.sleep(0.1)
+        closed_ns = time.time_ns()
         counts = rec.close()
     finally:
         rec_node.destroy_node()
@@ -214,3 +218,7 @@ def test_a_closing_recording_writes_what_is_still_queued_on_its_subscriptions(tm
     got = _read(tmp_path / "b")
     assert [m.data for _, m in got[f"{NS}/ground_truth"]] == [f"frame {i}" for i in range(3)]
     assert [list(m.data) for _, m in got[f"{NS}/traces"]] == [[float(i)] * 4 for i in range(3)]
+    # in the order received, each stamped with its receive time (not all of one topic after the other, at close time)
+    order = sorted((t, topic) for topic, msgs in got.items() for t, _ in msgs)
+    assert [topic.rsplit("/", 1)[1] for _, topic in order] == ["traces", "ground_truth"] * 3, order
+    assert order[-1][0] < closed_ns - 50_000_000, (order, closed_ns)  # received 0.1 s before the close, at least

@@ -131,7 +131,7 @@ def run(args) -> int:
     except BaseException:
         reader.close()
         raise
-    n_sent = 0
+    n_sent, no_pub = 0, {}  # messages published; (topic, type) -> messages of a topic it has no publisher for
 
     def broken_off(exc):
         return RecordingError(f"{bag}: truncated or corrupt bag{storage_files(bag)}: {n_sent} messages replayed, "
@@ -147,9 +147,9 @@ def run(args) -> int:
                 executor = SingleThreadedExecutor()
                 executor.add_node(node)
                 pubs = {}
-                for c in conns:  # read from the MCAP files as they are: the wire contract's QoS
+                for c in conns:
                     default = TRACES_QOS if c.msgtype == TRACES_TYPE else RELIABLE_QOS
-                    offered = getattr(getattr(c, "ext", None), "offered_qos_profiles", None)
+                    offered = c.ext.offered_qos_profiles
                     qos = qos_from_rosbags(offered[0] if offered else None, default)
                     pubs[c.topic, c.msgtype] = node.create_publisher(classes[c.topic, c.msgtype], targets[c.topic], qos)
             except Exception:  # a signal as the node was built: rclpy invalidated the context under it (RCLError)
@@ -169,11 +169,13 @@ def run(args) -> int:
                               file=sys.stderr, flush=True)
                 while not stop.requested and rclpy.ok():
                     t_bag0 = t_wall0 = None
+                    n_before = n_sent
                     for c, ts, raw in read_on(reader, conns, bag, selected, broken_off):
                         if stop.requested:
                             break
-                        pub = pubs.get((c.topic, c.msgtype))  # None: a topic only the MCAP files list
-                        if pub is None:
+                        pub = pubs.get((c.topic, c.msgtype))
+                        if pub is None:  # a topic only the MCAP files past a damaged chunk list: said at the end
+                            no_pub[c.topic, c.msgtype] = no_pub.get((c.topic, c.msgtype), 0) + 1
                             continue
                         if t_bag0 is None:
                             t_bag0, t_wall0 = ts, time.monotonic()
@@ -192,6 +194,9 @@ def run(args) -> int:
                             raise
                         n_sent += 1
                     damage = _found(salvage, damage)
+                    if n_sent == n_before and not stop.requested:  # salvaged: nothing left (a --loop would spin)
+                        raise RecordingError(f"{bag}: no messages on {', '.join(sorted({c.topic for c in conns}))} "
+                                             f"to replay; {salvage_note(list(damage or ()))}")
                     if not args.loop:
                         break
                 for pub in pubs.values() if rclpy.ok() else ():  # reliable topics: the subscribers have them first
@@ -201,8 +206,10 @@ def run(args) -> int:
             reader.close()
             tear_down(executor, [node])
     damage = _found(salvage, damage)
-    print(f"replayed {n_sent} messages from {bag}" + (f"; {salvage_note(list(damage))}" if damage is not None else ""),
-          file=sys.stderr)
+    print(f"replayed {n_sent} messages from {bag}"
+          + "".join(f"; {n} messages of {topic} ({msgtype or 'no type'}) not replayed: a topic the bag's summary does "
+                    "not list" for (topic, msgtype), n in sorted(no_pub.items()))
+          + (f"; {salvage_note(list(damage))}" if damage is not None else ""), file=sys.stderr)
     return 0
 
 
