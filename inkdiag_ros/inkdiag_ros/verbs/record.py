@@ -70,11 +70,15 @@ def run(args) -> int:
                                            max(0.0, min(0.1, end - time.monotonic())))
                     except ExternalShutdownException:  # SIGINT/SIGTERM through rclpy's handler
                         break
-        finally:
-            if rec is not None:
-                rec.finish()
-            writer.close()  # metadata.yaml and the MCAP summary: a valid bag whatever stopped us
-            tear_down(executor, [node])
+        finally:  # each step whatever the one before it raised (a full disk): the error goes on up after them
+            try:
+                if rec is not None:
+                    rec.finish()  # what is still queued, and the topics that had no message
+            finally:
+                try:
+                    writer.close()  # metadata.yaml and the MCAP summary: a valid bag whatever stopped us
+                finally:
+                    tear_down(executor, [node])
     counts = rec.counts if rec is not None else {}
     print(f"wrote {sum(counts.values())} messages to {bag}: "
           + ", ".join(f"{t} {n}" for t, n in counts.items()), file=sys.stderr)
