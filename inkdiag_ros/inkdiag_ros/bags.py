@@ -767,6 +767,7 @@ class BagRecorder:
         self.typestore = get_typestore(Stores.ROS2_JAZZY)
         self.connections = {}
         self.counts = dict.fromkeys(wanted, 0)
+        self._last_ns = 0  # the log time of the last message written
         self._subs = {topic: node.create_subscription(msg_class(t), topic, self._callback(topic), qos, raw=True)
                       for topic, (t, qos) in wanted.items()}
 
@@ -790,10 +791,16 @@ class BagRecorder:
 
     def _callback(self, topic):
         def on_message(raw):
-            stamp = self.node.get_clock().now().nanoseconds
-            self.writer.write(self.connection(topic), stamp, raw)
-            self.counts[topic] += 1
+            self._write(topic, self.node.get_clock().now().nanoseconds, raw)
         return on_message
+
+    def _write(self, topic, stamp: int, raw) -> None:
+        """Write ``raw`` at log time ``stamp`` (ns), or at the last one written if that is later: the bag's log
+        times never go backwards in its files (a reader of the files as they are reads them in that order)."""
+        stamp = max(stamp, self._last_ns)
+        self.writer.write(self.connection(topic), stamp, raw)
+        self._last_ns = stamp
+        self.counts[topic] += 1
 
     def drain(self) -> int:
         """Write the messages received but not yet handed to a callback; returns how many.
@@ -801,8 +808,9 @@ class BagRecorder:
         A stop (SIGINT/SIGTERM) ends the spin loop between two callbacks: a frame's trace message
         could be in the bag and its ground truth, received a moment later, still queued on its
         subscription. Call it once the executor is down. They are written in the order they were
-        received, each stamped with its receive time (as a callback would have stamped it). At most
-        a queue's depth per topic (a publisher in another process goes on publishing meanwhile).
+        received, each stamped with its receive time, or with the last log time written if that is
+        later (a callback stamps a message when it runs, after its receipt). At most a queue's depth
+        per topic (a publisher in another process goes on publishing meanwhile).
         """
         queued = []
         for topic, sub in self._subs.items():
@@ -818,8 +826,7 @@ class BagRecorder:
                 stamp = info.get("received_timestamp") or self.node.get_clock().now().nanoseconds
                 queued.append((stamp, len(queued), topic, raw))
         for stamp, _, topic, raw in sorted(queued):
-            self.writer.write(self.connection(topic), stamp, raw)
-            self.counts[topic] += 1
+            self._write(topic, stamp, raw)
         return len(queued)
 
     def finish(self):

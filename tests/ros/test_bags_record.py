@@ -222,3 +222,43 @@ def test_a_closing_recording_writes_what_is_still_queued_on_its_subscriptions(tm
     order = sorted((t, topic) for topic, msgs in got.items() for t, _ in msgs)
     assert [topic.rsplit("/", 1)[1] for _, topic in order] == ["traces", "ground_truth"] * 3, order
     assert order[-1][0] < closed_ns - 50_000_000, (order, closed_ns)  # received 0.1 s before the close, at least
+
+
+def test_log_times_never_go_backwards_in_the_files_when_a_queued_message_was_received_first(tmp_path, ros):
+    """A callback stamps its message when it runs; a message still queued at the close, received before it, was
+    written after it with its earlier receive time (helper-98): a reader of the files as they are (the salvage
+    reader) then met the log times out of order. Now it takes the last log time written."""
+    from mcap.reader import make_reader
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+
+    from _helpers import collect
+    from inkdiag_ros.bags import InProcessRecording
+    from msg_defs import RELIABLE_QOS, TRACE_MSG_TYPE, TRACES_QOS, TRUTH_MSG_TYPE, topics
+
+    rec_node = Node("recorder", namespace=NS, context=ros.context)
+    executor = SingleThreadedExecutor(context=ros.context)
+    try:
+        rec = InProcessRecording(rec_node, tmp_path / "b", ["traces", "ground_truth"])
+        executor.add_node(rec_node)
+        src = ros.node("src", namespace=NS)
+        truth = src.create_publisher(TRUTH_MSG_TYPE, topics.GROUND_TRUTH, RELIABLE_QOS)
+        traces = src.create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
+        probe = ros.node("probe", namespace=NS)
+        seen = collect(ros, probe, TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
+        ros.spin_until(lambda: truth.get_subscription_count() == 1 and traces.get_subscription_count() == 2,
+                       what="the subscriptions matched")
+        truth.publish(TRUTH_MSG_TYPE(data="frame 0"))  # received first, taken last
+        time.sleep(0.01)
+        traces.publish(TRACE_MSG_TYPE(data=[0.0] * 4))
+        ros.spin_until(lambda: len(seen) == 1, what="the traces message")
+        executor.spin_once(timeout_sec=1.0)  # the recorder's first subscription: traces, stamped now
+        assert rec.recorder.counts == {f"{NS}/traces": 1, f"{NS}/ground_truth": 0}, rec.recorder.counts
+        rec.close()
+    finally:
+        executor.shutdown()
+        rec_node.destroy_node()
+    with open(next((tmp_path / "b").glob("*.mcap")), "rb") as f:
+        stamps = [(ch.topic, m.log_time) for _, ch, m in make_reader(f).iter_messages(log_time_order=False)]
+    assert [t for t, _ in stamps] == [f"{NS}/traces", f"{NS}/ground_truth"], stamps
+    assert stamps[1][1] >= stamps[0][1], stamps

@@ -86,7 +86,7 @@ def run(args) -> int:
     from pathlib import Path
 
     import rclpy
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import ReliabilityPolicy
 
     from msg_defs.qos import RELIABLE_QOS, TRACES_QOS
@@ -161,8 +161,13 @@ def run(args) -> int:
                     print(f"replaying {'the' if n_listed is None else n_listed} messages of "
                           + ", ".join(t if targets[t] == t else f"{t} as {targets[t]}" for t in sorted(targets))
                           + f" from {bag}", file=sys.stderr, flush=True)
-                    alone = sorted({targets[topic] for (topic, msgtype), pub in pubs.items()  # the traces: what a
-                                    if msgtype == TRACES_TYPE and not pub.get_subscription_count()})  # replay is for
+                    try:
+                        alone = sorted({targets[topic] for (topic, msgtype), pub in pubs.items()  # the traces: what
+                                        if msgtype == TRACES_TYPE and not pub.get_subscription_count()})  # it is for
+                    except Exception:  # a signal took the context down meanwhile (RCLError)
+                        if not stop.explains_an_error():
+                            raise
+                        alone, stop.requested = [], True
                     if alone:  # said, not silent: those messages go to nobody
                         print(f"inkdiag replay: warning: no subscriber on {', '.join(alone)} after {args.wait_s:g} s: "
                               "its messages go to no node (is the node's namespace the one the topic is under?)",
@@ -184,33 +189,59 @@ def run(args) -> int:
                             while not stop.requested and time.monotonic() < due:
                                 try:
                                     executor.spin_once(timeout_sec=min(0.05, max(0.0, due - time.monotonic())))
-                                except ExternalShutdownException:
+                                except Exception:  # ExternalShutdownException, or RCLError: the context went down
+                                    if not stop.explains_an_error():
+                                        raise
                                     stop.requested = True
+                            if stop.requested:
+                                break
                         try:
                             pub.publish(bytes(raw))
                         except Exception:
-                            if stop.requested or not rclpy.ok():  # a signal took the context down meanwhile
-                                break
-                            raise
+                            if not stop.explains_an_error():  # else a signal took the context down meanwhile
+                                raise
+                            stop.requested = True
+                            break
                         n_sent += 1
                     damage = _found(salvage, damage)
-                    if n_sent == n_before and not stop.requested:  # salvaged: nothing left (a --loop would spin)
-                        raise RecordingError(f"{bag}: no messages on {', '.join(sorted({c.topic for c in conns}))} "
-                                             f"to replay; {salvage_note(list(damage or ()))}")
+                    if n_sent == n_before and not stop.requested:  # none read (a --loop would spin re-reading)
+                        raise RecordingError(_none_read(bag, conns, damage, no_pub))
                     if not args.loop:
                         break
-                for pub in pubs.values() if rclpy.ok() else ():  # reliable topics: the subscribers have them first
-                    if pub.qos_profile.reliability == ReliabilityPolicy.RELIABLE and pub.get_subscription_count():
-                        pub.wait_for_all_acked(rclpy.duration.Duration(seconds=5.0))
+                try:
+                    for pub in pubs.values() if rclpy.ok() else ():  # reliable topics: the subscribers have them first
+                        if pub.qos_profile.reliability == ReliabilityPolicy.RELIABLE and pub.get_subscription_count():
+                            pub.wait_for_all_acked(rclpy.duration.Duration(seconds=5.0))
+                except Exception:  # a signal took the context down meanwhile (RCLError)
+                    if not stop.explains_an_error():
+                        raise
         finally:
             reader.close()
             tear_down(executor, [node])
     damage = _found(salvage, damage)
     print(f"replayed {n_sent} messages from {bag}"
-          + "".join(f"; {n} messages of {topic} ({msgtype or 'no type'}) not replayed: a topic the bag's summary does "
-                    "not list" for (topic, msgtype), n in sorted(no_pub.items()))
+          + "".join(f"; {_not_replayed(no_pub)}" if no_pub else "")
           + (f"; {salvage_note(list(damage))}" if damage is not None else ""), file=sys.stderr)
     return 0
+
+
+def _not_replayed(no_pub: dict) -> str:
+    """What ``no_pub`` ((topic, type) -> messages) says: messages read past a damaged chunk, of a topic and type
+    the bag's summary (so no publisher) has not."""
+    return "; ".join(f"{n} messages of {topic} ({msgtype or 'no type'}) not replayed: that topic and type are not "
+                     "in the bag's summary" for (topic, msgtype), n in sorted(no_pub.items()))
+
+
+def _none_read(bag, conns, damage, no_pub) -> str:
+    """The error of a pass over the bag that replayed no message: what was read instead, or lost."""
+    from ..bags import salvage_note
+
+    why = f"{bag}: no messages on {', '.join(sorted({c.topic for c in conns}))} to replay"
+    if no_pub:
+        why += f"; {_not_replayed(no_pub)}"
+    if damage is not None:
+        return f"{why}; {salvage_note(list(damage))}"
+    return f"{why}: its storage holds none of the messages its metadata.yaml lists"
 
 
 def _found(salvage: list, damage):
