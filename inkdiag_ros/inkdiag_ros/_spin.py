@@ -437,19 +437,20 @@ def _deadline_status(early, exit_code, node) -> int:
         return 1
 
 
-def take_queued(subscription, at_most: int):
+def take_queued(subscription, at_most: int, *, with_info: bool = False):
     """Messages already queued on ``subscription``, taken as rclpy's executor takes them.
 
     A subscription callback that drains its reader this way handles a burst (a head
     scan's nozzle-range messages) in one executor wake-up and wait-set rebuild instead
-    of one per message. Yields at most ``at_most`` messages.
+    of one per message. Yields at most ``at_most`` messages; ``with_info``: ``(message,
+    info)`` pairs, ``info`` rmw's message info (a dict: ``received_timestamp``, ns, ...).
     """
     for _ in range(at_most):
         with subscription.handle:
             taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
         if taken is None:
             return
-        yield taken[0]
+        yield taken if with_info else taken[0]
 
 
 def take_into(subscription, at_most: int, handle) -> bool:

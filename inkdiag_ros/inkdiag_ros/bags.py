@@ -812,19 +812,16 @@ class BagRecorder:
         later (a callback stamps a message when it runs, after its receipt). At most a queue's depth
         per topic (a publisher in another process goes on publishing meanwhile).
         """
+        from ._spin import take_queued
+
         queued = []
         for topic, sub in self._subs.items():
-            for _ in range(max(self.wanted[topic][1].depth, 1)):
-                try:
-                    with sub.handle:
-                        taken = sub.handle.take_message(sub.msg_type, sub.raw)
-                except Exception:  # the node or its context is gone already: nothing more to take
-                    break
-                if taken is None:
-                    break
-                raw, info = taken
-                stamp = info.get("received_timestamp") or self.node.get_clock().now().nanoseconds
-                queued.append((stamp, len(queued), topic, raw))
+            try:
+                for raw, info in take_queued(sub, max(self.wanted[topic][1].depth, 1), with_info=True):
+                    stamp = info.get("received_timestamp") or self.node.get_clock().now().nanoseconds
+                    queued.append((stamp, len(queued), topic, raw))
+            except Exception:  # the node or its context is gone already: nothing more to take
+                pass
         for stamp, _, topic, raw in sorted(queued):
             self._write(topic, stamp, raw)
         return len(queued)

@@ -220,7 +220,7 @@ def run(args) -> int:
             tear_down(executor, [node])
     damage = _found(salvage, damage)
     print(f"replayed {n_sent} messages from {bag}"
-          + "".join(f"; {_not_replayed(no_pub)}" if no_pub else "")
+          + (f"; {_not_replayed(no_pub)}" if no_pub else "")
           + (f"; {salvage_note(list(damage))}" if damage is not None else ""), file=sys.stderr)
     return 0
 
