@@ -360,47 +360,47 @@ class FrameLabeller:
         return self._pending(starts, ends, code, at, ids[at], [x if at.size == x.shape[0] else x[at]])
 
     def _pending(self, starts, ends, code, at, nozzle, rows) -> "_Pending":
-        """The screened columns from the rows' codes (:func:`inkdiag_core._kernels.screen_gate_frames`'); the
-        rows left with their nozzles' baselines."""
-        cleared = code >= CLEARED_HEALTHY
-        kpis = None
-        if at.size and self.baselines is not None:
-            has, kpis = self.baselines.lookup(nozzle)
-            kpis[~has] = np.nan  # routed to the plain branch
-        return _Pending(starts, ends, code, _CLASS_OF_CODE[code], np.where(cleared, 1.0, np.nan), cleared.copy(),
-                        cleared, _REASON_OF_CODE[code], at, rows if at.size else None, kpis)
+        """The screened rows' codes (:func:`inkdiag_core._kernels.screen_gate_frames`') and the rows left; their
+        columns and baselines are built by :meth:`_finish_rows`, for every batch of a detector pass at once."""
+        return _Pending(starts, ends, code, at, nozzle, rows if at.size else None)
 
     def _finish_rows(self, pending) -> list:
-        """One detector call for the rows left in every ``pending`` batch; per batch, its frames' FrameLabels."""
-        left = [p for p in pending if p.at.size]
+        """One detector call for the rows left in every ``pending`` batch; per batch, its frames' FrameLabels.
+
+        The batches' columns come from their rows' codes, concatenated: a few numpy calls per detector
+        pass, not per batch (a node screens each message as it arrives, and finishes several)."""
+        if not pending:
+            return []
+        offsets = list(accumulate([0] + [p.code.size for p in pending]))
+        code = pending[0].code if len(pending) == 1 else np.concatenate([p.code for p in pending])
+        cleared = code >= CLEARED_HEALTHY
+        classes, reasons = _CLASS_OF_CODE[code], _REASON_OF_CODE[code]
+        confidence, with_base = np.where(cleared, 1.0, np.nan), cleared.copy()
+        left = [(p, o) for p, o in zip(pending, offsets) if p.at.size]
         if left:
-            parts = [r for p in left for r in p.rows]
+            at = left[0][0].at if len(left) == 1 and left[0][1] == 0 else np.concatenate([p.at + o for p, o in left])
+            parts = [r for p, _ in left for r in p.rows]
             rows = parts[0] if len(parts) == 1 else np.concatenate(parts)
-            kpis = None if left[0].kpis is None else (
-                left[0].kpis if len(left) == 1 else np.concatenate([p.kpis for p in left]))
+            kpis = None
+            if self.baselines is not None:
+                has, kpis = self.baselines.lookup(left[0][0].nozzle if len(left) == 1 else
+                                                  np.concatenate([p.nozzle for p, _ in left]))
+                kpis[~has] = np.nan  # routed to the plain branch
             got = self.detector.label(rows, baseline_kpis=kpis)
-            got_classes = got.classes.astype(str).astype(object)
-            k = 0
-            for p in left:
-                sl = slice(k, k + p.at.size)
-                k += p.at.size
-                ok, at = got.valid[sl], p.at
-                if ok.all():  # nearly always: no row's features came out non-finite
-                    p.classes[at], p.confidence[at] = got_classes[sl], got.confidence[sl]
-                else:
-                    p.classes[at[ok]] = got_classes[sl][ok]
-                    p.confidence[at[ok]] = got.confidence[sl][ok]
-                    p.reasons[at[~ok]] = "non_finite_features"
-                    p.code[at[~ok]] = _NON_FINITE_FEATURES
-                p.with_base[at] = got.baseline[sl]
-        out = []
-        for p in pending:
-            valid = _VALID_CODE[p.code]
-            with_base = p.with_base & valid
-            cols = (p.classes, p.confidence, valid, p.reasons, with_base) + (
-                (p.cleared,) if self.gate is not None else ())
-            out.append([FrameLabels(*(col[i:j] for col in cols)) for i, j in zip(p.starts, p.ends)])  # views
-        return out
+            ok = got.valid
+            if ok.all():  # nearly always: no row's features came out non-finite
+                classes[at], confidence[at] = got.classes.astype(str).astype(object), got.confidence
+            else:
+                classes[at[ok]] = got.classes[ok].astype(str).astype(object)
+                confidence[at[ok]] = got.confidence[ok]
+                reasons[at[~ok]] = "non_finite_features"
+                code[at[~ok]] = _NON_FINITE_FEATURES
+            with_base[at] = got.baseline
+        valid = _VALID_CODE[code]
+        with_base &= valid
+        cols = (classes, confidence, valid, reasons, with_base) + ((cleared,) if self.gate is not None else ())
+        return [[FrameLabels(*(col[o + i:o + j] for col in cols)) for i, j in zip(p.starts, p.ends)]  # views
+                for p, o in zip(pending, offsets)]
 
 
 class ScreenedFrames:
@@ -429,21 +429,16 @@ class _Part:
 
 @dataclass
 class _Pending:
-    """Columns of frames screened together (``starts``, ``ends``: each frame's rows); ``code`` each row's
-    (:func:`inkdiag_core._kernels.screen_gate_frames`', or :data:`_NON_FINITE_FEATURES`); ``at``: the batch rows
-    left for the detector, ``rows`` them (a list of arrays, in order)."""
+    """Frames screened together (``starts``, ``ends``: each frame's rows); ``code`` each row's
+    (:func:`inkdiag_core._kernels.screen_gate_frames`'); ``at``: the batch rows left for the detector, ``nozzle``
+    their nozzle ids, ``rows`` them (a list of arrays, in order; None when none is left)."""
 
     starts: list
     ends: list
     code: np.ndarray
-    classes: np.ndarray
-    confidence: np.ndarray
-    with_base: np.ndarray
-    cleared: np.ndarray
-    reasons: np.ndarray
     at: np.ndarray
+    nozzle: np.ndarray
     rows: list | None
-    kpis: np.ndarray | None
 
 
 def _warm_up_kernels() -> None:

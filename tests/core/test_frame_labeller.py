@@ -114,6 +114,11 @@ def test_a_row_whose_features_overflow_is_invalid_not_its_frame(detector):
     assert got.reasons[5] == "non_finite_features" and not got.valid[5] and got.classes[5] == ""
     assert got.valid.sum() == f.shape[0] - 3  # and rows 3 (NaN) and 20 (flat)
     _same([got], _previous(detector, [f], [firsts[0]], max_abs_v=None))
+    lab = FrameLabeller(detector)  # the same row in a later burst of a joint finish: its own frame's row 5 only
+    other = frames[1].astype(np.float64)
+    joint = lab.finish([lab.screen([other], [firsts[1]]), lab.screen([other, f], [firsts[1], firsts[0]])])
+    _same([joint[0][0], joint[1][0], joint[1][1]], [lab.label([other], [firsts[1]])[0]] * 2 + [got])
+    assert joint[1][1].reasons[5] == "non_finite_features" and joint[1][0].valid.all()
 
 
 def test_compatibility_rules_are_typed_errors(detector, fdi_model, baselines):
