@@ -13,6 +13,7 @@ import rclpy.signals
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
+from ._fatal import FatalNodeError
 from .allocator import PeriodicRelease, keep_freed_memory
 from .blas import limit_blas_threads
 from .exit_deadline import check_seconds, exit_deadline
@@ -344,6 +345,9 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, eve
     condition: a signal reaches the loop through rclpy's shutdown, which wakes it, or its
     1 s timeout.
 
+    A :class:`._fatal.FatalNodeError` out of a callback (a recording's disk is full) stops the loop: its
+    message on one line (``PROG: ...``), the node torn down as after a signal, exit status 2.
+
     ``teardown_deadline_s``: once the loop has stopped, the process exits (with the status
     it would have returned) at the latest this long after, whatever the middleware does
     (:func:`tear_down`); ``None``: no bound. The default suits what this function is for,
@@ -392,13 +396,20 @@ def spin_node(node_cls, args=None, *, until=None, exit_code=None, prog=None, eve
                 release()
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
+        except FatalNodeError as exc:  # the node cannot go on (a recording's full disk): one line, exit 2
+            print(f"{prog}: {exc}", file=sys.stderr, flush=True)
+            early = 2
         except Exception:
             if node is None or not stop.explains_an_error(node.context):
                 raise
         finally:
             status = _deadline_status(early, exit_code, node)
-            tear_down(executor, [node], deadline_s=teardown_deadline_s, deadline_status=status)
-    return 0 if exit_code is None else exit_code(node)
+            try:
+                tear_down(executor, [node], deadline_s=teardown_deadline_s, deadline_status=status)
+            except FatalNodeError as exc:  # a recording's last writes, as its node closed its outputs
+                print(f"{prog}: {exc}", file=sys.stderr, flush=True)
+                early = 2
+    return early if early is not None else 0 if exit_code is None else exit_code(node)
 
 
 def make_executor(nodes, events: bool, stop):

@@ -36,6 +36,8 @@ from inkdiag_core.recording import load_recording as load_npz_recording
 from msg_defs import topics
 from msg_defs.qos import DIAGNOSTICS_QOS, RELIABLE_QOS, TRACES_QOS
 
+from ._fatal import FatalNodeError
+
 __all__ = ["TRACES_TYPE", "HEAD_TOPICS", "BagFrames", "is_bag", "head_topics", "ros_type_name",
            "msg_class", "qos_to_rosbags", "qos_from_rosbags", "iter_bag_frames", "iter_bag_chunks",
            "read_bag_recording", "load_recording", "stream_recording", "report_stats", "BagRecorder",
@@ -767,6 +769,7 @@ class BagRecorder:
         self.typestore = get_typestore(Stores.ROS2_JAZZY)
         self.connections = {}
         self.counts = dict.fromkeys(wanted, 0)
+        self.failed = None  # the BagWriteError of the first write that failed: nothing is written after it
         self._last_ns = 0  # the log time of the last message written
         self._subs = {topic: node.create_subscription(msg_class(t), topic, self._callback(topic), qos, raw=True)
                       for topic, (t, qos) in wanted.items()}
@@ -797,8 +800,14 @@ class BagRecorder:
     def _write(self, topic, stamp: int, raw) -> None:
         """Write ``raw`` at log time ``stamp`` (ns), or at the last one written if that is later: the bag's log
         times never go backwards in its files (a reader of the files as they are reads them in that order)."""
+        if self.failed is not None:
+            return
         stamp = max(stamp, self._last_ns)
-        self.writer.write(self.connection(topic), stamp, raw)
+        try:
+            self.writer.write(self.connection(topic), stamp, raw)
+        except OSError as exc:  # a full disk: the messages written so far stay readable (close_writer)
+            self.failed = BagWriteError(f"recording into {getattr(self.writer, 'path', 'the bag')} failed: {exc}")
+            raise self.failed from exc
         self._last_ns = stamp
         self.counts[topic] += 1
 
@@ -814,6 +823,8 @@ class BagRecorder:
         """
         from ._spin import take_queued
 
+        if self.failed is not None:
+            return 0
         queued = []
         for topic, sub in self._subs.items():
             try:
@@ -830,8 +841,9 @@ class BagRecorder:
         """Write what is still queued (:meth:`drain`) and add the topics that had no message (so the metadata
         lists every recorded topic)."""
         self.drain()
-        for topic in self.wanted:
-            self.connection(topic)
+        if self.failed is None:
+            for topic in self.wanted:
+                self.connection(topic)
 
     def destroy(self):
         """Drop the subscriptions (no message is written after this)."""
@@ -841,6 +853,26 @@ class BagRecorder:
             except Exception:  # the node or its context is gone already
                 pass
         self._subs = {}
+
+
+class BagWriteError(FatalNodeError, OSError):
+    """A recording's write failed (a full disk): the recording stops there, the process with one line
+    (``inkdiag record``, ``--record``: exit status 2)."""
+
+
+def close_writer(writer, recorder) -> bool:
+    """Close ``writer`` (metadata.yaml, the MCAP summary); True if it closed.
+
+    After ``recorder``'s write failed (:attr:`BagRecorder.failed`), closing writes to the same full disk and
+    may fail too: that second error is not raised (the first says what happened) and False comes back, the
+    bag left as its files are (the offline verbs and ``inkdiag replay`` read on past the damage)."""
+    try:
+        writer.close()
+    except OSError:
+        if recorder is None or recorder.failed is None:
+            raise
+        return False
+    return True
 
 
 def pop_record_arg(argv):
@@ -947,6 +979,7 @@ class InProcessRecording:
             self.writer.close()
             raise
         self._closed = False
+        self.unclosed = False  # a failed write, and its close failed too (close_writer)
 
     def close(self) -> dict:
         """Stop recording and close the bag; returns the messages written per topic."""
@@ -956,13 +989,18 @@ class InProcessRecording:
                 self.recorder.finish()
             finally:
                 self.recorder.destroy()
-                self.writer.close()
+                self.unclosed = not close_writer(self.writer, self.recorder)
         return dict(self.recorder.counts)
 
     def summary(self) -> str:
-        """``wrote N messages to BAG: topic n, ...``."""
+        """``wrote N messages to BAG: topic n, ...``; after a failed write, what was left of the bag."""
         c = self.recorder.counts
-        return f"wrote {sum(c.values())} messages to {self.bag}: " + ", ".join(f"{t} {n}" for t, n in c.items())
+        per_topic = ", ".join(f"{t} {n}" for t, n in c.items())
+        if self.recorder.failed is None:
+            return f"wrote {sum(c.values())} messages to {self.bag}: {per_topic}"
+        return (f"{self.bag}: a write failed after {sum(c.values())} messages ({per_topic}); "
+                + ("the bag could not be closed and the messages of its last chunk are lost: inkdiag replay and "
+                   "the offline verbs read the others" if self.unclosed else "the bag is closed"))
 
 
 def recording_node(node_cls, bag_dir, names=None):
@@ -992,8 +1030,10 @@ def recording_node(node_cls, bag_dir, names=None):
                     if inner is not None:  # the node's own last outputs first: the bag may record them
                         inner()
                 finally:
-                    rec.close()
-                    print(rec.summary(), file=sys.stderr, flush=True)
+                    try:
+                        rec.close()
+                    finally:  # what the bag holds, also after a failed write
+                        print(rec.summary(), file=sys.stderr, flush=True)
 
         def destroy_node():
             close_outputs()

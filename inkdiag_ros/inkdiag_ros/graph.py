@@ -49,6 +49,7 @@ from msg_defs import (
     topics,
 )
 
+from ._fatal import FatalNodeError
 from ._spin import close_outputs, exit_now, quiet_signal_handling, ros_args_error, shutting_down, sigint_as_shutdown
 from .allocator import PeriodicRelease, keep_freed_memory
 from .blas import limit_blas_threads
@@ -313,7 +314,7 @@ def main(args=None) -> int:
     try:
         score = run(ns.duration, namespace=ns.namespace, model_path=ns.model, args=argv[:1] + ros_args,
                     baseline=baseline, record=ns.record)
-    except BadParameters as exc:
+    except (BadParameters, FatalNodeError) as exc:  # FatalNodeError: --record's disk is full (the bag closed first)
         print(f"graph: {exc}", file=sys.stderr)
         return 2
     print(score.format())

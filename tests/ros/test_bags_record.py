@@ -113,6 +113,28 @@ def test_printhead_sim_with_max_frames_ends_on_its_own_with_every_frame_recorded
     assert ids == [0, 1, 2, 3] and len(got[f"{NS}/ground_truth"]) == 4
 
 
+def test_a_full_disk_stops_a_recording_sim_with_one_line_and_the_written_chunks_readable(tmp_path):
+    """printhead_sim --record on a disk that fills up (a file size limit: the write fails with EFBIG): exit
+    status 2, one line saying why and one saying what the bag holds, no traceback (was: exit 1, the write's
+    traceback chained to the close's); the frames of the chunks written before it read back."""
+    import resource
+
+    from inkdiag_ros.bags import BagFrames, read_bag_recording
+
+    bag = tmp_path / "sim"
+    r = subprocess.run([sys.executable, "-m", "inkdiag_ros.printhead_sim", "--record", str(bag), "--ros-args",
+                        "-p", "frame_rate_hz:=50.0", "-p", "n_nozzles:=96", "-p", "max_frames:=60"],
+                       env=_env(next_domain_id()), capture_output=True, text=True, timeout=120,
+                       preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (2_000_000, 2_000_000)))
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-1500:]
+    assert f"printhead_sim: recording into {bag} failed: [Errno 27] File too large" in r.stderr
+    assert f"{bag}: a write failed after " in r.stderr and "the messages of its last chunk are lost" in r.stderr
+    stats = BagFrames()
+    rec = read_bag_recording(bag, stats=stats)
+    n = rec.traces.shape[0]
+    assert stats.salvaged and n >= 96 and n % 96 == 0 and list(rec.nozzle[:96]) == list(range(96))
+
+
 def _labels_by_frame(docs):
     """frame_id -> the labels JSON without its stamps (the frame's time, not the labelling's)."""
     out = {}
@@ -262,3 +284,37 @@ def test_log_times_never_go_backwards_in_the_files_when_a_queued_message_was_rec
         stamps = [(ch.topic, m.log_time) for _, ch, m in make_reader(f).iter_messages(log_time_order=False)]
     assert [t for t, _ in stamps] == [f"{NS}/traces", f"{NS}/ground_truth"], stamps
     assert stamps[1][1] >= stamps[0][1], stamps
+
+
+def test_a_full_disk_at_the_close_raises_one_error_and_the_summary_says_what_the_bag_holds(tmp_path, ros):
+    """The disk fills up as a closing recording writes what is still queued (its writer's writes and its close
+    fail with ENOSPC, as on a full disk): close() raises the one BagWriteError (a FatalNodeError: the node
+    process says it in one line, exit status 2), not the close's second error; a second close() is a no-op."""
+    import errno
+
+    from rclpy.node import Node
+
+    from inkdiag_ros._fatal import FatalNodeError
+    from inkdiag_ros.bags import BagWriteError, InProcessRecording
+    from msg_defs import TRACE_MSG_TYPE, TRACES_QOS, topics
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    rec_node = Node("recorder", namespace=NS, context=ros.context)  # never spun: the message stays queued
+    try:
+        rec = InProcessRecording(rec_node, tmp_path / "b", ["traces"])
+        pub = ros.node("src", namespace=NS).create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
+        ros.spin_until(lambda: pub.get_subscription_count() == 1, what="the recorder's subscription")
+        pub.publish(TRACE_MSG_TYPE(data=[1.0] * 4))
+        time.sleep(0.2)
+        rec.writer.write = rec.writer.close = full
+        with pytest.raises(BagWriteError, match=r"recording into .* failed: \[Errno 28\] No space left") as got:
+            rec.close()
+        assert isinstance(got.value, FatalNodeError) and isinstance(got.value, OSError)
+        assert rec.close() == {f"{NS}/traces": 0} and rec.unclosed
+        assert rec.summary() == (f"{tmp_path / 'b'}: a write failed after 0 messages ({NS}/traces 0); the bag could "
+                                 "not be closed and the messages of its last chunk are lost: inkdiag replay and the "
+                                 "offline verbs read the others")
+    finally:
+        rec_node.destroy_node()

@@ -40,7 +40,7 @@ def run(args) -> int:
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
     from .._spin import stop_on_signals, tear_down
-    from ..bags import BagRecorder, bag_writer, check_new_bag, head_topics
+    from ..bags import BagRecorder, bag_writer, check_new_bag, close_writer, head_topics
 
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be > 0 s, got {args.duration!r}")
@@ -76,7 +76,7 @@ def run(args) -> int:
                     rec.finish()  # what is still queued, and the topics that had no message
             finally:
                 try:
-                    writer.close()  # metadata.yaml and the MCAP summary: a valid bag whatever stopped us
+                    close_writer(writer, rec)  # metadata.yaml, the MCAP summary: a valid bag (after a failed write: if it can)
                 finally:
                     tear_down(executor, [node])
     counts = rec.counts if rec is not None else {}
