@@ -233,6 +233,9 @@ def tear_down(executor, nodes, *, context_is_ours: bool = True, deadline_s: floa
     nodes = [n for n in nodes if n is not None]
     try:
         close_outputs(nodes)
+    except FatalNodeError:  # a recording's last writes failed: the process's status is now its (spin_node)
+        deadline_status = 2
+        raise
     finally:  # a failed close (its error goes on up) never skips the bounded rest
         bound = contextlib.nullcontext() if deadline_s is None else exit_deadline(deadline_s, deadline_status)
         with bound:

@@ -861,18 +861,34 @@ class BagWriteError(FatalNodeError, OSError):
 
 
 def close_writer(writer, recorder) -> bool:
-    """Close ``writer`` (metadata.yaml, the MCAP summary); True if it closed.
+    """Close ``writer`` (its last chunk, the MCAP summary, metadata.yaml); True if it closed.
 
     After ``recorder``'s write failed (:attr:`BagRecorder.failed`), closing writes to the same full disk and
     may fail too: that second error is not raised (the first says what happened) and False comes back, the
-    bag left as its files are (the offline verbs and ``inkdiag replay`` read on past the damage)."""
+    bag left as its files are (the offline verbs and ``inkdiag replay`` read on past the damage). A close
+    that is the first to fail (the writer holds a chunk, up to 1 MiB, until then: a short recording meets a
+    full disk only here) raises a :class:`BagWriteError`, which ``recorder`` keeps as its failure too."""
     try:
         writer.close()
-    except OSError:
-        if recorder is None or recorder.failed is None:
-            raise
-        return False
+    except OSError as exc:
+        if recorder is not None and recorder.failed is not None:
+            return False
+        failed = BagWriteError(f"recording into {getattr(writer, 'path', 'the bag')} failed: {exc}")
+        if recorder is not None:
+            recorder.failed = failed
+        raise failed from exc
     return True
+
+
+def recording_summary(bag, counts: dict, failed, closed: bool) -> str:
+    """The last line of a recording: ``wrote N messages to BAG: topic n, ...``; after a failed write (``failed``),
+    what was left of the bag (``closed``: its writer closed all the same)."""
+    per_topic = ", ".join(f"{t} {n}" for t, n in counts.items())
+    if failed is None:
+        return f"wrote {sum(counts.values())} messages to {bag}: {per_topic}"
+    return (f"{bag}: a write failed after {sum(counts.values())} messages ({per_topic}); "
+            + ("the bag is closed" if closed else "the bag could not be closed and the messages of its last chunk "
+               "are lost: inkdiag replay and the offline verbs read the others"))
 
 
 def pop_record_arg(argv):
@@ -989,18 +1005,13 @@ class InProcessRecording:
                 self.recorder.finish()
             finally:
                 self.recorder.destroy()
+                self.unclosed = True  # until the writer says otherwise (its close may raise)
                 self.unclosed = not close_writer(self.writer, self.recorder)
         return dict(self.recorder.counts)
 
     def summary(self) -> str:
-        """``wrote N messages to BAG: topic n, ...``; after a failed write, what was left of the bag."""
-        c = self.recorder.counts
-        per_topic = ", ".join(f"{t} {n}" for t, n in c.items())
-        if self.recorder.failed is None:
-            return f"wrote {sum(c.values())} messages to {self.bag}: {per_topic}"
-        return (f"{self.bag}: a write failed after {sum(c.values())} messages ({per_topic}); "
-                + ("the bag could not be closed and the messages of its last chunk are lost: inkdiag replay and "
-                   "the offline verbs read the others" if self.unclosed else "the bag is closed"))
+        """:func:`recording_summary` of this recording."""
+        return recording_summary(self.bag, self.recorder.counts, self.recorder.failed, not self.unclosed)
 
 
 def recording_node(node_cls, bag_dir, names=None):

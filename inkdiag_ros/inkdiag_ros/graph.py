@@ -214,6 +214,8 @@ def _run(duration_s, *, namespace, model_path, out, context, baseline, own, reco
             release()
             try:
                 executor.spin_once(timeout_sec=0.05)
+            except FatalNodeError:  # a recording's full disk: said even when a signal came at the same time
+                raise
             except Exception:
                 if not shutting_down(ctx):
                     raise
@@ -233,6 +235,8 @@ def _run(duration_s, *, namespace, model_path, out, context, baseline, own, reco
                 next_print += 1.0
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except FatalNodeError:
+        raise
     except Exception:  # a signal shut the context down as a node was built (RCLError, NotInitializedException)
         if not shutting_down(executor.context):
             raise
@@ -240,16 +244,21 @@ def _run(duration_s, *, namespace, model_path, out, context, baseline, own, reco
         if own:  # before anything is destroyed (_spin.quiet_signal_handling)
             quiet_signal_handling()
         executor.shutdown()
-        close_outputs(nodes)  # fdi's last labels out before the bag closes
-        if bag is not None:  # a valid bag before any node goes
-            bag.close()
-            out(bag.summary())
-        score = monitor.score if monitor is not None else Scorecard()
-        for n in nodes:
-            n.destroy_node()
-        if own:
-            rclpy.try_shutdown()
-    return score
+        try:
+            close_outputs(nodes)  # fdi's last labels out before the bag closes
+        finally:  # each step whatever the one before raised (a full disk at the bag's close): the error after them
+            try:
+                if bag is not None:  # a valid bag before any node goes
+                    try:
+                        bag.close()
+                    finally:
+                        out(bag.summary())
+            finally:
+                for n in nodes:
+                    n.destroy_node()
+                if own:
+                    rclpy.try_shutdown()
+    return monitor.score if monitor is not None else Scorecard()
 
 
 def _commissioning_s(text: str) -> float:

@@ -133,6 +133,14 @@ def test_a_full_disk_stops_a_recording_sim_with_one_line_and_the_written_chunks_
     rec = read_bag_recording(bag, stats=stats)
     n = rec.traces.shape[0]
     assert stats.salvaged and n >= 96 and n % 96 == 0 and list(rec.nozzle[:96]) == list(range(96))
+    # a short recording: its one chunk is written at the close, which is the first write to fail (helper-99)
+    r = subprocess.run([sys.executable, "-m", "inkdiag_ros.printhead_sim", "--record", str(tmp_path / "short"),
+                        "--ros-args", "-p", "frame_rate_hz:=50.0", "-p", "n_nozzles:=96", "-p", "max_frames:=3"],
+                       env=_env(next_domain_id()), capture_output=True, text=True, timeout=120,
+                       preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000)))
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-1500:]
+    assert f"printhead_sim: recording into {tmp_path / 'short'} failed: [Errno 27] File too large" in r.stderr
+    assert "a write failed after 6 messages" in r.stderr and "could not be closed" in r.stderr
 
 
 def _labels_by_frame(docs):
@@ -316,5 +324,11 @@ def test_a_full_disk_at_the_close_raises_one_error_and_the_summary_says_what_the
         assert rec.summary() == (f"{tmp_path / 'b'}: a write failed after 0 messages ({NS}/traces 0); the bag could "
                                  "not be closed and the messages of its last chunk are lost: inkdiag replay and the "
                                  "offline verbs read the others")
+        # nothing queued, only the close fails: its error is the recording's failure, raised as one
+        other = InProcessRecording(rec_node, tmp_path / "c", ["traces"])
+        other.writer.close = full
+        with pytest.raises(BagWriteError, match=r"recording into .* failed: \[Errno 28\]"):
+            other.close()
+        assert other.unclosed and other.recorder.failed is not None and "could not be closed" in other.summary()
     finally:
         rec_node.destroy_node()

@@ -40,7 +40,7 @@ def run(args) -> int:
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
     from .._spin import stop_on_signals, tear_down
-    from ..bags import BagRecorder, bag_writer, check_new_bag, close_writer, head_topics
+    from ..bags import BagRecorder, bag_writer, check_new_bag, close_writer, head_topics, recording_summary
 
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be > 0 s, got {args.duration!r}")
@@ -71,15 +71,17 @@ def run(args) -> int:
                     except ExternalShutdownException:  # SIGINT/SIGTERM through rclpy's handler
                         break
         finally:  # each step whatever the one before it raised (a full disk): the error goes on up after them
+            closed = False
             try:
                 if rec is not None:
                     rec.finish()  # what is still queued, and the topics that had no message
             finally:
                 try:
-                    close_writer(writer, rec)  # metadata.yaml, the MCAP summary: a valid bag (after a failed write: if it can)
+                    closed = close_writer(writer, rec)  # metadata.yaml, the MCAP summary: a valid bag, if it can
                 finally:
-                    tear_down(executor, [node])
-    counts = rec.counts if rec is not None else {}
-    print(f"wrote {sum(counts.values())} messages to {bag}: "
-          + ", ".join(f"{t} {n}" for t, n in counts.items()), file=sys.stderr)
+                    try:
+                        tear_down(executor, [node])
+                    finally:  # what the bag holds, also before a failed write's one-line error (cli)
+                        print(recording_summary(bag, rec.counts if rec else {}, rec and rec.failed, closed),
+                              file=sys.stderr)
     return 0
