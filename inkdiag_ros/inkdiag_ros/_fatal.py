@@ -1,6 +1,6 @@
 """An error that ends a node process with one line on stderr and exit status 2: no traceback.
 
-No ROS in here (the offline verbs' modules raise it too).
+No ROS in here: :mod:`inkdiag_ros.bags`, which the offline verbs import too, raises it.
 """
 
 

@@ -995,7 +995,7 @@ class InProcessRecording:
             self.writer.close()
             raise
         self._closed = False
-        self.unclosed = False  # a failed write, and its close failed too (close_writer)
+        self.unclosed = False  # its writer did not close after a failed write (close_writer)
 
     def close(self) -> dict:
         """Stop recording and close the bag; returns the messages written per topic."""
