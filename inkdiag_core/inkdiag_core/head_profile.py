@@ -364,6 +364,8 @@ class HeadProfile:
             doc = yaml.load(text, Loader=_loader())  # noqa: S506 (a SafeLoader subclass)
         except yaml.YAMLError as exc:
             raise ProfileError(f"{source}: not valid YAML: {str(exc).splitlines()[0]}") from None
+        except RecursionError:  # PyYAML composes and constructs nested nodes recursively
+            raise ProfileError(f"{source}: not valid YAML: nested too deeply") from None
         return cls.from_dict(doc, source=source)
 
     @classmethod

@@ -163,6 +163,8 @@ def read_manifest(path) -> dict:
         manifest = json.loads(mpath.read_text())
     except (OSError, ValueError) as exc:
         raise ModelFileError(f"manifest {mpath} is not valid JSON: {exc}") from None
+    except RecursionError:  # json's decoder recurses per level of nesting
+        raise ModelFileError(f"manifest {mpath} is not valid JSON: nested too deeply") from None
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         raise ModelFileError(f"manifest {mpath} is not an {FORMAT} manifest")
     if manifest.get("format_version") != FORMAT_VERSION:

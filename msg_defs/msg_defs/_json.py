@@ -78,6 +78,8 @@ def load(msg, schema: str) -> dict:
         doc = json.loads(msg.data)
     except ValueError as exc:
         raise MessageError(f"{schema}: not valid JSON ({exc})") from None
+    except RecursionError:  # "[[[[...": json's decoder recurses per level (a node died of it: helper-101)
+        raise MessageError(f"{schema}: not valid JSON (nested too deeply)") from None
     if not isinstance(doc, dict):
         raise MessageError(f"{schema}: expected a JSON object, got {type(doc).__name__}")
     if doc.get("schema") != schema:

@@ -332,6 +332,10 @@ def test_baselines_file_round_trip_and_refusals(tmp_path):
              meta=np.array('{"format": "something-else"}'))
     with pytest.raises(BaselineFileError, match="not an inkdiag baselines file"):
         NozzleBaselines.load(tmp_path / "other.npz")
+    np.savez(tmp_path / "deep.npz", nozzle_ids=arrays["nozzle_ids"], kpis=arrays["kpis"],
+             meta=np.array("[" * 100_000 + "]" * 100_000))
+    with pytest.raises(BaselineFileError, match="RecursionError"):  # its meta nested too deeply for json
+        NozzleBaselines.load(tmp_path / "deep.npz")
     # not an .npz at all: said so (numpy's own message would suggest loading pickles unsafely)
     import pickle
 

@@ -123,6 +123,9 @@ def test_missing_and_malformed_files(tmp_path):
     (tmp_path / "bad.yaml").write_text("schema: [")
     with pytest.raises(ProfileError, match="not valid YAML"):
         HeadProfile.load(tmp_path / "bad.yaml")
+    (tmp_path / "deep.yaml").write_text("schema: " + "[" * 5000 + "]" * 5000)
+    with pytest.raises(ProfileError, match="not valid YAML: nested too deeply"):  # not a RecursionError
+        HeadProfile.load(tmp_path / "deep.yaml")
     (tmp_path / "list.yaml").write_text("- 1\n- 2\n")
     with pytest.raises(ProfileError, match="not a head profile"):
         HeadProfile.load(tmp_path / "list.yaml")

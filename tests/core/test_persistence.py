@@ -121,6 +121,9 @@ def test_garbage_manifest_is_refused(saved):
     path.with_name(path.name + ".manifest.json").write_text("{not json")
     with pytest.raises(ModelFileError, match="not valid JSON"):
         load_model(path)
+    path.with_name(path.name + ".manifest.json").write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(ModelFileError, match="not valid JSON: nested too deeply"):  # not a RecursionError
+        load_model(path)
     assert issubclass(ModelFileError, ValueError)
 
 

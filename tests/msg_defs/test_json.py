@@ -77,6 +77,10 @@ def test_labels_validation(mutate, match):
 def test_not_json_and_wrong_type():
     with pytest.raises(MessageError, match="not valid JSON"):
         decode_labels(String(data="{nope"))
+    # nested deeper than json's recursive decoder goes: a MessageError, not a RecursionError (it killed fe)
+    for decode in (decode_labels, decode_drying, decode_estimates, decode_truth):
+        with pytest.raises(MessageError, match=r"not valid JSON \(nested too deeply\)"):
+            decode(String(data="[" * 100_000 + "]" * 100_000))
     with pytest.raises(MessageError, match="std_msgs/String"):
         decode_drying(Float64MultiArray())
     with pytest.raises(ValueError):  # MessageError is a ValueError; FrameError is a MessageError

@@ -391,7 +391,8 @@ class NozzleBaselines:
                 fm = z["fm"] if "fm" in z.files else None
                 reference = z["reference"] if "reference" in z.files else None
             meta = json.loads(str(arrays["meta"]))
-        except (OSError, ValueError, KeyError, EOFError, TypeError, zipfile.BadZipFile, zlib.error) as exc:
+        except (OSError, ValueError, KeyError, EOFError, TypeError, RecursionError, zipfile.BadZipFile,
+                zlib.error) as exc:  # RecursionError: a meta nested too deeply for json's decoder
             raise BaselineFileError(f"{path} is not an inkdiag baselines file, or is damaged "
                                     f"({type(exc).__name__}: {exc})") from None
         if not isinstance(meta, dict) or meta.get("format") != BASELINE_FORMAT:
