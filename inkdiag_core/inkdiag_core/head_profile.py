@@ -110,6 +110,13 @@ named where a profile or a calibration fails (a value in other units: ``mu`` in 
 MIN_PLAUSIBLE_RATE_HZ = 1e5
 """A sample rate below this (Hz) is named where a profile fails (MHz written as Hz)."""
 
+MAX_SAMPLE_RATE_HZ = 1e10
+"""The largest ``sampling.sample_rate_hz`` a profile accepts, Hz (a sensing ADC's: tens of MHz)."""
+
+MAX_N_SAMPLES = 65536
+"""The largest ``sampling.n_samples`` a profile accepts: a trace is a row of every frame and of every training
+set (a bound far above any head's, 250-2,000 samples, that keeps a slip from asking for tens of GiB)."""
+
 
 def same_sample_rate(recorded_hz, head_hz) -> bool:
     """Whether a recording's sample rate is the head's: within 1e-9 relative, or the head's rate
@@ -118,12 +125,18 @@ def same_sample_rate(recorded_hz, head_hz) -> bool:
     return math.isclose(recorded_hz, head_hz, rel_tol=1e-9) or recorded_hz == float(np.float32(head_hz))
 
 
-def implausible_values(channel) -> list:
+def implausible_values(channel, factor: float = 1.0) -> list:
     """The :data:`PLAUSIBLE_CHANNEL` values of ``channel`` (a mapping; missing keys skipped) outside their
-    range, each as ``"channel.KEY VALUE UNIT (an inkjet head's: LOW to HIGH UNIT)"``."""
+    range (widened ``factor`` times each way), each as ``"channel.KEY VALUE UNIT (an inkjet head's: LOW to HIGH
+    UNIT)"``."""
     return [f"channel.{k} {channel[k]:g} {unit} (an inkjet head's: {lo:g} to {hi:g} {unit})"
             for k, (lo, hi, unit) in PLAUSIBLE_CHANNEL.items()
-            if channel.get(k) is not None and not lo <= channel[k] <= hi]
+            if channel.get(k) is not None and not lo / factor <= channel[k] <= hi * factor]
+
+
+ABSURD_FACTOR = 1e3
+"""A channel value this many times outside its :data:`PLAUSIBLE_CHANNEL` range is refused at once (a value
+merely outside is named only where the physics fails: an unusual head may have one)."""
 
 
 MAX_DRIVE_TIME_S = 1e-4
@@ -298,6 +311,11 @@ class HeadProfile:
         n = _number(f"{source}: sampling", "n_samples", samp["n_samples"], "samples", integer=True)
         if n < 16:
             raise ProfileError(f"{source}: sampling.n_samples: at least 16 samples per trace, got {n}")
+        if n > MAX_N_SAMPLES:
+            raise ProfileError(f"{source}: sampling.n_samples: at most {MAX_N_SAMPLES} samples per trace, got {n} "
+                               "(a self-sensing trace is tens of microseconds: about 250-2,000 samples)")
+        if fs > MAX_SAMPLE_RATE_HZ:
+            raise ProfileError(f"{source}: sampling.sample_rate_hz: at most {MAX_SAMPLE_RATE_HZ:g} Hz, got {fs:g}")
         ch = _section(doc, "channel", CHANNEL_UNITS, source, required=NOMINAL_CHANNEL_KEYS)
         channel = {}
         for k, v in ch.items():
@@ -309,6 +327,11 @@ class HeadProfile:
             if k == "zeta_act" and not channel[k] < 1:
                 raise ProfileError(f"{source}: channel.zeta_act: the actuator's damping ratio must be below 1 (an "
                                    f"oscillating resonance), got {v!r}")
+        absurd = implausible_values(channel, factor=ABSURD_FACTOR)
+        if absurd:  # 1e-300 or 1e308: the model's arithmetic fails, or a later step does (a singular matrix)
+            raise ProfileError(f"{source}: channel values no inkjet head has (implausible: {'; '.join(absurd)}: more "
+                               f"than {ABSURD_FACTOR:g} times outside; a value in other units? SI: m, m^3, m/s, "
+                               "kg/m^3, Pa s)")
         if "f_act" in channel and not channel["f_act"] < fs / 2:
             raise ProfileError(f"{source}: channel.f_act: the actuator's resonance {channel['f_act'] / 1e3:.1f} kHz is "
                                f"not below the Nyquist frequency {fs / 2e3:.1f} kHz of sampling.sample_rate_hz (Hz)")
@@ -426,11 +449,16 @@ class HeadProfile:
 
     def _check_physics(self, source):
         fs, n = self.sample_rate_hz, self.n_samples
-        f0, zeta = self.healthy_mode()
         odd = implausible_values(self.channel) + ([f"sampling.sample_rate_hz {fs:g} Hz (an inkjet head's: "
                                                    f"{MIN_PLAUSIBLE_RATE_HZ:g} Hz or more)"]
                                                   if fs < MIN_PLAUSIBLE_RATE_HZ else [])
         hint = f" (implausible: {'; '.join(odd)}: a value in other units? SI: m, m^3, m/s, kg/m^3, Pa s, Hz)" if odd else ""
+        try:
+            with np.errstate(all="ignore"):
+                f0, zeta = self.healthy_mode()
+        except (ArithmeticError, ValueError) as exc:  # r_n 1e308: r_n ** 2 overflows; mu 1e300: a matrix of infs
+            raise ProfileError(f"{source}: the channel's model cannot be computed from its values "
+                               f"({type(exc).__name__}: {exc})" + hint) from None
         if not (0 < zeta < 1):
             raise ProfileError(f"{source}: the channel has no oscillating healthy mode (damping ratio {zeta:.3g})"
                                + hint)
@@ -586,6 +614,10 @@ class HeadProfile:
             else:
                 rms = nominal_rms(self.channel_params(), self.drive, self.n_samples, self.sample_rate_hz)
                 snr = 20 * math.log10(rms * self.sensor_gain_v_per_m3s / noise)
+                if not snr >= 0:  # the simulator's noise takes an SNR of 0 dB or more
+                    raise ProfileError(f"profile {self.name!r}: sensor.noise_std_v {noise:g} V is more than the "
+                                       f"nominal healthy trace's rms, {rms * self.sensor_gain_v_per_m3s:.3g} V (an "
+                                       f"SNR of {snr:.1f} dB; the simulator takes 0 dB or more): is it in volts?")
         else:
             snr = float(self.sensor.get("snr_db", Spreads().snr_db))
         return dataclasses.replace(Spreads(), **self.spreads_overrides, snr_db=snr, adc_bits=self.adc_bits,

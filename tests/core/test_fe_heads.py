@@ -58,6 +58,9 @@ def test_vp_cal_constants_are_the_heads_and_estimate_d_mu(head_cal):
     assert {"a_sigma", "b_sigma", "a_omega", "b_omega"} <= set(cal) and cal["seconds"] > 0
     assert all(abs(cal[k] - VP_CAL[k]) > 1e-3 for k in ("a_sigma", "b_sigma", "a_omega", "b_omega"))
     assert vp_cal_for(p)["a_sigma"] == cal["a_sigma"]  # the stored constants, no new fit
+    # constants edited to NaN are not this head's (helper-100's QA: every estimate came out not finite)
+    nan = p.replace(calibration={"vp_cal": {**cal, "a_sigma": float("nan")}})
+    assert vp_calibration._stored(nan) is None and vp_calibration._stored(p) is not None
     r = p.simulate(DRIED, seed=7)
     own = estimate_fm_batch(r.traces, p, p.sample_rate_hz)
     assert own.method == "vp_cal"

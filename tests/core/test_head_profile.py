@@ -89,12 +89,29 @@ def test_nominal_profile_loads_and_says_what_is_missing():
     (lambda d: d["channel"].update(mu=7.0), r"no oscillating healthy mode .*implausible: channel\.mu 7 Pa s \(an "
      r"inkjet head's: 0\.0001 to 0\.5 Pa s\)"),
     (lambda d: d["channel"].update(V_ch=9.0), r"implausible: channel\.V_ch 9 m\^3"),
+    # values whose arithmetic fails (helper-100's QA: OverflowError, ZeroDivisionError, a singular matrix later)
+    (lambda d: d["channel"].update(r_n=1e308), r"channel values no inkjet head has \(implausible: channel\.r_n "
+     r"1e\+308 m \(an inkjet head's: 1e-06 to 0\.0001 m\): more than 1000 times outside"),
+    (lambda d: d["channel"].update(mu=1e-300), r"channel values no inkjet head has \(implausible: channel\.mu 1e-300"),
+    (lambda d: d["channel"].update(r_r=1e308), r"the channel's model cannot be computed from its values "
+     r"\(OverflowError"),
+    (lambda d: d["sampling"].update(n_samples=2_000_000_000), r"sampling\.n_samples: at most 65536 samples"),
+    (lambda d: d["sampling"].update(sample_rate_hz=1e15), r"sampling\.sample_rate_hz: at most 1e\+10 Hz"),
 ])
 def test_bad_profiles_name_the_key_and_the_unit(edit, match):
     doc = HeadProfile.default().to_dict()
     edit(doc)
     with pytest.raises(ProfileError, match=match):
         HeadProfile.from_dict(doc, source="p.yaml")
+
+
+def test_noise_above_the_healthy_trace_names_its_key():
+    """sensor.noise_std_v above the nominal healthy trace's rms: the simulator's SNR would be negative; the error
+    names the profile's key (was: 'spreads.snr_db must be a number >= 0', a key not in the file)."""
+    p = HeadProfile.default()
+    noisy = p.replace(sensor={"snr_db": None, "noise_std_v": 1e3})
+    with pytest.raises(ProfileError, match=r"sensor\.noise_std_v 1000 V is more than the nominal healthy trace's rms"):
+        noisy.spreads()
 
 
 def test_the_longest_drive_segment_is_accepted():

@@ -147,6 +147,8 @@ def test_label_uses_each_rows_nozzle_baseline(work, tmp_path, capsys):
     (["label", "{d}/int.npz", "--model", "{d}/head.joblib", "--out", "{d}/l.csv"],
      "got dtype int16: convert ADC counts or millivolts to volts first"),
     (["train", "--profile", "{d}/head.yaml", "--out", "{d}/x.joblib", "--seed", str(2**32)], "--seed must be in"),
+    (["train", "--profile", "{d}/head.yaml", "--out", "{d}/x.joblib", "--n-per-class", str(10**13)],
+     "--n-per-class must be at most 87381 for 1024-sample traces (the training set's traces within 4 GiB)"),
     # one input given for another
     (["label", "{d}/rec.npz", "--model", "{d}/head.yaml", "--out", "{d}/l.csv"],
      "is a head profile (YAML), not a model"),

@@ -22,6 +22,7 @@ with the seeds and sizes that produced :data:`~.vp.VP_CAL`.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 
@@ -178,9 +179,10 @@ def _stored(profile):
     if not isinstance(cal, dict) or cal.get("profile_sha256") != profile.sha256:
         return None
     try:
-        return {**cal, **{k: float(cal[k]) for k in _KEYS}}
+        got = {**cal, **{k: float(cal[k]) for k in _KEYS}}
     except (KeyError, TypeError, ValueError):
         return None
+    return got if all(math.isfinite(got[k]) for k in _KEYS) else None  # NaN constants: every estimate lost
 
 
 def vp_cal_needs_fit(profile) -> bool:

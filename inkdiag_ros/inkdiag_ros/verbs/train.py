@@ -48,6 +48,10 @@ example:
 FEATURES = ("kpi_y", "kpi_r", "kpi_r_modified", "kpi_y+r_modified", "rich")
 
 
+#: The largest simulated training set ``--n-per-class`` may ask for (its float32 traces), bytes.
+_MAX_TRAINING_BYTES = 4 * 2**30
+
+
 def add_arguments(parser) -> None:
     parser.add_argument("--profile", required=True, metavar="HEAD.yaml", help="complete head profile (YAML)")
     parser.add_argument("--out", required=True, metavar="MODEL.joblib",
@@ -139,6 +143,12 @@ def run(args) -> int:
                            "`inkdiag calibrate` first to fit them to recorded healthy traces")
     if args.n_per_class < 8:
         raise ValueError(f"--n-per-class must be >= 8, got {args.n_per_class}")
+    from inkdiag_core import FaultClass
+
+    most = _MAX_TRAINING_BYTES // (len(FaultClass) * profile.n_samples * 4)  # float32 traces of every class
+    if args.n_per_class > most:
+        raise ValueError(f"--n-per-class must be at most {most} for {profile.n_samples}-sample traces (the training "
+                         f"set's traces within {_MAX_TRAINING_BYTES / 2**30:g} GiB), got {args.n_per_class}")
     if args.posterior_draws < 1:
         raise ValueError(f"--posterior-draws must be >= 1, got {args.posterior_draws}")
     if not 0 <= args.unknown_rate < 1:
