@@ -153,6 +153,9 @@ def read_manifest(path) -> dict:
         raise ModelFileError(f"model file {path} " + ("is a directory, not a model file" if path.is_dir() else
                                                       "does not exist" if not path.exists() else "is not a regular file"))
     if not mpath.is_file():
+        if path.name.endswith(".manifest.json"):  # helper-100's QA: it read as 'a head profile (YAML)'
+            raise ModelFileError(f"model file {path} is a model's manifest, not the model: give the "
+                                 f"{path.name.removesuffix('.manifest.json')} it describes")
         if _looks_like_a_profile(path):
             raise ModelFileError(f"model file {path} is a head profile (YAML), not a model: a model is the "
                                  "MODEL.joblib `inkdiag train` writes (with its manifest beside it)")

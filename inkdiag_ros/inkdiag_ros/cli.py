@@ -152,6 +152,8 @@ def _check_out(args) -> None:
     """A verb's ``--out`` must go into an existing, writable directory (not for a verb whose module sets
     ``MAKES_OUT_DIR``: it creates the directory) and must not be one of its inputs: said before any work is done."""
     out = getattr(args, "out", None)
+    if out == "":  # open('') says "[Errno 2] No such file or directory: ''"
+        raise OSError("--out is empty: give the output file's name")
     if out == "-" and not args._out_stdout:
         raise OSError(f"--out -: inkdiag {args.verb} writes a file, not standard output: give the file's name")
     if out == "-" and sys.stdout is None:

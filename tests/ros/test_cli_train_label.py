@@ -152,6 +152,11 @@ def test_label_uses_each_rows_nozzle_baseline(work, tmp_path, capsys):
     # one input given for another
     (["label", "{d}/rec.npz", "--model", "{d}/head.yaml", "--out", "{d}/l.csv"],
      "is a head profile (YAML), not a model"),
+    (["label", "{d}/rec.npz", "--model", "{d}/head.joblib.manifest.json", "--out", "{d}/l.csv"],
+     "head.joblib.manifest.json is a model's manifest, not the model: give the head.joblib it describes"),
+    (["label", "{d}/rec.npz", "--model", "{d}/head.joblib", "--out", ""], "--out is empty: give the output file"),
+    (["calibrate", "{d}/rec.npz", "--nominal", "{d}/nominal.yaml", "--out", "{d}/c.yaml", "--report-dir",
+      "{d}/rec.npz"], "rec.npz: is a file, not a directory"),
     (["estimate", "{d}/rec.npz", "--profile", "{d}/head.joblib", "--out", "{d}/f.csv"],
      "not a head profile: a binary file, not YAML text"),
     (["label", "{d}/transposed.npz", "--model", "{d}/head.joblib", "--out", "{d}/l.csv"],

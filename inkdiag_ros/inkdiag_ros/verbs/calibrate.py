@@ -299,6 +299,8 @@ def run(args) -> int:
         note = f"; {left_out} rows labelled otherwise left out" if left_out else ""
     out = Path(args.out)
     report_dir = Path(args.report_dir) if args.report_dir else out.parent
+    if report_dir.exists() and not report_dir.is_dir():  # mkdir's own error: '[Errno 17] File exists: ...'
+        raise OSError(f"--report-dir {report_dir}: is a file, not a directory")
     report_dir.mkdir(parents=True, exist_ok=True)
     result = calibrate(nominal, traces, fs, name=args.name, seed=args.seed,
                        blocked=None if blocked is None else blocked.traces,
