@@ -806,7 +806,7 @@ class BagRecorder:
         try:
             self.writer.write(self.connection(topic), stamp, raw)
         except OSError as exc:  # a full disk: the messages written so far stay readable (close_writer)
-            self.failed = BagWriteError(f"recording into {getattr(self.writer, 'path', 'the bag')} failed: {exc}")
+            self.failed = BagWriteError.of(self.writer, exc)
             raise self.failed from exc
         self._last_ns = stamp
         self.counts[topic] += 1
@@ -859,6 +859,11 @@ class BagWriteError(FatalNodeError, OSError):
     """A recording's write failed (a full disk): the recording stops there, the process with one line
     (``inkdiag record``, ``--record``: exit status 2)."""
 
+    @classmethod
+    def of(cls, writer, exc: OSError) -> "BagWriteError":
+        """``recording into BAG failed: <exc>`` for ``writer``'s bag."""
+        return cls(f"recording into {getattr(writer, 'path', 'the bag')} failed: {exc}")
+
 
 def close_writer(writer, recorder) -> bool:
     """Close ``writer`` (its last chunk, the MCAP summary, metadata.yaml); True if it closed.
@@ -873,7 +878,7 @@ def close_writer(writer, recorder) -> bool:
     except OSError as exc:
         if recorder is not None and recorder.failed is not None:
             return False
-        failed = BagWriteError(f"recording into {getattr(writer, 'path', 'the bag')} failed: {exc}")
+        failed = BagWriteError.of(writer, exc)
         if recorder is not None:
             recorder.failed = failed
         raise failed from exc
