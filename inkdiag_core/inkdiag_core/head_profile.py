@@ -189,7 +189,7 @@ def _loader():
                 key = self.construct_object(key_node, deep=deep)
                 if key in seen:
                     raise yaml.constructor.ConstructorError(
-                        None, None, f"duplicate key {key!r} (line {key_node.start_mark.line + 1})", key_node.start_mark)
+                        None, None, f"duplicate key {key!r}", key_node.start_mark)
                 seen.add(key)
             return super().construct_mapping(node, deep=deep)
 
@@ -229,6 +229,22 @@ def _section(doc, key, units, source, *, required=(), optional_keys=()):
     if missing:
         raise ProfileError(f"{source}: {key}.{missing[0]}: missing (a number in {units[missing[0]]})")
     return dict(sec)
+
+
+def _yaml_problem(exc) -> str:
+    """PyYAML's error as one line with where it is: ``" at line 4, column 1: expected ',' or ']', but got
+    '<stream end>' (while parsing a flow sequence at line 3, column 44)"``, lines and columns from 1."""
+    def at(mark):
+        return f"line {mark.line + 1}, column {mark.column + 1}"
+
+    problem, mark = getattr(exc, "problem", None), getattr(exc, "problem_mark", None)
+    if not problem:  # not a MarkedYAMLError (a ReaderError: bytes that are not text): its own first line
+        return ": " + (str(exc).splitlines() or [type(exc).__name__])[0]
+    where = f" at {at(mark)}" if mark is not None else ""
+    context, cmark = getattr(exc, "context", None), getattr(exc, "context_mark", None)
+    if context:
+        context = f" ({context}{' at ' + at(cmark) if cmark is not None else ''})"
+    return f"{where}: {problem}{context or ''}"
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -386,7 +402,7 @@ class HeadProfile:
         try:
             doc = yaml.load(text, Loader=_loader())  # noqa: S506 (a SafeLoader subclass)
         except yaml.YAMLError as exc:
-            raise ProfileError(f"{source}: not valid YAML: {str(exc).splitlines()[0]}") from None
+            raise ProfileError(f"{source}: not valid YAML{_yaml_problem(exc)}") from None
         except RecursionError:  # PyYAML composes and constructs nested nodes recursively
             raise ProfileError(f"{source}: not valid YAML: nested too deeply") from None
         return cls.from_dict(doc, source=source)

@@ -140,6 +140,17 @@ def test_missing_and_malformed_files(tmp_path):
     (tmp_path / "bad.yaml").write_text("schema: [")
     with pytest.raises(ProfileError, match="not valid YAML"):
         HeadProfile.load(tmp_path / "bad.yaml")
+    # a hand-written profile's slip: said with where it is, lines and columns from 1
+    (tmp_path / "indent.yaml").write_text("schema: inkdiag.head_profile\nchannel:\n  rho: 1000\n   mu: 3\n")
+    with pytest.raises(ProfileError, match=r"not valid YAML at line 4, column 6: mapping values are not allowed here$"):
+        HeadProfile.load(tmp_path / "indent.yaml")
+    (tmp_path / "flow.yaml").write_text("sampling: {n_samples: [512\n")
+    with pytest.raises(ProfileError, match=r"at line 2, column 1: expected ',' or ']', .* \(while parsing a flow "
+                                           r"sequence at line 1, column 23\)$"):
+        HeadProfile.load(tmp_path / "flow.yaml")
+    (tmp_path / "twice.yaml").write_text("schema: a\nschema: b\n")
+    with pytest.raises(ProfileError, match=r"at line 2, column 1: duplicate key 'schema'$"):
+        HeadProfile.load(tmp_path / "twice.yaml")
     (tmp_path / "deep.yaml").write_text("schema: " + "[" * 5000 + "]" * 5000)
     with pytest.raises(ProfileError, match="not valid YAML: nested too deeply"):  # not a RecursionError
         HeadProfile.load(tmp_path / "deep.yaml")
