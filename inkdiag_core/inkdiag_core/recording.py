@@ -226,6 +226,9 @@ def load_recording(path) -> Recording:
                 if req not in keys:
                     raise RecordingError(f"{src}: no {req!r} in the recording (it has {', '.join(sorted(keys)) or 'nothing'})")
             data = {k: z[k] for k in ("traces", "sample_rate_hz", "nozzle", "frame_id", "stamp", "label") if k in keys}
+        for k, v in data.items():  # a member that is not .npy data: NpzFile gives its raw bytes
+            if not isinstance(v, np.ndarray):
+                raise RecordingError(f"{src}: {k!r} is not a numpy array in the archive (not .npy data)")
     except RecordingError:
         raise
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:

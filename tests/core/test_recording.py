@@ -2,6 +2,7 @@
 
 import os
 import re
+import zipfile
 
 import numpy as np
 import pytest
@@ -75,6 +76,11 @@ def test_unreadable_files(tmp_path):
         load_recording(tmp_path / "one.npy")
     with pytest.raises(RecordingError, match="directory"):
         load_recording(tmp_path)
+    with zipfile.ZipFile(tmp_path / "text.npz", "w") as z:  # a member that is not .npy data: its raw bytes
+        z.writestr("traces.npy", b"1 2 3\n")
+        z.writestr("sample_rate_hz.npy", b"1e7")
+    with pytest.raises(RecordingError, match=r"'traces' is not a numpy array in the archive \(not .npy data\)"):
+        load_recording(tmp_path / "text.npz")
 
 
 def test_labels_stored_as_bytes_are_text(tmp_path):
