@@ -484,6 +484,14 @@ class HeadProfile:
         if n / fs * f0 < 3:
             raise ProfileError(f"{source}: a trace of {n} samples at {fs:g} Hz holds {n / fs * f0:.1f} periods of the "
                                f"healthy mode ({f0 / 1e3:.1f} kHz); at least 3 are needed")
+        if "adc_range_v" not in self.sensor:  # the default's 2 V: a head of larger traces may leave it out
+            return
+        with np.errstate(all="ignore"):
+            rms = nominal_rms(self.channel_params(), self.drive, n, fs) * self.sensor_gain_v_per_m3s
+        adc, offset = self.adc_range_v, self.sensor_offset_v
+        if not (rms < adc and abs(offset) < adc):  # every healthy trace clipped, or all of it out of range
+            raise ProfileError(f"{source}: sensor.adc_range_v {adc:g} V: an ADC reading +-{adc:g} V clips the nominal "
+                               f"healthy trace (rms {rms:.3g} V about an offset of {offset:g} V): is it in volts?")
 
     # -- serialisation ----------------------------------------------------------------------
 

@@ -118,6 +118,7 @@ def test_the_longest_drive_segment_is_accepted():
     doc = HeadProfile.default().to_dict()
     doc["drive"].update(dwell_s=1e-4)  # at the bound
     assert HeadProfile.from_dict(doc).drive.dwell_s == 1e-4
+    doc["sensor"].update(adc_range_v=10.0)  # 500 V's healthy trace: 2.6 V rms, beyond the default head's +-2 V
     for volts in (1.0, 500.0):  # the amplitude's bounds
         doc["drive"].update(amplitude_v=volts)
         assert HeadProfile.from_dict(doc).drive.amplitude_v == volts
@@ -132,6 +133,19 @@ def test_physics_checks_of_a_complete_profile():
     doc["sampling"].update(n_samples=16)
     with pytest.raises(ProfileError, match="periods of the healthy mode"):
         HeadProfile.from_dict(doc)
+    # an ADC that would clip every healthy trace (its range in mV? 1e-300 made every row out of range)
+    for key, value, what in (("adc_range_v", 0.15, r"rms 0.185 V about an offset of 0 V"),
+                             ("adc_range_v", 1e-300, "rms 0.185 V"), ("offset_v", -2.5, "rms 0.185 V about an offset of -2.5 V")):
+        doc = HeadProfile.default().to_dict()
+        doc["sensor"][key] = value
+        with pytest.raises(ProfileError, match=rf"sensor.adc_range_v .* clips the nominal healthy trace \({what}"):
+            HeadProfile.from_dict(doc)
+    doc = HeadProfile.default().to_dict()
+    doc["sensor"].update(adc_range_v=0.2)  # just above: the peaks clip, the profile is the user's to give
+    assert HeadProfile.from_dict(doc).adc_range_v == 0.2
+    del doc["sensor"]["adc_range_v"]  # left out: the default's 2 V, not checked (a head of larger traces)
+    doc["drive"].update(amplitude_v=500.0)
+    assert HeadProfile.from_dict(doc).adc_range_v == 2.0
 
 
 def test_missing_and_malformed_files(tmp_path):
