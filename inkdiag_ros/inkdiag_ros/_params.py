@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+
 from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
@@ -55,6 +57,25 @@ def declare_all(node, params) -> dict:
     return out
 
 
+#: Names :func:`warn_unknown` leaves unsaid while :func:`shared_by` is in force.
+_SHARED: frozenset = frozenset()
+
+
+@contextlib.contextmanager
+def shared_by(*tables):
+    """Within: a node says nothing of a parameter it does not declare but one of ``tables`` (``PARAMS``
+    of the other nodes a process builds) does: a graph's ``-p NAME:=VALUE`` reaches every node of it,
+    meant for those that have NAME (``scripts/run --ros-args -p n_nozzles:=128``). A name no table
+    declares is still warned about by each node."""
+    global _SHARED
+    before = _SHARED
+    _SHARED = before | {row[0] for table in tables for row in table}
+    try:
+        yield
+    finally:
+        _SHARED = before
+
+
 def warn_unknown(node) -> list:
     """Log the parameters given to ``node`` (``-p NAME:=VALUE``, a params file's section for it) that it
     does not declare, with the nearest declared name: rclpy ignores them, so a misspelt name
@@ -65,10 +86,10 @@ def warn_unknown(node) -> list:
     given = getattr(node, "_parameter_overrides", {})  # rclpy's: this node's values from its arguments
     unknown = sorted(name for name in given if not node.has_parameter(name))
     node.ignored_parameters = unknown
-    if unknown:
+    if said := [name for name in unknown if name not in _SHARED]:
         declared = sorted(node._parameters)  # noqa: SLF001 - rclpy keeps no public list of names
         hints = []
-        for name in unknown:
+        for name in said:
             near = difflib.get_close_matches(name, declared, n=1)
             hints.append(f"{name} (did you mean {near[0]}?)" if near else name)
         node.get_logger().warning(f"ignoring parameter(s) this node does not have: {', '.join(hints)}; "

@@ -54,6 +54,7 @@ from ._spin import close_outputs, exit_now, quiet_signal_handling, ros_args_erro
 from .allocator import PeriodicRelease, keep_freed_memory
 from .blas import limit_blas_threads
 from .bags import HEAD_TOPICS, InProcessRecording, check_new_bag
+from . import _params, baseline_node, fdi_node, fe_node, printhead_sim
 from .baseline_node import BaselineRecorderNode
 from .fdi_node import FdiNode
 from .fe_node import FeNode
@@ -162,8 +163,14 @@ def _make(node_cls, **kwargs):
         raise BadParameters(f"{node_cls.__name__}: {exc}") from exc
 
 
-def _run(duration_s, *, namespace, model_path, out, context, baseline, own, record=None) -> Scorecard:
+def _run(duration_s, **kwargs) -> Scorecard:
     """:func:`run` on an initialised context (``own``: shut it down at the end)."""
+    # a -p NAME:=VALUE reaches every node: only those that have NAME take it, the others say nothing of it
+    with _params.shared_by(printhead_sim.PARAMS, baseline_node.PARAMS, fdi_node.PARAMS, fe_node.PARAMS):
+        return _run_graph(duration_s, **kwargs)
+
+
+def _run_graph(duration_s, *, namespace, model_path, out, context, baseline, own, record=None) -> Scorecard:
     kw = {"namespace": namespace}
     if context is not None:
         kw["context"] = context

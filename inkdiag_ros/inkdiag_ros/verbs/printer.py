@@ -371,6 +371,7 @@ def worker_main(argv=None) -> int:
     from rclpy.parameter import Parameter
     from rclpy.utilities import remove_ros_args
 
+    from .. import _params, fdi_node, printhead_sim
     from .._spin import TEARDOWN_DEADLINE_S, freeze_startup_objects, make_executor, stop_on_signals, tear_down
     from ..allocator import PeriodicRelease, keep_freed_memory
     from ..blas import limit_blas_threads
@@ -408,8 +409,9 @@ def worker_main(argv=None) -> int:
         ctx = rclpy.utilities.get_default_context()
         nodes, executor, status = [], None, 0
         try:
-            for i in heads:
-                nodes.append(cls(namespace=f"/head_{i:02d}", parameter_overrides=overrides(i)))
+            with _params.shared_by(fdi_node.PARAMS, printhead_sim.PARAMS):  # --ros-args reach both roles
+                for i in heads:
+                    nodes.append(cls(namespace=f"/head_{i:02d}", parameter_overrides=overrides(i)))
             # with the SingleThreadedExecutor a timer callback failing at shutdown raises here
             # (the EventsExecutor logs it as FATAL)
             executor = make_executor(nodes, ns.executor == "events", stop)
