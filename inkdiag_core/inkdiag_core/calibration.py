@@ -124,6 +124,11 @@ NOISE_ONLY_RATIO = 3.0
 """The typical traces' mean must be more than this many times the rms their scatter about it leaves in a mean
 (rms / sqrt(count)): about 1 for traces of noise alone, 25 and more for healthy ringing."""
 
+RINGING_MIN_SNR = 3.0
+"""A recorded trace whose AC rms is at most this many times its own white-noise level (the standard deviation of
+its second differences over sqrt(6): white noise's own level; a ringing at a twentieth of the sample rate or below
+adds a few per cent of its rms to it) does not ring: left out and counted (a nozzle that did not fire)."""
+
 TYPICAL_FRACTION = 0.05
 """Fraction of the traces, nearest the median frequency and damping, whose mean is fitted (but see
 :data:`TYPICAL_MIN_SAMPLES`). Fewer traces dephase less: their frequencies are closer."""
@@ -305,6 +310,12 @@ def _noise_std(residual, f_hz, fs):
 
 def _rms_ac(x):
     return np.sqrt(np.mean((x - x.mean(axis=-1, keepdims=True)) ** 2, axis=-1))
+
+
+def _rings(y):
+    """Rows of ``y`` (n, n_samples) that ring above their own noise (:data:`RINGING_MIN_SNR`); (n,) bool."""
+    noise = np.std(np.diff(y, n=2, axis=1), axis=1) / np.sqrt(6.0)
+    return _rms_ac(y) > RINGING_MIN_SNR * noise
 
 
 def _blocked_mode(known: _Known, theta, damping: bool = False):
@@ -591,10 +602,16 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     finite, why = screen_traces(y, sample_rate_hz=sample_rate_hz, max_abs_v=nominal.max_abs_v)
     n_dropped = int((~finite).sum())
     y = y[finite]
+    quiet = ~_rings(y)  # nozzles that did not fire, half a recording of them, made the spreads' fit absurd
+    n_quiet = int(quiet.sum())
+    y = y[~quiet]
     if y.shape[0] < MIN_TRACES:
         reasons = ", ".join(f"{r} {int((why == r).sum())}" for r in sorted(set(why[~finite].tolist())))
-        raise CalibrationError(f"{y.shape[0]} usable healthy traces ({n_dropped} left out by screening"
-                               f"{': ' + reasons if reasons else ''}); calibration needs at least {MIN_TRACES}")
+        raise CalibrationError(
+            (f"the recorded traces do not ring above their noise ({n_quiet} of {n_quiet + y.shape[0]} screened in "
+             "do not: are they healthy nozzles fired with the profile's drive?); " if n_quiet else "")
+            + f"{y.shape[0]} usable healthy traces ({n_dropped} left out by screening{': ' + reasons if reasons else ''}"
+            + (f", {n_quiet} not ringing" if n_quiet else "") + f"); calibration needs at least {MIN_TRACES}")
     fs = nominal.sample_rate_hz
     known = _Known.of(nominal)
     typical = _typical_rows(y, fs, TYPICAL_FRACTION)
@@ -684,6 +701,9 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     f_fit, z_fit = (float(v[0]) for v in _mode(known, theta))
     if not best.success or resid_rel > MAX_RESIDUAL_REL or a_mean <= 0:
         why = (f"the optimiser stopped: {best.message}" if not best.success else
+               f"the traces are the channel's healthy response upside down (the best fit's amplitude is negative, "
+               f"its RMS residual {100 * resid_rel:.0f} % of the mean trace's): an inverted sensor sign? Negate the "
+               "samples (inkdiag takes a positive sense gain)" if a_mean <= 0 and resid_rel <= MAX_RESIDUAL_REL else
                f"the best fit leaves an RMS residual of {100 * resid_rel:.0f} % of the mean trace's RMS "
                f"(recorded mode {f_rec / 1e3:.1f} kHz, damping {kp_mean[2]:.3f}; fitted {f_fit / 1e3:.1f} kHz, "
                f"damping {z_fit:.3f}): the traces are not what the nominal channel and drive give")
@@ -804,6 +824,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     report = {
         "n_traces": int(y.shape[0]),
         "n_dropped_nonfinite": n_dropped,
+        "n_dropped_not_ringing": n_quiet,
         "n_typical": int(typical.size),
         "sample_rate_hz": fs,
         "n_samples": int(nominal.n_samples),
@@ -852,7 +873,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
                       "message": str(best.message), "costs": [float(f.cost) for f in fits]},
     }
     provenance = {"method": "inkdiag calibrate", "n_traces": report["n_traces"],
-                  "n_dropped_nonfinite": n_dropped, "fitted": sorted(report["fitted"]),
+                  "n_dropped_nonfinite": n_dropped, "n_dropped_not_ringing": n_quiet, "fitted": sorted(report["fitted"]),
                   "amplitude_convention": convention, "residual_rel_mean_trace": resid_rel,
                   "residual_rel_per_trace_median": report["residual_rel"]["per_trace_median"],
                   "determined_by": {p: pinned[p]["determined_by"] for p in _PARAMS},

@@ -206,6 +206,29 @@ def test_physical_spreads_follow_the_recordings_spread(result):
     assert 0.7 < g1 < 1.4 and 0.6 < t1 < 1.5
 
 
+def test_traces_that_do_not_ring_are_left_out_and_counted(recorded, result):
+    """Half the nozzles did not fire (white noise in their rows): calibration went on with them and fitted a gain
+    spread of 323 % (helper-103's QA); they are left out and counted, and the fit is the other half's."""
+    y = recorded.traces.copy()
+    y[::2] = np.random.default_rng(2).normal(0.0, 0.01, y[::2].shape)
+    fit = calibrate(nominal_of(TRUE), y, TRUE.sample_rate_hz)
+    assert fit.report["n_dropped_not_ringing"] == 150 and fit.report["n_traces"] == 150
+    assert result.report["n_dropped_not_ringing"] == 0
+    assert fit.profile.spreads().gain_rel == pytest.approx(result.profile.spreads().gain_rel, rel=0.35)
+    with pytest.raises(CalibrationError, match=r"\(295 of 300 screened in do not: .*5 usable healthy traces \(0 left "
+                                               r"out by screening, 295 not ringing\); calibration needs at least 10"):
+        y = recorded.traces.copy()
+        y[:-5] = np.random.default_rng(3).normal(0.0, 0.01, y[:-5].shape)
+        calibrate(nominal_of(TRUE), y, TRUE.sample_rate_hz)
+
+
+def test_an_inverted_sensor_sign_is_said(recorded):
+    """Negated traces fit the model at a negative amplitude with a small residual: the error blamed the channel."""
+    with pytest.raises(CalibrationError, match=r"upside down .*RMS residual [0-9] % .*: an inverted sensor sign\? "
+                                               r"Negate the samples"):
+        calibrate(nominal_of(TRUE), -recorded.traces, TRUE.sample_rate_hz)
+
+
 def test_a_spike_row_is_screened_out_not_fatal(recorded):
     y = recorded.traces[:60].copy()
     y[7, 200] = 1e30  # beyond any sensor: out_of_range
