@@ -279,6 +279,16 @@ class LabelTable:
     lines: np.ndarray
     columns: tuple = ()
 
+    def coverage_warning(self, n_named: int, n_rows: int, recording) -> str | None:
+        """What to say when this CSV looks like ``inkdiag label``'s (rows named by ``row``, with its
+        ``confidence`` and ``reason`` columns), which names every row of the recording it labelled, but names
+        ``n_named`` of the ``n_rows`` rows of ``recording``: the labels of another recording? None otherwise."""
+        if self.key != "row" or not {"confidence", "reason"} <= set(self.columns) or not 0 < n_named < n_rows:
+            return None
+        return (f"{self.source} looks like `inkdiag label`'s CSV, which names every row of the recording it "
+                f"labelled, but it names {n_named} of the {n_rows} rows of {recording} (rows "
+                f"{int(self.row.min())}..{int(self.row.max())}): the labels of another recording?")
+
 
 _INTEGER = re.compile(r"[+-]?[0-9]+")
 _EMPTY = np.iinfo(np.int64).min  # an empty nozzle or frame_id cell beside a row

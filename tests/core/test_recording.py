@@ -185,6 +185,21 @@ def test_labels_from_csv_refuses_a_missing_file_a_directory_and_bytes_that_are_n
         labels_from_csv(rec, tmp_path / "b.csv")
 
 
+def test_a_label_csv_that_names_part_of_the_recording_is_warned_about(tmp_path):
+    """inkdiag label's CSV names every row of its recording: one that names fewer is another recording's."""
+    from inkdiag_core import read_labels_csv
+
+    label = tmp_path / "label.csv"
+    label.write_text("row,nozzle,frame_id,class,confidence,reason\n0,0,0,deeply_dried,0.9,\n1,1,0,healthy_nozzle,0.99,\n")
+    hand = tmp_path / "hand.csv"
+    hand.write_text("row,class\n0,deeply_dried\n1,healthy_nozzle\n")
+    why = read_labels_csv(label).coverage_warning(2, 5, "rec.npz")
+    assert why == (f"{label} looks like `inkdiag label`'s CSV, which names every row of the recording it labelled, "
+                   "but it names 2 of the 5 rows of rec.npz (rows 0..1): the labels of another recording?")
+    assert read_labels_csv(label).coverage_warning(2, 2, "rec.npz") is None  # every row
+    assert read_labels_csv(hand).coverage_warning(2, 5, "rec.npz") is None  # a hand's CSV names what it checked
+
+
 def test_labels_from_csv_takes_empty_cells_beyond_the_header(tmp_path):
     """A spreadsheet's export may end lines with empty cells; a non-empty one beyond the header is refused."""
     from inkdiag_core import labels_from_csv

@@ -435,6 +435,13 @@ def test_estimate_takes_the_rows_a_labels_csv_calls_dried(head, tmp_path):
                   "--out", "-")
     assert res.returncode == 0, res.stderr
     assert [int(x.split(",")[0]) for x in res.stdout.splitlines()[1:]] == [0]
+    assert "warning" not in res.stderr
+    # label's CSV of another recording that agrees on the rows it names: estimated, with train's warning
+    part = _labels_csv(tmp_path / "part.csv", d / "rec.npz", classes[:10])
+    res = run_inproc(d / "rec.npz", "--profile", d / "head.yaml", "--labels", part, "--out", tmp_path / "c.csv")
+    assert res.returncode == 0, res.stderr
+    assert ("inkdiag estimate: warning: " + str(part) + " looks like `inkdiag label`'s CSV, which names every row of "
+            "the recording it labelled, but it names 10 of the 16 rows of") in res.stderr, res.stderr
 
 
 def test_estimate_refuses_labels_of_another_recording_or_with_row_indices(head, tmp_path):

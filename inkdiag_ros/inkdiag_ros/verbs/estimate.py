@@ -192,7 +192,9 @@ def run(args) -> int:
     if table is not None and not bag:
         from inkdiag_core import labels_from_csv
 
-        rec = labels_from_csv(rec, table)[0]  # the CSV's classes for the recording's own
+        rec, n_named = labels_from_csv(rec, table)  # the CSV's classes for the recording's own
+        if why := table.coverage_warning(n_named, rec.n_rows, args.recording):
+            print(f"inkdiag estimate: warning: {why}", file=sys.stderr)
     rows = None if bag else select_rows(args.rows, rec.n_rows, rec.label)
     baselines = None
     if args.baselines:

@@ -176,13 +176,8 @@ def run(args) -> int:
             n_class = int(np.isin(data.label, NOT_CLASSES, invert=True).sum())
             print(f"{args.labels}: {n_named} of the {data.n_rows} rows of {args.data} named, {n_class} with a class"
                   + (" (in place of the recording's own 'label')" if had else ""))
-            if (table.key == "row" and {"confidence", "reason"} <= set(table.columns)
-                    and 0 < n_named < data.n_rows):
-                print(f"inkdiag train: warning: {args.labels} looks like `inkdiag label`'s CSV, which names every "
-                      f"row of the recording it labelled, but it names {n_named} of the {data.n_rows} rows of "
-                      f"{args.data} "
-                      f"(rows {int(table.row.min())}..{int(table.row.max())}): the labels of another recording?",
-                      file=sys.stderr)
+            if why := table.coverage_warning(n_named, data.n_rows, args.data):
+                print(f"inkdiag train: warning: {why}", file=sys.stderr)
         if data.label is None:
             raise ValueError(f"{args.data}: no 'label' array: --data needs each row's class (or give them with "
                              "--labels LABELS.csv)")
