@@ -209,6 +209,8 @@ def test_estimate_bad_input_is_one_line_and_status_2(head, tmp_path):
         ((d / "rec.npz", "--profile", tmp_path / "missing.yaml"), "no such head profile"),
         ((d / "rec.npz", "--profile", d / "head.yaml", "--rows", "40"), "no such row"),
         ((d / "rec.npz", "--profile", d / "head.yaml", "--rows", "5:2"), "START 5 is after STOP 2"),
+        ((d / "rec.npz", "--profile", d / "head.yaml", "--rows", "\u0663"), "expected indices and ranges"),  # Arabic 3
+        ((d / "rec.npz", "--profile", d / "head.yaml", "--rows", "\u0661:\u0663"), "expected indices and ranges"),
         ((d / "rec.npz", "--profile", d / "head.yaml", "--max-abs-v", "nan"), "--max-abs-v must be a number > 0 V"),
     ]
     for args, message in cases:

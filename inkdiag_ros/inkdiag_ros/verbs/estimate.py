@@ -105,7 +105,7 @@ def select_rows(spec, n: int, labels=None):
     out = []
     for part in spec.split(","):
         part = part.strip()
-        m = re.fullmatch(r"(-?\d*)\s*:\s*(-?\d*)", part)
+        m = re.fullmatch(r"(-?[0-9]*)\s*:\s*(-?[0-9]*)", part)
         if m:
             lo = int(m.group(1)) if m.group(1) else 0
             hi = int(m.group(2)) if m.group(2) else n
@@ -114,7 +114,7 @@ def select_rows(spec, n: int, labels=None):
             if lo > hi:
                 raise InputError(f"--rows {part}: START {lo} is after STOP {hi} (START:STOP, STOP excluded)")
             out.append(np.arange(lo, hi, dtype=np.int64))
-        elif re.fullmatch(r"\d+", part):
+        elif re.fullmatch(r"[0-9]+", part):
             i = int(part)
             if i >= n:
                 raise InputError(f"--rows {part}: no such row (the recording has {n} rows)")
@@ -327,7 +327,7 @@ def bag_row_picker(spec, labels=None):
                              "LABELS.csv (inkdiag label's CSV of the bag)")
         for part in spec.split(","):
             part = part.strip()
-            m = re.fullmatch(r"(\d*)\s*:\s*(\d*)", part)
+            m = re.fullmatch(r"([0-9]*)\s*:\s*([0-9]*)", part)
             if m:
                 lo = int(m.group(1)) if m.group(1) else 0
                 hi = int(m.group(2)) if m.group(2) else None
@@ -335,7 +335,7 @@ def bag_row_picker(spec, labels=None):
                     raise InputError(f"--rows {part}: START > STOP")
                 parts.append((lo, hi))
                 max_index = max(max_index, (lo if hi is None else hi) - 1)  # as select_rows: STOP <= n
-            elif re.fullmatch(r"\d+", part):
+            elif re.fullmatch(r"[0-9]+", part):
                 parts.append((int(part), int(part) + 1))
                 max_index = max(max_index, int(part))
             else:
