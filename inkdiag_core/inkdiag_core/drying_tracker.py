@@ -55,12 +55,20 @@ def _default_head():
     return HeadProfile.default()
 from .trend import CLOCK_RESET_S, FmTrendBank, deeply_dried_fm
 
-__all__ = ["ESTIMATE_COLUMNS", "NONPHYSICAL_REASON", "DryingTracker", "RangeEstimates", "RowEstimates"]
+__all__ = ["BELOW_NOISE_REASON", "ESTIMATE_COLUMNS", "NONPHYSICAL_REASON", "DryingTracker", "RangeEstimates",
+           "RowEstimates"]
 
 
 #: Reason of a row whose estimate means a viscosity <= 0 (``channel.mu + d_mu``): no nozzle the linear
 #: channel model describes (an empty channel, an air bubble), so not an estimate of its ink.
 NONPHYSICAL_REASON = "viscosity_not_positive"
+#: Reason of a row of a head with a profile whose AC rms is at most :data:`BELOW_NOISE_FACTOR` times the
+#: profile's sensor noise (``noise_std_v``): no ringing to fit (a nozzle that did not fire, traces in other
+#: units). White noise once came out as f_m -4.6e6 1/s with no reason.
+BELOW_NOISE_REASON = "below_noise"
+#: Deeply dried traces of the five heads of ``tests/foreign_head.py`` ring at 10.7 times their noise_std_v
+#: and more (the least of 300 a head); white noise, about 1.
+BELOW_NOISE_FACTOR = 3.0
 #: Columns of :attr:`RangeEstimates.columns`, in this order (the fields of ``fm_estimates``).
 ESTIMATE_COLUMNS = ("nozzle", "fm", "fm_std", "d_mu", "viscosity", "fm_trend", "fm_rate",
                     "eta_deeply_dried_s")
@@ -119,8 +127,9 @@ class RowEstimates:
         in every estimate column of a row that was not estimated.
     reasons : ndarray of str (object), shape (n,)
         ``""`` for estimated rows; else screening's reason
-        (:data:`~inkdiag_core.INVALID_REASONS`), ``"estimate_not_finite"`` or
-        :data:`NONPHYSICAL_REASON` (the estimate means a viscosity <= 0).
+        (:data:`~inkdiag_core.INVALID_REASONS`), :data:`BELOW_NOISE_REASON` (no ringing above the
+        profile's sensor noise), ``"estimate_not_finite"`` or :data:`NONPHYSICAL_REASON` (the estimate
+        means a viscosity <= 0).
     method : str
         The estimator that ran.
     note : str
@@ -211,7 +220,8 @@ class DryingTracker:
         the nozzle out (it recovered, e.g. purged): if it dries again, its trend starts anew. Only
         for a trace screening accepts and a frame after the trend's last update.
     rows_invalid : int
-        Listed rows that screening rejected (not estimated).
+        Listed rows that screening rejected, or with no ringing above the profile's sensor noise
+        (:data:`BELOW_NOISE_REASON`): not estimated.
     estimates, estimates_with_baseline : int
         Nozzle estimates made; those relative to a healthy f_m.
     """
@@ -234,8 +244,11 @@ class DryingTracker:
             raise ValueError(f"max_abs_v must be > 0 V, got {max_abs_v!r}")
         self.vp_cal = None
         fm_deep = None
+        self.min_ac_rms_v = 0.0  # rows at or below it: BELOW_NOISE_REASON (a head with a profile)
         if profile is not None:
             from .estimation import vp_cal_for
+
+            self.min_ac_rms_v = BELOW_NOISE_FACTOR * profile.noise_std_v()
 
             model = profile.model()
             fm_deep = deeply_dried_fm(profile.channel_params())
@@ -462,6 +475,11 @@ class DryingTracker:
                              f"{rows.shape} and {ids.size} ids")
         n = ids.size
         valid, reasons = screen_traces(rows, sample_rate_hz=sample_rate_hz, max_abs_v=self.max_abs_v)
+        if self.min_ac_rms_v > 0 and valid.any():
+            ac = rows[valid] - rows[valid].mean(axis=1, keepdims=True)
+            quiet = np.flatnonzero(valid)[np.sqrt(np.mean(ac * ac, axis=1)) <= self.min_ac_rms_v]
+            reasons[quiet] = BELOW_NOISE_REASON
+            valid[quiet] = False
         cols = {k: np.full(n, np.nan) for k in ESTIMATE_COLUMNS}
         cols["nozzle"] = ids.copy()
         self.rows_invalid += int(n - np.count_nonzero(valid))

@@ -168,6 +168,20 @@ def test_estimate_writes_the_columns_and_reports_bad_rows(head):
                                rtol=1e-9)
 
 
+def test_traces_in_other_units_that_do_not_ring_above_the_noise_are_said(head, tmp_path):
+    """Traces a thousand times too small were estimated as any other, with no word (helper-103)."""
+    d, p, r = head
+    z = dict(np.load(d / "rec.npz"))
+    np.savez(tmp_path / "kv.npz", **dict(z, traces=(z["traces"] * 1e-3).astype(np.float32)))
+    res = run_inproc(tmp_path / "kv.npz", "--profile", d / "head.yaml", "--out", tmp_path / "fm.csv")
+    assert res.returncode == 0, res.stderr
+    assert "0 of 16 rows estimated" in res.stdout and "below_noise 13" in res.stdout, res.stdout  # the summary line
+    assert ("inkdiag estimate: warning: 13 of 16 rows do not ring above the profile's sensor noise" in res.stderr
+            and "are the traces in volts (not kilovolts), of nozzles that fired?" in res.stderr), res.stderr
+    res = run_inproc(d / "rec.npz", "--profile", d / "head.yaml", "--out", tmp_path / "fm.csv")
+    assert res.returncode == 0 and "below_noise" not in res.stdout + res.stderr and "warning" not in res.stderr
+
+
 def test_estimate_selects_rows(head):
     d, p, r = head
     out = d / "sel.csv"

@@ -33,7 +33,8 @@ Output CSV, one line per selected row, columns:
 Units: fm, fm_std, fm_trend 1/s; fm_rate 1/s^2; d_mu, viscosity Pa s;
 stamp, eta_deeply_dried_s s. A row that cannot be estimated has empty values
 and its reason: non_finite, out_of_range, flat or clipped samples (as fdi
-screens them), estimate_not_finite, or viscosity_not_positive (an estimate
+screens them), below_noise (an AC rms at most 3x the profile's noise_std_v:
+no ringing to fit), estimate_not_finite, or viscosity_not_positive (an estimate
 that means a viscosity of 0 or less: no drying nozzle the channel model
 describes, e.g. an empty channel or a bubble); the others are estimated all
 the same. fm_trend and fm_rate are filled when the recording has stamps
@@ -172,6 +173,7 @@ def run(args) -> int:
 
     import numpy as np
     from inkdiag_core import BaselineFileError, DryingTracker, HeadProfile, NozzleBaselines
+    from inkdiag_core.drying_tracker import BELOW_NOISE_REASON
     from inkdiag_core.head_profile import ProfileError
 
     from ..bags import is_bag, stream_recording
@@ -246,8 +248,8 @@ def run(args) -> int:
           + _to(args.out), file=summary_stream(args.out))
     for note in sorted(notes):
         print(f"inkdiag estimate: note: {note}", file=sys.stderr)
-    _say_after([(rec.nozzle[rows], frames, stamps)], unfolded, int(np.sum(reasons == "out_of_range")), n,
-               tracker.max_abs_v)
+    _say_after([(rec.nozzle[rows], frames, stamps)], unfolded, {r: int(np.sum(reasons == r)) for r in
+                                                                  ("out_of_range", BELOW_NOISE_REASON)}, n, tracker)
     est = ~bad
     k = int(np.count_nonzero(est & ~np.isfinite(stamps)))
     if k:  # said, not silent: those rows' trend columns are empty
@@ -451,7 +453,7 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
           + _against(tracker, n - n_bad, notes) + _to(args.out), file=summary_stream(args.out))
     for note in sorted(notes):
         print(f"inkdiag estimate: note: {note}", file=sys.stderr)
-    _say_after(seen, unfolded, why.get("out_of_range", 0), n, tracker.max_abs_v)
+    _say_after(seen, unfolded, why, n, tracker)
     return 0
 
 
@@ -512,13 +514,14 @@ def _fold_frame(trends, t, grp, cols) -> tuple:
     return int(grp.size - np.count_nonzero(folded)), int(np.count_nonzero(restarted))
 
 
-def _say_after(keys, unfolded, n_out_of_range, n, max_abs_v) -> None:
+def _say_after(keys, unfolded, why, n, tracker) -> None:
     """The warnings and notes after the CSV (both paths): rows repeating a (nozzle, frame_id, stamp) of ``keys``
     (chunks of those columns), rows not folded into or restarting trends (``unfolded``), a recording in other
-    units."""
+    units (``why``: rows not estimated per reason)."""
     import sys
 
     import numpy as np
+    from inkdiag_core.drying_tracker import BELOW_NOISE_REASON
 
     if keys and (n_repeated := repeated_pairs(*(np.concatenate(c) for c in zip(*keys)))):
         print(repeated_pairs_warning("estimate", n_repeated, "each is estimated"), file=sys.stderr)
@@ -532,5 +535,9 @@ def _say_after(keys, unfolded, n_out_of_range, n, max_abs_v) -> None:
 
         print(f"inkdiag estimate: note: {restarted} nozzle trend(s) restarted where the bag's stamps went back "
               f"{CLOCK_RESET_S:g} s or more (a restarted clock)", file=sys.stderr)
-    if said := units_warning("estimate", n_out_of_range, n, max_abs_v):
+    if said := units_warning("estimate", why.get("out_of_range", 0), n, tracker.max_abs_v):
         print(said, file=sys.stderr)
+    if (quiet := why.get(BELOW_NOISE_REASON, 0)) and quiet >= n / 2:
+        print(f"inkdiag estimate: warning: {quiet} of {n} rows do not ring above the profile's sensor noise (an AC rms "
+              f"of {tracker.min_ac_rms_v:.3g} V or less, 3x its noise_std_v): are the traces in volts (not "
+              "kilovolts), of nozzles that fired?", file=sys.stderr)
