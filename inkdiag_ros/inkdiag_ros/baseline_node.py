@@ -144,6 +144,8 @@ class BaselineRecorderNode(Node):
             return
         ids = baselines.nozzle_ids
         self._say("info", f"wrote the baselines of {len(baselines)} nozzles ({ids[0]}..{ids[-1]}) to {path}")
+        if why := self.recorder.unlike_note():  # faulty at commissioning: labelled without a baseline
+            self._say("warning", why)
         if why := baselines.gain_mismatch(self.profile):  # the head rings unlike its profile: the model will see it
             self._say("warning", why)
 

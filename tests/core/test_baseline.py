@@ -155,6 +155,30 @@ def test_recorder_gives_each_nozzle_the_median_of_its_first_frames():
     assert (b.sample_rate_hz, b.n_samples, b.n_frames) == (FS, 512, 8)
 
 
+def test_a_nozzle_that_rings_unlike_the_heads_others_gets_no_baseline():
+    """A nozzle dried at commissioning, taken as healthy, got a baseline f_m of -2.2e6 1/s, and its later deeply
+    dried estimates came out wetter than healthy (helper-103's QA): it gets none, and the recorder says so."""
+    classes = np.array(["healthy_nozzle"] * 40, dtype=object)
+    classes[[5, 31]] = ["deeply_dried", "partially_blocked"]
+    frames = [simulate_nozzles(classes, seed=3, frame_seed=f).traces for f in range(8)]
+    rec = BaselineRecorder(n_frames=8)
+    for f in frames:
+        rec.add(0, f)
+    b = rec.baselines()
+    np.testing.assert_array_equal(b.nozzle_ids, np.delete(np.arange(40), [5, 31]))
+    assert b.reference.shape == (38, 512)
+    np.testing.assert_array_equal(b.kpis, np.delete(baseline_kpis(np.stack(frames, axis=1), FS), [5, 31], axis=0))
+    np.testing.assert_array_equal(rec.unlike_head[0], [5, 31])
+    note = rec.unlike_note()
+    assert note.startswith("2 nozzle(s) ring unlike the head's others (its median 23") and "5 (1" in note, note
+    # a healthy head, or too few nozzles to tell a head's spread: every nozzle kept, nothing said
+    for n, cls in ((400, ["healthy_nozzle"] * 400), (7, list(classes[:7]))):
+        rec = BaselineRecorder(n_frames=8)
+        for f in range(8):
+            rec.add(0, simulate_nozzles(cls, seed=4, frame_seed=f).traces)
+        assert len(rec.baselines()) == n and rec.unlike_note() == ""
+
+
 def test_a_nozzle_whose_phase_lies_near_pi_gets_its_own_phase_as_baseline():
     """The phase KPI is wrapped to (-pi, pi]: a nozzle near +-pi has rows at 3.14 and -3.14 rad, whose plain
     median came out near 0, and then every healthy trace of it looked pi off its baseline (a head whose sensing

@@ -91,6 +91,22 @@ def test_nozzles_short_of_frames_are_left_out_and_said(work, tmp_path, capsys):
     np.testing.assert_array_equal(NozzleBaselines.load(tmp_path / "b.npz").nozzle_ids, [0, 1])
 
 
+def test_a_nozzle_faulty_at_commissioning_is_left_out_and_said(work, tmp_path, capsys):
+    d, head, _ = work
+    classes = [FaultClass.HEALTHY_NOZZLE] * 12
+    classes[4] = FaultClass.INTERMEDIATELY_DRIED
+    x = np.concatenate([simulate_nozzles(classes, seed=5, frame_seed=f).traces for f in range(2)])
+    save_recording(tmp_path / "c.npz", Recording.from_arrays(x, head.sample_rate_hz, nozzle=np.tile(np.arange(12), 2)))
+    capsys.readouterr()
+    assert main(["baseline", str(tmp_path / "c.npz"), "--profile", str(d / "head.yaml"), "--out",
+                 str(tmp_path / "b.npz"), "--frames", "2", "--fm-frames", "0"]) == 0
+    out, err = capsys.readouterr()
+    assert "baselines of 11 nozzles" in out and "; 1 ringing unlike the others left out;" in out, out
+    assert "nozzles with fewer than" not in out, out
+    assert err.startswith("inkdiag baseline: warning: 1 nozzle(s) ring unlike the head's others") and " 4 (" in err, err
+    np.testing.assert_array_equal(NozzleBaselines.load(tmp_path / "b.npz").nozzle_ids, np.delete(np.arange(12), 4))
+
+
 @pytest.mark.parametrize(("argv", "match"), [
     (["--profile", "{d}/nominal.yaml"], "inkdiag calibrate"),
     (["--profile", "{d}/missing.yaml"], "no such head profile"),

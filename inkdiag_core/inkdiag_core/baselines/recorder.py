@@ -21,6 +21,16 @@ __all__ = ["DEFAULT_MAX_NOZZLES", "FM_METHOD", "BaselineRecorder"]
 #: twice the bound (128 MiB here) whatever ids a frame claims.
 DEFAULT_MAX_NOZZLES = 1 << 24
 
+#: A nozzle whose baseline's dominant frequency or damping ratio lies more than this many robust standard
+#: deviations (1.4826 x the median absolute deviation over the head's nozzles; at least 0.5 % of the median
+#: frequency, 2 % of the median damping) from the head's median rings unlike the head's other nozzles: no
+#: baseline (faulty at commissioning). Healthy nozzles of the five heads of ``tests/foreign_head.py`` (300
+#: each, 8 frames) lie within 3.1 of them; dried, blocked, empty and nozzle-bubble traces beyond 6 (a small
+#: chamber bubble's, 5-100 %).
+UNLIKE_HEAD_SDS = 6.0
+#: Nozzles with a baseline needed before :data:`UNLIKE_HEAD_SDS` is applied (a head's spread to go by).
+UNLIKE_HEAD_MIN_NOZZLES = 8
+
 class BaselineRecorder:
     """Record each nozzle's healthy baseline from the frames of a head, as they arrive.
 
@@ -121,6 +131,9 @@ class BaselineRecorder:
         self.reference = bool(reference)
         self._traces = []  # the kept rows (float32), when recording references
         self._count_of = np.zeros(0, np.int32)  # rows kept per nozzle id (dense, grown on demand)
+        #: what the last :meth:`baselines` left out as ringing unlike the head's other nozzles: their ids, dominant
+        #: frequencies (Hz) and damping ratios, and the head's median frequency and damping; ``unlike_note()``
+        self.unlike_head = (np.empty(0, np.int64), np.empty(0), np.empty(0), np.nan, np.nan)
 
     def add(self, first_nozzle: int, traces, keep=None) -> int:
         """Use one message's rows: nozzles ``first_nozzle .. first_nozzle + n - 1``.
@@ -241,6 +254,9 @@ class BaselineRecorder:
         """The baselines of the nozzles with at least ``min_frames`` rows (default ``n_frames``).
 
         Each is the median over the nozzle's rows (up to ``n_frames``), KPI by KPI (:func:`median_kpis`).
+        A nozzle whose baseline rings unlike the head's others (:data:`UNLIKE_HEAD_SDS`) gets none: it was
+        not healthy when recorded (a dried nozzle's taken as healthy turned its later estimates upside down);
+        :attr:`unlike_head` and :meth:`unlike_note` say which.
         """
         need = self.n_frames if min_frames is None else int(min_frames)
         if not 1 <= need <= self.n_frames:
@@ -271,6 +287,33 @@ class BaselineRecorder:
                 for c in np.unique(counts_ok):  # nozzles with the same number of rows together
                     sel = np.flatnonzero(counts_ok == c)
                     reference[sel] = np.median(rows[idx[sel, :c]], axis=1)
-        return NozzleBaselines(ids[ok], med[:, :N_KPIS], self.sample_rate_hz, self.n_samples, self.n_frames,
-                               fm=med[:, N_KPIS] if self.fm_frames else None, head_sha256=self.profile.sha256,
-                               reference=reference)  # fm_method: FM_METHOD with fm, else None
+        ids = ids[ok]
+        like = self._like_the_head(ids, med)
+        return NozzleBaselines(ids[like], med[like, :N_KPIS], self.sample_rate_hz, self.n_samples, self.n_frames,
+                               fm=med[like, N_KPIS] if self.fm_frames else None, head_sha256=self.profile.sha256,
+                               reference=None if reference is None else reference[like])  # fm_method: FM_METHOD with fm
+
+    def _like_the_head(self, ids, med):
+        """(m,) bool: the nozzles (``ids``, their median KPIs ``med``) that ring like the head's others."""
+        f, z = med[:, 1], med[:, 2]
+        like = np.ones(ids.size, bool)
+        fin = np.isfinite(f) & np.isfinite(z)
+        self.unlike_head = (ids[:0], f[:0], z[:0], np.nan, np.nan)
+        if np.count_nonzero(fin) < UNLIKE_HEAD_MIN_NOZZLES:
+            return like
+        fm, zm = np.median(f[fin]), np.median(z[fin])
+        sf = max(1.4826 * np.median(np.abs(f[fin] - fm)), 0.005 * abs(fm))
+        sz = max(1.4826 * np.median(np.abs(z[fin] - zm)), 0.02 * abs(zm))
+        like[fin] = (np.abs(f[fin] - fm) <= UNLIKE_HEAD_SDS * sf) & (np.abs(z[fin] - zm) <= UNLIKE_HEAD_SDS * sz)
+        self.unlike_head = (ids[~like], f[~like], z[~like], float(fm), float(zm))
+        return like
+
+    def unlike_note(self) -> str:
+        """What the last :meth:`baselines` left out as ringing unlike the head's other nozzles, or ""."""
+        ids, f, z, fm, zm = self.unlike_head
+        if not ids.size:
+            return ""
+        shown = ", ".join(f"{i} ({fi / 1e3:.1f} kHz, {zi:.3f})" for i, fi, zi in zip(ids[:5], f[:5], z[:5]))
+        return (f"{ids.size} nozzle(s) ring unlike the head's others (its median {fm / 1e3:.1f} kHz, damping {zm:.3f}): "
+                f"{shown}{', ...' if ids.size > 5 else ''}: no baseline for them (not healthy when recorded? purge "
+                "them and record again); they are labelled without one")

@@ -86,7 +86,8 @@ def run(args) -> int:
         n_rows += rec.n_rows
     report_stats(args.recording, stats)
     baselines = recorder.baselines(min_frames=min_frames)
-    short = nozzles.size - len(baselines)
+    n_unlike = recorder.unlike_head[0].size
+    short = nozzles.size - len(baselines) - n_unlike
     if not len(baselines):
         raise ValueError(f"{args.recording}: no nozzle has {min_frames} usable healthy rows (of {n_rows} rows, "
                          f"{n_used} usable{f', {n_other} not labelled healthy_nozzle' if n_other else ''}): "
@@ -99,7 +100,10 @@ def run(args) -> int:
           f"{n_rows} rows"
           + (f" ({n_other} not labelled healthy_nozzle)" if n_other else "")
           + (f"; {short} nozzles with fewer than {min_frames} usable rows left out" if short else "")
+          + (f"; {n_unlike} ringing unlike the others left out" if n_unlike else "")
           + f"; wrote {args.out}", file=sys.stdout)
+    if why := recorder.unlike_note():
+        print(f"inkdiag baseline: warning: {why}", file=sys.stderr)
     if why := baselines.gain_mismatch(profile):
         print(f"inkdiag baseline: warning: {why}", file=sys.stderr)
     return 0
