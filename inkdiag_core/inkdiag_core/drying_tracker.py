@@ -476,8 +476,9 @@ class DryingTracker:
         n = ids.size
         valid, reasons = screen_traces(rows, sample_rate_hz=sample_rate_hz, max_abs_v=self.max_abs_v)
         if self.min_ac_rms_v > 0 and valid.any():
-            ac = rows[valid] - rows[valid].mean(axis=1, keepdims=True)
-            quiet = np.flatnonzero(valid)[np.sqrt(np.mean(ac * ac, axis=1)) <= self.min_ac_rms_v]
+            sel = np.flatnonzero(valid)
+            ac = rows[sel] - rows[sel].mean(axis=1, keepdims=True)
+            quiet = sel[np.sqrt(np.mean(ac * ac, axis=1)) <= self.min_ac_rms_v]
             reasons[quiet] = BELOW_NOISE_REASON
             valid[quiet] = False
         cols = {k: np.full(n, np.nan) for k in ESTIMATE_COLUMNS}

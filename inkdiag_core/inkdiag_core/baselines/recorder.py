@@ -31,6 +31,7 @@ UNLIKE_HEAD_SDS = 6.0
 #: Nozzles with a baseline needed before :data:`UNLIKE_HEAD_SDS` is applied (a head's spread to go by).
 UNLIKE_HEAD_MIN_NOZZLES = 8
 
+
 class BaselineRecorder:
     """Record each nozzle's healthy baseline from the frames of a head, as they arrive.
 
