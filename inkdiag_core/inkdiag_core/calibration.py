@@ -87,7 +87,7 @@ from .checks import InputError
 from .faults import MECHANISMS, FaultClass
 from .head_profile import NOMINAL_CHANNEL_KEYS, HeadProfile, ProfileError, implausible_values
 from .kpis import extract_kpis
-from .screening import screen_traces
+from .screening import rings_above_noise, screen_traces
 from .simulation.channels import PHYSICAL_CONSTANTS
 from .simulation.modal import cubic_roots, modal_solution
 
@@ -123,11 +123,6 @@ typical 20 % without a floor in samples, the method before 2026-11-25)."""
 NOISE_ONLY_RATIO = 3.0
 """The typical traces' mean must be more than this many times the rms their scatter about it leaves in a mean
 (rms / sqrt(count)): about 1 for traces of noise alone, 25 and more for healthy ringing."""
-
-RINGING_MIN_SNR = 3.0
-"""A recorded trace whose AC rms is at most this many times its own white-noise level (the standard deviation of
-its second differences over sqrt(6): white noise's own level; a ringing at a twentieth of the sample rate or below
-adds a few per cent of its rms to it) does not ring: left out and counted (a nozzle that did not fire)."""
 
 TYPICAL_FRACTION = 0.05
 """Fraction of the traces, nearest the median frequency and damping, whose mean is fitted (but see
@@ -310,12 +305,6 @@ def _noise_std(residual, f_hz, fs):
 
 def _rms_ac(x):
     return np.sqrt(np.mean((x - x.mean(axis=-1, keepdims=True)) ** 2, axis=-1))
-
-
-def _rings(y):
-    """Rows of ``y`` (n, n_samples) that ring above their own noise (:data:`RINGING_MIN_SNR`); (n,) bool."""
-    noise = np.std(np.diff(y, n=2, axis=1), axis=1) / np.sqrt(6.0)
-    return _rms_ac(y) > RINGING_MIN_SNR * noise
 
 
 def _blocked_mode(known: _Known, theta, damping: bool = False):
@@ -602,7 +591,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     finite, why = screen_traces(y, sample_rate_hz=sample_rate_hz, max_abs_v=nominal.max_abs_v)
     n_dropped = int((~finite).sum())
     y = y[finite]
-    quiet = ~_rings(y)  # nozzles that did not fire, half a recording of them, made the spreads' fit absurd
+    quiet = ~rings_above_noise(y)  # nozzles that did not fire, half a recording of them, made the spreads' fit absurd
     n_quiet = int(quiet.sum())
     y = y[~quiet]
     if y.shape[0] < MIN_TRACES:

@@ -179,6 +179,19 @@ def test_a_nozzle_that_rings_unlike_the_heads_others_gets_no_baseline():
         assert len(rec.baselines()) == n and rec.unlike_note() == ""
 
 
+def test_rows_that_do_not_ring_above_their_noise_are_not_used():
+    """A nozzle that did not fire at commissioning (white noise) got a baseline of noise (helper-103's QA)."""
+    frames = _head_frames(10, 3)
+    rng = np.random.default_rng(0)
+    rec = BaselineRecorder(n_frames=3)
+    for f in frames:
+        f = f.copy()
+        f[4] = rng.normal(0.0, 0.01, f.shape[1])
+        rec.add(0, f)
+    assert rec.rows_not_ringing == 3
+    np.testing.assert_array_equal(rec.baselines().nozzle_ids, np.delete(np.arange(10), 4))
+
+
 def test_a_nozzle_whose_phase_lies_near_pi_gets_its_own_phase_as_baseline():
     """The phase KPI is wrapped to (-pi, pi]: a nozzle near +-pi has rows at 3.14 and -3.14 rad, whose plain
     median came out near 0, and then every healthy trace of it looked pi off its baseline (a head whose sensing

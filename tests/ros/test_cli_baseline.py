@@ -105,6 +105,14 @@ def test_a_nozzle_faulty_at_commissioning_is_left_out_and_said(work, tmp_path, c
     assert "nozzles with fewer than" not in out, out
     assert err.startswith("inkdiag baseline: warning: 1 nozzle(s) ring unlike the head's others") and " 4 (" in err, err
     np.testing.assert_array_equal(NozzleBaselines.load(tmp_path / "b.npz").nozzle_ids, np.delete(np.arange(12), 4))
+    # a recording of nozzles that did not fire: said as such
+    noise = np.random.default_rng(0).normal(0.0, 0.01, x.shape).astype(np.float32)
+    save_recording(tmp_path / "n.npz", Recording.from_arrays(noise, head.sample_rate_hz, nozzle=np.tile(np.arange(12), 2)))
+    assert main(["baseline", str(tmp_path / "n.npz"), "--profile", str(d / "head.yaml"), "--out",
+                 str(tmp_path / "n_b.npz"), "--frames", "2", "--fm-frames", "0"]) == 2
+    assert capsys.readouterr().err.strip().endswith(
+        "(of 24 rows, 0 usable, 24 not ringing above their noise): are they healthy nozzles fired with the head's "
+        "drive, in volts?")
 
 
 @pytest.mark.parametrize(("argv", "match"), [

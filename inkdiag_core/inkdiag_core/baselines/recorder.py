@@ -9,7 +9,7 @@ import numpy as np
 from .. import checks
 from ..estimation import estimate_fm_batch
 from ..kpis import MIN_KPI_SAMPLES, InvalidTraceError, extract_kpis
-from ..screening import screen_traces
+from ..screening import rings_above_noise, screen_traces
 from .features import N_KPIS, median_kpis
 from .store import FM_METHOD, NozzleBaselines
 
@@ -37,7 +37,8 @@ class BaselineRecorder:
 
     Each :meth:`add` takes one message's rows (a contiguous nozzle range, any size,
     any order, repeated ranges welcome); rows that :func:`inkdiag_core.screen_traces`
-    finds invalid, or that ``keep`` excludes, are not used. A nozzle's baseline is the
+    finds invalid, that do not ring above their own noise (:attr:`rows_not_ringing`) or that
+    ``keep`` excludes are not used. A nozzle's baseline is the
     median of its first ``n_frames`` valid rows' KPIs (:func:`baseline_kpis` on
     the same traces gives the same numbers); rows beyond that are ignored, so memory
     stays at ``n_frames`` KPI rows per nozzle. Record while the head is healthy
@@ -135,6 +136,9 @@ class BaselineRecorder:
         #: what the last :meth:`baselines` left out as ringing unlike the head's other nozzles: their ids, dominant
         #: frequencies (Hz) and damping ratios, and the head's median frequency and damping; ``unlike_note()``
         self.unlike_head = (np.empty(0, np.int64), np.empty(0), np.empty(0), np.nan, np.nan)
+        #: rows screening passed but that do not ring above their own noise (:func:`~inkdiag_core.screening.rings_above_noise`),
+        #: not used
+        self.rows_not_ringing = 0
 
     def add(self, first_nozzle: int, traces, keep=None) -> int:
         """Use one message's rows: nozzles ``first_nozzle .. first_nozzle + n - 1``.
@@ -203,6 +207,10 @@ class BaselineRecorder:
             if k.shape != (x.shape[0],):
                 raise ValueError(f"keep must have shape ({x.shape[0]},), got {k.shape}")
             use &= k
+        if use.any():  # a row that does not ring above its noise is no healthy trace (a nozzle that did not fire)
+            quiet = np.flatnonzero(use)[~rings_above_noise(x[use])]
+            use[quiet] = False
+            self.rows_not_ringing += int(quiet.size)
         rows = np.flatnonzero(use)
         ids = all_ids[rows]
         if ids.size and ids.max() >= self._count_of.size:

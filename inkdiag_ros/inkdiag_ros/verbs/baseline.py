@@ -88,17 +88,21 @@ def run(args) -> int:
     baselines = recorder.baselines(min_frames=min_frames)
     n_unlike = recorder.unlike_head[0].size
     short = nozzles.size - len(baselines) - n_unlike
+    quiet = recorder.rows_not_ringing
     if not len(baselines):
         raise ValueError(f"{args.recording}: no nozzle has {min_frames} usable healthy rows (of {n_rows} rows, "
-                         f"{n_used} usable{f', {n_other} not labelled healthy_nozzle' if n_other else ''}): "
+                         f"{n_used} usable{f', {n_other} not labelled healthy_nozzle' if n_other else ''}"
+                         f"{f', {quiet} not ringing above their noise' if quiet else ''}): "
                          + ("no nozzle id comes twice (a recording without a 'nozzle' column numbers its rows "
                             "0..n-1): give each row's nozzle id, or --frames 1 for one frame"
                             if nozzles.size == n_rows > 1 and min_frames > 1 and n_used else
-                            "record more frames of each nozzle, or lower --min-frames"))
+                            "are they healthy nozzles fired with the head's drive, in volts?" if quiet >= n_rows / 2
+                            else "record more frames of each nozzle, or lower --min-frames"))
     baselines.save(args.out)
     print(f"inkdiag baseline: baselines of {len(baselines)} nozzles (head {profile.name!r}) from {n_used} of "
           f"{n_rows} rows"
           + (f" ({n_other} not labelled healthy_nozzle)" if n_other else "")
+          + (f" ({quiet} not ringing above their noise: nozzles that did not fire?)" if quiet else "")
           + (f"; {short} nozzles with fewer than {min_frames} usable rows left out" if short else "")
           + (f"; {n_unlike} ringing unlike the others left out" if n_unlike else "")
           + f"; wrote {args.out}", file=sys.stdout)
