@@ -270,10 +270,10 @@ def _decode(dims, data_offset, data, *, max_nozzle_id, n_samples, sample_rate_hz
     if head[0] != SCHEMA_VERSION:
         raise FrameError(f"expected trace schema version {SCHEMA_VERSION}, got {head[0]:.10g}")
     counts = [head[k] for k in (1, 2, 3, 5, 6, 7)]
-    if not all(map(math.isfinite, head)) or any(v < 0 or v != math.floor(v) for v in counts):
+    if not all(map(math.isfinite, counts)) or any(v < 0 or v != math.floor(v) for v in counts):
         raise FrameError(f"header values must be non-negative integers, got {head}")
-    if not head[4] > 0:
-        raise FrameError(f"expected a positive sample_rate_hz in the header, got {head[4]:.10g}")
+    if not (head[4] > 0 and math.isfinite(head[4])):  # NaN was said to be a count that is not an integer
+        raise FrameError(f"expected a positive, finite sample_rate_hz in the header, got {head[4]:.10g}")
     for k, name in ((2, "frame_lo"), (3, "frame_hi"), (5, "stamp_s_lo"), (6, "stamp_s_hi")):
         if head[k] >= _EXACT:
             raise FrameError(f"header {name} must be < 2**24 ({_EXACT}), got {head[k]:.10g}")

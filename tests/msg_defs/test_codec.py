@@ -1,5 +1,6 @@
 """Trace-frame codec: round trips, validation, and real DDS transport."""
 
+import math
 import os
 import re
 import subprocess
@@ -82,6 +83,10 @@ _MALFORMED = [
     (_msg([("nozzle", 2, 4), ("sample", 2, 2)], [2] + _good_header()[1:] + [0] * 4), r"schema version 1, got 2"),
     (_msg([("nozzle", 2, 4), ("sample", 2, 2)], [1, 0, 0, 0, 0, 0, 0, 0] + [0] * 4), r"sample_rate_hz"),
     (_msg([("nozzle", 2, 4), ("sample", 2, 2)], [1, -3, 0, 0, 1e6, 0, 0, 0] + [0] * 4), r"non-negative integers"),
+    (_msg([("nozzle", 2, 4), ("sample", 2, 2)], [1, 0, 0, 0, math.nan, 0, 0, 0] + [0] * 4),  # was: "integers"
+     r"^expected a positive, finite sample_rate_hz in the header, got nan$"),
+    (_msg([("nozzle", 2, 4), ("sample", 2, 2)], [1, 0, 0, 0, math.inf, 0, 0, 0] + [0] * 4), r"finite sample_rate_hz"),
+    (_msg([("nozzle", 2, 4), ("sample", 2, 2)], [1, 0, math.nan, 0, 1e6, 0, 0, 0] + [0] * 4), r"non-negative integers"),
 ]
 
 
