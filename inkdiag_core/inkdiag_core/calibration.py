@@ -591,15 +591,17 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     finite, why = screen_traces(y, sample_rate_hz=sample_rate_hz, max_abs_v=nominal.max_abs_v)
     n_dropped = int((~finite).sum())
     y = y[finite]
-    quiet = ~rings_above_noise(y)  # nozzles that did not fire, half a recording of them, made the spreads' fit absurd
+    # nozzles that did not fire, half a recording of them, made the spreads' fit absurd
+    quiet = ~rings_above_noise(y, sample_rate_hz=sample_rate_hz)
     n_quiet = int(quiet.sum())
     y = y[~quiet]
     if y.shape[0] < MIN_TRACES:
         reasons = ", ".join(f"{r} {int((why == r).sum())}" for r in sorted(set(why[~finite].tolist())))
         raise CalibrationError(
             (f"the recorded traces do not ring above their noise ({n_quiet} of {n_quiet + y.shape[0]} screened in "
-             "do not: are they healthy nozzles fired with the profile's drive?); " if n_quiet else "")
-            + f"{y.shape[0]} usable healthy traces ({n_dropped} left out by screening{': ' + reasons if reasons else ''}"
+             "do not: are they healthy nozzles fired with the profile's drive?); " if n_quiet >= y.shape[0] else "")
+            + f"{y.shape[0]} usable healthy traces ({n_dropped} left out by screening"
+            + (f": {reasons}" if reasons else "")
             + (f", {n_quiet} not ringing" if n_quiet else "") + f"); calibration needs at least {MIN_TRACES}")
     fs = nominal.sample_rate_hz
     known = _Known.of(nominal)
@@ -862,7 +864,8 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
                       "message": str(best.message), "costs": [float(f.cost) for f in fits]},
     }
     provenance = {"method": "inkdiag calibrate", "n_traces": report["n_traces"],
-                  "n_dropped_nonfinite": n_dropped, "n_dropped_not_ringing": n_quiet, "fitted": sorted(report["fitted"]),
+                  "n_dropped_nonfinite": n_dropped, "n_dropped_not_ringing": n_quiet,
+                  "fitted": sorted(report["fitted"]),
                   "amplitude_convention": convention, "residual_rel_mean_trace": resid_rel,
                   "residual_rel_per_trace_median": report["residual_rel"]["per_trace_median"],
                   "determined_by": {p: pinned[p]["determined_by"] for p in _PARAMS},

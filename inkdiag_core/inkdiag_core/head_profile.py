@@ -187,6 +187,11 @@ def _loader():
             seen = set()
             for key_node, _ in node.value:
                 key = self.construct_object(key_node, deep=deep)
+                try:
+                    hash(key)
+                except TypeError:  # "? [1, 2]": PyYAML's own check comes after this one's `in`
+                    raise yaml.constructor.ConstructorError(
+                        None, None, f"a key that is a {type(key).__name__}, not a name", key_node.start_mark) from None
                 if key in seen:
                     raise yaml.constructor.ConstructorError(
                         None, None, f"duplicate key {key!r}", key_node.start_mark)
@@ -231,15 +236,21 @@ def _section(doc, key, units, source, *, required=(), optional_keys=()):
     return dict(sec)
 
 
-def _yaml_problem(exc) -> str:
+def _yaml_problem(exc, text: str = "") -> str:
     """PyYAML's error as one line with where it is: ``" at line 4, column 1: expected ',' or ']', but got
-    '<stream end>' (while parsing a flow sequence at line 3, column 44)"``, lines and columns from 1."""
+    '<stream end>' (while parsing a flow sequence at line 3, column 44)"``, lines and columns from 1 (of
+    ``text``, the document, for a character it cannot read)."""
     def at(mark):
         return f"line {mark.line + 1}, column {mark.column + 1}"
 
     problem, mark = getattr(exc, "problem", None), getattr(exc, "problem_mark", None)
-    if not problem:  # not a MarkedYAMLError (a ReaderError: bytes that are not text): its own first line
-        return ": " + (str(exc).splitlines() or [type(exc).__name__])[0]
+    if not problem:  # not a MarkedYAMLError: a ReaderError (a control character) gives its offset in the text
+        first = (str(exc).splitlines() or [type(exc).__name__])[0]
+        pos = getattr(exc, "position", None)
+        if isinstance(pos, int) and isinstance(text, str) and 0 <= pos <= len(text):
+            line_start = text.rfind("\n", 0, pos) + 1
+            return f" at line {text.count(chr(10), 0, pos) + 1}, column {pos - line_start + 1}: {first}"
+        return ": " + first
     where = f" at {at(mark)}" if mark is not None else ""
     context, cmark = getattr(exc, "context", None), getattr(exc, "context_mark", None)
     if context:
@@ -402,7 +413,7 @@ class HeadProfile:
         try:
             doc = yaml.load(text, Loader=_loader())  # noqa: S506 (a SafeLoader subclass)
         except yaml.YAMLError as exc:
-            raise ProfileError(f"{source}: not valid YAML{_yaml_problem(exc)}") from None
+            raise ProfileError(f"{source}: not valid YAML{_yaml_problem(exc, text)}") from None
         except RecursionError:  # PyYAML composes and constructs nested nodes recursively
             raise ProfileError(f"{source}: not valid YAML: nested too deeply") from None
         return cls.from_dict(doc, source=source)

@@ -166,7 +166,8 @@ def _make(node_cls, **kwargs):
 def _run(duration_s, **kwargs) -> Scorecard:
     """:func:`run` on an initialised context (``own``: shut it down at the end)."""
     # a -p NAME:=VALUE reaches every node: only those that have NAME take it, the others say nothing of it
-    with _params.shared_by(printhead_sim.PARAMS, baseline_node.PARAMS, fdi_node.PARAMS, fe_node.PARAMS):
+    built = (printhead_sim, fdi_node, fe_node) + ((baseline_node,) if kwargs.get("baseline") else ())
+    with _params.shared_by(*(m.PARAMS for m in built)):  # a name only a node not built has: each warns
         return _run_graph(duration_s, **kwargs)
 
 

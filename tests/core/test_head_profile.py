@@ -165,6 +165,12 @@ def test_missing_and_malformed_files(tmp_path):
     (tmp_path / "twice.yaml").write_text("schema: a\nschema: b\n")
     with pytest.raises(ProfileError, match=r"at line 2, column 1: duplicate key 'schema'$"):
         HeadProfile.load(tmp_path / "twice.yaml")
+    (tmp_path / "bell.yaml").write_text("schema: a\nname:\x07 x\n")  # a control character: its place in the text
+    with pytest.raises(ProfileError, match=r"at line 2, column 6: unacceptable character #x0007"):
+        HeadProfile.load(tmp_path / "bell.yaml")
+    (tmp_path / "listkey.yaml").write_text("schema: a\n? [1, 2]\n: 3\n")  # was: TypeError, unhashable type: 'list'
+    with pytest.raises(ProfileError, match=r"at line 2, column 3: a key that is a list, not a name$"):
+        HeadProfile.load(tmp_path / "listkey.yaml")
     (tmp_path / "deep.yaml").write_text("schema: " + "[" * 5000 + "]" * 5000)
     with pytest.raises(ProfileError, match="not valid YAML: nested too deeply"):  # not a RecursionError
         HeadProfile.load(tmp_path / "deep.yaml")

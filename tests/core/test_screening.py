@@ -99,3 +99,25 @@ def test_screening_non_finite_takes_precedence_and_limit_is_checked():
     assert screen_traces(rows, max_abs_v=10.0)[1].tolist() == ["non_finite"]
     with pytest.raises(ValueError, match="max_abs_v must be > 0"):
         screen_traces(rows, max_abs_v=0.0)
+
+
+def test_rings_above_noise_tells_white_noise_from_ringing_where_the_sampling_can():
+    """Rows that do not ring above their own noise (nozzles that did not fire), for calibration and baselines;
+    a head sampled at fewer than 10 samples a period of its mode is not checked: its ringing's own second
+    differences read as noise (a 169 kHz head at 1 MHz x 64 had every noise-free healthy trace refused)."""
+    from inkdiag_core.screening import RINGING_MIN_SAMPLES_PER_PERIOD, rings_above_noise
+
+    rng = np.random.default_rng(0)
+    fs, n = 10e6, 512
+    t = np.arange(n) / fs
+    ring = np.exp(-t / 15e-6) * np.sin(2 * np.pi * 237e3 * t)  # the default head's mode, 42 samples a period
+    x = np.vstack([ring + rng.normal(0, 0.03, (3, n)), rng.normal(0, 0.01, (3, n)), 1e-3 * ring[None]])
+    want = [True, True, True, False, False, False, True]  # a scale of its own: rings, noise-free
+    for mode in (None, 237e3):
+        np.testing.assert_array_equal(rings_above_noise(x, sample_rate_hz=fs, mode_hz=mode), want)
+    assert not rings_above_noise(rng.normal(0, 1, (2000, 64)), sample_rate_hz=fs, mode_hz=237e3).any()
+    sparse = np.exp(-np.arange(64) / 20) * np.sin(2 * np.pi * (np.arange(64) / 4 + 0.125))  # 4 samples a period
+    for mode in (None, fs / 4):
+        assert rings_above_noise(sparse[None], sample_rate_hz=fs, mode_hz=mode).all()
+    assert not rings_above_noise(sparse[None], sample_rate_hz=fs, mode_hz=fs / RINGING_MIN_SAMPLES_PER_PERIOD).all()
+    assert rings_above_noise(np.zeros((0, n)), sample_rate_hz=fs).shape == (0,)

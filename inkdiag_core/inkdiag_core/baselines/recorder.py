@@ -40,7 +40,7 @@ class BaselineRecorder:
     finds invalid, that do not ring above their own noise (:attr:`rows_not_ringing`) or that
     ``keep`` excludes are not used. A nozzle's baseline is the
     median of its first ``n_frames`` valid rows' KPIs (:func:`baseline_kpis` on
-    the same traces gives the same numbers); rows beyond that are ignored, so memory
+    the same traces gives the same numbers for the nozzles it keeps); rows beyond that are ignored, so memory
     stays at ``n_frames`` KPI rows per nozzle. Record while the head is healthy
     (after a purge, at commissioning).
 
@@ -136,9 +136,10 @@ class BaselineRecorder:
         #: what the last :meth:`baselines` left out as ringing unlike the head's other nozzles: their ids, dominant
         #: frequencies (Hz) and damping ratios, and the head's median frequency and damping; ``unlike_note()``
         self.unlike_head = (np.empty(0, np.int64), np.empty(0), np.empty(0), np.nan, np.nan)
-        #: rows screening passed but that do not ring above their own noise (:func:`~inkdiag_core.screening.rings_above_noise`),
-        #: not used
+        #: rows screening passed but that do not ring above their own noise
+        #: (:func:`~inkdiag_core.screening.rings_above_noise`), not used
         self.rows_not_ringing = 0
+        self._mode_hz = float(profile.healthy_mode()[0])  # whether the ringing check can tell at this sampling
 
     def add(self, first_nozzle: int, traces, keep=None) -> int:
         """Use one message's rows: nozzles ``first_nozzle .. first_nozzle + n - 1``.
@@ -207,28 +208,14 @@ class BaselineRecorder:
             if k.shape != (x.shape[0],):
                 raise ValueError(f"keep must have shape ({x.shape[0]},), got {k.shape}")
             use &= k
-        if use.any():  # a row that does not ring above its noise is no healthy trace (a nozzle that did not fire)
-            quiet = np.flatnonzero(use)[~rings_above_noise(x[use])]
-            use[quiet] = False
-            self.rows_not_ringing += int(quiet.size)
-        rows = np.flatnonzero(use)
-        ids = all_ids[rows]
-        if ids.size and ids.max() >= self._count_of.size:
-            grown = np.zeros(max(int(ids.max()) + 1, 2 * self._count_of.size), np.int32)
-            grown[: self._count_of.size] = self._count_of
-            self._count_of = grown
-        # each row's place among its nozzle's rows so far: its count before this call plus
-        # its rank among the call's rows of that nozzle (0 when the ids are distinct)
-        place = self._count_of[ids].astype(np.int64)
-        if not distinct and ids.size:
-            order = np.argsort(ids, kind="stable")
-            s = ids[order]
-            first = np.r_[True, s[1:] != s[:-1]]
-            start = np.maximum.accumulate(np.where(first, np.arange(s.size), 0))
-            rank = np.empty(ids.size, np.int64)
-            rank[order] = np.arange(s.size) - start
-            place += rank
-        need = place < self.n_frames  # only nozzles still short of n_frames rows, at most their shortfall
+        rows, ids, place, need = self._places(all_ids, use, distinct)
+        if need.any():  # a row that does not ring above its noise is no healthy trace (a nozzle that did not fire)
+            quiet = rows[need][~rings_above_noise(x[rows[need]], sample_rate_hz=self.sample_rate_hz,
+                                                  mode_hz=self._mode_hz)]
+            if quiet.size:  # the places again without them
+                use[quiet] = False
+                self.rows_not_ringing += int(quiet.size)
+                rows, ids, place, need = self._places(all_ids, use, distinct)
         if not need.any():
             return 0
         rows, ids, place = rows[need], ids[need], place[need]
@@ -248,6 +235,28 @@ class BaselineRecorder:
         self._ids.append(ids)
         np.add.at(self._count_of, ids, 1)
         return int(ids.size)
+
+    def _places(self, all_ids, use, distinct: bool):
+        """The rows ``use`` takes, their nozzle ids, each row's place among its nozzle's rows so far, and whether
+        its nozzle still needs it (place < ``n_frames``)."""
+        rows = np.flatnonzero(use)
+        ids = all_ids[rows]
+        if ids.size and ids.max() >= self._count_of.size:
+            grown = np.zeros(max(int(ids.max()) + 1, 2 * self._count_of.size), np.int32)
+            grown[: self._count_of.size] = self._count_of
+            self._count_of = grown
+        # each row's place among its nozzle's rows so far: its count before this call plus
+        # its rank among the call's rows of that nozzle (0 when the ids are distinct)
+        place = self._count_of[ids].astype(np.int64)
+        if not distinct and ids.size:
+            order = np.argsort(ids, kind="stable")
+            s = ids[order]
+            first = np.r_[True, s[1:] != s[:-1]]
+            start = np.maximum.accumulate(np.where(first, np.arange(s.size), 0))
+            rank = np.empty(ids.size, np.int64)
+            rank[order] = np.arange(s.size) - start
+            place += rank
+        return rows, ids, place, place < self.n_frames  # nozzles short of n_frames rows, at most their shortfall
 
     @property
     def n_complete(self) -> int:
@@ -323,6 +332,6 @@ class BaselineRecorder:
         if not ids.size:
             return ""
         shown = ", ".join(f"{i} ({fi / 1e3:.1f} kHz, {zi:.3f})" for i, fi, zi in zip(ids[:5], f[:5], z[:5]))
-        return (f"{ids.size} nozzle(s) ring unlike the head's others (its median {fm / 1e3:.1f} kHz, damping {zm:.3f}): "
-                f"{shown}{', ...' if ids.size > 5 else ''}: no baseline for them (not healthy when recorded? purge "
+        return (f"{ids.size} nozzle(s) ring unlike the head's others (its median {fm / 1e3:.1f} kHz, damping "
+                f"{zm:.3f}): {shown}{', ...' if ids.size > 5 else ''}: no baseline for them (not healthy when recorded? purge "
                 "them and record again); they are labelled without one")

@@ -33,7 +33,7 @@ Output CSV, one line per selected row, columns:
 Units: fm, fm_std, fm_trend 1/s; fm_rate 1/s^2; d_mu, viscosity Pa s;
 stamp, eta_deeply_dried_s s. A row that cannot be estimated has empty values
 and its reason: non_finite, out_of_range, flat or clipped samples (as fdi
-screens them), below_noise (an AC rms at most 3x the profile's noise_std_v:
+screens them), below_noise (an AC rms at most 2x the profile's noise_std_v:
 no ringing to fit), estimate_not_finite, or viscosity_not_positive (an estimate
 that means a viscosity of 0 or less: no drying nozzle the channel model
 describes, e.g. an empty channel or a bubble); the others are estimated all
@@ -521,7 +521,7 @@ def _say_after(keys, unfolded, why, n, tracker) -> None:
     import sys
 
     import numpy as np
-    from inkdiag_core.drying_tracker import BELOW_NOISE_REASON
+    from inkdiag_core.drying_tracker import BELOW_NOISE_FACTOR, BELOW_NOISE_REASON
 
     if keys and (n_repeated := repeated_pairs(*(np.concatenate(c) for c in zip(*keys)))):
         print(repeated_pairs_warning("estimate", n_repeated, "each is estimated"), file=sys.stderr)
@@ -539,5 +539,5 @@ def _say_after(keys, unfolded, why, n, tracker) -> None:
         print(said, file=sys.stderr)
     if (quiet := why.get(BELOW_NOISE_REASON, 0)) and quiet >= n / 2:
         print(f"inkdiag estimate: warning: {quiet} of {n} rows do not ring above the profile's sensor noise (an AC rms "
-              f"of {tracker.min_ac_rms_v:.3g} V or less, 3x its noise_std_v): are the traces in volts (not "
-              "kilovolts), of nozzles that fired?", file=sys.stderr)
+              f"of {tracker.min_ac_rms_v:.3g} V or less, {BELOW_NOISE_FACTOR:g}x its noise_std_v): traces in other "
+              "units (kilovolts?), or nozzles that did not fire or hold no ink?", file=sys.stderr)
