@@ -353,7 +353,9 @@ def read_labels_csv(path) -> LabelTable:
                         continue
                     if not _INTEGER.fullmatch(v):
                         raise RecordingError(f"{src}:{line}: {name} {v!r} is not an integer")
-                    out.append(int(v))
+                    if not -2**62 <= (iv := int(v)) <= 2**62:  # no row, nozzle or frame: an int64 would overflow
+                        raise RecordingError(f"{src}:{line}: {name} {v} is too large to be one")
+                    out.append(iv)
                 classes.append(cls)
                 lines.append(line)
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
