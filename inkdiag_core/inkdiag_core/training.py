@@ -227,7 +227,7 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
     total = 4
     if isinstance(posterior_draws, bool) or not isinstance(posterior_draws, (int, np.integer)) or posterior_draws < 1:
         raise ValueError(f"posterior_draws must be an integer >= 1, got {posterior_draws!r}")
-    if posterior_draws > n_per_class:
+    if posterior_draws > n_per_class and len(posterior_profiles(profile, 2)) > 1:  # no effect without a posterior
         raise ValueError(f"posterior_draws ({posterior_draws}) must not exceed n_per_class ({n_per_class}): each "
                          "draw simulates n_per_class / posterior_draws traces per class")
     heads = posterior_profiles(profile, int(posterior_draws))  # [profile] without a recorded posterior

@@ -479,3 +479,14 @@ def test_an_assumed_actuator_trains_over_a_wider_resonance_spread_than_a_given_o
                     TRUE.sample_rate_hz)  # a nominal's own value wins (docs/calibration.md: its spreads are kept)
     assert own.profile.spreads().actuator_resonance_rel == 0.03
     assert own.report["unseen_physics_spreads"]["actuator_resonance_rel"] == 0.03
+
+
+def test_more_restrictor_draws_than_traces_per_class_is_refused_only_where_draws_are_made(result):
+    """posterior_draws has no effect on a profile without a recorded posterior: it was refused there all the same
+    (helper-106's QA, the default head)."""
+    from inkdiag_core import train_detector
+
+    with pytest.raises(ValueError, match=r"posterior_draws \(9\) must not exceed n_per_class \(8\)"):
+        train_detector(result.profile, n_per_class=8, posterior_draws=9, unknown_rate=None, n_estimators=2)
+    det = train_detector(TRUE, n_per_class=8, posterior_draws=9, unknown_rate=None, n_estimators=2)[0]
+    assert len(det.classes_) == 12

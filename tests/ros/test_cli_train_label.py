@@ -121,6 +121,8 @@ def test_label_uses_each_rows_nozzle_baseline(work, tmp_path, capsys):
      "is sampled at 10000000 Hz"),
     (["train", "--profile", "{d}/head.yaml", "--out", "{d}/x.joblib", "--posterior-draws", "0"],
      "--posterior-draws must be >= 1"),
+    (["train", "--profile", "{d}/head.yaml", "--out", "{d}/head.joblib.manifest.json"],  # was: written, exit 0
+     "names a model's manifest, which train writes beside the model: give the model file's name (head.joblib)"),
     (["train", "--profile", "{d}/head.yaml", "--out", "{d}/x.joblib", "--unknown-rate", "1.5"],
      "--unknown-rate must be in [0, 1)"),
     (["train", "--profile", "{d}/head.yaml", "--out", "{d}/x.joblib", "--seed", "-3"], "--seed must be in"),

@@ -151,6 +151,12 @@ def run(args) -> int:
                          f"set's traces within {_MAX_TRAINING_BYTES / 2**30:g} GiB), got {args.n_per_class}")
     if args.posterior_draws < 1:
         raise ValueError(f"--posterior-draws must be >= 1, got {args.posterior_draws}")
+    from inkdiag_core.calibration import posterior_profiles
+
+    if args.posterior_draws > args.n_per_class and len(posterior_profiles(profile, 2)) > 1:  # else no effect
+        raise ValueError(f"--posterior-draws ({args.posterior_draws}) must not exceed --n-per-class "
+                         f"({args.n_per_class}): each restrictor simulates --n-per-class / --posterior-draws traces "
+                         "per class")
     if not 0 <= args.unknown_rate < 1:
         raise ValueError(f"--unknown-rate must be in [0, 1) (0: no 'unknown'), got {args.unknown_rate!r}")
     if not 0 <= args.seed < 2**32:
@@ -184,6 +190,9 @@ def run(args) -> int:
     out = Path(args.out)
     if out.is_dir():
         raise IsADirectoryError(f"--out {out} is a directory; give the model file's name")
+    if out.name.endswith(".manifest.json"):  # over another model's: that model would no longer load
+        raise ValueError(f"--out {out} names a model's manifest, which train writes beside the model: give the "
+                         f"model file's name ({out.name[:-len('.manifest.json')] or 'head.joblib'})")
     report, close = _progress(args.quiet)
     try:
         det, info = train_detector(profile, features=args.features, kind=args.kind, baseline=args.baseline,
