@@ -141,7 +141,7 @@ def run(args) -> int:
     try:
         for k, group in enumerate(groups):
             cmd = base + ["--role", "fdi", "--heads", ",".join(map(str, group)), "--model", args.model,
-                          "--executor", args.executor]
+                          "--executor", args.executor] + (["--with-sim"] if args.simulate else [])
             for i in group:
                 cmd += ["--baseline", f"{i}={paths[i]}"] if paths[i] else []
             children.append((f"fdi process {k} (heads {', '.join(f'{i:02d}' for i in group)})",
@@ -360,7 +360,7 @@ def _stop(children) -> None:
 
 
 def worker_main(argv=None) -> int:
-    """One child: ``--role fdi|sim --heads 0,2,4 [--model M] [--baseline I=PATH ...] [--executor events|single]
+    """One child: ``--role fdi|sim --heads 0,2,4 [--model M] [--baseline I=PATH ...] [--executor events|single] [--with-sim]
     [--ros-args ...]``: its heads' nodes on one executor until SIGINT/SIGTERM (exit 0); a node refusing its
     parameters: one line, exit 2."""
     import numpy  # noqa: F401 - loaded before the BLAS limit
@@ -384,6 +384,7 @@ def worker_main(argv=None) -> int:
     ap.add_argument("--model", default=None)
     ap.add_argument("--baseline", action="append", default=[])
     ap.add_argument("--executor", choices=("events", "single"), default="events")
+    ap.add_argument("--with-sim", action="store_true", help="simulated heads run beside (their parameters are shared)")
     ns = ap.parse_args(remove_ros_args(argv)[1:])
     ros = argv[argv.index("--ros-args") + 1:] if "--ros-args" in argv else []
     heads = [int(h) for h in ns.heads.split(",")]
@@ -409,7 +410,9 @@ def worker_main(argv=None) -> int:
         ctx = rclpy.utilities.get_default_context()
         nodes, executor, status = [], None, 0
         try:
-            with _params.shared_by(fdi_node.PARAMS, printhead_sim.PARAMS):  # --ros-args reach both roles
+            # --ros-args reach every process: a name only the other role has is not this node's to warn of
+            shared = (fdi_node.PARAMS, printhead_sim.PARAMS) if ns.role == "sim" or ns.with_sim else (fdi_node.PARAMS,)
+            with _params.shared_by(*shared):
                 for i in heads:
                     nodes.append(cls(namespace=f"/head_{i:02d}", parameter_overrides=overrides(i)))
             # with the SingleThreadedExecutor a timer callback failing at shutdown raises here
