@@ -478,8 +478,7 @@ class DryingTracker:
         valid, reasons = screen_traces(rows, sample_rate_hz=sample_rate_hz, max_abs_v=self.max_abs_v)
         if self.min_ac_rms_v > 0 and valid.any():
             sel = np.flatnonzero(valid)
-            ac = rows[sel] - rows[sel].mean(axis=1, keepdims=True)
-            quiet = sel[np.sqrt(np.mean(ac * ac, axis=1)) <= self.min_ac_rms_v]
+            quiet = sel[np.std(rows[sel], axis=1) <= self.min_ac_rms_v]  # the AC rms
             reasons[quiet] = BELOW_NOISE_REASON
             valid[quiet] = False
         cols = {k: np.full(n, np.nan) for k in ESTIMATE_COLUMNS}

@@ -248,8 +248,8 @@ def _yaml_problem(exc, text: str = "") -> str:
         first = (str(exc).splitlines() or [type(exc).__name__])[0]
         pos = getattr(exc, "position", None)
         if isinstance(pos, int) and isinstance(text, str) and 0 <= pos <= len(text):
-            line_start = text.rfind("\n", 0, pos) + 1
-            return f" at line {text.count(chr(10), 0, pos) + 1}, column {pos - line_start + 1}: {first}"
+            line, column = text.count("\n", 0, pos) + 1, pos - text.rfind("\n", 0, pos)
+            return f" at line {line}, column {column}: {first}"
         return ": " + first
     where = f" at {at(mark)}" if mark is not None else ""
     context, cmark = getattr(exc, "context", None), getattr(exc, "context_mark", None)
