@@ -419,6 +419,18 @@ def test_a_recording_in_millivolts_is_told_about_units(head, tmp_path):
     assert res.returncode == 0 and "in volts" not in res.stderr
 
 
+def test_a_recording_of_mostly_nan_rows_is_warned_about(head, tmp_path):
+    d, p, r = head
+    x = np.array(r.traces[:8], dtype=np.float32)
+    x[:5, 3] = np.inf
+    save_recording(tmp_path / "inf.npz", Recording.from_arrays(x, p.sample_rate_hz))
+    res = run_inproc(tmp_path / "inf.npz", "--profile", d / "head.yaml", "--out", tmp_path / "fm.csv")
+    assert res.returncode == 0, res.stderr
+    assert "warning: 5 of 8 rows are invalid (5 non_finite); most are NaN or infinite" in res.stderr
+    res = run_inproc(d / "rec.npz", "--profile", d / "head.yaml", "--out", tmp_path / "ok.csv")
+    assert res.returncode == 0 and "rows are invalid" not in res.stderr
+
+
 def _labels_csv(path, rec_npz, classes, *, nozzle_offset=0):
     """A labels CSV as ``inkdiag label`` writes it (row, nozzle, frame_id, class, ...) for ``rec_npz``, with
     ``classes`` per row; ``nozzle_offset``: its nozzle column off by that much (the labels of another recording)."""

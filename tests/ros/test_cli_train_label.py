@@ -243,6 +243,21 @@ def test_a_recording_in_millivolts_is_labelled_invalid_with_a_hint_about_units(w
     assert "in volts" not in capsys.readouterr().err
 
 
+def test_a_recording_of_mostly_invalid_rows_is_warned_about_with_its_reasons(work, trained, tmp_path, capsys):
+    d, head, sim = work
+    x = sim.traces[:20].copy()
+    x[:14, 7] = np.nan  # 14 non_finite, 2 flat, 4 classified
+    x[14:16] = 0.0
+    save_recording(tmp_path / "nan.npz", Recording.from_arrays(x, head.sample_rate_hz))
+    assert main(["label", str(tmp_path / "nan.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "l.csv")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: 16 of 20 rows are invalid (14 non_finite, 2 flat); most are NaN or infinite samples" in err
+    assert "in volts" not in err
+    # a recording with two invalid rows of 120 is not warned about
+    assert main(["label", str(d / "rec.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "r.csv")]) == 0
+    assert "rows are invalid" not in capsys.readouterr().err
+
+
 def test_another_heads_recording_of_the_same_sampling_is_labelled_with_a_warning(work, trained, tmp_path, capsys):
     # a head with 1.6 times the actuator compliance (181 kHz against 213): its healthy traces look like one fault
     d, head, sim = work

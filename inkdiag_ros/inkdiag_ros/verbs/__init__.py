@@ -61,3 +61,24 @@ def units_warning(verb: str, n_out_of_range: int, n_rows: int, max_abs_v: float)
         return ""
     return (f"inkdiag {verb}: warning: {n_out_of_range} of {n_rows} rows have a sample beyond {max_abs_v:g} V, more "
             "than the head's sensor can produce: are the traces in volts (not millivolts or ADC counts)?")
+
+
+#: What each screening reason of a row most often means, for :func:`invalid_warning`.
+_INVALID_HINTS = {"non_finite": "NaN or infinite samples: a recorder's gaps or a float32 overflow",
+                  "flat": "constant traces: a channel not wired or a sensor stuck",
+                  "clipped": "traces held at the ADC's limits: a sense gain too high",
+                  "out_of_range": "samples beyond what the head's sensor can produce",
+                  "non_finite_features": "features that overflow"}
+
+
+def invalid_warning(verb: str, per_reason, n_rows: int) -> str:
+    """The warning line when at least half the rows are invalid (screening's reasons in ``per_reason``, a
+    mapping reason -> rows; other keys are ignored), naming the reasons, else ""."""
+    counts = sorted(((k, r) for r, k in per_reason.items() if r in _INVALID_HINTS and k), reverse=True)
+    n_bad = sum(k for k, _ in counts)
+    if not (n_rows and n_bad >= n_rows / 2):
+        return ""
+    reasons = ", ".join(f"{k} {r}" for k, r in counts)
+    return (f"inkdiag {verb}: warning: {n_bad} of {n_rows} rows are invalid ({reasons}); most are "
+            f"{_INVALID_HINTS[counts[0][1]]}: is this the recording of a working head?")
+

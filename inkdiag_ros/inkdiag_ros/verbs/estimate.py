@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import re
 
-from . import (NO_BASELINE_HINT, open_csv_out, repeated_pairs, repeated_pairs_warning, summary_stream,
-               units_warning)
+from . import (NO_BASELINE_HINT, invalid_warning, open_csv_out, repeated_pairs, repeated_pairs_warning,
+               summary_stream, units_warning)
 
 OUT_STDOUT = True  # --out - writes the CSV to standard output
 HELP = "estimate the drying fault f_m and the nozzle viscosity of recorded traces"
@@ -173,7 +173,6 @@ def run(args) -> int:
 
     import numpy as np
     from inkdiag_core import BaselineFileError, DryingTracker, HeadProfile, NozzleBaselines
-    from inkdiag_core.drying_tracker import BELOW_NOISE_REASON
     from inkdiag_core.head_profile import ProfileError
 
     from ..bags import is_bag, stream_recording
@@ -249,7 +248,7 @@ def run(args) -> int:
     for note in sorted(notes):
         print(f"inkdiag estimate: note: {note}", file=sys.stderr)
     _say_after([(rec.nozzle[rows], frames, stamps)], unfolded, {r: int(np.sum(reasons == r)) for r in
-                                                                  ("out_of_range", BELOW_NOISE_REASON)}, n, tracker)
+                                                                  set(reasons[bad].tolist())}, n, tracker)
     est = ~bad
     k = int(np.count_nonzero(est & ~np.isfinite(stamps)))
     if k:  # said, not silent: those rows' trend columns are empty
@@ -535,7 +534,8 @@ def _say_after(keys, unfolded, why, n, tracker) -> None:
 
         print(f"inkdiag estimate: note: {restarted} nozzle trend(s) restarted where the bag's stamps went back "
               f"{CLOCK_RESET_S:g} s or more (a restarted clock)", file=sys.stderr)
-    if said := units_warning("estimate", why.get("out_of_range", 0), n, tracker.max_abs_v):
+    if said := (units_warning("estimate", why.get("out_of_range", 0), n, tracker.max_abs_v)
+                or invalid_warning("estimate", why, n)):
         print(said, file=sys.stderr)
     if (quiet := why.get(BELOW_NOISE_REASON, 0)) and quiet >= n / 2:
         print(f"inkdiag estimate: warning: {quiet} of {n} rows do not ring above the profile's sensor noise (an AC rms "

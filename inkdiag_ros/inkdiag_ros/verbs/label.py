@@ -145,8 +145,8 @@ def run(args) -> int:
     from inkdiag_core import FrameLabeller, LabellerConfigError, NozzleBaselines, load_detector
     from inkdiag_core.head_profile import HeadProfile, same_sample_rate
     from ..bags import report_stats, stream_recording
-    from . import (NO_BASELINE_HINT, open_csv_out, repeated_pairs, repeated_pairs_warning, summary_stream,
-                   units_warning)
+    from . import (NO_BASELINE_HINT, invalid_warning, open_csv_out, repeated_pairs, repeated_pairs_warning,
+                   summary_stream, units_warning)
 
     detector = load_detector(args.model)  # ModelFileError (a ValueError): missing, tampered, other versions
     head = detector.profile if detector.profile is not None else HeadProfile.default()
@@ -169,7 +169,7 @@ def run(args) -> int:
                              max_abs_v=max_abs_v)
     del rec
     n_rows = n_invalid = n_failed = n_base = n_out_of_range = 0
-    per_class = collections.Counter()
+    per_class, per_reason = collections.Counter(), collections.Counter()
     keys = []  # each chunk's (nozzle, frame_id, stamp) columns: repeats are said at the end
     with open_csv_out(args.out) as out:
         w = csv.writer(out, lineterminator="\n")
@@ -178,14 +178,14 @@ def run(args) -> int:
                                                                                   keys)):
             if cls == "invalid":
                 n_invalid += 1
-                n_failed += reason == "labelling_failed"
-                n_out_of_range += reason == "out_of_range"
+                per_reason[reason] += 1
             else:
                 per_class[cls] += 1
             w.writerow((row, nozzle, fid, cls, "" if conf != conf else f"{conf:.6f}", reason, int(base)))
             n_rows += 1
             n_base += bool(base)
     report_stats(args.recording, stats)
+    n_failed, n_out_of_range = per_reason["labelling_failed"], per_reason["out_of_range"]
     against = ""
     if baselines is not None:  # a nozzle column that does not match the baselines' ids is said, not silent
         n_plain = n_rows - n_invalid - n_base
@@ -196,6 +196,8 @@ def run(args) -> int:
           f"{head.name!r}); {n_invalid} invalid{failed}" + against + (f"; wrote {args.out}" if args.out != "-" else ""),
           file=summary_stream(args.out))
     if said := units_warning("label", n_out_of_range, n_rows, max_abs_v):
+        print(said, file=sys.stderr)
+    elif said := invalid_warning("label", per_reason, n_rows):
         print(said, file=sys.stderr)
     if keys and (n_repeated := repeated_pairs(*(np.concatenate(c) for c in zip(*keys)))):
         print(repeated_pairs_warning("label", n_repeated, "each is labelled" + (
