@@ -292,6 +292,18 @@ def test_train_on_a_bag_with_the_labels_csv_that_label_wrote_and_a_user_correcte
     assert "the validation rows are simulated" not in r.stdout  # recorded rows validate too
     info = json.loads((tmp_path / "m.joblib.manifest.json").read_text())["config"]
     assert info["n_real_rows"] == 62 and info["labels_file"] == str(tmp_path / "checked.csv")
+    import hashlib
+
+    from inkdiag_ros.verbs.train import content_sha256
+    assert info["labels_sha256"] == hashlib.sha256((tmp_path / "checked.csv").read_bytes()).hexdigest()
+    assert info["data_file"] == str(bag) and info["data_sha256"] == content_sha256(bag)
+    import shutil  # a bag's content: a byte more in any of its files changes it
+
+    copy = shutil.copytree(bag, tmp_path / "copy")
+    assert content_sha256(copy) == info["data_sha256"]
+    with open(copy / "metadata.yaml", "a") as f:
+        f.write("\n")
+    assert content_sha256(copy) != info["data_sha256"]
     # what training read: each bag row (in label's numbering) with its own true class
     from inkdiag_core import labels_from_csv
     from inkdiag_ros.bags import read_bag_recording

@@ -200,10 +200,9 @@ def run(args) -> int:
                                    unknown_rate=args.unknown_rate or None, posterior_draws=args.posterior_draws,
                                    progress=report)
         info["profile_file"] = str(args.profile)
-        if args.data:
-            info["data_file"] = str(args.data)
-        if args.labels:
-            info["labels_file"] = str(args.labels)
+        for key, path in (("data", args.data), ("labels", args.labels)):  # what was read, not only where
+            if path:
+                info[f"{key}_file"], info[f"{key}_sha256"] = str(path), content_sha256(path)
         mpath = save_detector(det, out, config=info)
         report(4, 4, f"saved {out}")
     finally:
@@ -235,3 +234,21 @@ def run(args) -> int:
                  "never calls a trace unknown; raise --n-per-class" if silent else ""))
     print(f"wrote {out} and {mpath}")
     return 0
+
+
+def content_sha256(path) -> str:
+    """sha256 of a file's bytes, or of a directory's (a rosbag2 bag's) files: each file's path relative to it,
+    size and bytes, in sorted order; a hex string."""
+    import hashlib
+    from pathlib import Path
+
+    root, h = Path(path), hashlib.sha256()
+    files = sorted(p for p in root.rglob("*") if p.is_file()) if root.is_dir() else [root]
+    for f in files:
+        if root.is_dir():
+            h.update(f"{f.relative_to(root).as_posix()}\0{f.stat().st_size}\0".encode())
+        with open(f, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+    return h.hexdigest()
+
