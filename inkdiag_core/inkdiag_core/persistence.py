@@ -361,8 +361,13 @@ def check_manifest_entries(path, manifest: dict, detector) -> None:
         where = _first_difference({k: theirs[k] for k in mine}, mine, section)
         if where is not None:
             key, got, want = where
-            raise ModelFileError(f"model file {path}: its manifest's {key} is {got:.60}, the model's {want:.60}: "
+            raise ModelFileError(f"model file {path}: its manifest's {key} is {_clip(got)}, the model's {_clip(want)}: "
                                  "manifest edited, refusing an inconsistent file")
+
+
+def _clip(text: str, n: int = 60) -> str:
+    """``text``, or its first ``n`` characters and `` ...`` with how many more there are: an error stays one line."""
+    return text if len(text) <= n else f"{text[:n]} ... ({len(text) - n} characters more)"
 
 
 def _require_detector_manifest(path, manifest: dict) -> None:
@@ -383,6 +388,8 @@ def _first_difference(a, b, key: str):
             if (d := _first_difference(x, y, f"{key}[{i}]")) is not None:
                 return d
         return None
+    if isinstance(a, list) and isinstance(b, list):  # a list of another length: said so, not as two clipped lists
+        return key, f"a list of {len(a)}", f"a list of {len(b)}"
     ja, jb = json.dumps(a, sort_keys=True), json.dumps(b, sort_keys=True)
     return None if ja == jb else (key, ja, jb)
 

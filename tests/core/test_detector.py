@@ -180,6 +180,9 @@ def test_tampered_or_foreign_files_are_refused(tmp_path, fitted, sim):
 @pytest.mark.parametrize("edit, where", [
     (lambda m: m["config"].__setitem__("fd_threshold", 0.99), r"config\.fd_threshold is 0\.99"),
     (lambda m: m["config"]["classes"].reverse(), r"config\.classes\[0\]"),
+    (lambda m: m["config"]["classes"].pop(), r"config\.classes is a list of 11, the model's a list of 12: manifest"),
+    (lambda m: m["config"].__setitem__("profile_name", "h" * 70),
+     r"config\.profile_name is \"h{59} \.\.\. \(12 characters more\), the model's"),
     (lambda m: m["config"].__setitem__("profile_name", "other_head"), r"config\.profile_name"),
     (lambda m: m["scores"].__setitem__(sorted(m["scores"])[0], 1.5), r"scores\."),
     (lambda m: m["scores"].__setitem__("fi_accuracy_claimed", 1.0), r"scores \['fi_accuracy_claimed'\]"),
