@@ -10,7 +10,7 @@ key                shape, type                 meaning
 ``nozzle``         (n,) int                    nozzle id of each row (default 0..n-1)
 ``frame_id``       (n,) int                    measurement (frame) of each row (default 0)
 ``stamp``          (n,) float                  time of each row's frame, s (default NaN)
-``label``          (n,) str                    class of each row (a FaultClass value), if known;
+``label``          (n,) str                    class of each row (a FaultClass value, any case), if known;
                                                ``invalid`` or ``unknown`` (from ``inkdiag label``): none
 =================  ==========================  ===========================================
 
@@ -163,8 +163,9 @@ class Recording:
         if label is not None:
             lab = np.asarray(label)
             per_trace("label", lab)
-            lab = np.array([v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v) for v in lab.tolist()],
-                           dtype=object)  # bytes (an 'S' array, as h5py or MATLAB write) are UTF-8 text
+            lab = np.array([(v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v)).lower()
+                            for v in lab.tolist()], dtype=object)  # bytes (an 'S' array, as h5py or MATLAB write)
+            # are UTF-8 text; class names are lower case, read without case as a labels CSV's are
             bad = sorted(set(lab.tolist()) - LABEL_VALUES)
             if bad:
                 raise RecordingError(f"{source}: label {', '.join(map(repr, bad[:5]))}{', ...' if len(bad) > 5 else ''} "

@@ -90,6 +90,12 @@ def test_labels_stored_as_bytes_are_text(tmp_path):
     assert list(rec.label) == ["healthy_nozzle", "deeply_dried"]
 
 
+def test_labels_are_read_without_case_as_a_labels_csv_is(tmp_path):
+    rec = load_recording(_save(tmp_path / "c.npz", traces=np.zeros((3, 8)), sample_rate_hz=1e6,
+                               label=np.array(["Healthy_Nozzle", "DEEPLY_DRIED", "Unknown"])))
+    assert list(rec.label) == ["healthy_nozzle", "deeply_dried", "unknown"]
+
+
 def test_labels_from_inkdiag_label_load_and_training_leaves_their_rows_out(tmp_path):
     """A label column copied from `inkdiag label` holds `invalid` and `unknown`: they load (estimate
     --rows dried and baseline take such a recording), and training data leaves those rows out."""
