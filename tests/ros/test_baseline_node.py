@@ -353,6 +353,40 @@ def test_record_baseline_stopped_writes_the_complete_nozzles_and_says_so(ros, tm
     assert list(NozzleBaselines.load(out).nozzle_ids) == list(range(8))
 
 
+def test_record_baseline_leaves_out_a_nozzle_dried_at_commissioning_and_says_so(ros, tmp_path):
+    """A nozzle ringing unlike the head's others gets no baseline; the node's log names it (the recorder's
+    unlike_note, as `inkdiag baseline` prints it)."""
+    import os
+    import subprocess
+    import sys
+
+    out = tmp_path / "b.npz"
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    proc = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.baseline_node", "--ros-args", "-r", "__ns:=/ul",
+                             "-p", f"output_path:={out}", "-p", "n_frames:=2", "-p", "fm_frames:=1",
+                             "-p", "n_nozzles:=10", "-p", "timeout_s:=60.0"], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    try:
+        pub = ros.node("controller", namespace="/ul").create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
+        ros.spin_until(lambda: pub.get_subscription_count() > 0, 60, "record_baseline's subscription")
+        ros.spin_for(1.0)  # its side of the match (best effort)
+        classes = ["healthy_nozzle"] * 10
+        classes[3] = "deeply_dried"
+        for k in range(40):  # until it has written (best effort delivery: resent)
+            f = simulate_nozzles(classes, seed=HEAD, frame_seed=k % 4).traces
+            pub.publish(encode_traces(f, first_nozzle=0, frame_id=k))
+            ros.spin_for(0.2)
+            if proc.poll() is not None:
+                break
+        text = proc.communicate(timeout=30)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0 and "Traceback" not in text, text
+    assert "1 nozzle(s) ring unlike the head's others" in text and ": 3 (" in text, text
+    assert list(NozzleBaselines.load(out).nozzle_ids) == [0, 1, 2, 4, 5, 6, 7, 8, 9]
+
+
 def test_fe_stopped_while_it_publishes_a_burst_does_not_fail_its_callback():
     """A SIGINT/SIGTERM under load took the context down while fe published a burst's estimates: the executor
     logged FATAL 'Failed to publish: publisher's context is invalid' with a traceback (helper-88, 3 stops of 5)."""
