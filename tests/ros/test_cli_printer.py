@@ -53,7 +53,7 @@ def test_three_heads_in_two_processes_label_on_every_namespace_and_stop_on_sigin
         node.create_subscription(LABELS_MSG_TYPE, f"/head_{i:02d}/labels",
                                  lambda m, i=i: heard.setdefault(i, decode_labels(m)), RELIABLE_QOS)
     proc = _start(ros, "--heads", "3", "--processes", "2", "--simulate", "--model", str(fdi_model),
-                  "--ros-args", "--log-level", "warn")
+                  "--ros-args", "--log-level", "warn", "-p", "random_fault_fraction:=0.05", "-p", "bogus_x:=1")
     try:
         pids = _child_pids(proc)
         assert len(pids) == 2
@@ -81,6 +81,9 @@ def test_three_heads_in_two_processes_label_on_every_namespace_and_stop_on_sigin
     assert took <= 2.5, f"stopped after {took:.2f} s"
     assert "Traceback" not in err, err[-3000:]
     assert _UP.search(out), out
+    # a -p for the simulated heads is unsaid by the fdi nodes (the run has them); a name no node has is said
+    ignoring = [line for line in err.splitlines() if "ignoring parameter(s)" in line]
+    assert ignoring and all("bogus_x" in line and "random_fault_fraction" not in line for line in ignoring), err[-3000:]
     assert not any(_alive(p) for p in pids), "a child outlived the command"
 
 
