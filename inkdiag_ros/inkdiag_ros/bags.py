@@ -10,9 +10,8 @@ verbs take either.
 Why here and not in ``inkdiag_core``: a trace frame's layout (the header in the
 MultiArray's leading padding) is the wire contract, decoded only by
 :func:`msg_defs.decode_traces`, and the core imports neither msg_defs nor ROS.
-Each stored message (CDR, as received) is deserialised by rclpy into a
-``std_msgs/Float32MultiArray`` and decoded by msg_defs, exactly as the fdi node
-decodes a live message.
+Each stored message (CDR, as received) is decoded by
+:func:`msg_defs.decode_traces_serialized`, exactly as the fdi node decodes a live message.
 
 Topic names in a bag are absolute (``/head_00/traces``); :data:`HEAD_TOPICS` are
 the relative names :func:`head_topics` resolves under a namespace.
@@ -206,6 +205,7 @@ class BagFrames:
     n_skipped: int = 0
     report: object = None
     salvaged: list | None = None  # read by a SalvageReader (a bag that did not open, or past a damaged chunk)
+    n_listed: int | None = None  # messages on the topic metadata.yaml lists (None: it does not say)
 
     def skip(self, index: int, why: str, frame_id=None) -> None:
         """Count message ``index`` as skipped for ``why`` (and report it)."""
@@ -224,7 +224,22 @@ class BagFrames:
                 f"message {i}: {why}" for i, why in self.skipped[:3]) + (" ..." if n_skip > 3 else "")
         if self.salvaged is not None:
             s += "; " + salvage_note(self.salvaged)
+        if self.n_listed is not None and self.n_listed != self.n_messages:
+            s += (f"; metadata.yaml lists {self.n_listed} messages on {self.topic}: "
+                  + (f"{self.n_listed - self.n_messages} of them not found in its files" if self.n_listed > self.n_messages
+                     else f"{self.n_messages - self.n_listed} more found than it lists"))
         return s
+
+
+def listed_count(bag: Path, topic: str):
+    """Messages on ``topic`` that ``metadata.yaml`` lists (summed over its connections), or None when it does not
+    say (no metadata.yaml, another layout)."""
+    try:
+        counts = [int(t["message_count"]) for t in _bag_info(bag)["topics_with_message_count"]
+                  if t["topic_metadata"]["name"] == topic]
+    except Exception:  # noqa: BLE001 - missing, unreadable or another layout: nothing to compare with
+        return None
+    return sum(counts) if counts else None
 
 
 def salvage_note(damage) -> str:
@@ -265,7 +280,7 @@ def is_unclosed_bag(path) -> bool:
     """Whether ``path`` is a directory of MCAP storage files without a ``metadata.yaml`` (a bag whose recorder
     stopped, or has not yet stopped, before it closed the bag)."""
     p = Path(path)
-    return p.is_dir() and not (p / "metadata.yaml").exists() and any(p.glob("*.mcap"))
+    return p.is_dir() and not (p / "metadata.yaml").is_file() and any(p.glob("*.mcap"))
 
 
 def _bag_info(bag: Path) -> dict:
@@ -292,6 +307,15 @@ def _storage_order(bag: Path) -> list:
     except TypeError:  # not a list of names
         pass
     return sorted(files, key=lambda f: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", f.name)])
+
+
+def _missing_files(bag: Path) -> list:
+    """The storage files ``metadata.yaml`` lists that are not in ``bag`` (none when it does not list any)."""
+    try:
+        listed = [bag / f for f in _bag_info(bag).get("relative_file_paths", [])]
+    except TypeError:  # not a list of names
+        return []
+    return [f for f in listed if not f.is_file()]
 
 
 def _summary_channels(path):
@@ -352,8 +376,10 @@ class SalvageReader:
 
     def __init__(self, bag: Path):
         self.files = _storage_order(Path(bag))
-        self.damage: list = []  # one line per file that is cut off, per damaged chunk
+        self.damage: list = []  # one line per file that is missing, cut off, per damaged chunk
         self._said = set()  # what the files say of their damage is said once (both passes meet it)
+        for f in _missing_files(Path(bag)):
+            self._say(f"{f}: listed in metadata.yaml, not in the bag: its messages lost")
         self._channels = [_summary_channels(f) for f in self.files]  # per file: channel id -> (channel, schema name)
         for k, ch, schema_name in self._records(messages=False, files=[k for k, c in enumerate(self._channels)
                                                                       if c is None]):
@@ -573,9 +599,7 @@ def iter_bag_frames(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
         another type, or a bag without MCAP files that breaks off (says how many
         messages were read).
     """
-    from rclpy.serialization import deserialize_message
-
-    from msg_defs import FrameError, TRACE_MSG_TYPE, decode_traces
+    from msg_defs import FrameError, decode_traces_serialized
 
     src = str(bag_dir)
     stats = stats if stats is not None else BagFrames()
@@ -593,21 +617,29 @@ def iter_bag_frames(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
         if isinstance(reader, SalvageReader):
             on_salvage(reader)
         stats.topic, conns = _traces_connections(reader, topic, src)
+        stats.n_listed = listed_count(Path(src), stats.topic)
         for _, _, raw in read_on(reader, conns, Path(src), lambda r: _traces_connections(r, stats.topic, src)[1],
                                  broken_off, on_salvage):
             i = stats.n_messages
             stats.n_messages += 1
+            raw = bytes(raw)  # the frame's traces view it (no buffer of the reader's, which it may reuse)
+            if raw[:2] not in CDR_HEADERS:  # a bag's messages are CDR: no other encoding is tried (by rclpy)
+                stats.skip(i, f"not a serialised {TRACES_TYPE}: " + (f"its first bytes {raw[:4].hex()} are not a "
+                                                                        "CDR header" if raw else "an empty message"))
+                continue
             try:
-                frame = decode_traces(deserialize_message(bytes(raw), TRACE_MSG_TYPE))
+                frame = decode_traces_serialized(raw)
             except FrameError as exc:
                 stats.skip(i, first_line(exc))
                 continue
-            except Exception as exc:  # CDR that does not deserialise as a Float32MultiArray
+            except Exception as exc:  # noqa: BLE001 - CDR that does not decode as a Float32MultiArray
                 stats.skip(i, f"not a serialised {TRACES_TYPE}: {first_line(exc)}")
                 continue
             yield frame
 
 
+#: The encapsulation headers of plain CDR (big- and little-endian), as rosbag2 stores messages.
+CDR_HEADERS = (b"\x00\x00", b"\x00\x01")
 #: Rows per chunk :func:`iter_bag_chunks` yields at most by default (whole frames; 32 MB of 512-sample traces).
 CHUNK_ROWS = 16384
 #: Trace frames of another sampling than the reader's, before any of its own, after which a bag is refused.

@@ -580,3 +580,72 @@ def test_salvage_reads_split_files_in_recording_order_and_garbage_ends_only_its_
     stats = BagFrames()
     assert load_recording(tmp_path, stats=stats).traces.shape == (40, x.shape[1])
     assert "5 of 5 messages" in stats.summary() and stats.summary().count("cut off after 0 messages") == 3
+
+
+def _edit_metadata(bag, edit):
+    import yaml
+
+    meta = bag / "metadata.yaml"
+    doc = yaml.safe_load(meta.read_text())
+    edit(doc["rosbag2_bagfile_information"])
+    meta.write_text(yaml.safe_dump(doc))
+
+
+def _traces_count(info):
+    return next(t for t in info["topics_with_message_count"] if t["topic_metadata"]["name"] == f"{NS}/traces")
+
+
+def test_messages_and_files_metadata_lists_but_the_bag_lacks_are_said(tmp_path, sim):
+    """helper-107: a split bag missing one of its files read as 'no damage found', and a metadata.yaml listing more
+    messages than the files hold was not compared with what was read."""
+    from inkdiag_ros.bags import BagFrames, load_recording
+
+    x = sim.traces[:8].astype(np.float32)
+    bag = write_bag(tmp_path / "split", [(0, x)] * 5)
+
+    def lose_a_file(info):  # as a bag split in two whose second file was lost
+        info["relative_file_paths"].append("split_1.mcap")
+        _traces_count(info)["message_count"] += 5
+    _edit_metadata(bag, lose_a_file)
+    stats = BagFrames()
+    assert load_recording(bag, stats=stats).traces.shape[0] == 40
+    s = stats.summary()
+    assert f"{bag / 'split_1.mcap'}: listed in metadata.yaml, not in the bag: its messages lost" in s, s
+    assert f"metadata.yaml lists 10 messages on {NS}/traces: 5 of them not found in its files" in s, s
+
+    bag = write_bag(tmp_path / "count", [(0, x)] * 5)
+    _edit_metadata(bag, lambda info: _traces_count(info).__setitem__("message_count", 3000))
+    stats = BagFrames()
+    load_recording(bag, stats=stats)
+    assert stats.summary() == f"5 of 5 messages on {NS}/traces decoded; metadata.yaml lists 3000 messages on " \
+                              f"{NS}/traces: 2995 of them not found in its files"
+    stats = BagFrames()  # a bag as written: nothing said
+    load_recording(write_bag(tmp_path / "ok", [(0, x)] * 5), stats=stats)
+    assert stats.summary() == f"5 of 5 messages on {NS}/traces decoded"
+    (tmp_path / "ok" / "metadata.yaml").unlink()  # a metadata.yaml that is a directory: read as a bag without one
+    (tmp_path / "ok" / "metadata.yaml").mkdir()
+    assert load_recording(tmp_path / "ok").traces.shape[0] == 40
+
+
+def test_payloads_that_are_not_trace_frames_are_skipped_without_a_word_from_the_deserialiser(tmp_path, sim, capfd):
+    """helper-107: garbage payloads printed rclpy's bare 'sequence size exceeds remaining buffer' on stderr."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from _bags import frame_msg, typestore
+    from inkdiag_ros.bags import BagFrames, load_recording
+
+    ts, x = typestore(), sim.traces[:8].astype(np.float32)
+    good = ts.serialize_cdr(frame_msg(ts, x, first=0, frame_id=0, stamp_s=100.0), "std_msgs/msg/Float32MultiArray")
+    payloads = [good, b"\x07\x07" + b"\xff" * 40, b"\x00\x01\x00\x00" + b"\xff" * 40, bytes(good[:100]), b"", good]
+    with Writer(tmp_path / "bag", version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conn = w.add_connection(f"{NS}/traces", "std_msgs/msg/Float32MultiArray", typestore=ts)
+        for k, raw in enumerate(payloads):
+            w.write(conn, 1_700_000_000_000_000_000 + k, raw)
+    capfd.readouterr()
+    stats = BagFrames()
+    rec = load_recording(tmp_path / "bag", stats=stats)
+    assert rec.traces.shape[0] == 16 and [i for i, _ in stats.skipped] == [1, 2, 3, 4]
+    why = dict(stats.skipped)
+    assert "first bytes 0707ffff are not a CDR header" in why[1] and why[4].endswith(": an empty message"), why
+    assert "4294967295 layout dimensions" in why[2] and "data values announced" in why[3], why
+    assert capfd.readouterr().err == ""
