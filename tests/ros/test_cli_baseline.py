@@ -91,6 +91,27 @@ def test_nozzles_short_of_frames_are_left_out_and_said(work, tmp_path, capsys):
     np.testing.assert_array_equal(NozzleBaselines.load(tmp_path / "b.npz").nozzle_ids, [0, 1])
 
 
+def test_frames_given_twice_are_warned_about(work, tmp_path, capsys):
+    """helper-107: a bag of 5 frames each written twice made baselines 'of 8 frames' from 5, without a word (label
+    and estimate warned). A recording without frame_id or stamp (rows told apart by nozzle id alone) is not."""
+    d, head, frames = work
+    x = np.concatenate(frames + frames[:1])  # frame 0 given twice, as frame 0
+    fid = np.r_[np.repeat(np.arange(N_FRAMES), N_NOZZLES), np.zeros(N_NOZZLES, int)]
+    save_recording(tmp_path / "dup.npz", Recording.from_arrays(x, head.sample_rate_hz,
+                                                               nozzle=np.tile(np.arange(N_NOZZLES), N_FRAMES + 1),
+                                                               frame_id=fid))
+    args = ["--profile", str(d / "head.yaml"), "--out", str(tmp_path / "b.npz"), "--frames", "4", "--fm-frames", "0"]
+    capsys.readouterr()
+    assert main(["baseline", str(tmp_path / "dup.npz"), *args]) == 0
+    err = capsys.readouterr().err
+    assert f"inkdiag baseline: warning: {N_NOZZLES} row(s) repeat the nozzle, frame_id and stamp of an earlier " \
+           "row; each is counted as one of its nozzle's --frames" in err, err
+    save_recording(tmp_path / "plain.npz", Recording.from_arrays(x, head.sample_rate_hz,
+                                                                 nozzle=np.tile(np.arange(N_NOZZLES), N_FRAMES + 1)))
+    assert main(["baseline", str(tmp_path / "plain.npz"), *args]) == 0
+    assert "repeat" not in capsys.readouterr().err
+
+
 def test_a_nozzle_faulty_at_commissioning_is_left_out_and_said(work, tmp_path, capsys):
     d, head, _ = work
     classes = [FaultClass.HEALTHY_NOZZLE] * 12

@@ -57,6 +57,7 @@ def run(args) -> int:
     from inkdiag_core import BaselineRecorder, FaultClass, HeadProfile
 
     from ..bags import report_stats, stream_recording
+    from . import repeated_pairs, repeated_pairs_warning
 
     if not 1 <= args.frames <= MAX_FRAMES:
         raise ValueError(f"--frames must be in 1..{MAX_FRAMES}, got {args.frames}")
@@ -75,6 +76,7 @@ def run(args) -> int:
                                      sampling=(profile.sample_rate_hz, profile.n_samples, f"profile {profile.name!r},"))
     n_rows = n_used = n_other = 0
     nozzles = np.zeros(0, np.int64)  # every nozzle id the recording has, usable rows or not
+    keys = []  # each chunk's (nozzle, frame_id, stamp) columns: repeats are said at the end
     for _, rec in chunks:  # a bag with no trace frame: RecordingError
         profile.check_traces(rec.traces, rec.sample_rate_hz, what=f"{args.recording}")
         keep = None
@@ -83,6 +85,7 @@ def run(args) -> int:
             n_other += int(np.count_nonzero(~keep))
         n_used += recorder.add_rows(rec.nozzle, rec.traces, keep=keep)
         nozzles = np.union1d(nozzles, rec.nozzle)
+        keys.append((rec.nozzle, rec.frame_id, rec.stamp))
         n_rows += rec.n_rows
     report_stats(args.recording, stats)
     baselines = recorder.baselines(min_frames=min_frames)
@@ -106,6 +109,11 @@ def run(args) -> int:
           + (f"; {short} nozzles with fewer than {min_frames} usable rows left out" if short else "")
           + (f"; {n_unlike} ringing unlike the others left out" if n_unlike else "")
           + f"; wrote {args.out}", file=sys.stdout)
+    ids, fids, stamps = (np.concatenate(c) for c in zip(*keys))
+    tells_frames_apart = bool(np.any(fids != 0) or np.any(np.isfinite(stamps)))  # else nozzle ids alone say it
+    if tells_frames_apart and (n_repeated := repeated_pairs(ids, fids, stamps)):
+        print(repeated_pairs_warning("baseline", n_repeated, "each is counted as one of its nozzle's --frames, so "
+                                     "a baseline may rest on fewer distinct frames"), file=sys.stderr)
     if why := recorder.unlike_note():
         print(f"inkdiag baseline: warning: {why}", file=sys.stderr)
     if why := baselines.gain_mismatch(profile):
