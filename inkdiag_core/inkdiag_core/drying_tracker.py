@@ -55,13 +55,19 @@ def _default_head():
     return HeadProfile.default()
 from .trend import CLOCK_RESET_S, FmTrendBank, deeply_dried_fm
 
-__all__ = ["BELOW_NOISE_REASON", "ESTIMATE_COLUMNS", "NONPHYSICAL_REASON", "DryingTracker", "RangeEstimates",
+__all__ = ["AT_BOUND_REASON", "BELOW_NOISE_REASON", "ESTIMATE_COLUMNS", "NONPHYSICAL_REASON", "DryingTracker",
+           "RangeEstimates",
            "RowEstimates"]
 
 
 #: Reason of a row whose estimate means a viscosity <= 0 (``channel.mu + d_mu``): no nozzle the linear
 #: channel model describes (an empty channel, an air bubble), so not an estimate of its ink.
 NONPHYSICAL_REASON = "viscosity_not_positive"
+#: Reason of a row whose f_m fit ended at an edge of its search interval (``FmBatchEstimate.at_bound``: a
+#: viscosity 16x the ink's, or thinner than the ink): the edge, not an estimate. Fully blocked nozzles, empty
+#: channels and some small air bubbles end there (a viscosity 22x the ink's for a blocked one, 0.85x for an empty
+#: one, reported as estimates before); drying nozzles of the simulated classes (up to about 10x) do not.
+AT_BOUND_REASON = "at_search_bound"
 #: Reason of a row of a head with a profile whose AC rms is at most :data:`BELOW_NOISE_FACTOR` times the
 #: profile's sensor noise (``noise_std_v``): no ringing to fit (a nozzle that did not fire, traces in other
 #: units). White noise once came out as f_m -4.6e6 1/s with no reason.
@@ -70,6 +76,34 @@ BELOW_NOISE_REASON = "below_noise"
 #: ``tests/foreign_head.py`` (30 dB) ring at 9.3 times their noise_std_v and more: at about half a healthy trace's
 #: amplitude, they stay above 2 down to an SNR of about 12 dB.
 BELOW_NOISE_FACTOR = 2.0
+#: Samples at one of the ADC's end codes that make a row ``clipped`` for estimation (:func:`at_rails`).
+MIN_RAIL_SAMPLES = 2
+
+
+def adc_rails(profile):
+    """The windows, V, around the ADC's lowest and highest codes of a profile that gives ``sensor.adc_range_v``
+    (None otherwise): ``((lo_min, lo_max), (hi_min, hi_max))``. With ``adc_bits`` the codes run from
+    ``-range`` to ``range - lsb``; a recorder may also write the top code as ``+range``: both are in the window,
+    half an lsb either side. Without bits, ``+-range`` with a relative 1e-6."""
+    if "adc_range_v" not in profile.sensor:  # the default's 2 V is assumed, not known: no rail to rest on
+        return None
+    r = profile.adc_range_v
+    bits = profile.adc_bits
+    half = r / 2 ** int(bits) if bits else 1e-6 * r  # half an lsb
+    return (-r - half, -r + half), (r - 3 * half, r + half)
+
+
+def at_rails(rows, rails) -> np.ndarray:
+    """(n,) bool: rows (n, m), V, with :data:`MIN_RAIL_SAMPLES` or more samples in one of ``rails``' windows
+    (:func:`adc_rails`): an ADC held at its end code. Screening's ``clipped`` needs a run of 0.5 us; a fit of the
+    ringing is biased by a few samples on the rail already (3-4 samples at 10 MHz: f_m 13-16 % low). A row whose
+    extreme lies beyond the window is not railed (an ADC range the profile states too small)."""
+    (lo0, lo1), (hi0, hi1) = rails
+    low = np.count_nonzero((rows >= lo0) & (rows <= lo1), axis=1) >= MIN_RAIL_SAMPLES
+    high = np.count_nonzero((rows >= hi0) & (rows <= hi1), axis=1) >= MIN_RAIL_SAMPLES
+    return low | high
+
+
 #: Columns of :attr:`RangeEstimates.columns`, in this order (the fields of ``fm_estimates``).
 ESTIMATE_COLUMNS = ("nozzle", "fm", "fm_std", "d_mu", "viscosity", "fm_trend", "fm_rate",
                     "eta_deeply_dried_s")
@@ -129,8 +163,8 @@ class RowEstimates:
     reasons : ndarray of str (object), shape (n,)
         ``""`` for estimated rows; else screening's reason
         (:data:`~inkdiag_core.INVALID_REASONS`), :data:`BELOW_NOISE_REASON` (no ringing above the
-        profile's sensor noise), ``"estimate_not_finite"`` or :data:`NONPHYSICAL_REASON` (the estimate
-        means a viscosity <= 0).
+        profile's sensor noise), ``"estimate_not_finite"``, :data:`NONPHYSICAL_REASON` (the estimate
+        means a viscosity <= 0) or :data:`AT_BOUND_REASON` (the fit ended at its search interval's edge).
     method : str
         The estimator that ran.
     note : str
@@ -246,10 +280,12 @@ class DryingTracker:
         self.vp_cal = None
         fm_deep = None
         self.min_ac_rms_v = 0.0  # rows at or below it: BELOW_NOISE_REASON (a head with a profile)
+        self.rails_v = None  # (low, high) windows of the ADC's end codes: rows resting there are 'clipped'
         if profile is not None:
             from .estimation import vp_cal_for
 
             self.min_ac_rms_v = BELOW_NOISE_FACTOR * profile.noise_std_v()
+            self.rails_v = adc_rails(profile)
 
             model = profile.model()
             fm_deep = deeply_dried_fm(profile.channel_params())
@@ -481,6 +517,11 @@ class DryingTracker:
             quiet = sel[np.std(rows[sel], axis=1) <= self.min_ac_rms_v]  # the AC rms
             reasons[quiet] = BELOW_NOISE_REASON
             valid[quiet] = False
+        if self.rails_v is not None and valid.any():
+            sel = np.flatnonzero(valid)
+            railed = sel[at_rails(rows[sel], self.rails_v)]
+            reasons[railed] = "clipped"
+            valid[railed] = False
         cols = {k: np.full(n, np.nan) for k in ESTIMATE_COLUMNS}
         cols["nozzle"] = ids.copy()
         self.rows_invalid += int(n - np.count_nonzero(valid))
@@ -499,6 +540,9 @@ class DryingTracker:
             nonphysical = ~bad & np.isfinite(visc) & (visc <= 0)
             reasons[sel[nonphysical]] = NONPHYSICAL_REASON
             bad |= nonphysical
+            edge = ~bad & est.at_bound
+            reasons[sel[edge]] = AT_BOUND_REASON
+            bad |= edge
             for k, v in zip(("fm", "fm_std", "d_mu", "viscosity"), (est.fm, est.std, est.d_mu, est.viscosity)):
                 cols[k][sel] = v
             good = sel[~bad]

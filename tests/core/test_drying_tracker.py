@@ -232,6 +232,59 @@ def test_an_estimate_that_means_a_viscosity_of_zero_or_less_is_not_an_estimate()
     np.testing.assert_allclose(r.columns["viscosity"][~neg], raw.viscosity[~neg])
 
 
+def test_a_fit_that_ends_at_its_search_intervals_edge_is_not_an_estimate():
+    """helper-109's QA: fully blocked nozzles came out of estimate as f_m -6.3e6 1/s, 22x the ink's viscosity,
+    and empty channels at exactly the interval's upper edge, with no reason. The fit's edge is now said
+    (``at_search_bound``, empty values); drying nozzles, to 10x the ink's viscosity, are estimated as before."""
+    from inkdiag_core import FaultClass, HeadProfile
+    from inkdiag_core.drying_tracker import AT_BOUND_REASON
+
+    classes = [FaultClass.FULLY_BLOCKED, FaultClass.EMPTY_CHANNEL_2, FaultClass.SLIGHTLY_DRIED,
+               FaultClass.INTERMEDIATELY_DRIED, FaultClass.DEEPLY_DRIED, FaultClass.HEALTHY_NOZZLE]
+    sim = HeadProfile.default().simulate({c: 20 for c in classes}, seed=3)
+    lab = np.asarray(sim.label_values())
+    raw = estimate_fm_batch(sim.traces, InkChannelModel(), 10e6, method="vp_cal")
+    from inkdiag_core.estimation.base import default_bounds, model_matrices
+
+    A, _, B_f, _ = model_matrices(InkChannelModel())
+    vp = estimate_fm_batch(sim.traces, InkChannelModel(), 10e6, method="vp")
+    np.testing.assert_allclose(vp.fm[lab == "fully_blocked"], default_bounds(A, B_f)[0], rtol=1e-6)  # the edge
+    want = np.isin(lab, ["fully_blocked", "empty_channel_2"])
+    np.testing.assert_array_equal(raw.at_bound, want)
+    np.testing.assert_array_equal(vp.at_bound, want)
+    assert raw[int(np.argmax(want))].at_bound and not raw[int(np.argmin(want))].at_bound  # FmEstimate too
+    tr = DryingTracker()
+    r = tr.estimate_rows(sim.traces, np.arange(lab.size), stamp=0.0, sample_rate_hz=10e6)
+    assert (r.reasons[want] == AT_BOUND_REASON).all() and (r.reasons[~want] == "").all()
+    assert np.isnan(r.columns["fm"][want]).all() and tr.estimates == int(np.count_nonzero(~want))
+    np.testing.assert_allclose(r.columns["fm"][~want], raw.fm[~want])
+
+
+def test_a_row_resting_on_the_adcs_end_code_is_clipped_for_estimation():
+    """helper-109's QA: traces whose peaks sat 3-4 samples on the ADC's rail (fewer than screening's 0.5 us) were
+    estimated 13-16 % low with no reason. With a profile that states its ADC range, two samples at an end code
+    make the row ``clipped``; the rest of the frame is estimated as before."""
+    from inkdiag_core import FaultClass, HeadProfile, screen_traces
+
+    p = HeadProfile.default()
+    assert "adc_range_v" in p.sensor
+    x = p.simulate({FaultClass.SLIGHTLY_DRIED: 6}, seed=4).traces.astype(np.float64)
+    top = 2.0 - 4.0 / 2 ** 12  # the 12-bit ADC's highest code, V
+    y = x.copy()
+    y[:3] = np.clip(y[:3] * (2.8 / np.abs(y[:3]).max(axis=1, keepdims=True)), -2.0, top)
+    assert screen_traces(y, sample_rate_hz=10e6, max_abs_v=10.0)[0].all()  # shorter than screening's clipped run
+    tr = DryingTracker(profile=p)
+    r = tr.estimate_rows(y, np.arange(6), stamp=0.0, sample_rate_hz=10e6)
+    assert list(r.reasons) == ["clipped"] * 3 + [""] * 3 and np.isnan(r.columns["fm"][:3]).all()
+    ref = DryingTracker(profile=p).estimate_rows(x, np.arange(6), stamp=0.0, sample_rate_hz=10e6)
+    np.testing.assert_allclose(r.columns["fm"][3:], ref.columns["fm"][3:])
+    # a profile that does not state its ADC range (the default 2 V assumed, not known): no rail to rest on
+    loose = p.replace(sensor={"adc_range_v": None})
+    assert "adc_range_v" not in loose.sensor
+    assert list(DryingTracker(profile=loose).estimate_rows(y, np.arange(6), stamp=0.0,
+                                                           sample_rate_hz=10e6).reasons) == [""] * 6
+
+
 def test_a_row_that_does_not_ring_above_the_sensor_noise_is_not_estimated():
     """White noise came out as f_m -4.6e6 1/s, and traces a thousand times too small as any other, with no reason
     (helper-103's QA): with a profile, a row whose AC rms is at most 2x its noise_std_v is ``below_noise``."""

@@ -566,3 +566,23 @@ def test_a_nozzle_the_labels_call_recovered_starts_a_new_trend_as_in_fe(tmp_path
     _, rows = read_csv(tmp_path / "chunked.csv")
     assert [(int(r["row"]), r["fm"] == r["fm_trend"], r["fm_rate"] != "") for r in rows if r["nozzle"] == "2"] \
         == restarted
+
+
+def test_rows_labelled_a_fault_other_than_drying_are_noted_and_class_names_are_read_without_case(head, tmp_path):
+    """helper-109's QA: a recording of bubbles and partial blocks estimated without --rows gave them viscosities
+    with no word; its label column says they are no drying nozzles, so a note says so. ``--rows Deeply_Dried``
+    was refused (a labels CSV's class names are read without case)."""
+    d, p, r = head
+    labels = np.array([getattr(c, "value", c) for c in r.labels], dtype=object)
+    labels[[4, 12]] = "small_air_bubble"
+    labels[5] = "partially_blocked"
+    save_recording(tmp_path / "mixed.npz", Recording.from_arrays(r.traces, p.sample_rate_hz, label=labels))
+    res = run_inproc(tmp_path / "mixed.npz", "--profile", d / "head.yaml", "--out", tmp_path / "fm.csv")
+    assert res.returncode == 0, res.stderr
+    assert "note: 3 estimated rows are labelled a fault other than drying in the recording's label column " \
+           "(partially_blocked 1, small_air_bubble 2): their f_m is no ink viscosity; --rows dried" in res.stderr
+    res = run_inproc(tmp_path / "mixed.npz", "--profile", d / "head.yaml", "--out", tmp_path / "dd.csv",
+                     "--rows", "Deeply_Dried")
+    assert res.returncode == 0 and "other than drying" not in res.stderr, res.stderr
+    assert [x["row"] for x in read_csv(tmp_path / "dd.csv")[1]] == [str(i) for i in np.flatnonzero(
+        labels == "deeply_dried")]

@@ -73,6 +73,11 @@ class FmEstimate:
         Initial state used (given) or estimated (``"vp"``), SI.
     offset : float
         Estimated DC offset of ``y`` (m^3/s), 0 for "dt"/"ct".
+    at_bound : bool
+        ``"vp"``/``"vp_cal"``: the fit ended at an edge of its f_m search interval (``fm_bounds``,
+        by default ``(-15, 0.9) |A33|``: a viscosity 16x the ink's, or a thinner ink than any
+        nozzle's), so ``fm`` is that edge, not an estimate: the trace is no nozzle the drying model
+        reaches (an empty channel), or drier than the interval. False for the other methods.
     """
 
     fm: float
@@ -84,13 +89,14 @@ class FmEstimate:
     viscosity: float
     x0: np.ndarray
     offset: float = 0.0
+    at_bound: bool = False
 
 
 @dataclass(frozen=True)
 class FmBatchEstimate:
     """Estimates for a batch of traces: the fields of :class:`FmEstimate` as arrays.
 
-    ``fm, std, d_mu, viscosity, offset`` have shape (n,), ``ci`` (n, 2),
+    ``fm, std, d_mu, viscosity, offset, at_bound`` have shape (n,), ``ci`` (n, 2),
     ``x0`` (n, 3), ``trace`` (n, n_samples).
     """
 
@@ -103,6 +109,11 @@ class FmBatchEstimate:
     viscosity: np.ndarray
     x0: np.ndarray
     offset: np.ndarray
+    at_bound: np.ndarray = None  # (n,) bool; None: all False (set in __post_init__)
+
+    def __post_init__(self):
+        if self.at_bound is None:
+            object.__setattr__(self, "at_bound", np.zeros(np.shape(self.fm)[0], bool))
 
     def __len__(self) -> int:
         return int(self.fm.shape[0])
@@ -112,7 +123,7 @@ class FmBatchEstimate:
             fm=float(self.fm[i]), trace=self.trace[i], method=self.method,
             std=float(self.std[i]), ci=(float(self.ci[i, 0]), float(self.ci[i, 1])),
             d_mu=float(self.d_mu[i]), viscosity=float(self.viscosity[i]),
-            x0=self.x0[i], offset=float(self.offset[i]),
+            x0=self.x0[i], offset=float(self.offset[i]), at_bound=bool(self.at_bound[i]),
         )
 
 

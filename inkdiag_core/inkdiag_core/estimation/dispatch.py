@@ -38,6 +38,9 @@ OPTIONS = {"dt": DtOptions, "dt_exact": DtExactOptions, "ct": CtOptions,
 
 # keyword arguments of estimate_fm_batch before the options classes -> option field
 _RENAMED = {"vp_trace_points": "trace_points"}
+#: A "vp" fit within this fraction of its search interval's width of an edge ended there (``at_bound``): its
+#: Gauss-Newton steps are clipped to the interval, so a trace whose residual falls beyond it stops at the edge.
+AT_BOUND_FRACTION = 1e-6
 
 
 def _method_options(method, options, kwargs):
@@ -161,6 +164,7 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, basel
     Ys = Y / c[:, None]
     std = np.full(n, np.nan)
     offset = np.zeros(n)
+    at_bound = np.zeros(n, bool)
     if method in ("dt", "dt_exact", "ct"):
         Xs0 = sc.to_scaled_x(X0, c)
         common = dict(exact_T=o.exact_T, window=o.window, steady_frac=o.steady_frac)
@@ -183,6 +187,8 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, basel
         bounds = _bounds(A, B_f, o.fm_bounds)
         key = (tuple(A.ravel()), tuple(C.ravel()), tuple(B_f.ravel()), float(fs))
         fm, std, xs0, off_s = vp_batch(sc, key, Ys, fm_bounds=bounds, n_grid=o.n_grid)
+        edge = AT_BOUND_FRACTION * (bounds[1] - bounds[0])  # the search ends exactly at an edge it cannot pass
+        at_bound = (fm <= bounds[0] + edge) | (fm >= bounds[1] - edge)
         if method == "vp_cal":
             fm_c, std_c, _ = vp_cal_correct(sc, Ys, fm * T0, cal=o.cal)
             fm, std = fm_c / T0, std_c / T0
@@ -208,7 +214,7 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, basel
     else:
         d_mu = mu = np.full(n, np.nan)
     return FmBatchEstimate(fm=fm, trace=trace, method=method, std=std, ci=ci, d_mu=d_mu,
-                           viscosity=mu, x0=x0_out, offset=offset)
+                           viscosity=mu, x0=x0_out, offset=offset, at_bound=at_bound)
 
 
 def estimate_fm(y, model, sample_rate_hz, *, method="auto", x0=None, **kwargs) -> FmEstimate:

@@ -33,10 +33,13 @@ Output CSV, one line per selected row, columns:
 Units: fm, fm_std, fm_trend 1/s; fm_rate 1/s^2; d_mu, viscosity Pa s;
 stamp, eta_deeply_dried_s s. A row that cannot be estimated has empty values
 and its reason: non_finite, out_of_range, flat or clipped samples (as fdi
-screens them), below_noise (an AC rms at most 2x the profile's noise_std_v:
-no ringing to fit), estimate_not_finite, or viscosity_not_positive (an estimate
+screens them; clipped also two samples at the ADC's end code, with a profile
+that states sensor.adc_range_v), below_noise (an AC rms at most 2x the profile's noise_std_v:
+no ringing to fit), estimate_not_finite, viscosity_not_positive (an estimate
 that means a viscosity of 0 or less: no drying nozzle the channel model
-describes, e.g. an empty channel or a bubble); the others are estimated all
+describes, e.g. an empty channel or a bubble), or at_search_bound (the fit
+ended at an edge of its interval, a viscosity 16x the ink's or thinner than
+the ink: a blocked nozzle, an empty channel); the others are estimated all
 the same. fm_trend and fm_rate are filled when the recording has stamps
 (several frames per nozzle).
 
@@ -256,14 +259,33 @@ def run(args) -> int:
             "no estimated row has a finite stamp (the recording's 'stamp' column is missing or not finite)"
             if k == est.sum() else f"{k} of the {int(est.sum())} estimated rows have no finite stamp")
             + ": fm_trend, fm_rate and eta_deeply_dried_s are empty for them", file=sys.stderr)
+    if args.rows is None and rec.label is not None and (said := _other_faults_note(rec.label[rows][est])):
+        print(f"inkdiag estimate: note: {said}", file=sys.stderr)
     return 0
+
+
+def _other_faults_note(labels) -> str:
+    """What to say when rows estimated (their ``label`` values) include faults other than drying, else ""."""
+    import collections
+
+    from inkdiag_core import FaultClass
+    from inkdiag_core.faults import HEALTHY_VALUES
+
+    drying = {c.value for c in FaultClass if c.value.endswith("_dried")}
+    faults = {c.value for c in FaultClass} - drying - set(HEALTHY_VALUES)
+    other = collections.Counter(v for v in labels.tolist() if v in faults)
+    if not other:
+        return ""
+    shown = ", ".join(f"{c} {k}" for c, k in sorted(other.items()))
+    return (f"{sum(other.values())} estimated rows are labelled a fault other than drying in the recording's label "
+            f"column ({shown}): their f_m is no ink viscosity; --rows dried estimates the dried rows only")
 
 
 def _class_values(spec):
     """The class values ``--rows`` names (``dried``: the three dried classes), or None: ``spec`` names rows."""
     from inkdiag_core import FaultClass
 
-    spec = spec.strip()
+    spec = spec.strip().lower()  # class names without case, as a labels CSV's
     if spec == "dried":
         return {c.value for c in FaultClass if c.value.endswith("_dried")}
     return {spec} if spec in {c.value for c in FaultClass} else None
