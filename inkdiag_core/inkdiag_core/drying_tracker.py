@@ -76,6 +76,11 @@ BELOW_NOISE_REASON = "below_noise"
 #: ``tests/foreign_head.py`` (30 dB) ring at 9.3 times their noise_std_v and more: at about half a healthy trace's
 #: amplitude, they stay above 2 down to an SNR of about 12 dB.
 BELOW_NOISE_FACTOR = 2.0
+#: An estimate below this times the ink's viscosity (the profile's ``channel.mu``) is counted in
+#: :attr:`DryingTracker.estimates_thinner`: no nozzle thins its ink so, so most rows there mean a profile of another
+#: head or ink (helper-109: another head's profile of the same sampling read healthy nozzles at 0.4 mu, +1.7e5 1/s;
+#: healthy rows of the right one scatter about 0.05 mu).
+THIN_FACTOR = 0.7
 #: Samples at one of the ADC's end codes that make a row ``clipped`` for estimation (:func:`at_rails`).
 MIN_RAIL_SAMPLES = 2
 
@@ -303,6 +308,7 @@ class DryingTracker:
         self.traces_unmatched = self.drying_unmatched = 0
         self.rows_stale = self.trend_restarts = self.trends_recovered = 0
         self.rows_invalid = self.estimates = self.estimates_with_baseline = 0
+        self.estimates_thinner = 0  # of the estimates: a viscosity below THIN_FACTOR x the ink's (another head?)
 
     @property
     def pending(self) -> tuple:
@@ -547,6 +553,9 @@ class DryingTracker:
                 cols[k][sel] = v
             good = sel[~bad]
             self.estimates += int(good.size)
+            mu = getattr(self.model, "params", None)
+            if mu is not None:  # a row far thinner than the ink: no drying, a profile of another head or ink
+                self.estimates_thinner += int(np.count_nonzero(cols["viscosity"][good] < THIN_FACTOR * mu.mu))
             self.estimates_with_baseline += int(np.count_nonzero(with_base & ~bad))  # of the rows estimated
             if good.size and math.isfinite(stamp):  # each nozzle once, and only after its last update
                 trend, rate, eta, folded, restarted = self.trends.fold_newer(

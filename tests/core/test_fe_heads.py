@@ -50,6 +50,9 @@ def test_default_head_profile_estimates_bit_identically():
     for k in ra.columns:
         np.testing.assert_array_equal(rb.columns[k], ra.columns[k])
     np.testing.assert_array_equal(ra.columns["fm"], old.fm)
+    # traces of another sampling are another head's (helper-109: a 10 MHz profile took 5 MHz traces)
+    with pytest.raises(ValueError, match="sampled at 5000000 Hz; head profile 'default' is sampled at 10000000 Hz"):
+        estimate_fm_batch(y, d, 5e6)
 
 
 def test_vp_cal_constants_are_the_heads_and_estimate_d_mu(head_cal):

@@ -586,3 +586,27 @@ def test_rows_labelled_a_fault_other_than_drying_are_noted_and_class_names_are_r
     assert res.returncode == 0 and "other than drying" not in res.stderr, res.stderr
     assert [x["row"] for x in read_csv(tmp_path / "dd.csv")[1]] == [str(i) for i in np.flatnonzero(
         labels == "deeply_dried")]
+
+
+def test_another_heads_profile_and_stamps_in_nanoseconds_are_warned_about(head, tmp_path):
+    """helper-109's QA: a profile of another nozzle and ink with the same sampling read healthy nozzles at 0.4x
+    the ink's viscosity, and stamps in nanoseconds gave a 300-year eta, both without a word."""
+    d, p, r = head
+    healthy = p.simulate({"healthy_nozzle": 12}, seed=4)
+    save_recording(tmp_path / "h.npz", Recording.from_arrays(healthy.traces, p.sample_rate_hz))
+    other = p.replace(name="other", channel={"mu": 2 * p.channel["mu"]})  # an ink twice as thick
+    other = other.replace(calibration={"vp_cal": calibrate_vp_cal(other, seeds=(11, 12), n_per_class=20)})
+    other.save(tmp_path / "other.yaml")
+    res = run_inproc(tmp_path / "h.npz", "--profile", tmp_path / "other.yaml", "--out", tmp_path / "o.csv")
+    assert res.returncode == 0, res.stderr
+    assert "warning: 12 of 12 estimated rows come out thinner than the profile's ink" in res.stderr, res.stderr
+    res = run_inproc(tmp_path / "h.npz", "--profile", d / "head.yaml", "--out", tmp_path / "h.csv")
+    assert res.returncode == 0 and "thinner" not in res.stderr, res.stderr
+    x = r.traces[8:16]  # one nozzle's dried frames, stamps in nanoseconds
+    save_recording(tmp_path / "ns.npz", Recording.from_arrays(x, p.sample_rate_hz, nozzle=np.zeros(8, int),
+                                                              frame_id=np.arange(8), stamp=1.7e18 + 1e8 * np.arange(8)))
+    res = run_inproc(tmp_path / "ns.npz", "--profile", d / "head.yaml", "--out", tmp_path / "ns.csv")
+    assert res.returncode == 0 and "warning: stamps up to 1.7e+18 s" in res.stderr, res.stderr
+    assert "in nanoseconds or milliseconds?" in res.stderr
+    res = run_inproc(d / "rec.npz", "--profile", d / "head.yaml", "--out", tmp_path / "ok.csv")
+    assert res.returncode == 0 and "nanoseconds" not in res.stderr, res.stderr

@@ -93,7 +93,8 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, basel
         Healthy model (eq. 12), shapes (3, 3), (1, 3), (3, 1) if given as matrices.
         A complete :class:`~inkdiag_core.HeadProfile`: its model, and for "vp_cal"
         its constants (:func:`~.vp_calibration.vp_cal_for`: the default head's
-        :data:`~.vp.VP_CAL`, another head's fitted once) unless ``cal`` is given.
+        :data:`~.vp.VP_CAL`, another head's fitted once) unless ``cal`` is given;
+        the traces must be of its sampling rate.
     sample_rate_hz : float
         Sample rate, Hz.
     method : {"auto", "dt", "dt_exact", "ct", "vp", "vp_cal"}
@@ -143,6 +144,13 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, basel
         model = profile.model()
     A, C, B_f, params = model_matrices(model)
     fs = checks.sample_rate(sample_rate_hz)
+    if profile is not None:  # its vp_cal constants are of its own sampling: traces of another are another head's
+        from ..head_profile import same_sample_rate
+
+        if not same_sample_rate(fs, profile.sample_rate_hz):
+            raise checks.InputError(f"traces sampled at {fs:.10g} Hz; head profile {profile.name!r} is sampled at "
+                                    f"{profile.sample_rate_hz:.10g} Hz: give its traces, or its InkChannelModel "
+                                    "(profile.model()) for traces of another sampling")
     Y = checks.traces_2d(Y, "y", min_samples=MIN_FM_SAMPLES, promote_1d=False, dtype=np.float64)
     n, N = Y.shape
     if method == "auto":

@@ -18,6 +18,8 @@ from . import (NO_BASELINE_HINT, invalid_warning, open_csv_out, repeated_pairs, 
                summary_stream, units_warning)
 
 OUT_STDOUT = True  # --out - writes the CSV to standard output
+#: A stamp beyond this many seconds is said to be in other units (nanoseconds since 1970 are about 1.8e18).
+MAX_STAMP_S = 1e12
 HELP = "estimate the drying fault f_m and the nozzle viscosity of recorded traces"
 DESCRIPTION = """\
 Estimate the drying-nozzle fault f_m (1/s), its standard deviation and the
@@ -538,7 +540,8 @@ def _fold_frame(trends, t, grp, cols) -> tuple:
 def _say_after(keys, unfolded, why, n, tracker) -> None:
     """The warnings and notes after the CSV (both paths): rows repeating a (nozzle, frame_id, stamp) of ``keys``
     (chunks of those columns), rows not folded into or restarting trends (``unfolded``), a recording in other
-    units (``why``: rows not estimated per reason)."""
+    units (``why``: rows not estimated per reason), estimates mostly thinner than the ink (another head's profile?),
+    stamps in other units."""
     import sys
 
     import numpy as np
@@ -559,6 +562,19 @@ def _say_after(keys, unfolded, why, n, tracker) -> None:
     if said := (units_warning("estimate", why.get("out_of_range", 0), n, tracker.max_abs_v)
                 or invalid_warning("estimate", why, n)):
         print(said, file=sys.stderr)
+    if (thin := tracker.estimates_thinner) >= max(8, tracker.estimates / 2):
+        from inkdiag_core.drying_tracker import THIN_FACTOR
+
+        mu = tracker.model.params.mu
+        print(f"inkdiag estimate: warning: {thin} of {tracker.estimates} estimated rows come out thinner than the "
+              f"profile's ink (a viscosity below {THIN_FACTOR:g}x its mu, {THIN_FACTOR * mu:.3g} Pa s), which no "
+              "nozzle does: is the profile this head's, and its mu the ink's at the head's temperature?",
+              file=sys.stderr)
+    st = np.concatenate([c[2] for c in keys]) if keys else np.zeros(0)
+    if (st[np.isfinite(st)] > MAX_STAMP_S).any():
+        print(f"inkdiag estimate: warning: stamps up to {np.nanmax(st):.4g} s, more than {MAX_STAMP_S:g} s (about "
+              "30,000 years) after 1970: in nanoseconds or milliseconds? A recording's stamps are seconds; the trend "
+              "columns (fm_rate, eta_deeply_dried_s) take them as such", file=sys.stderr)
     if (quiet := why.get(BELOW_NOISE_REASON, 0)) and quiet >= n / 2:
         print(f"inkdiag estimate: warning: {quiet} of {n} rows do not ring above the profile's sensor noise (an AC rms "
               f"of {tracker.min_ac_rms_v:.3g} V or less, {BELOW_NOISE_FACTOR:g}x its noise_std_v): traces in other "
