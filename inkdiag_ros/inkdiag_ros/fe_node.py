@@ -46,7 +46,8 @@ from . import _params
 
 PARAMS = (
     ("max_estimates_per_frame", 64, "at most this many drying nozzles are estimated per frame and "
-     "nozzle range (lowest ids first); bounds the cost per trace message", int, (1, 100_000)),
+     "nozzle range (lowest ids first); bounds the cost per trace message. May change at runtime "
+     "(ros2 param set)", int, (1, 100_000)),
     ("max_pending", 128, "trace messages (one frame's nozzle range), and drying lists, each held at most "
      "while waiting for their partner; the oldest is dropped beyond this. Keep it above fdi's "
      "max_queued_frames plus 32 (fdi lags by up to that many messages). Held traces keep their message's memory",

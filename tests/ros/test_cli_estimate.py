@@ -427,6 +427,11 @@ def test_a_recording_of_mostly_nan_rows_is_warned_about(head, tmp_path):
     res = run_inproc(tmp_path / "inf.npz", "--profile", d / "head.yaml", "--out", tmp_path / "fm.csv")
     assert res.returncode == 0, res.stderr
     assert "warning: 5 of 8 rows are invalid (5 non_finite); most are NaN or infinite" in res.stderr
+    x = np.array(r.traces[:8], dtype=np.float32)  # as many rows of two reasons: neither is 'most'
+    x[:2, 3], x[2:4] = np.nan, 0.25
+    save_recording(tmp_path / "tie.npz", Recording.from_arrays(x, p.sample_rate_hz))
+    res = run_inproc(tmp_path / "tie.npz", "--profile", d / "head.yaml", "--out", tmp_path / "fm.csv")
+    assert "warning: 4 of 8 rows are invalid (2 non_finite, 2 flat): is this the recording" in res.stderr, res.stderr
     res = run_inproc(d / "rec.npz", "--profile", d / "head.yaml", "--out", tmp_path / "ok.csv")
     assert res.returncode == 0 and "rows are invalid" not in res.stderr
 

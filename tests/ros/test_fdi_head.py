@@ -92,3 +92,19 @@ def test_fdi_exits_2_on_a_bad_head_profile(ros, tmp_path, args, match):
                          env=env, capture_output=True, text=True, timeout=60)
     assert out.returncode == 2, out.stderr[-2000:]
     assert match in out.stderr and "Traceback" not in out.stderr, out.stderr[-2000:]
+
+
+def test_the_packaged_parameters_take_another_heads_profile(ros, head, head_model):
+    """helper-108: the packaged config/inkdiag.yaml set fdi's sampling to the default head's, so the README's
+    `--params-file ... -p head_profile:=HEAD.yaml` exited 2 for any other head. Its sampling is the profile's."""
+    import yaml
+
+    from inkdiag_ros.fdi_node import PARAMS
+
+    cfg = os.path.join(os.path.dirname(__import__("inkdiag_ros").__file__), "config", "inkdiag.yaml")
+    with open(cfg) as f:
+        shipped = yaml.safe_load(f)["/**/fdi"]["ros__parameters"]
+    assert set(shipped) <= {p[0] for p in PARAMS}
+    h, path = head
+    fdi = _fdi(ros, **{**shipped, "model_path": str(head_model), "head_profile": str(path), "n_nozzles": 0})
+    assert fdi.labeller is not None and (fdi.config["sample_rate_hz"], fdi.config["n_samples"]) == (20e6, 1024)

@@ -79,6 +79,8 @@ def invalid_warning(verb: str, per_reason, n_rows: int) -> str:
     if not (n_rows and n_bad >= n_rows / 2):
         return ""
     reasons = ", ".join(f"{k} {r}" for k, r in counts)
-    return (f"inkdiag {verb}: warning: {n_bad} of {n_rows} rows are invalid ({reasons}); most are "
-            f"{_INVALID_HINTS[counts[0][1]]}: is this the recording of a working head?")
+    most = ("" if len(counts) > 1 and counts[1][0] == counts[0][0]  # a tie: no one reason is most
+            else f"; most are {_INVALID_HINTS[counts[0][1]]}")
+    return (f"inkdiag {verb}: warning: {n_bad} of {n_rows} rows are invalid ({reasons}){most}: is this the "
+            "recording of a working head?")
 
