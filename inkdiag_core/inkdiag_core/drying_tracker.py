@@ -83,17 +83,21 @@ BELOW_NOISE_FACTOR = 2.0
 THIN_FACTOR = 0.7
 #: Samples at one of the ADC's end codes that make a row ``clipped`` for estimation (:func:`at_rails`).
 MIN_RAIL_SAMPLES = 2
+#: An ADC of fewer bits has no rail check (its windows of 1.5 steps would hold most of a trace).
+MIN_RAIL_BITS = 6
 
 
 def adc_rails(profile):
     """The windows, V, around the ADC's lowest and highest codes of a profile that gives ``sensor.adc_range_v``
-    (None otherwise): ``((lo_min, lo_max), (hi_min, hi_max))``. With ``adc_bits`` the codes run from
+    (None otherwise, and for an ADC of fewer than :data:`MIN_RAIL_BITS` bits): ``((lo_min, lo_max), (hi_min, hi_max))``. With ``adc_bits`` the codes run from
     ``-range`` to ``range - lsb``; a recorder may also write the top code as ``+range``: both are in the window,
     half an lsb either side. Without bits, ``+-range`` with a relative 1e-6."""
     if "adc_range_v" not in profile.sensor:  # the default's 2 V is assumed, not known: no rail to rest on
         return None
     r = profile.adc_range_v
     bits = profile.adc_bits
+    if bits is not None and int(bits) < MIN_RAIL_BITS:  # its end codes are much of its range: a trace rests there
+        return None
     half = r / 2 ** int(bits) if bits else 1e-6 * r  # half an lsb
     return (-r - half, -r + half), (r - 3 * half, r + half)
 
@@ -461,8 +465,9 @@ class DryingTracker:
 
     def end_recovered(self, nozzles, traces, *, stamp: float, sample_rate_hz: float) -> int:
         """End the trends of ``nozzles`` that a drying list left out (they recovered, e.g. purged): only those
-        whose row of ``traces`` screening accepts (a clipped or non-finite row is no news of a recovery: fdi labels
-        it invalid, not healthy) and whose trend was last updated before ``stamp`` (a late frame is no news either).
+        whose row of ``traces`` could be estimated (:meth:`usable_rows`: a clipped, non-finite or silent row is no
+        news of a recovery: fdi labels it invalid, not healthy) and whose trend was last updated before ``stamp``
+        (a late frame is no news either).
 
         Parameters
         ----------
@@ -481,10 +486,27 @@ class DryingTracker:
         ids = np.asarray(nozzles, dtype=np.int64).reshape(-1)
         if not (ids.size and math.isfinite(stamp)):
             return 0
-        valid = screen_traces(np.asarray(traces), sample_rate_hz=sample_rate_hz, max_abs_v=self.max_abs_v)[0]
+        valid = self.usable_rows(np.asarray(traces), sample_rate_hz)[0]
         k = self.trends.forget(ids[valid], before=stamp)
         self.trends_recovered += k
         return k
+
+    def usable_rows(self, rows, sample_rate_hz: float):
+        """``(valid, reasons)`` of rows (n, n_samples), V: screening's (:func:`~inkdiag_core.screen_traces`), then
+        with a profile :data:`BELOW_NOISE_REASON` (no ringing above its sensor noise) and ``clipped`` for a row
+        resting on its ADC's end code (:func:`at_rails`). ``reasons`` (n,) object, "" where valid."""
+        valid, reasons = screen_traces(rows, sample_rate_hz=sample_rate_hz, max_abs_v=self.max_abs_v)
+        if self.min_ac_rms_v > 0 and valid.any():
+            sel = np.flatnonzero(valid)
+            quiet = sel[np.std(rows[sel], axis=1) <= self.min_ac_rms_v]  # the AC rms
+            reasons[quiet] = BELOW_NOISE_REASON
+            valid[quiet] = False
+        if self.rails_v is not None and valid.any():
+            sel = np.flatnonzero(valid)
+            railed = sel[at_rails(rows[sel], self.rails_v)]
+            reasons[railed] = "clipped"
+            valid[railed] = False
+        return valid, reasons
 
     def estimate_rows(self, traces, nozzles, *, stamp: float, sample_rate_hz: float) -> RowEstimates:
         """Screen some rows of one frame, estimate f_m of the valid ones in one batch, update their trends.
@@ -517,17 +539,7 @@ class DryingTracker:
             raise ValueError(f"traces must be (n, n_samples) with one nozzle id per row, got shape "
                              f"{rows.shape} and {ids.size} ids")
         n = ids.size
-        valid, reasons = screen_traces(rows, sample_rate_hz=sample_rate_hz, max_abs_v=self.max_abs_v)
-        if self.min_ac_rms_v > 0 and valid.any():
-            sel = np.flatnonzero(valid)
-            quiet = sel[np.std(rows[sel], axis=1) <= self.min_ac_rms_v]  # the AC rms
-            reasons[quiet] = BELOW_NOISE_REASON
-            valid[quiet] = False
-        if self.rails_v is not None and valid.any():
-            sel = np.flatnonzero(valid)
-            railed = sel[at_rails(rows[sel], self.rails_v)]
-            reasons[railed] = "clipped"
-            valid[railed] = False
+        valid, reasons = self.usable_rows(rows, sample_rate_hz)
         cols = {k: np.full(n, np.nan) for k in ESTIMATE_COLUMNS}
         cols["nozzle"] = ids.copy()
         self.rows_invalid += int(n - np.count_nonzero(valid))

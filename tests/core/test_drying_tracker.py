@@ -283,6 +283,14 @@ def test_a_row_resting_on_the_adcs_end_code_is_clipped_for_estimation():
     assert "adc_range_v" not in loose.sensor
     assert list(DryingTracker(profile=loose).estimate_rows(y, np.arange(6), stamp=0.0,
                                                            sample_rate_hz=10e6).reasons) == [""] * 6
+    # nor one of a coarse ADC, whose end codes span much of its range (helper-110: 1 bit, every row clipped)
+    coarse = p.replace(sensor={"adc_bits": 1})
+    assert "clipped" not in DryingTracker(profile=coarse, method="vp").estimate_rows(
+        x, np.arange(6), stamp=0.0, sample_rate_hz=10e6).reasons
+    # a railed row is no news of a recovery either: it ends no trend; a row on the scale does
+    tr.estimate_rows(x, np.arange(6), stamp=1.0, sample_rate_hz=10e6)
+    assert tr.end_recovered([0, 1], y[:2], stamp=2.0, sample_rate_hz=10e6) == 0
+    assert tr.end_recovered([0, 1], x[:2], stamp=2.0, sample_rate_hz=10e6) == 2
 
 
 def test_a_row_that_does_not_ring_above_the_sensor_noise_is_not_estimated():

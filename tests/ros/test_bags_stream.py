@@ -371,3 +371,25 @@ def test_calibrate_on_a_bag_fits_a_bounded_sample_of_its_healthy_rows(tmp_path, 
     assert f"6 of 6 messages on {NS}/traces decoded" in err
     assert json.loads((tmp_path / "head.fit.json").read_text())["n_traces"] == 40
     assert abs(HeadProfile.load(tmp_path / "head.yaml").healthy_mode()[0] / true.healthy_mode()[0] - 1) < 0.01
+
+
+def test_content_sha256_follows_linked_directories_once_and_tells_a_directory_from_a_file(tmp_path):
+    """helper-110: a bag's linked directory was not hashed, and an empty directory hashed as an empty file."""
+    import hashlib
+    import os
+
+    from inkdiag_ros.verbs.train import content_sha256
+
+    (tmp_path / "bag").mkdir()
+    (tmp_path / "out").mkdir()
+    (tmp_path / "bag" / "metadata.yaml").write_text("m")
+    (tmp_path / "out" / "x.mcap").write_bytes(b"abc")
+    os.symlink(tmp_path / "out", tmp_path / "bag" / "link")
+    os.symlink(tmp_path / "bag", tmp_path / "bag" / "loop")  # a link back up: listed once, no endless walk
+    before = content_sha256(tmp_path / "bag")
+    (tmp_path / "out" / "x.mcap").write_bytes(b"abd")
+    assert content_sha256(tmp_path / "bag") != before
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "nothing").write_bytes(b"")
+    assert content_sha256(tmp_path / "nothing") == hashlib.sha256(b"").hexdigest()  # a file: as sha256sum says
+    assert content_sha256(tmp_path / "empty") != content_sha256(tmp_path / "nothing")

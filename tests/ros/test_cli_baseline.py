@@ -110,6 +110,13 @@ def test_frames_given_twice_are_warned_about(work, tmp_path, capsys):
                                                                  nozzle=np.tile(np.arange(N_NOZZLES), N_FRAMES + 1)))
     assert main(["baseline", str(tmp_path / "plain.npz"), *args]) == 0
     assert "repeat" not in capsys.readouterr().err
+    # a repeated row the label column leaves out counts toward no baseline: not said (helper-110)
+    labels = np.full(x.shape[0], "healthy_nozzle", dtype=object)
+    labels[-N_NOZZLES:] = "deeply_dried"
+    save_recording(tmp_path / "lab.npz", Recording.from_arrays(x, head.sample_rate_hz, label=labels, frame_id=fid,
+                                                               nozzle=np.tile(np.arange(N_NOZZLES), N_FRAMES + 1)))
+    assert main(["baseline", str(tmp_path / "lab.npz"), *args[:-4], "--frames", "3", "--fm-frames", "0"]) == 0
+    assert "repeat" not in capsys.readouterr().err
 
 
 def test_a_nozzle_faulty_at_commissioning_is_left_out_and_said(work, tmp_path, capsys):

@@ -421,17 +421,20 @@ def test_a_recording_in_millivolts_is_told_about_units(head, tmp_path):
 
 def test_a_recording_of_mostly_nan_rows_is_warned_about(head, tmp_path):
     d, p, r = head
-    x = np.array(r.traces[:8], dtype=np.float32)
-    x[:5, 3] = np.inf
+    x = np.array(r.traces, dtype=np.float32)  # 16 rows
+    x[:10, 3] = np.inf
     save_recording(tmp_path / "inf.npz", Recording.from_arrays(x, p.sample_rate_hz))
     res = run_inproc(tmp_path / "inf.npz", "--profile", d / "head.yaml", "--out", tmp_path / "fm.csv")
     assert res.returncode == 0, res.stderr
-    assert "warning: 5 of 8 rows are invalid (5 non_finite); most are NaN or infinite" in res.stderr
-    x = np.array(r.traces[:8], dtype=np.float32)  # as many rows of two reasons: neither is 'most'
-    x[:2, 3], x[2:4] = np.nan, 0.25
+    assert "warning: 10 of 16 rows are invalid (10 non_finite); most are NaN or infinite" in res.stderr
+    x = np.array(r.traces, dtype=np.float32)  # as many rows of two reasons: neither is 'most'
+    x[:4, 3], x[4:8] = np.nan, 0.25
     save_recording(tmp_path / "tie.npz", Recording.from_arrays(x, p.sample_rate_hz))
     res = run_inproc(tmp_path / "tie.npz", "--profile", d / "head.yaml", "--out", tmp_path / "fm.csv")
-    assert "warning: 4 of 8 rows are invalid (2 non_finite, 2 flat): is this the recording" in res.stderr, res.stderr
+    assert "warning: 8 of 16 rows are invalid (4 flat, 4 non_finite): is this the recording" in res.stderr, res.stderr
+    # fewer than 8 invalid rows are a few channels, not a head (helper-110: 1 flat row of 2 picked was warned about)
+    res = run_inproc(tmp_path / "tie.npz", "--profile", d / "head.yaml", "--out", tmp_path / "fm.csv", "--rows", "3,8")
+    assert res.returncode == 0 and "rows are invalid" not in res.stderr, res.stderr
     res = run_inproc(d / "rec.npz", "--profile", d / "head.yaml", "--out", tmp_path / "ok.csv")
     assert res.returncode == 0 and "rows are invalid" not in res.stderr
 
@@ -586,6 +589,10 @@ def test_rows_labelled_a_fault_other_than_drying_are_noted_and_class_names_are_r
     assert res.returncode == 0, res.stderr
     assert "note: 3 estimated rows are labelled a fault other than drying in the recording's label column " \
            "(partially_blocked 1, small_air_bubble 2): their f_m is no ink viscosity; --rows dried" in res.stderr
+    res = run_inproc(tmp_path / "mixed.npz", "--profile", d / "head.yaml", "--out", tmp_path / "ix.csv",
+                     "--rows", "0:8")  # rows picked by index are of any class too (helper-110)
+    assert "note: 2 estimated rows are labelled a fault other than drying in the recording's label column " \
+           "(partially_blocked 1, small_air_bubble 1)" in res.stderr, res.stderr
     res = run_inproc(tmp_path / "mixed.npz", "--profile", d / "head.yaml", "--out", tmp_path / "dd.csv",
                      "--rows", "Deeply_Dried")
     assert res.returncode == 0 and "other than drying" not in res.stderr, res.stderr

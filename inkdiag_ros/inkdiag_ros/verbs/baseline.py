@@ -79,13 +79,13 @@ def run(args) -> int:
     keys = []  # each chunk's (nozzle, frame_id, stamp) columns: repeats are said at the end
     for _, rec in chunks:  # a bag with no trace frame: RecordingError
         profile.check_traces(rec.traces, rec.sample_rate_hz, what=f"{args.recording}")
-        keep = None
+        keep = np.ones(rec.n_rows, bool)
         if rec.label is not None:
             keep = np.asarray(rec.label).astype(str) == FaultClass.HEALTHY_NOZZLE.value
             n_other += int(np.count_nonzero(~keep))
         n_used += recorder.add_rows(rec.nozzle, rec.traces, keep=keep)
         nozzles = np.union1d(nozzles, rec.nozzle)
-        keys.append((rec.nozzle, rec.frame_id, rec.stamp))
+        keys.append((rec.nozzle[keep], rec.frame_id[keep], rec.stamp[keep]))  # the rows it may use
         n_rows += rec.n_rows
     report_stats(args.recording, stats)
     baselines = recorder.baselines(min_frames=min_frames)

@@ -261,7 +261,8 @@ def run(args) -> int:
             "no estimated row has a finite stamp (the recording's 'stamp' column is missing or not finite)"
             if k == est.sum() else f"{k} of the {int(est.sum())} estimated rows have no finite stamp")
             + ": fm_trend, fm_rate and eta_deeply_dried_s are empty for them", file=sys.stderr)
-    if args.rows is None and rec.label is not None and (said := _other_faults_note(rec.label[rows][est])):
+    by_index = args.rows is None or _class_values(args.rows) is None  # not rows picked by their class
+    if by_index and rec.label is not None and (said := _other_faults_note(rec.label[rows][est])):
         print(f"inkdiag estimate: note: {said}", file=sys.stderr)
     return 0
 
@@ -571,8 +572,8 @@ def _say_after(keys, unfolded, why, n, tracker) -> None:
               "nozzle does: is the profile this head's, and its mu the ink's at the head's temperature?",
               file=sys.stderr)
     st = np.concatenate([c[2] for c in keys]) if keys else np.zeros(0)
-    if (st[np.isfinite(st)] > MAX_STAMP_S).any():
-        print(f"inkdiag estimate: warning: stamps up to {np.nanmax(st):.4g} s, more than {MAX_STAMP_S:g} s (about "
+    if ((st := st[np.isfinite(st)]) > MAX_STAMP_S).any():
+        print(f"inkdiag estimate: warning: stamps up to {st.max():.4g} s, more than {MAX_STAMP_S:g} s (about "
               "30,000 years) after 1970: in nanoseconds or milliseconds? A recording's stamps are seconds; the trend "
               "columns (fm_rate, eta_deeply_dried_s) take them as such", file=sys.stderr)
     if (quiet := why.get(BELOW_NOISE_REASON, 0)) and quiet >= n / 2:

@@ -237,13 +237,26 @@ def run(args) -> int:
 
 
 def content_sha256(path) -> str:
-    """sha256 of a file's bytes, or of a directory's (a rosbag2 bag's) files: each file's path relative to it,
-    size and bytes, in sorted order; a hex string."""
+    """sha256 of a file's bytes (as ``sha256sum`` gives it), or of a directory's (a rosbag2 bag's) files: a tag
+    that it is a directory, then each file's path relative to it, size and bytes, in sorted order, symbolic links
+    followed (each directory once); a hex string."""
     import hashlib
+    import os
     from pathlib import Path
 
     root, h = Path(path), hashlib.sha256()
-    files = sorted(p for p in root.rglob("*") if p.is_file()) if root.is_dir() else [root]
+    if root.is_dir():
+        h.update(b"inkdiag directory\0")  # not the hash of any one file's bytes
+        files, seen = [], set()
+        for here, dirs, names in os.walk(root, followlinks=True):
+            if (real := os.path.realpath(here)) in seen:  # a link back up: its files are listed once
+                dirs[:] = []
+                continue
+            seen.add(real)
+            files += [Path(here, n) for n in names if Path(here, n).is_file()]
+        files.sort(key=lambda f: f.relative_to(root).as_posix())
+    else:
+        files = [root]
     for f in files:
         if root.is_dir():
             h.update(f"{f.relative_to(root).as_posix()}\0{f.stat().st_size}\0".encode())
@@ -251,4 +264,3 @@ def content_sha256(path) -> str:
             for block in iter(lambda: fh.read(1 << 20), b""):
                 h.update(block)
     return h.hexdigest()
-
