@@ -136,6 +136,20 @@ small along the direction the data pin least (``docs/calibration.md``)."""
 MAX_RESIDUAL_REL = 0.15
 """A mean-trace fit whose RMS residual exceeds this fraction of the trace's RMS is refused."""
 
+NOISY_RESIDUAL_FACTOR = 2.0
+"""A refused fit whose residual is at most this many times the noise the mean trace keeps is said to be the
+traces' noise, not a channel or drive unlike the nominal's (helper-111: a 1.5 V drive, about 2 dB per trace,
+was refused as 'not what the nominal channel and drive give' though its fit rang within 0.1 %)."""
+
+#: What a screening reason says of a recording most of whose traces have it (calibration's error).
+_SCREENED_OUT = {
+    "clipped": "clipped at the ADC (held at their extreme for 0.5 us or more): lower the sense gain or the drive so "
+               "that healthy traces stay inside the ADC's range",
+    "non_finite": "not finite (NaN or infinite samples)",
+    "flat": "flat (no signal: channels not wired, or a sensor stuck)",
+    "out_of_range": "beyond 5x the profile's ADC range: are they in volts (not millivolts or ADC counts)?",
+}
+
 MODE_MISFIT_WARNING = 0.01
 """A fit whose mean trace rings more than this fraction away from the recorded mean trace's dominant
 frequency (both read by :func:`inkdiag_core.extract_kpis`; the report's
@@ -596,11 +610,19 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     n_quiet = int(quiet.sum())
     y = y[~quiet]
     if y.shape[0] < MIN_TRACES:
-        reasons = ", ".join(f"{r} {int((why == r).sum())}" for r in sorted(set(why[~finite].tolist())))
+        counts = {r: int((why == r).sum()) for r in set(why[~finite].tolist())}
+        reasons = ", ".join(f"{r} {k}" for r, k in sorted(counts.items()))
+        n_all = n_dropped + n_quiet + y.shape[0]
+        top = max(counts, key=counts.get) if counts else None
+        if top is not None and counts[top] >= n_all / 2:  # the cause first: most traces screened out for one reason
+            lead = f"{counts[top]} of the {n_all} recorded traces are {_SCREENED_OUT[top]}; "
+        elif n_quiet and n_quiet >= y.shape[0]:
+            lead = (f"the recorded traces do not ring above their noise ({n_quiet} of {n_quiet + y.shape[0]} screened "
+                    "in do not: are they healthy nozzles fired with the profile's drive?); ")
+        else:
+            lead = ""
         raise CalibrationError(
-            (f"the recorded traces do not ring above their noise ({n_quiet} of {n_quiet + y.shape[0]} screened in "
-             "do not: are they healthy nozzles fired with the profile's drive?); " if n_quiet >= y.shape[0] else "")
-            + f"{y.shape[0]} usable healthy traces ({n_dropped} left out by screening"
+            lead + f"{y.shape[0]} usable healthy traces ({n_dropped} left out by screening"
             + (f": {reasons}" if reasons else "")
             + (f", {n_quiet} not ringing" if n_quiet else "") + f"); calibration needs at least {MIN_TRACES}")
     fs = nominal.sample_rate_hz
@@ -690,11 +712,18 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     a_mean, o_mean, mean_fit = (v[0] for v in _project(mean[None, :], shape))
     resid_rel = float(np.sqrt(np.mean((mean_fit - mean) ** 2)) / mean_rms)
     f_fit, z_fit = (float(v[0]) for v in _mode(known, theta))
+    noise_rel = noise0 / math.sqrt(typical.size) / mean_rms  # what the mean keeps of the traces' noise
     if not best.success or resid_rel > MAX_RESIDUAL_REL or a_mean <= 0:
         why = (f"the optimiser stopped: {best.message}" if not best.success else
                f"the traces are the channel's healthy response upside down (the best fit's amplitude is negative, "
                f"its RMS residual {100 * resid_rel:.0f} % of the mean trace's): an inverted sensor sign? Negate the "
                "samples (inkdiag takes a positive sense gain)" if a_mean <= 0 and resid_rel <= MAX_RESIDUAL_REL else
+               f"the recorded traces are too noisy: the best fit leaves an RMS residual of {100 * resid_rel:.0f} % of "
+               f"the mean trace's RMS, about what their noise leaves in a mean of {typical.size} traces "
+               f"({100 * noise_rel:.0f} %; {20 * math.log10(max(mean_rms / noise0, 1e-12)):.0f} dB per trace; the "
+               f"fitted mode {f_fit / 1e3:.1f} kHz against the recorded {f_rec / 1e3:.1f} kHz): record more healthy "
+               "traces, or with a stronger drive or sense gain"
+               if a_mean > 0 and resid_rel <= NOISY_RESIDUAL_FACTOR * noise_rel else
                f"the best fit leaves an RMS residual of {100 * resid_rel:.0f} % of the mean trace's RMS "
                f"(recorded mode {f_rec / 1e3:.1f} kHz, damping {kp_mean[2]:.3f}; fitted {f_fit / 1e3:.1f} kHz, "
                f"damping {z_fit:.3f}): the traces are not what the nominal channel and drive give")
@@ -815,6 +844,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     report = {
         "n_traces": int(y.shape[0]),
         "n_dropped_nonfinite": n_dropped,
+        "n_dropped_clipped": int(np.count_nonzero(why == "clipped")),
         "n_dropped_not_ringing": n_quiet,
         "n_typical": int(typical.size),
         "sample_rate_hz": fs,

@@ -66,6 +66,19 @@ def _check_profile(profile):
     if not profile.is_complete:
         raise ProfileError(f"profile {profile.name!r} is nominal ({', '.join(profile.missing)} missing): training "
                            "simulates faults on the head's complete model: run `inkdiag calibrate` first")
+    from .simulation.modal import class_max_frequency
+
+    f_max = class_max_frequency(FaultClass.EMPTY_CHANNEL_1, profile.channel_params())  # the actuator's own mode
+    if not profile.sample_rate_hz >= 2.0 * f_max:
+        given = "f_act" in profile.channel  # a datasheet's, or calibrate --empty's measurement
+        raise ProfileError(
+            f"profile {profile.name!r}: its empty channels ring at the actuator's own resonance, {f_max / 1e3:.0f} kHz "
+            + ("" if given else "(assumed like the default head's: the profile gives no channel.f_act) ")
+            + f"above the Nyquist frequency of its sampling, {profile.sample_rate_hz / 2e3:.0f} kHz, so the "
+            "empty-channel classes cannot be simulated at this sampling: "
+            + ("a higher sample rate is needed" if given else "give channel.f_act (Hz) from the actuator's "
+               "datasheet in the nominal profile, or calibrate with --empty DRY.npz (traces of the head's empty "
+               "channels), and calibrate again"))
 
 
 def _share(n_per_class, n_draws, k):

@@ -229,6 +229,36 @@ def test_an_inverted_sensor_sign_is_said(recorded):
         calibrate(nominal_of(TRUE), -recorded.traces, TRUE.sample_rate_hz)
 
 
+def test_traces_too_noisy_or_mostly_clipped_are_refused_for_that_reason(recorded):
+    """helper-111: a 1.5 V drive (about 2 dB per trace) was refused as 'not what the nominal channel and drive give'
+    though its fit rang within 0.1 %; a recording clipped throughout led with 'do not ring above their noise'."""
+    rng = np.random.default_rng(0)
+    rms = float(np.sqrt(np.mean(recorded.traces.var(axis=1))))
+    noisy = 0.1 * recorded.traces + rng.normal(0.0, 0.8 * 0.1 * rms, recorded.traces.shape)
+    with pytest.raises(CalibrationError, match=r"too noisy: the best fit leaves an RMS residual of \d+ % .* about "
+                                               r"what their noise leaves in a mean of \d+ traces"):
+        calibrate(nominal_of(TRUE), noisy, TRUE.sample_rate_hz)
+    peak = float(np.abs(recorded.traces).max())
+    flat_top = np.clip(recorded.traces * (3.0 / peak), -0.5, 0.5)  # every trace held at both rails
+    with pytest.raises(CalibrationError, match=r"^300 of the 300 recorded traces are clipped at the ADC .*lower the "
+                                               r"sense gain"):
+        calibrate(nominal_of(TRUE), flat_top, TRUE.sample_rate_hz)
+
+
+def test_training_refuses_a_profile_whose_assumed_actuator_is_above_nyquist():
+    """helper-111: a 2.5 MHz head calibrated with the default head's actuator rule (1.7 MHz) failed in the simulator
+    with 'below twice the highest mode of class empty_channel_1'; the profile's error names the fix."""
+    from inkdiag_core import train_detector
+
+    slow = TRUE.replace(name="slow", sample_rate_hz=2.5e6, n_samples=128)
+    assert "f_act" not in slow.channel
+    with pytest.raises(ProfileError, match=r"actuator's own resonance, \d+ kHz \(assumed like the default head's.*"
+                                           r"give channel.f_act \(Hz\).*--empty DRY.npz"):
+        train_detector(slow, n_per_class=8)
+    given = slow.replace(channel={"f_act": 1.0e6})  # a datasheet's: below Nyquist, trains
+    train_detector(given, n_per_class=8, unknown_rate=None, posterior_draws=1)
+
+
 def test_a_spike_row_is_screened_out_not_fatal(recorded):
     y = recorded.traces[:60].copy()
     y[7, 200] = 1e30  # beyond any sensor: out_of_range

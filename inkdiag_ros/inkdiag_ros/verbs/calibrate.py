@@ -302,6 +302,7 @@ def run(args) -> int:
     if report_dir.exists() and not report_dir.is_dir():  # mkdir's own error: '[Errno 17] File exists: ...'
         raise OSError(f"--report-dir {report_dir}: is a file, not a directory")
     report_dir.mkdir(parents=True, exist_ok=True)
+    _refuse_an_assumed_adc_that_clips(nominal, traces, args.nominal)
     result = calibrate(nominal, traces, fs, name=args.name, seed=args.seed,
                        blocked=None if blocked is None else blocked.traces,
                        empty=None if empty is None else empty.traces)
@@ -357,11 +358,17 @@ def run(args) -> int:
     act = report["actuator"]
     if act["warning"]:
         print(f"inkdiag calibrate: warning: {act['warning']}", file=sys.stderr)
+    elif not report["empty_mode"] and act["source"].startswith("assumed") and act["f_act_hz"] >= fs / 2:
+        print(f"inkdiag calibrate: warning: the empty channels' actuator is assumed like the default head's, "
+              f"{act['f_act_hz'] / 1e3:.0f} kHz at this B_act, above the Nyquist frequency {fs / 2e3:.0f} kHz of this "
+              f"sampling: inkdiag train refuses this profile (the empty-channel classes cannot be simulated). Give "
+              f"channel.f_act (Hz) from the actuator's datasheet in {args.nominal}, or --empty DRY.npz (traces of the "
+              "head's empty channels), and calibrate again", file=sys.stderr)
     elif not report["empty_mode"] and act["source"].startswith("assumed"):
         print(f"inkdiag calibrate: note: the empty channels' actuator is assumed like the default head's, "
               f"{act['f_act_hz'] / 1e3:.0f} kHz at this B_act (another head's may differ: give --empty DRY.npz, or "
               "channel.f_act from a datasheet)", file=sys.stdout)
-    _adc_notes(nominal, traces, args.nominal)
+    _adc_notes(nominal, traces, args.nominal, report.get("n_dropped_clipped", 0))
     mt = report["mean_trace_recorded_vs_fitted"]
     if abs(mt["mode_misfit_rel"]) > MODE_MISFIT_WARNING:
         f_rec, f_fit = mt["dominant_frequency_hz"]
@@ -407,29 +414,58 @@ def _plot(result, path) -> None:
     plt.close(fig)
 
 
-def _adc_notes(nominal, traces, nominal_path) -> None:
-    """A note when the nominal profile gives no ADC (the default head's is assumed: healthy traces cannot tell it,
-    docs/calibration.md), and a warning when the healthy traces (one in ten or more: not a glitch) reach past the
-    ADC's range the profile has."""
-    import sys
-
+def _beyond_adc(nominal, traces):
+    """``(k, n, peak)``: of the ``n`` healthy traces, ``k`` reach past the ADC range the profile has (the highest
+    at ``peak`` V)."""
     import numpy as np
 
     peaks = np.abs(np.where(np.isfinite(traces), traces, 0.0)).max(axis=1, initial=0.0)
-    peak_v = float(np.percentile(peaks, 90)) if peaks.size else 0.0
-    missing = [k for k in ("adc_range_v", "adc_bits") if k not in nominal.sensor]
+    return int(np.count_nonzero(peaks > nominal.adc_range_v)), int(peaks.size), float(peaks.max(initial=0.0))
+
+
+#: Healthy traces beyond the profile's ADC range, as a share, from which calibrate says so (not a glitch).
+BEYOND_ADC_SHARE = 0.1
+
+
+def _refuse_an_assumed_adc_that_clips(nominal, traces, nominal_path) -> None:
+    """ValueError (exit 2) when the nominal profile gives no ADC range and a tenth of the healthy traces or more
+    reach past the one it would assume (the default head's): the profile written would simulate the head's own
+    healthy traces clipped, and a model trained on it misses most of them (helper-111: 52 % of rows right)."""
+    if "adc_range_v" in nominal.sensor:
+        return
+    k, n, peak = _beyond_adc(nominal, traces)
+    if n and k >= BEYOND_ADC_SHARE * n:
+        raise ValueError(f"{k} of the {n} healthy traces reach past +-{nominal.adc_range_v:g} V (up to {peak:.3g} V), "
+                         f"the ADC range the profile would assume (the default head's: sensor.adc_range_v is not in "
+                         f"{nominal_path}); training would simulate this head's healthy traces clipped. Give "
+                         "sensor.adc_range_v (V) from the head's datasheet, or check the recording's scale (volts, not "
+                         "millivolts or ADC counts)")
+
+
+def _adc_notes(nominal, traces, nominal_path, n_clipped: int = 0) -> None:
+    """A note when the nominal profile gives no ADC (the default head's is assumed: healthy traces cannot tell it,
+    docs/calibration.md); a warning when the healthy traces (one in ten or more: not a glitch) reach past the
+    ADC's range the profile has, or when that many were clipped (``n_clipped``, left out by screening)."""
+    import sys
+
+    k, n, peak = _beyond_adc(nominal, traces)
+    missing = [key for key in ("adc_range_v", "adc_bits") if key not in nominal.sensor]
     if missing:
         print(f"inkdiag calibrate: note: the ADC is assumed like the default head's, +-{nominal.adc_range_v:g} V"
               + (f", {nominal.adc_bits} bits" if nominal.adc_bits is not None else "")
               + f" ({', '.join('sensor.' + k for k in missing)} not in {nominal_path}: healthy traces cannot tell "
               f"them; training simulates this ADC's clipping and quantisation, and labelling calls a sample beyond "
               f"{nominal.max_abs_v:g} V out_of_range): give the head's from its datasheet", file=sys.stdout)
-    if peak_v > nominal.adc_range_v:
-        print(f"inkdiag calibrate: warning: one in ten healthy traces reaches {peak_v:.3g} V or more, beyond the ADC "
-              f"range of +-{nominal.adc_range_v:g} V the profile has"
-              + (" (assumed)" if "adc_range_v" in missing else "")
-              + f": give sensor.adc_range_v (V) in {nominal_path} from the head's datasheet, or check the recording's "
-              "scale (volts, not millivolts or ADC counts)", file=sys.stderr)
+    if n and k >= BEYOND_ADC_SHARE * n:
+        print(f"inkdiag calibrate: warning: {k} of the {n} healthy traces reach past the ADC range of "
+              f"+-{nominal.adc_range_v:g} V the profile has (up to {peak:.3g} V), which an ADC cannot read: check "
+              f"sensor.adc_range_v (V) in {nominal_path} against the head's datasheet, and the recording's scale "
+              "(volts, not millivolts or ADC counts)", file=sys.stderr)
+    if n and n_clipped >= BEYOND_ADC_SHARE * n:
+        print(f"inkdiag calibrate: warning: {n_clipped} of the {n} healthy traces are clipped at the ADC and left out: "
+              "the fit rests on the others, the smaller ones, so the sensor gain (the traces' amplitude) reads low. "
+              "Lower the sense gain or the drive so that healthy traces stay inside the ADC's range, and record "
+              "again", file=sys.stderr)
 
 
 def _markdown(r) -> str:
