@@ -143,8 +143,8 @@ was refused as 'not what the nominal channel and drive give' though its fit rang
 
 #: What a screening reason says of a recording most of whose traces have it (calibration's error).
 _SCREENED_OUT = {
-    "clipped": "clipped at the ADC (held at their extreme for 0.5 us or more): lower the sense gain or the drive so "
-               "that healthy traces stay inside the ADC's range",
+    "clipped": "clipped at the ADC (held at their extreme for 0.5 us, 4 samples or more): lower the sense gain or "
+               "the drive so that healthy traces stay inside the ADC's range",
     "non_finite": "not finite (NaN or infinite samples)",
     "flat": "flat (no signal: channels not wired, or a sensor stuck)",
     "out_of_range": "beyond 5x the profile's ADC range: are they in volts (not millivolts or ADC counts)?",
@@ -465,7 +465,14 @@ def _actuator(nominal, fe, B_act):
     out = {"rule_f_act_hz": rule, "warning": None}
     if fe is not None:
         out.update(f_act_hz=fe["frequency_hz"], zeta_act=fe["damping_ratio"], source="measured on empty channels")
-        if fe["frequency_hz"] < EMPTY_LOW_RATIO * rule:
+        nyquist = nominal.sample_rate_hz / 2
+        if fe["frequency_hz_recorded"] > EMPTY_ALIAS_RISK * nyquist:
+            out["warning"] = (
+                f"the empty channels ring at {fe['frequency_hz_recorded'] / 1e3:.1f} kHz, within "
+                f"{100 * (1 - EMPTY_ALIAS_RISK):.0f} % of the Nyquist frequency {nyquist / 1e3:.1f} kHz: an actuator "
+                "ringing above it would show as a mode about here (aliased), and the profile's actuator would then be "
+                "wrong. If the actuator's datasheet puts its resonance above that, record at a higher sample rate")
+        elif fe["frequency_hz"] < EMPTY_LOW_RATIO * rule:
             out["warning"] = (
                 f"the empty channels put the actuator at {fe['frequency_hz'] / 1e3:.1f} kHz (damping ratio "
                 f"{fe['damping_ratio']:.3f}), {fe['frequency_hz'] / rule:.2f} times what an actuator like the default "
@@ -480,6 +487,11 @@ def _actuator(nominal, fe, B_act):
                    source="assumed: the default head's actuator at this B_act (not measured: calibrate --empty)")
     return out
 
+
+EMPTY_ALIAS_RISK = 0.8
+"""Empty channels whose recorded mode lies above this fraction of the Nyquist frequency are warned about: a
+mode above Nyquist aliases to one below it (helper-114: the default head sampled at 4 MHz, its empty channels
+at about 2.05 MHz, gave an actuator of 1.93 MHz with no word)."""
 
 EMPTY_LOW_RATIO = 0.7
 """Empty channels whose actuator comes out below this fraction of the default-head rule are warned about: dry

@@ -89,7 +89,8 @@ MIN_RAIL_BITS = 6
 
 def adc_rails(profile):
     """The windows, V, around the ADC's lowest and highest codes of a profile that gives ``sensor.adc_range_v``
-    (None otherwise, and for an ADC of fewer than :data:`MIN_RAIL_BITS` bits): ``((lo_min, lo_max), (hi_min, hi_max))``. With ``adc_bits`` the codes run from
+    (None otherwise, and for an ADC of fewer than :data:`MIN_RAIL_BITS` bits): ``((lo_min, lo_max), (hi_min,
+    hi_max))``. With ``adc_bits`` the codes run from
     ``-range`` to ``range - lsb``; a recorder may also write the top code as ``+range``: both are in the window,
     half an lsb either side. Without bits, ``+-range`` with a relative 1e-6."""
     if "adc_range_v" not in profile.sensor:  # the default's 2 V is assumed, not known: no rail to rest on

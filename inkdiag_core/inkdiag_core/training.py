@@ -70,15 +70,13 @@ def _check_profile(profile):
 
     f_max = class_max_frequency(FaultClass.EMPTY_CHANNEL_1, profile.channel_params())  # the actuator's own mode
     if not profile.sample_rate_hz >= 2.0 * f_max:
-        given = "f_act" in profile.channel  # a datasheet's, or calibrate --empty's measurement
-        raise ProfileError(
+        raise ProfileError(  # a given f_act (a datasheet's, calibrate --empty's) is below Nyquist: the loader says
             f"profile {profile.name!r}: its empty channels ring at the actuator's own resonance, {f_max / 1e3:.0f} kHz "
-            + ("" if given else "(assumed like the default head's: the profile gives no channel.f_act) ")
-            + f"above the Nyquist frequency of its sampling, {profile.sample_rate_hz / 2e3:.0f} kHz, so the "
-            "empty-channel classes cannot be simulated at this sampling: "
-            + ("a higher sample rate is needed" if given else "give channel.f_act (Hz) from the actuator's "
-               "datasheet in the nominal profile, or calibrate with --empty DRY.npz (traces of the head's empty "
-               "channels), and calibrate again"))
+            "(assumed like the default head's: the profile gives no channel.f_act), above the Nyquist frequency of "
+            f"its sampling, {profile.sample_rate_hz / 2e3:.0f} kHz, so the empty-channel classes cannot be "
+            "simulated: if the actuator's datasheet puts its resonance below that, give it as channel.f_act (Hz) in "
+            "the nominal profile (or calibrate with --empty DRY.npz, traces of the head's empty channels) and "
+            "calibrate again; if above, the head needs a higher sample rate for inkdiag to tell its empty channels")
 
 
 def _share(n_per_class, n_draws, k):

@@ -253,10 +253,25 @@ def test_training_refuses_a_profile_whose_assumed_actuator_is_above_nyquist():
     slow = TRUE.replace(name="slow", sample_rate_hz=2.5e6, n_samples=128)
     assert "f_act" not in slow.channel
     with pytest.raises(ProfileError, match=r"actuator's own resonance, \d+ kHz \(assumed like the default head's.*"
-                                           r"give channel.f_act \(Hz\).*--empty DRY.npz"):
+                                           r"give it as channel.f_act \(Hz\).*--empty DRY.npz.*if above, the head "
+                                           r"needs a higher sample rate"):
         train_detector(slow, n_per_class=8)
     given = slow.replace(channel={"f_act": 1.0e6})  # a datasheet's: below Nyquist, trains
     train_detector(given, n_per_class=8, unknown_rate=None, posterior_draws=1)
+
+
+def test_empty_channels_ringing_near_nyquist_are_warned_about_as_a_possible_alias():
+    """helper-114: the default head sampled at 4 MHz, its empty channels at about 2.05 MHz (above Nyquist), gave
+    an actuator of 1.93 MHz (an alias) with no word."""
+    from inkdiag_core.calibration import EMPTY_ALIAS_RISK, _actuator
+
+    slow = TRUE.replace(sample_rate_hz=4e6, n_samples=256)
+    b_act = TRUE.channel["B_act"]
+    for f_rec, warned in ((0.95 * 2e6, True), (0.5 * 2e6, False)):
+        fe = {"frequency_hz": 1.2 * f_rec, "damping_ratio": 0.02, "frequency_hz_recorded": f_rec}
+        out = _actuator(slow, fe, b_act)
+        assert ("within 20 % of the Nyquist frequency 2000.0 kHz" in (out["warning"] or "")) == warned, out
+    assert EMPTY_ALIAS_RISK == 0.8
 
 
 def test_a_spike_row_is_screened_out_not_fatal(recorded):

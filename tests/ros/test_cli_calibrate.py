@@ -197,8 +197,19 @@ def test_healthy_traces_beyond_the_profiles_adc_range(files, tmp_path, capsys):
     assert cli.main(["calibrate", str(tmp_path / "wide.npz"), "--nominal", str(files / "nominal.yaml"), *args]) == 2
     err = capsys.readouterr().err
     assert "of the 300 healthy traces reach past +-2 V (up to " in err and "the ADC range the profile would " \
-           "assume" in err and "Give sensor.adc_range_v (V)" in err, err
+           "assume" in err and "give sensor.adc_range_v (V)" in err, err
     assert not (tmp_path / "head.yaml").exists()
+    save_recording(tmp_path / "mv.npz", Recording.from_arrays(rec.traces * 1e3, rec.sample_rate_hz))  # millivolts
+    assert cli.main(["calibrate", str(tmp_path / "mv.npz"), "--nominal", str(files / "nominal.yaml"), *args,
+                     "--report-dir", str(tmp_path / "rep")]) == 2
+    err = capsys.readouterr().err  # the scale first (helper-114), and nothing left behind
+    assert "clipped: are the traces in volts (not millivolts or ADC counts)?" in err and not (tmp_path / "rep").exists()
+    few = np.percentile(np.abs(rec.traces).max(axis=1), 97)  # about 3 % of the traces past the assumed 2 V
+    save_recording(tmp_path / "few.npz", Recording.from_arrays(rec.traces * (2.05 / few), rec.sample_rate_hz))
+    assert cli.main(["calibrate", str(tmp_path / "few.npz"), "--nominal", str(files / "nominal.yaml"), *args]) == 0
+    err = capsys.readouterr().err
+    assert "healthy traces reach past +-2 V (up to " in err and "the ADC range the profile assumes: it simulates " \
+           "such traces clipped" in err, err
     nominal = HeadProfile.load(files / "nominal.yaml")
     nominal.replace(sensor={"adc_range_v": 2.0}).save(tmp_path / "given.yaml")
     assert cli.main(["calibrate", str(tmp_path / "wide.npz"), "--nominal", str(tmp_path / "given.yaml"), *args]) == 0

@@ -286,6 +286,9 @@ def test_another_heads_recording_of_the_same_sampling_is_labelled_with_a_warning
     assert main(["label", str(tmp_path / "bad.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "b.csv")]) == 0
     cap = capsys.readouterr()
     assert "20 invalid" in cap.out and "labelled rows" not in cap.err and "20 of 30 rows are invalid" in cap.err
+    save_recording(tmp_path / "few.npz", Recording.from_arrays(own[:5], head.sample_rate_hz))  # all of a few
+    assert main(["label", str(tmp_path / "few.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "f.csv")]) == 0
+    assert "5 of 5 rows are invalid (5 non_finite)" in capsys.readouterr().err
 
 
 def test_label_csv_says_unknown_for_a_trace_unlike_every_class(work, tmp_path, capsys):

@@ -71,16 +71,18 @@ _INVALID_HINTS = {"non_finite": "NaN or infinite samples: a recorder's gaps or a
                   "non_finite_features": "features that overflow"}
 
 
-#: :func:`invalid_warning` speaks from this many invalid rows (one flat row of two picked is a channel, not a head).
+#: :func:`invalid_warning` speaks from this many invalid rows (one flat row of two picked is a channel, not a head),
+#: or when every row of 3 or more is invalid.
 MIN_INVALID_WARNED = 8
 
 
 def invalid_warning(verb: str, per_reason, n_rows: int) -> str:
     """The warning line when at least half the rows are invalid (screening's reasons in ``per_reason``, a
     mapping reason -> rows; other keys are ignored), naming the reasons, else ""."""
-    counts = sorted(((k, r) for r, k in per_reason.items() if r in _INVALID_HINTS and k), key=lambda kr: (-kr[0], kr[1]))
+    counts = sorted(((k, r) for r, k in per_reason.items() if r in _INVALID_HINTS and k),
+                    key=lambda kr: (-kr[0], kr[1]))  # most first, then by name
     n_bad = sum(k for k, _ in counts)
-    if not (n_bad >= MIN_INVALID_WARNED and n_bad >= n_rows / 2):
+    if not ((n_bad >= MIN_INVALID_WARNED and n_bad >= n_rows / 2) or n_bad == n_rows >= 3):  # or all of a few
         return ""
     reasons = ", ".join(f"{k} {r}" for k, r in counts)
     most = ("" if len(counts) > 1 and counts[1][0] == counts[0][0]  # a tie: no one reason is most

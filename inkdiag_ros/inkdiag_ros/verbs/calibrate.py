@@ -301,8 +301,8 @@ def run(args) -> int:
     report_dir = Path(args.report_dir) if args.report_dir else out.parent
     if report_dir.exists() and not report_dir.is_dir():  # mkdir's own error: '[Errno 17] File exists: ...'
         raise OSError(f"--report-dir {report_dir}: is a file, not a directory")
-    report_dir.mkdir(parents=True, exist_ok=True)
     _refuse_an_assumed_adc_that_clips(nominal, traces, args.nominal)
+    report_dir.mkdir(parents=True, exist_ok=True)
     result = calibrate(nominal, traces, fs, name=args.name, seed=args.seed,
                        blocked=None if blocked is None else blocked.traces,
                        empty=None if empty is None else empty.traces)
@@ -358,12 +358,13 @@ def run(args) -> int:
     act = report["actuator"]
     if act["warning"]:
         print(f"inkdiag calibrate: warning: {act['warning']}", file=sys.stderr)
-    elif not report["empty_mode"] and act["source"].startswith("assumed") and act["f_act_hz"] >= fs / 2:
+    elif not report["empty_mode"] and act["source"].startswith("assumed") and not _empty_classes_fit(result.profile):
         print(f"inkdiag calibrate: warning: the empty channels' actuator is assumed like the default head's, "
               f"{act['f_act_hz'] / 1e3:.0f} kHz at this B_act, above the Nyquist frequency {fs / 2e3:.0f} kHz of this "
-              f"sampling: inkdiag train refuses this profile (the empty-channel classes cannot be simulated). Give "
-              f"channel.f_act (Hz) from the actuator's datasheet in {args.nominal}, or --empty DRY.npz (traces of the "
-              "head's empty channels), and calibrate again", file=sys.stderr)
+              f"sampling: inkdiag train refuses this profile (the empty-channel classes cannot be simulated). If the "
+              f"actuator's datasheet puts its resonance below that, give it as channel.f_act (Hz) in {args.nominal} "
+              "(or --empty DRY.npz, traces of the head's empty channels) and calibrate again; if above, the head "
+              "needs a higher sample rate", file=sys.stderr)
     elif not report["empty_mode"] and act["source"].startswith("assumed"):
         print(f"inkdiag calibrate: note: the empty channels' actuator is assumed like the default head's, "
               f"{act['f_act_hz'] / 1e3:.0f} kHz at this B_act (another head's may differ: give --empty DRY.npz, or "
@@ -414,6 +415,14 @@ def _plot(result, path) -> None:
     plt.close(fig)
 
 
+def _empty_classes_fit(profile) -> bool:
+    """Whether the profile's empty-channel classes ring below its Nyquist frequency (what train checks)."""
+    from inkdiag_core import FaultClass
+    from inkdiag_core.simulation.modal import class_max_frequency
+
+    return profile.sample_rate_hz >= 2.0 * class_max_frequency(FaultClass.EMPTY_CHANNEL_1, profile.channel_params())
+
+
 def _beyond_adc(nominal, traces):
     """``(k, n, peak)``: of the ``n`` healthy traces, ``k`` reach past the ADC range the profile has (the highest
     at ``peak`` V)."""
@@ -435,11 +444,12 @@ def _refuse_an_assumed_adc_that_clips(nominal, traces, nominal_path) -> None:
         return
     k, n, peak = _beyond_adc(nominal, traces)
     if n and k >= BEYOND_ADC_SHARE * n:
+        scale = ("are the traces in volts (not millivolts or ADC counts)? If they are, give sensor.adc_range_v (V) "
+                 "from the head's datasheet" if peak > nominal.max_abs_v else "give sensor.adc_range_v (V) from the "
+                 "head's datasheet, or check the recording's scale (volts, not millivolts or ADC counts)")
         raise ValueError(f"{k} of the {n} healthy traces reach past +-{nominal.adc_range_v:g} V (up to {peak:.3g} V), "
                          f"the ADC range the profile would assume (the default head's: sensor.adc_range_v is not in "
-                         f"{nominal_path}); training would simulate this head's healthy traces clipped. Give "
-                         "sensor.adc_range_v (V) from the head's datasheet, or check the recording's scale (volts, not "
-                         "millivolts or ADC counts)")
+                         f"{nominal_path}); training would simulate this head's healthy traces clipped: {scale}")
 
 
 def _adc_notes(nominal, traces, nominal_path, n_clipped: int = 0) -> None:
@@ -456,7 +466,11 @@ def _adc_notes(nominal, traces, nominal_path, n_clipped: int = 0) -> None:
               + f" ({', '.join('sensor.' + k for k in missing)} not in {nominal_path}: healthy traces cannot tell "
               f"them; training simulates this ADC's clipping and quantisation, and labelling calls a sample beyond "
               f"{nominal.max_abs_v:g} V out_of_range): give the head's from its datasheet", file=sys.stdout)
-    if n and k >= BEYOND_ADC_SHARE * n:
+    if k and "adc_range_v" in missing:  # fewer than a tenth (more: refused): the profile clips them all the same
+        print(f"inkdiag calibrate: warning: {k} of the {n} healthy traces reach past +-{nominal.adc_range_v:g} V "
+              f"(up to {peak:.3g} V), the ADC range the profile assumes: it simulates such traces clipped. Give "
+              f"sensor.adc_range_v (V) in {nominal_path} from the head's datasheet", file=sys.stderr)
+    elif n and k >= BEYOND_ADC_SHARE * n:
         print(f"inkdiag calibrate: warning: {k} of the {n} healthy traces reach past the ADC range of "
               f"+-{nominal.adc_range_v:g} V the profile has (up to {peak:.3g} V), which an ADC cannot read: check "
               f"sensor.adc_range_v (V) in {nominal_path} against the head's datasheet, and the recording's scale "

@@ -253,6 +253,7 @@ def content_sha256(path) -> str:
                 dirs[:] = []
                 continue
             seen.add(real)
+            dirs.sort(key=lambda d: (os.path.islink(os.path.join(here, d)), d))  # real ones first: one order only
             files += [Path(here, n) for n in names if Path(here, n).is_file()]
         files.sort(key=lambda f: f.relative_to(root).as_posix())
     else:
