@@ -314,6 +314,8 @@ class DryingTracker:
         self.rows_stale = self.trend_restarts = self.trends_recovered = 0
         self.rows_invalid = self.estimates = self.estimates_with_baseline = 0
         self.estimates_thinner = 0  # of the estimates: a viscosity below THIN_FACTOR x the ink's (another head?)
+        self.rows_capped = 0  # listed rows of a range beyond max_estimates: not estimated
+        self.rows_no_fit = 0  # rows estimated whose f_m is no estimate (not finite, viscosity <= 0, at a bound)
 
     @property
     def pending(self) -> tuple:
@@ -448,7 +450,9 @@ class DryingTracker:
         x = t.traces
         if ranged:
             self._recovered(first, x, nozzles, t)
-        ids = self._in_range(nozzles, first, x.shape[0])[: self.max_estimates]
+        ids = self._in_range(nozzles, first, x.shape[0])
+        self.rows_capped += max(0, ids.size - self.max_estimates)
+        ids = ids[: self.max_estimates]
         r = self.estimate_rows(np.array(x[ids - first]), ids, stamp=t.stamp, sample_rate_hz=t.sample_rate_hz)
         ok = r.reasons == ""
         if not ok.any():
@@ -562,6 +566,7 @@ class DryingTracker:
             edge = ~bad & est.at_bound
             reasons[sel[edge]] = AT_BOUND_REASON
             bad |= edge
+            self.rows_no_fit += int(np.count_nonzero(bad))
             for k, v in zip(("fm", "fm_std", "d_mu", "viscosity"), (est.fm, est.std, est.d_mu, est.viscosity)):
                 cols[k][sel] = v
             good = sel[~bad]

@@ -16,6 +16,28 @@ SAMPLING_PARAMS = (
 """fdi's sampling parameters: 0 takes the head profile's (:func:`head_from_parameters`)."""
 
 
+def load_fm_baselines(path: str, profile, logger):
+    """The baselines of ``path`` with healthy f_m for fe (None: no path, or none with f_m, logged as an error).
+
+    Raises ValueError (exit 2 at start, as a bad head_profile) for a file that does not load or is of another head."""
+    import numpy as np
+    from inkdiag_core import BaselineFileError, NozzleBaselines
+
+    if not path:
+        return None
+    try:
+        baselines = NozzleBaselines.load(path)
+        baselines.check_head(profile)
+    except BaselineFileError as exc:
+        raise ValueError(f"baseline_path: {exc}") from None
+    n_fm = 0 if baselines.fm is None else int((~np.isnan(baselines.fm)).sum())
+    if not n_fm:
+        logger.error(f"f_m baselines not used: {path} holds no healthy f_m (recorded with fm_frames:=0?)")
+        return None
+    logger.info(f"healthy f_m baselines of {n_fm} nozzles from {path}")
+    return baselines
+
+
 def head_from_parameters(config: dict, *, resample: bool = False) -> HeadProfile:
     """The complete head profile of ``config['head_profile']`` (empty: the shipped default head).
 

@@ -20,14 +20,16 @@ another head, stop the node at start (exit status 2). docs/nodes.md has the deta
 from __future__ import annotations
 
 
-import numpy as np
 from rclpy.node import Node
 
-from ._head import HEAD_PROFILE_PARAM, head_from_parameters
+from ._head import HEAD_PROFILE_PARAM, head_from_parameters, load_fm_baselines
 from ._spin import exit_now, spin_node
+from .stats import FeStats
 
-from inkdiag_core import BaselineFileError, DryingTracker, NozzleBaselines
+from inkdiag_core import DryingTracker
 from msg_defs import (
+    DIAGNOSTICS_MSG_TYPE,
+    DIAGNOSTICS_QOS,
     DRYING_MSG_TYPE,
     ESTIMATES_ARRAY_MSG_TYPE,
     ESTIMATES_MSG_TYPE,
@@ -35,6 +37,7 @@ from msg_defs import (
     TRACE_MSG_TYPE,
     TRACES_QOS,
     FmEstimates,
+    build_diagnostics,
     decode_drying,
     decode_traces_serialized,
     encode_estimates,
@@ -57,6 +60,8 @@ PARAMS = (
     ("baseline_path", "", "the head's per-nozzle baselines with healthy f_m (.npz from record_baseline): "
      "each estimate is relative to its nozzle's healthy reading; empty: none", str, None),
     HEAD_PROFILE_PARAM,
+    ("diagnostics_period_s", 1.0, "period of fe's status on /diagnostics ('inkdiag fe: <namespace>'), s", float,
+     (0.1, 60.0)),
 )
 
 
@@ -69,36 +74,30 @@ class FeNode(Node):
         self.add_on_set_parameters_callback(self._on_set)
         self.add_post_set_parameters_callback(self._after_set)
         self.profile = head_from_parameters(c)  # a bad or nominal file: ValueError, exit 2 at start
-        self.baselines = self._load_baselines(c["baseline_path"])
+        self.baselines = load_fm_baselines(c["baseline_path"], self.profile, self.get_logger())
         self.tracker = DryingTracker(
             profile=self.profile, max_estimates=c["max_estimates_per_frame"], max_pending=c["max_pending"],
             baselines=self.baselines, trend_accel_std=c["trend_accel_std"], trend_rel_floor=c["trend_rel_floor"])
         self.frames_malformed = 0
         self.estimates_published = 0
+        self.stats = FeStats()
         self._clocks_said = 0  # the trend bank's clock restarts (epoch) already logged
         self._pub = self.create_publisher(ESTIMATES_MSG_TYPE, topics.FM_ESTIMATES, RELIABLE_QOS)
         self._array_pub = self.create_publisher(ESTIMATES_ARRAY_MSG_TYPE, topics.FM_ESTIMATES_ARRAY, RELIABLE_QOS)
+        self._diag_pub = self.create_publisher(DIAGNOSTICS_MSG_TYPE, topics.DIAGNOSTICS, DIAGNOSTICS_QOS)
+        self._diag_timer = self.create_timer(c["diagnostics_period_s"], self._on_diagnostics)
         self._drying_sub = self.create_subscription(DRYING_MSG_TYPE, topics.DRYING_NOZZLES,
                                                     self._on_drying, RELIABLE_QOS)
         # raw: the 2 MB of a 1,024-nozzle frame are viewed in the taken bytes, not converted to a message
         self._traces_sub = self.create_subscription(TRACE_MSG_TYPE, topics.TRACES, self._on_traces,
                                                     TRACES_QOS, raw=True)
 
-    def _load_baselines(self, path: str):
-        if not path:
-            return None
-        try:
-            baselines = NozzleBaselines.load(path)
-            baselines.check_head(self.profile)
-        except BaselineFileError as exc:  # a wrong parameter: exit 2 at start, as a bad head_profile
-            raise ValueError(f"baseline_path: {exc}") from None
-        n_fm = 0 if baselines.fm is None else int((~np.isnan(baselines.fm)).sum())
-        if not n_fm:
-            self.get_logger().error(f"f_m baselines not used: {path} holds no healthy f_m "
-                                    "(recorded with fm_frames:=0?)")
-            return None
-        self.get_logger().info(f"healthy f_m baselines of {n_fm} nozzles from {path}")
-        return baselines
+    def _on_diagnostics(self) -> None:
+        if self.context.ok():
+            level, message, values = self.stats.period(self.tracker, self.frames_malformed, self.estimates_published)
+            self._diag_pub.publish(build_diagnostics(namespace=self.get_namespace(), level=level, message=message,
+                                                     values=values, counts={}, node="fe",
+                                                     stamp=self.get_clock().now().to_msg()))
 
     def _on_set(self, params):
         return _params.fixed_at_start(params, dynamic=("max_estimates_per_frame",))
@@ -129,6 +128,7 @@ class FeNode(Node):
 
     def _malformed(self, what, exc) -> None:
         self.frames_malformed += 1
+        self.stats.last_error = f"{what}: {exc}"
         self.get_logger().warning(f"dropped a malformed {what}: {exc}", throttle_duration_sec=1.0)
 
     def _publish(self, results) -> None:

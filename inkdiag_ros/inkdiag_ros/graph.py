@@ -126,6 +126,8 @@ class OperatorMonitor(Node):
             parts.append(f"f_m[{int(r['nozzle'])}] {r['fm']:.3g}/s trend {r['fm_trend']:.3g} "
                          f"mu {1e3 * r['viscosity']:.1f} mPa.s ETA deep {eta_s}")
         for name, d in self.last_diag.items():
+            if not name.startswith("inkdiag fdi:"):  # fe's status: its own counters, not a labelling rate
+                continue
             base = d.get("rows_with_baseline", "0")
             parts.append(f"diag {d['level'].upper()} {d.get('traces_per_s', '?')} traces/s"
                          + (f", {base} rows vs their baseline" if base not in ("", "0") else ""))

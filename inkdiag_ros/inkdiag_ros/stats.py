@@ -173,3 +173,52 @@ class FdiStats:
                       self.frames_malformed + self.frames_failed + self.frames_dropped, self.rows_invalid,
                       self.batches, self.frames_labelled, self.busy_s)
         return level, message, values
+
+
+#: The fe node's counters on ``/diagnostics``, in this order (the tracker's, then the node's).
+FE_KEYS = ("traces_received", "drying_received", "frames_malformed", "ranges_joined", "ranges_estimated",
+           "estimates", "estimates_published", "estimates_with_baseline", "rows_invalid", "rows_no_fit", "rows_capped",
+           "traces_unmatched", "drying_unmatched", "rows_stale", "trend_restarts", "trends_recovered",
+           "estimates_thinner", "last_error")
+#: Of :data:`FE_KEYS`, the counters whose rise in a period is a warning: input fe could not use.
+FE_WARN_KEYS = {"frames_malformed": "malformed message(s)", "traces_unmatched": "trace message(s) never joined by "
+                "their drying list", "drying_unmatched": "drying list(s) never joined by their traces",
+                "rows_invalid": "listed row(s) screened out (invalid, silent or on the ADC's rail)",
+                "rows_no_fit": "listed row(s) the drying model does not fit (no estimate)",
+                "rows_capped": "listed row(s) beyond max_estimates_per_frame"}
+
+
+class FeStats:
+    """The fe node's ``/diagnostics`` snapshot from its tracker's counters (one thread: the executor's)."""
+
+    def __init__(self):
+        self._mark = (time.monotonic(), {})
+        self.last_error = ""
+
+    def since_period(self) -> float:
+        """Seconds since the last :meth:`period` (or since this object was made)."""
+        return time.monotonic() - self._mark[0]
+
+    def period(self, tracker, frames_malformed: int, estimates_published: int):
+        """``(level, message, values)`` over the time since the last call: WARN when input fe could not use
+        arrived in the period (:data:`FE_WARN_KEYS`), STALE when neither traces nor drying lists arrived, else OK.
+        ``values``: :data:`FE_KEYS`, cumulative since the node started."""
+        now = time.monotonic()
+        t0, before = self._mark
+        dt = max(now - t0, 1e-9)
+        values = {k: getattr(tracker, k, 0) for k in FE_KEYS}
+        values.update(frames_malformed=frames_malformed, estimates_published=estimates_published,
+                      last_error=self.last_error)
+        warnings = [f"{d} {what} in the last {dt:.1f} s" for k, what in FE_WARN_KEYS.items()
+                    if (d := values[k] - before.get(k, 0)) > 0]
+        fresh = values["traces_received"] + values["drying_received"] - before.get("traces_received", 0) \
+            - before.get("drying_received", 0)
+        if warnings:
+            level, message = "warn", "; ".join(warnings)
+        elif not fresh:
+            level, message = "stale", f"no trace message or drying list received in the last {dt:.1f} s"
+        else:
+            level, message = "ok", (f"{values['estimates_published'] - before.get('estimates_published', 0)} "
+                                    f"estimate message(s) published in the last {dt:.1f} s")
+        self._mark = (now, {k: v for k, v in values.items() if k != "last_error"})
+        return level, message, values

@@ -1,7 +1,8 @@
-"""``/diagnostics``: one ``diagnostic_msgs/DiagnosticArray`` per head and period.
+"""``/diagnostics``: one ``diagnostic_msgs/DiagnosticArray`` per head, node and period.
 
-Each FDI node publishes, every ``diagnostics_period_s``, an array with one
-``DiagnosticStatus``:
+The fe node publishes its own, ``name`` ``"inkdiag fe: <namespace>"`` (its counters:
+``inkdiag_ros.stats.FE_KEYS``, docs/controller.md). Each FDI node publishes, every
+``diagnostics_period_s``, an array with one ``DiagnosticStatus``:
 
 - ``name``: ``"inkdiag fdi: <namespace>"`` (e.g. ``inkdiag fdi: /head_07``);
 - ``hardware_id``: the printhead's namespace;
@@ -73,8 +74,8 @@ def _fmt(v) -> str:
 
 
 def build_diagnostics(*, namespace: str, level: str, message: str, values: dict, counts: dict,
-                      stamp=None, gate_cleared: int | None = None) -> DiagnosticArray:
-    """One head's DiagnosticArray.
+                      stamp=None, gate_cleared: int | None = None, node: str = "fdi") -> DiagnosticArray:
+    """One head's DiagnosticArray (of its fdi node, or with ``node="fe"`` its fe node's).
 
     Parameters
     ----------
@@ -90,10 +91,12 @@ def build_diagnostics(*, namespace: str, level: str, message: str, values: dict,
         ``header.stamp`` (the node's clock).
     gate_cleared : int, optional
         Cumulative rows the healthy gate cleared: ``count.gate_cleared`` (None: not sent).
+    node : {"fdi", "fe"}
+        Whose status: ``name`` is ``"inkdiag <node>: <namespace>"``.
     """
     status = DiagnosticStatus()
     status.level = LEVELS[level]
-    status.name = f"inkdiag fdi: {namespace}"
+    status.name = f"inkdiag {node}: {namespace}"
     status.hardware_id = namespace
     status.message = message
     ordered = [k for k in KEYS if k in values] + [k for k in values if k not in KEYS]

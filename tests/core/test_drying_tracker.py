@@ -73,6 +73,16 @@ def test_a_nozzle_is_estimated_in_its_first_dried_frame_and_not_after_it_recover
     assert tr.trends_recovered == 1 and tr.trends.n_updates[tr.trends.ids == 2] == 0
 
 
+def test_listed_rows_beyond_max_estimates_are_counted():
+    """fe's /diagnostics says how many listed rows the cap left out (helper-113: a list of 100 gave 64 estimates,
+    with no mark)."""
+    tr = DryingTracker(max_estimates=1)
+    x = _frame(1, {0: [2, 5]})
+    _traces(tr, x, 1, 0)
+    (e,) = _drying(tr, 1, 0, [2, 5])
+    assert e.nozzles.tolist() == [2] and tr.rows_capped == 1
+
+
 def test_a_nozzle_that_recovers_and_dries_again_starts_a_new_trend():
     """helper-88: a nozzle dried, was purged (healthy, left out of its range's lists), dried again: its trend went on
     from the old drying, fm_rate the wrong sign for 6 frames and no ETA."""
@@ -256,6 +266,7 @@ def test_a_fit_that_ends_at_its_search_intervals_edge_is_not_an_estimate():
     tr = DryingTracker()
     r = tr.estimate_rows(sim.traces, np.arange(lab.size), stamp=0.0, sample_rate_hz=10e6)
     assert (r.reasons[want] == AT_BOUND_REASON).all() and (r.reasons[~want] == "").all()
+    assert tr.rows_no_fit == int(np.count_nonzero(want)) and tr.rows_invalid == 0  # fe's /diagnostics counts
     assert np.isnan(r.columns["fm"][want]).all() and tr.estimates == int(np.count_nonzero(~want))
     np.testing.assert_allclose(r.columns["fm"][~want], raw.fm[~want])
 

@@ -68,7 +68,14 @@ def test_fe_counts_hostile_messages_malformed_and_stays_up(ros):
 
     from inkdiag_ros.fe_node import FeNode
 
-    fe = ros.add(FeNode(context=ros.context, namespace="/h"))
+    from msg_defs import DIAGNOSTICS_MSG_TYPE, DIAGNOSTICS_QOS, diagnostics_values
+
+    fe = ros.add(FeNode(context=ros.context, namespace="/h", parameter_overrides=[P("diagnostics_period_s",
+                                                                                   value=0.2)]))
+    probe = ros.node("probe", namespace="/h")
+    diag = collect(ros, probe, DIAGNOSTICS_MSG_TYPE, "/diagnostics", DIAGNOSTICS_QOS, diagnostics_values)
+    ros.spin_until(lambda: diag, 10, "fe's /diagnostics")
+    assert diag[-1]["inkdiag fe: /h"]["level"] == "stale"  # nothing received yet
     bad_drying = [
         '{"schema":"inkdiag.drying_nozzles","schema_version":1,"frame_id":1,"stamp":1.0,'
         '"nozzles":[1180591620717411303424],"classes":["deeply_dried"]}',
@@ -82,6 +89,15 @@ def test_fe_counts_hostile_messages_malformed_and_stays_up(ros):
                               '"stamp":1.0,"nozzles":[0],"classes":["deeply_dried"]}'))
     fe._on_traces(encode_traces(short, first_nozzle=0, frame_id=2, stamp=2.0))
     assert fe.frames_malformed == 3
+    # said on /diagnostics (helper-113: fe published none, and its logs are throttled): WARN, counted, the reason
+    n = len(diag)
+    ros.spin_until(lambda: len(diag) > n, 10, "the next /diagnostics")
+    st = diag[-1]["inkdiag fe: /h"]
+    assert st["level"] == "warn" and "3 malformed message(s)" in st["message"], st
+    assert st["frames_malformed"] == "3" and int(st["drying_received"]) >= 1 and "trace frame" in st["last_error"], st
+    n = len(diag)
+    ros.spin_until(lambda: len(diag) > n, 10, "a quiet period")
+    assert diag[-1]["inkdiag fe: /h"]["level"] == "stale" and diag[-1]["inkdiag fe: /h"]["frames_malformed"] == "3"
 
 
 def _foreign_profile(path):
