@@ -95,7 +95,7 @@ class Watcher:
 
     def _on_diag(self, msg):
         for name, values in self._values(msg).items():
-            if name.endswith(self.node.get_namespace()):  # "inkdiag fdi: /soak"
+            if name == f"inkdiag fdi: {self.node.get_namespace()}":  # not fe's status of the same head
                 self.diag = values
 
     def close(self):

@@ -11,6 +11,7 @@ than ``--max-items`` are cut with ``'...'`` (ros2's ``--truncate-length``).
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 import rclpy
@@ -93,10 +94,16 @@ def main(args=None) -> int:
     done = []
     mtype, qos = TYPES[ns.topic]
 
+    gone = []  # the output's reader stopped (`| head`): echo ends quietly, as at --once
+
     def on_msg(msg):
-        if ns.once and done:
+        if (ns.once and done) or gone:
             return
-        print(to_yaml(msg, max_items=ns.max_items) + "\n---", flush=True)
+        try:
+            print(to_yaml(msg, max_items=ns.max_items) + "\n---", flush=True)
+        except BrokenPipeError:  # no traceback, here or at exit (what is left in stdout's buffer goes nowhere)
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            gone.append(1)
         done.append(1)
 
     with stop_on_signals() as stop:  # a stop while rclpy starts ends it with 0, as the nodes (_spin.spin_node)
@@ -106,7 +113,7 @@ def main(args=None) -> int:
             node = Node("echo", namespace=ns.namespace)
             stop.attach(node)
             node.create_subscription(mtype, ns.topic, on_msg, qos)
-            while rclpy.ok() and not stop.requested and not (ns.once and done):
+            while rclpy.ok() and not stop.requested and not (ns.once and done) and not gone:
                 rclpy.spin_once(node, timeout_sec=0.1)
         except (KeyboardInterrupt, ExternalShutdownException):
             pass

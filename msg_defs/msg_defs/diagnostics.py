@@ -99,7 +99,8 @@ def build_diagnostics(*, namespace: str, level: str, message: str, values: dict,
     status.name = f"inkdiag {node}: {namespace}"
     status.hardware_id = namespace
     status.message = message
-    ordered = [k for k in KEYS if k in values] + [k for k in values if k not in KEYS]
+    first = KEYS if node == "fdi" else ()  # fdi's documented order; fe's values as given (its FE_KEYS)
+    ordered = [k for k in first if k in values] + [k for k in values if k not in first]
     kv = [KeyValue(key=k, value=_fmt(values[k])) for k in ordered] + [
         KeyValue(key=COUNT_PREFIX + c, value=str(int(n))) for c, n in sorted(counts.items())
     ]

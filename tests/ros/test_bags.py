@@ -415,13 +415,16 @@ def _wait_for_line(proc, text, timeout=30.0):
     pytest.fail(f"no {text!r} from the process: {''.join(seen)[-1500:]}")
 
 
-def test_record_a_live_printhead_sim_and_read_it_back_with_rosbags_and_load_recording(tmp_path):
-    from conftest import next_domain_id
+def test_record_a_live_printhead_sim_and_read_it_back_with_rosbags_and_load_recording(tmp_path, ros):
     from rosbags.rosbag2 import Reader
 
     from inkdiag_ros.bags import load_recording
+    from msg_defs import TRACE_MSG_TYPE, TRACES_QOS
 
-    env = _env(next_domain_id())
+    env = _env(ros.domain_id)
+    # frames a subscriber of this test hears: the sim's are flowing. A fixed 3 s sleep recorded 0 frames under load
+    seen = []
+    ros.node("watch", namespace=NS).create_subscription(TRACE_MSG_TYPE, "traces", seen.append, TRACES_QOS)
     bag = tmp_path / "live"
     rec = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.cli", "record", str(bag), "--namespace", NS,
                             "--topics", "traces", "ground_truth", "labels"],
@@ -433,7 +436,8 @@ def test_record_a_live_printhead_sim_and_read_it_back_with_rosbags_and_load_reco
                                 f"__ns:={NS}", "-p", "frame_rate_hz:=10.0", "-p", "n_nozzles:=48"],
                                env=env, stderr=subprocess.PIPE, text=True)
         _wait_for_line(sim, "simulating")  # logged once its publishers exist
-        time.sleep(3.0)  # discovery (slow on a loaded machine), then frames at 10 Hz
+        ros.spin_until(lambda: len(seen) >= 10, 60, "10 frames of the sim heard")  # discovery is slow under load
+        time.sleep(1.0)  # 10 more at 10 Hz
     finally:
         if sim is not None:  # the publisher stops first: the recorder has had every frame it will get
             sim.send_signal(signal.SIGINT)

@@ -84,3 +84,42 @@ def test_echo_shows_all_of_an_fdi_diagnostics_by_default(ros):
     status, out, err = _echo(ros, ["/diagnostics", "--once"], lambda: pub.publish(msg))
     assert status == 0 and out.count("- key: ") == n_values and "'...'" not in out, out
     assert "key: count.gate_cleared" in out, out
+
+
+def test_echo_into_a_reader_that_stops_early_ends_quietly(ros):
+    """helper-112: `python -m inkdiag_ros.echo ... | head -c 800` ended in a BrokenPipeError traceback."""
+    from msg_defs import LABELS_MSG_TYPE, RELIABLE_QOS, LabelsReport, encode_labels
+
+    pub = ros.node("labels_pub", namespace="/head_43").create_publisher(LABELS_MSG_TYPE, "labels", RELIABLE_QOS)
+    report = LabelsReport.from_arrays(frame_id=7, stamp=12.5, first_nozzle=0, model_id="m-1",
+                                      classes=np.array(["healthy_nozzle"] * 300, dtype=object),
+                                      confidence=np.full(300, 0.9), valid=np.ones(300, bool),
+                                      reasons=np.array([""] * 300, dtype=object))
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    pr = subprocess.Popen([sys.executable, "-m", "inkdiag_ros.echo", "labels", "--namespace", "/head_43"], env=env,
+                          stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    import threading
+
+    first = []
+    reader = threading.Thread(target=lambda: first.append(pr.stdout.readline()), daemon=True)
+    reader.start()
+    try:
+        deadline = time.monotonic() + 30
+        while not first and time.monotonic() < deadline:  # read one line, then close: the reader is gone
+            pub.publish(encode_labels(report))
+            ros.spin_for(0.2)
+        assert first, "echo printed nothing in 30 s"
+        first = first[0]
+        pr.stdout.close()
+        for _ in range(50):  # the next messages hit the closed pipe
+            pub.publish(encode_labels(report))
+            ros.spin_for(0.1)
+            if pr.poll() is not None:
+                break
+        err = pr.stderr.read().decode()
+        pr.wait(timeout=10)
+    finally:
+        if pr.poll() is None:
+            pr.kill()
+    assert first.startswith(b"data: ") and pr.returncode == 0, (first, pr.returncode, err)
+    assert "Traceback" not in err and "BrokenPipe" not in err, err
