@@ -501,7 +501,7 @@ def test_the_reported_actuator_is_the_one_the_profile_simulates():
     assert a["source"].startswith("assumed") and a["zeta_act"] == 0.08 and abs(a["f_act_hz"] / 2.175e6 - 1) < 1e-9
     a = _actuator(HeadProfile.default().replace(channel={"f_act": 1.5e6}), None, 5.198e-21)
     assert a["source"] == "nominal profile (channel.f_act)" and a["f_act_hz"] == 1.5e6 and a["warning"] is None
-    fe = {"frequency_hz": 1.1e6, "damping_ratio": 0.06}
+    fe = {"frequency_hz": 1.1e6, "damping_ratio": 0.06, "frequency_hz_recorded": 0.95e6}  # as _empty_measurement
     assert "a third too low" in _actuator(HeadProfile.default(), fe, 5.198e-21)["warning"]
 
 
