@@ -66,9 +66,7 @@ def _check_profile(profile):
     if not profile.is_complete:
         raise ProfileError(f"profile {profile.name!r} is nominal ({', '.join(profile.missing)} missing): training "
                            "simulates faults on the head's complete model: run `inkdiag calibrate` first")
-    from .simulation.modal import class_max_frequency
-
-    f_max = class_max_frequency(FaultClass.EMPTY_CHANNEL_1, profile.channel_params())  # the actuator's own mode
+    f_max = empty_channel_mode_hz(profile)
     if not profile.sample_rate_hz >= 2.0 * f_max:
         raise ProfileError(  # a given f_act (a datasheet's, calibrate --empty's) is below Nyquist: the loader says
             f"profile {profile.name!r}: its empty channels ring at the actuator's own resonance, {f_max / 1e3:.0f} kHz "
@@ -77,6 +75,14 @@ def _check_profile(profile):
             "simulated: if the actuator's datasheet puts its resonance below that, give it as channel.f_act (Hz) in "
             "the nominal profile (or calibrate with --empty DRY.npz, traces of the head's empty channels) and "
             "calibrate again; if above, the head needs a higher sample rate for inkdiag to tell its empty channels")
+
+
+def empty_channel_mode_hz(profile) -> float:
+    """The highest mode the profile's empty-channel classes ring at, Hz (the actuator's own resonance): training
+    refuses a profile sampled below twice it (the calibrate verb warns of the same)."""
+    from .simulation.modal import class_max_frequency
+
+    return class_max_frequency(FaultClass.EMPTY_CHANNEL_1, profile.channel_params())
 
 
 def _share(n_per_class, n_draws, k):

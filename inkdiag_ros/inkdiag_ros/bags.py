@@ -622,13 +622,8 @@ def iter_bag_frames(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
                                  broken_off, on_salvage):
             i = stats.n_messages
             stats.n_messages += 1
-            raw = bytes(raw)  # the frame's traces view it (no buffer of the reader's, which it may reuse)
-            if raw[:2] not in CDR_HEADERS:  # a bag's messages are CDR: no other encoding is tried (by rclpy)
-                stats.skip(i, f"not a serialised {TRACES_TYPE}: " + (f"its first bytes {raw[:4].hex()} are not a "
-                                                                        "CDR header" if raw else "an empty message"))
-                continue
-            try:
-                frame = decode_traces_serialized(raw)
+            try:  # a copy: the frame's traces view it (no buffer of the reader's, which it may reuse)
+                frame = decode_traces_serialized(bytes(raw), cdr_only=True)  # a bag's messages are CDR
             except FrameError as exc:
                 stats.skip(i, first_line(exc))
                 continue
@@ -638,8 +633,6 @@ def iter_bag_frames(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
             yield frame
 
 
-#: The encapsulation headers of plain CDR (big- and little-endian), as rosbag2 stores messages.
-CDR_HEADERS = (b"\x00\x00", b"\x00\x01")
 #: Rows per chunk :func:`iter_bag_chunks` yields at most by default (whole frames; 32 MB of 512-sample traces).
 CHUNK_ROWS = 16384
 #: Trace frames of another sampling than the reader's, before any of its own, after which a bag is refused.

@@ -195,10 +195,6 @@ class FeStats:
         self._mark = (time.monotonic(), {})
         self.last_error = ""
 
-    def since_period(self) -> float:
-        """Seconds since the last :meth:`period` (or since this object was made)."""
-        return time.monotonic() - self._mark[0]
-
     def period(self, tracker, frames_malformed: int, estimates_published: int):
         """``(level, message, values)`` over the time since the last call: WARN when input fe could not use
         arrived in the period (:data:`FE_WARN_KEYS`), STALE when neither traces nor drying lists arrived, else OK.

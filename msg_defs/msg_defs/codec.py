@@ -376,7 +376,7 @@ def _read_cdr_fields(buf):
 
 
 def decode_traces_serialized(buf, *, max_nozzle_id: int | None = None, n_samples: int | None = None,
-                             sample_rate_hz: float | None = None) -> TraceFrame:
+                             sample_rate_hz: float | None = None, cdr_only: bool = False) -> TraceFrame:
     """:func:`decode_traces` of a serialized trace message, as a raw subscription
     (``create_subscription(..., raw=True)``) takes it.
 
@@ -392,6 +392,9 @@ def decode_traces_serialized(buf, *, max_nozzle_id: int | None = None, n_samples
         :func:`decode_traces`.
     max_nozzle_id, n_samples, sample_rate_hz
         As for :func:`decode_traces`.
+    cdr_only : bool
+        Refuse (FrameError) bytes that are not plain CDR instead of handing them to rclpy, whose
+        deserialiser prints its own complaints on stderr (a rosbag2 bag stores CDR only).
 
     Returns
     -------
@@ -401,6 +404,9 @@ def decode_traces_serialized(buf, *, max_nozzle_id: int | None = None, n_samples
         return decode_traces(buf, max_nozzle_id=max_nozzle_id, n_samples=n_samples, sample_rate_hz=sample_rate_hz)
     if not isinstance(buf, (bytes, bytearray, memoryview)):
         raise FrameError(f"expected a serialized std_msgs/Float32MultiArray (bytes), got {type(buf).__name__}")
+    if cdr_only and bytes(buf[:2]) not in _CDR_BYTE_ORDER:
+        raise FrameError("not a serialised std_msgs/msg/Float32MultiArray: " + (
+            f"its first bytes {bytes(buf[:4]).hex()} are not a CDR header" if len(buf) else "an empty message"))
     if len(buf) < 4:
         raise FrameError(f"serialized trace frame of {len(buf)} bytes")
     parts = _read_cdr_traces(buf)

@@ -259,6 +259,7 @@ def run(args) -> int:
     from pathlib import Path
 
     from inkdiag_core.calibration import MODE_MISFIT_WARNING, calibrate
+    from inkdiag_core.training import empty_channel_mode_hz
     from inkdiag_core.head_profile import HeadProfile
     from ..bags import is_bag, report_stats, stream_recording
 
@@ -358,7 +359,8 @@ def run(args) -> int:
     act = report["actuator"]
     if act["warning"]:
         print(f"inkdiag calibrate: warning: {act['warning']}", file=sys.stderr)
-    elif not report["empty_mode"] and act["source"].startswith("assumed") and not _empty_classes_fit(result.profile):
+    elif (not report["empty_mode"] and act["source"].startswith("assumed")
+          and fs < 2.0 * empty_channel_mode_hz(result.profile)):  # what train refuses
         print(f"inkdiag calibrate: warning: the empty channels' actuator is assumed like the default head's, "
               f"{act['f_act_hz'] / 1e3:.0f} kHz at this B_act, above the Nyquist frequency {fs / 2e3:.0f} kHz of this "
               f"sampling: inkdiag train refuses this profile (the empty-channel classes cannot be simulated). If the "
@@ -413,14 +415,6 @@ def _plot(result, path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
-
-
-def _empty_classes_fit(profile) -> bool:
-    """Whether the profile's empty-channel classes ring below its Nyquist frequency (what train checks)."""
-    from inkdiag_core import FaultClass
-    from inkdiag_core.simulation.modal import class_max_frequency
-
-    return profile.sample_rate_hz >= 2.0 * class_max_frequency(FaultClass.EMPTY_CHANNEL_1, profile.channel_params())
 
 
 def _beyond_adc(nominal, traces):

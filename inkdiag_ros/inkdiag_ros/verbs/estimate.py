@@ -272,10 +272,9 @@ def _other_faults_note(labels) -> str:
     import collections
 
     from inkdiag_core import FaultClass
-    from inkdiag_core.faults import HEALTHY_VALUES
+    from inkdiag_core.faults import DRIED_VALUES, HEALTHY_VALUES
 
-    drying = {c.value for c in FaultClass if c.value.endswith("_dried")}
-    faults = {c.value for c in FaultClass} - drying - set(HEALTHY_VALUES)
+    faults = {c.value for c in FaultClass} - set(DRIED_VALUES) - set(HEALTHY_VALUES)
     other = collections.Counter(v for v in labels.tolist() if v in faults)
     if not other:
         return ""
@@ -287,10 +286,11 @@ def _other_faults_note(labels) -> str:
 def _class_values(spec):
     """The class values ``--rows`` names (``dried``: the three dried classes), or None: ``spec`` names rows."""
     from inkdiag_core import FaultClass
+    from inkdiag_core.faults import DRIED_VALUES
 
     spec = spec.strip().lower()  # class names without case, as a labels CSV's
     if spec == "dried":
-        return {c.value for c in FaultClass if c.value.endswith("_dried")}
+        return set(DRIED_VALUES)
     return {spec} if spec in {c.value for c in FaultClass} else None
 
 
