@@ -42,7 +42,7 @@ fi
 
 if [ "$(cat "$_inkdiag_stamp_file" 2>/dev/null)" != "$_inkdiag_stamp_want" ]; then
   _inkdiag_log="$INKDIAG_VENV/install.log"
-  echo "inkdiag: installing ROS 2 Jazzy wheels, numpy/scipy/scikit-learn and the three packages into .venv (about a minute; log: $_inkdiag_log)" >&2
+  echo "inkdiag: installing ROS 2 Jazzy wheels, numpy/scipy/scikit-learn and the three packages into .venv (two to three minutes; log: $_inkdiag_log)" >&2
   _inkdiag_t0=$(date +%s)
   rm -f "$_inkdiag_stamp_file"
   if ! ( cd "$INKDIAG_ROOT" &&
