@@ -63,6 +63,7 @@ def test_calibrate_end_to_end(files, tmp_path):
     # a nominal without the ADC: the default head's assumed, and said (helper-79's QA: it was silent)
     assert "note: the ADC is assumed like the default head's, +-2 V, 12 bits (sensor.adc_range_v, sensor.adc_bits " \
            "not in" in r.stdout and "beyond the ADC" not in r.stderr, (r.stdout, r.stderr)
+    assert "do not ring above their noise" not in r.stderr, r.stderr
     # healthy traces alone leave the restrictor's split to the prior: said, with what pins it
     by = p.calibration["determined_by"]["I_r"]
     ratio = report["identifiability"]["parameters"]["I_r"]["ratio_to_I_n"]
@@ -222,6 +223,21 @@ def test_healthy_traces_beyond_the_profiles_adc_range(files, tmp_path, capsys):
     assert cli.main(["calibrate", str(tmp_path / "clip.npz"), "--nominal", str(tmp_path / "given.yaml"), *args]) == 0
     err = capsys.readouterr().err
     assert "of the 300 healthy traces are clipped at the ADC and left out: the fit rests on the others" in err, err
+
+
+def test_traces_that_do_not_ring_are_warned_about(files, tmp_path, capsys):
+    """A tenth or more of the traces left out as not ringing above their noise: a warning, the profile written
+    (helper-111: at 5 dB SNR the quieter third went, with a note only; the fit rests on the louder traces)."""
+    rec = load_recording(files / "healthy.npz")
+    y = rec.traces.copy()
+    y[::3] = np.random.default_rng(7).normal(0.0, 0.01, y[::3].shape).astype(y.dtype)  # nozzles that did not fire
+    save_recording(tmp_path / "quiet.npz", Recording.from_arrays(y, rec.sample_rate_hz))
+    assert cli.main(["calibrate", str(tmp_path / "quiet.npz"), "--nominal", str(files / "nominal.yaml"),
+                     "--out", str(tmp_path / "head.yaml"), "--no-vp-cal"]) == 0
+    out = capsys.readouterr()
+    assert "warning: 100 of the 300 healthy traces screening kept do not ring above their noise and are left out" \
+        in out.err, out.err
+    assert "(200 traces, 0 dropped, 100 left out: not ringing above their noise)" in out.out, out.out
 
 
 def test_faulty_traces_given_as_healthy_are_calibrated_with_a_warning(tmp_path, capsys):
