@@ -55,7 +55,8 @@ def _default_head():
     return HeadProfile.default()
 from .trend import CLOCK_RESET_S, FmTrendBank, deeply_dried_fm
 
-__all__ = ["AT_BOUND_REASON", "BELOW_NOISE_REASON", "ESTIMATE_COLUMNS", "NONPHYSICAL_REASON", "DryingTracker",
+__all__ = ["AT_BOUND_REASON", "BELOW_NOISE_REASON", "ESTIMATE_COLUMNS", "MISFIT_REASON", "NONPHYSICAL_REASON",
+           "DryingTracker",
            "RangeEstimates",
            "RowEstimates"]
 
@@ -68,6 +69,18 @@ NONPHYSICAL_REASON = "viscosity_not_positive"
 #: channels and some small air bubbles end there (a viscosity 22x the ink's for a blocked one, 0.85x for an empty
 #: one, reported as estimates before); drying nozzles of the simulated classes (up to about 10x) do not.
 AT_BOUND_REASON = "at_search_bound"
+#: Reason of a row whose fitted drying channel leaves more than :data:`MISFIT_REL` of the row's variation
+#: unexplained (``FmBatchEstimate.residual_rel``), and, with a profile, more than :data:`MISFIT_NOISE_FACTOR` times
+#: its sensor noise: a trace the drying model does not describe (an air bubble, a ringing of another kind that fdi
+#: listed as dried), whose f_m would be a number and no estimate.
+MISFIT_REASON = "misfit"
+#: Dried rows of the five heads of ``tests/foreign_head.py`` (300 a class and head, 30 dB) leave at most 0.19 with
+#: their true profiles and 0.26 with calibrated ones (h5's deeply dried); healthy rows up to 0.44, small air bubbles
+#: 0.25-0.46, mature and intermediate ones about 0.9, empty channels 1.0 (the default head).
+MISFIT_REL = 0.35
+#: Dried rows leave at most 4.8 times the sensor noise in their residual's rms (h5 calibrated, as above); a row whose
+#: residual is noise (a low SNR) is no misfit however large its share.
+MISFIT_NOISE_FACTOR = 6.0
 #: Reason of a row of a head with a profile whose AC rms is at most :data:`BELOW_NOISE_FACTOR` times the
 #: profile's sensor noise (``noise_std_v``): no ringing to fit (a nozzle that did not fire, traces in other
 #: units). White noise once came out as f_m -4.6e6 1/s with no reason.
@@ -174,7 +187,8 @@ class RowEstimates:
         ``""`` for estimated rows; else screening's reason
         (:data:`~inkdiag_core.INVALID_REASONS`), :data:`BELOW_NOISE_REASON` (no ringing above the
         profile's sensor noise), ``"estimate_not_finite"``, :data:`NONPHYSICAL_REASON` (the estimate
-        means a viscosity <= 0) or :data:`AT_BOUND_REASON` (the fit ended at its search interval's edge).
+        means a viscosity <= 0), :data:`AT_BOUND_REASON` (the fit ended at its search interval's edge) or
+        :data:`MISFIT_REASON` (the drying model leaves much of the trace unexplained).
     method : str
         The estimator that ran.
     note : str
@@ -290,11 +304,13 @@ class DryingTracker:
         self.vp_cal = None
         fm_deep = None
         self.min_ac_rms_v = 0.0  # rows at or below it: BELOW_NOISE_REASON (a head with a profile)
+        self.noise_std_v = 0.0  # the profile's sensor noise, V (0: none known)
         self.rails_v = None  # (low, high) windows of the ADC's end codes: rows resting there are 'clipped'
         if profile is not None:
             from .estimation import vp_cal_for
 
-            self.min_ac_rms_v = BELOW_NOISE_FACTOR * profile.noise_std_v()
+            self.noise_std_v = profile.noise_std_v()
+            self.min_ac_rms_v = BELOW_NOISE_FACTOR * self.noise_std_v
             self.rails_v = adc_rails(profile)
 
             model = profile.model()
@@ -315,7 +331,7 @@ class DryingTracker:
         self.rows_invalid = self.estimates = self.estimates_with_baseline = 0
         self.estimates_thinner = 0  # of the estimates: a viscosity below THIN_FACTOR x the ink's (another head?)
         self.rows_capped = 0  # listed rows of a range beyond max_estimates: not estimated
-        self.rows_no_fit = 0  # rows estimated whose f_m is no estimate (not finite, viscosity <= 0, at a bound)
+        self.rows_no_fit = 0  # rows estimated whose f_m is no estimate (not finite, viscosity <= 0, at a bound, misfit)
 
     @property
     def pending(self) -> tuple:
@@ -566,6 +582,11 @@ class DryingTracker:
             edge = ~bad & est.at_bound
             reasons[sel[edge]] = AT_BOUND_REASON
             bad |= edge
+            misfit = ~bad & (est.residual_rel > MISFIT_REL)  # NaN (no residual): False
+            if self.noise_std_v > 0 and misfit.any():  # a residual of noise alone is no misfit
+                misfit &= est.residual_rel * np.std(rows[sel], axis=1) > MISFIT_NOISE_FACTOR * self.noise_std_v
+            reasons[sel[misfit]] = MISFIT_REASON
+            bad |= misfit
             self.rows_no_fit += int(np.count_nonzero(bad))
             for k, v in zip(("fm", "fm_std", "d_mu", "viscosity"), (est.fm, est.std, est.d_mu, est.viscosity)):
                 cols[k][sel] = v

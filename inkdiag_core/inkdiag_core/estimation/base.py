@@ -97,7 +97,10 @@ class FmBatchEstimate:
     """Estimates for a batch of traces: the fields of :class:`FmEstimate` as arrays.
 
     ``fm, std, d_mu, viscosity, offset, at_bound`` have shape (n,), ``ci`` (n, 2),
-    ``x0`` (n, 3), ``trace`` (n, n_samples).
+    ``x0`` (n, 3), ``trace`` (n, n_samples). ``residual_rel`` (n,), dimensionless: for
+    ``"vp"``/``"vp_cal"``, the rms of what the fitted channel (at the "vp" f_m) leaves of a
+    trace over the trace's rms about its mean (noise alone gives the noise's share; a trace
+    the drying model does not describe, e.g. an air bubble, 0.4-0.9); NaN for the other methods.
     """
 
     fm: np.ndarray
@@ -110,10 +113,13 @@ class FmBatchEstimate:
     x0: np.ndarray
     offset: np.ndarray
     at_bound: np.ndarray = None  # (n,) bool; None: all False (set in __post_init__)
+    residual_rel: np.ndarray = None  # (n,) float; None: all NaN (set in __post_init__)
 
     def __post_init__(self):
         if self.at_bound is None:
             object.__setattr__(self, "at_bound", np.zeros(np.shape(self.fm)[0], bool))
+        if self.residual_rel is None:
+            object.__setattr__(self, "residual_rel", np.full(np.shape(self.fm)[0], np.nan))
 
     def __len__(self) -> int:
         return int(self.fm.shape[0])

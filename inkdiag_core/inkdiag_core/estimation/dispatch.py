@@ -173,6 +173,7 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, basel
     std = np.full(n, np.nan)
     offset = np.zeros(n)
     at_bound = np.zeros(n, bool)
+    residual_rel = np.full(n, np.nan)
     if method in ("dt", "dt_exact", "ct"):
         Xs0 = sc.to_scaled_x(X0, c)
         common = dict(exact_T=o.exact_T, window=o.window, steady_frac=o.steady_frac)
@@ -194,7 +195,11 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, basel
     else:
         bounds = _bounds(A, B_f, o.fm_bounds)
         key = (tuple(A.ravel()), tuple(C.ravel()), tuple(B_f.ravel()), float(fs))
-        fm, std, xs0, off_s = vp_batch(sc, key, Ys, fm_bounds=bounds, n_grid=o.n_grid)
+        fm, std, xs0, off_s, rss = vp_batch(sc, key, Ys, fm_bounds=bounds, n_grid=o.n_grid)
+        # the share of the row's variation the fitted channel leaves (its sum of squares about the row's mean)
+        tss = np.einsum("nk,nk->n", Ys, Ys) - N * np.mean(Ys, axis=1) ** 2
+        with np.errstate(invalid="ignore", divide="ignore"):
+            residual_rel = np.sqrt(np.maximum(rss, 0.0) / tss)
         edge = AT_BOUND_FRACTION * (bounds[1] - bounds[0])  # the search ends exactly at an edge it cannot pass
         at_bound = (fm <= bounds[0] + edge) | (fm >= bounds[1] - edge)
         if method == "vp_cal":
@@ -222,7 +227,8 @@ def estimate_fm_batch(Y, model, sample_rate_hz, *, method="auto", x0=None, basel
     else:
         d_mu = mu = np.full(n, np.nan)
     return FmBatchEstimate(fm=fm, trace=trace, method=method, std=std, ci=ci, d_mu=d_mu,
-                           viscosity=mu, x0=x0_out, offset=offset, at_bound=at_bound)
+                           viscosity=mu, x0=x0_out, offset=offset, at_bound=at_bound,
+                           residual_rel=residual_rel)
 
 
 def estimate_fm(y, model, sample_rate_hz, *, method="auto", x0=None, **kwargs) -> FmEstimate:

@@ -222,7 +222,7 @@ def _vp_batch(sc, key, Ys, fm_bounds, n_grid, max_iter, tol):
     m2 = np.where(pair, np.conj(m1), theta[:, 1])
     modal = np.stack([m1, m2, theta[:, 2]], axis=1) / CV
     xs0 = np.einsum("nij,nj->ni", V, modal).real
-    return f / T0, std / T0, xs0, theta[:, 3]
+    return f / T0, std / T0, xs0, theta[:, 3], R
 
 
 # ---------------------------------------------------------------------------

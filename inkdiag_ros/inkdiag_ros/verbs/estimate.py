@@ -41,8 +41,10 @@ no ringing to fit), estimate_not_finite, viscosity_not_positive (an estimate
 that means a viscosity of 0 or less: no drying nozzle the channel model
 describes, e.g. an empty channel or a bubble), or at_search_bound (the fit
 ended at an edge of its interval, a viscosity 16x the ink's or thinner than
-the ink: a blocked nozzle, an empty channel); the others are estimated all
-the same. fm_trend and fm_rate are filled when the recording has stamps
+the ink: a blocked nozzle, an empty channel), or misfit (the drying model
+leaves over 35 % of the trace unexplained, and over 6x the profile's noise:
+no drying nozzle, e.g. an air bubble); the others are estimated all the
+same. fm_trend and fm_rate are filled when the recording has stamps
 (several frames per nozzle).
 
 ROWS: comma-separated indices and ranges START:STOP (STOP excluded, either
