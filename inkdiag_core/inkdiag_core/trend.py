@@ -412,6 +412,7 @@ class FmTrendBank:
         self.epoch = 0
         self.clock = math.nan
         self.nozzle_epoch = np.empty(0, dtype=np.int64)
+        self.t_ended = np.empty(0)  # per nozzle: the time of the news that ended its trend (forget), s; NaN: none
 
     def __len__(self) -> int:
         return int(self.ids.size)
@@ -435,6 +436,7 @@ class FmTrendBank:
             self.x, self.P, self.t = grow(self.x, 0.0), grow(self.P, 0.0), grow(self.t, np.nan)
             self.n_updates, self.K, self.y = grow(self.n_updates, 0), grow(self.K, np.nan), grow(self.y, np.nan)
             self.nozzle_epoch = grow(self.nozzle_epoch, -1)
+            self.t_ended = grow(self.t_ended, np.nan)
             self.ids = ids
             self._clear(np.searchsorted(ids, new))
         return np.searchsorted(self.ids, nozzles)
@@ -466,6 +468,8 @@ class FmTrendBank:
         known = rows < self.ids.size
         rows = rows[known][self.ids[rows[known]] == ids[known]]
         rows = rows[(self.n_updates[rows] > 0) & (self.t[rows] < before)]
+        # a frame older than the news that ended the trend is stale for fold_newer (a late frame: no restart)
+        self.t_ended[rows] = before if math.isfinite(before) else self.t[rows]
         self._clear(rows)
         return int(rows.size)
 
@@ -520,7 +524,9 @@ class FmTrendBank:
         :meth:`update` folds every entry in (a repeated id once per occurrence; a time not after a
         nozzle's last one as a level update). A monitor must not: a frame sent twice, or arriving
         after a later one, would count as a new measurement. Here a nozzle's first finite entry is
-        folded in if ``t`` is after its last update; an entry at or before it is left out (stale).
+        folded in if ``t`` is after its last update; an entry at or before it is left out (stale), and
+        so is one at or before the news that ended its trend (:meth:`forget`'s ``before``: a late frame
+        of a nozzle that recovered does not start a new trend).
         A ``t`` ``reset_after_s`` or more before the latest frame given here restarts the clock (a
         controller restarted, a recording replayed again): from then on each nozzle's trend
         restarts (its old state dropped) at its first entry on the new clock, whatever its last
@@ -561,6 +567,10 @@ class FmTrendBank:
         other_clock[seen] = self.nozzle_epoch[at[seen]] != self.epoch
         older = np.zeros(ids.size, dtype=bool)
         older[seen] = self.t[at[seen]] >= t
+        ended = (at < self.ids.size) & ~seen  # known, no trend now: ended by forget on this clock, after t?
+        ended[ended] = self.ids[at[ended]] == ids[ended]
+        ended[ended] = (self.t_ended[at[ended]] >= t) & (self.nozzle_epoch[at[ended]] == self.epoch)
+        older |= ended
         restart = keep & other_clock
         keep &= restart | ~older
         if restart.any():

@@ -105,6 +105,28 @@ def test_a_nozzle_that_recovers_and_dries_again_starts_a_new_trend():
     assert tr.trends_recovered == 1 and tr.trends.n_updates[tr.trends.ids == 2] == 1
 
 
+def test_a_late_frame_of_a_nozzle_that_recovered_starts_no_trend():
+    """helper-117: a nozzle's trend ended (it recovered at frame 3); a copy of frame 2, older than that news, then
+    started a new trend, and frame 4's dried estimate went on from it (frame 2 folded twice). It is stale: estimated,
+    not folded; a later drying starts the new trend."""
+    tr = DryingTracker()
+    for f, ids in ((1, [2]), (2, [2]), (3, [])):
+        _traces(tr, _frame(f, {0: ids}), f, 0)
+        _drying(tr, f, 0, ids)
+    assert tr.trends_recovered == 1
+    _traces(tr, _frame(2, {0: [2]}), 2, 0)  # frame 2 again, late
+    late = _drying(tr, 2, 0, [2])
+    assert np.isfinite(late[0].columns["fm"][0]) and np.isnan(late[0].columns["fm_trend"][0])
+    assert tr.rows_stale == 1 and tr.trends.n_updates[tr.trends.ids == 2] == 0
+    _traces(tr, _frame(4, {0: [2]}), 4, 0)
+    new = _drying(tr, 4, 0, [2])[0].columns
+    assert new["fm_trend"][0] == new["fm"][0] and np.isnan(new["fm_rate"][0])  # a new trend: its first estimate
+    # a new clock (a restarted controller, stamps far back) starts over: frame 2's stamp is news there
+    tr.trends.forget([2])
+    _traces(tr, _frame(2, {0: [2]}), 2, 0, stamp=-1e4)
+    assert np.isfinite(_drying(tr, 2, 0, [2])[0].columns["fm_trend"][0])
+
+
 @pytest.mark.parametrize("traces_first", [True, False], ids=["traces_first", "drying_first"])
 def test_a_list_with_entries_left_out_ends_no_trend(traces_first):
     """helper-93: an entry fe could not read (an id written 3.0, a class it does not know) was left out of the list,
@@ -385,10 +407,10 @@ def test_a_repeated_or_late_frame_is_estimated_but_not_folded_into_the_trends():
         np.testing.assert_array_equal(e.columns["fm"], direct.fm)  # the estimates themselves are given
     np.testing.assert_array_equal(tr.trends.x, ref.trends.x)  # the trends of frames 1, 2, 4, in order
     np.testing.assert_array_equal(tr.trends.n_updates, [3, 3])
-    # frame 3 listed no dried nozzle (they recovered: their trends of frame 1 end); frame 2 comes after it and is
-    # folded, as a new trend (the list of a range is taken as its nozzles' state when it comes)
+    # frame 3 listed no dried nozzle (they recovered: their trends of frame 1 end); frame 2 comes after it: older
+    # than that news, so stale, not a new trend (helper-117: it was folded as one)
     tr, out = run([1, 3, 2], listed=lambda k: [] if k == 3 else DRIED[0])
-    assert tr.rows_stale == 0 and [e.note for e in out] == ["", ""] and tr.trends.n_updates.tolist() == [1, 1]
+    assert tr.rows_stale == 2 and [e.frame_id for e in out if e.note] == [2] and tr.trends.n_updates.tolist() == [0, 0]
     assert tr.trends_recovered == 2
 
 
