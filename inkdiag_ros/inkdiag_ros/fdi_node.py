@@ -27,7 +27,7 @@ PARAMS = (
     *SAMPLING_PARAMS,
     ("diagnostics_period_s", 1.0, "period of /diagnostics, s", float, (0.1, 60.0)),
     ("max_queued_frames", 64, "frames waiting for the classifier at most; a full queue drops its oldest", int, (1, 100000)),
-    ("max_batch_traces", 16384, "traces classified in one pass at most", int, (1, 2**24)),
+    ("max_batch_traces", 16384, "traces classified in one pass at most (a larger frame is one pass)", int, (1, 2**24)),
     ("baseline_path", "", "the head's per-nozzle baselines (.npz from record_baseline) for the model's baseline "
      "branch; empty: none", str, None),
     ("max_abs_sample_v", 0.0, "largest sample magnitude a sensor can produce, V; a row beyond it is invalid "

@@ -89,7 +89,9 @@ def render() -> str:
         "file matches the code. *default* is what the node declares; *shipped* is the value in",
         "`inkdiag_ros/config/inkdiag.yaml` (the graph runner and `scripts/run` load it first,",
         "then your `--ros-args`), where it sets one. Ranges are inclusive. Every parameter",
-        "is fixed at start unless its description says it may change at runtime.",
+        "is fixed at start unless its description says it may change at runtime. A `float`",
+        "parameter takes a number with a decimal point (`-p frame_rate_hz:=5.0`; rclpy refuses `5`",
+        "as an integer). Every node also has ROS's own `use_sim_time` (fixed at start).",
         "",
     ]
     for node, module, what in NODES:

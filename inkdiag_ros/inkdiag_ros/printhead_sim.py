@@ -27,6 +27,7 @@ from ._spin import exit_now, spin_node
 from .bags import pop_record_arg, recording_node
 
 from msg_defs import (
+    MAX_NOZZLE_ID,
     FrameError,
     RELIABLE_QOS,
     TRACE_MSG_TYPE,
@@ -45,8 +46,9 @@ from inkdiag_core.simulation.scenario import HeadScenario
 
 PARAMS = (
     # name, default, description, kind, range
-    ("n_nozzles", 64, "nozzles of the simulated head (one frame holds all of them)", int, (1, 100_000)),
-    ("first_nozzle", 0, "id of the head's first nozzle", int, (0, 2**24 - 1)),
+    ("n_nozzles", 64, "nozzles of the simulated head (one frame holds all of them, n_samples each: 2**27 at most)",
+     int, (1, 100_000)),
+    ("first_nozzle", 0, "id of the head's first nozzle (first_nozzle + n_nozzles <= 2**24)", int, (0, 2**24 - 1)),
     ("frame_rate_hz", 5.0, "frames published per second", float, (0.01, 1000.0)),
     HEAD_PROFILE_PARAM,
     ("sample_rate_hz", 0.0, "ADC sample rate of the traces, Hz; 0: the head profile's", float, (0.0, 100e6)),
@@ -55,8 +57,7 @@ PARAMS = (
     ("fault_nozzles", [3, 11, 19, 27], "nozzle ids with a fixed fault", "int[]", None),
     ("fault_classes", ["fully_blocked", "mature_air_bubble", "small_air_bubble", "empty_channel_1"],
      "fault class value of each fault_nozzles entry", "str[]", None),
-    ("random_fault_fraction", 0.0, "fraction of the other nozzles given a random non-drying fault",
-     float, (0.0, 1.0)),
+    ("random_fault_fraction", 0.0, "fraction of the other nozzles given a random non-drying fault", float, (0.0, 1.0)),
     ("drying_nozzles", [40], "nozzle ids that dry over time", "int[]", None),
     ("drying_start_factor", 2.4, "nozzle viscosity / ink viscosity of the drying nozzles at start",
      float, (1.0, 20.0)),
@@ -77,8 +78,7 @@ class PrintheadSim(Node):
     """Simulated printhead: timer -> scenario -> simulator -> encode -> publish."""
 
     def __init__(self, *, ends_process: bool = False, **kwargs):
-        """``ends_process``: this node is its process's only one, which ends once :meth:`finished` (the
-        console entry point); in a graph or printer process it only stops publishing."""
+        """``ends_process``: its process ends once :meth:`finished` (the console entry point), else it stops."""
         super().__init__("printhead_sim", **kwargs)
         self._ends_process = ends_process
         p = _params.declare_all(self, PARAMS)
@@ -101,23 +101,23 @@ class PrintheadSim(Node):
         self._timer = self.create_timer(1.0 / p["frame_rate_hz"], self._on_timer)
         self.get_logger().info(
             f"simulating {p['n_nozzles']} nozzles from {p['first_nozzle']} at {p['frame_rate_hz']:g} Hz on head "
-            f"{self.profile.name!r} ({self.profile.sample_rate_hz / 1e6:g} MHz x {self.profile.n_samples}, "
-            f"sha256 {self.profile.sha256[:12]}); "
-            f"faults {dict(zip(p['fault_nozzles'], p['fault_classes']))}, drying {list(p['drying_nozzles'])}")
+            f"{self.profile.name!r} ({self.profile.sample_rate_hz / 1e6:g} MHz x {self.profile.n_samples}, sha256 "
+            f"{self.profile.sha256[:12]}); faults {dict(zip(p['fault_nozzles'], p['fault_classes']))}, drying "
+            f"{list(p['drying_nozzles'])}")
 
     @staticmethod
     def _load_profile(p) -> HeadProfile:
         """The head: ``head_profile`` (or the default head), sampled at the sampling parameters if given."""
         prof = head_from_parameters(dict(p), resample=True)  # bad or nominal: ValueError, exit 2
+        if (last := p["first_nozzle"] + p["n_nozzles"] - 1) >= MAX_NOZZLE_ID:  # the wire's ids, as msg_defs says
+            raise ValueError(f"nozzles {p['first_nozzle']}..{last}: the traces carry nozzle ids below {MAX_NOZZLE_ID}")
         try:  # the wire must carry its sample rate (msg_defs says how)
             encode_traces(np.zeros((1, prof.n_samples), np.float32), sample_rate_hz=prof.sample_rate_hz)
         except FrameError as exc:
             raise ValueError(f"head profile {prof.name!r} cannot be published: {exc}") from None
         return prof
 
-    @property
-    def scenario(self) -> HeadScenario:
-        return self._scenario
+    scenario = property(lambda self: self._scenario, doc="The node's :class:`HeadScenario`.")
 
     def finished(self) -> bool:
         """Whether ``max_frames`` frames went out at least :data:`LINGER_S` ago (the process may end)."""

@@ -30,7 +30,7 @@ from .labels import (
     encode_labels,
     serialize_labels,
 )
-from .drying import DRYING_MSG_TYPE, DryingNozzles, decode_drying, encode_drying, serialize_drying
+from .drying import DRYING_MSG_TYPE, MAX_NOZZLE_ID, DryingNozzles, decode_drying, encode_drying, serialize_drying
 from .estimates import (
     ESTIMATES_ARRAY_MSG_TYPE,
     ESTIMATES_MSG_TYPE,
@@ -52,6 +52,7 @@ __all__ = [
     "DIAGNOSTICS_QOS",
     "DRIED_CLASSES",
     "DRYING_MSG_TYPE",
+    "MAX_NOZZLE_ID",
     "DryingNozzles",
     "ESTIMATES_ARRAY_MSG_TYPE",
     "ESTIMATES_MSG_TYPE",

@@ -58,6 +58,19 @@ def test_printhead_sim_rejects_bad_scenarios_and_runtime_changes(ros):
         PrintheadSim(context=ros.context, parameter_overrides=[
             P("fault_nozzles", value=[3, 3, 11]), P("fault_classes", value=["fully_blocked", "mature_air_bubble",
                                                                             "deeply_dried"])])
+    # helper-118: the node started, then died at its first frame (nozzle ids past the wire's 2**24; a frame of
+    # 24 GiB)
+    def at(first):  # the head's first nozzle, one fixed fault and one drying nozzle among its own
+        return [P("first_nozzle", value=first), P("fault_nozzles", value=[first]),
+                P("fault_classes", value=["fully_blocked"]), P("drying_nozzles", value=[first + 1])]
+
+    with pytest.raises(ValueError, match=r"nozzles 16777215\.\.16777278: the traces carry nozzle ids below 16777216"):
+        PrintheadSim(context=ros.context, parameter_overrides=at(2**24 - 1))
+    with pytest.raises(ValueError, match="a frame of 100000 nozzles x 65536 samples is more than 134,217,728"):
+        PrintheadSim(context=ros.context, parameter_overrides=[P("n_nozzles", value=100_000),
+                                                               P("n_samples", value=65536)])
+    last = ros.add(PrintheadSim(context=ros.context, parameter_overrides=at(2**24 - 64)))
+    assert last.scenario.first_nozzle == 2**24 - 64  # its last nozzle, 2**24 - 1, is on the wire
     sim = ros.add(PrintheadSim(context=ros.context))
     res = sim.set_parameters([P("n_nozzles", value=8)])[0]
     assert not res.successful and "fixed at start" in res.reason

@@ -53,6 +53,11 @@ def dried_class_of(k: np.ndarray) -> np.ndarray:
     return np.where(k < lo_i, s, np.where(k < lo_d, i, d)).astype(object)
 
 
+#: Samples one simulated frame holds at most (``n_nozzles x n_samples``): 512 MiB of float32, about three times
+#: that at its peak while it is simulated (20,000 nozzles x 512 samples: 41 MB, 125 MB more at the peak).
+MAX_FRAME_SAMPLES = 2**27
+
+
 class HeadScenario:
     """Faults of a simulated head over time.
 
@@ -81,6 +86,10 @@ class HeadScenario:
                  random_fault_fraction=0.0, drying_nozzles=(), drying_start_factor=2.4,
                  drying_end_factor=9.0, drying_duration_s=20.0, faults_start_s=0.0, seed=0, profile=None):
         self.profile = _complete_profile(profile, "the simulated head")
+        if n_nozzles * self.profile.n_samples > MAX_FRAME_SAMPLES:  # one frame's arrays would not fit in memory
+            raise ValueError(f"a frame of {n_nozzles} nozzles x {self.profile.n_samples} samples is more than "
+                             f"{MAX_FRAME_SAMPLES:,} samples ({4 * MAX_FRAME_SAMPLES / 2**30:g} GiB of float32): "
+                             "simulate the head as several heads of fewer nozzles (first_nozzle)")
         ids = np.arange(first_nozzle, first_nozzle + n_nozzles)
         fault_nozzles = [int(x) for x in fault_nozzles]
         drying_nozzles = [int(x) for x in drying_nozzles]
