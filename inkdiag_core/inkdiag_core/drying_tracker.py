@@ -56,6 +56,7 @@ def _default_head():
 from .trend import CLOCK_RESET_S, FmTrendBank, deeply_dried_fm
 
 __all__ = ["AT_BOUND_REASON", "BELOW_NOISE_REASON", "ESTIMATE_COLUMNS", "MISFIT_REASON", "NONPHYSICAL_REASON",
+           "RECOVERY_FRAMES",
            "DryingTracker",
            "RangeEstimates",
            "RowEstimates"]
@@ -69,14 +70,21 @@ NONPHYSICAL_REASON = "viscosity_not_positive"
 #: channels and some small air bubbles end there (a viscosity 22x the ink's for a blocked one, 0.85x for an empty
 #: one, reported as estimates before); drying nozzles of the simulated classes (up to about 10x) do not.
 AT_BOUND_REASON = "at_search_bound"
+#: Frames in a row that must leave a nozzle out of their drying lists before its trend ends as recovered: one
+#: frame labelled otherwise is most often a misclassification. 100 nozzles drying from 2.4 to 9 times the ink's
+#: viscosity over 20 s at 5 frames/s, none recovering (the default model, no baselines): 88 trends ended at 1
+#: frame, 31 at 2, 20 at 3, 12 at 4 (``scripts/report trend_recovery``, ``reports/trend_recovery.md``).
+RECOVERY_FRAMES = 3
 #: Reason of a row whose fitted drying channel leaves more than :data:`MISFIT_REL` of the row's variation
 #: unexplained (``FmBatchEstimate.residual_rel``), and, with a profile, more than :data:`MISFIT_NOISE_FACTOR` times
 #: its sensor noise: a trace the drying model does not describe (an air bubble, a ringing of another kind that fdi
 #: listed as dried), whose f_m would be a number and no estimate.
 MISFIT_REASON = "misfit"
 #: Dried rows of the five heads of ``tests/foreign_head.py`` (300 a class and head, 30 dB) leave at most 0.19 with
-#: their true profiles and 0.26 with calibrated ones (h5's deeply dried); healthy rows up to 0.44, small air bubbles
-#: 0.25-0.46, mature and intermediate ones about 0.9, empty channels 1.0 (the default head).
+#: their true profiles and 0.26 with calibrated ones (h5's deeply dried); healthy rows up to 0.44 (about 1 in 100 of
+#: them above 0.35 on those heads: a healthy row estimated, as ``inkdiag estimate`` does every row by default, may
+#: be a misfit), small air bubbles 0.25-0.46, mature and intermediate ones about 0.9, empty channels 1.0 (the
+#: default head). A ratio of rms values: 0.35 is 12 % of the row's variance.
 MISFIT_REL = 0.35
 #: Dried rows leave at most 4.8 times the sensor noise in their residual's rms (h5 calibrated, as above); a row whose
 #: residual is noise (a low SNR) is no misfit however large its share.
@@ -252,6 +260,10 @@ class DryingTracker:
         :class:`~inkdiag_core.FmTrend`'s ``accel_std`` (1/s^3) and ``rel_floor``.
     method : {"auto", "vp", "vp_cal"}
         The estimator (``estimate_fm_batch``'s ``method``; "auto" is "vp_cal").
+    recovery_frames : int
+        A nozzle's trend ends as recovered when this many frames in a row (each later than the one before,
+        none with an estimate of the nozzle) leave it out of their range's drying list
+        (:data:`RECOVERY_FRAMES`; 1: at the first).
 
     Attributes
     ----------
@@ -266,8 +278,8 @@ class DryingTracker:
         range counts only if it matched no range at all); traces also when a later
         frame's list for their range came first.
     rows_stale : int
-        Estimates not folded into their nozzle's trend since its last update is not before
-        their frame's stamp (a repeated frame, one that arrived after a later one, a nozzle
+        Estimates not folded into their nozzle's trend since its last update, or the recovery that
+        ended it, is not before their frame's stamp (a repeated frame, one that arrived after a later one, a nozzle
         twice in a frame; :meth:`~inkdiag_core.FmTrendBank.fold_newer`): their trend columns
         are NaN and their range's note says so; folding them would take an old measurement for a
         new one.
@@ -275,9 +287,10 @@ class DryingTracker:
         Nozzle trends restarted since the stamps went back :data:`~inkdiag_core.trend.CLOCK_RESET_S` or
         more (a restarted clock: a controller restarted, a recording replayed again).
     trends_recovered : int
-        Nozzle trends ended because the drying list of their range (one with ``first_nozzle``) left
-        the nozzle out (it recovered, e.g. purged): if it dries again, its trend starts anew. Only
-        for a trace screening accepts and a frame after the trend's last update.
+        Nozzle trends ended because the drying lists of their range (ones with ``first_nozzle``) left
+        the nozzle out in ``recovery_frames`` frames in a row (it recovered, e.g. purged): if it dries
+        again, its trend starts anew. Only frames with a trace screening accepts, after the trend's
+        last update, count.
     rows_invalid : int
         Listed rows that screening rejected, or with no ringing above the profile's sensor noise
         (:data:`BELOW_NOISE_REASON`): not estimated.
@@ -287,9 +300,12 @@ class DryingTracker:
 
     def __init__(self, model=None, *, profile=None, max_estimates: int = 64, max_pending: int = 128,
                  baselines=None, trend_accel_std: float = 5e3, trend_rel_floor: float = 0.05,
-                 method: str = "auto", max_abs_v: float | None = None):
+                 method: str = "auto", max_abs_v: float | None = None, recovery_frames: int = None):
         if int(max_estimates) < 1 or int(max_pending) < 1:
             raise ValueError(f"max_estimates and max_pending must be >= 1, got {max_estimates}, {max_pending}")
+        self.recovery_frames = RECOVERY_FRAMES if recovery_frames is None else int(recovery_frames)
+        if self.recovery_frames < 1:
+            raise ValueError(f"recovery_frames must be >= 1, got {recovery_frames!r}")
         if method not in ("auto", "vp", "vp_cal"):
             raise ValueError(f"method must be 'auto', 'vp' or 'vp_cal' (no initial state), got {method!r}")
         if profile is not None and model is not None:
@@ -485,7 +501,8 @@ class DryingTracker:
             self.end_recovered(gone, x[gone - first], stamp=t.stamp, sample_rate_hz=t.sample_rate_hz)
 
     def end_recovered(self, nozzles, traces, *, stamp: float, sample_rate_hz: float) -> int:
-        """End the trends of ``nozzles`` that a drying list left out (they recovered, e.g. purged): only those
+        """End the trends of ``nozzles`` that a drying list left out (they recovered, e.g. purged), the
+        :attr:`recovery_frames`-th frame in a row that does (the frames before it are counted): only those
         whose row of ``traces`` could be estimated (:meth:`usable_rows`: a clipped, non-finite or silent row is no
         news of a recovery: fdi labels it invalid, not healthy) and whose trend was last updated before ``stamp``
         (a late frame is no news either).
@@ -508,7 +525,7 @@ class DryingTracker:
         if not (ids.size and math.isfinite(stamp)):
             return 0
         valid = self.usable_rows(np.asarray(traces), sample_rate_hz)[0]
-        k = self.trends.forget(ids[valid], before=stamp)
+        k = self.trends.forget(ids[valid], before=stamp, after=self.recovery_frames)
         self.trends_recovered += k
         return k
 
@@ -583,7 +600,9 @@ class DryingTracker:
             reasons[sel[edge]] = AT_BOUND_REASON
             bad |= edge
             misfit = ~bad & (est.residual_rel > MISFIT_REL)  # NaN (no residual): False
-            if self.noise_std_v > 0 and misfit.any():  # a residual of noise alone is no misfit
+            # a residual of noise alone is no misfit; without a noise figure (no profile, or noise_std_v 0) the
+            # share alone decides, so a dried row at a low SNR may be called one (fe and estimate have profiles)
+            if self.noise_std_v > 0 and misfit.any():
                 misfit &= est.residual_rel * np.std(rows[sel], axis=1) > MISFIT_NOISE_FACTOR * self.noise_std_v
             reasons[sel[misfit]] = MISFIT_REASON
             bad |= misfit
@@ -613,7 +632,8 @@ class DryingTracker:
         said = []
         if n_stale:
             said.append(f"{n_stale} estimate(s) at {stamp:.6f} s not folded into their nozzle's trend, whose last "
-                        f"update is not before it (a repeated or late frame, or a nozzle twice in a frame; nozzle "
+                        f"update, or the recovery that ended it, is not before it (a repeated or late frame, or a "
+                        f"nozzle twice in a frame; nozzle "
                         f"{ids[~folded][0]}{', ...' if n_stale > 1 else ''})")
         if n_restart:
             said.append(f"{n_restart} nozzle trend(s) restarted at {stamp:.6f} s: the stamps went back "

@@ -394,6 +394,12 @@ class FmTrendBank:
         How often :meth:`fold_newer` found the clock restarted.
     nozzle_epoch : ndarray of int64, shape (m,)
         ``epoch`` at each nozzle's last update (-1 before the first).
+    t_ended, ended_epoch : ndarray, shape (m,)
+        Per nozzle, the time (s; NaN: none) and ``epoch`` of the news that last ended its trend
+        (:meth:`forget`): :meth:`fold_newer` leaves out its entries at or before that time on that clock.
+    misses, t_missed : ndarray, shape (m,)
+        Per nozzle, :meth:`forget`'s news counted since its last update (``after`` > 1), and the time of
+        the latest (s; NaN: none).
     """
 
     def __init__(self, accel_std: float = 5e3, rel_floor: float = 0.05, fm_deep: float | None = None):
@@ -413,6 +419,9 @@ class FmTrendBank:
         self.clock = math.nan
         self.nozzle_epoch = np.empty(0, dtype=np.int64)
         self.t_ended = np.empty(0)  # per nozzle: the time of the news that ended its trend (forget), s; NaN: none
+        self.ended_epoch = np.empty(0, dtype=np.int64)  # per nozzle: ``epoch`` when that news came (-1: none)
+        self.misses = np.empty(0, dtype=np.int64)  # per nozzle: forget's news since its last update (frames)
+        self.t_missed = np.empty(0)  # per nozzle: the time of the latest of them, s (NaN: none)
 
     def __len__(self) -> int:
         return int(self.ids.size)
@@ -436,7 +445,8 @@ class FmTrendBank:
             self.x, self.P, self.t = grow(self.x, 0.0), grow(self.P, 0.0), grow(self.t, np.nan)
             self.n_updates, self.K, self.y = grow(self.n_updates, 0), grow(self.K, np.nan), grow(self.y, np.nan)
             self.nozzle_epoch = grow(self.nozzle_epoch, -1)
-            self.t_ended = grow(self.t_ended, np.nan)
+            self.t_ended, self.ended_epoch = grow(self.t_ended, np.nan), grow(self.ended_epoch, -1)
+            self.misses, self.t_missed = grow(self.misses, 0), grow(self.t_missed, np.nan)
             self.ids = ids
             self._clear(np.searchsorted(ids, new))
         return np.searchsorted(self.ids, nozzles)
@@ -444,10 +454,11 @@ class FmTrendBank:
     def _clear(self, rows) -> None:
         """Rows ``rows`` as a nozzle before its first update (a new one, or one whose trend restarts)."""
         self.x[rows], self.P[rows], self.t[rows], self.n_updates[rows] = 0.0, 0.0, np.nan, 0
+        self.misses[rows], self.t_missed[rows] = 0, np.nan
         self.P[rows, 0, 0] = self.P[rows, 1, 1] = np.inf
         self.K[rows], self.y[rows] = np.nan, np.nan
 
-    def forget(self, nozzles, before: float = math.inf) -> int:
+    def forget(self, nozzles, before: float = math.inf, *, after: int = 1) -> int:
         """Restart the trends of ``nozzles`` (ids; those without a trend are ignored): their next estimate
         starts a new one, as a nozzle's first does (a nozzle that recovered, then dries again).
 
@@ -456,7 +467,13 @@ class FmTrendBank:
         nozzles : array_like of int
         before : float
             Only trends last updated before this time, s (a frame's stamp: news of a recovery older than
-            a trend's last estimate, a late frame's, does not end it).
+            a trend's last estimate, a late frame's, does not end it). A trend it ends keeps it as
+            :attr:`t_ended` (its last update's time when infinite): :meth:`fold_newer` then leaves out
+            the nozzle's entries at or before it on the same clock.
+        after : int
+            Restart a trend at its ``after``-th such news since its last update (each at a later
+            ``before`` than the one before it: a frame given twice counts once); the news before it
+            are counted, the trend kept. 1: at once.
 
         Returns
         -------
@@ -468,8 +485,14 @@ class FmTrendBank:
         known = rows < self.ids.size
         rows = rows[known][self.ids[rows[known]] == ids[known]]
         rows = rows[(self.n_updates[rows] > 0) & (self.t[rows] < before)]
+        if after > 1:  # count the news; a time not after the latest one counted is the same news again
+            new = rows[~(self.t_missed[rows] >= before)]
+            self.misses[new] += 1
+            self.t_missed[new] = before
+            rows = rows[self.misses[rows] >= after]
         # a frame older than the news that ended the trend is stale for fold_newer (a late frame: no restart)
         self.t_ended[rows] = before if math.isfinite(before) else self.t[rows]
+        self.ended_epoch[rows] = self.epoch
         self._clear(rows)
         return int(rows.size)
 
@@ -513,6 +536,7 @@ class FmTrendBank:
             upd = np.isfinite(fm[sel])
             self.K[g[upd]], self.y[g[upd]] = K[upd], y[upd]
             self.nozzle_epoch[g[upd]] = self.epoch
+            self.misses[g[upd]], self.t_missed[g[upd]] = 0, np.nan  # news of a recovery before it: void
             out[0, sel] = np.where(n >= 1, x[:, 0], np.nan)
             out[1, sel] = np.where(n >= 2, x[:, 1], np.nan)
             out[2, sel] = eta_deep(x, n, self.fm_deep)
@@ -569,7 +593,7 @@ class FmTrendBank:
         older[seen] = self.t[at[seen]] >= t
         ended = (at < self.ids.size) & ~seen  # known, no trend now: ended by forget on this clock, after t?
         ended[ended] = self.ids[at[ended]] == ids[ended]
-        ended[ended] = (self.t_ended[at[ended]] >= t) & (self.nozzle_epoch[at[ended]] == self.epoch)
+        ended[ended] = (self.t_ended[at[ended]] >= t) & (self.ended_epoch[at[ended]] == self.epoch)
         older |= ended
         restart = keep & other_clock
         keep &= restart | ~older

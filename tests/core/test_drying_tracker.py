@@ -58,7 +58,7 @@ def test_each_range_is_estimated_with_its_own_frames_list_in_either_order(traces
 
 
 def test_a_nozzle_is_estimated_in_its_first_dried_frame_and_not_after_it_recovered():
-    tr = DryingTracker()
+    tr = DryingTracker(recovery_frames=1)
     lists = {1: [2], 2: [2, 5], 3: [5]}  # range 0: 5 dries in frame 2, 2 recovers in frame 3
     got = {}
     for f, ids in lists.items():
@@ -86,7 +86,7 @@ def test_listed_rows_beyond_max_estimates_are_counted():
 def test_a_nozzle_that_recovers_and_dries_again_starts_a_new_trend():
     """helper-88: a nozzle dried, was purged (healthy, left out of its range's lists), dried again: its trend went on
     from the old drying, fm_rate the wrong sign for 6 frames and no ETA."""
-    tr = DryingTracker()
+    tr = DryingTracker(recovery_frames=1)
     lists = {1: [2], 2: [2], 3: [], 4: [2]}
     got = {}
     for f, ids in lists.items():
@@ -105,11 +105,36 @@ def test_a_nozzle_that_recovers_and_dries_again_starts_a_new_trend():
     assert tr.trends_recovered == 1 and tr.trends.n_updates[tr.trends.ids == 2] == 1
 
 
+def test_a_trend_ends_after_recovery_frames_in_a_row_without_the_nozzle():
+    """helper-117: every frame fdi labelled a drying nozzle otherwise (unknown, partially blocked) ended its trend
+    (20 restarts in 351 estimates), its rate and ETA lost. A trend now ends at the RECOVERY_FRAMES-th frame in a
+    row that leaves its nozzle out; an estimate in between starts the count again; a frame given twice counts once."""
+    from inkdiag_core.drying_tracker import RECOVERY_FRAMES
+
+    assert RECOVERY_FRAMES == 3
+    tr = DryingTracker()
+    lists = [[2], [2], [], [], [2], [], [2], [], [], [], [2]]  # frames 1..11: 2 misses, 1, then 3 (ended)
+    rates = {}
+    for f, ids in enumerate(lists, start=1):
+        _traces(tr, _frame(f, {0: ids}), f, 0)
+        out = _drying(tr, f, 0, ids)
+        if ids:
+            rates[f] = out[0].columns["fm_rate"][0]
+        if f == 4:  # frame 4's list again (a repeated message): the same news, not a third
+            _traces(tr, _frame(f, {0: ids}), f, 0)
+            _drying(tr, f, 0, ids)
+    assert np.isfinite(rates[5]) and np.isfinite(rates[7])  # one trend from frame 1 to 7: frame 5 reset the count
+    assert tr.trends_recovered == 1  # frame 10 ended it
+    assert np.isnan(rates[11]) and tr.trends.n_updates[tr.trends.ids == 2] == 1  # frame 11: a new trend
+    with pytest.raises(ValueError, match="recovery_frames must be >= 1"):
+        DryingTracker(recovery_frames=0)
+
+
 def test_a_late_frame_of_a_nozzle_that_recovered_starts_no_trend():
     """helper-117: a nozzle's trend ended (it recovered at frame 3); a copy of frame 2, older than that news, then
     started a new trend, and frame 4's dried estimate went on from it (frame 2 folded twice). It is stale: estimated,
     not folded; a later drying starts the new trend."""
-    tr = DryingTracker()
+    tr = DryingTracker(recovery_frames=1)
     for f, ids in ((1, [2]), (2, [2]), (3, [])):
         _traces(tr, _frame(f, {0: ids}), f, 0)
         _drying(tr, f, 0, ids)
@@ -131,7 +156,7 @@ def test_a_late_frame_of_a_nozzle_that_recovered_starts_no_trend():
 def test_a_list_with_entries_left_out_ends_no_trend(traces_first):
     """helper-93: an entry fe could not read (an id written 3.0, a class it does not know) was left out of the list,
     and its nozzle's trend ended as recovered. A list that is not complete ends no trend; the next complete one does."""
-    tr = DryingTracker()
+    tr = DryingTracker(recovery_frames=1)
     for f in (1, 2):
         _traces(tr, _frame(f, {0: [2]}), f, 0)
         _drying(tr, f, 0, [2])
@@ -338,10 +363,10 @@ def test_a_row_resting_on_the_adcs_end_code_is_clipped_for_estimation():
     y = x.copy()
     y[:3] = np.clip(y[:3] * (2.8 / np.abs(y[:3]).max(axis=1, keepdims=True)), -2.0, top)
     assert screen_traces(y, sample_rate_hz=10e6, max_abs_v=10.0)[0].all()  # shorter than screening's clipped run
-    tr = DryingTracker(profile=p)
+    tr = DryingTracker(profile=p, recovery_frames=1)
     r = tr.estimate_rows(y, np.arange(6), stamp=0.0, sample_rate_hz=10e6)
     assert list(r.reasons) == ["clipped"] * 3 + [""] * 3 and np.isnan(r.columns["fm"][:3]).all()
-    ref = DryingTracker(profile=p).estimate_rows(x, np.arange(6), stamp=0.0, sample_rate_hz=10e6)
+    ref = DryingTracker(profile=p, recovery_frames=1).estimate_rows(x, np.arange(6), stamp=0.0, sample_rate_hz=10e6)
     np.testing.assert_allclose(r.columns["fm"][3:], ref.columns["fm"][3:])
     # a profile that does not state its ADC range (the default 2 V assumed, not known): no rail to rest on
     loose = p.replace(sensor={"adc_range_v": None})
@@ -389,7 +414,7 @@ def test_a_repeated_or_late_frame_is_estimated_but_not_folded_into_the_trends():
     frames = {k: _frame(k) for k in range(1, 6)}
 
     def run(order, listed=lambda k: DRIED[0]):
-        tr, out = DryingTracker(), []
+        tr, out = DryingTracker(recovery_frames=1), []
         for k in order:
             _traces(tr, frames[k], k, 0)
             out += _drying(tr, k, 0, listed(k))
@@ -440,7 +465,7 @@ def test_a_restarted_clock_restarts_the_trends_instead_of_freezing_them():
 def test_a_late_list_or_an_unreadable_trace_does_not_end_a_trend():
     """helper-89: a list of an older frame (late), or a range whose trace of the nozzle screening refuses (fdi labels
     it invalid, not dried), is no news of a recovery: the trend goes on."""
-    tr = DryingTracker()
+    tr = DryingTracker(recovery_frames=1)
     for f in (1, 2):
         _traces(tr, _frame(f, {0: [2]}), f, 0)
         _drying(tr, f, 0, [2])

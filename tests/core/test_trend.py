@@ -48,3 +48,19 @@ def test_edge_cases():
     assert rising.rate > 0 and math.isnan(rising.eta_deep_s)
     with pytest.raises(ValueError):
         FmTrend(accel_std=0)
+
+
+def test_a_late_entry_before_a_recovery_on_the_same_clock_is_stale_whatever_the_trends_clock():
+    """helper-119: a nozzle whose trend was last updated on an old clock, ended (forget) on the new one; an entry of
+    the new clock older than that news started a new trend. The news's own clock decides, not the trend's."""
+    from inkdiag_core.trend import FmTrendBank
+
+    b = FmTrendBank()
+
+    def fold(t, ids):
+        return b.fold_newer(t, ids, np.full(len(ids), -1e5), np.full(len(ids), 1e3))[3]
+
+    fold(100.0, [5]), fold(1000.0, [7]), fold(500.0, [7])  # 1000 -> 500: a new clock
+    b.forget([5], before=600.0)  # nozzle 5's trend (old clock) ends at 600 s, on the new clock
+    assert not fold(550.0, [5])[0]  # older than that news: stale
+    assert fold(650.0, [5])[0] and b.n_updates[b.ids == 5] == 1  # newer: a new trend

@@ -530,12 +530,13 @@ def test_estimate_takes_a_labels_csv_of_a_bag(head, tmp_path):
 
 
 def test_a_nozzle_the_labels_call_recovered_starts_a_new_trend_as_in_fe(tmp_path, monkeypatch, capsys):
-    """fe ends a nozzle's trend when its range's drying list leaves it out (it recovered); estimate with class --rows
-    does the same (the rows not of the class), in an .npz and in a bag; with row indices it does not."""
+    """fe ends a nozzle's trend when its range's drying lists leave it out 3 frames in a row (it recovered); estimate
+    with class --rows does the same (the rows not of the class), in an .npz and in a bag; with row indices it does
+    not. Left out 2 frames in a row, the trend goes on."""
     from inkdiag_core import simulate_nozzles
     from _bags import write_bag
 
-    dried = {0: [2], 1: [2], 2: [], 3: [2]}  # nozzle 2 dries, is purged (frame 2), dries again
+    dried = {0: [2], 1: [2], 2: [], 3: [], 4: [2], 5: [], 6: [], 7: [], 8: [2]}  # purged (5-7), dries again
     frames = []
     for f, ids in dried.items():
         classes = np.array(["healthy_nozzle"] * 4, dtype=object)
@@ -544,8 +545,8 @@ def test_a_nozzle_the_labels_call_recovered_starts_a_new_trend_as_in_fe(tmp_path
     x = np.concatenate([t for _, t in frames])
     label = np.concatenate([c for c, _ in frames]).astype(str)
     save_recording(tmp_path / "r.npz", Recording.from_arrays(
-        x, 10e6, nozzle=np.tile(np.arange(4), 4), frame_id=np.repeat(np.arange(4), 4),
-        stamp=np.repeat(100.0 + np.arange(4), 4), label=label))
+        x, 10e6, nozzle=np.tile(np.arange(4), 9), frame_id=np.repeat(np.arange(9), 4),
+        stamp=np.repeat(100.0 + np.arange(9), 4), label=label))
     bag = write_bag(tmp_path / "bag", [(0, t) for _, t in frames])  # frame k at stamp 100 + k
     with open(tmp_path / "l.csv", "w") as f:
         f.write("row,class\n" + "".join(f"{i},{c}\n" for i, c in enumerate(label)))
@@ -558,11 +559,11 @@ def test_a_nozzle_the_labels_call_recovered_starts_a_new_trend_as_in_fe(tmp_path
         rows = [dict(zip(COLUMNS, line.split(","))) for line in res.stdout.splitlines()[1:]]
         return [(int(r["row"]), r["fm"] == r["fm_trend"], r["fm_rate"] != "") for r in rows if r["nozzle"] == "2"]
 
-    restarted = [(2, True, False), (6, False, True), (14, True, False)]  # frame 3: a first estimate again
+    restarted = [(2, True, False), (6, False, True), (18, False, True), (34, True, False)]  # frame 8: a new trend
     assert nozzle_2(tmp_path / "r.npz", "--rows", "dried") == restarted
     assert nozzle_2(tmp_path / "r.npz", "--labels", tmp_path / "l.csv") == restarted
     assert nozzle_2(bag, "--labels", tmp_path / "l.csv") == restarted
-    assert nozzle_2(tmp_path / "r.npz", "--rows", "2,6,14")[2] == (14, False, True)  # indices: one trend throughout
+    assert nozzle_2(tmp_path / "r.npz", "--rows", "2,6,18,34")[3] == (34, False, True)  # indices: one trend
     # a bag read one frame a chunk (helper-89): the frame without a dried row is a chunk with none selected
     from inkdiag_ros.cli import main
     from inkdiag_ros.verbs import estimate

@@ -12,6 +12,7 @@ similarity (:class:`Scaled`) and each trace is divided by its RMS.
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,6 +79,9 @@ class FmEstimate:
         by default ``(-15, 0.9) |A33|``: a viscosity 16x the ink's, or a thinner ink than any
         nozzle's), so ``fm`` is that edge, not an estimate: the trace is no nozzle the drying model
         reaches (an empty channel), or drier than the interval. False for the other methods.
+    residual_rel : float
+        ``"vp"``/``"vp_cal"``: the rms of what the fitted channel leaves of the trace over the trace's
+        rms about its mean (see :class:`FmBatchEstimate`); NaN for the other methods.
     """
 
     fm: float
@@ -90,6 +94,7 @@ class FmEstimate:
     x0: np.ndarray
     offset: float = 0.0
     at_bound: bool = False
+    residual_rel: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -130,6 +135,7 @@ class FmBatchEstimate:
             std=float(self.std[i]), ci=(float(self.ci[i, 0]), float(self.ci[i, 1])),
             d_mu=float(self.d_mu[i]), viscosity=float(self.viscosity[i]),
             x0=self.x0[i], offset=float(self.offset[i]), at_bound=bool(self.at_bound[i]),
+            residual_rel=float(self.residual_rel[i]),
         )
 
 

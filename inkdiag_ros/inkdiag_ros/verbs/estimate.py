@@ -42,7 +42,7 @@ that means a viscosity of 0 or less: no drying nozzle the channel model
 describes, e.g. an empty channel or a bubble), or at_search_bound (the fit
 ended at an edge of its interval, a viscosity 16x the ink's or thinner than
 the ink: a blocked nozzle, an empty channel), or misfit (the drying model
-leaves over 35 % of the trace unexplained, and over 6x the profile's noise:
+leaves over 35 % of the trace's rms unexplained, and over 6x the profile's noise:
 no drying nozzle, e.g. an air bubble); the others are estimated all the
 same. fm_trend and fm_rate are filled when the recording has stamps
 (several frames per nozzle).
@@ -555,8 +555,8 @@ def _say_after(keys, unfolded, why, n, tracker) -> None:
     stale, restarted = unfolded
     if stale:
         print(f"inkdiag estimate: note: {stale} row(s) estimated but not folded into their nozzle's trend (fm_trend, "
-              "fm_rate empty): their nozzle's trend was already updated at that stamp or later (listed twice in a "
-              "frame, frames of one stamp, or in a bag a frame out of time order)", file=sys.stderr)
+              "fm_rate empty): their nozzle's trend was already updated, or ended as recovered, at that stamp or later "
+              "(listed twice in a frame, frames of one stamp, or in a bag a frame out of time order)", file=sys.stderr)
     if restarted:
         from inkdiag_core.trend import CLOCK_RESET_S
 
