@@ -399,7 +399,7 @@ class DryingTracker:
         return []
 
     def add_drying(self, frame_id: int, nozzles, *, first_nozzle: int | None = None,
-                   n_nozzles: int | None = None, complete: bool = True) -> list:
+                   n_nozzles: int | None = None, complete: bool = True, stamp: float | None = None) -> list:
         """One drying list: the nozzles labelled dried in one range of frame ``frame_id``.
 
         Parameters
@@ -416,6 +416,10 @@ class DryingTracker:
         complete : bool
             False: entries of the list were left out as unreadable (``msg_defs.DryingNozzles.dropped``),
             so a nozzle it leaves out may still be drying: no trend of the range ends as recovered.
+        stamp : float, optional
+            The list's frame time, s. Held traces of the range from an earlier frame id are dropped (their
+            list is not coming) unless they are stamped after it: a controller restarted, its frame ids
+            counting from 0 again, while the old frames' lists were still on their way.
 
         Returns
         -------
@@ -435,7 +439,7 @@ class DryingTracker:
             raise ValueError(f"drying nozzles {ids[0]}..{ids[-1]} are outside the range "
                              f"{first}..{first + n_nozzles - 1}")
         self.drying_received += 1
-        self._drop_stale_traces(frame_id, first)
+        self._drop_stale_traces(frame_id, first, stamp)
         t = self._traces.pop((frame_id, first), None)
         if t is not None:
             return self._join(frame_id, first, t, ids, ranged=bool(complete))
@@ -456,10 +460,12 @@ class DryingTracker:
             out += self._join(frame_id, key[1], self._traces.pop(key), d.nozzles)
         return out
 
-    def _drop_stale_traces(self, frame_id, first) -> None:
+    def _drop_stale_traces(self, frame_id, first, stamp=None) -> None:
         """Drop held traces of range ``first`` from frames before ``frame_id`` (their lists
-        would have come before this one)."""
-        stale = [k for k in self._traces if k[1] == first and k[0] < frame_id]
+        would have come before this one), but those stamped after ``stamp`` (s; a restarted controller's)."""
+        later = stamp is not None and math.isfinite(stamp)
+        stale = [k for k, t in self._traces.items() if k[1] == first and k[0] < frame_id
+                 and not (later and t.stamp > stamp)]
         for k in stale:
             del self._traces[k]
         self.traces_unmatched += len(stale)

@@ -109,7 +109,7 @@ class FeNode(Node):
         try:
             d = decode_drying(msg)
             out = self.tracker.add_drying(d.frame_id, d.nozzles, first_nozzle=d.first_nozzle, n_nozzles=d.n_nozzles,
-                                          complete=not d.dropped)  # entries dropped: no trend ends as recovered
+                                          complete=not d.dropped, stamp=d.stamp)  # dropped: no trend ends
         except (ValueError, OverflowError) as exc:  # MessageError is a ValueError; the tracker's checks too
             self._malformed("drying_nozzles message", exc)
             return

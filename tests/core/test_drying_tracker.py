@@ -235,6 +235,21 @@ def test_bad_input_is_refused_and_changes_nothing():
     assert tr.pending == (0, 0) and tr.traces_received == tr.drying_received == 0
 
 
+def test_a_restarted_controllers_first_frame_is_not_dropped_by_an_old_frames_late_list():
+    """helper-117: the controller restarted (frame ids from 0 again); its frame 0's traces came before the old frame
+    100's list, which dropped them as a frame before 100 whose list could not come. Stamped after that list, they
+    are held; traces older than it are still dropped."""
+    x = _frame(1)
+    tr = DryingTracker()
+    _traces(tr, x, 100, 0, stamp=1000.0)
+    _traces(tr, x, 99, 0, stamp=999.0)  # an old frame whose list was lost
+    _traces(tr, x, 0, 0, stamp=1000.2)  # the restarted controller's first frame
+    (e,) = tr.add_drying(100, DRIED[0], first_nozzle=0, n_nozzles=RANGE, stamp=1000.0)
+    assert e.frame_id == 100 and tr.traces_unmatched == 1 and tr.pending == (1, 0)  # frame 99's dropped
+    (e,) = tr.add_drying(0, DRIED[0], first_nozzle=0, n_nozzles=RANGE, stamp=1000.2)
+    assert e.frame_id == 0 and e.stamp == 1000.2 and tr.pending == (0, 0) and tr.traces_unmatched == 1
+
+
 def test_traces_whose_list_cannot_come_are_dropped_when_a_later_list_comes():
     # fdi answers a range's messages in frame order: once frame 7's list for range 0 is here,
     # frames 5 and 6 of range 0 (which fdi never had: lost on the best-effort topic) get none,
