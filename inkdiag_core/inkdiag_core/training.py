@@ -95,9 +95,13 @@ def _share(n_per_class, n_draws, k):
 def _real_rows(data, profile, seed, validation_fraction, n_sim_per_class):
     """Recorded rows split per class, the training part replicated: (X_fit, y_fit, X_val, y_val, counts).
 
-    ``counts``: ``n_real_rows`` (used), ``n_real_rows_invalid`` (left out: the sum of
-    ``n_real_rows_screened_out``, rows screening refuses, and ``n_real_rows_without_class``,
-    rows labelled ``invalid`` or ``unknown``), ``real_rows_per_class``.
+    A class's identical rows (the recording's own copies) go to one side of the split together, as
+    the copies this function makes do: a validation row is never a training row.
+
+    ``counts``: ``n_real_rows`` (used), ``n_real_rows_validation`` (of them, held out),
+    ``n_real_rows_repeated`` (used rows identical to another of their class), ``n_real_rows_invalid``
+    (left out: the sum of ``n_real_rows_screened_out``, rows screening refuses, and
+    ``n_real_rows_without_class``, rows labelled ``invalid`` or ``unknown``), ``real_rows_per_class``.
     """
     from .recording import NOT_CLASSES, RecordingError
     from .screening import screen_traces
@@ -116,10 +120,23 @@ def _real_rows(data, profile, seed, validation_fraction, n_sim_per_class):
     X, y = data.traces[usable], np.asarray(data.label[usable]).astype(str)
     rng = np.random.default_rng([int(seed), 14])
     fit_x, fit_y, val_x, val_y = [], [], [], []
+    n_repeated = 0
     for cls in np.unique(y):
         idx = rng.permutation(np.flatnonzero(y == cls))
         n_val = int(np.floor(validation_fraction * idx.size)) if idx.size > 1 else 0
-        val, fit = idx[:n_val], idx[n_val:]
+        rows = np.ascontiguousarray(X[idx]).view(np.dtype((np.void, X.dtype.itemsize * X.shape[1]))).ravel()
+        _, first, group = np.unique(rows, return_index=True, return_inverse=True)
+        if first.size == idx.size:  # no two rows alike
+            val, fit = idx[:n_val], idx[n_val:]
+        else:  # whole groups of identical rows, in the order their first rows come, until n_val rows are held out
+            n_repeated += idx.size - first.size
+            order = np.argsort(first, kind="stable")
+            sizes = np.bincount(group)[order]
+            k = int(np.searchsorted(np.cumsum(sizes), n_val)) + 1 if n_val else 0
+            held = np.isin(group, order[:k])
+            val, fit = idx[held], idx[~held]
+            if not fit.size:  # one group held it all: keep it for training
+                val, fit = fit, val
         want = max(int(n_sim_per_class * (1 - validation_fraction)), fit.size)
         reps = np.concatenate([np.tile(fit, want // fit.size), rng.choice(fit, want % fit.size, replace=False)])
         fit_x.append(X[reps])
@@ -127,7 +144,8 @@ def _real_rows(data, profile, seed, validation_fraction, n_sim_per_class):
         val_x.append(X[val])
         val_y.append(y[val])
     per_class = {str(c): int((y == c).sum()) for c in np.unique(y)}
-    counts = {"n_real_rows": int(usable.sum()), "n_real_rows_invalid": int((~usable).sum()),
+    counts = {"n_real_rows": int(usable.sum()), "n_real_rows_validation": int(sum(v.size for v in val_y)),
+              "n_real_rows_repeated": n_repeated, "n_real_rows_invalid": int((~usable).sum()),
               "n_real_rows_screened_out": n_screened,
               "n_real_rows_without_class": int((~usable).sum()) - n_screened, "real_rows_per_class": per_class}
     return np.concatenate(fit_x), np.concatenate(fit_y), np.concatenate(val_x), np.concatenate(val_y), counts
@@ -277,8 +295,9 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
         Xr_fit, yr_fit, Xr_val, yr_val, counts = _real_rows(
             data, profile, seed, float(validation_fraction), int(n_per_class))
         info.update(training_data="simulated+recorded", **counts,
-                    real_rows_weighting="per class: recorded training rows replicated up to the simulated count; "
-                    "a quarter of each recorded class held out for validation, once")
+                    real_rows_weighting="per class: recorded training rows replicated up to the simulated count "
+                    "(never cut below their own number); a quarter of each recorded class held out for validation, "
+                    "once, identical rows together")
         from sklearn.model_selection import train_test_split
 
         # the simulated rows' usual split, the recorded rows' own (done before replicating)
@@ -291,6 +310,9 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
         y = np.concatenate([y, yr_fit, yr_val])
         real = np.concatenate([real, np.ones(len(yr_fit) + len(yr_val), dtype=bool)])
         det.fit(X, y, validation_mask=mask)
+        if len(yr_val):  # the recorded rows' own score, as inkdiag label would label them: their labels checked
+            got = det.label(Xr_val)
+            info["validation_real_fi_accuracy"] = float(np.mean(np.asarray(got.classes == yr_val, dtype=bool)))
     report(2, total, f"fitted {kind} on {features} features" + (" and baselines" if baseline else ""))
     s = det.scores_
     report(3, total, f"validation FI accuracy {100 * s['validation_fi_accuracy']:.1f}%, "

@@ -260,6 +260,28 @@ def test_training_with_recorded_rows_weighs_each_recorded_class_as_its_simulated
             rec_sim.traces, 10e6, label=rec_sim.label_values()))
 
 
+def test_a_recordings_own_copies_stay_on_one_side_of_the_validation_split(head):
+    """helper-120: a recording with every row twice put 278 of its 360 validation rows' twins in training, so the
+    scores saw rows the model was fitted on. Identical rows of a class now go to one side together, counted; the
+    recorded validation rows' own score is kept."""
+    from inkdiag_core.training import _real_rows
+
+    rec = head.simulate({FaultClass.HEALTHY_NOZZLE: 20, FaultClass.FULLY_BLOCKED: 12}, seed=31)
+    x = np.concatenate([rec.traces, rec.traces[:20]])  # the healthy rows twice
+    lab = np.concatenate([rec.label_values(), rec.label_values()[:20]])
+    data = Recording.from_arrays(x, head.sample_rate_hz, label=lab)
+    Xf, yf, Xv, yv, counts = _real_rows(data, head, 3, 0.25, 16)
+    assert counts["n_real_rows_repeated"] == 20 and counts["n_real_rows_validation"] == len(yv) == 10 + 3
+    fit_rows = {r.tobytes() for r in Xf}
+    assert not any(r.tobytes() in fit_rows for r in Xv)  # no validation row is also a training row
+    # without copies the split is as before: a quarter of each class, the first of a seeded permutation
+    Xf1, _, Xv1, yv1, c1 = _real_rows(Recording.from_arrays(rec.traces, head.sample_rate_hz,
+                                                            label=rec.label_values()), head, 3, 0.25, 16)
+    assert c1["n_real_rows_repeated"] == 0 and len(yv1) == 5 + 3
+    det, info = train_detector(head, n_per_class=16, seed=3, data=data)
+    assert 0.0 <= info["validation_real_fi_accuracy"] <= 1.0
+
+
 def test_the_default_training_size_and_its_leaves():
     """inkdiag train's defaults are training's (N_PER_CLASS, POSTERIOR_DRAWS); the forest's leaves scale with the rows
     (3 per 1,000)."""

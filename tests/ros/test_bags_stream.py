@@ -288,7 +288,8 @@ def test_train_on_a_bag_with_the_labels_csv_that_label_wrote_and_a_user_correcte
              "--labels", tmp_path / "checked.csv", "--n-per-class", 40, "--unknown-rate", 0, "--quiet")
     assert r.returncode == 0, r.stderr
     assert f"72 of the 72 rows of {bag} named, 62 with a class" in r.stdout and "warning" not in r.stderr
-    assert "recorded rows: 62 trained on (" in r.stdout and "0 screened out" in r.stdout
+    assert "recorded rows: 62 used (" in r.stdout and "held out for validation" in r.stdout
+    assert "0 screened out" in r.stdout and "recorded validation rows (" in r.stdout
     assert "the validation rows are simulated" not in r.stdout  # recorded rows validate too
     info = json.loads((tmp_path / "m.joblib.manifest.json").read_text())["config"]
     assert info["n_real_rows"] == 62 and info["labels_file"] == str(tmp_path / "checked.csv")

@@ -344,3 +344,30 @@ def test_rows_repeating_a_nozzle_and_frame_are_labelled_with_a_warning(work, tra
                                                               nozzle=np.arange(30) % 10, stamp=np.arange(30) // 10))
     assert main(["label", str(tmp_path / "st.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "s.csv")]) == 0
     assert "repeat" not in capsys.readouterr().err
+
+
+def test_train_checks_the_recorded_rows_labels_against_the_model(work, tmp_path, capsys):
+    """helper-120: a recording whose labels were shuffled trained a model with no word (validation pools a few
+    recorded rows with many simulated ones). train now scores the recorded validation rows alone, and warns when
+    they come out far below the rest; a class of 1-3 rows (none held out) is noted. The right labels: no warning."""
+    d, head, _ = work
+    sim = head.simulate({c: 12 for c in FaultClass}, seed=78)
+    lab = np.asarray(sim.label_values(), dtype=object)
+    shuffled = np.random.default_rng(0).permutation(lab)
+    for name, labels in (("right", lab), ("shuffled", shuffled)):
+        save_recording(tmp_path / f"{name}.npz", Recording.from_arrays(sim.traces, head.sample_rate_hz, label=labels))
+    args = ["--profile", str(d / "head.yaml"), "--n-per-class", "40", "--unknown-rate", "0", "--quiet"]
+    assert main(["train", *args, "--out", str(tmp_path / "r.joblib"), "--data", str(tmp_path / "right.npz")]) == 0
+    out = capsys.readouterr()
+    assert "recorded validation rows (36): FI accuracy" in out.out and "warning" not in out.err, (out.out, out.err)
+    assert main(["train", *args, "--out", str(tmp_path / "s.joblib"), "--data", str(tmp_path / "shuffled.npz")]) == 0
+    out = capsys.readouterr()
+    assert "warning: the recorded validation rows are labelled right" in out.err, out.err
+    info = json.loads((tmp_path / "s.joblib.manifest.json").read_text())["config"]
+    assert info["validation_real_fi_accuracy"] < 0.5 and info["n_real_rows_validation"] == 36
+    few = lab.copy()
+    few[:2] = "slightly_dried"  # 14 rows of it; deeply dried left with 2 rows:
+    few[np.flatnonzero(lab == "deeply_dried")[2:]] = "intermediately_dried"
+    save_recording(tmp_path / "few.npz", Recording.from_arrays(sim.traces, head.sample_rate_hz, label=few))
+    assert main(["train", *args, "--out", str(tmp_path / "f.joblib"), "--data", str(tmp_path / "few.npz")]) == 0
+    assert "none held out, so nothing checks their labels" in capsys.readouterr().out

@@ -216,9 +216,7 @@ def run(args) -> int:
         print("note: the validation rows are simulated on this profile, so these scores leave out how far the "
               "profile is from the head; labelling a recording of nozzles of known classes measures that")
     else:
-        per = ", ".join(f"{c} {k}" for c, k in sorted(info["real_rows_per_class"].items()))
-        print(f"recorded rows: {info['n_real_rows']} trained on ({per}); {info['n_real_rows_screened_out']} screened "
-              f"out (non-finite, out of range, flat, clipped), {info['n_real_rows_without_class']} without a class")
+        _recorded_rows(info, s)
     if det.baseline_scores_:
         b = det.baseline_scores_
         print(f"baseline branch: FI accuracy {100 * b['validation_fi_accuracy']:.1f} %, faults missed "
@@ -234,6 +232,42 @@ def run(args) -> int:
                  "never calls a trace unknown; raise --n-per-class" if silent else ""))
     print(f"wrote {out} and {mpath}")
     return 0
+
+
+#: A class with fewer recorded rows than this has none held out for validation (a quarter, rounded down).
+FEW_REAL_ROWS = 4
+#: The recorded validation rows' FI accuracy this far below the simulated ones' (at least
+#: :data:`MIN_REAL_VALIDATION` rows) is warned about: their labels, or the profile, disagree with the simulation.
+REAL_ACCURACY_GAP = 0.15
+MIN_REAL_VALIDATION = 20
+
+
+def _recorded_rows(info, scores) -> None:
+    """What train says of ``--data``'s rows: how many were used, held out, repeated, left out, and their own
+    validation score (a warning on stderr when far below the pooled one, a note for classes too small to check)."""
+    import sys
+
+    per = ", ".join(f"{c} {k}" for c, k in sorted(info["real_rows_per_class"].items()))
+    n, n_val = info["n_real_rows"], info["n_real_rows_validation"]
+    print(f"recorded rows: {n} used ({n - n_val} trained on, {n_val} held out for validation; {per}); "
+          f"{info['n_real_rows_screened_out']} screened out (non-finite, out of range, flat, clipped), "
+          f"{info['n_real_rows_without_class']} without a class")
+    if info["n_real_rows_repeated"]:
+        print(f"note: {info['n_real_rows_repeated']} recorded rows repeat another of their class exactly (kept, each "
+              "on the same side of the validation split as its copies)")
+    few = sorted(f"{c} ({k})" for c, k in info["real_rows_per_class"].items() if k < FEW_REAL_ROWS)
+    if few:
+        print(f"note: recorded classes of fewer than {FEW_REAL_ROWS} rows have none held out, so nothing checks their "
+              f"labels, and each row is replicated to the simulated count: {', '.join(few)}")
+    acc = info.get("validation_real_fi_accuracy")
+    if acc is None:
+        return
+    print(f"recorded validation rows ({n_val}): FI accuracy {100 * acc:.1f} % (as inkdiag label labels them)")
+    if n_val >= MIN_REAL_VALIDATION and acc < scores["validation_fi_accuracy"] - REAL_ACCURACY_GAP:
+        print(f"inkdiag train: warning: the recorded validation rows are labelled right {100 * acc:.1f} % of the "
+              f"time, against {100 * scores['validation_fi_accuracy']:.1f} % of all validation rows: their labels, or "
+              "the profile, disagree with the simulated classes (docs/classes.md); check the labels, and the "
+              "calibration, before using this model", file=sys.stderr)
 
 
 def content_sha256(path) -> str:
