@@ -111,12 +111,15 @@ def _real_rows(data, profile, seed, validation_fraction, n_sim_per_class):
                              "class")
     profile.check_traces(data.traces, data.sample_rate_hz, what=data.source)
     # the rows labelling would judge (not invalid: non-finite, beyond 5x the ADC range, flat, clipped), of a class
-    usable, _ = screen_traces(data.traces, max_abs_v=profile.max_abs_v, sample_rate_hz=profile.sample_rate_hz)
+    usable, why = screen_traces(data.traces, max_abs_v=profile.max_abs_v, sample_rate_hz=profile.sample_rate_hz)
     n_screened = int((~usable).sum())
     usable &= ~np.isin(np.asarray(data.label).astype(str), NOT_CLASSES)
     if not usable.any():
+        units = (f"; {int((why == 'out_of_range').sum())} of {why.size} rows have a sample beyond "
+                 f"{profile.max_abs_v:g} V: are the traces in volts (not millivolts or ADC counts)?"
+                 if (why == "out_of_range").sum() >= why.size / 2 else "")
         raise RecordingError(f"{data.source}: no row is usable (every row is non-finite, out of range, flat or "
-                             f"clipped, or labelled {' or '.join(NOT_CLASSES)})")
+                             f"clipped, or labelled {' or '.join(NOT_CLASSES)}){units}")
     X, y = data.traces[usable], np.asarray(data.label[usable]).astype(str)
     rng = np.random.default_rng([int(seed), 14])
     fit_x, fit_y, val_x, val_y = [], [], [], []

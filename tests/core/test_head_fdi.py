@@ -280,6 +280,10 @@ def test_a_recordings_own_copies_stay_on_one_side_of_the_validation_split(head):
     assert c1["n_real_rows_repeated"] == 0 and len(yv1) == 5 + 3
     det, info = train_detector(head, n_per_class=16, seed=3, data=data)
     assert 0.0 <= info["validation_real_fi_accuracy"] <= 1.0
+    # helper-120: a recording in millivolts said only "no row is usable"; the units are asked about
+    with pytest.raises(ValueError, match=r"no row is usable .*52 of 52 rows have a sample beyond 10 V: are the "
+                                         r"traces in volts \(not millivolts"):
+        train_detector(head, n_per_class=8, data=Recording.from_arrays(x * 1e3, head.sample_rate_hz, label=lab))
 
 
 def test_the_default_training_size_and_its_leaves():
