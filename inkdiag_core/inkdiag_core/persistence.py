@@ -38,6 +38,7 @@ from ._fileio import refuse_to_replace, temp_beside
 from ._version import __version__
 
 __all__ = ["ModelFileError", "save_model", "load_model", "save_detector", "load_detector", "read_manifest",
+           "verify_model_file",
            "library_versions", "manifest_path", "model_head_sha256", "check_manifest_entries"]
 
 FORMAT = "inkdiag-model"
@@ -185,6 +186,41 @@ def read_manifest(path) -> dict:
     return manifest
 
 
+def verify_model_file(path, *, check_versions: bool = True) -> dict:
+    """Check ``path`` against its manifest without unpickling it: :func:`read_manifest`, then the
+    file's size and sha256 and, with ``check_versions``, the libraries it was written with. Its
+    manifest (dict); :class:`ModelFileError` as :func:`load_model` raises it for these (a launcher
+    checks a model file so before it starts the processes that load it)."""
+    path = Path(path)
+    manifest = read_manifest(path)
+    size = path.stat().st_size
+    if size != manifest["size_bytes"]:
+        raise ModelFileError(
+            f"model file {path} is {size} bytes, its manifest says {manifest['size_bytes']}: "
+            "truncated or tampered, refusing to load"
+        )
+    digest = _sha256(path)
+    if digest != manifest["sha256"]:
+        raise ModelFileError(
+            f"model file {path} has sha256 {digest[:16]}..., its manifest says "
+            f"{str(manifest['sha256'])[:16]}...: tampered, refusing to load"
+        )
+    if check_versions:
+        running = library_versions()
+        wrong = {
+            lib: (manifest["versions"].get(lib), running[lib])
+            for lib in PINNED_LIBRARIES
+            if manifest["versions"].get(lib) != running[lib]
+        }
+        if wrong:
+            detail = ", ".join(f"{k} {v[0]} (file) vs {v[1]} (running)" for k, v in wrong.items())
+            raise ModelFileError(
+                f"model file {path} was written with other library versions: {detail}; "
+                "retrain it (scripts/run does) instead of loading it"
+            )
+    return manifest
+
+
 def load_model(path, *, check_versions: bool = True, as_pipeline: bool = True):
     """Verify ``path`` against its manifest, then unpickle it.
 
@@ -215,32 +251,7 @@ def load_model(path, *, check_versions: bool = True, as_pipeline: bool = True):
         too large for the memory, or naming classes this version of inkdiag does not have).
     """
     path = Path(path)
-    manifest = read_manifest(path)
-    size = path.stat().st_size
-    if size != manifest["size_bytes"]:
-        raise ModelFileError(
-            f"model file {path} is {size} bytes, its manifest says {manifest['size_bytes']}: "
-            "truncated or tampered, refusing to load"
-        )
-    digest = _sha256(path)
-    if digest != manifest["sha256"]:
-        raise ModelFileError(
-            f"model file {path} has sha256 {digest[:16]}..., its manifest says "
-            f"{str(manifest['sha256'])[:16]}...: tampered, refusing to load"
-        )
-    if check_versions:
-        running = library_versions()
-        wrong = {
-            lib: (manifest["versions"].get(lib), running[lib])
-            for lib in PINNED_LIBRARIES
-            if manifest["versions"].get(lib) != running[lib]
-        }
-        if wrong:
-            detail = ", ".join(f"{k} {v[0]} (file) vs {v[1]} (running)" for k, v in wrong.items())
-            raise ModelFileError(
-                f"model file {path} was written with other library versions: {detail}; "
-                "retrain it (scripts/run does) instead of loading it"
-            )
+    manifest = verify_model_file(path, check_versions=check_versions)
     try:
         model = joblib.load(path)
     except (ImportError, AttributeError) as exc:  # a class or module the pickle names is not in this inkdiag

@@ -17,8 +17,9 @@ Run one fdi node per head, namespaces /head_00 .. /head_{N-1} (from /head_K with
 head uses: /head_07/traces in, /head_07/labels and /head_07/drying_nozzles out,
 /diagnostics), in P OS processes on the DDS domain of ROS_DOMAIN_ID. Heads are
 assigned to the processes round-robin (head i in process i mod P); each process
-spins its nodes on one rclpy EventsExecutor, one BLAS thread, the allocator set as in
-every inkdiag node. Parameters come from the packaged config/inkdiag.yaml, then
+spins its nodes on one rclpy executor (--executor: the EventsExecutor by default), one
+BLAS thread, the allocator set as in every inkdiag node. No fe node runs: the printer
+labels; run fe per head where f_m estimates are wanted. Parameters come from the packaged config/inkdiag.yaml, then
 --ros-args (given to every node of every process), then --model and --baselines.
 
 With --simulate a simulated printhead per head (printhead_sim, seed = head index)
@@ -94,9 +95,15 @@ def baseline_paths(spec: str | None, heads) -> list:
         paths = [spec.format(i=i) for i in heads]
     except (KeyError, IndexError, ValueError) as exc:
         raise ValueError(f"--baselines {spec!r}: bad pattern ({exc}); use {{i}} for the head index") from None
+    from inkdiag_core import BaselineFileError, NozzleBaselines
+
     for path in paths:
         if not os.path.isfile(path):
             raise ValueError(f"baselines file {path} not found (--baselines {spec!r})")
+        try:  # a file its fdi node could not read would leave the head without baselines, said only on /diagnostics
+            NozzleBaselines.load(path)
+        except BaselineFileError as exc:
+            raise ValueError(f"--baselines {spec!r}: {exc}") from None
     return paths
 
 
@@ -109,8 +116,11 @@ def _check(args) -> None:
         raise ValueError(f"--processes must be 1 .. --heads ({args.heads}), got {args.processes}")
     if not args.duration >= 0:
         raise ValueError(f"--duration must be >= 0 s, got {args.duration}")
-    if not os.path.isfile(args.model):
+    if not os.path.exists(args.model):
         raise ValueError(f"model file {args.model} not found (pass --model, or train one: inkdiag train)")
+    from inkdiag_core.persistence import verify_model_file
+
+    verify_model_file(args.model)  # ModelFileError (a ValueError): each fdi node would run without a model
     from .._spin import ros_args_error
 
     if why := ros_args_error(["inkdiag", "--ros-args", *args.ros_args]):  # before any child: each would say it
@@ -161,12 +171,19 @@ def run(args) -> int:
         print(f"inkdiag printer: error: {conflict}", file=sys.stderr)
         return 2
     for what, proc in died:
-        print(f"inkdiag printer: {what} exited with status {proc.returncode}"
-              + (" (bad input: its own line above says which)" if proc.returncode == 2 else ""), file=sys.stderr)
+        rc = proc.returncode
+        how = (f"was killed by signal {-rc} ({signal.Signals(-rc).name})" if rc < 0 and -rc in signal.valid_signals()
+               else f"exited with status {rc}")
+        print(f"inkdiag printer: {what} {how}" + {2: " (bad input: its own line above says which)",
+                                                   0: " before the printer stopped it (stopped from outside?)"}.get(
+            rc, ""), file=sys.stderr)
     if died and all(proc.returncode == 2 for _, proc in died):  # e.g. --ros-args -p n_nozzles:=-1: bad input
         return 2
     return 1 if died else 0
 
+
+#: Seconds the printer waits, after one child ended on its own, for the others that end too (each is reported).
+DIED_TOGETHER_S = 2.0
 
 _MONITOR = re.compile(r"printer_monitor_h(\d+)_(\d+)_t(\d+)_p(\d+)")
 
@@ -304,7 +321,11 @@ def _monitor(args, children, started_ns: int) -> tuple:
             while not stop.requested and node.context.ok():
                 executor.spin_once(timeout_sec=0.1)
                 died = [(w, p) for w, p in children if p.poll() is not None]
-                if died:
+                if died:  # the others may be on their way out for the same reason (a bad parameter): each is said
+                    until = time.monotonic() + DIED_TOGETHER_S
+                    while len(died) < len(children) and time.monotonic() < until:
+                        time.sleep(0.05)
+                        died = [(w, p) for w, p in children if p.poll() is not None]
                     return died, ""
                 now = time.monotonic()
                 if args.duration > 0 and now - t0 >= args.duration:
