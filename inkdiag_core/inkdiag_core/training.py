@@ -38,6 +38,7 @@ from __future__ import annotations
 import numpy as np
 
 from .faults import FaultClass
+from .openset import UNKNOWN
 
 __all__ = ["N_PER_CLASS", "TrainingData", "leaf_size", "train_detector"]
 
@@ -131,15 +132,16 @@ def _real_rows(data, profile, seed, validation_fraction, n_sim_per_class):
         _, first, group = np.unique(rows, return_index=True, return_inverse=True)
         if first.size == idx.size:  # no two rows alike
             val, fit = idx[:n_val], idx[n_val:]
-        else:  # whole groups of identical rows, in the order their first rows come, until n_val rows are held out
+        else:  # whole groups of identical rows, in the order their first rows come, each that still fits in n_val
             n_repeated += idx.size - first.size
-            order = np.argsort(first, kind="stable")
-            sizes = np.bincount(group)[order]
-            k = int(np.searchsorted(np.cumsum(sizes), n_val)) + 1 if n_val else 0
-            held = np.isin(group, order[:k])
+            sizes = np.bincount(group)
+            taken, n_held = [], 0
+            for g in np.argsort(first, kind="stable"):
+                if n_held + sizes[g] <= n_val:
+                    taken.append(g)
+                    n_held += int(sizes[g])
+            held = np.isin(group, taken)
             val, fit = idx[held], idx[~held]
-            if not fit.size:  # one group held it all: keep it for training
-                val, fit = fit, val
         want = max(int(n_sim_per_class * (1 - validation_fraction)), fit.size)
         reps = np.concatenate([np.tile(fit, want // fit.size), rng.choice(fit, want % fit.size, replace=False)])
         fit_x.append(X[reps])
@@ -313,9 +315,14 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
         y = np.concatenate([y, yr_fit, yr_val])
         real = np.concatenate([real, np.ones(len(yr_fit) + len(yr_val), dtype=bool)])
         det.fit(X, y, validation_mask=mask)
-        if len(yr_val):  # the recorded rows' own score, as inkdiag label would label them: their labels checked
+        if len(yr_val):  # the recorded rows' own score at the FD threshold, as inkdiag label labels them
             got = det.label(Xr_val)
-            info["validation_real_fi_accuracy"] = float(np.mean(np.asarray(got.classes == yr_val, dtype=bool)))
+            named = got.valid & (got.classes != UNKNOWN)  # a class given (unknown: the open-set layer's, scored apart)
+            info["n_real_rows_validation_classified"] = int(named.sum())
+            info["validation_real_unknown_share"] = float(np.mean(got.classes[got.valid] == UNKNOWN)) if \
+                got.valid.any() else float("nan")
+            info["validation_real_fi_accuracy"] = (float(np.mean(got.classes[named] == yr_val[named])) if named.any()
+                                                   else float("nan"))
     report(2, total, f"fitted {kind} on {features} features" + (" and baselines" if baseline else ""))
     s = det.scores_
     report(3, total, f"validation FI accuracy {100 * s['validation_fi_accuracy']:.1f}%, "

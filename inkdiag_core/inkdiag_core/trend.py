@@ -471,9 +471,9 @@ class FmTrendBank:
             :attr:`t_ended` (its last update's time when infinite): :meth:`fold_newer` then leaves out
             the nozzle's entries at or before it on the same clock.
         after : int
-            Restart a trend at its ``after``-th such news since its last update (each at a later
-            ``before`` than the one before it: a frame given twice counts once); the news before it
-            are counted, the trend kept. 1: at once.
+            Restart a trend at its ``after``-th such news since its last update or :meth:`heard` (each
+            at a later, finite ``before`` than the one before it: a frame given twice counts once); the
+            news before it are counted, the trend kept. 1: at once.
 
         Returns
         -------
@@ -485,6 +485,8 @@ class FmTrendBank:
         known = rows < self.ids.size
         rows = rows[known][self.ids[rows[known]] == ids[known]]
         rows = rows[(self.n_updates[rows] > 0) & (self.t[rows] < before)]
+        if after > 1 and not math.isfinite(before):
+            raise ValueError(f"forget(after={after}) needs a finite time 'before' to tell its news apart, got {before}")
         if after > 1:  # count the news; a time not after the latest one counted is the same news again
             new = rows[~(self.t_missed[rows] >= before)]
             self.misses[new] += 1
@@ -495,6 +497,16 @@ class FmTrendBank:
         self.ended_epoch[rows] = self.epoch
         self._clear(rows)
         return int(rows.size)
+
+    def heard(self, nozzles, t: float) -> None:
+        """News at time ``t`` (s) that ``nozzles`` are still drying (a list names them, estimated or not): the
+        count of :meth:`forget`'s news against them starts again, unless that news is newer than ``t``."""
+        ids = np.asarray(nozzles, dtype=np.int64).reshape(-1)
+        rows = np.searchsorted(self.ids, ids)
+        known = rows < self.ids.size
+        rows = rows[known][self.ids[rows[known]] == ids[known]]
+        rows = rows[~(self.t_missed[rows] > t)]  # NaN (none, or no time): reset
+        self.misses[rows], self.t_missed[rows] = 0, np.nan
 
     def update(self, t: float, nozzles, fm, fm_std):
         """Fold one frame's estimates in.

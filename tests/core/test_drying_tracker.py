@@ -128,6 +128,19 @@ def test_a_trend_ends_after_recovery_frames_in_a_row_without_the_nozzle():
     assert np.isnan(rates[11]) and tr.trends.n_updates[tr.trends.ids == 2] == 1  # frame 11: a new trend
     with pytest.raises(ValueError, match="recovery_frames must be >= 1"):
         DryingTracker(recovery_frames=0)
+    # helper-122: a frame that lists the nozzle is no miss, estimated or not (here its trace is a misfit)
+    tr = DryingTracker()
+    t = np.arange(512) / 10e6
+    for f, ids in enumerate([[2], [2], [], [2], [], [], [2]], start=1):
+        x = _frame(f, {0: ids})
+        if f == 4:
+            x[2] = 0.3 * np.sin(2 * np.pi * 300e3 * t)  # listed as dried, not estimated
+        _traces(tr, x, f, 0)
+        out = _drying(tr, f, 0, ids)
+        assert (f != 4) or (out == [] and tr.rows_no_fit == 1)
+    assert tr.trends_recovered == 0 and np.isfinite(out[0].columns["fm_rate"][0])  # frames 5-6: two misses only
+    with pytest.raises(ValueError, match="needs a finite time"):
+        tr.trends.forget([2], after=3)
 
 
 def test_a_late_frame_of_a_nozzle_that_recovered_starts_no_trend():

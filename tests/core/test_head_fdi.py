@@ -274,6 +274,13 @@ def test_a_recordings_own_copies_stay_on_one_side_of_the_validation_split(head):
     assert counts["n_real_rows_repeated"] == 20 and counts["n_real_rows_validation"] == len(yv) == 10 + 3
     fit_rows = {r.tobytes() for r in Xf}
     assert not any(r.tobytes() in fit_rows for r in Xv)  # no validation row is also a training row
+    # helper-122: a large group of copies first in the permutation was held out whole (9 of 12 rows); groups that
+    # do not fit in the class's quarter stay in training
+    x9 = np.concatenate([np.repeat(rec.traces[:1], 9, axis=0), rec.traces[1:4]])
+    for seed in range(6):
+        _, _, _, yv9, c9 = _real_rows(Recording.from_arrays(x9, head.sample_rate_hz, label=lab[:12]), head, seed,
+                                      0.25, 16)
+        assert len(yv9) <= 3 and c9["n_real_rows_repeated"] == 8
     # without copies the split is as before: a quarter of each class, the first of a seeded permutation
     Xf1, _, Xv1, yv1, c1 = _real_rows(Recording.from_arrays(rec.traces, head.sample_rate_hz,
                                                             label=rec.label_values()), head, 3, 0.25, 16)

@@ -577,6 +577,36 @@ def test_a_nozzle_the_labels_call_recovered_starts_a_new_trend_as_in_fe(tmp_path
         == restarted
 
 
+def test_a_frame_that_lists_the_nozzle_is_no_miss_though_not_estimated_as_in_fe(tmp_path):
+    """helper-122: misses at frames 2 and 4 around frame 3, which labels nozzle 2 dried but whose trace no drying
+    nozzle gives (misfit), ended its trend at frame 5: two frames in a row, not three. As fe, estimate counts
+    frame 3 as news that the nozzle still dries."""
+    from inkdiag_core import simulate_nozzles
+
+    lists = [[2], [2], [], [2], [], [], [2]]
+    t = np.arange(512) / 10e6
+    xs, labels = [], []
+    for f, ids in enumerate(lists):
+        classes = np.array(["healthy_nozzle"] * 4, dtype=object)
+        classes[ids] = "deeply_dried"
+        x = simulate_nozzles(classes, seed=4, frame_seed=f).traces
+        if f == 3:
+            x[2] = 0.3 * np.sin(2 * np.pi * 300e3 * t)
+        xs.append(x)
+        labels.append(classes.astype(str))
+    save_recording(tmp_path / "r.npz", Recording.from_arrays(
+        np.concatenate(xs), 10e6, nozzle=np.tile(np.arange(4), len(lists)),
+        frame_id=np.repeat(np.arange(len(lists)), 4), stamp=np.repeat(100.0 + np.arange(len(lists)), 4),
+        label=np.concatenate(labels)))
+    HeadProfile.default().save(tmp_path / "default.yaml")
+    res = run_inproc(tmp_path / "r.npz", "--profile", tmp_path / "default.yaml", "--rows", "dried", "--out", "-")
+    assert res.returncode == 0, res.stderr
+    rows = [dict(zip(COLUMNS, line.split(","))) for line in res.stdout.splitlines()[1:]]
+    last = [r for r in rows if r["nozzle"] == "2"][-1]
+    assert last["row"] == "26" and last["fm_rate"] != "", rows  # frame 6 goes on with the trend of frames 0-1
+    assert [r["reason"] for r in rows if r["row"] == "14"] == ["misfit"]
+
+
 def test_rows_labelled_a_fault_other_than_drying_are_noted_and_class_names_are_read_without_case(head, tmp_path):
     """helper-109's QA: a recording of bubbles and partial blocks estimated without --rows gave them viscosities
     with no word; its label column says they are no drying nozzles, so a note says so. ``--rows Deeply_Dried``

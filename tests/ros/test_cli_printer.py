@@ -111,8 +111,9 @@ def test_a_parameter_the_nodes_refuse_is_exit_status_2(ros, fdi_model):
                   "--ros-args", "-p", "n_nozzles:=-1")
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 2, (out, err)
-    # each process that refused is said (helper-121: only the first of them was)
-    assert err.count("n_nozzles") >= 2 and err.count("exited with status 2 (bad input: its own line above says") == 2, err
+    # each process that refused within 2 s of the first is said (helper-121: only the first was; see
+    # test_the_children_that_end_together_are_all_reported)
+    assert err.count("n_nozzles") >= 2 and err.count("exited with status 2 (bad input: its own line above says") >= 1, err
     assert "Traceback" not in err, err
 
 
@@ -269,3 +270,24 @@ def test_the_summary_says_the_heads_are_starting_until_one_reports():
     assert "heads up 1/2 |" in up and "320 traces/s" in up and "starting" not in up
     gone = summary({"head_00": (0.0, {"frames_per_s": 5, "level": "ok"})}, 2, 60.0, 60.0)  # stale, not starting
     assert "heads up 0/2 |" in gone
+
+
+def test_the_children_that_end_together_are_all_reported():
+    """helper-121: of two children refusing their parameters, only the first to end was reported. After one ends,
+    the printer waits up to DIED_TOGETHER_S for others (real processes here); a child still running is not one;
+    a real-time signal has no name to print (helper-122: signal.Signals(40) raised)."""
+    from inkdiag_ros.verbs.printer import DIED_TOGETHER_S, _signal_name, ended
+
+    def child(seconds):
+        return subprocess.Popen([sys.executable, "-c", f"import time; time.sleep({seconds})"])
+
+    kids = [("a", child(0.2)), ("b", child(0.2 + DIED_TOGETHER_S / 2)), ("c", child(60))]
+    try:
+        while not ended(kids):
+            time.sleep(0.02)
+        assert [w for w, _ in ended(kids, wait_s=DIED_TOGETHER_S)] == ["a", "b"]
+    finally:
+        for _, p in kids:
+            p.kill()
+            p.wait()
+    assert _signal_name(9) == " (SIGKILL)" and _signal_name(40) == ""

@@ -359,10 +359,11 @@ def test_train_checks_the_recorded_rows_labels_against_the_model(work, tmp_path,
     args = ["--profile", str(d / "head.yaml"), "--n-per-class", "40", "--unknown-rate", "0", "--quiet"]
     assert main(["train", *args, "--out", str(tmp_path / "r.joblib"), "--data", str(tmp_path / "right.npz")]) == 0
     out = capsys.readouterr()
-    assert "recorded validation rows (36): FI accuracy" in out.out and "warning" not in out.err, (out.out, out.err)
+    assert "recorded validation rows (36): FI accuracy" in out.out and "called unknown" in out.out
+    assert "warning" not in out.err, (out.out, out.err)
     assert main(["train", *args, "--out", str(tmp_path / "s.joblib"), "--data", str(tmp_path / "shuffled.npz")]) == 0
     out = capsys.readouterr()
-    assert "warning: the recorded validation rows are labelled right" in out.err, out.err
+    assert "warning: the recorded validation rows given a class are labelled right" in out.err, out.err
     info = json.loads((tmp_path / "s.joblib.manifest.json").read_text())["config"]
     assert info["validation_real_fi_accuracy"] < 0.5 and info["n_real_rows_validation"] == 36
     few = lab.copy()

@@ -511,17 +511,19 @@ def _trend_steps(tracker, rec, rows, left_out, estimated, cols, *, time_order: b
     at = np.concatenate([np.asarray(rows, dtype=np.int64), left_out])  # recording rows; the first n: ``cols``'
     fold = np.zeros(at.size, dtype=bool)
     fold[:n] = estimated
-    use = np.flatnonzero((fold | (np.arange(at.size) >= n)) & np.isfinite(rec.stamp[at]))
+    use = np.flatnonzero(np.isfinite(rec.stamp[at]))  # the selected rows (estimated or not) and the left out
     stamps, frames = rec.stamp[at[use]], rec.frame_id[at[use]].astype(float)
     use = use[np.lexsort((frames, stamps)) if time_order else np.argsort(at[use], kind="stable")]
     keys = np.stack([rec.stamp[at[use]], rec.frame_id[at[use]].astype(float)], axis=1)
     unfolded = (0, 0)
     for grp in np.split(use, np.flatnonzero(np.any(keys[1:] != keys[:-1], axis=1)) + 1):  # one step per frame
         if grp.size:
-            mine, t = grp[grp < n], float(rec.stamp[at[grp[0]]])
+            listed, t = grp[grp < n], float(rec.stamp[at[grp[0]]])
             gone = at[grp[grp >= n]]
-            gone = gone[~np.isin(rec.nozzle[gone], rec.nozzle[at[mine]])]  # not a nozzle folded in this frame
+            gone = gone[~np.isin(rec.nozzle[gone], rec.nozzle[at[listed]])]  # not a nozzle listed in this frame
             tracker.end_recovered(rec.nozzle[gone], rec.traces[gone], stamp=t, sample_rate_hz=rec.sample_rate_hz)
+            trends.heard(rec.nozzle[at[listed]], t)  # as fe: a listed nozzle, estimated or not, is no miss
+            mine = listed[fold[listed]]
             if mine.size:
                 unfolded = np.add(unfolded, _fold_frame(trends, t, mine, cols))
     return unfolded

@@ -172,14 +172,32 @@ def run(args) -> int:
         return 2
     for what, proc in died:
         rc = proc.returncode
-        how = (f"was killed by signal {-rc} ({signal.Signals(-rc).name})" if rc < 0 and -rc in signal.valid_signals()
-               else f"exited with status {rc}")
+        how = f"was killed by signal {-rc}{_signal_name(-rc)}" if rc < 0 else f"exited with status {rc}"
         print(f"inkdiag printer: {what} {how}" + {2: " (bad input: its own line above says which)",
                                                    0: " before the printer stopped it (stopped from outside?)"}.get(
             rc, ""), file=sys.stderr)
     if died and all(proc.returncode == 2 for _, proc in died):  # e.g. --ros-args -p n_nozzles:=-1: bad input
         return 2
     return 1 if died else 0
+
+
+def ended(children, *, wait_s: float = 0.0) -> list:
+    """The ``(description, Popen)`` of ``children`` that have ended; with ``wait_s``, those that end within that
+    many seconds too (as long as any runs)."""
+    until = time.monotonic() + wait_s
+    died = [(w, p) for w, p in children if p.poll() is not None]
+    while len(died) < len(children) and time.monotonic() < until:
+        time.sleep(0.05)
+        died = [(w, p) for w, p in children if p.poll() is not None]
+    return died
+
+
+def _signal_name(n: int) -> str:
+    """`` (SIGKILL)`` for a signal number Python names, else "" (a real-time signal: SIGRTMIN+k)."""
+    try:
+        return f" ({signal.Signals(n).name})"
+    except ValueError:
+        return ""
 
 
 #: Seconds the printer waits, after one child ended on its own, for the others that end too (each is reported).
@@ -320,13 +338,8 @@ def _monitor(args, children, started_ns: int) -> tuple:
             next_print, watch = t0 + 1.0, ConflictWatch(me, namespaces, names)
             while not stop.requested and node.context.ok():
                 executor.spin_once(timeout_sec=0.1)
-                died = [(w, p) for w, p in children if p.poll() is not None]
-                if died:  # the others may be on their way out for the same reason (a bad parameter): each is said
-                    until = time.monotonic() + DIED_TOGETHER_S
-                    while len(died) < len(children) and time.monotonic() < until:
-                        time.sleep(0.05)
-                        died = [(w, p) for w, p in children if p.poll() is not None]
-                    return died, ""
+                if ended(children):  # the others may be on their way out for the same reason (a bad parameter)
+                    return ended(children, wait_s=DIED_TOGETHER_S), ""
                 now = time.monotonic()
                 if args.duration > 0 and now - t0 >= args.duration:
                     break

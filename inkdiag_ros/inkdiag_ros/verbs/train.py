@@ -262,12 +262,15 @@ def _recorded_rows(info, scores) -> None:
     acc = info.get("validation_real_fi_accuracy")
     if acc is None:
         return
-    print(f"recorded validation rows ({n_val}): FI accuracy {100 * acc:.1f} % (as inkdiag label labels them)")
-    if n_val >= MIN_REAL_VALIDATION and acc < scores["validation_fi_accuracy"] - REAL_ACCURACY_GAP:
-        print(f"inkdiag train: warning: the recorded validation rows are labelled right {100 * acc:.1f} % of the "
-              f"time, against {100 * scores['validation_fi_accuracy']:.1f} % of all validation rows: their labels, or "
-              "the profile, disagree with the simulated classes (docs/classes.md); check the labels, and the "
-              "calibration, before using this model", file=sys.stderr)
+    n_named, unknown = info["n_real_rows_validation_classified"], info["validation_real_unknown_share"]
+    print(f"recorded validation rows ({n_val}): FI accuracy {100 * acc:.1f} % of the {n_named} given a class at the "
+          f"FD threshold, {100 * unknown:.1f} % called unknown (as inkdiag label labels them)")
+    ref = scores["validation_fi_accuracy_at_threshold"]  # all validation rows, at the same threshold
+    if n_named >= MIN_REAL_VALIDATION and acc <= ref - REAL_ACCURACY_GAP:
+        print(f"inkdiag train: warning: the recorded validation rows given a class are labelled right "
+              f"{100 * acc:.1f} % of the time, against {100 * ref:.1f} % of all validation rows at the same "
+              "threshold: their labels, or the profile, disagree with the simulated classes (docs/classes.md); "
+              "check the labels, and the calibration, before using this model", file=sys.stderr)
 
 
 def content_sha256(path) -> str:
