@@ -56,10 +56,7 @@ def _default_head():
 from .trend import CLOCK_RESET_S, FmTrendBank, deeply_dried_fm
 
 __all__ = ["AT_BOUND_REASON", "BELOW_NOISE_REASON", "ESTIMATE_COLUMNS", "MISFIT_REASON", "NONPHYSICAL_REASON",
-           "RECOVERY_FRAMES",
-           "DryingTracker",
-           "RangeEstimates",
-           "RowEstimates"]
+           "RECOVERY_FRAMES", "DryingTracker", "RangeEstimates", "RowEstimates"]
 
 
 #: Reason of a row whose estimate means a viscosity <= 0 (``channel.mu + d_mu``): no nozzle the linear
@@ -347,7 +344,7 @@ class DryingTracker:
         self.rows_invalid = self.estimates = self.estimates_with_baseline = 0
         self.estimates_thinner = 0  # of the estimates: a viscosity below THIN_FACTOR x the ink's (another head?)
         self.rows_capped = 0  # listed rows of a range beyond max_estimates: not estimated
-        self.rows_no_fit = 0  # rows estimated whose f_m is no estimate (not finite, viscosity <= 0, at a bound, misfit)
+        self.rows_no_fit = 0  # rows whose f_m is no estimate (not finite, viscosity <= 0, at a bound, misfit)
 
     @property
     def pending(self) -> tuple:

@@ -60,7 +60,8 @@ def run(n_nozzles: int, n_frames: int, seed: int, end_factor: float):
         tr = DryingTracker(recovery_frames=K, max_estimates=n_nozzles)
         n_est, n_rate, err, seen, restarts = 0, 0, [], set(), 0
         for k, (traces, dried) in enumerate(frames):
-            tr.add_traces(traces, first_nozzle=0, frame_id=k, stamp=k * FRAME_S, sample_rate_hz=sc.profile.sample_rate_hz)
+            tr.add_traces(traces, first_nozzle=0, frame_id=k, stamp=k * FRAME_S,
+                          sample_rate_hz=sc.profile.sample_rate_hz)
             for e in tr.add_drying(k, dried, first_nozzle=0, n_nozzles=n_nozzles):
                 on = np.isin(e.columns["nozzle"], drying)
                 n_est += int(on.sum())

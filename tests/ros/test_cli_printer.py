@@ -113,7 +113,8 @@ def test_a_parameter_the_nodes_refuse_is_exit_status_2(ros, fdi_model):
     assert proc.returncode == 2, (out, err)
     # each process that refused within 2 s of the first is said (helper-121: only the first was; see
     # test_the_children_that_end_together_are_all_reported)
-    assert err.count("n_nozzles") >= 2 and err.count("exited with status 2 (bad input: its own line above says") >= 1, err
+    assert err.count("n_nozzles") >= 2, err
+    assert err.count("exited with status 2 (bad input: its own line above says") >= 1, err
     assert "Traceback" not in err, err
 
 
