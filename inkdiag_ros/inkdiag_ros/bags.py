@@ -986,12 +986,16 @@ _CHUNK_CRC_OFFSET = 1 + 8 + 3 * 8
 
 
 def check_new_bag(bag_dir) -> Path:
-    """``bag_dir`` as a Path, refused if it exists or its parent does not (a bag goes into a new directory)."""
+    """``bag_dir`` as a Path, refused if it exists, its parent does not, or it lies inside another bag (a bag goes
+    into a new directory of its own)."""
     bag = Path(bag_dir)
     if bag.exists():
         raise ValueError(f"{bag}: exists already; a bag is written into a new directory")
     if not bag.parent.is_dir():
         raise ValueError(f"{bag.parent}: no such directory")
+    for up in bag.absolute().parents:  # helper-123: a bag written into another was taken
+        if is_bag(up):
+            raise ValueError(f"{bag}: inside the bag {up}; write the new bag beside it, not in it")
     return bag
 
 

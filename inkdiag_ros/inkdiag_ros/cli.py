@@ -76,6 +76,11 @@ def main(argv=None) -> int:
     """Run ``inkdiag``; returns the exit status (0 done, 1 failed, or its output's reader gone, 2 bad input,
     130 interrupted)."""
     words = sys.argv[1:] if argv is None else list(argv)
+    if words[:1] in (["record"], ["replay"]):  # they run until stopped: a shell's background job starts with SIGINT
+        import signal  # ignored, and a Ctrl-C while importing was lost (helper-123); their node takes it once up
+
+        if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+            signal.signal(signal.SIGINT, signal.default_int_handler)  # 'interrupted', 130, as in a terminal
     if words[:1] == ["printer"]:  # a printer stopped at any time is status 0 (docs/scaling.md), also while it
         from ._launch import stop_means_exit_0  # imports (seconds) and starts its children: not 143 or 130
 

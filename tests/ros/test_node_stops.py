@@ -391,6 +391,47 @@ def test_inkdiag_printer_stopped_at_any_time_exits_0(ros, fdi_model, at_s):
     assert not any(os.path.exists(f"/proc/{p}") for p in pids), out
 
 
+@pytest.mark.parametrize("verb", ["record", "replay"])
+def test_inkdiag_record_and_replay_stopped_while_starting_as_a_background_job_exit_0(ros, tmp_path, verb):
+    """helper-123's QA: `inkdiag record B &` then `kill -INT` 1 s later ran on until killed (a shell's background
+    job starts with SIGINT ignored, and the node's handler was not in yet). Stopped while starting, each says
+    'interrupted' and exits 130, as from a terminal (or 0, had it got that far)."""
+    import shutil
+    import subprocess
+    import time
+
+    from _bags import write_bag
+    from inkdiag_core import HeadProfile
+
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    if verb == "record":
+        argv = [shutil.which("inkdiag"), "record", str(tmp_path / "new"), "--topics", "traces"]
+    else:
+        x = HeadProfile.default().simulate({"healthy_nozzle": 8}, seed=0).traces
+        argv = [shutil.which("inkdiag"), "replay", str(write_bag(tmp_path / "bag", [(0, x)])), "--wait-s", "30"]
+    pr = subprocess.Popen(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                          preexec_fn=_sigint_as_a_scripts_background_job_gets_it)
+    time.sleep(0.5)
+    pr.send_signal(signal.SIGINT)
+    out = pr.communicate(timeout=30)[0]
+    assert "Traceback" not in out, out[-2000:]
+    assert (pr.returncode, out.strip()) == (130, f"inkdiag {verb}: interrupted") or pr.returncode == 0, out
+
+
+def test_a_bag_is_not_written_inside_another(tmp_path):
+    """helper-123: `inkdiag record run1/inner`, run1 a bag, wrote a bag inside it."""
+    from _bags import write_bag
+    from inkdiag_core import HeadProfile
+    from inkdiag_ros.bags import check_new_bag
+
+    bag = write_bag(tmp_path / "run1", [(0, HeadProfile.default().simulate({"healthy_nozzle": 2}, seed=0).traces)])
+    (bag / "sub").mkdir()
+    for inner in (bag / "inner", bag / "sub" / "deeper"):
+        with pytest.raises(ValueError, match="inside the bag .*run1; write the new bag beside it"):
+            check_new_bag(inner)
+    assert check_new_bag(tmp_path / "beside") == tmp_path / "beside"
+
+
 @pytest.mark.parametrize("value", ["-1", "nan", "inf"])
 def test_graph_refuses_a_duration_that_is_not_a_number_of_seconds(value):
     """helper-73's QA: --duration -1 ran until killed, nan stopped at once with 0 frames and exit 0."""
