@@ -993,8 +993,8 @@ def check_new_bag(bag_dir) -> Path:
         raise ValueError(f"{bag}: exists already; a bag is written into a new directory")
     if not bag.parent.is_dir():
         raise ValueError(f"{bag.parent}: no such directory")
-    for up in bag.absolute().parents:  # helper-123: a bag written into another was taken
-        if is_bag(up):
+    for up in bag.absolute().parents:  # helper-123: a bag written into another was taken (a folder that only holds
+        if (up / "metadata.yaml").is_file():  # .mcap files, perhaps other tools' recordings, is no bag to refuse)
             raise ValueError(f"{bag}: inside the bag {up}; write the new bag beside it, not in it")
     return bag
 

@@ -430,6 +430,9 @@ def test_a_bag_is_not_written_inside_another(tmp_path):
         with pytest.raises(ValueError, match="inside the bag .*run1; write the new bag beside it"):
             check_new_bag(inner)
     assert check_new_bag(tmp_path / "beside") == tmp_path / "beside"
+    (tmp_path / "exports").mkdir()  # a folder of other tools' single-file MCAP recordings: no bag of its own
+    (tmp_path / "exports" / "drive_test.mcap").write_bytes(b"\x89MCAP0\r\n")
+    assert check_new_bag(tmp_path / "exports" / "new") == tmp_path / "exports" / "new"
 
 
 @pytest.mark.parametrize("value", ["-1", "nan", "inf"])
