@@ -411,9 +411,14 @@ def test_inkdiag_record_and_replay_stopped_while_starting_as_a_background_job_ex
         argv = [shutil.which("inkdiag"), "replay", str(write_bag(tmp_path / "bag", [(0, x)])), "--wait-s", "30"]
     pr = subprocess.Popen(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                           preexec_fn=_sigint_as_a_scripts_background_job_gets_it)
-    time.sleep(0.5)
-    pr.send_signal(signal.SIGINT)
-    out = pr.communicate(timeout=30)[0]
+    try:
+        time.sleep(0.5)
+        pr.send_signal(signal.SIGINT)
+        out = pr.communicate(timeout=30)[0]
+    finally:
+        if pr.poll() is None:  # it ran on: no orphan left behind the failure
+            pr.kill()
+            pr.wait()
     assert "Traceback" not in out, out[-2000:]
     assert (pr.returncode, out.strip()) == (130, f"inkdiag {verb}: interrupted") or pr.returncode == 0, out
 
