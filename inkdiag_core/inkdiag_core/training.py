@@ -319,8 +319,8 @@ def train_detector(profile, *, features: str = "kpi_y", kind: str = "rf", baseli
             got = det.label(Xr_val)
             named = got.valid & (got.classes != UNKNOWN)  # a class given (unknown: the open-set layer's, scored apart)
             info["n_real_rows_validation_classified"] = int(named.sum())
-            info["validation_real_unknown_share"] = float(np.mean(got.classes[got.valid] == UNKNOWN)) if \
-                got.valid.any() else float("nan")
+            info["validation_real_unknown_share"] = (float(np.mean(got.classes[got.valid] == UNKNOWN))
+                                                     if got.valid.any() else float("nan"))
             info["validation_real_fi_accuracy"] = (float(np.mean(got.classes[named] == yr_val[named])) if named.any()
                                                    else float("nan"))
     report(2, total, f"fitted {kind} on {features} features" + (" and baselines" if baseline else ""))

@@ -451,6 +451,13 @@ class FmTrendBank:
             self._clear(np.searchsorted(ids, new))
         return np.searchsorted(self.ids, nozzles)
 
+    def _known_rows(self, nozzles) -> np.ndarray:
+        """Rows of those of ``nozzles`` (ids) the bank has (unlike :meth:`_rows`, adding none)."""
+        ids = np.asarray(nozzles, dtype=np.int64).reshape(-1)
+        rows = np.searchsorted(self.ids, ids)
+        known = rows < self.ids.size
+        return rows[known][self.ids[rows[known]] == ids[known]]
+
     def _clear(self, rows) -> None:
         """Rows ``rows`` as a nozzle before its first update (a new one, or one whose trend restarts)."""
         self.x[rows], self.P[rows], self.t[rows], self.n_updates[rows] = 0.0, 0.0, np.nan, 0
@@ -480,10 +487,7 @@ class FmTrendBank:
         int
             How many trends were restarted (nozzles with at least one update).
         """
-        ids = np.asarray(nozzles, dtype=np.int64).reshape(-1)
-        rows = np.searchsorted(self.ids, ids)
-        known = rows < self.ids.size
-        rows = rows[known][self.ids[rows[known]] == ids[known]]
+        rows = self._known_rows(nozzles)
         rows = rows[(self.n_updates[rows] > 0) & (self.t[rows] < before)]
         if after > 1 and not math.isfinite(before):
             raise ValueError(f"forget(after={after}) needs a finite time 'before' to tell its news apart, got {before}")
@@ -501,10 +505,7 @@ class FmTrendBank:
     def heard(self, nozzles, t: float) -> None:
         """News at time ``t`` (s) that ``nozzles`` are still drying (a list names them, estimated or not): the
         count of :meth:`forget`'s news against them starts again, unless that news is newer than ``t``."""
-        ids = np.asarray(nozzles, dtype=np.int64).reshape(-1)
-        rows = np.searchsorted(self.ids, ids)
-        known = rows < self.ids.size
-        rows = rows[known][self.ids[rows[known]] == ids[known]]
+        rows = self._known_rows(nozzles)
         rows = rows[~(self.t_missed[rows] > t)]  # NaN (none, or no time): reset
         self.misses[rows], self.t_missed[rows] = 0, np.nan
 

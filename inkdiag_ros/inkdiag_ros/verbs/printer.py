@@ -19,8 +19,9 @@ head uses: /head_07/traces in, /head_07/labels and /head_07/drying_nozzles out,
 assigned to the processes round-robin (head i in process i mod P); each process
 spins its nodes on one rclpy executor (--executor: the EventsExecutor by default), one
 BLAS thread, the allocator set as in every inkdiag node. No fe node runs: the printer
-labels; run fe per head where f_m estimates are wanted. Parameters come from the packaged config/inkdiag.yaml, then
---ros-args (given to every node of every process), then --model and --baselines.
+labels; run fe per head where f_m estimates are wanted. Parameters come from the
+packaged config/inkdiag.yaml, then --ros-args (given to every node of every
+process), then --model and --baselines.
 
 With --simulate a simulated printhead per head (printhead_sim, seed = head index)
 runs too, all of them in one more process, so the command demos on its own.
