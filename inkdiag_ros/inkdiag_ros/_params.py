@@ -35,16 +35,17 @@ def declare(node, name, default, description, *, kind=None, range_=None, read_on
     node.declare_parameter(name, default, d)
 
 
-def declare_all(node, params) -> dict:
+def declare_all(node, params, dynamic=()) -> dict:
     """Declare every ``(name, default, description, kind, range)`` of ``params``; their values.
 
-    An array parameter given as an empty list on the command line (``-p NAME:=[]``, which
-    rclpy cannot type and leaves uninitialised) is the empty list.
+    Every parameter but those named in ``dynamic`` is read-only (its descriptor says so: ``ros2 param
+    describe``; set at start with ``-p``, never after). An array parameter given as an empty list on the
+    command line (``-p NAME:=[]``, which rclpy cannot type and leaves uninitialised) is the empty list.
     """
     from rclpy.exceptions import ParameterUninitializedException
 
     for name, default, desc, kind, rng in params:
-        declare(node, name, default, desc, kind=kind, range_=rng)
+        declare(node, name, default, desc, kind=kind, range_=rng, read_only=name not in dynamic)
     warn_unknown(node)
     out = {}
     for name, _, _, kind, _ in params:

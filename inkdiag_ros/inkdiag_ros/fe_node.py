@@ -63,6 +63,7 @@ PARAMS = (
     ("diagnostics_period_s", 1.0, "period of fe's status on /diagnostics ('inkdiag fe: <namespace>'), s", float,
      (0.1, 60.0)),
 )
+DYNAMIC = ("max_estimates_per_frame",)  # may change at runtime (ros2 param set); the others are read-only
 
 
 class FeNode(Node):
@@ -70,8 +71,8 @@ class FeNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__("fe", **kwargs)
-        self.config = c = _params.declare_all(self, PARAMS)
-        self.add_on_set_parameters_callback(self._on_set)
+        self.config = c = _params.declare_all(self, PARAMS, dynamic=DYNAMIC)
+        self.add_on_set_parameters_callback(lambda params: _params.fixed_at_start(params, dynamic=DYNAMIC))
         self.add_post_set_parameters_callback(self._after_set)
         self.profile = head_from_parameters(c)  # a bad or nominal file: ValueError, exit 2 at start
         self.baselines = load_fm_baselines(c["baseline_path"], self.profile, self.get_logger())
@@ -98,9 +99,6 @@ class FeNode(Node):
             self._diag_pub.publish(build_diagnostics(namespace=self.get_namespace(), level=level, message=message,
                                                      values=values, counts={}, node="fe",
                                                      stamp=self.get_clock().now().to_msg()))
-
-    def _on_set(self, params):
-        return _params.fixed_at_start(params, dynamic=("max_estimates_per_frame",))
 
     def _after_set(self, params) -> None:
         self.tracker.max_estimates = self.get_parameter("max_estimates_per_frame").value

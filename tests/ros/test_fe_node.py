@@ -56,7 +56,9 @@ def test_fe_estimates_only_the_drying_nozzles(ros):
     assert fe.set_parameters([P("max_estimates_per_frame", value=1)])[0].successful
     assert fe.tracker.max_estimates == 1
     res = fe.set_parameters([P("max_pending", value=5)])[0]
-    assert not res.successful and "fixed at start" in res.reason and fe.tracker.max_pending == 128
+    assert not res.successful and "read-only" in res.reason and fe.tracker.max_pending == 128
+    # what `ros2 param describe` shows: the one runtime parameter writable, the others read-only
+    assert [d.read_only for d in fe.describe_parameters(["max_estimates_per_frame", "max_pending"])] == [False, True]
     res = fe.set_parameters([P("max_estimates_per_frame", value=0)])[0]  # outside its range
     assert not res.successful and fe.tracker.max_estimates == 1
 

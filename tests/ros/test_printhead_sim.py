@@ -73,7 +73,7 @@ def test_printhead_sim_rejects_bad_scenarios_and_runtime_changes(ros):
     assert last.scenario.first_nozzle == 2**24 - 64  # its last nozzle, 2**24 - 1, is on the wire
     sim = ros.add(PrintheadSim(context=ros.context))
     res = sim.set_parameters([P("n_nozzles", value=8)])[0]
-    assert not res.successful and "fixed at start" in res.reason
+    assert not res.successful and "read-only" in res.reason and sim.describe_parameter("n_nozzles").read_only
     res = sim.set_parameters([P("frame_rate_hz", value=1e6)])[0]  # outside the descriptor's range
     assert not res.successful
 
