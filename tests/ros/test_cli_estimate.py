@@ -519,10 +519,10 @@ def test_estimate_takes_a_labels_csv_of_a_bag(head, tmp_path):
     # a bag has no label column; labels of another recording; a CSV naming rows the bag lacks
     other = _labels_csv(tmp_path / "other.csv", same, classes, nozzle_offset=2)
     with open(tmp_path / "long.csv", "w") as f:
-        f.write(open(labels).read() + "16,0,2,deeply_dried,0.9,,0\n")
+        f.write(open(labels).read() + "16,0,2,deeply_dried,0.9,,0\n17,0,2,deeply_dried,0.9,,0\n")
     for args, message in [(("--rows", "dried"), "a bag has no label column; give the rows' classes with --labels"),
                           (("--labels", other), "other.csv:2: row 0 is nozzle 0 in the bag, the CSV says 2"),
-                          (("--labels", tmp_path / "long.csv"), "row 16 is beyond the bag's 16 rows")]:
+                          (("--labels", tmp_path / "long.csv"), "long.csv: row 16 (and 1 more) is past the end (the bag has 16 rows")]:
         res = run_inproc(bag, "--profile", d / "head.yaml", *args, "--out", tmp_path / "x.csv")
         assert res.returncode == 2, (args, res.stderr)
         last = res.stderr.strip().splitlines()[-1]  # after the bag's own report, where it was read

@@ -331,10 +331,10 @@ def bag_row_picker(spec, labels=None):
     -------
     callable
         ``pick(start, n)`` -> the selected indices (int64, increasing) among rows
-        ``start .. start + n - 1``; its attribute ``max_index`` is the largest index
-        the spec (or the CSV) names explicitly (-1 if none), checked against the bag's rows
-        at the end; its method ``check(start, nozzle, frame_id)`` refuses a CSV whose
-        ``nozzle`` or ``frame_id`` is not that of rows ``start ..`` (another recording's).
+        ``start .. start + n - 1``; its method ``beyond(n_rows)`` says what the spec (or the
+        CSV) names past a bag of ``n_rows`` rows (None: nothing), checked at the end; its method
+        ``check(start, nozzle, frame_id)`` refuses a CSV whose ``nozzle`` or ``frame_id`` is not
+        that of rows ``start ..`` (another recording's).
 
     Raises
     ------
@@ -347,7 +347,7 @@ def bag_row_picker(spec, labels=None):
 
     if labels is not None:
         return _labelled_picker(spec, labels)
-    parts, max_index = [], -1
+    parts, last = [], []  # last: each part's largest row, as select_rows: STOP <= n
     if spec is not None:
         spec = spec.strip()
         if _class_values(spec) is not None:
@@ -362,10 +362,10 @@ def bag_row_picker(spec, labels=None):
                 if hi is not None and lo > hi:
                     raise InputError(f"--rows {part}: START > STOP")
                 parts.append((lo, hi))
-                max_index = max(max_index, (lo if hi is None else hi) - 1)  # as select_rows: STOP <= n
+                last.append((part, (lo if hi is None else hi) - 1))
             elif re.fullmatch(r"[0-9]+", part):
                 parts.append((int(part), int(part) + 1))
-                max_index = max(max_index, int(part))
+                last.append((part, int(part)))
             else:
                 raise InputError(f"--rows {spec!r}: expected indices and ranges such as 0:100 or 3,7,9")
 
@@ -378,7 +378,10 @@ def bag_row_picker(spec, labels=None):
             keep |= (idx >= lo) & (idx < (hi if hi is not None else start + n))
         return idx[keep]
 
-    pick.max_index = max_index
+    def beyond(n_rows):  # the first part, in the order given, that names a row past the end
+        return next((f"--rows {part}: outside 0:{n_rows}" for part, hi in last if hi >= n_rows), None)
+
+    pick.beyond = beyond
     pick.check = lambda start, nozzle, frame_id: None
     return pick
 
@@ -412,7 +415,14 @@ def _labelled_picker(spec, table):
                 raise InputError(f"{table.source}:{table.lines[k]}: row {table.row[k]} is {name} {got[bad[0]]} in "
                                  f"the bag, the CSV says {col[k]}: labels of another recording?")
 
-    pick.max_index = int(named[-1]) if named.size else -1
+    def beyond(n_rows):  # the CSV's first row past the end, and how many more
+        past = named[np.searchsorted(named, n_rows):]
+        if past.size:
+            return (f"--labels {table.source}: row {past[0]}" + (f" (and {past.size - 1} more)" if past.size > 1
+                                                                   else "") + " is past the end")
+        return None
+
+    pick.beyond = beyond
     pick.check = check
     return pick
 
@@ -469,9 +479,8 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
             n += sel.size
             n_bad += int((reasons != "").sum())
     report_stats(args.recording, stats)
-    if pick.max_index >= n_seen:
-        what = f"--labels {args.labels}" if args.labels else f"--rows {args.rows}"
-        raise InputError(f"{what}: row {pick.max_index} is beyond the bag's {n_seen} rows ({n} rows estimated into "
+    if why_past := pick.beyond(n_seen):
+        raise InputError(f"{why_past} (the bag has {n_seen} rows; {n} rows estimated into "
                          f"{'stdout' if args.out == '-' else args.out})"
                          + (": labels of another recording?" if args.labels else ""))
     print(f"inkdiag estimate: {n - n_bad} of {n} rows estimated ({method}, head {profile.name!r})"
