@@ -10,7 +10,7 @@ key                shape, type                 meaning
 ``nozzle``         (n,) int                    nozzle id of each row (default 0..n-1)
 ``frame_id``       (n,) int                    measurement (frame) of each row (default 0)
 ``stamp``          (n,) float                  time of each row's frame, s (default NaN)
-``label``          (n,) str                    class of each row (a FaultClass value, any case), if known;
+``label``          (n,) str                    class of each row (a FaultClass value, any case, padding ignored), if known;
                                                ``invalid`` or ``unknown`` (from ``inkdiag label``): none
 =================  ==========================  ===========================================
 
@@ -163,9 +163,10 @@ class Recording:
         if label is not None:
             lab = np.asarray(label)
             per_trace("label", lab)
-            lab = np.array([(v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v)).lower()
+            lab = np.array([(v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v)).strip().lower()
                             for v in lab.tolist()], dtype=object)  # bytes (an 'S' array, as h5py or MATLAB write)
-            # are UTF-8 text; class names are lower case, read without case as a labels CSV's are
+            # are UTF-8 text; class names are lower case and padding is no part of them (a MATLAB char
+            # matrix pads its rows with spaces): read as a labels CSV's cells are
             bad = sorted(set(lab.tolist()) - LABEL_VALUES)
             if bad:
                 raise RecordingError(f"{source}: label {', '.join(map(repr, bad[:5]))}{', ...' if len(bad) > 5 else ''} "

@@ -94,6 +94,10 @@ def test_labels_are_read_without_case_as_a_labels_csv_is(tmp_path):
     rec = load_recording(_save(tmp_path / "c.npz", traces=np.zeros((3, 8)), sample_rate_hz=1e6,
                                label=np.array(["Healthy_Nozzle", "DEEPLY_DRIED", "Unknown"])))
     assert list(rec.label) == ["healthy_nozzle", "deeply_dried", "unknown"]
+    # and without padding: a MATLAB char matrix pads its rows with spaces (bytes, as scipy.io or h5py give them)
+    rec = load_recording(_save(tmp_path / "p.npz", traces=np.zeros((3, 8)), sample_rate_hz=1e6,
+                               label=np.array([b"ok_signal   ", b" deeply_dried", b"unknown\t"])))
+    assert list(rec.label) == ["ok_signal", "deeply_dried", "unknown"]
 
 
 def test_labels_from_inkdiag_label_load_and_training_leaves_their_rows_out(tmp_path):
