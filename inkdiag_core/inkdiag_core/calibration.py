@@ -85,7 +85,7 @@ from scipy.optimize import brentq, least_squares
 
 from .checks import InputError
 from .faults import MECHANISMS, FaultClass
-from .head_profile import NOMINAL_CHANNEL_KEYS, HeadProfile, ProfileError, implausible_values
+from .head_profile import EMPTY_MIN_RATIO, NOMINAL_CHANNEL_KEYS, HeadProfile, ProfileError, implausible_values
 from .kpis import extract_kpis
 from .screening import rings_above_noise, screen_traces
 from .simulation.channels import PHYSICAL_CONSTANTS
@@ -501,10 +501,6 @@ channels of the heads of ``tests/foreign_head.py`` and a walkthrough's gave 0.80
 
 MIN_EMPTY_TRACES = 10
 """Fewest usable empty-channel traces ``calibrate(empty=...)`` takes."""
-EMPTY_MIN_RATIO = 2.5
-"""An empty channel's mode must be at least this many times the healthy mode (the actuator alone rings far above
-the ink channel: 7.5-9.6 times on the heads of ``tests/foreign_head.py`` and the walkthrough's h12; 5.0-6.3 with a
-heavy ink film, the ``empty_channel_2`` class, which is not what ``empty=`` takes and which this does not catch)."""
 EMPTY_MAX_DAMPING = 0.3
 """Largest median damping ratio of empty-channel traces taken (the actuator alone is lightly damped)."""
 EMPTY_MAX_SPREAD = 0.08

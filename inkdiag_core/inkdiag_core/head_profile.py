@@ -139,6 +139,13 @@ ABSURD_FACTOR = 1e3
 merely outside is named only where the physics fails: an unusual head may have one)."""
 
 
+EMPTY_MIN_RATIO = 2.5
+"""An empty channel's mode (``channel.f_act``, or recorded empty-channel traces) must be at least this many times
+the healthy mode (the actuator alone rings far above the ink channel: 7.5-9.6 times on the heads of
+``tests/foreign_head.py`` and the walkthrough's h12; 5.0-6.3 with a heavy ink film, the ``empty_channel_2`` class,
+which is not what ``calibrate(empty=...)`` takes and which this does not catch). A lower ``f_act`` is in other
+units (kHz written as Hz): a model trained with it called empty channels dried or bubbles (helper-125)."""
+
 MAX_DRIVE_TIME_S = 1e-4
 """Longest ``drive.rise_s``, ``dwell_s``, ``fall_s`` or ``switch_delay_s`` a profile accepts, s. A piezo
 drive's rise, dwell and fall and the switch-over delay to sensing last about 0.5-20 us (every shipped
@@ -492,6 +499,11 @@ class HeadProfile:
         if f0 >= fs / 2:
             raise ProfileError(f"{source}: the healthy mode {f0 / 1e3:.1f} kHz is above the Nyquist frequency "
                                f"{fs / 2e3:.1f} kHz of sampling.sample_rate_hz" + hint)
+        f_act = self.channel.get("f_act")
+        if f_act is not None and not f_act > EMPTY_MIN_RATIO * f0:
+            raise ProfileError(f"{source}: channel.f_act, {f_act / 1e3:.4g} kHz, is not above {EMPTY_MIN_RATIO:g} times "
+                               f"the healthy mode ({f0 / 1e3:.1f} kHz), as an actuator's own resonance is (7.5-9.6 "
+                               "times on the heads measured): it is in Hz (a value in kHz?)")
         if n / fs * f0 < 3:
             raise ProfileError(f"{source}: a trace of {n} samples at {fs:g} Hz holds {n / fs * f0:.1f} periods of the "
                                f"healthy mode ({f0 / 1e3:.1f} kHz); at least 3 are needed")

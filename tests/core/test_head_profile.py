@@ -72,6 +72,9 @@ def test_nominal_profile_loads_and_says_what_is_missing():
     (lambda d: d["channel"].update(f_act=6e6), r"channel\.f_act: the actuator's resonance 6000\.0 kHz is not below "
      r"the Nyquist frequency 5000\.0 kHz"),
     (lambda d: d["channel"].update(f_act=-1.0), r"channel\.f_act: expected a positive number in Hz"),
+    # kHz written as Hz: calibrate refused it in a nominal profile, train took it in a complete one (helper-125)
+    (lambda d: d["channel"].update(f_act=2174.0), r"channel\.f_act, 2\.174 kHz, is not above 2\.5 times the healthy "
+     r"mode \(237\.\d kHz\).*\(a value in kHz\?\)"),
     (lambda d: d["channel"].update(zeta_act=1.2), r"channel\.zeta_act: the actuator's damping ratio must be below 1"),
     # microseconds written as seconds (a blind walkthrough's profile, accepted and fitted before)
     (lambda d: d["drive"].update(rise_s=1.0), r"drive\.rise_s: 1 s is longer than 100 us: a drive's rise, dwell "
