@@ -32,7 +32,7 @@ The file (YAML, SI units)::
       offset_v: 0.0             # V, mean offset
       noise_std_v: 0.004        # V, white noise (or snr_db, dB of the healthy trace)
       adc_range_v: 2.0          # V, the ADC reads +-adc_range_v
-      adc_bits: 12              # or null: no quantisation
+      adc_bits: 12              # 4 to 32, or null: no quantisation
     spreads:   # optional: per-trace variation of a head (Spreads field names)
       temperature_std_k: 1.5
     calibration: {...}          # optional: how the profile was made (its posterior: what training spreads over)
@@ -145,6 +145,10 @@ the healthy mode (the actuator alone rings far above the ink channel: 7.5-9.6 ti
 ``tests/foreign_head.py`` and the walkthrough's h12; 5.0-6.3 with a heavy ink film, the ``empty_channel_2`` class,
 which is not what ``calibrate(empty=...)`` takes and which this does not catch). A lower ``f_act`` is in other
 units (kHz written as Hz): a model trained with it called empty channels dried or bubbles (helper-125)."""
+
+MIN_ADC_BITS = 4
+"""Fewest ``sensor.adc_bits`` a profile accepts: a 1-bit ADC's traces trained a model of 8 % FI without a word
+(helper-125); a sensing ADC has about 8-16."""
 
 MAX_DRIVE_TIME_S = 1e-4
 """Longest ``drive.rise_s``, ``dwell_s``, ``fall_s`` or ``switch_delay_s`` a profile accepts, s. A piezo
@@ -387,8 +391,9 @@ class HeadProfile:
         for k, v in se.items():
             if k == "adc_bits":
                 sensor[k] = _number(f"{source}: sensor", k, v, "bits", integer=True, allow_none=True)
-                if sensor[k] is not None and sensor[k] > 32:
-                    raise ProfileError(f"{source}: sensor.adc_bits: at most 32 bits, got {v!r}")
+                if sensor[k] is not None and not MIN_ADC_BITS <= sensor[k] <= 32:
+                    raise ProfileError(f"{source}: sensor.adc_bits: {MIN_ADC_BITS} to 32 bits (a sensing ADC's: "
+                                       f"about 8-16), got {v!r}")
             else:
                 sensor[k] = _number(f"{source}: sensor", k, v, SENSOR_UNITS[k],
                                     positive=k not in ("offset_v", "noise_std_v", "snr_db"))
@@ -515,6 +520,11 @@ class HeadProfile:
         if not (rms < adc and abs(offset) < adc):  # every healthy trace clipped, or all of it out of range
             raise ProfileError(f"{source}: sensor.adc_range_v {adc:g} V: an ADC reading +-{adc:g} V clips the nominal "
                                f"healthy trace (rms {rms:.3g} V about an offset of {offset:g} V): is it in volts?")
+        step = 2 * adc / 2 ** self.adc_bits if self.adc_bits else 0.0
+        if not rms >= step:  # the ring-down is quantisation noise: a gain off by 1e3, or the range in mV
+            raise ProfileError(f"{source}: the nominal healthy trace (rms {rms:.3g} V) is smaller than one step of the "
+                               f"ADC ({step:.3g} V: +-{adc:g} V, {self.adc_bits} bits): check sensor.gain_v_per_m3s "
+                               "(V per m^3/s) and sensor.adc_range_v (V)")
 
     # -- serialisation ----------------------------------------------------------------------
 

@@ -402,8 +402,13 @@ def test_a_row_resting_on_the_adcs_end_code_is_clipped_for_estimation():
     assert "adc_range_v" not in loose.sensor
     assert "clipped" not in DryingTracker(profile=loose, method="vp").estimate_rows(  # vp: no vp_cal fit (seconds)
         y, np.arange(6), stamp=0.0, sample_rate_hz=10e6).reasons
-    # nor one of a coarse ADC, whose end codes span much of its range (helper-110: 1 bit, every row clipped)
-    coarse = p.replace(sensor={"adc_bits": 1})
+    # nor one of a coarse ADC, whose end codes span much of its range (helper-110: 1 bit, every row clipped; a
+    # profile now takes 4 bits or more, and a healthy trace of at least one step)
+    from inkdiag_core.drying_tracker import MIN_RAIL_BITS, adc_rails
+
+    assert adc_rails(p.replace(sensor={"adc_bits": MIN_RAIL_BITS - 1})) is None
+    assert adc_rails(p.replace(sensor={"adc_bits": MIN_RAIL_BITS})) is not None
+    coarse = p.replace(sensor={"adc_bits": 5})
     assert "clipped" not in DryingTracker(profile=coarse, method="vp").estimate_rows(
         x, np.arange(6), stamp=0.0, sample_rate_hz=10e6).reasons
     # a railed row is no news of a recovery either: it ends no trend; a row on the scale does

@@ -72,6 +72,11 @@ def test_nominal_profile_loads_and_says_what_is_missing():
     (lambda d: d["channel"].update(f_act=6e6), r"channel\.f_act: the actuator's resonance 6000\.0 kHz is not below "
      r"the Nyquist frequency 5000\.0 kHz"),
     (lambda d: d["channel"].update(f_act=-1.0), r"channel\.f_act: expected a positive number in Hz"),
+    # values train took silently, its model then useless (helper-125): a 1-bit ADC; a gain 1000 times low
+    (lambda d: d["sensor"].update(adc_bits=1), r"sensor\.adc_bits: 4 to 32 bits \(a sensing ADC's: about 8-16\), "
+     r"got 1"),
+    (lambda d: d["sensor"].update(gain_v_per_m3s=1e7), r"the nominal healthy trace \(rms 0\.000185 V\) is smaller than "
+     r"one step of the ADC \(0\.000977 V: \+-2 V, 12 bits\): check sensor\.gain_v_per_m3s"),
     # kHz written as Hz: calibrate refused it in a nominal profile, train took it in a complete one (helper-125)
     (lambda d: d["channel"].update(f_act=2174.0), r"channel\.f_act, 2\.174 kHz, is not above 2\.5 times the healthy "
      r"mode \(237\.\d kHz\).*\(a value in kHz\?\)"),

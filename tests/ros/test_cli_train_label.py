@@ -372,3 +372,22 @@ def test_train_checks_the_recorded_rows_labels_against_the_model(work, tmp_path,
     save_recording(tmp_path / "few.npz", Recording.from_arrays(sim.traces, head.sample_rate_hz, label=few))
     assert main(["train", *args, "--out", str(tmp_path / "f.joblib"), "--data", str(tmp_path / "few.npz")]) == 0
     assert "none held out, so nothing checks their labels" in capsys.readouterr().out
+
+
+def test_train_warns_of_a_model_that_tells_its_own_simulated_classes_apart_poorly():
+    """helper-125: profiles with a value in other units (a nozzle radius of 1.5 mm) trained to FI 41-70 % with 8-86 %
+    false alarms, exit 0, without a word. The validation scores of the heads of reports/heads.md (FI 90-97 %, about
+    0 % missed and false alarms) pass; poor ones are warned about, naming an implausible value where there is one."""
+    from inkdiag_ros.verbs.train import _poor_validation
+
+    def scores(fi, fnr=0.0, fpr=0.0):
+        return {"validation_fi_accuracy": fi, "validation_fd_fnr": fnr, "validation_fd_fpr": fpr}
+
+    head = HeadProfile.default()
+    assert _poor_validation(scores(0.927), head) is None and _poor_validation(scores(0.86, 0.005, 0.01), head) is None
+    odd = head.replace(channel={"r_n": 1.5e-3})
+    why = _poor_validation(scores(0.511, 0.005, 0.8562), odd)
+    assert why.startswith("the model tells the profile's own simulated classes apart poorly (FI 51.1 %, faults "
+                          "missed 0.50 %, false alarms 85.62 %") and "implausible: channel.r_n 0.0015 m" in why
+    assert "implausible" not in _poor_validation(scores(0.95, 0.0, 0.05), head)  # the FD rates alone are poor too
+    assert _poor_validation(scores(0.95, 0.03, 0.0), head) is not None

@@ -212,6 +212,8 @@ def run(args) -> int:
     print(f"validation ({s['n_validation']} rows): FI accuracy {100 * s['validation_fi_accuracy']:.1f} %, "
           f"at the FD threshold {det.fd_threshold_:.3f}: FI {100 * s['validation_fi_accuracy_at_threshold']:.1f} %, "
           f"faults missed {100 * s['validation_fd_fnr']:.2f} %, false alarms {100 * s['validation_fd_fpr']:.2f} %")
+    if why := _poor_validation(s, profile):
+        print(f"inkdiag train: warning: {why}", file=sys.stderr)
     if data is None:
         print("note: the validation rows are simulated on this profile, so these scores leave out how far the "
               "profile is from the head; labelling a recording of nozzles of known classes measures that")
@@ -232,6 +234,27 @@ def run(args) -> int:
                  "never calls a trace unknown; raise --n-per-class" if silent else ""))
     print(f"wrote {out} and {mpath}")
     return 0
+
+
+#: Validation scores below which the model is said to be poor: the heads of reports/heads.md validate at FI
+#: 90-97 % with 0-0.5 % of faults missed and of false alarms; profiles with a value in other units trained
+#: silently to FI 8-70 % with 8-100 % false alarms (helper-125).
+POOR_FI, POOR_FD_RATE = 0.80, 0.02
+
+
+def _poor_validation(scores, profile) -> str | None:
+    """What to warn of when the model tells the profile's own simulated classes apart poorly, or None."""
+    from inkdiag_core.head_profile import implausible_values
+
+    fi, fnr, fpr = (scores[k] for k in ("validation_fi_accuracy", "validation_fd_fnr", "validation_fd_fpr"))
+    if fi >= POOR_FI and fnr <= POOR_FD_RATE and fpr <= POOR_FD_RATE:
+        return None
+    odd = implausible_values(profile.channel)
+    return (f"the model tells the profile's own simulated classes apart poorly (FI {100 * fi:.1f} %, faults missed "
+            f"{100 * fnr:.2f} %, false alarms {100 * fpr:.2f} %; a head's profile gives about 90-97 % and below "
+            f"{100 * POOR_FD_RATE:g} %): check its values and units"
+            + (f" (implausible: {'; '.join(odd)})" if odd else "")
+            + ", its sensor (gain_v_per_m3s, adc_range_v, adc_bits, noise) and its spreads")
 
 
 #: A class with fewer recorded rows than this has none held out for validation (a quarter, rounded down).
