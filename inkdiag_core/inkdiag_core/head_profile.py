@@ -189,6 +189,28 @@ class ProfileError(InputError):
     """A head profile that cannot be used: missing, malformed, another schema, incomplete."""
 
 
+MAX_PROFILE_BYTES = 1 << 20
+"""Largest head profile file or text taken, bytes (a profile is a few kB; a calibrated one's posterior and fit
+report add about 2 kB): a 200 MB file had PyYAML parse for minutes (helper-125)."""
+MAX_PROFILE_VALUES = 100_000
+"""Most values (keys, scalars, entries) a profile may hold once its YAML aliases are expanded: nested aliases of a
+few hundred bytes expanded to a 173 MB manifest (helper-125)."""
+
+
+def _count_values(doc, budget: int) -> int:
+    """Values of ``doc`` (nested dicts and lists, each alias counted where it is used), counting stops past ``budget``."""
+    n, stack = 0, [doc]
+    while stack and n <= budget:
+        v = stack.pop()
+        n += 1
+        if isinstance(v, Mapping):
+            n += len(v)  # the keys
+            stack.extend(v.values())
+        elif isinstance(v, list):
+            stack.extend(v)
+    return n
+
+
 # YAML 1.1 (PyYAML) reads "15e-6" as a string; a head profile means a number.
 def _loader():
     import yaml
@@ -422,12 +444,18 @@ class HeadProfile:
         """Parse YAML text (see :meth:`from_dict`)."""
         import yaml
 
+        if len(text) > MAX_PROFILE_BYTES:
+            raise ProfileError(f"{source}: {len(text):,} characters is not a head profile (a profile is a few kB; at "
+                               f"most {MAX_PROFILE_BYTES:,})")
         try:
             doc = yaml.load(text, Loader=_loader())  # noqa: S506 (a SafeLoader subclass)
         except yaml.YAMLError as exc:
             raise ProfileError(f"{source}: not valid YAML{_yaml_problem(exc, text)}") from None
         except RecursionError:  # PyYAML composes and constructs nested nodes recursively
             raise ProfileError(f"{source}: not valid YAML: nested too deeply") from None
+        if _count_values(doc, MAX_PROFILE_VALUES) > MAX_PROFILE_VALUES:
+            raise ProfileError(f"{source}: more than {MAX_PROFILE_VALUES:,} values once its YAML aliases are expanded "
+                               "(a profile holds about a hundred)")
         return cls.from_dict(doc, source=source)
 
     @classmethod
@@ -441,6 +469,9 @@ class HeadProfile:
         """
         path = Path(path)
         try:
+            if path.is_file() and path.stat().st_size > MAX_PROFILE_BYTES:  # not read: it is no profile
+                raise ProfileError(f"{path}: {path.stat().st_size:,} bytes is not a head profile (a profile is a few "
+                                   f"kB; at most {MAX_PROFILE_BYTES:,})")
             text = path.read_text(encoding="utf-8")
         except FileNotFoundError:
             raise ProfileError(f"{path}: no such head profile file") from None

@@ -229,3 +229,24 @@ def test_the_actuator_resonance_of_a_profile_reaches_the_empty_channel_classes(t
     assert abs(f_p / 2.175e6 - 1) < 0.01 and abs(f_q / 1.5e6 - 1) < 0.01
     z_q = np.median(q.simulate(counts, seed=1, severity=sev).damping_ratio)
     assert abs(z_q / 0.05 - 1) < 0.05
+
+
+def test_a_profile_too_large_or_expanding_too_far_is_refused_before_it_costs(tmp_path):
+    """helper-125: a 200 MB profile had PyYAML parse for minutes; nested aliases of a few hundred bytes in
+    `calibration:` (not checked) went into a 173 MB manifest. Both are refused at once; a plain alias still loads."""
+    from inkdiag_core.head_profile import MAX_PROFILE_BYTES
+
+    text = HeadProfile.default().dumps()
+    big = tmp_path / "big.yaml"
+    big.write_text(text + "# " + "x" * MAX_PROFILE_BYTES + "\n")
+    with pytest.raises(ProfileError, match=r"big\.yaml: 1,04\d,\d{3} bytes is not a head profile"):
+        HeadProfile.load(big)
+    with pytest.raises(ProfileError, match="characters is not a head profile"):
+        HeadProfile.loads(big.read_text())
+    levels = ['a: &a ["x", "x", "x", "x", "x", "x", "x", "x", "x"]']
+    levels += [f"{c}: &{c} [{', '.join([f'*{p}'] * 9)}]" for p, c in zip("abcdef", "bcdefg")]  # 9**7 values
+    bomb = text + "calibration:\n" + "".join(f"  {line}\n" for line in levels)
+    with pytest.raises(ProfileError, match="more than 100,000 values once its YAML aliases are expanded"):
+        HeadProfile.loads(bomb)
+    shared = text + "calibration:\n  a: &a [1, 2]\n  b: *a\n"
+    assert HeadProfile.loads(shared).calibration["b"] == [1, 2]
