@@ -86,7 +86,7 @@ from .base import MIN_FM_SAMPLES, FmBatchEstimate, FmEstimate
 from .dispatch import METHODS, OPTIONS, estimate_fm, estimate_fm_batch
 from .uio import CtOptions, DtExactOptions, DtOptions
 from .vp import VP_CAL, VpOptions
-from .vp_calibration import calibrate_vp_cal, vp_cal_for, vp_cal_needs_fit
+from .vp_calibration import calibrate_vp_cal, vp_cal_fit_seconds, vp_cal_for, vp_cal_needs_fit
 
 __all__ = [
     "METHODS",
@@ -104,6 +104,7 @@ __all__ = [
     "estimate_fm",
     "estimate_fm_batch",
     "vp_cal_for",
+    "vp_cal_fit_seconds",
     "vp_cal_needs_fit",
 ]
 

@@ -222,13 +222,18 @@ def _with_vp_cal(profile):
     The constants are fitted on the calibrated head's own simulated dried nozzles
     (:func:`inkdiag_core.estimation.vp_cal_for`); stored in the profile, ``inkdiag estimate``
     and the fe node read them instead of fitting them again in every process."""
+    import sys
     import time
 
     from inkdiag_core import HeadProfile
-    from inkdiag_core.estimation import vp_cal_for
+    from inkdiag_core.estimation import vp_cal_fit_seconds, vp_cal_for
 
     if profile.sha256 == HeadProfile.default().sha256:
         return profile, ""
+    if (eta := vp_cal_fit_seconds(profile)) > 30.0:  # long traces: say so before the wait
+        print(f"inkdiag calibrate: fitting the vp_cal constants (roughly {eta:.0f} s for traces of "
+              f"{profile.n_samples / profile.sample_rate_hz * 1e6:.0f} us; --no-vp-cal leaves them out)...",
+              file=sys.stderr, flush=True)
     t0 = time.perf_counter()
     try:
         cal = vp_cal_for(profile)

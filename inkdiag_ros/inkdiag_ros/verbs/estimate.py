@@ -161,12 +161,14 @@ def _fit_vp_cal_said(profile) -> None:
     """Fit the head's ``vp_cal`` constants now if they need a fit (seconds), saying so on stderr before and after."""
     import sys
 
-    from inkdiag_core.estimation import vp_cal_for, vp_cal_needs_fit
+    from inkdiag_core.estimation import vp_cal_fit_seconds, vp_cal_for, vp_cal_needs_fit
 
     if not vp_cal_needs_fit(profile):
         return
     print(f"inkdiag estimate: fitting the vp_cal constants of head {profile.name!r} (first use of this head "
-          "in this process)...", file=sys.stderr, flush=True)
+          f"in this process; roughly {vp_cal_fit_seconds(profile):.0f} s for its traces of "
+          f"{profile.n_samples / profile.sample_rate_hz * 1e6:.0f} us; a profile from inkdiag calibrate holds them, "
+          "or give --method vp)...", file=sys.stderr, flush=True)
     cal = vp_cal_for(profile)
     if "seconds" in cal:
         print(f"inkdiag estimate: vp_cal fitted in {cal['seconds']:.1f} s on {cal['n_traces']} simulated traces",
