@@ -543,10 +543,14 @@ class HeadProfile:
         if n / fs * f0 < 3:
             raise ProfileError(f"{source}: a trace of {n} samples at {fs:g} Hz holds {n / fs * f0:.1f} periods of the "
                                f"healthy mode ({f0 / 1e3:.1f} kHz); at least 3 are needed")
-        if "adc_range_v" not in self.sensor:  # the default's 2 V: a head of larger traces may leave it out
-            return
         with np.errstate(all="ignore"):
             rms = nominal_rms(self.channel_params(), self.drive, n, fs) * self.sensor_gain_v_per_m3s
+        noise = self.sensor.get("noise_std_v", 0.0)
+        if noise and not noise <= rms:  # as spreads() refuses it: the simulator takes an SNR of 0 dB or more
+            raise ProfileError(f"{source}: sensor.noise_std_v {noise:g} V is more than the nominal healthy trace's "
+                               f"rms, {rms:.3g} V (an SNR below 0 dB; the simulator takes 0 dB or more): is it in volts?")
+        if "adc_range_v" not in self.sensor:  # the default's 2 V: a head of larger traces may leave it out
+            return
         adc, offset = self.adc_range_v, self.sensor_offset_v
         if not (rms < adc and abs(offset) < adc):  # every healthy trace clipped, or all of it out of range
             raise ProfileError(f"{source}: sensor.adc_range_v {adc:g} V: an ADC reading +-{adc:g} V clips the nominal "
