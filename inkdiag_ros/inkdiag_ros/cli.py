@@ -100,8 +100,16 @@ def main(argv=None) -> int:
     return 130
 
 
+#: Options whose value may start with "-" (argparse takes "--rows -3:-1" for an option without its value).
+_DASH_VALUES = ("--rows",)
+
+
 def _main(argv) -> int:
-    args, extra = build_parser().parse_known_args(argv)
+    words = list(sys.argv[1:] if argv is None else argv)
+    for i in range(len(words) - 2, -1, -1):  # "--rows -3:-1" as "--rows=-3:-1": its own error names the value
+        if words[i] in _DASH_VALUES and words[i + 1].startswith("-") and words[i + 1] != "--":
+            words[i:i + 2] = [f"{words[i]}={words[i + 1]}"]
+    args, extra = build_parser().parse_known_args(words)
     if extra:  # said by the verb's parser: "inkdiag VERB: error: ...", as every other usage error
         args._parser.error(f"unrecognized arguments: {' '.join(extra)}")
     from inkdiag_core.checks import InputError

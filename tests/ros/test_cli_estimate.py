@@ -203,6 +203,11 @@ def test_estimate_selects_rows(head):
     lines = res.stdout.splitlines()
     assert lines[0] == ",".join(COLUMNS) and [int(x.split(",")[0]) for x in lines[1:]] == [4, *range(6, 16)]
     assert "11 of 11 rows estimated" in res.stderr and " -> " not in res.stderr
+    # a selection of no row: the CSV is its header, and a warning says so (helper-125: silent)
+    for rows in ("0:0", "fully_blocked"):
+        res = run_inproc(d / "rec.npz", "--profile", d / "head.yaml", "--out", out, "--rows", rows)
+        assert res.returncode == 0 and len(read_csv(out)[1]) == 0, res.stderr
+        assert f"inkdiag estimate: warning: --rows {rows} selects no row of " in res.stderr, res.stderr
 
 
 def test_estimate_bad_input_is_one_line_and_status_2(head, tmp_path):
@@ -223,6 +228,8 @@ def test_estimate_bad_input_is_one_line_and_status_2(head, tmp_path):
         ((d / "rec.npz", "--profile", tmp_path / "missing.yaml"), "no such head profile"),
         ((d / "rec.npz", "--profile", d / "head.yaml", "--rows", "40"), "no such row"),
         ((d / "rec.npz", "--profile", d / "head.yaml", "--rows", "5:2"), "START 5 is after STOP 2"),
+        # a value starting with '-': its own error, not argparse's "expected one argument" (helper-125)
+        ((d / "rec.npz", "--profile", d / "head.yaml", "--rows", "-3:-1"), "--rows -3:-1: outside 0:16"),
         ((d / "rec.npz", "--profile", d / "head.yaml", "--rows", "\u0663"), "expected indices and ranges"),  # Arabic 3
         ((d / "rec.npz", "--profile", d / "head.yaml", "--rows", "\u0661:\u0663"), "expected indices and ranges"),
         ((d / "rec.npz", "--profile", d / "head.yaml", "--max-abs-v", "nan"), "--max-abs-v must be a number > 0 V"),

@@ -236,6 +236,12 @@ def test_a_recording_in_millivolts_is_labelled_invalid_with_a_hint_about_units(w
     cap = capsys.readouterr()  # the summary line on stdout (the CSV went to a file), the hint on stderr
     assert cap.out.startswith("inkdiag label: labelled 0 of 20 rows") and "20 invalid" in cap.out
     assert "are the traces in volts (not millivolts or ADC counts)?" in cap.err
+    # the user's own bound too small: the warning names it, not only the traces (helper-125)
+    save_recording(tmp_path / "v.npz", Recording.from_arrays(sim.traces[:20], head.sample_rate_hz))
+    assert main(["label", str(tmp_path / "v.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "l.csv"),
+                 "--max-abs-v", "1e-9"]) == 0
+    assert ("20 of 20 rows have a sample beyond --max-abs-v 1e-09 V: is that what the sensor can produce, and are "
+            "the traces in volts?") in capsys.readouterr().err
     _, rows = _read(tmp_path / "l.csv")
     assert {r["reason"] for r in rows} == {"out_of_range"}
     # a recording with one such row is not told about units

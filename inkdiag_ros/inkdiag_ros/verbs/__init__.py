@@ -54,11 +54,15 @@ def repeated_pairs_warning(verb: str, n_repeated: int, what: str) -> str:
             "tell its frames apart (frame_id or stamp)?")
 
 
-def units_warning(verb: str, n_out_of_range: int, n_rows: int, max_abs_v: float) -> str:
+def units_warning(verb: str, n_out_of_range: int, n_rows: int, max_abs_v: float, given: bool = False) -> str:
     """The warning line when at least half the rows have a sample no sensor of the head can produce (a
-    recording in other units, not a head whose sensor broke), else ""."""
+    recording in other units, not a head whose sensor broke), else "". ``given``: the bound is the user's
+    ``--max-abs-v``, which may be what is wrong."""
     if not (n_rows and n_out_of_range >= n_rows / 2):
         return ""
+    if given:
+        return (f"inkdiag {verb}: warning: {n_out_of_range} of {n_rows} rows have a sample beyond --max-abs-v "
+                f"{max_abs_v:g} V: is that what the sensor can produce, and are the traces in volts?")
     return (f"inkdiag {verb}: warning: {n_out_of_range} of {n_rows} rows have a sample beyond {max_abs_v:g} V, more "
             "than the head's sensor can produce: are the traces in volts (not millivolts or ADC counts)?")
 

@@ -256,8 +256,10 @@ def run(args) -> int:
           + _to(args.out), file=summary_stream(args.out))
     for note in sorted(notes):
         print(f"inkdiag estimate: note: {note}", file=sys.stderr)
+    _say_none(args, n)
     _say_after([(rec.nozzle[rows], frames, stamps)], unfolded, {r: int(np.sum(reasons == r)) for r in
-                                                                  set(reasons[bad].tolist())}, n, tracker)
+                                                                  set(reasons[bad].tolist())}, n, tracker,
+               bound_given=args.max_abs_v is not None)
     est = ~bad
     k = int(np.count_nonzero(est & ~np.isfinite(stamps)))
     if k:  # said, not silent: those rows' trend columns are empty
@@ -490,8 +492,19 @@ def _estimate_bag(args, tracker, profile, pick, chunks, stats) -> int:
           + _against(tracker, n - n_bad, notes) + _to(args.out), file=summary_stream(args.out))
     for note in sorted(notes):
         print(f"inkdiag estimate: note: {note}", file=sys.stderr)
-    _say_after(seen, unfolded, why, n, tracker)
+    _say_none(args, n)
+    _say_after(seen, unfolded, why, n, tracker, bound_given=args.max_abs_v is not None)
     return 0
+
+
+def _say_none(args, n: int) -> None:
+    """A warning when ``--rows`` or ``--labels`` selected no row (the CSV holds its header only)."""
+    import sys
+
+    if n == 0 and (args.rows is not None or args.labels):
+        what = f"--rows {args.rows}" + (f" of --labels {args.labels}" if args.labels else "")
+        print(f"inkdiag estimate: warning: {what} selects no row of {args.recording}: the CSV holds its header only",
+              file=sys.stderr)
 
 
 def _left_out(args, n: int, selected):
@@ -553,11 +566,11 @@ def _fold_frame(trends, t, grp, cols) -> tuple:
     return int(grp.size - np.count_nonzero(folded)), int(np.count_nonzero(restarted))
 
 
-def _say_after(keys, unfolded, why, n, tracker) -> None:
+def _say_after(keys, unfolded, why, n, tracker, bound_given=False) -> None:
     """The warnings and notes after the CSV (both paths): rows repeating a (nozzle, frame_id, stamp) of ``keys``
     (chunks of those columns), rows not folded into or restarting trends (``unfolded``), a recording in other
     units (``why``: rows not estimated per reason), estimates mostly thinner than the ink (another head's profile?),
-    stamps in other units."""
+    stamps in other units. ``bound_given``: the out-of-range bound is the user's ``--max-abs-v``."""
     import sys
 
     import numpy as np
@@ -575,7 +588,7 @@ def _say_after(keys, unfolded, why, n, tracker) -> None:
 
         print(f"inkdiag estimate: note: {restarted} nozzle trend(s) restarted where the bag's stamps went back "
               f"{CLOCK_RESET_S:g} s or more (a restarted clock)", file=sys.stderr)
-    if said := (units_warning("estimate", why.get("out_of_range", 0), n, tracker.max_abs_v)
+    if said := (units_warning("estimate", why.get("out_of_range", 0), n, tracker.max_abs_v, given=bound_given)
                 or invalid_warning("estimate", why, n)):
         print(said, file=sys.stderr)
     if (thin := tracker.estimates_thinner) >= max(8, tracker.estimates / 2):

@@ -195,7 +195,7 @@ def run(args) -> int:
     print(f"inkdiag label: labelled {n_rows - n_invalid} of {n_rows} rows with {detector.model_id} (head "
           f"{head.name!r}); {n_invalid} invalid{failed}" + against + (f"; wrote {args.out}" if args.out != "-" else ""),
           file=summary_stream(args.out))
-    if said := units_warning("label", n_out_of_range, n_rows, max_abs_v):
+    if said := units_warning("label", n_out_of_range, n_rows, max_abs_v, given=args.max_abs_v is not None):
         print(said, file=sys.stderr)
     elif said := invalid_warning("label", per_reason, n_rows):
         print(said, file=sys.stderr)
