@@ -145,6 +145,10 @@ the healthy mode (the actuator alone rings far above the ink channel: 7.5-9.6 ti
 ``tests/foreign_head.py`` and the walkthrough's h12; 5.0-6.3 with a heavy ink film, the ``empty_channel_2`` class,
 which is not what ``calibrate(empty=...)`` takes and which this does not catch). A lower ``f_act`` is in other
 units (kHz written as Hz): a model trained with it called empty channels dried or bubbles (helper-125)."""
+F_ACT_MIN_RATIO = 2.0
+"""A complete profile's ``channel.f_act`` must be above this many times the healthy mode of its channel model:
+looser than :data:`EMPTY_MIN_RATIO`, which calibration checks against the recorded mode, so that a profile
+calibration wrote (its model's mode within a few per cent of the recorded one) always loads."""
 
 MIN_ADC_BITS = 4
 """Fewest ``sensor.adc_bits`` a profile accepts: a 1-bit ADC's traces trained a model of 8 % FI without a word
@@ -536,8 +540,8 @@ class HeadProfile:
             raise ProfileError(f"{source}: the healthy mode {f0 / 1e3:.1f} kHz is above the Nyquist frequency "
                                f"{fs / 2e3:.1f} kHz of sampling.sample_rate_hz" + hint)
         f_act = self.channel.get("f_act")
-        if f_act is not None and not f_act > EMPTY_MIN_RATIO * f0:
-            raise ProfileError(f"{source}: channel.f_act, {f_act / 1e3:.4g} kHz, is not above {EMPTY_MIN_RATIO:g} times "
+        if f_act is not None and not f_act > F_ACT_MIN_RATIO * f0:
+            raise ProfileError(f"{source}: channel.f_act, {f_act / 1e3:.4g} kHz, is not above {F_ACT_MIN_RATIO:g} times "
                                f"the healthy mode ({f0 / 1e3:.1f} kHz), as an actuator's own resonance is (7.5-9.6 "
                                "times on the heads measured): it is in Hz (a value in kHz?)")
         if n / fs * f0 < 3:
