@@ -202,7 +202,8 @@ few hundred bytes expanded to a 173 MB manifest (helper-125)."""
 
 
 def _count_values(doc, budget: int) -> int:
-    """Values of ``doc`` (nested dicts and lists, each alias counted where it is used), counting stops past ``budget``."""
+    """Values of ``doc`` (nested mappings and sequences, each alias counted where it is used: YAML's ``!!pairs``,
+    ``!!omap`` and ``!!set`` give tuples and sets), counting stops past ``budget``."""
     n, stack = 0, [doc]
     while stack and n <= budget:
         v = stack.pop()
@@ -210,9 +211,29 @@ def _count_values(doc, budget: int) -> int:
         if isinstance(v, Mapping):
             n += len(v)  # the keys
             stack.extend(v.values())
-        elif isinstance(v, list):
+        elif isinstance(v, (list, tuple, set, frozenset)):
             stack.extend(v)
     return n
+
+
+_PLAIN = (str, int, float, bool, type(None), np.generic, np.ndarray)
+
+
+def _check_plain(value, where: str, source: str) -> None:
+    """Raise :class:`ProfileError` unless ``value`` (the ``calibration`` section) is plain data: mappings of string
+    keys, lists (and tuples), strings, numbers, booleans, null (numpy values too, from Python): what a profile's
+    sha256 and a model's manifest write. A YAML date or set there had made them fail with a TypeError."""
+    if isinstance(value, Mapping):
+        for k, v in value.items():
+            if not isinstance(k, str):
+                raise ProfileError(f"{source}: {where}: the key {k!r} is a {type(k).__name__}, not a name")
+            _check_plain(v, f"{where}.{k}", source)
+    elif isinstance(value, (list, tuple)):  # a tuple: from Python (vp_cal's seeds), or YAML's !!pairs; a JSON list
+        for i, v in enumerate(value):
+            _check_plain(v, f"{where}[{i}]", source)
+    elif not isinstance(value, _PLAIN):
+        raise ProfileError(f"{source}: {where}: a {type(value).__name__} is not a plain value (a number, a string, "
+                           "true/false, null, a list or a mapping; quote a date)")
 
 
 # YAML 1.1 (PyYAML) reads "15e-6" as a string; a head profile means a number.
@@ -359,6 +380,9 @@ class HeadProfile:
         """
         if not isinstance(doc, Mapping):
             raise ProfileError(f"{source}: not a head profile (expected a mapping with schema: {SCHEMA})")
+        if _count_values(doc, MAX_PROFILE_VALUES) > MAX_PROFILE_VALUES:
+            raise ProfileError(f"{source}: more than {MAX_PROFILE_VALUES:,} values once its YAML aliases are expanded "
+                               "(a profile holds about a hundred)")
         if doc.get("schema") != SCHEMA:
             raise ProfileError(f"{source}: schema is {doc.get('schema')!r}, expected {SCHEMA!r}")
         if doc.get("schema_version") != SCHEMA_VERSION:
@@ -438,6 +462,7 @@ class HeadProfile:
         cal = doc.get("calibration") or {}
         if not isinstance(cal, Mapping):
             raise ProfileError(f"{source}: calibration: expected a mapping, got {type(cal).__name__}")
+        _check_plain(cal, "calibration", source)
         prof = cls(name, fs, n, channel, drive, sensor, spreads, dict(cal))
         if prof.is_complete:
             prof._check_physics(source)
@@ -457,9 +482,6 @@ class HeadProfile:
             raise ProfileError(f"{source}: not valid YAML{_yaml_problem(exc, text)}") from None
         except RecursionError:  # PyYAML composes and constructs nested nodes recursively
             raise ProfileError(f"{source}: not valid YAML: nested too deeply") from None
-        if _count_values(doc, MAX_PROFILE_VALUES) > MAX_PROFILE_VALUES:
-            raise ProfileError(f"{source}: more than {MAX_PROFILE_VALUES:,} values once its YAML aliases are expanded "
-                               "(a profile holds about a hundred)")
         return cls.from_dict(doc, source=source)
 
     @classmethod
@@ -549,21 +571,22 @@ class HeadProfile:
                                f"healthy mode ({f0 / 1e3:.1f} kHz); at least 3 are needed")
         with np.errstate(all="ignore"):
             rms = nominal_rms(self.channel_params(), self.drive, n, fs) * self.sensor_gain_v_per_m3s
+        adc, offset = self.adc_range_v, self.sensor_offset_v  # the default's 2 V where the profile leaves it out
+        step = 2 * adc / 2 ** self.adc_bits if self.adc_bits else 0.0
+        if not rms >= step / 4:  # the ring-down is quantisation noise: a gain off by 1e3, or the range in mV
+            raise ProfileError(f"{source}: the nominal healthy trace (rms {rms:.3g} V) is smaller than a quarter of one "
+                               f"step of the ADC ({step:.3g} V: +-{adc:g} V, {self.adc_bits} bits): check "
+                               "sensor.gain_v_per_m3s (V per m^3/s), sensor.adc_range_v (V) and sensor.adc_bits")
         noise = self.sensor.get("noise_std_v", 0.0)
         if noise and not noise <= rms:  # as spreads() refuses it: the simulator takes an SNR of 0 dB or more
             raise ProfileError(f"{source}: sensor.noise_std_v {noise:g} V is more than the nominal healthy trace's "
-                               f"rms, {rms:.3g} V (an SNR below 0 dB; the simulator takes 0 dB or more): is it in volts?")
+                               f"rms, {rms:.3g} V (an SNR below 0 dB; the simulator takes 0 dB or more): is it in volts, "
+                               "and sensor.gain_v_per_m3s in V per m^3/s?")
         if "adc_range_v" not in self.sensor:  # the default's 2 V: a head of larger traces may leave it out
             return
-        adc, offset = self.adc_range_v, self.sensor_offset_v
         if not (rms < adc and abs(offset) < adc):  # every healthy trace clipped, or all of it out of range
             raise ProfileError(f"{source}: sensor.adc_range_v {adc:g} V: an ADC reading +-{adc:g} V clips the nominal "
                                f"healthy trace (rms {rms:.3g} V about an offset of {offset:g} V): is it in volts?")
-        step = 2 * adc / 2 ** self.adc_bits if self.adc_bits else 0.0
-        if not rms >= step:  # the ring-down is quantisation noise: a gain off by 1e3, or the range in mV
-            raise ProfileError(f"{source}: the nominal healthy trace (rms {rms:.3g} V) is smaller than one step of the "
-                               f"ADC ({step:.3g} V: +-{adc:g} V, {self.adc_bits} bits): check sensor.gain_v_per_m3s "
-                               "(V per m^3/s) and sensor.adc_range_v (V)")
 
     # -- serialisation ----------------------------------------------------------------------
 

@@ -76,7 +76,13 @@ def test_nominal_profile_loads_and_says_what_is_missing():
     (lambda d: d["sensor"].update(adc_bits=1), r"sensor\.adc_bits: 4 to 32 bits \(a sensing ADC's: about 8-16\), "
      r"got 1"),
     (lambda d: d["sensor"].update(gain_v_per_m3s=1e7), r"the nominal healthy trace \(rms 0\.000185 V\) is smaller than "
-     r"one step of the ADC \(0\.000977 V: \+-2 V, 12 bits\): check sensor\.gain_v_per_m3s"),
+     r"a quarter of one step of the ADC \(0\.000977 V: \+-2 V, 12 bits\): check sensor\.gain_v_per_m3s"),
+    # ... also without adc_range_v (the simulator quantises at the default's 2 V), and before a noise_std_v the low
+    # gain puts above the trace (helper-128: the noise was blamed)
+    (lambda d: (d["sensor"].update(gain_v_per_m3s=1e7), d["sensor"].pop("adc_range_v")),
+     r"smaller than a quarter of one step"),
+    (lambda d: (d["sensor"].update(gain_v_per_m3s=1e7, noise_std_v=0.012), d["sensor"].pop("snr_db")),
+     r"smaller than a quarter of one step"),
     # kHz written as Hz: calibrate refused it in a nominal profile, train took it in a complete one (helper-125)
     (lambda d: d["channel"].update(f_act=2174.0), r"channel\.f_act, 2\.174 kHz, is not above 2 times the healthy "
      r"mode \(237\.\d kHz\).*\(a value in kHz\?\)"),
@@ -252,3 +258,28 @@ def test_a_profile_too_large_or_expanding_too_far_is_refused_before_it_costs(tmp
         HeadProfile.loads(bomb)
     shared = text + "calibration:\n  a: &a [1, 2]\n  b: *a\n"
     assert HeadProfile.loads(shared).calibration["b"] == [1, 2]
+    # the same through YAML's pair lists, which load as tuples (helper-128: not counted, a 70 MB manifest)
+    pairs = ['a: &a ["x", "x", "x", "x", "x", "x", "x", "x", "x"]']
+    pairs += [f"{c}: &{c} !!pairs [{', '.join([f'k: *{p}'] * 9)}]" for p, c in zip("abcdef", "bcdefg")]
+    with pytest.raises(ProfileError, match="more than 100,000 values once its YAML aliases are expanded"):
+        HeadProfile.loads(text + "calibration:\n" + "".join(f"  {line}\n" for line in pairs))
+
+
+@pytest.mark.parametrize("entry, match", [
+    ("when: 2026-11-29", r"calibration\.when: a date is not a plain value .*quote a date"),
+    ("s: !!set {a, b}", r"calibration\.s: a set is not a plain value"),
+    ("1: x", r"calibration: the key 1 is a int, not a name"),
+])
+def test_a_calibration_section_of_other_than_plain_data_is_refused_at_load(entry, match):
+    """A YAML date or set in `calibration:` loaded, then broke the profile's sha256 and a model's manifest with a
+    TypeError (helper-128's review); quoted, a date is a string and loads; a pair list is a list of lists."""
+    text = HeadProfile.default().dumps() + "calibration:\n"
+    with pytest.raises(ProfileError, match=match):
+        HeadProfile.loads(text + f"  {entry}\n", source="p.yaml")
+    assert HeadProfile.loads(text + "  when: '2026-11-29'\n").sha256 == HeadProfile.default().sha256
+    assert HeadProfile.loads(text + "  p: !!pairs [{a: 1}]\n").dumps().count("- a") == 1
+
+
+def test_a_coarse_adc_is_taken_where_the_trace_spans_its_steps():
+    """4 bits (the fewest) on the default head: the healthy trace's rms, 0.185 V, is most of a 0.25 V step, taken."""
+    assert HeadProfile.default().replace(sensor={"adc_bits": 4}).adc_bits == 4
