@@ -32,6 +32,7 @@ import argparse
 import errno
 import importlib
 import os
+import re
 import sys
 import tempfile
 from pathlib import Path
@@ -107,7 +108,7 @@ _DASH_VALUES = ("--rows",)
 def _main(argv) -> int:
     words = list(sys.argv[1:] if argv is None else argv)
     for i in range(len(words) - 2, -1, -1):  # "--rows -3:-1" as "--rows=-3:-1": its own error names the value
-        if words[i] in _DASH_VALUES and words[i + 1].startswith("-") and words[i + 1] != "--":
+        if words[i] in _DASH_VALUES and re.match(r"-[0-9:]", words[i + 1]):  # not an option ("--rows --out x")
             words[i:i + 2] = [f"{words[i]}={words[i + 1]}"]
     args, extra = build_parser().parse_known_args(words)
     if extra:  # said by the verb's parser: "inkdiag VERB: error: ...", as every other usage error

@@ -218,8 +218,10 @@ def test_estimate_on_a_bag_streams_the_rows_the_npz_gives(tmp_path, capsys):
     assert outs["bag"] == outs["npz"] and len(outs["bag"]) == 11
     status, err = estimate(bag, "5:40", "x.csv")
     assert status == 2 and "error: --rows 5:40: outside 0:12 (the bag has 12 rows" in err.splitlines()[-1]
-    status, err = estimate(bag, "3,20,5:40", "x.csv")  # the first part past the end, as an .npz's error says
-    assert status == 2 and "error: --rows 20: outside 0:12 (the bag has 12 rows" in err.splitlines()[-1]
+    status, err = estimate(bag, "3,20,5:40", "x.csv")  # the first part past the end, as an .npz's error says it
+    assert status == 2 and "error: --rows 20: no such row (the bag has 12 rows" in err.splitlines()[-1]
+    status, err = estimate(bag, "-3:-1", "x.csv")  # no index from the end, as in an .npz
+    assert status == 2 and "error: --rows -3:-1: outside 0:N, a row of the bag" in err.splitlines()[-1]
     status, err = estimate(bag, "dried", "x.csv")
     assert status == 2 and "a bag has no label column" in err
 

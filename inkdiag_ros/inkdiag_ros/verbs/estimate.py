@@ -351,7 +351,7 @@ def bag_row_picker(spec, labels=None):
 
     if labels is not None:
         return _labelled_picker(spec, labels)
-    parts, last = [], []  # last: each part's largest row, as select_rows: STOP <= n
+    parts, last = [], []  # last: each part's largest row (as select_rows: STOP <= n) and its error
     if spec is not None:
         spec = spec.strip()
         if _class_values(spec) is not None:
@@ -359,17 +359,19 @@ def bag_row_picker(spec, labels=None):
                              "LABELS.csv (inkdiag label's CSV of the bag)")
         for part in spec.split(","):
             part = part.strip()
-            m = re.fullmatch(r"([0-9]*)\s*:\s*([0-9]*)", part)
+            m = re.fullmatch(r"(-?[0-9]*)\s*:\s*(-?[0-9]*)", part)
             if m:
                 lo = int(m.group(1)) if m.group(1) else 0
                 hi = int(m.group(2)) if m.group(2) else None
+                if lo < 0 or (hi is not None and hi < 0):  # as select_rows: no negative (from the end) indices
+                    raise InputError(f"--rows {part}: outside 0:N, a row of the bag (rows count from 0)")
                 if hi is not None and lo > hi:
                     raise InputError(f"--rows {part}: START > STOP")
                 parts.append((lo, hi))
-                last.append((part, (lo if hi is None else hi) - 1))
+                last.append((part, (lo if hi is None else hi) - 1, "outside 0:{n}"))
             elif re.fullmatch(r"[0-9]+", part):
                 parts.append((int(part), int(part) + 1))
-                last.append((part, int(part)))
+                last.append((part, int(part), "no such row"))
             else:
                 raise InputError(f"--rows {spec!r}: expected indices and ranges such as 0:100 or 3,7,9")
 
@@ -382,8 +384,8 @@ def bag_row_picker(spec, labels=None):
             keep |= (idx >= lo) & (idx < (hi if hi is not None else start + n))
         return idx[keep]
 
-    def beyond(n_rows):  # the first part, in the order given, that names a row past the end
-        return next((f"--rows {part}: outside 0:{n_rows}" for part, hi in last if hi >= n_rows), None)
+    def beyond(n_rows):  # the first part, in the order given, that names a row past the end; as select_rows says it
+        return next((f"--rows {part}: {why.format(n=n_rows)}" for part, hi, why in last if hi >= n_rows), None)
 
     pick.beyond = beyond
     pick.check = lambda start, nozzle, frame_id: None
