@@ -92,7 +92,8 @@ def render() -> str:
         "is fixed at start (read-only: `ros2 param describe` says so, `ros2 param set` is refused)",
         "unless its description says it may change at runtime. A `float`",
         "parameter takes a number with a decimal point (`-p frame_rate_hz:=5.0`; rclpy refuses `5`",
-        "as an integer). Every node also has ROS's own `use_sim_time` (fixed at start).",
+        "as an integer). Every node also has ROS's own `use_sim_time`, fixed at start too (a set is refused,",
+        "though rclpy's own descriptor of it does not say read-only).",
         "",
     ]
     for node, module, what in NODES:

@@ -386,8 +386,8 @@ def test_train_warns_of_a_model_that_tells_its_own_simulated_classes_apart_poorl
     0 % missed and false alarms) pass; poor ones are warned about, naming an implausible value where there is one."""
     from inkdiag_ros.verbs.train import _poor_validation
 
-    def scores(fi, fnr=0.0, fpr=0.0):
-        return {"validation_fi_accuracy": fi, "validation_fd_fnr": fnr, "validation_fd_fpr": fpr}
+    def scores(fi, fnr=0.0, fpr=0.0, n=15000):
+        return {"validation_fi_accuracy": fi, "validation_fd_fnr": fnr, "validation_fd_fpr": fpr, "n_validation": n}
 
     head = HeadProfile.default()
     assert _poor_validation(scores(0.927), head) is None and _poor_validation(scores(0.86, 0.005, 0.01), head) is None
@@ -397,3 +397,7 @@ def test_train_warns_of_a_model_that_tells_its_own_simulated_classes_apart_poorl
                           "missed 0.50 %, false alarms 85.62 %") and "implausible: channel.r_n 0.0015 m" in why
     assert "implausible" not in _poor_validation(scores(0.95, 0.0, 0.05), head)  # the FD rates alone are poor too
     assert _poor_validation(scores(0.95, 0.03, 0.0), head) is not None
+    # a tiny training set (--n-per-class 8: 24 validation rows) may be the cause: said (helper-128)
+    assert _poor_validation(scores(0.792, n=24), head).endswith("; or too few traces: 24 validation rows, raise "
+                                                                  "--n-per-class")
+    assert "too few" not in _poor_validation(scores(0.792), head)

@@ -240,6 +240,8 @@ def run(args) -> int:
 #: 90-97 % with 0-0.5 % of faults missed and of false alarms; profiles with a value in other units trained
 #: silently to FI 8-70 % with 8-100 % false alarms (helper-125).
 POOR_FI, POOR_FD_RATE = 0.80, 0.02
+#: Fewer validation rows than this (``--n-per-class`` below 200) may score poorly for their own sake: said too.
+FEW_VALIDATION_ROWS = 600
 
 
 def _poor_validation(scores, profile) -> str | None:
@@ -250,11 +252,14 @@ def _poor_validation(scores, profile) -> str | None:
     if fi >= POOR_FI and fnr <= POOR_FD_RATE and fpr <= POOR_FD_RATE:
         return None
     odd = implausible_values(profile.channel)
+    n_val = int(scores.get("n_validation", 0))
+    few = (f"; or too few traces: {n_val} validation rows, raise --n-per-class" if n_val < FEW_VALIDATION_ROWS
+           else "")
     return (f"the model tells the profile's own simulated classes apart poorly (FI {100 * fi:.1f} %, faults missed "
             f"{100 * fnr:.2f} %, false alarms {100 * fpr:.2f} %; a head's profile gives about 90-97 % and below "
             f"{100 * POOR_FD_RATE:g} %): check its values and units"
             + (f" (implausible: {'; '.join(odd)})" if odd else "")
-            + ", its sensor (gain_v_per_m3s, adc_range_v, adc_bits, noise) and its spreads")
+            + ", its sensor (gain_v_per_m3s, adc_range_v, adc_bits, noise) and its spreads" + few)
 
 
 #: A class with fewer recorded rows than this has none held out for validation (a quarter, rounded down).
