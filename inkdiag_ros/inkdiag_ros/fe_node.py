@@ -79,6 +79,7 @@ class FeNode(Node):
         self.tracker = DryingTracker(
             profile=self.profile, max_estimates=c["max_estimates_per_frame"], max_pending=c["max_pending"],
             baselines=self.baselines, trend_accel_std=c["trend_accel_std"], trend_rel_floor=c["trend_rel_floor"])
+        self.tracker.warm_up()  # kernels and estimator loaded now, not on the first frames (0.5 s: a burst was lost)
         self.frames_malformed = 0
         self.estimates_published = 0
         self.stats = FeStats()

@@ -167,6 +167,35 @@ def test_fe_node_exits_2_on_a_bad_head_profile(tmp_path):
     assert res.returncode == 2 and "no such head profile" in res.stderr, res.stderr
 
 
+WARM_CHECK = """
+import rclpy
+from inkdiag_core import _kernels, estimation
+from inkdiag_ros.fe_node import FeNode
+assert not _kernels._screen_sums.signatures
+rclpy.init()
+fe = FeNode()
+assert _kernels._screen_sums.signatures, "screening's kernel not loaded at start"
+t = fe.tracker
+assert (t.estimates, t.rows_invalid, t.traces_received, len(t.trends)) == (0, 0, 0, 0), "warm-up changed the state"
+fe.destroy_node()
+rclpy.shutdown()
+print("ok")
+"""
+
+
+def test_fe_loads_its_kernels_at_start_not_on_the_first_frames():
+    """helper-127: fe's first estimates took 0.5-0.6 s (numba's import and cache), and at 33 frames/s a burst behind
+    them overflowed its queues: frames 0-8 had no estimates. A fresh fe process now loads them while it starts,
+    and the warm-up leaves the tracker's state as it was."""
+    import os
+    import subprocess
+    import sys
+
+    res = subprocess.run([sys.executable, "-c", WARM_CHECK], capture_output=True, text=True, timeout=120,
+                         env=dict(os.environ))
+    assert res.returncode == 0 and res.stdout.strip().endswith("ok"), res.stderr
+
+
 def test_fe_folds_a_repeated_frame_once_and_restarts_its_trends_on_a_restarted_clock(ros):
     """A controller that sends a frame twice, then restarts its clock: the repeat's estimate has no trend; the
     frame on the new clock restarts the trend (no rate yet) and fe notes the restart once."""
