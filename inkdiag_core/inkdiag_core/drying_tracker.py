@@ -346,38 +346,27 @@ class DryingTracker:
         self.rows_capped = 0  # listed rows of a range beyond max_estimates: not estimated
         self.rows_no_fit = 0  # rows whose f_m is no estimate (not finite, viscosity <= 0, at a bound, misfit)
 
-    def warm_up(self, sample_rate_hz: float | None = None, n_samples: int | None = None) -> None:
-        """Load now what a first frame would: the compiled screening kernels (numba's import and its cache, about
-        1 s) and the estimator's first batch, on a synthetic ring-down at the head's mode. Nothing of the tracker's
-        state changes. The fe node calls it at start: its first estimates had taken 0.5-0.6 s, and a burst of
-        messages behind them overflowed its queues (helper-127).
+    def warm_up(self) -> int:
+        """Load now what a first frame would: the compiled screening kernel (numba's import and its cache, about
+        1 s) and the estimator's first batch, on two healthy traces the head's profile simulates (the default head's
+        without one). Nothing of the tracker's state changes. The fe node calls it at start: its first estimates
+        had taken 0.5-0.6 s, and a burst of messages behind them overflowed its queues (helper-127).
 
-        Parameters
-        ----------
-        sample_rate_hz : float, optional
-            Hz; default the profile's (10 MHz without one).
-        n_samples : int, optional
-            Samples per trace; default the profile's (512 without one).
+        Returns
+        -------
+        int
+            Rows the estimator ran on (2; 0 if screening refused the simulated traces, as for a head whose
+            profile and model disagree).
         """
-        from ._kernels import warm_up
-
-        warm_up()
         head = self.profile if self.profile is not None else _default_head()
-        fs = float(sample_rate_hz or head.sample_rate_hz)
-        m = int(n_samples or head.n_samples)
-        try:
-            f0, zeta = self.model.dominant_mode()
-        except Exception:  # noqa: BLE001 - another model kind: any ring-down will do
-            f0, zeta = fs / 40, 0.05
-        t = np.arange(m) / fs
-        x = 0.3 * np.exp(-zeta * 2 * np.pi * f0 * t) * np.sin(2 * np.pi * f0 * t)
-        rows = np.stack([x, 0.9 * x]).astype(np.float32)  # as fe decodes them: float32, a read-only view
-        rows.flags.writeable = False
-        valid, _ = self.usable_rows(rows, fs)
+        rows = head.simulate({"healthy_nozzle": 2}, seed=0).traces.astype(np.float32)
+        rows.flags.writeable = False  # as fe decodes them: a read-only float32 view of the message
+        valid, _ = self.usable_rows(rows, head.sample_rate_hz)
         if valid.any():
             kw = {} if self.vp_cal is None else {"cal": self.vp_cal}
             with np.errstate(all="ignore"):
-                estimate_fm_batch(rows[valid], self.model, fs, method=self.method, **kw)
+                estimate_fm_batch(rows[valid], self.model, head.sample_rate_hz, method=self.method, **kw)
+        return int(np.count_nonzero(valid))
 
     @property
     def pending(self) -> tuple:

@@ -216,7 +216,7 @@ def _count_values(doc, budget: int) -> int:
     return n
 
 
-_PLAIN = (str, int, float, bool, type(None), np.generic, np.ndarray)
+_PLAIN = (str, int, float, bool, type(None))
 
 
 def _check_plain(value, where: str, source: str) -> None:
@@ -226,11 +226,16 @@ def _check_plain(value, where: str, source: str) -> None:
     if isinstance(value, Mapping):
         for k, v in value.items():
             if not isinstance(k, str):
-                raise ProfileError(f"{source}: {where}: the key {k!r} is a {type(k).__name__}, not a name")
+                raise ProfileError(f"{source}: {where}: the key {k!r} is not a name: quote it (YAML reads on, off, "
+                                   "yes and no as true and false, and digits as a number)")
             _check_plain(v, f"{where}.{k}", source)
     elif isinstance(value, (list, tuple)):  # a tuple: from Python (vp_cal's seeds), or YAML's !!pairs; a JSON list
         for i, v in enumerate(value):
             _check_plain(v, f"{where}[{i}]", source)
+    elif isinstance(value, np.ndarray) and value.dtype.kind in "biuf":  # from Python: numbers, written as lists
+        pass
+    elif isinstance(value, np.generic) and value.dtype.kind in "biuf":
+        pass
     elif not isinstance(value, _PLAIN):
         raise ProfileError(f"{source}: {where}: a {type(value).__name__} is not a plain value (a number, a string, "
                            "true/false, null, a list or a mapping; quote a date)")

@@ -268,7 +268,8 @@ def test_a_profile_too_large_or_expanding_too_far_is_refused_before_it_costs(tmp
 @pytest.mark.parametrize("entry, match", [
     ("when: 2026-11-29", r"calibration\.when: a date is not a plain value .*quote a date"),
     ("s: !!set {a, b}", r"calibration\.s: a set is not a plain value"),
-    ("1: x", r"calibration: the key 1 is a int, not a name"),
+    ("1: x", r"calibration: the key 1 is not a name: quote it"),
+    ("on: 3", r"calibration: the key True is not a name: quote it \(YAML reads on, off, yes and no as true"),
 ])
 def test_a_calibration_section_of_other_than_plain_data_is_refused_at_load(entry, match):
     """A YAML date or set in `calibration:` loaded, then broke the profile's sha256 and a model's manifest with a
@@ -278,6 +279,12 @@ def test_a_calibration_section_of_other_than_plain_data_is_refused_at_load(entry
         HeadProfile.loads(text + f"  {entry}\n", source="p.yaml")
     assert HeadProfile.loads(text + "  when: '2026-11-29'\n").sha256 == HeadProfile.default().sha256
     assert HeadProfile.loads(text + "  p: !!pairs [{a: 1}]\n").dumps().count("- a") == 1
+    # from Python: numbers (numpy's too) go; a numpy date or complex would break the sha256 later (helper-129)
+    head = HeadProfile.default()
+    assert head.replace(calibration={"x": np.float64(1.5), "v": np.arange(3), "b": [np.bool_(True)]}).sha256
+    for odd in (np.datetime64("2026-11-29"), np.complex128(1 + 2j), np.array([{1}], dtype=object)):
+        with pytest.raises(ProfileError, match=r"calibration\.t: a .* is not a plain value"):
+            head.replace(calibration={"t": odd})
 
 
 def test_a_coarse_adc_is_taken_where_the_trace_spans_its_steps():

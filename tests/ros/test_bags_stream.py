@@ -222,6 +222,9 @@ def test_estimate_on_a_bag_streams_the_rows_the_npz_gives(tmp_path, capsys):
     assert status == 2 and "error: --rows 20: no such row (the bag has 12 rows" in err.splitlines()[-1]
     status, err = estimate(bag, "-3:-1", "x.csv")  # no index from the end, as in an .npz
     assert status == 2 and "error: --rows -3:-1: outside 0:N, a row of the bag" in err.splitlines()[-1]
+    for odd in ("-:5", "3:-"):  # a sign without digits: the spec's error, not int()'s (helper-129)
+        status, err = estimate(bag, odd, "x.csv")
+        assert status == 2 and "expected indices and ranges" in err.splitlines()[-1], err
     status, err = estimate(bag, "dried", "x.csv")
     assert status == 2 and "a bag has no label column" in err
 

@@ -230,6 +230,7 @@ def test_estimate_bad_input_is_one_line_and_status_2(head, tmp_path):
         ((d / "rec.npz", "--profile", d / "head.yaml", "--rows", "5:2"), "START 5 is after STOP 2"),
         # a value starting with '-': its own error, not argparse's "expected one argument" (helper-125)
         ((d / "rec.npz", "--profile", d / "head.yaml", "--rows", "-3:-1"), "--rows -3:-1: outside 0:16"),
+        ((d / "rec.npz", "--profile", d / "head.yaml", "--rows", "-:5"), "expected indices and ranges"),  # helper-129
         ((d / "rec.npz", "--profile", d / "head.yaml", "--rows", "\u0663"), "expected indices and ranges"),  # Arabic 3
         ((d / "rec.npz", "--profile", d / "head.yaml", "--rows", "\u0661:\u0663"), "expected indices and ranges"),
         ((d / "rec.npz", "--profile", d / "head.yaml", "--max-abs-v", "nan"), "--max-abs-v must be a number > 0 V"),

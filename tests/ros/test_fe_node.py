@@ -177,6 +177,7 @@ fe = FeNode()
 assert _kernels._screen_sums.signatures, "screening's kernel not loaded at start"
 t = fe.tracker
 assert (t.estimates, t.rows_invalid, t.traces_received, len(t.trends)) == (0, 0, 0, 0), "warm-up changed the state"
+assert t.warm_up() == 2, "the estimator did not run on the warm-up's rows"
 fe.destroy_node()
 rclpy.shutdown()
 print("ok")

@@ -113,7 +113,7 @@ def select_rows(spec, n: int, labels=None):
     out = []
     for part in spec.split(","):
         part = part.strip()
-        m = re.fullmatch(r"(-?[0-9]*)\s*:\s*(-?[0-9]*)", part)
+        m = re.fullmatch(r"(-?[0-9]+)?\s*:\s*(-?[0-9]+)?", part)  # "-:5" is no number: the error below
         if m:
             lo = int(m.group(1)) if m.group(1) else 0
             hi = int(m.group(2)) if m.group(2) else n
@@ -359,7 +359,7 @@ def bag_row_picker(spec, labels=None):
                              "LABELS.csv (inkdiag label's CSV of the bag)")
         for part in spec.split(","):
             part = part.strip()
-            m = re.fullmatch(r"(-?[0-9]*)\s*:\s*(-?[0-9]*)", part)
+            m = re.fullmatch(r"(-?[0-9]+)?\s*:\s*(-?[0-9]+)?", part)
             if m:
                 lo = int(m.group(1)) if m.group(1) else 0
                 hi = int(m.group(2)) if m.group(2) else None
