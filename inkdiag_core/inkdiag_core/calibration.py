@@ -858,10 +858,13 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
         "sample_rate_hz": fs,
         "n_samples": int(nominal.n_samples),
         "fitted": {**({} if fixed_restrictor else {"channel.r_r": r_r, "channel.L_r": L_r}),
-                   "channel.B_act": float(B_act), "channel.b": b,
+                   "channel.B_act": float(B_act),
+                   # the amplitude: b, or the gain where the nominal gave b (the other is the convention's)
+                   **({"sensor.gain_v_per_m3s": gain} if "b" in nominal.channel and "gain_v_per_m3s" not in
+                      nominal.sensor else {"channel.b": b}),
                    **({} if fe is None else {"channel.f_act": fe["frequency_hz"],
                                              "channel.zeta_act": fe["damping_ratio"]}),
-                   "sensor.gain_v_per_m3s": gain, "sensor.offset_v": sensor["offset_v"],
+                   "sensor.offset_v": sensor["offset_v"],
                    "sensor.noise_std_v": noise, "spreads.gain_rel": gain_rel,
                    "spreads.offset_std_v": offset_std,
                    **{f"spreads.{k}": v for k, v in physical.items()}},

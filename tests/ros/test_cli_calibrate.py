@@ -448,3 +448,18 @@ def test_an_assumed_actuator_above_nyquist_is_warned_about(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "warning: the empty channels' actuator is assumed like the default head's" in err and "above the " \
            "Nyquist frequency 1250 kHz of this sampling: inkdiag train refuses this profile" in err, err
+
+
+def test_the_written_profile_holds_no_wall_time(monkeypatch):
+    """helper-131: two runs of calibrate with the same inputs and --seed wrote profiles that differed only in
+    calibration.vp_cal.seconds, the fit's wall time. The stored constants leave it out (the console line says it)."""
+    from inkdiag_core import estimation
+    from inkdiag_ros.verbs import calibrate
+
+    head = HeadProfile.default().replace(name="other", channel={"r_r": 24e-6})
+    fitted = {"a_sigma": 1.0, "b_sigma": 2.0, "a_omega": 3.0, "b_omega": 4.0, "profile_sha256": head.sha256,
+              "seconds": 5.651209443996777}
+    monkeypatch.setattr(estimation, "vp_cal_for", lambda profile: dict(fitted))
+    out, said = calibrate._with_vp_cal(head)
+    assert "seconds" not in out.calibration["vp_cal"] and out.calibration["vp_cal"]["a_sigma"] == 1.0
+    assert said.startswith("; vp_cal constants fitted in ")

@@ -241,7 +241,8 @@ def _with_vp_cal(profile):
         return (profile,
                 f"; vp_cal constants not fitted ({type(exc).__name__}: {exc}; inkdiag estimate and fe fit them at "
                 "their first use of the head)")
-    return (profile.replace(calibration={"vp_cal": cal}),
+    stored = {k: v for k, v in cal.items() if k != "seconds"}  # a wall time: the same inputs, another profile file
+    return (profile.replace(calibration={"vp_cal": stored}),
             f"; vp_cal constants fitted in {time.perf_counter() - t0:.1f} s")
 
 
@@ -411,7 +412,8 @@ def _plot(result, path) -> None:
     axes[0].plot(t_us, result.mean_fitted, lw=1.0, ls="--", label="fitted")
     axes[0].legend(loc="upper right", fontsize=8)
     axes[0].set_ylabel("V")
-    axes[0].set_title(f"{result.profile.name}: mean of {result.report['n_traces']} healthy traces")
+    axes[0].set_title(f"{result.profile.name}: mean of the {result.report['n_typical']} typical of "
+                      f"{result.report['n_traces']} healthy traces")
     for ax, row, rec, fit in zip(axes[1:], result.example_rows, result.examples_recorded, result.examples_fitted):
         ax.plot(t_us, rec, lw=0.8, label=f"recorded row {int(row)}")
         ax.plot(t_us, fit, lw=0.8, ls="--", label="fitted")
