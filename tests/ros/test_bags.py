@@ -653,3 +653,21 @@ def test_payloads_that_are_not_trace_frames_are_skipped_without_a_word_from_the_
     assert "first bytes 0707ffff are not a CDR header" in why[1] and why[4].endswith(": an empty message"), why
     assert "4294967295 layout dimensions" in why[2] and "data values announced" in why[3], why
     assert capfd.readouterr().err == ""
+
+
+def test_a_metadata_yaml_whose_qos_text_is_not_its_storages_says_so(tmp_path, sim):
+    """helper-130: a bag whose metadata.yaml QoS text for the traces topic was edited (rosbags pairs the two by it)
+    read no message and said 'no messages on /head_00/traces', though its storage holds them all."""
+    import yaml
+
+    from inkdiag_ros.bags import load_recording
+
+    bag = write_bag(tmp_path / "bag", [(0, sim.traces[:16].astype(np.float32))] * 3)
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())
+    for t in meta["rosbag2_bagfile_information"]["topics_with_message_count"]:
+        if t["topic_metadata"]["name"] == f"{NS}/traces":
+            t["topic_metadata"]["offered_qos_profiles"] = ""
+    (bag / "metadata.yaml").write_text(yaml.safe_dump(meta))
+    with pytest.raises(RecordingError, match=rf"no messages on {NS}/traces, though its metadata.yaml lists 3 \(the "
+                                             r"topic's type and QoS text there must be those stored in its files"):
+        load_recording(bag)

@@ -241,7 +241,8 @@ def _none_read(bag, conns, damage, no_pub) -> str:
         why += f"; {_not_replayed(no_pub)}"
     if damage is not None:
         return f"{why}; {salvage_note(list(damage))}"
-    return f"{why}: its storage holds none of the messages its metadata.yaml lists"
+    return (f"{why}: none of the messages its metadata.yaml lists was read from its storage (the topic's type and QoS "
+            "text there must be those stored in its files: edited by hand?)")
 
 
 def _found(salvage: list, damage):
