@@ -504,6 +504,18 @@ def test_replay_and_record_refuse_bad_or_colliding_topic_names_and_say_a_topic_n
                         "--wait-s", "0", "--namespace", "/h", "--topics", "/head_01/traces"],
                        capture_output=True, text=True, timeout=60, env=env)
     assert r.returncode == 0 and "replaying 1 messages of /head_01/traces as /h/traces from" in r.stderr, r.stderr
+    # a subscriber there, of a QoS the recording's does not serve (reliable, the recording best effort): said as
+    # such, not as a wrong namespace (helper-130)
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import Float32MultiArray
+
+    ros.node("reliable_reader").create_subscription(Float32MultiArray, "/q/traces", lambda m: None,
+                                                    QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    r = subprocess.run([sys.executable, "-m", "inkdiag_ros.cli", "replay", str(bag), "--as-fast-as-possible",
+                        "--wait-s", "2", "--namespace", "/q", "--topics", f"{NS}/traces"],
+                       capture_output=True, text=True, timeout=60, env=env)
+    assert r.returncode == 0 and ("no subscriber on /q/traces after 2 s: its messages go to no node (a subscription "
+                                  "is there, but its QoS does not match the recording's") in r.stderr, r.stderr
 
 
 def test_replay_into_a_subscriber_delivers_every_traces_message(tmp_path, sim, ros):

@@ -169,9 +169,15 @@ def run(args) -> int:
                             raise
                         alone, stop.requested = [], True
                     if alone:  # said, not silent: those messages go to nobody
+                        try:  # a subscription the graph has but the publisher did not match: another QoS
+                            unmatched = [t for t in alone if node.count_subscribers(t)]
+                        except Exception:  # noqa: BLE001 - a signal took the context down meanwhile: said as before
+                            unmatched = []
+                        why = ("a subscription is there, but its QoS does not match the recording's: a reliable "
+                               "reader of a best-effort topic?" if unmatched else
+                               "is the node's namespace the one the topic is under?")
                         print(f"inkdiag replay: warning: no subscriber on {', '.join(alone)} after {args.wait_s:g} s: "
-                              "its messages go to no node (is the node's namespace the one the topic is under?)",
-                              file=sys.stderr, flush=True)
+                              f"its messages go to no node ({why})", file=sys.stderr, flush=True)
                 while not stop.requested and rclpy.ok():
                     t_bag0 = t_wall0 = None
                     n_before = n_sent
