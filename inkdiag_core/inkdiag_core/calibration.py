@@ -778,12 +778,13 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
         r_r = math.sqrt(8.0 * known.mu * I_r / (known.rho * R_r))
         L_r = I_r * math.pi * r_r**2 / known.rho
     amp = float(a_mean)  # = b * gain, V per unit response
+    amp_key = "channel.b"  # the one of b and the gain the amplitude fits: the other is the convention's
     if "gain_v_per_m3s" in nominal.sensor:
         gain, convention = float(nominal.sensor["gain_v_per_m3s"]), "sensor.gain_v_per_m3s from the nominal profile"
         b = amp / gain
     elif "b" in nominal.channel:
         b, convention = float(nominal.channel["b"]), "channel.b from the nominal profile"
-        gain = amp / b
+        gain, amp_key = amp / b, "sensor.gain_v_per_m3s"
     else:
         gain = PHYSICAL_CONSTANTS["sensor_gain_v_per_m3s"]
         convention = "sensor.gain_v_per_m3s = 1e10 V/(m^3/s), the default head's"
@@ -859,9 +860,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
         "n_samples": int(nominal.n_samples),
         "fitted": {**({} if fixed_restrictor else {"channel.r_r": r_r, "channel.L_r": L_r}),
                    "channel.B_act": float(B_act),
-                   # the amplitude: b, or the gain where the nominal gave b (the other is the convention's)
-                   **({"sensor.gain_v_per_m3s": gain} if "b" in nominal.channel and "gain_v_per_m3s" not in
-                      nominal.sensor else {"channel.b": b}),
+                   amp_key: gain if amp_key == "sensor.gain_v_per_m3s" else b,
                    **({} if fe is None else {"channel.f_act": fe["frequency_hz"],
                                              "channel.zeta_act": fe["damping_ratio"]}),
                    "sensor.offset_v": sensor["offset_v"],

@@ -742,9 +742,11 @@ def iter_bag_chunks(bag_dir, *, topic: str | None = None, stats: BagFrames | Non
     elif first_row == 0:
         what = "no messages" if stats.n_messages == 0 else f"no valid trace frame ({stats.summary()})"
         hint = ""
-        if stats.n_messages == 0 and stats.n_listed:  # listed, none read: a metadata.yaml that is not its storage's
-            hint = (f", though its metadata.yaml lists {stats.n_listed} (the topic's type and QoS text there must be "
-                    "those stored in its files: edited by hand?)")
+        if stats.n_messages == 0 and stats.salvaged is not None:  # read past damage: that is why (helper-132)
+            hint = "; " + salvage_note(stats.salvaged)
+        elif stats.n_messages == 0 and stats.n_listed:  # listed, none read, no damage: a metadata.yaml not its files'
+            hint = (f", though its metadata.yaml lists {stats.n_listed} messages on it (the topic's type and QoS text "
+                    "there must be those stored in its files: edited by hand?)")
         raise RecordingError(f"{bag_dir}: {what} on {stats.topic}{hint}")
 
 

@@ -155,6 +155,12 @@ def test_a_datasheets_restrictor_is_kept_and_fixes_the_blocked_mode(recorded):
     p = r.profile
     assert (p.channel["r_r"], p.channel["L_r"]) == (TRUE.channel["r_r"], TRUE.channel["L_r"])
     assert "channel.r_r" not in r.report["fitted"] and "channel.B_act" in r.report["fitted"]
+    assert "channel.b" in r.report["fitted"] and "sensor.gain_v_per_m3s" not in r.report["fitted"]
+    # a datasheet's b: the gain is what the amplitude fits, and the report names it, not b (helper-131, -132)
+    with_b = calibrate(nominal.replace(channel={"b": TRUE.channel["b"]}), recorded.traces[:100], TRUE.sample_rate_hz)
+    fitted = with_b.report["fitted"]
+    assert "sensor.gain_v_per_m3s" in fitted and "channel.b" not in fitted
+    assert with_b.profile.channel["b"] == TRUE.channel["b"]
     assert r.report["identifiability"]["parameters"]["I_r"]["determined_by"].startswith("nominal profile")
     assert abs(p.channel["B_act"] / TRUE.channel["B_act"] - 1) < 0.05
     # the restrictor-only mode (a fully blocked nozzle) follows the true channel

@@ -213,9 +213,11 @@ def vp_cal_for(profile) -> dict:
     :func:`calibrate_vp_cal` runs on the head (seeds :data:`HEAD_SEEDS`,
     :data:`HEAD_N_PER_CLASS` traces per class and seed) and the result is kept
     in this process per sha256 (later calls are free). Save it into the profile
-    to skip the fit next time::
+    to skip the fit next time (without its wall time, ``seconds``, as ``inkdiag calibrate`` does, so
+    that the same inputs write the same file)::
 
-        profile.replace(calibration={"vp_cal": vp_cal_for(profile)}).save(path)
+        cal = {k: v for k, v in vp_cal_for(profile).items() if k != "seconds"}
+        profile.replace(calibration={"vp_cal": cal}).save(path)
 
     Parameters
     ----------

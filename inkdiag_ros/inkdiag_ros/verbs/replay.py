@@ -173,8 +173,9 @@ def run(args) -> int:
                             unmatched = [t for t in alone if node.count_subscribers(t)]
                         except Exception:  # noqa: BLE001 - a signal took the context down meanwhile: said as before
                             unmatched = []
-                        why = ("a subscription is there, but its QoS does not match the recording's: a reliable "
-                               "reader of a best-effort topic?" if unmatched else
+                        why = ("a subscription is there, not matched: of another QoS than the recording's (a reliable "
+                               "reader of a best-effort topic; rclpy's warning names the policy), of another type, or "
+                               "not matched yet" if unmatched else
                                "is the node's namespace the one the topic is under?")
                         print(f"inkdiag replay: warning: no subscriber on {', '.join(alone)} after {args.wait_s:g} s: "
                               f"its messages go to no node ({why})", file=sys.stderr, flush=True)
