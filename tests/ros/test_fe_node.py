@@ -169,7 +169,7 @@ def test_fe_node_exits_2_on_a_bad_head_profile(tmp_path):
 
 WARM_CHECK = """
 import rclpy
-from inkdiag_core import _kernels, estimation
+from inkdiag_core import _kernels
 from inkdiag_ros.fe_node import FeNode
 assert not _kernels._screen_sums.signatures
 rclpy.init()
