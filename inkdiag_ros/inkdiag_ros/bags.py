@@ -234,9 +234,9 @@ class BagFrames:
 def listed_count(bag: Path, topic: str):
     """Messages on ``topic`` that ``metadata.yaml`` lists (summed over its connections), or None when it does not
     say (no metadata.yaml, another layout)."""
-    try:
-        counts = [int(t["message_count"]) for t in _bag_info(bag)["topics_with_message_count"]
-                  if t["topic_metadata"]["name"] == topic]
+    try:  # an entry listed twice (metadata.yaml edited by hand) counts once, as rosbags reads it once
+        entries = {repr(t): t for t in _bag_info(bag)["topics_with_message_count"]}.values()
+        counts = [int(t["message_count"]) for t in entries if t["topic_metadata"]["name"] == topic]
     except Exception:  # noqa: BLE001 - missing, unreadable or another layout: nothing to compare with
         return None
     return sum(counts) if counts else None
@@ -497,6 +497,26 @@ def first_line(exc) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
+def _unlisted_topics(reader, src) -> list:
+    """Topics the MCAP files of a bag ``rosbags`` opened hold in their summaries that ``metadata.yaml`` does not list
+    (it lists what a reader sees: a file edited by hand); [] for a :class:`SalvageReader` (it reads the files)."""
+    if isinstance(reader, SalvageReader):
+        return []
+    listed = {c.topic for c in reader.connections}
+    stored = set()
+    for f in sorted(Path(src).glob("*.mcap")):
+        stored |= {ch.topic for ch, _ in (_summary_channels(f) or {}).values()}
+    return sorted(stored - listed)
+
+
+def _not_listed(reader, src, wanted) -> str:
+    """``; its storage files hold T, which metadata.yaml does not list ...`` for the ``wanted(topic)`` topics
+    :func:`_unlisted_topics` finds, or ``""``."""
+    hidden = [t for t in _unlisted_topics(reader, src) if wanted(t)]
+    return (f"; its storage files hold {', '.join(hidden)}, which metadata.yaml does not list (edited by hand? "
+            "rosbag2 lists every topic it recorded)" if hidden else "")
+
+
 def _traces_connections(reader, topic, src):
     conns = reader.connections
     if topic is None:
@@ -506,12 +526,15 @@ def _traces_connections(reader, topic, src):
             raise RecordingError(f"{src}: {len(cands)} traces topics ({', '.join(cands)}): choose one with --topic")
         if not cands and len(named) != 1:
             have = ", ".join(f"{c.topic} ({c.msgtype})" for c in conns) or "no topics"
-            raise RecordingError(f"{src}: no {TRACES_TYPE} traces topic (it has {have}); choose one with --topic")
+            hidden = _not_listed(reader, src, lambda t: t.endswith("/" + topics.TRACES))
+            raise RecordingError(f"{src}: no {TRACES_TYPE} traces topic (it has {have})"
+                                 + (hidden or "; choose one with --topic"))
         topic = cands[0] if cands else named[0]  # one traces topic of another type: refused below
     sel = [c for c in conns if c.topic == topic]
     if not sel:
         raise RecordingError(f"{src}: no topic {topic} in the bag (it has "
-                             f"{', '.join(sorted({c.topic for c in conns})) or 'no topics'})")
+                             f"{', '.join(sorted({c.topic for c in conns})) or 'no topics'})"
+                             + _not_listed(reader, src, lambda t: t == topic))
     other = sorted({c.msgtype for c in sel if c.msgtype != TRACES_TYPE})
     if other:
         raise RecordingError(f"{src}: topic {topic} is {other[0]}, not {TRACES_TYPE} trace frames")

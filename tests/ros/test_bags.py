@@ -692,3 +692,33 @@ def test_a_metadata_yaml_whose_qos_text_is_not_its_storages_says_so(tmp_path, si
     with pytest.raises(RecordingError) as got:
         load_recording(bad)
     assert "crc" in str(got.value).lower() and "edited by hand" not in str(got.value), got.value
+
+
+def test_a_metadata_yaml_that_lists_the_traces_topic_twice_or_not_at_all_says_so(tmp_path, sim):
+    """helper-130: a traces entry listed twice in metadata.yaml was counted twice ('3 of them not found in its
+    files'); a traces topic metadata.yaml does not list read 'no traces topic ... choose one with --topic'."""
+    import copy
+
+    import yaml
+
+    from inkdiag_ros.bags import BagFrames, load_recording
+
+    def edited(name, edit):
+        bag = write_bag(tmp_path / name, [(0, sim.traces[:8].astype(np.float32))] * 3)
+        meta = yaml.safe_load((bag / "metadata.yaml").read_text())
+        edit(meta["rosbag2_bagfile_information"]["topics_with_message_count"])
+        (bag / "metadata.yaml").write_text(yaml.safe_dump(meta))
+        return bag
+
+    stats = BagFrames()
+    rec = load_recording(edited("twice", lambda t: t.insert(1, copy.deepcopy(t[0]))), stats=stats)
+    assert rec.traces.shape[0] == 24 and stats.summary() == f"3 of 3 messages on {NS}/traces decoded", stats.summary()
+    unlisted = edited("unlisted", lambda t: t.pop(0))
+    hint = rf"its storage files hold {NS}/traces, which metadata.yaml does not list \(edited by hand\?"
+    with pytest.raises(RecordingError, match=rf"no std_msgs/msg/Float32MultiArray traces topic \(it has {NS}/labels "
+                                             rf"\(std_msgs/msg/String\)\); {hint}"):
+        load_recording(unlisted)
+    with pytest.raises(RecordingError, match=rf"no topic {NS}/traces in the bag \(it has {NS}/labels\); {hint}"):
+        load_recording(unlisted, topic=f"{NS}/traces")
+    with pytest.raises(RecordingError, match=r"\(it has /head_00/labels, /head_00/traces\)$"):  # no hint: listed
+        load_recording(edited("other", lambda t: None), topic="/head_01/traces")
