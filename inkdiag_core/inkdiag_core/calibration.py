@@ -488,6 +488,75 @@ def _actuator(nominal, fe, B_act):
     return out
 
 
+BLOCKED_MODE_WARNING = 0.02
+"""``inkdiag label`` warns when the rows it labelled fully blocked ring more than this fraction away from the
+model profile's own fully blocked nozzles (:func:`blocked_mode_offset`). Measured on 200 true fully blocked traces
+of the heads of ``tests/foreign_head.py``, each calibrated from 300 healthy traces (``--no-vp-cal``, seeds 0, 7,
+11; a scratch script, 2026-11-29): default, h20, h16 and h12 (every class >= 75 % in ``reports/heads.md``) -1.01
+to +1.54 %; h5 (partially blocked 9-18 %) -2.13 to -1.71 %. A head of restrictor split 1.30 (a QA head: partially
+blocked 5 %) -4.9 % on the rows its model labelled fully blocked, -0.2 % after the second pass (calibrate
+``--blocked`` with those rows)."""
+
+
+def blocked_mode_offset(profile, blocked, sample_rate_hz, *, seed: int = 0) -> dict | None:
+    """How far recorded fully blocked traces ring from the profile's own simulated fully blocked nozzles.
+
+    Parameters
+    ----------
+    profile : HeadProfile
+        A complete profile (the model's).
+    blocked : array_like, shape (n, n_samples)
+        Traces labelled fully blocked, V.
+    sample_rate_hz : float
+        Their sample rate, Hz (the profile's).
+    seed : int
+        Of the 200 simulated fully blocked traces compared with.
+
+    Returns
+    -------
+    dict or None
+        ``{"n_traces", "recorded_hz", "model_hz", "offset_rel"}``: the median dominant frequency
+        (:func:`inkdiag_core.extract_kpis`) of the recorded traces and of the simulated ones, Hz, and
+        ``recorded / model - 1``. None with fewer than :data:`MIN_BLOCKED_TRACES` usable traces.
+    """
+    profile.check_traces(blocked, sample_rate_hz, what="the blocked traces")
+
+    def median_mode(x):
+        x = np.asarray(x, dtype=np.float64)
+        ok, _ = screen_traces(x, sample_rate_hz=profile.sample_rate_hz, max_abs_v=profile.max_abs_v)
+        f = extract_kpis(x[ok], profile.sample_rate_hz)[:, 1] if ok.any() else np.zeros(0)
+        f = f[np.isfinite(f) & (f > 0)]
+        return (float(np.median(f)) if f.size else math.nan), int(f.size)
+
+    f_rec, n = median_mode(blocked)
+    if n < MIN_BLOCKED_TRACES:
+        return None
+    f_model, _ = median_mode(profile.simulate({FaultClass.FULLY_BLOCKED: 200}, seed=seed).traces)
+    return {"n_traces": n, "recorded_hz": f_rec, "model_hz": f_model, "offset_rel": f_rec / f_model - 1.0}
+
+
+def assumed_actuator_warning(profile) -> str | None:
+    """Why a complete profile that no calibration made and that gives no ``channel.f_act`` trains its empty-channel
+    classes on an assumed actuator (the default head's at its ``B_act``), or None: the profile gives ``f_act``, it
+    has a ``calibration`` section (``inkdiag calibrate`` said so, and widened the actuator's spread), or its channel
+    is the default head's own (whose actuator the rule is)."""
+    from .head_profile import HeadProfile
+
+    if "f_act" in profile.channel or profile.calibration or not profile.is_complete:
+        return None
+    if profile.channel_params() == HeadProfile.default().channel_params():
+        return None
+    c = PHYSICAL_CONSTANTS
+    rule = c["f_act_hz"] * math.sqrt(c["f_act_ref_b_act"] / float(profile.channel["B_act"]))
+    spread = profile.spreads().actuator_resonance_rel
+    return (f"profile {profile.name!r} gives no channel.f_act: its empty channels are simulated with an actuator like "
+            f"the default head's at this B_act ({rule / 1e3:.0f} kHz), "
+            + (f"spread {100 * spread:.3g} %" if spread else "with no spread") + ". A head whose actuator rings "
+            "elsewhere has its empty-channel traces labelled unknown or as the other empty class: give channel.f_act "
+            "(Hz) and channel.zeta_act from the actuator's datasheet, or make the profile with inkdiag calibrate "
+            "(--empty DRY.npz, traces of the head's empty channels, measures them)")
+
+
 EMPTY_ALIAS_RISK = 0.8
 """Empty channels whose recorded mode lies above this fraction of the Nyquist frequency are warned about: a
 mode above Nyquist aliases to one below it (helper-114: the default head sampled at 4 MHz, its empty channels
@@ -617,6 +686,14 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     quiet = ~rings_above_noise(y, sample_rate_hz=sample_rate_hz)
     n_quiet = int(quiet.sum())
     y = y[~quiet]
+    # a trace repeated sample for sample is one recording: copies would fake a scatter of zero (noise, spreads)
+    y, n_repeated = _without_repeats(y)
+    if n_repeated and y.shape[0] < MIN_TRACES:
+        raise CalibrationError(
+            f"{y.shape[0]} distinct healthy trace{'s' * (y.shape[0] != 1)}: the other {n_repeated} repeat "
+            f"{'it' if y.shape[0] == 1 else 'them'} sample for sample (one trace "
+            f"copied, or a recorder that resent its buffer?); calibration needs at least {MIN_TRACES} traces recorded "
+            "one by one (their scatter gives the noise and the spreads)")
     if y.shape[0] < MIN_TRACES:
         counts = {r: int((why == r).sum()) for r in set(why[~finite].tolist())}
         reasons = ", ".join(f"{r} {k}" for r, k in sorted(counts.items()))
@@ -855,6 +932,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
         "n_dropped_nonfinite": n_dropped,
         "n_dropped_clipped": int(np.count_nonzero(why == "clipped")),
         "n_dropped_not_ringing": n_quiet,
+        "n_dropped_repeated": n_repeated,
         "n_typical": int(typical.size),
         "sample_rate_hz": fs,
         "n_samples": int(nominal.n_samples),
@@ -1130,6 +1208,15 @@ def _fit_spread_scales(profile, kp_rec, fs, seed, n=600):
     sq, _ = nnls(A * w[:, None], np.maximum(target, 0.0) * w)
     lo, hi = SPREAD_SCALE_BOUNDS
     return tuple(float(np.clip(np.sqrt(x), lo, hi)) for x in sq)
+
+
+def _without_repeats(y):
+    """``y`` (n, n_samples) without the rows that repeat an earlier row exactly (first kept, order kept), and how many
+    were dropped."""
+    _, first = np.unique(y, axis=0, return_index=True)
+    if first.size == y.shape[0]:
+        return y, 0
+    return y[np.sort(first)], int(y.shape[0] - first.size)
 
 
 def _typical_rows(y, fs, fraction):

@@ -213,6 +213,21 @@ def test_physical_spreads_follow_the_recordings_spread(result):
     assert 0.7 < g1 < 1.4 and 0.6 < t1 < 1.5
 
 
+def test_traces_repeated_sample_for_sample_are_left_out_and_one_copied_trace_is_refused(recorded, result):
+    """helper-130: 300 copies of one healthy trace calibrated (a scatter of zero: no noise, no spreads), or not, by
+    which trace it was; copies are left out and counted, and fewer than MIN_TRACES distinct traces are refused."""
+    y = recorded.traces.copy()
+    y[150:] = y[:150]  # a recorder that sent its buffer twice
+    fit = calibrate(nominal_of(TRUE), y, TRUE.sample_rate_hz)
+    assert fit.report["n_dropped_repeated"] == 150 and fit.report["n_traces"] == 150
+    assert result.report["n_dropped_repeated"] == 0
+    assert fit.profile.sensor["noise_std_v"] == pytest.approx(result.profile.sensor["noise_std_v"], rel=0.15)
+    for k in (1, 9):
+        with pytest.raises(CalibrationError, match=rf"^{k} distinct healthy traces?: the other {300 - k} repeat "
+                                                   rf"(it|them) sample for sample .* at least {MIN_TRACES} traces"):
+            calibrate(nominal_of(TRUE), np.resize(recorded.traces[:k], (300, TRUE.n_samples)), TRUE.sample_rate_hz)
+
+
 def test_traces_that_do_not_ring_are_left_out_and_counted(recorded, result):
     """Half the nozzles did not fire (white noise in their rows): calibration went on with them and fitted a gain
     spread of 323 % (helper-103's QA); they are left out and counted, and the fit is the other half's."""

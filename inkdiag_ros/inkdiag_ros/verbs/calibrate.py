@@ -333,6 +333,7 @@ def run(args) -> int:
     stem.with_name(stem.name + ".fit.md").write_text(_markdown(report), encoding="utf-8")
     mt, hm, rr = report["mean_trace_recorded_vs_fitted"], report["healthy_mode"], report["residual_rel"]
     quiet = f", {n} left out: not ringing above their noise" if (n := report["n_dropped_not_ringing"]) else ""
+    quiet += f", {n} left out: repeating another sample for sample" if (n := report["n_dropped_repeated"]) else ""
     print(f"inkdiag calibrate: {out} ({report['n_traces']} traces, {report['n_dropped_nonfinite']} dropped{quiet}{note}); "
           f"healthy mode {hm['frequency_hz'] / 1e3:.1f} kHz, damping {hm['damping_ratio']:.3f}; mean trace "
           f"recorded/fitted {mt['dominant_frequency_hz'][0] / 1e3:.1f}/{mt['dominant_frequency_hz'][1] / 1e3:.1f} kHz; "
@@ -513,7 +514,9 @@ def _markdown(r) -> str:
         "",
         f"Recording `{r['recording']}`: {r['n_traces']} healthy traces used, {r['n_dropped_nonfinite']} dropped "
         f"(screened out: non-finite, out of range, flat or clipped), {r['n_dropped_not_ringing']} left out (not "
-        f"ringing above their own noise: nozzles that did not fire?); {r['sample_rate_hz'] / 1e6:g} MHz x {r['n_samples']} samples. Nominal profile "
+        f"ringing above their own noise: nozzles that did not fire?)"
+        + (f", {n} left out (repeating another trace sample for sample)" if (n := r["n_dropped_repeated"]) else "")
+        + f"; {r['sample_rate_hz'] / 1e6:g} MHz x {r['n_samples']} samples. Nominal profile "
         f"`{r['nominal']}`. Profile sha256 `{r['profile_sha256'][:16]}`.",
         "",
         "| quantity | recorded | fitted |",
