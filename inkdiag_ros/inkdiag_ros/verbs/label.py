@@ -171,16 +171,19 @@ def run(args) -> int:
     n_rows = n_invalid = n_failed = n_base = n_out_of_range = 0
     per_class, per_reason = collections.Counter(), collections.Counter()
     keys = []  # each chunk's (nozzle, frame_id, stamp) columns: repeats are said at the end
+    current, blocked = [], []  # the chunk being labelled; traces of rows labelled fully blocked (the restrictor check)
     with open_csv_out(args.out) as out:
         w = csv.writer(out, lineterminator="\n")
         w.writerow(COLUMNS)
         for row, nozzle, fid, cls, conf, reason, base in label_stream(labeller, _keys_of(itertools.chain([first], chunks),
-                                                                                  keys)):
+                                                                                  keys, current)):
             if cls == "invalid":
                 n_invalid += 1
                 per_reason[reason] += 1
             else:
                 per_class[cls] += 1
+                if cls == "fully_blocked" and len(blocked) < MAX_BLOCKED_KEPT:
+                    blocked.append(np.array(current[1][row - current[0]]))
             w.writerow((row, nozzle, fid, cls, "" if conf != conf else f"{conf:.6f}", reason, int(base)))
             n_rows += 1
             n_base += bool(base)
@@ -207,14 +210,40 @@ def run(args) -> int:
         print(f"inkdiag label: warning: {said}", file=sys.stderr)
     if baselines is not None and (said := baselines.gain_mismatch(head)):
         print(f"inkdiag label: warning: {said}", file=sys.stderr)
+    if detector.profile is not None and (said := _blocked_mode_warning(head, blocked, detector.sample_rate_hz_, args)):
+        print(f"inkdiag label: warning: {said}", file=sys.stderr)
     return 1 if n_failed else 0
 
 
-def _keys_of(chunks, keys: list):
-    """``chunks`` as they come, each chunk's ``(nozzle, frame_id, stamp)`` columns appended to ``keys``."""
+def _keys_of(chunks, keys: list, current: list):
+    """``chunks`` as they come, each chunk's ``(nozzle, frame_id, stamp)`` columns appended to ``keys``;
+    ``current[:] = [first_row, traces]`` of the chunk whose rows are being labelled."""
     for first_row, rec in chunks:
         keys.append((rec.nozzle, rec.frame_id, rec.stamp))
+        current[:] = [first_row, rec.traces]
         yield first_row, rec
+
+
+#: Traces of the rows labelled fully blocked that ``inkdiag label`` keeps to check the model's restrictor, at most.
+MAX_BLOCKED_KEPT = 400
+
+
+def _blocked_mode_warning(head, blocked, sample_rate_hz, args) -> str:
+    """A warning when the rows labelled fully blocked ring away from the model profile's fully blocked nozzles
+    (:func:`inkdiag_core.calibration.blocked_mode_offset`): its restrictor, which healthy traces leave to a prior,
+    is likely off, and the second pass pins it. "" otherwise."""
+    from inkdiag_core.calibration import BLOCKED_MODE_WARNING, blocked_mode_offset
+
+    got = blocked_mode_offset(head, blocked, sample_rate_hz) if len(blocked) else None
+    if got is None or abs(got["offset_rel"]) <= BLOCKED_MODE_WARNING:
+        return ""
+    return (f"the {got['n_traces']} rows labelled fully_blocked ring at {got['recorded_hz'] / 1e3:.1f} kHz, the "
+            f"model's fully blocked nozzles at {got['model_hz'] / 1e3:.1f} kHz ({100 * got['offset_rel']:+.1f} %; "
+            f"a well calibrated head's within {100 * BLOCKED_MODE_WARNING:g} %): the profile's restrictor, which "
+            "healthy traces leave to a prior, is likely off, and then partially blocked and dried nozzles are "
+            "labelled as each other. The second pass pins it: inkdiag calibrate HEALTHY.npz --nominal NOMINAL.yaml "
+            f"--blocked {args.recording} --blocked-labels {args.out if args.out != '-' else 'THESE.csv'} --out "
+            "HEAD2.yaml, then train on HEAD2.yaml")
 
 
 #: ``inkdiag label`` warns when one fault class (or ``unknown``) is more than this share of the labelled rows.

@@ -128,7 +128,7 @@ def run(args) -> int:
     from inkdiag_core import labels_from_csv, read_labels_csv
     from inkdiag_core.recording import NOT_CLASSES
     from inkdiag_core.head_profile import HeadProfile, ProfileError
-    from inkdiag_core.calibration import restrictor_spread
+    from inkdiag_core.calibration import assumed_actuator_warning, restrictor_spread
     from inkdiag_core.persistence import save_detector
     from ..bags import is_bag, load_and_report
     from inkdiag_core.training import train_detector
@@ -193,6 +193,8 @@ def run(args) -> int:
     if out.name.endswith(".manifest.json"):  # over another model's: that model would no longer load
         raise ValueError(f"--out {out} names a model's manifest, which train writes beside the model: give the "
                          f"model file's name ({out.name[:-len('.manifest.json')] or 'head.joblib'})")
+    if why := assumed_actuator_warning(profile):
+        print(f"inkdiag train: warning: {why}", file=sys.stderr)
     report, close = _progress(args.quiet)
     try:
         det, info = train_detector(profile, features=args.features, kind=args.kind, baseline=args.baseline,
