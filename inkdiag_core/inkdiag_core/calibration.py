@@ -517,7 +517,8 @@ def blocked_mode_offset(profile, blocked, sample_rate_hz, *, seed: int = 0) -> d
     dict or None
         ``{"n_traces", "recorded_hz", "model_hz", "offset_rel"}``: the median dominant frequency
         (:func:`inkdiag_core.extract_kpis`) of the recorded traces and of the simulated ones, Hz, and
-        ``recorded / model - 1``. None with fewer than :data:`MIN_BLOCKED_TRACES` usable traces.
+        ``recorded / model - 1``. None with fewer than :data:`MIN_BLOCKED_TRACES` usable traces, or when
+        none of the profile's own simulated ones is usable (they clip its ADC).
     """
     profile.check_traces(blocked, sample_rate_hz, what="the blocked traces")
 
@@ -532,6 +533,8 @@ def blocked_mode_offset(profile, blocked, sample_rate_hz, *, seed: int = 0) -> d
     if n < MIN_BLOCKED_TRACES:
         return None
     f_model, _ = median_mode(profile.simulate({FaultClass.FULLY_BLOCKED: 200}, seed=seed).traces)
+    if not math.isfinite(f_model):  # the profile's own blocked traces all screened out (clipped): nothing to say
+        return None
     return {"n_traces": n, "recorded_hz": f_rec, "model_hz": f_model, "offset_rel": f_rec / f_model - 1.0}
 
 
@@ -686,14 +689,6 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     quiet = ~rings_above_noise(y, sample_rate_hz=sample_rate_hz)
     n_quiet = int(quiet.sum())
     y = y[~quiet]
-    # a trace repeated sample for sample is one recording: copies would fake a scatter of zero (noise, spreads)
-    y, n_repeated = _without_repeats(y)
-    if n_repeated and y.shape[0] < MIN_TRACES:
-        raise CalibrationError(
-            f"{y.shape[0]} distinct healthy trace{'s' * (y.shape[0] != 1)}: the other {n_repeated} repeat "
-            f"{'it' if y.shape[0] == 1 else 'them'} sample for sample (one trace "
-            f"copied, or a recorder that resent its buffer?); calibration needs at least {MIN_TRACES} traces recorded "
-            "one by one (their scatter gives the noise and the spreads)")
     if y.shape[0] < MIN_TRACES:
         counts = {r: int((why == r).sum()) for r in set(why[~finite].tolist())}
         reasons = ", ".join(f"{r} {k}" for r, k in sorted(counts.items()))
@@ -710,6 +705,14 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
             lead + f"{y.shape[0]} usable healthy traces ({n_dropped} left out by screening"
             + (f": {reasons}" if reasons else "")
             + (f", {n_quiet} not ringing" if n_quiet else "") + f"); calibration needs at least {MIN_TRACES}")
+    # a trace repeated sample for sample is one recording: copies would fake a scatter of zero (noise, spreads)
+    y, n_repeated = _without_repeats(y)
+    if y.shape[0] < MIN_TRACES:
+        raise CalibrationError(
+            f"{y.shape[0]} distinct healthy trace{'s' * (y.shape[0] != 1)}: the other {n_repeated} usable ones repeat "
+            f"{'it' if y.shape[0] == 1 else 'them'} sample for sample (one trace "
+            f"copied, or a recorder that resent its buffer?); calibration needs at least {MIN_TRACES} traces recorded "
+            "one by one (their scatter gives the noise and the spreads)")
     fs = nominal.sample_rate_hz
     known = _Known.of(nominal)
     typical = _typical_rows(y, fs, TYPICAL_FRACTION)
@@ -983,7 +986,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     }
     provenance = {"method": "inkdiag calibrate", "n_traces": report["n_traces"],
                   "n_dropped_nonfinite": n_dropped, "n_dropped_not_ringing": n_quiet,
-                  "fitted": sorted(report["fitted"]),
+                  "n_dropped_repeated": n_repeated, "fitted": sorted(report["fitted"]),
                   "amplitude_convention": convention, "residual_rel_mean_trace": resid_rel,
                   "residual_rel_per_trace_median": report["residual_rel"]["per_trace_median"],
                   "determined_by": {p: pinned[p]["determined_by"] for p in _PARAMS},
@@ -1213,7 +1216,8 @@ def _fit_spread_scales(profile, kp_rec, fs, seed, n=600):
 def _without_repeats(y):
     """``y`` (n, n_samples) without the rows that repeat an earlier row exactly (first kept, order kept), and how many
     were dropped."""
-    _, first = np.unique(y, axis=0, return_index=True)
+    y = np.ascontiguousarray(y)  # each row one opaque value: sorted as bytes, not column by column (10x faster)
+    _, first = np.unique(y.view(np.dtype((np.void, y.dtype.itemsize * y.shape[1]))).ravel(), return_index=True)
     if first.size == y.shape[0]:
         return y, 0
     return y[np.sort(first)], int(y.shape[0] - first.size)

@@ -503,8 +503,12 @@ def _unlisted_topics(reader, src) -> list:
     if isinstance(reader, SalvageReader):
         return []
     listed = {c.topic for c in reader.connections}
-    stored = set()
-    for f in sorted(Path(src).glob("*.mcap")):
+    bag, stored = Path(src), set()
+    try:  # the files metadata.yaml names (not a stray .mcap beside them), else every one
+        files = [f for f in (bag / n for n in _bag_info(bag).get("relative_file_paths", [])) if f.is_file()]
+    except TypeError:  # not a list of names
+        files = []
+    for f in files or sorted(bag.glob("*.mcap")):
         stored |= {ch.topic for ch, _ in (_summary_channels(f) or {}).values()}
     return sorted(stored - listed)
 

@@ -722,3 +722,16 @@ def test_a_metadata_yaml_that_lists_the_traces_topic_twice_or_not_at_all_says_so
         load_recording(unlisted, topic=f"{NS}/traces")
     with pytest.raises(RecordingError, match=r"\(it has /head_00/labels, /head_00/traces\)$"):  # no hint: listed
         load_recording(edited("other", lambda t: None), topic="/head_01/traces")
+    # a stray .mcap beside the files metadata.yaml names is not taken for the bag's storage
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from _bags import frame_msg, typestore
+
+    stray, ts = edited("stray", lambda t: None), typestore()
+    with Writer(tmp_path / "elsewhere", version=9, storage_plugin=StoragePlugin.MCAP) as w:  # another head's
+        conn = w.add_connection("/head_01/traces", "std_msgs/msg/Float32MultiArray", typestore=ts)
+        msg = frame_msg(ts, sim.traces[:8].astype(np.float32), first=0, frame_id=0, stamp_s=100.0)
+        w.write(conn, 1, ts.serialize_cdr(msg, "std_msgs/msg/Float32MultiArray"))
+    (tmp_path / "elsewhere" / "elsewhere.mcap").rename(stray / "old.mcap")
+    with pytest.raises(RecordingError, match=r"\(it has /head_00/labels, /head_00/traces\)$"):
+        load_recording(stray, topic="/head_01/traces")

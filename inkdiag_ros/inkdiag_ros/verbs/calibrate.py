@@ -451,7 +451,7 @@ def _quiet_warning(report) -> None:
     import sys
 
     quiet = report["n_dropped_not_ringing"]
-    kept = quiet + report["n_traces"]
+    kept = quiet + report["n_traces"] + report["n_dropped_repeated"]
     if kept and quiet >= QUIET_SHARE * kept:
         print(f"inkdiag calibrate: warning: {quiet} of the {kept} healthy traces screening kept do not ring above "
               "their noise and are left out: nozzles that did not fire, or noise as large as the ringing. If the "

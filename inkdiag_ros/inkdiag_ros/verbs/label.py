@@ -237,13 +237,19 @@ def _blocked_mode_warning(head, blocked, sample_rate_hz, args) -> str:
     got = blocked_mode_offset(head, blocked, sample_rate_hz) if len(blocked) else None
     if got is None or abs(got["offset_rel"]) <= BLOCKED_MODE_WARNING:
         return ""
-    return (f"the {got['n_traces']} rows labelled fully_blocked ring at {got['recorded_hz'] / 1e3:.1f} kHz, the "
-            f"model's fully blocked nozzles at {got['model_hz'] / 1e3:.1f} kHz ({100 * got['offset_rel']:+.1f} %; "
-            f"a well calibrated head's within {100 * BLOCKED_MODE_WARNING:g} %): the profile's restrictor, which "
-            "healthy traces leave to a prior, is likely off, and then partially blocked and dried nozzles are "
-            "labelled as each other. The second pass pins it: inkdiag calibrate HEALTHY.npz --nominal NOMINAL.yaml "
-            f"--blocked {args.recording} --blocked-labels {args.out if args.out != '-' else 'THESE.csv'} --out "
-            "HEAD2.yaml, then train on HEAD2.yaml")
+    said = (f"the rows labelled fully_blocked ({got['n_traces']} usable of the first {MAX_BLOCKED_KEPT} at most) ring "
+            f"at {got['recorded_hz'] / 1e3:.1f} kHz, the model's fully blocked nozzles at {got['model_hz'] / 1e3:.1f} "
+            f"kHz ({100 * got['offset_rel']:+.1f} %; a well calibrated head's within {100 * BLOCKED_MODE_WARNING:g} %)")
+    cal = head.calibration if isinstance(head.calibration, dict) else {}
+    if "blocked_mode_hz" in cal:  # a second pass made this profile already: the restrictor is not what is off
+        return (f"{said}, though the model's profile was calibrated with {cal.get('n_blocked_traces', 'some')} fully "
+                f"blocked traces ringing at {float(cal['blocked_mode_hz']) / 1e3:.1f} kHz: are these rows fully "
+                "blocked nozzles of that head, recorded at the same ink temperature?")
+    topic = f" --topic {args.topic}" if args.topic else ""
+    return (f"{said}: the profile's restrictor, which healthy traces leave to a prior, is likely off, and then "
+            "partially blocked and dried nozzles are labelled as each other. The second pass pins it: inkdiag "
+            f"calibrate HEALTHY.npz --nominal NOMINAL.yaml{topic} --blocked {args.recording} --blocked-labels "
+            f"{args.out if args.out != '-' else 'THESE.csv'} --out HEAD2.yaml, then train on HEAD2.yaml")
 
 
 #: ``inkdiag label`` warns when one fault class (or ``unknown``) is more than this share of the labelled rows.
