@@ -232,6 +232,8 @@ def _blocked_mode_warning(head, blocked, sample_rate_hz, args) -> str:
     """A warning when the rows labelled fully blocked ring away from the model profile's fully blocked nozzles
     (:func:`inkdiag_core.calibration.blocked_mode_offset`): its restrictor, which healthy traces leave to a prior,
     is likely off, and the second pass pins it. "" otherwise."""
+    from collections.abc import Mapping
+
     from inkdiag_core.calibration import BLOCKED_MODE_WARNING, blocked_mode_offset
 
     got = blocked_mode_offset(head, blocked, sample_rate_hz) if len(blocked) else None
@@ -240,7 +242,7 @@ def _blocked_mode_warning(head, blocked, sample_rate_hz, args) -> str:
     said = (f"the rows labelled fully_blocked ({got['n_traces']} usable of the first {MAX_BLOCKED_KEPT} at most) ring "
             f"at {got['recorded_hz'] / 1e3:.1f} kHz, the model's fully blocked nozzles at {got['model_hz'] / 1e3:.1f} "
             f"kHz ({100 * got['offset_rel']:+.1f} %; a well calibrated head's within {100 * BLOCKED_MODE_WARNING:g} %)")
-    cal = head.calibration if isinstance(head.calibration, dict) else {}
+    cal = head.calibration if isinstance(head.calibration, Mapping) else {}
     if "blocked_mode_hz" in cal:  # a second pass made this profile already: the restrictor is not what is off
         return (f"{said}, though the model's profile was calibrated with {cal.get('n_blocked_traces', 'some')} fully "
                 f"blocked traces ringing at {float(cal['blocked_mode_hz']) / 1e3:.1f} kHz: are these rows fully "
