@@ -40,7 +40,7 @@ from _common import md_table, out_path  # noqa: E402
 from inkdiag_core import FaultClass, HeadProfile  # noqa: E402
 from inkdiag_core.calibration import calibrate  # noqa: E402
 from inkdiag_core.simulation.channels import PHYSICAL_CONSTANTS  # noqa: E402
-from inkdiag_core.training import train_detector  # noqa: E402
+from inkdiag_core.training import N_PER_CLASS, train_detector  # noqa: E402
 
 EMPTY = ("empty_channel_1", "empty_channel_2")
 
@@ -62,19 +62,24 @@ def _scores(det, test):
     return {"fi": float(np.mean(pred == truth)), "per": per, "weakest": weakest, "ec1_as": top}
 
 
-def run(name, ratios, spreads, seed, per_class, n_empty, tmp):
-    """Rows of one head: ``[(ratio, how, scores)]``."""
+def rule_hz(name) -> float:
+    """The actuator calibration assumes for head ``name`` (the default head's at its true ``B_act``), Hz."""
+    c = PHYSICAL_CONSTANTS
+    return c["f_act_hz"] * math.sqrt(c["f_act_ref_b_act"] / fh.FOREIGN_HEADS[name]["channel"]["B_act"])
+
+
+def run(name, ratios, spreads, seed, per_class, n_empty, tmp, n_per_class=N_PER_CLASS):
+    """Rows of one head: ``(its own actuator / the rule, [(ratio, how, scores)])``."""
     fh.write_nominal_yaml(tmp / f"{name}.yaml", name)
     nominal = HeadProfile.load(tmp / f"{name}.yaml")
     own = fh.FOREIGN_PHYSICS[name]["f_act_hz"]
     healthy = fh.simulate_foreign(_head(name, own), {"healthy_nozzle": 300}, seed)
     profile = calibrate(nominal, healthy["traces"], healthy["sample_rate_hz"]).profile
-    c = PHYSICAL_CONSTANTS
-    rule = c["f_act_hz"] * math.sqrt(c["f_act_ref_b_act"] / fh.FOREIGN_HEADS[name]["channel"]["B_act"])
+    rule = rule_hz(name)
     models = {}
     for s in spreads:
         p = profile.replace(spreads_overrides={**profile.spreads_overrides, "actuator_resonance_rel": s})
-        models[s], _ = train_detector(p, seed=seed)
+        models[s], _ = train_detector(p, seed=seed, n_per_class=n_per_class)
     rows = []
     for r in ratios:
         test = fh.simulate_foreign(_head(name, r * rule), {c.value: per_class for c in FaultClass}, seed + 1)
@@ -83,7 +88,7 @@ def run(name, ratios, spreads, seed, per_class, n_empty, tmp):
         if n_empty:
             dry = fh.simulate_foreign(_head(name, r * rule), {"empty_channel_1": n_empty}, seed + 2)
             measured = calibrate(nominal, healthy["traces"], healthy["sample_rate_hz"], empty=dry["traces"]).profile
-            det, _ = train_detector(measured, seed=seed)
+            det, _ = train_detector(measured, seed=seed, n_per_class=n_per_class)
             rows.append((r, f"--empty ({n_empty} traces)", _scores(det, test)))
         for _, how, sc in rows[-(len(spreads) + bool(n_empty)):]:
             print(f"{name} actuator {r:.2f} x rule, {how}: FI {100 * sc['fi']:.1f} %, empty_channel_1 "
