@@ -62,21 +62,25 @@ def _scores(det, test):
     return {"fi": float(np.mean(pred == truth)), "per": per, "weakest": weakest, "ec1_as": top}
 
 
-def rule_hz(name) -> float:
-    """The actuator calibration assumes for head ``name`` (the default head's at its true ``B_act``), Hz."""
+def rule_hz(profile) -> float:
+    """The actuator a calibrated ``profile`` without ``f_act`` assumes: the default head's at its fitted ``B_act``, Hz
+    (:func:`inkdiag_core.calibration.calibrate`'s ``report["actuator"]["rule_f_act_hz"]``)."""
     c = PHYSICAL_CONSTANTS
-    return c["f_act_hz"] * math.sqrt(c["f_act_ref_b_act"] / fh.FOREIGN_HEADS[name]["channel"]["B_act"])
+    return c["f_act_hz"] * math.sqrt(c["f_act_ref_b_act"] / float(profile.channel["B_act"]))
 
 
 def run(name, ratios, spreads, seed, per_class, n_empty, tmp, n_per_class=N_PER_CLASS):
-    """Rows of one head: ``(its own actuator / the rule, [(ratio, how, scores)])``."""
+    """One head: ``{"own", "rule_hz", "report_rule_hz", "rows", "models", "f_act"}``: its own dry actuator over the
+    rule, the rule (Hz; and calibrate's own figure of it), ``[(ratio, how, scores)]``, the detector per spread and
+    the ``f_act`` (Hz) each ``--empty`` calibration measured, per ratio."""
     fh.write_nominal_yaml(tmp / f"{name}.yaml", name)
     nominal = HeadProfile.load(tmp / f"{name}.yaml")
     own = fh.FOREIGN_PHYSICS[name]["f_act_hz"]
     healthy = fh.simulate_foreign(_head(name, own), {"healthy_nozzle": 300}, seed)
-    profile = calibrate(nominal, healthy["traces"], healthy["sample_rate_hz"]).profile
-    rule = rule_hz(name)
-    models = {}
+    fit = calibrate(nominal, healthy["traces"], healthy["sample_rate_hz"])
+    profile = fit.profile
+    rule = rule_hz(profile)
+    models, f_act = {}, {}
     for s in spreads:
         p = profile.replace(spreads_overrides={**profile.spreads_overrides, "actuator_resonance_rel": s})
         models[s], _ = train_detector(p, seed=seed, n_per_class=n_per_class)
@@ -88,13 +92,15 @@ def run(name, ratios, spreads, seed, per_class, n_empty, tmp, n_per_class=N_PER_
         if n_empty:
             dry = fh.simulate_foreign(_head(name, r * rule), {"empty_channel_1": n_empty}, seed + 2)
             measured = calibrate(nominal, healthy["traces"], healthy["sample_rate_hz"], empty=dry["traces"]).profile
+            f_act[r] = float(measured.channel["f_act"])
             det, _ = train_detector(measured, seed=seed, n_per_class=n_per_class)
             rows.append((r, f"--empty ({n_empty} traces)", _scores(det, test)))
         for _, how, sc in rows[-(len(spreads) + bool(n_empty)):]:
             print(f"{name} actuator {r:.2f} x rule, {how}: FI {100 * sc['fi']:.1f} %, empty_channel_1 "
                   f"{100 * sc['per']['empty_channel_1']:.1f} %, empty_channel_2 {100 * sc['per']['empty_channel_2']:.1f} "
                   f"%, weakest {sc['weakest']} {100 * sc['per'][sc['weakest']]:.1f} %", flush=True)
-    return own / rule, rows
+    return {"own": own / rule, "rule_hz": rule, "report_rule_hz": fit.report["actuator"]["rule_f_act_hz"],
+            "rows": rows, "models": models, "f_act": f_act}
 
 
 def main(argv=None) -> int:
@@ -112,16 +118,18 @@ def main(argv=None) -> int:
     if unknown:
         ap.error(f"unknown head {unknown[0]!r}; tests/foreign_head.py has {', '.join(fh.FOREIGN_HEADS)}")
     t0 = time.perf_counter()
-    table = []
+    table, owns = [], []
     with tempfile.TemporaryDirectory(prefix="inkdiag_actuator_") as tmp:
         for name in args.heads:
-            own, rows = run(name, args.ratios, args.spreads, args.seed, args.per_class, args.empty, Path(tmp))
+            res = run(name, args.ratios, args.spreads, args.seed, args.per_class, args.empty, Path(tmp))
+            rows = res["rows"]
+            owns.append(f"{name} {res['own']:.2f} (rule {res['rule_hz'] / 1e3:.0f} kHz)")
             for i, (r, how, sc) in enumerate(rows):
                 first = i == 0 or rows[i - 1][0] != r
                 table.append([name if i == 0 else "", f"{r:.2f}" if first else "", how, f"{100 * sc['fi']:.1f}",
                               *(f"{100 * sc['per'][c]:.1f}" for c in EMPTY), sc["ec1_as"],
                               f"{sc['weakest']} {100 * sc['per'][sc['weakest']]:.1f}"])
-            print(f"{name}: its own actuator is {own:.2f} x the rule", flush=True)
+            print(f"{name}: its own actuator is {res['own']:.2f} x the rule", flush=True)
     elapsed = time.perf_counter() - t0
     cmd = (f"scripts/report actuator --heads {' '.join(args.heads)} --ratios {' '.join(f'{r:g}' for r in args.ratios)} "
            f"--spreads {' '.join(f'{s:g}' for s in args.spreads)} --seed {args.seed} --per-class {args.per_class} "
@@ -134,9 +142,11 @@ def main(argv=None) -> int:
         "(`inkdiag_core.calibration.calibrate`, no `--empty`: the actuator assumed like the default head's at the "
         "fitted `B_act`, the *rule*), then trained (`inkdiag train`'s defaults, the run's seed) with the assumed "
         "actuator's spread `spreads.actuator_resonance_rel` at each value shown (calibrate writes 0.085); each test "
-        "recording is the same head with its dry actuator at the multiple of the rule shown. *--empty*: calibrated "
-        "with traces of that test head's empty channels as well (the measured actuator), then trained. FI counts "
-        "`ok_signal` and `healthy_nozzle` apart, as reports/heads.md does.",
+        "recording is the same head with its dry actuator (the simulator's `f_act_hz`) at the multiple of the rule "
+        "shown. *--empty*: calibrated with traces of that test head's empty channels as well (the measured actuator), "
+        "then trained. FI counts `ok_signal` and `healthy_nozzle` apart, as reports/heads.md does. *empty_channel_1 "
+        "labelled as*: the most frequent wrong label of that class and its share of the class (blank: none wrong). "
+        f"The heads' own dry actuators, as multiples of their rule: {'; '.join(owns)}.",
         "",
         md_table(["head", "actuator / rule", "profile", "FI %", *(f"{c} %" for c in EMPTY),
                   "empty_channel_1 labelled as (%)", "weakest class %"], table),
