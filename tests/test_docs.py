@@ -101,3 +101,33 @@ def test_restrictor_figures_quoted_in_the_docs_are_the_reports():
             f"alone {span(alone)}, RMS {span(alone_rms, False)}") in cal
     four, h5 = alone_rms[:4], alone_rms[4]  # the training spread's reason (default h20 h16 h12, then h5)
     assert f"(RMS {span(four, False)} over 12 recordings of four heads, {h5:.1f} % on h5:" in cal
+
+
+def test_actuator_figures_quoted_in_the_docs_are_the_reports():
+    """docs/calibration.md quotes reports/actuator.md: what each assumed-actuator spread and --empty give."""
+    rows, head, ratio = [], None, None
+    for line in (ROOT / "reports" / "actuator.md").read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) != 8 or not re.fullmatch(r"[\d.]+", cells[3]):
+            continue
+        head, ratio = cells[0] or head, float(cells[1]) if cells[1] else ratio
+        rows.append((head, ratio, cells[2], *map(float, cells[3:6])))
+    assert len(rows) == 3 * 5 * 4, len(rows)
+
+    def pick(col, ratios, how):
+        return [r[col] for r in rows if r[1] in ratios and how(r[2])]
+
+    def span(v):
+        return f"{min(v):.1f}-{max(v):.1f} %".replace("100.0 %", "100 %")
+
+    base, wide, empty = (lambda h: h == "assumed, spread 0.085"), (lambda h: h.startswith("assumed") and
+                                                                   h != "assumed, spread 0.085"), (lambda h: "empty" in h)
+    cal = " ".join((ROOT / "docs" / "calibration.md").read_text().split())
+    near = pick(4, (0.9, 1.0, 1.12), lambda h: h.startswith("assumed")) + pick(5, (0.9, 1.0, 1.12),
+                                                                               lambda h: h.startswith("assumed"))
+    assert f"at 0.9-1.12 every spread labels both empty classes {span(near)} right" in cal
+    assert f"fails whichever ({span(pick(4, (0.8,), base))} at 0.085, {span(pick(4, (0.8,), wide))} wider;" in cal
+    assert f"fails at 0.085 ({', '.join(f'{v:.1f}' for v in pick(5, (0.72,), base))} %) and passes wider " \
+           f"({span(pick(5, (0.72,), wide))})" in cal
+    assert f"at every ratio ({span(pick(4, (0.72, 0.8, 0.9, 1.0, 1.12), empty) + pick(5, (0.72, 0.8, 0.9, 1.0, 1.12), empty))}, " \
+           f"FI {span(pick(3, (0.72, 0.8, 0.9, 1.0, 1.12), empty))}" in cal
