@@ -336,18 +336,24 @@ def _relative_spread(f):
     return _mad_std(f) / float(np.median(f))
 
 
+def _usable_kpis(profile, traces):
+    """KPIs (k, 7) of the rows of ``traces`` (n, n_samples), V, that screening keeps (at the profile's sampling and
+    ADC) and whose dominant mode has a positive, finite frequency and a finite damping ratio."""
+    x = np.asarray(traces, dtype=np.float64)
+    ok, _ = screen_traces(x, sample_rate_hz=profile.sample_rate_hz, max_abs_v=profile.max_abs_v)
+    k = extract_kpis(x[ok], profile.sample_rate_hz) if ok.any() else np.zeros((0, 7))
+    return k[np.isfinite(k[:, 1]) & (k[:, 1] > 0) & np.isfinite(k[:, 2])]
+
+
 def _blocked_measurement(nominal, blocked, sample_rate_hz, f_healthy, healthy_spread):
     """Median dominant frequency (Hz) of recorded fully blocked traces, its standard error with a floor, the
     number of traces and their median damping ratio. ``healthy_spread``: the healthy traces' relative spread
     of frequency (the head's tolerances, which spread the blocked ones about as much)."""
     nominal.check_traces(blocked, sample_rate_hz, what="the blocked recording")
-    b = np.asarray(blocked, dtype=np.float64)
-    ok, _ = screen_traces(b, sample_rate_hz=sample_rate_hz, max_abs_v=nominal.max_abs_v)
-    k = extract_kpis(b[ok], nominal.sample_rate_hz) if ok.any() else np.zeros((0, 7))
-    k = k[np.isfinite(k[:, 1]) & (k[:, 1] > 0) & np.isfinite(k[:, 2])]
+    k = _usable_kpis(nominal, blocked)
     f = k[:, 1]
     if f.size < MIN_BLOCKED_TRACES:
-        raise CalibrationError(f"{f.size} usable fully blocked traces (of {b.shape[0]}); the blocked mode needs at "
+        raise CalibrationError(f"{f.size} usable fully blocked traces (of {len(blocked)}); the blocked mode needs at "
                                f"least {MIN_BLOCKED_TRACES}")
     f_med, z_med = float(np.median(f)), float(np.median(k[:, 2]))
     if not f_med < 0.98 * f_healthy:
@@ -420,12 +426,9 @@ def _empty_measurement(nominal, empty, sample_rate_hz, f_healthy):
     """The median mode of recorded empty-channel traces: ``{"n_traces", "frequency_hz", "damping_ratio",
     "frequency_spread_rel"}`` (Hz, 1, 1), refused with the reason when they are not the actuator ringing alone."""
     nominal.check_traces(empty, sample_rate_hz, what="the empty-channel recording")
-    e = np.asarray(empty, dtype=np.float64)
-    ok, _ = screen_traces(e, sample_rate_hz=sample_rate_hz, max_abs_v=nominal.max_abs_v)
-    k = extract_kpis(e[ok], nominal.sample_rate_hz) if ok.any() else np.zeros((0, 7))
-    k = k[np.isfinite(k[:, 1]) & (k[:, 1] > 0) & np.isfinite(k[:, 2])]
+    k = _usable_kpis(nominal, empty)
     if k.shape[0] < MIN_EMPTY_TRACES:
-        raise CalibrationError(f"{k.shape[0]} usable empty-channel traces (of {e.shape[0]}); the actuator's "
+        raise CalibrationError(f"{k.shape[0]} usable empty-channel traces (of {len(empty)}); the actuator's "
                                f"resonance needs at least {MIN_EMPTY_TRACES}")
     f, z = float(np.median(k[:, 1])), float(np.median(k[:, 2]))
     if not f > EMPTY_MIN_RATIO * f_healthy:
@@ -457,11 +460,18 @@ def _empty_measurement(nominal, empty, sample_rate_hz, f_healthy):
 
 
 
+def assumed_f_act_hz(B_act: float) -> float:
+    """The actuator calibration assumes where none is measured or given: the default head's at compliance ``B_act``
+    (m^3/Pa), its resonance in Hz (the simulator's rule for a profile without ``channel.f_act``)."""
+    c = PHYSICAL_CONSTANTS
+    return c["f_act_hz"] * math.sqrt(c["f_act_ref_b_act"] / float(B_act))
+
+
 def _actuator(nominal, fe, B_act):
     """Where the empty channels' actuator comes from: ``{"f_act_hz", "zeta_act", "source", "rule_f_act_hz",
     "warning"}`` (Hz, 1); the rule is the default head's actuator at this ``B_act``."""
     c = PHYSICAL_CONSTANTS
-    rule = c["f_act_hz"] * math.sqrt(c["f_act_ref_b_act"] / B_act)
+    rule = assumed_f_act_hz(B_act)
     out = {"rule_f_act_hz": rule, "warning": None}
     if fe is not None:
         out.update(f_act_hz=fe["frequency_hz"], zeta_act=fe["damping_ratio"], source="measured on empty channels")
@@ -523,10 +533,7 @@ def blocked_mode_offset(profile, blocked, sample_rate_hz, *, seed: int = 0) -> d
     profile.check_traces(blocked, sample_rate_hz, what="the blocked traces")
 
     def median_mode(x):
-        x = np.asarray(x, dtype=np.float64)
-        ok, _ = screen_traces(x, sample_rate_hz=profile.sample_rate_hz, max_abs_v=profile.max_abs_v)
-        f = extract_kpis(x[ok], profile.sample_rate_hz)[:, 1] if ok.any() else np.zeros(0)
-        f = f[np.isfinite(f) & (f > 0)]
+        f = _usable_kpis(profile, x)[:, 1]
         return (float(np.median(f)) if f.size else math.nan), int(f.size)
 
     f_rec, n = median_mode(blocked)
@@ -549,8 +556,7 @@ def assumed_actuator_warning(profile) -> str | None:
         return None
     if profile.channel_params() == HeadProfile.default().channel_params():
         return None
-    c = PHYSICAL_CONSTANTS
-    rule = c["f_act_hz"] * math.sqrt(c["f_act_ref_b_act"] / float(profile.channel["B_act"]))
+    rule = assumed_f_act_hz(profile.channel["B_act"])
     spread = profile.spreads().actuator_resonance_rel
     return (f"profile {profile.name!r} gives no channel.f_act: its empty channels are simulated with an actuator like "
             f"the default head's at this B_act ({rule / 1e3:.0f} kHz), "

@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import copy
 import datetime
-import math
 import sys
 import tempfile
 import time
@@ -38,8 +37,7 @@ import foreign_head as fh  # noqa: E402
 from _common import md_table, out_path  # noqa: E402
 
 from inkdiag_core import FaultClass, HeadProfile  # noqa: E402
-from inkdiag_core.calibration import calibrate  # noqa: E402
-from inkdiag_core.simulation.channels import PHYSICAL_CONSTANTS  # noqa: E402
+from inkdiag_core.calibration import assumed_f_act_hz, calibrate  # noqa: E402
 from inkdiag_core.training import N_PER_CLASS, train_detector  # noqa: E402
 
 EMPTY = ("empty_channel_1", "empty_channel_2")
@@ -65,8 +63,7 @@ def _scores(det, test):
 def rule_hz(profile) -> float:
     """The actuator a calibrated ``profile`` without ``f_act`` assumes: the default head's at its fitted ``B_act``, Hz
     (:func:`inkdiag_core.calibration.calibrate`'s ``report["actuator"]["rule_f_act_hz"]``)."""
-    c = PHYSICAL_CONSTANTS
-    return c["f_act_hz"] * math.sqrt(c["f_act_ref_b_act"] / float(profile.channel["B_act"]))
+    return assumed_f_act_hz(profile.channel["B_act"])
 
 
 def run(name, ratios, spreads, seed, per_class, n_empty, tmp, n_per_class=N_PER_CLASS):
