@@ -1,14 +1,13 @@
 """record_baseline: record a printhead's per-nozzle healthy baselines from its trace frames.
 
-Run it while the head is known to jet (after a purge, at commissioning): it subscribes to
-``traces`` in the head's namespace, keeps each nozzle's first ``n_frames`` valid rows
-(:class:`inkdiag_core.BaselineRecorder`: any nozzle ranges, in any order; invalid rows and
-rows beyond 5x the head's ADC range skipped) and, once ``n_nozzles`` are complete, writes
-their baselines (median KPIs, healthy f_m for fe, reference traces for fdi's healthy gate:
-:class:`inkdiag_core.NozzleBaselines`) to ``output_path`` and exits 0. At ``timeout_s``, or
-stopped by SIGINT / SIGTERM, it writes the nozzles complete so far and exits 1 if there are
-none. ``head_profile`` is the head (empty: the default one); a bad or nominal profile, or a
-sampling not the profile's, stops it at start (one line, exit status 2). docs/nodes.md.
+Run it while the head is known to jet (after a purge, at commissioning): it subscribes to ``traces`` in the
+head's namespace, keeps each nozzle's first ``n_frames`` valid rows (:class:`inkdiag_core.BaselineRecorder`:
+nozzle ranges in any order; invalid rows, rows beyond 5x the head's ADC range and, with ``n_nozzles``, frames
+outside the head's ids skipped) and, once ``n_nozzles`` are complete, writes their baselines (median KPIs,
+healthy f_m for fe, reference traces for fdi's gate: :class:`inkdiag_core.NozzleBaselines`) to
+``output_path`` and exits 0. At ``timeout_s``, or stopped by SIGINT / SIGTERM, it writes the nozzles
+complete so far and exits 1 if there are none. ``head_profile`` is the head (empty: the default one); a bad
+or nominal profile, or a sampling not the profile's, stops it at start (one line, exit 2). docs/nodes.md.
 
     record_baseline --ros-args -r __ns:=/head_07 -p output_path:=baselines/head_07.npz -p n_nozzles:=2656
 """
@@ -33,7 +32,9 @@ PARAMS = (
     ("n_frames", 8, "healthy frames per nozzle in its baseline (median)", int, (1, 1000)),
     ("fm_frames", 3, "also record each nozzle's healthy f_m (for fe): the median over its first "
      "fm_frames valid rows, at most n_frames; 0: none (about 1 ms of CPU per row)", int, (0, 1000)),
-    ("n_nozzles", 0, "nozzles to wait for (0: until timeout_s)", int, (0, 2**24)),
+    ("n_nozzles", 0, "nozzles of the head to wait for, ids first_nozzle..first_nozzle + n_nozzles - 1; a frame "
+     "with other ids is rejected (0: any ids, until timeout_s)", int, (0, 2**24)),
+    ("first_nozzle", 0, "id of the head's first nozzle (with n_nozzles)", int, (0, 2**24 - 1)),
     ("timeout_s", 60.0, "give up waiting after this long, s; writes the complete nozzles (so does a SIGINT or "
      "SIGTERM)", float, (0.1, 86400.0)),
     HEAD_PROFILE_PARAM,
@@ -62,28 +63,28 @@ class BaselineRecorderNode(Node):
         self.recorder = BaselineRecorder(n_frames=c["n_frames"], sample_rate_hz=c["sample_rate_hz"],
                                          n_samples=c["n_samples"], profile=self.profile,
                                          fm_frames=min(c["fm_frames"], c["n_frames"]), reference=True)
-        self.frames = 0
-        self.malformed = 0
-        self.last_error = ""
-        self.done = False
+        self.frames, self.malformed, self.last_error, self.done = 0, 0, "", False  # done: written or abandoned
         self.written = None  # path, once written
         self._t0 = time.monotonic()
         self._sub = self.create_subscription(TRACE_MSG_TYPE, topics.TRACES, self._on_traces, TRACES_QOS)
         self._timer = self.create_timer(1.0, self._on_tick)
         self.get_logger().info(
-            f"recording {self.config['n_frames']} healthy frames per nozzle"
+            f"recording {c['n_frames']} healthy frames per nozzle"
             + (f" (f_m from the first {self.recorder.fm_frames})" if self.recorder.fm_frames else "")
-            + (f" of {self.config['n_nozzles']} nozzles" if self.config["n_nozzles"] else "")
+            + (f" of {c['n_nozzles']} nozzles from {c['first_nozzle']}" if c["n_nozzles"] else "")
             + f" of head {self.profile.name!r} ({self.profile.sample_rate_hz / 1e6:g} MHz x {self.profile.n_samples}, "
-            f"sha256 {self.profile.sha256[:12]})"
-            + f" into {self.config['output_path']} (timeout {self.config['timeout_s']:g} s)")
+            f"sha256 {self.profile.sha256[:12]}) into {c['output_path']} (timeout {c['timeout_s']:g} s)")
 
     def _on_traces(self, msg) -> None:
         if self.done:
             return
+        c = self.config
         try:
             frame = decode_traces(msg, n_samples=self.recorder.n_samples,
                                   sample_rate_hz=self.recorder.sample_rate_hz)
+            lo, n, last = c["first_nozzle"], c["n_nozzles"], frame.first_nozzle + frame.traces.shape[0] - 1
+            if n and (frame.first_nozzle < lo or last >= lo + n):  # another head's: not counted towards this one's
+                raise FrameError(f"nozzles {frame.first_nozzle}..{last} outside this head's {lo}..{lo + n - 1}")
             self.recorder.add(frame.first_nozzle, frame.traces)
         except (FrameError, ValueError) as exc:  # the recorder never dies of input
             self.malformed += 1
@@ -91,8 +92,7 @@ class BaselineRecorderNode(Node):
             self.get_logger().warning(f"dropped a malformed trace frame: {exc}", throttle_duration_sec=1.0)
             return
         self.frames += 1
-        want = self.config["n_nozzles"]
-        if want and self.recorder.n_complete >= want:
+        if c["n_nozzles"] and self.recorder.n_complete >= c["n_nozzles"]:
             self._finish()
 
     def _on_tick(self) -> None:

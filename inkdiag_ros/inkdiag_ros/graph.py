@@ -194,6 +194,7 @@ def _run_graph(duration_s, *, namespace, model_path, out, context, baseline, own
                 Parameter("output_path", value=str(baseline["path"])),
                 Parameter("n_frames", value=int(baseline.get("n_frames", 8))),
                 Parameter("n_nozzles", value=sim.config["n_nozzles"]),
+                Parameter("first_nozzle", value=sim.config["first_nozzle"]),
                 Parameter("timeout_s", value=float(baseline["commissioning_s"]))], **kw)
             head = [sim, recorder]
         else:

@@ -26,18 +26,8 @@ from rclpy.node import Node
 from ._spin import exit_now, spin_node
 from .bags import pop_record_arg, recording_node
 
-from msg_defs import (
-    MAX_NOZZLE_ID,
-    FrameError,
-    RELIABLE_QOS,
-    TRACE_MSG_TYPE,
-    TRACES_QOS,
-    TRUTH_MSG_TYPE,
-    encode_traces,
-    encode_truth,
-    topics,
-    truth_from_arrays,
-)
+from msg_defs import (MAX_NOZZLE_ID, RELIABLE_QOS, TRACE_MSG_TYPE, TRACES_QOS, TRUTH_MSG_TYPE, FrameError,
+                      encode_traces, encode_truth, topics, truth_from_arrays)
 
 from . import _params
 from ._head import HEAD_PROFILE_PARAM, head_from_parameters
@@ -54,11 +44,12 @@ PARAMS = (
     ("sample_rate_hz", 0.0, "ADC sample rate of the traces, Hz; 0: the head profile's", float, (0.0, 100e6)),
     ("n_samples", 0, "samples per trace; 0: the head profile's", int, (0, 65536)),
     ("seed", 0, "seed of the scenario, of the head's nozzles (their tolerances persist across frames) and of the frames' noise", int, (0, 2**31 - 1)),
-    ("fault_nozzles", [3, 11, 19, 27], "nozzle ids with a fixed fault", "int[]", None),
+    ("fault_nozzles", [3, 11, 19, 27], "nozzle ids with a fixed fault (those of the default outside the head: "
+     "left out)", "int[]", None),
     ("fault_classes", ["fully_blocked", "mature_air_bubble", "small_air_bubble", "empty_channel_1"],
      "fault class value of each fault_nozzles entry", "str[]", None),
     ("random_fault_fraction", 0.0, "fraction of the other nozzles given a random non-drying fault", float, (0.0, 1.0)),
-    ("drying_nozzles", [40], "nozzle ids that dry over time", "int[]", None),
+    ("drying_nozzles", [40], "nozzle ids that dry over time (the default, if outside the head: none)", "int[]", None),
     ("drying_start_factor", 2.4, "nozzle viscosity / ink viscosity of the drying nozzles at start",
      float, (1.0, 20.0)),
     ("drying_end_factor", 9.0, "nozzle viscosity factor reached after drying_duration_s", float, (1.0, 20.0)),
@@ -84,6 +75,12 @@ class PrintheadSim(Node):
         p = _params.declare_all(self, PARAMS)
         self.config = p
         self.profile = self._load_profile(p)
+        on_head, given = range(p["first_nozzle"], p["first_nozzle"] + p["n_nozzles"]), self._parameter_overrides
+        if not {"fault_nozzles", "fault_classes"} & set(given):  # the default faults: those on this head
+            kept = [(z, c) for z, c in zip(p["fault_nozzles"], p["fault_classes"]) if z in on_head]
+            p["fault_nozzles"], p["fault_classes"] = [z for z, _ in kept], [c for _, c in kept]
+        if "drying_nozzles" not in given:
+            p["drying_nozzles"] = [z for z in p["drying_nozzles"] if z in on_head]
         self._scenario = HeadScenario(
             n_nozzles=p["n_nozzles"], first_nozzle=p["first_nozzle"],
             fault_nozzles=p["fault_nozzles"], fault_classes=p["fault_classes"],

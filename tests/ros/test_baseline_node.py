@@ -52,7 +52,7 @@ def _record(ros, path, n_frames=3):
 
     rec = ros.add(BaselineRecorderNode(context=ros.context, namespace="/h", parameter_overrides=[
         P("output_path", value=str(path)), P("n_frames", value=n_frames), P("n_nozzles", value=N),
-        P("timeout_s", value=30.0)]))
+        P("first_nozzle", value=100), P("timeout_s", value=30.0)]))
     pub = ros.node("controller", namespace="/h").create_publisher(TRACE_MSG_TYPE, topics.TRACES, TRACES_QOS)
     ros.spin_until(lambda: pub.get_subscription_count() > 0, 10, "the recorder's subscription")
     frames = [simulate_nozzles(["healthy_nozzle"] * N, seed=HEAD, frame_seed=f).traces for f in range(n_frames)]
@@ -263,6 +263,11 @@ def test_record_baseline_survives_bad_frames_and_an_unwritable_path(ros, tmp_pat
     bad.data = data
     _publish_until(ros, pub, bad, lambda: rec.malformed > 0, "the bad frame counted")
     assert not rec.done and "2**24" in rec.last_error
+    # another head's nozzles (helper-138's QA: they counted towards n_nozzles, and the file lacked the head's own)
+    for first in (4, 2):
+        _publish_until(ros, pub, encode_traces(frame, first_nozzle=first), lambda: rec.malformed > 1 + (first == 2),
+                       "the foreign frame counted")
+        assert not rec.done and f"nozzles {first}..{first + 3} outside this head's 0..3" in rec.last_error
     _publish_until(ros, pub, encode_traces(frame, first_nozzle=0), lambda: rec.done, "the recorder to finish")
     assert rec.written is None  # could not write: logged, nothing claimed
 

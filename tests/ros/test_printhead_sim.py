@@ -69,6 +69,16 @@ def test_printhead_sim_rejects_bad_scenarios_and_runtime_changes(ros):
     with pytest.raises(ValueError, match="a frame of 100000 nozzles x 65536 samples is more than 134,217,728"):
         PrintheadSim(context=ros.context, parameter_overrides=[P("n_nozzles", value=100_000),
                                                                P("n_samples", value=65536)])
+    # helper-138: a head of 40 nozzles or fewer did not start on the default faults (19, 27, drying 40)
+    small = ros.add(PrintheadSim(context=ros.context, parameter_overrides=[P("n_nozzles", value=16)]))
+    assert small.config["fault_nozzles"] == [3, 11] and small.config["drying_nozzles"] == []
+    assert small.config["fault_classes"] == ["fully_blocked", "mature_air_bubble"]
+    off = ros.add(PrintheadSim(context=ros.context, parameter_overrides=[P("first_nozzle", value=10),
+                                                                         P("n_nozzles", value=32)]))
+    assert off.config["fault_nozzles"] == [11, 19, 27] and off.config["drying_nozzles"] == [40]
+    with pytest.raises(ValueError, match="outside this head's nozzles"):  # a list given is the user's: refused
+        PrintheadSim(context=ros.context, parameter_overrides=[P("n_nozzles", value=16),
+                                                               P("fault_nozzles", value=[3, 11, 19, 27])])
     last = ros.add(PrintheadSim(context=ros.context, parameter_overrides=at(2**24 - 64)))
     assert last.scenario.first_nozzle == 2**24 - 64  # its last nozzle, 2**24 - 1, is on the wire
     sim = ros.add(PrintheadSim(context=ros.context))
