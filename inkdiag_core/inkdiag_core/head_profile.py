@@ -167,6 +167,19 @@ profile in this repository, shipped or in its tests, 18-28 V): a value outside i
 written as volts, or kilovolts), which training would otherwise take without complaint (a model trained on a
 28,000 V drive labelled a 20 MHz head's traces 31 % right, helper-76's QA)."""
 
+MAX_SNR_DB = 200.0
+"""The largest ``sensor.snr_db`` a profile accepts, dB (a sensing chain's: about 20-60 dB; ``noise_std_v: 0``
+is no noise at all). 1e4 dB had overflowed the simulator's noise with a traceback (helper-137's QA)."""
+
+MAX_SPREAD = {"relative (std)": 1.0, "K": 30.0, "V": 10.0}
+"""The largest ``spreads`` value a profile accepts, per unit: a relative spread (a log-normal's sigma: a
+tolerance's, about 0.01-0.1), an ink temperature's spread (K) and the sensor offset's (V). 1e300 had
+overflowed the simulation into NaN traces without a word (helper-137's QA)."""
+
+MAX_VP_CAL = 1e3
+"""The largest magnitude of a stored ``calibration: vp_cal:`` constant a profile accepts (dimensionless; the
+heads fitted so far: 1.3-15)."""
+
 SAMPLING_UNITS = {"sample_rate_hz": "Hz", "n_samples": "samples"}
 
 SENSOR_UNITS = {
@@ -239,6 +252,23 @@ def _check_plain(value, where: str, source: str) -> None:
     elif not isinstance(value, _PLAIN):
         raise ProfileError(f"{source}: {where}: a {type(value).__name__} is not a plain value (a number, a string, "
                            "true/false, null, a list or a mapping; quote a date)")
+
+
+def _check_vp_cal(cal, source: str) -> None:
+    """Raise :class:`ProfileError` unless a ``calibration: vp_cal:`` section (None: none) holds its four constants as
+    finite numbers of magnitude at most :data:`MAX_VP_CAL`: the section is outside the profile's sha256 (it is
+    how the profile was made), and an edited constant had scaled every f_m estimate without a word (helper-137)."""
+    if cal is None:
+        return
+    if not isinstance(cal, Mapping):
+        raise ProfileError(f"{source}: calibration.vp_cal: expected a mapping, got {type(cal).__name__}")
+    for k in ("a_sigma", "b_sigma", "a_omega", "b_omega"):
+        v = cal.get(k)
+        if (isinstance(v, (bool, np.bool_)) or not isinstance(v, (numbers.Real, np.integer, np.floating))
+                or not abs(float(v)) <= MAX_VP_CAL):
+            raise ProfileError(f"{source}: calibration.vp_cal.{k}: expected a number (dimensionless, magnitude at "
+                               f"most {MAX_VP_CAL:g}), got {v!r}: remove the section (inkdiag fits it again) or "
+                               "run inkdiag calibrate again")
 
 
 # YAML 1.1 (PyYAML) reads "15e-6" as a string; a head profile means a number.
@@ -426,7 +456,7 @@ class HeadProfile:
                                f"than {ABSURD_FACTOR:g} times outside; a value in other units? SI: m, m^3, m/s, "
                                "kg/m^3, Pa s)")
         if "f_act" in channel and not channel["f_act"] < fs / 2:
-            raise ProfileError(f"{source}: channel.f_act: the actuator's resonance {channel['f_act'] / 1e3:.1f} kHz is "
+            raise ProfileError(f"{source}: channel.f_act: the actuator's resonance {channel['f_act'] / 1e3:.4g} kHz is "
                                f"not below the Nyquist frequency {fs / 2e3:.1f} kHz of sampling.sample_rate_hz (Hz)")
         dr = _section(doc, "drive", DRIVE_UNITS, source, required=tuple(DRIVE_UNITS))
         drive = DriveWaveform(**{k: _number(f"{source}: drive", k, v, DRIVE_UNITS[k]) for k, v in dr.items()})
@@ -457,17 +487,20 @@ class HeadProfile:
         if sensor.get("noise_std_v", 0.0) < 0:
             raise ProfileError(f"{source}: sensor.noise_std_v: expected a number >= 0 in V, got "
                                f"{sensor['noise_std_v']!r}")
-        if sensor.get("snr_db", 0.0) < 0:  # the simulator's noise takes an SNR of 0 dB or more (Spreads.snr_db)
-            raise ProfileError(f"{source}: sensor.snr_db: expected a number >= 0 in dB, got {sensor['snr_db']!r}")
+        if not 0 <= sensor.get("snr_db", 0.0) <= MAX_SNR_DB:  # the simulator's noise takes an SNR of 0 dB or more
+            raise ProfileError(f"{source}: sensor.snr_db: expected a number from 0 to {MAX_SNR_DB:g} dB (a sensing "
+                               f"chain's: about 20-60 dB), got {sensor['snr_db']!r}")
         sp = _section(doc, "spreads", _SPREAD_UNITS, source)
         spreads = {k: _number(f"{source}: spreads", k, v, _SPREAD_UNITS[k], positive=False) for k, v in sp.items()}
         for k, v in spreads.items():
-            if v < 0:
-                raise ProfileError(f"{source}: spreads.{k}: expected a number >= 0 ({_SPREAD_UNITS[k]}), got {v!r}")
+            if not 0 <= v <= MAX_SPREAD[_SPREAD_UNITS[k]]:
+                raise ProfileError(f"{source}: spreads.{k}: expected a number from 0 to "
+                                   f"{MAX_SPREAD[_SPREAD_UNITS[k]]:g} ({_SPREAD_UNITS[k]}), got {v!r}")
         cal = doc.get("calibration") or {}
         if not isinstance(cal, Mapping):
             raise ProfileError(f"{source}: calibration: expected a mapping, got {type(cal).__name__}")
         _check_plain(cal, "calibration", source)
+        _check_vp_cal(cal.get("vp_cal"), source)
         prof = cls(name, fs, n, channel, drive, sensor, spreads, dict(cal))
         if prof.is_complete:
             prof._check_physics(source)
@@ -577,6 +610,9 @@ class HeadProfile:
         with np.errstate(all="ignore"):
             rms = nominal_rms(self.channel_params(), self.drive, n, fs) * self.sensor_gain_v_per_m3s
         adc, offset = self.adc_range_v, self.sensor_offset_v  # the default's 2 V where the profile leaves it out
+        if not np.isfinite(rms):  # b 1e300: the model's output overflows
+            raise ProfileError(f"{source}: the nominal healthy trace overflows (rms {rms:g} V): check channel.b "
+                               "(m^3 per V s), channel.B_act and sensor.gain_v_per_m3s (V per m^3/s)" + hint)
         step = 2 * adc / 2 ** self.adc_bits if self.adc_bits else 0.0
         if not rms >= step / 4:  # the ring-down is quantisation noise: a gain off by 1e3, or the range in mV
             raise ProfileError(f"{source}: the nominal healthy trace (rms {rms:.3g} V) is smaller than a quarter of one "

@@ -9,6 +9,7 @@ from inkdiag_core import (BaselineRecorder, DryingTracker, HeadProfile, InkChann
                           estimate_fm_batch, fm_to_viscosity)
 from inkdiag_core.estimation import VP_CAL, calibrate_vp_cal, vp_cal_for, vp_calibration
 from inkdiag_core.trend import deeply_dried_fm
+from inkdiag_core.head_profile import ProfileError
 
 DRIED = {"slightly_dried": 30, "intermediately_dried": 30, "deeply_dried": 30}
 
@@ -61,9 +62,20 @@ def test_vp_cal_constants_are_the_heads_and_estimate_d_mu(head_cal):
     assert {"a_sigma", "b_sigma", "a_omega", "b_omega"} <= set(cal) and cal["seconds"] > 0
     assert all(abs(cal[k] - VP_CAL[k]) > 1e-3 for k in ("a_sigma", "b_sigma", "a_omega", "b_omega"))
     assert vp_cal_for(p)["a_sigma"] == cal["a_sigma"]  # the stored constants, no new fit
-    # constants edited to NaN are not this head's (helper-100's QA: every estimate came out not finite)
-    nan = p.replace(calibration={"vp_cal": {**cal, "a_sigma": float("nan")}})
-    assert vp_calibration._stored(nan) is None and vp_calibration._stored(p) is not None
+    # constants edited to NaN (helper-100's QA: every estimate came out not finite) or beyond any head's (helper-137:
+    # estimates of 1e303) are refused where the profile loads, naming the key
+    for bad in (float("nan"), 1e300, "1e3"):
+        with pytest.raises(ProfileError, match=r"calibration\.vp_cal\.a_sigma: expected a number"):
+            p.replace(calibration={"vp_cal": {**cal, "a_sigma": bad}})
+    assert vp_calibration._stored(p) is not None
+    # a fit on simulated traces most of which give no finite estimate is an error, not four zeros (helper-137)
+    n = 100
+    x = np.linspace(0.1, 1.0, n)
+    rows = [(np.where(np.arange(n) < 60, np.nan, -x), x, 0.1 * x, 0.2 * x, -1.1 * x)]
+    with pytest.raises(ValueError, match="60 of the head's 100 simulated dried traces give no finite estimate"):
+        vp_calibration._fit(rows)
+    rows = [(np.where(np.arange(n) < 10, np.nan, -x), x, 0.1 * x, 0.2 * x, -1.1 * x)]  # a few: left out
+    assert np.isfinite(vp_calibration._fit(rows)).all()
     r = p.simulate(DRIED, seed=7)
     own = estimate_fm_batch(r.traces, p, p.sample_rate_hz)
     assert own.method == "vp_cal"

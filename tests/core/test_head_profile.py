@@ -66,10 +66,27 @@ def test_nominal_profile_loads_and_says_what_is_missing():
     (lambda d: d["sampling"].update(n_samples=512.5), r"sampling\.n_samples: expected a positive integer"),
     (lambda d: d["sampling"].update(sample_rate_hz=float("nan")), r"sampling\.sample_rate_hz"),
     (lambda d: d.update(sensor={"noise_std_v": 0.01, "snr_db": 30.0}), "not both"),
-    (lambda d: d.update(sensor={"snr_db": -300.0}), r"sensor\.snr_db: expected a number >= 0 in dB, got -300\.0"),
+    (lambda d: d.update(sensor={"snr_db": -300.0}), r"sensor\.snr_db: expected a number from 0 to 200 dB \(a sensing "
+     r"chain's: about 20-60 dB\), got -300\.0"),
+    # values that overflowed the simulation: a traceback, or NaN traces fitted into zero constants (helper-137)
+    (lambda d: d["sensor"].update(snr_db=1e4), r"sensor\.snr_db: expected a number from 0 to 200 dB.*got 10000\.0"),
+    (lambda d: d.update(spreads={"gain_rel": 1e300}), r"spreads\.gain_rel: expected a number from 0 to 1 "
+     r"\(relative \(std\)\), got 1e\+300"),
+    (lambda d: d.update(spreads={"offset_std_v": 11.0}), r"spreads\.offset_std_v: expected a number from 0 to 10 \(V\)"),
+    (lambda d: d.update(spreads={"temperature_std_k": 40.0}), r"spreads\.temperature_std_k: .* from 0 to 30 \(K\)"),
+    (lambda d: d["channel"].update(b=1e300), r"the nominal healthy trace overflows \(rms (inf|nan) V\): check "
+     r"channel\.b"),
+    (lambda d: d["channel"].update(f_act=1e300), r"channel\.f_act: the actuator's resonance 1e\+297 kHz is not below"),
+    (lambda d: d.update(calibration={"vp_cal": {"a_sigma": 1e300, "b_sigma": 1.0, "a_omega": 1.0, "b_omega": 1.0}}),
+     r"calibration\.vp_cal\.a_sigma: expected a number \(dimensionless, magnitude at most 1000\), got 1e\+300"),
+    (lambda d: d.update(calibration={"vp_cal": {"a_sigma": "1e3", "b_sigma": 1.0, "a_omega": 1.0, "b_omega": 1.0}}),
+     r"calibration\.vp_cal\.a_sigma: .*got '1e3'"),
+    (lambda d: d.update(calibration={"vp_cal": {"a_sigma": 1.0, "b_sigma": 1.0, "a_omega": 1.0}}),
+     r"calibration\.vp_cal\.b_omega: .*got None"),
+    (lambda d: d.update(calibration={"vp_cal": [1.0]}), r"calibration\.vp_cal: expected a mapping"),
     (lambda d: d.update(sensor="x"), "sensor: expected a mapping"),
     (lambda d: d.update(extra=1), "extra: unknown key"),
-    (lambda d: d["channel"].update(f_act=6e6), r"channel\.f_act: the actuator's resonance 6000\.0 kHz is not below "
+    (lambda d: d["channel"].update(f_act=6e6), r"channel\.f_act: the actuator's resonance 6000 kHz is not below "
      r"the Nyquist frequency 5000\.0 kHz"),
     (lambda d: d["channel"].update(f_act=-1.0), r"channel\.f_act: expected a positive number in Hz"),
     # values train took silently, its model then useless (helper-125): a 1-bit ADC; a gain 1000 times low

@@ -233,7 +233,8 @@ def test_estimate_bad_input_is_one_line_and_status_2(head, tmp_path):
         ((d / "rec.npz", "--profile", d / "head.yaml", "--rows", "-:5"), "expected indices and ranges"),  # helper-129
         ((d / "rec.npz", "--profile", d / "head.yaml", "--rows", "\u0663"), "expected indices and ranges"),  # Arabic 3
         ((d / "rec.npz", "--profile", d / "head.yaml", "--rows", "\u0661:\u0663"), "expected indices and ranges"),
-        ((d / "rec.npz", "--profile", d / "head.yaml", "--max-abs-v", "nan"), "--max-abs-v must be a number > 0 V"),
+        ((d / "rec.npz", "--profile", d / "head.yaml", "--max-abs-v", "nan"), "--max-abs-v must be a finite number > 0 V"),
+        ((d / "rec.npz", "--profile", d / "head.yaml", "--max-abs-v", "inf"), "--max-abs-v must be a finite number > 0 V"),
     ]
     for args, message in cases:
         res = run_inproc(*args, "--out", out)

@@ -245,6 +245,10 @@ def test_a_recording_in_millivolts_is_labelled_invalid_with_a_hint_about_units(w
             "the traces in volts?") in capsys.readouterr().err
     _, rows = _read(tmp_path / "l.csv")
     assert {r["reason"] for r in rows} == {"out_of_range"}
+    for bound in ("inf", "0"):  # as baseline and estimate refuse them (helper-137: label took inf, screening nothing out)
+        assert main(["label", str(tmp_path / "v.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "i.csv"),
+                     "--max-abs-v", bound]) == 2
+        assert f"--max-abs-v must be a finite number > 0 V, got {float(bound)!r}" in capsys.readouterr().err
     # a recording with one such row is not told about units
     assert main(["label", str(d / "rec.npz"), "--model", str(trained[0]), "--out", str(tmp_path / "r.csv")]) == 0
     assert "in volts" not in capsys.readouterr().err

@@ -94,7 +94,11 @@ def _fit(rows):
     f = np.concatenate([r[0] for r in rows])
     ft = np.concatenate([r[4] for r in rows])
     w = 1.0 / np.abs(ft)
-    return np.linalg.lstsq(X * w[:, None], (ft - f) * w, rcond=None)[0]
+    ok = np.isfinite(X).all(axis=1) & np.isfinite(f) & np.isfinite(w)
+    if ok.sum() < max(20, ok.size // 2):  # lstsq on NaN rows had given four zeros without a word (helper-137)
+        raise checks.InputError(f"vp_cal: {ok.size - ok.sum()} of the head's {ok.size} simulated dried traces give no "
+                                "finite estimate: check the profile's spreads and sensor")
+    return np.linalg.lstsq(X[ok] * w[ok, None], (ft[ok] - f[ok]) * w[ok], rcond=None)[0]
 
 
 def _accuracy(r, b):

@@ -54,6 +54,13 @@ def repeated_pairs_warning(verb: str, n_repeated: int, what: str) -> str:
             "tell its frames apart (frame_id or stamp)?")
 
 
+def check_max_abs_v(value) -> None:
+    """ValueError unless ``--max-abs-v`` is left out (None: the head's bound) or a finite number > 0 V (every verb
+    that takes it: ``inf`` had screened nothing out in label and been refused by baseline, helper-137)."""
+    if value is not None and not 0 < value < float("inf"):
+        raise ValueError(f"--max-abs-v must be a finite number > 0 V, got {value!r}")
+
+
 def units_warning(verb: str, n_out_of_range: int, n_rows: int, max_abs_v: float, given: bool = False) -> str:
     """The warning line when at least half the rows have a sample no sensor of the head can produce (a
     recording in other units, not a head whose sensor broke), else "". ``given``: the bound is the user's

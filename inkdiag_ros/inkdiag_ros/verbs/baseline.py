@@ -57,15 +57,14 @@ def run(args) -> int:
     from inkdiag_core import BaselineRecorder, FaultClass, HeadProfile
 
     from ..bags import report_stats, stream_recording
-    from . import repeated_pairs, repeated_pairs_warning
+    from . import check_max_abs_v, repeated_pairs, repeated_pairs_warning
 
     if not 1 <= args.frames <= MAX_FRAMES:
         raise ValueError(f"--frames must be in 1..{MAX_FRAMES}, got {args.frames}")
     fm_frames = min(3, args.frames) if args.fm_frames is None else args.fm_frames
     if not 0 <= fm_frames <= args.frames:
         raise ValueError(f"--fm-frames must be in 0..--frames ({args.frames}), got {fm_frames}")
-    if args.max_abs_v is not None and not 0 < args.max_abs_v < float("inf"):
-        raise ValueError(f"--max-abs-v must be a finite number > 0 V, got {args.max_abs_v!r}")
+    check_max_abs_v(args.max_abs_v)
     min_frames = args.frames if args.min_frames is None else args.min_frames
     if not 1 <= min_frames <= args.frames:
         raise ValueError(f"--min-frames must be in 1..--frames ({args.frames}), got {min_frames}")

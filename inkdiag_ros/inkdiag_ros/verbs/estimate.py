@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import re
 
-from . import (NO_BASELINE_HINT, invalid_warning, open_csv_out, repeated_pairs, repeated_pairs_warning,
+from . import (NO_BASELINE_HINT, check_max_abs_v, invalid_warning, open_csv_out, repeated_pairs, repeated_pairs_warning,
                summary_stream, units_warning)
 
 OUT_STDOUT = True  # --out - writes the CSV to standard output
@@ -186,8 +186,7 @@ def run(args) -> int:
 
     from ..bags import is_bag, stream_recording
 
-    if args.max_abs_v is not None and not args.max_abs_v > 0:
-        raise ValueError(f"--max-abs-v must be a number > 0 V, got {args.max_abs_v!r}")
+    check_max_abs_v(args.max_abs_v)
     profile = HeadProfile.load(args.profile)
     if not profile.is_complete:
         raise ProfileError(f"{args.profile}: a nominal profile ({', '.join(profile.missing)} missing): run "

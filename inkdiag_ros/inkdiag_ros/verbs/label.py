@@ -145,7 +145,7 @@ def run(args) -> int:
     from inkdiag_core import FrameLabeller, LabellerConfigError, NozzleBaselines, load_detector
     from inkdiag_core.head_profile import HeadProfile, same_sample_rate
     from ..bags import report_stats, stream_recording
-    from . import (NO_BASELINE_HINT, invalid_warning, open_csv_out, repeated_pairs, repeated_pairs_warning,
+    from . import (NO_BASELINE_HINT, check_max_abs_v, invalid_warning, open_csv_out, repeated_pairs, repeated_pairs_warning,
                    summary_stream, units_warning)
 
     detector = load_detector(args.model)  # ModelFileError (a ValueError): missing, tampered, other versions
@@ -161,9 +161,8 @@ def run(args) -> int:
             f"{args.recording} is sampled at {rec.sample_rate_hz:.10g} Hz x {rec.n_samples} samples; the model is for "
             f"head {head.name!r} at {detector.sample_rate_hz_:.10g} Hz x {detector.n_features_in_}: label recordings "
             "of the head the model was trained for")
+    check_max_abs_v(args.max_abs_v)
     max_abs_v = args.max_abs_v if args.max_abs_v is not None else head.max_abs_v
-    if not max_abs_v > 0:
-        raise ValueError(f"--max-abs-v must be > 0 V, got {max_abs_v!r}")
     baselines = NozzleBaselines.load(args.baselines) if args.baselines else None
     labeller = FrameLabeller(detector, baselines, sample_rate_hz=detector.sample_rate_hz_, n_samples=rec.n_samples,
                              max_abs_v=max_abs_v)
