@@ -85,7 +85,8 @@ from scipy.optimize import brentq, least_squares
 
 from .checks import InputError
 from .faults import MECHANISMS, FaultClass
-from .head_profile import EMPTY_MIN_RATIO, NOMINAL_CHANNEL_KEYS, HeadProfile, ProfileError, implausible_values
+from .head_profile import (EMPTY_MIN_RATIO, MAX_SPREAD, NOMINAL_CHANNEL_KEYS, HeadProfile, ProfileError,
+                           implausible_values)
 from .kpis import extract_kpis
 from .screening import rings_above_noise, screen_traces
 from .simulation.channels import PHYSICAL_CONSTANTS
@@ -889,8 +890,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     sim = calibrated.simulate({"healthy_nozzle": n_sim}, seed=seed).traces.astype(np.float64)
     a_s, o_s, _ = _project(sim, shape, deriv)
     la, la_s = np.log(a[a > 0]), np.log(a_s[a_s > 0])
-    gain_rel = math.sqrt(max(_mad_std(la) ** 2 - _mad_std(la_s) ** 2, 0.0))
-    offset_std = math.sqrt(max(_mad_std(o) ** 2 - _mad_std(o_s) ** 2, 0.0))
+    gain_rel, offset_std = _sensor_spreads(_excess_std(la, la_s), _excess_std(o, o_s))
 
     kp_rec = extract_kpis(y, fs)
     # -- 5. physical spreads: the recording's spread of frequency and damping ---------------------
@@ -901,11 +901,10 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
     sim = calibrated.replace(spreads_overrides={**physical, "gain_rel": 0.0, "offset_std_v": 0.0}
                              ).simulate({"healthy_nozzle": n_sim}, seed=seed).traces.astype(np.float64)
     _, o_s, _ = _project(sim, shape, deriv)
-    offset_std = math.sqrt(max(_mad_std(o) ** 2 - _mad_std(o_s) ** 2, 0.0))
     # the gain spread on the dominant mode's amplitude (the KPI the detector reads), recorded against simulated
     amp_rec, amp_phys = kp_rec[:, 3], extract_kpis(sim, fs)[:, 3]
     amp_rec, amp_phys = np.log(amp_rec[amp_rec > 0]), np.log(amp_phys[amp_phys > 0])
-    gain_rel = math.sqrt(max(_mad_std(amp_rec) ** 2 - _mad_std(amp_phys) ** 2, 0.0))
+    gain_rel, offset_std = _sensor_spreads(_excess_std(amp_rec, amp_phys), _excess_std(o, o_s))
     sim = calibrated.replace(spreads_overrides={**physical, "gain_rel": gain_rel, "offset_std_v": offset_std}
                              ).simulate({"healthy_nozzle": n_sim}, seed=seed).traces.astype(np.float64)
 
@@ -1183,9 +1182,23 @@ SPREAD_SCALE_BOUNDS = (0.25, 4.0)
 """Range of the fitted spread scales (x the default head's spreads)."""
 
 
+def _excess_std(recorded, simulated) -> float:
+    """The robust std of ``recorded`` beyond ``simulated``'s: ``sqrt(max(mad_std(r)^2 - mad_std(s)^2, 0))``."""
+    return math.sqrt(max(_mad_std(recorded) ** 2 - _mad_std(simulated) ** 2, 0.0))
+
+
+def _sensor_spreads(gain_rel, offset_std):
+    """``(gain_rel, offset_std_v)`` fitted, each at most what a profile takes
+    (:data:`inkdiag_core.head_profile.MAX_SPREAD`)."""
+    return min(gain_rel, MAX_SPREAD["relative (std)"]), min(offset_std, MAX_SPREAD["V"])
+
+
 def _scaled_spreads(base, geometry, temperature):
-    out = {k: float(getattr(base, k) * geometry) for k in GEOMETRY_SPREADS}
-    out["temperature_std_k"] = float(base.temperature_std_k * temperature)
+    """The geometry spreads ``geometry`` times and the temperature's ``temperature`` times ``base``'s, each at most
+    what a profile takes (:data:`inkdiag_core.head_profile.MAX_SPREAD`: a nominal's wide spread scaled up had made
+    a profile calibration then refused, naming a value the user never wrote)."""
+    out = {k: min(float(getattr(base, k) * geometry), MAX_SPREAD["relative (std)"]) for k in GEOMETRY_SPREADS}
+    out["temperature_std_k"] = min(float(base.temperature_std_k * temperature), MAX_SPREAD["K"])
     return out
 
 

@@ -264,8 +264,8 @@ def _check_vp_cal(cal, source: str) -> None:
         raise ProfileError(f"{source}: calibration.vp_cal: expected a mapping, got {type(cal).__name__}")
     for k in ("a_sigma", "b_sigma", "a_omega", "b_omega"):
         v = cal.get(k)
-        if (isinstance(v, (bool, np.bool_)) or not isinstance(v, (numbers.Real, np.integer, np.floating))
-                or not abs(float(v)) <= MAX_VP_CAL):
+        a = np.asarray(v) if isinstance(v, (numbers.Real, np.generic, np.ndarray)) else None  # 0-d arrays too
+        if a is None or a.ndim or a.dtype.kind not in "iuf" or not abs(float(a)) <= MAX_VP_CAL:
             raise ProfileError(f"{source}: calibration.vp_cal.{k}: expected a number (dimensionless, magnitude at "
                                f"most {MAX_VP_CAL:g}), got {v!r}: remove the section (inkdiag fits it again) or "
                                "run inkdiag calibrate again")

@@ -2,7 +2,7 @@
 
     graph [--duration 20] [--model models/fdi_default.joblib] [--namespace /head_00]
           [--train-if-missing] [--baseline [--baseline-path baselines/head_00.npz]] [--record BAG_DIR]
-          [--ros-args -p printhead_sim.n_nozzles:=128 --params-file my.yaml]
+          [--ros-args -p printhead_sim:n_nozzles:=128 --params-file my.yaml]
 
 Parameters come from the packaged ``config/inkdiag.yaml``, then any
 ``--ros-args`` given (``-p name:=value`` applies to every node that declares

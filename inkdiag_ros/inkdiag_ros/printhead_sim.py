@@ -44,12 +44,13 @@ PARAMS = (
     ("sample_rate_hz", 0.0, "ADC sample rate of the traces, Hz; 0: the head profile's", float, (0.0, 100e6)),
     ("n_samples", 0, "samples per trace; 0: the head profile's", int, (0, 65536)),
     ("seed", 0, "seed of the scenario, of the head's nozzles (their tolerances persist across frames) and of the frames' noise", int, (0, 2**31 - 1)),
-    ("fault_nozzles", [3, 11, 19, 27], "nozzle ids with a fixed fault (those of the default outside the head: "
-     "left out)", "int[]", None),
+    ("fault_nozzles", [3, 11, 19, 27], "nozzle ids with a fixed fault (of this default, those outside a smaller head "
+     "are left out; a list given, also in a params file, must be the head's)", "int[]", None),
     ("fault_classes", ["fully_blocked", "mature_air_bubble", "small_air_bubble", "empty_channel_1"],
      "fault class value of each fault_nozzles entry", "str[]", None),
     ("random_fault_fraction", 0.0, "fraction of the other nozzles given a random non-drying fault", float, (0.0, 1.0)),
-    ("drying_nozzles", [40], "nozzle ids that dry over time (the default, if outside the head: none)", "int[]", None),
+    ("drying_nozzles", [40], "nozzle ids that dry over time (this default outside a smaller head: none)", "int[]",
+     None),
     ("drying_start_factor", 2.4, "nozzle viscosity / ink viscosity of the drying nozzles at start",
      float, (1.0, 20.0)),
     ("drying_end_factor", 9.0, "nozzle viscosity factor reached after drying_duration_s", float, (1.0, 20.0)),

@@ -564,3 +564,17 @@ def test_more_restrictor_draws_than_traces_per_class_is_refused_only_where_draws
         train_detector(result.profile, n_per_class=8, posterior_draws=9, unknown_rate=None, n_estimators=2)
     det = train_detector(TRUE, n_per_class=8, posterior_draws=9, unknown_rate=None, n_estimators=2)[0]
     assert len(det.classes_) == 12
+
+
+def test_fitted_spreads_stay_within_what_a_profile_takes():
+    """A nominal's wide spread scaled up (up to 4x) had made a profile calibrate then refused, naming a value the
+    user never wrote (helper-139's review); each fitted spread is capped at the profile's bound."""
+    from inkdiag_core import calibration
+    from inkdiag_core.head_profile import MAX_SPREAD
+
+    base = Spreads(temperature_std_k=10.0, nozzle_radius_rel=0.5)
+    got = calibration._scaled_spreads(base, 4.0, 4.0)
+    assert got["temperature_std_k"] == MAX_SPREAD["K"] == 30.0 and got["nozzle_radius_rel"] == 1.0
+    assert got["nozzle_length_rel"] == pytest.approx(4 * base.nozzle_length_rel)  # within the bound: as scaled
+    assert calibration._sensor_spreads(3.0, 50.0) == (1.0, 10.0) and calibration._sensor_spreads(0.05, 0.01) == (0.05, 0.01)
+    HeadProfile.default().replace(name="wide", spreads_overrides={**got, "gain_rel": 1.0, "offset_std_v": 10.0})

@@ -94,11 +94,19 @@ def _fit(rows):
     f = np.concatenate([r[0] for r in rows])
     ft = np.concatenate([r[4] for r in rows])
     w = 1.0 / np.abs(ft)
-    ok = np.isfinite(X).all(axis=1) & np.isfinite(f) & np.isfinite(w)
-    if ok.sum() < max(20, ok.size // 2):  # lstsq on NaN rows had given four zeros without a word (helper-137)
-        raise checks.InputError(f"vp_cal: {ok.size - ok.sum()} of the head's {ok.size} simulated dried traces give no "
-                                "finite estimate: check the profile's spreads and sensor")
-    return np.linalg.lstsq(X[ok] * w[ok, None], (ft[ok] - f[ok]) * w[ok], rcond=None)[0]
+    return np.linalg.lstsq(X * w[:, None], (ft - f) * w, rcond=None)[0]
+
+
+def _finite(rows):
+    """``rows`` (per seed: the "vp" estimate, x, d_sigma, d_omega, the true f_m) without the traces whose values are
+    not all finite; InputError when those are half of them or more, or fewer than 20 are left (lstsq on NaN rows
+    had given four zeros without a word, helper-137)."""
+    keep = [np.logical_and.reduce([np.isfinite(c) for c in r]) & (r[4] != 0) for r in rows]
+    n, n_ok = sum(k.size for k in keep), sum(int(k.sum()) for k in keep)
+    if 2 * n_ok <= n or n_ok < 20:
+        raise checks.InputError(f"vp_cal: {n - n_ok} of the head's {n} simulated dried traces give no finite estimate: "
+                                "check the profile's spreads and sensor")
+    return [tuple(c[k] for c in r) for r, k in zip(rows, keep)]
 
 
 def _accuracy(r, b):
@@ -161,6 +169,7 @@ def calibrate_vp_cal(profile=None, *, seeds=(11, 19), n_per_class=100, progress=
         rows.append((*vp_cal_features(model, ds.y, fs), ds.fm * T0))
         if progress is not None:
             progress(s, ds.y.shape[0])
+    rows = _finite(rows)
     hold = _fit(rows[:-1])
     a0, a1 = _accuracy(rows[-1], np.zeros(4)), _accuracy(rows[-1], hold)
     b = _fit(rows)
