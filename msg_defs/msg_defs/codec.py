@@ -413,8 +413,13 @@ def decode_traces_serialized(buf, *, max_nozzle_id: int | None = None, n_samples
     if parts is None:
         from rclpy.serialization import deserialize_message
 
-        return decode_traces(deserialize_message(bytes(buf), Float32MultiArray), max_nozzle_id=max_nozzle_id,
-                             n_samples=n_samples, sample_rate_hz=sample_rate_hz)
+        try:  # another encapsulation: rclpy's deserialiser, whose RMWError had ended the node (helper-140)
+            msg = deserialize_message(bytes(buf), Float32MultiArray)
+        except Exception as exc:  # noqa: BLE001 - any failure to read it is this message's
+            raise FrameError(f"not a serialised std_msgs/msg/Float32MultiArray (its first bytes "
+                             f"{bytes(buf[:4]).hex()}): {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
+                             ) from None
+        return decode_traces(msg, max_nozzle_id=max_nozzle_id, n_samples=n_samples, sample_rate_hz=sample_rate_hz)
     dims, data_offset, data = parts
     return _decode(dims, data_offset, data, max_nozzle_id=max_nozzle_id, n_samples=n_samples,
                    sample_rate_hz=sample_rate_hz)

@@ -122,6 +122,16 @@ def test_serialized_decode_is_decode_traces_of_the_message(shape):
         decode_traces_serialized(buf, n_samples=shape[1] + 1)
 
 
+def test_serialized_bytes_of_no_cdr_encapsulation_raise_a_frame_error():
+    """rclpy's deserialiser (the fallback for another encapsulation) raised its own RMWError, which ended the fdi
+    node (helper-140's QA: a bag of random bytes replayed into it)."""
+    rng = np.random.default_rng(1)
+    for head in (b"\xb8\x83", b"\x00\x03", b"\x00\x07"):
+        with pytest.raises(FrameError, match=f"not a serialised std_msgs/msg/Float32MultiArray \\(its first bytes "
+                                             f"{head.hex()}"):
+            decode_traces_serialized(head + rng.bytes(998))
+
+
 def test_serialized_decode_reads_big_endian_cdr_and_refuses_truncated_bytes():
     import struct
 
