@@ -224,11 +224,17 @@ class BagFrames:
                 f"message {i}: {why}" for i, why in self.skipped[:3]) + (" ..." if n_skip > 3 else "")
         if self.salvaged is not None:
             s += "; " + salvage_note(self.salvaged)
-        if self.n_listed is not None and self.n_listed != self.n_messages:
-            s += (f"; metadata.yaml lists {self.n_listed} messages on {self.topic}: "
-                  + (f"{self.n_listed - self.n_messages} of them not found in its files" if self.n_listed > self.n_messages
-                     else f"{self.n_messages - self.n_listed} more found than it lists"))
-        return s
+        return s + listed_note(self.n_listed, self.n_messages, f" on {self.topic}")
+
+
+def listed_note(n_listed, n_found: int, where: str = "") -> str:
+    """``; metadata.yaml lists N messages{where}: M of them not found in its files`` (or ``M more found than it
+    lists``) when a bag's files hold another count than its metadata says; "" when they agree or it does not say."""
+    if n_listed is None or n_listed == n_found:
+        return ""
+    return (f"; metadata.yaml lists {n_listed} messages{where}: " + (
+        f"{n_listed - n_found} of them not found in its files" if n_listed > n_found
+        else f"{n_found - n_listed} more found than it lists"))
 
 
 def listed_count(bag: Path, topic: str):
@@ -818,6 +824,9 @@ class BagRecorder:
         Open.
     wanted : dict
         Absolute topic -> (type name, subscription QoS), from :func:`inkdiag_ros.bags.head_topics`.
+
+    ``node`` None: no subscriptions, the topics listed at :meth:`finish` with no message (a recording stopped by
+    a signal as its node was built: its bag lists the same topics as one stopped a moment later, helper-140).
     """
 
     def __init__(self, node, writer, wanted):
@@ -830,7 +839,7 @@ class BagRecorder:
         self.failed = None  # the BagWriteError of the first write that failed: nothing is written after it
         self._last_ns = 0  # the log time of the last message written
         self._subs = {topic: node.create_subscription(msg_class(t), topic, self._callback(topic), qos, raw=True)
-                      for topic, (t, qos) in wanted.items()}
+                      for topic, (t, qos) in wanted.items()} if node is not None else {}
 
     def _offered(self, topic):
         """The QoS profiles the topic's publishers offer (the subscription's own when none is seen)."""

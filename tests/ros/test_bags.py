@@ -735,3 +735,20 @@ def test_a_metadata_yaml_that_lists_the_traces_topic_twice_or_not_at_all_says_so
     (tmp_path / "elsewhere" / "elsewhere.mcap").rename(stray / "old.mcap")
     with pytest.raises(RecordingError, match=r"\(it has /head_00/labels, /head_00/traces\)$"):
         load_recording(stray, topic="/head_01/traces")
+
+
+def test_replay_says_when_the_bag_holds_other_counts_than_its_metadata_lists(tmp_path, sim, ros):
+    """A metadata.yaml edited to list 99999 messages: replay announced them, replayed 15 and said nothing of the
+    difference (helper-140's QA); it now says it, as the offline verbs' summaries do."""
+    frames = [(0, sim.traces[i:i + 5].astype(np.float32)) for i in range(0, 5 * 3, 5)]
+    bag = write_bag(tmp_path / "bag", frames, version=8)
+    rc, n, err = _replayed(bag, domain_id=ros.domain_id)
+    assert rc == 0 and n == 6 and "metadata.yaml lists" not in err, err
+    meta = bag / "metadata.yaml"
+    text = meta.read_text()
+    assert text.count("message_count: 3") == 2, text  # per topic (traces, ground_truth)
+    meta.write_text(text.replace("message_count: 3", "message_count: 99999", 1))
+    rc, n, err = _replayed(bag, domain_id=ros.domain_id)
+    assert rc == 0 and n == 6, err
+    assert "replayed 6 messages from" in err and "; metadata.yaml lists 100002 messages: 99996 of them not found in " \
+                                                   "its files" in err, err

@@ -61,6 +61,7 @@ def run(args) -> int:
             except Exception:  # a signal as the node was built: rclpy invalidated the context under it (RCLError)
                 if not stop.explains_an_error():
                     raise
+                rec = BagRecorder(None, writer, wanted)  # the bag lists its topics, with no message
             else:
                 print(f"recording {', '.join(wanted)} into {bag}", file=sys.stderr, flush=True)
                 end = None if args.duration is None else time.monotonic() + args.duration

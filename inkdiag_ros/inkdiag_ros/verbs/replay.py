@@ -93,8 +93,8 @@ def run(args) -> int:
     from inkdiag_core.recording import RecordingError
 
     from .._spin import stop_on_signals, tear_down
-    from ..bags import (TRACES_TYPE, SalvageReader, check_salvage_has_topics, first_line, msg_class, open_reader,
-                        qos_from_rosbags, read_on, salvage_note, storage_files)
+    from ..bags import (TRACES_TYPE, SalvageReader, check_salvage_has_topics, first_line, listed_note, msg_class,
+                        open_reader, qos_from_rosbags, read_on, salvage_note, storage_files)
 
     if not args.as_fast_as_possible and not (math.isfinite(args.rate) and args.rate > 0):
         raise ValueError(f"--rate must be a number > 0, got {args.rate!r}")
@@ -226,7 +226,9 @@ def run(args) -> int:
             reader.close()
             tear_down(executor, [node])
     damage = _found(salvage, damage)
+    whole = not (args.loop or stop.requested or damage)  # one pass read to its end: as many as metadata.yaml lists?
     print(f"replayed {n_sent} messages from {bag}"
+          + (listed_note(n_listed, n_sent + sum(no_pub.values())) if whole else "")
           + (f"; {_not_replayed(no_pub)}" if no_pub else "")
           + (f"; {salvage_note(list(damage))}" if damage is not None else ""), file=sys.stderr)
     return 0
