@@ -50,21 +50,21 @@ class BaselineRecorderNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__("record_baseline", **kwargs)
-        self.config = _params.declare_all(self, PARAMS)
+        self.config = c = _params.declare_all(self, PARAMS)
         self.add_on_set_parameters_callback(lambda params: _params.fixed_at_start(params))
-        if not self.config["output_path"]:
+        if not c["output_path"]:
             raise ValueError("output_path is required (-p output_path:=baselines/head.npz)")
         try:  # a directory, device or pipe there: said now, not after the recording
-            refuse_to_replace(self.config["output_path"])
+            refuse_to_replace(c["output_path"])
         except OSError as exc:
             raise ValueError(f"output_path: {exc}") from None
-        c = self.config
+        if c["n_nozzles"] and c["first_nozzle"] + c["n_nozzles"] > 2**24:  # the wire's ids are below 2**24
+            raise ValueError(f"first_nozzle {c['first_nozzle']} + n_nozzles {c['n_nozzles']} is beyond 2**24")
         self.profile = head_from_parameters(c)  # bad, nominal or contradicting: ValueError, exit 2 at start
         self.recorder = BaselineRecorder(n_frames=c["n_frames"], sample_rate_hz=c["sample_rate_hz"],
                                          n_samples=c["n_samples"], profile=self.profile,
                                          fm_frames=min(c["fm_frames"], c["n_frames"]), reference=True)
-        self.frames, self.malformed, self.last_error, self.done = 0, 0, "", False  # done: written or abandoned
-        self.written = None  # path, once written
+        self.frames, self.malformed, self.last_error, self.done, self.written = 0, 0, "", False, None  # written: path
         self._t0 = time.monotonic()
         self._sub = self.create_subscription(TRACE_MSG_TYPE, topics.TRACES, self._on_traces, TRACES_QOS)
         self._timer = self.create_timer(1.0, self._on_tick)

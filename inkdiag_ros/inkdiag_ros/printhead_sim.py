@@ -1,16 +1,14 @@
 """printhead_sim: a simulated printhead publishing trace frames and their ground truth.
 
-Publishes ``traces`` (one frame of all its nozzles per timer tick, sensor-data
-QoS) and ``ground_truth`` (reliable), both relative to the node's namespace.
-The fault scenario (fixed faults, a random fault fraction, drying nozzles
-whose nozzle viscosity rises over time) is :class:`inkdiag_core.simulation.scenario.HeadScenario`,
-on the head of ``head_profile`` (a complete :class:`inkdiag_core.HeadProfile` YAML file; empty:
-the shipped default head): its channel, drive, sensor, spreads and sampling, which the trace
-header carries. A nominal profile or a bad file stops the node at start (one line, exit status 2).
+Publishes ``traces`` (one frame of all its nozzles per timer tick, sensor-data QoS) and ``ground_truth``
+(reliable), relative to the node's namespace. The fault scenario (fixed faults, a random fault fraction, drying
+nozzles whose viscosity rises over time) is :class:`inkdiag_core.simulation.scenario.HeadScenario`, on the head of
+``head_profile`` (a complete :class:`inkdiag_core.HeadProfile` YAML file; empty: the shipped default head): its
+channel, drive, sensor, spreads and sampling, which the trace header carries. A nominal profile or a bad file stops
+the node at start (one line, exit status 2).
 
     printhead_sim --ros-args -r __ns:=/head_00 -p n_nozzles:=256 -p drying_nozzles:=[40]
-    printhead_sim --ros-args -p head_profile:=heads/my_head.yaml
-    python -m inkdiag_ros.printhead_sim --ros-args --params-file inkdiag.yaml
+    printhead_sim --ros-args -p head_profile:=heads/my_head.yaml --params-file inkdiag.yaml
     printhead_sim --record bags/sim1 --ros-args -r __ns:=/head_00   # and a rosbag2 bag of what it publishes
 """
 
@@ -32,7 +30,7 @@ from msg_defs import (MAX_NOZZLE_ID, RELIABLE_QOS, TRACE_MSG_TYPE, TRACES_QOS, T
 from . import _params
 from ._head import HEAD_PROFILE_PARAM, head_from_parameters
 from inkdiag_core import HeadProfile
-from inkdiag_core.simulation.scenario import HeadScenario
+from inkdiag_core.simulation.scenario import HeadScenario, defaults_on_head
 
 PARAMS = (
     # name, default, description, kind, range
@@ -44,13 +42,13 @@ PARAMS = (
     ("sample_rate_hz", 0.0, "ADC sample rate of the traces, Hz; 0: the head profile's", float, (0.0, 100e6)),
     ("n_samples", 0, "samples per trace; 0: the head profile's", int, (0, 65536)),
     ("seed", 0, "seed of the scenario, of the head's nozzles (their tolerances persist across frames) and of the frames' noise", int, (0, 2**31 - 1)),
-    ("fault_nozzles", [3, 11, 19, 27], "nozzle ids with a fixed fault (of this default, those outside a smaller head "
-     "are left out; a list given, also in a params file, must be the head's)", "int[]", None),
+    ("fault_nozzles", [3, 11, 19, 27], "nozzle ids with a fixed fault (of this default, those not on the head are "
+     "left out with a warning; a list given, also in a params file, must be the head's)", "int[]", None),
     ("fault_classes", ["fully_blocked", "mature_air_bubble", "small_air_bubble", "empty_channel_1"],
      "fault class value of each fault_nozzles entry", "str[]", None),
     ("random_fault_fraction", 0.0, "fraction of the other nozzles given a random non-drying fault", float, (0.0, 1.0)),
-    ("drying_nozzles", [40], "nozzle ids that dry over time (this default outside a smaller head: none)", "int[]",
-     None),
+    ("drying_nozzles", [40], "nozzle ids that dry over time (this default not on the head: none, with a warning)",
+     "int[]", None),
     ("drying_start_factor", 2.4, "nozzle viscosity / ink viscosity of the drying nozzles at start",
      float, (1.0, 20.0)),
     ("drying_end_factor", 9.0, "nozzle viscosity factor reached after drying_duration_s", float, (1.0, 20.0)),
@@ -76,12 +74,9 @@ class PrintheadSim(Node):
         p = _params.declare_all(self, PARAMS)
         self.config = p
         self.profile = self._load_profile(p)
-        on_head, given = range(p["first_nozzle"], p["first_nozzle"] + p["n_nozzles"]), self._parameter_overrides
-        if not {"fault_nozzles", "fault_classes"} & set(given):  # the default faults: those on this head
-            kept = [(z, c) for z, c in zip(p["fault_nozzles"], p["fault_classes"]) if z in on_head]
-            p["fault_nozzles"], p["fault_classes"] = [z for z, _ in kept], [c for _, c in kept]
-        if "drying_nozzles" not in given:
-            p["drying_nozzles"] = [z for z in p["drying_nozzles"] if z in on_head]
+        if off := defaults_on_head(p, set(self._parameter_overrides)):
+            self.get_logger().warning(f"default fault or drying nozzles {off} are not on this head (nozzles "
+                                      f"{p['first_nozzle']}..{p['first_nozzle'] + p['n_nozzles'] - 1}): left out")
         self._scenario = HeadScenario(
             n_nozzles=p["n_nozzles"], first_nozzle=p["first_nozzle"],
             fault_nozzles=p["fault_nozzles"], fault_classes=p["fault_classes"],

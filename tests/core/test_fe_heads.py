@@ -106,6 +106,15 @@ def test_vp_cal_for_a_new_head_fits_once_per_process(monkeypatch):
     assert len(calls) == 2
 
 
+def test_calibrate_vp_cal_refuses_constants_a_profile_would_not_store(monkeypatch):
+    """A fit beyond MAX_VP_CAL raised only where calibrate stored it in the profile, naming a value the user never
+    wrote (helper-141's review): calibrate_vp_cal refuses it (calibrate then writes the profile without them)."""
+    monkeypatch.setattr(vp_calibration, "_fit", lambda rows: np.array([2000.0, 1.0, 1.0, 1.0]))
+    with pytest.raises(ValueError, match=r"vp_cal: the fitted constants .* are beyond any head's \(magnitude above "
+                                         r"1000\)"):
+        calibrate_vp_cal(foreign_head(), seeds=(11, 12), n_per_class=4)
+
+
 def test_calibrate_vp_cal_refuses_evaluation_seeds_and_nominal_profiles():
     with pytest.raises(ValueError, match="evaluation seeds"):
         calibrate_vp_cal(foreign_head(), seeds=(99, 101))

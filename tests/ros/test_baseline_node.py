@@ -267,10 +267,11 @@ def test_record_baseline_survives_bad_frames_and_an_unwritable_path(ros, tmp_pat
     _publish_until(ros, pub, bad, lambda: rec.malformed > 0, "the bad frame counted")
     assert not rec.done and "2**24" in rec.last_error
     # another head's nozzles (helper-138's QA: they counted towards n_nozzles, and the file lacked the head's own)
-    for first in (4, 2):
-        _publish_until(ros, pub, encode_traces(frame, first_nozzle=first), lambda: rec.malformed > 1 + (first == 2),
+    for first in (4, 2):  # waited for by its own error (a resent frame counts again)
+        said = f"nozzles {first}..{first + 3} outside this head's 0..3"
+        _publish_until(ros, pub, encode_traces(frame, first_nozzle=first), lambda: said in rec.last_error,
                        "the foreign frame counted")
-        assert not rec.done and f"nozzles {first}..{first + 3} outside this head's 0..3" in rec.last_error
+        assert not rec.done
     _publish_until(ros, pub, encode_traces(frame, first_nozzle=0), lambda: rec.done, "the recorder to finish")
     assert rec.written is None  # could not write: logged, nothing claimed
 
@@ -417,3 +418,13 @@ def test_fe_stopped_while_it_publishes_a_burst_does_not_fail_its_callback():
     fe._publish(out)  # nothing to publish to: no error
     assert fe.estimates_published == 1
     fe.destroy_node()
+
+
+def test_record_baseline_refuses_a_head_past_the_wires_ids(ros, tmp_path):
+    """first_nozzle + n_nozzles beyond 2**24 (ids no trace message carries): refused at start, not waited for until
+    timeout_s (helper-141's review)."""
+    from inkdiag_ros.baseline_node import BaselineRecorderNode
+
+    with pytest.raises(ValueError, match=r"first_nozzle 16777215 \+ n_nozzles 2 is beyond 2\*\*24"):
+        BaselineRecorderNode(context=ros.context, parameter_overrides=[
+            P("output_path", value=str(tmp_path / "b.npz")), P("first_nozzle", value=2**24 - 1), P("n_nozzles", value=2)])

@@ -76,6 +76,13 @@ def test_printhead_sim_rejects_bad_scenarios_and_runtime_changes(ros):
     off = ros.add(PrintheadSim(context=ros.context, parameter_overrides=[P("first_nozzle", value=10),
                                                                          P("n_nozzles", value=32)]))
     assert off.config["fault_nozzles"] == [11, 19, 27] and off.config["drying_nozzles"] == [40]
+    far = ros.add(PrintheadSim(context=ros.context, parameter_overrides=[P("first_nozzle", value=100)]))
+    assert far.config["fault_nozzles"] == far.config["drying_nozzles"] == []  # none on it: left out, said
+    from inkdiag_core.simulation.scenario import defaults_on_head
+
+    p = {"n_nozzles": 32, "first_nozzle": 0, "fault_nozzles": [3, 40], "fault_classes": ["a", "b"],
+         "drying_nozzles": [40]}
+    assert defaults_on_head(p, {"fault_nozzles"}) == [40] and p["fault_nozzles"] == [3, 40]  # given: the scenario's
     with pytest.raises(ValueError, match="outside this head's nozzles"):  # a list given is the user's: refused
         PrintheadSim(context=ros.context, parameter_overrides=[P("n_nozzles", value=16),
                                                                P("fault_nozzles", value=[3, 11, 19, 27])])

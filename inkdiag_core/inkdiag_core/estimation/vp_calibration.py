@@ -31,6 +31,7 @@ import numpy as np
 from .. import checks
 from .base import T0, model_matrices, scaled, default_bounds
 from .vp import VP_CAL, pair_refit, vp_batch
+from ..head_profile import MAX_VP_CAL
 
 __all__ = [
     "EVAL_SEEDS",
@@ -103,7 +104,7 @@ def _finite(rows):
     had given four zeros without a word, helper-137)."""
     keep = [np.logical_and.reduce([np.isfinite(c) for c in r]) & (r[4] != 0) for r in rows]
     n, n_ok = sum(k.size for k in keep), sum(int(k.sum()) for k in keep)
-    if 2 * n_ok <= n or n_ok < 20:
+    if 2 * n_ok <= n or n_ok < 20 or not all(k.any() for k in keep):  # every seed's set (the last one is held out)
         raise checks.InputError(f"vp_cal: {n - n_ok} of the head's {n} simulated dried traces give no finite estimate: "
                                 "check the profile's spreads and sensor")
     return [tuple(c[k] for c in r) for r, k in zip(rows, keep)]
@@ -176,6 +177,9 @@ def calibrate_vp_cal(profile=None, *, seeds=(11, 19), n_per_class=100, progress=
     res = np.concatenate([r[0] + _design(*r[1:4]) @ b - r[4] for r in rows])
     fts = np.concatenate([r[4] for r in rows])
     out = dict(zip(_KEYS, (float(v) for v in b)))
+    if not all(abs(v) <= MAX_VP_CAL for v in out.values()):  # what a profile stores (its calibration section)
+        raise checks.InputError(f"vp_cal: the fitted constants {out} are beyond any head's (magnitude above "
+                                f"{MAX_VP_CAL:g}): check the profile's channel, spreads and sensor")
     out.update(seeds=(lo, hi), n_traces=int(fts.size),
                holdout={"seed": seed_list[-1], "vp_median": float(np.median(a0)),
                         "vp_cal_median": float(np.median(a1)), "vp_p10": float(np.percentile(a0, 10)),

@@ -21,7 +21,7 @@ import numpy as np
 from ..faults import DRIED_CLASSES, FAULT_CLASSES, MECHANISMS, FaultClass, as_fault_class
 from .linear import simulate_nozzles
 
-__all__ = ["HeadScenario", "simulate_head", "dried_class_of", "RANDOM_FAULT_CLASSES"]
+__all__ = ["HeadScenario", "simulate_head", "dried_class_of", "defaults_on_head", "RANDOM_FAULT_CLASSES"]
 
 #: Classes a random fault is drawn from (drying is the progression's job).
 RANDOM_FAULT_CLASSES = tuple(c for c in FAULT_CLASSES if c not in DRIED_CLASSES)
@@ -149,6 +149,22 @@ class HeadScenario:
         """
         classes, mu_nozzle = self.at(t_s)
         return simulate_head(classes, mu_nozzle, head_seed=head_seed, rng=rng, profile=self.profile)
+
+
+def defaults_on_head(p: dict, given) -> list:
+    """Leave out of ``p`` (:class:`HeadScenario`'s keyword arguments) the default fault and drying nozzles (of the
+    lists whose names are not in ``given``) that are not on its head: a smaller one's, or one from another
+    ``first_nozzle`` (``printhead_sim``'s defaults). Returns those left out. A list given is the scenario's own,
+    checked by :class:`HeadScenario` (an id off the head: ValueError)."""
+    on_head, off = range(p["first_nozzle"], p["first_nozzle"] + p["n_nozzles"]), []
+    if not {"fault_nozzles", "fault_classes"} & given:
+        off = [z for z in p["fault_nozzles"] if z not in on_head]
+        kept = [(z, c) for z, c in zip(p["fault_nozzles"], p["fault_classes"]) if z in on_head]
+        p["fault_nozzles"], p["fault_classes"] = [z for z, _ in kept], [c for _, c in kept]
+    if "drying_nozzles" not in given:
+        off += [z for z in p["drying_nozzles"] if z not in on_head]
+        p["drying_nozzles"] = [z for z in p["drying_nozzles"] if z in on_head]
+    return off
 
 
 def simulate_head(classes, mu_nozzle, *, head_seed, rng, profile=None, sample_rate_hz=None, n_samples=None):

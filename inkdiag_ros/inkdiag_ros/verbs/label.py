@@ -148,6 +148,7 @@ def run(args) -> int:
     from . import (NO_BASELINE_HINT, check_max_abs_v, invalid_warning, open_csv_out, repeated_pairs, repeated_pairs_warning,
                    summary_stream, units_warning)
 
+    check_max_abs_v(args.max_abs_v)  # before the model and the recording are read
     detector = load_detector(args.model)  # ModelFileError (a ValueError): missing, tampered, other versions
     head = detector.profile if detector.profile is not None else HeadProfile.default()
     stats, chunks = stream_recording(args.recording, args.topic, max_rows=BATCH_ROWS,  # a bag's others: skipped
@@ -161,7 +162,6 @@ def run(args) -> int:
             f"{args.recording} is sampled at {rec.sample_rate_hz:.10g} Hz x {rec.n_samples} samples; the model is for "
             f"head {head.name!r} at {detector.sample_rate_hz_:.10g} Hz x {detector.n_features_in_}: label recordings "
             "of the head the model was trained for")
-    check_max_abs_v(args.max_abs_v)
     max_abs_v = args.max_abs_v if args.max_abs_v is not None else head.max_abs_v
     baselines = NozzleBaselines.load(args.baselines) if args.baselines else None
     labeller = FrameLabeller(detector, baselines, sample_rate_hz=detector.sample_rate_hz_, n_samples=rec.n_samples,

@@ -118,7 +118,9 @@ def run(args) -> int:
         if not conns:
             has = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
             raise RecordingError(f"{bag}: no topic to replay (it has {has})")
-        n_listed = None if salvage else sum(c.msgcount for c in conns)  # salvaged: not known before it is read
+        # salvaged: not known before it is read; an entry metadata.yaml lists twice (two connections) counts once
+        n_listed = None if salvage else sum(c.msgcount for c in {(c.topic, c.msgtype, c.msgcount, repr(c.ext)): c
+                                                                  for c in conns}.values())
         if n_listed == 0:
             raise RecordingError(f"{bag}: no messages on {', '.join(sorted({c.topic for c in conns}))} to replay")
         targets = _targets(conns, args.namespace)  # bad or colliding names: ValueError, before any node
