@@ -15,7 +15,7 @@ module          contents
 ``datasets``    :func:`healthy_twin_frames`, :func:`healthy_twin_chunks`
 ``heldout``     held-out fault conditions, evaluation only: :func:`simulate_heldout`
 ``scenario``    a simulated head's faults over time: :class:`HeadScenario`,
-                :func:`simulate_head`
+                :func:`simulate_head`, :func:`defaults_on_head`
 ==============  =====================================================================
 
 The public names of every module are re-exported here.
@@ -38,7 +38,7 @@ from .linear import simulate, simulate_nozzles
 from .modal import class_max_frequency, cubic_roots, dominant_mode, modal_solution, nominal_rms, ramp_response
 from .nonlinear import DEFAULT_COUPLING_M3_PER_V, NonlinearTerms, simulate_nonlinear
 from .result import SimulationResult, empty_result
-from .scenario import RANDOM_FAULT_CLASSES, HeadScenario, dried_class_of, simulate_head
+from .scenario import RANDOM_FAULT_CLASSES, HeadScenario, defaults_on_head, dried_class_of, simulate_head
 from .sensor import adc_quantiser, draw_sensor, noise_std_for_snr, snr_db, white_noise
 
 __all__ = [
@@ -77,6 +77,7 @@ __all__ = [
     "HeadScenario",
     "dried_class_of",
     "simulate_head",
+    "defaults_on_head",
     "adc_quantiser",
     "draw_sensor",
     "noise_std_for_snr",
