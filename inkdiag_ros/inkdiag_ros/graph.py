@@ -25,6 +25,7 @@ import importlib.resources
 import math
 import sys
 import time
+from pathlib import Path
 
 import rclpy
 from rclpy.exceptions import ParameterException
@@ -145,13 +146,37 @@ def run(duration_s: float, *, namespace: str, model_path: str | None, args=None,
     closed valid at the end whatever stops the run.
     """
     own = context is None
+    shipped = shipped_scenario(args)
     if own:
         with sigint_as_shutdown():
             rclpy.init(args=args)
             return _run(duration_s, namespace=namespace, model_path=model_path, out=out, context=None,
-                        baseline=baseline, own=True, record=record)
+                        baseline=baseline, own=True, record=record, shipped=shipped)
     return _run(duration_s, namespace=namespace, model_path=model_path, out=out, context=context,
-                baseline=baseline, own=False, record=record)
+                baseline=baseline, own=False, record=record, shipped=shipped)
+
+
+SCENARIO_LISTS = ("fault_nozzles", "fault_classes", "drying_nozzles")
+"""printhead_sim's lists of fixed faults: the packaged config's are defaults (left out where not on the head)."""
+
+
+def shipped_scenario(args) -> tuple:
+    """The :data:`SCENARIO_LISTS` whose values come from the packaged ``config/inkdiag.yaml`` alone (``args``: the
+    ROS arguments after it name none of them, neither as ``-p`` nor in a ``--params-file``): printhead_sim takes
+    them as its own defaults, so that a smaller head (``-p n_nozzles:=32``) runs with those on it instead of
+    refusing a list its user never gave."""
+    args = list(args or [])
+    if default_params_file() not in args:
+        return ()
+    user = args[args.index(default_params_file()) + 1:]
+    text = " ".join(user)
+    for i, a in enumerate(user[:-1]):
+        if a == "--params-file":
+            try:
+                text += Path(user[i + 1]).read_text()
+            except (OSError, UnicodeDecodeError):  # rclpy says what is wrong with it
+                return ()
+    return () if any(k in text for k in SCENARIO_LISTS) else SCENARIO_LISTS  # one named: the user's scenario
 
 
 class BadParameters(ValueError):
@@ -173,7 +198,8 @@ def _run(duration_s, **kwargs) -> Scorecard:
         return _run_graph(duration_s, **kwargs)
 
 
-def _run_graph(duration_s, *, namespace, model_path, out, context, baseline, own, record=None) -> Scorecard:
+def _run_graph(duration_s, *, namespace, model_path, out, context, baseline, own, record=None, shipped=()
+               ) -> Scorecard:
     kw = {"namespace": namespace}
     if context is not None:
         kw["context"] = context
@@ -189,7 +215,7 @@ def _run_graph(duration_s, *, namespace, model_path, out, context, baseline, own
         fdi_over = [Parameter("model_path", value=str(model_path))] if model_path else []
         if baseline:
             sim = _make(PrintheadSim, parameter_overrides=[
-                Parameter("faults_start_s", value=float(baseline["commissioning_s"]))], **kw)
+                Parameter("faults_start_s", value=float(baseline["commissioning_s"]))], shipped=shipped, **kw)
             recorder = _make(BaselineRecorderNode, parameter_overrides=[
                 Parameter("output_path", value=str(baseline["path"])),
                 Parameter("n_frames", value=int(baseline.get("n_frames", 8))),
@@ -198,7 +224,7 @@ def _run_graph(duration_s, *, namespace, model_path, out, context, baseline, own
                 Parameter("timeout_s", value=float(baseline["commissioning_s"]))], **kw)
             head = [sim, recorder]
         else:
-            head = [_make(PrintheadSim, **kw)]
+            head = [_make(PrintheadSim, shipped=shipped, **kw)]
         for n in head:
             executor.add_node(n)
         nodes += head

@@ -42,8 +42,8 @@ PARAMS = (
     ("sample_rate_hz", 0.0, "ADC sample rate of the traces, Hz; 0: the head profile's", float, (0.0, 100e6)),
     ("n_samples", 0, "samples per trace; 0: the head profile's", int, (0, 65536)),
     ("seed", 0, "seed of the scenario, of the head's nozzles (their tolerances persist across frames) and of the frames' noise", int, (0, 2**31 - 1)),
-    ("fault_nozzles", [3, 11, 19, 27], "nozzle ids with a fixed fault (of this default, those not on the head are "
-     "left out with a warning; a list given, also in a params file, must be the head's)", "int[]", None),
+    ("fault_nozzles", [3, 11, 19, 27], "nozzle ids with a fixed fault (of this default or the packaged config's, "
+     "those not on the head are left out with a warning; a list you give must be the head's)", "int[]", None),
     ("fault_classes", ["fully_blocked", "mature_air_bubble", "small_air_bubble", "empty_channel_1"],
      "fault class value of each fault_nozzles entry", "str[]", None),
     ("random_fault_fraction", 0.0, "fraction of the other nozzles given a random non-drying fault", float, (0.0, 1.0)),
@@ -67,14 +67,15 @@ LINGER_S = 1.0
 class PrintheadSim(Node):
     """Simulated printhead: timer -> scenario -> simulator -> encode -> publish."""
 
-    def __init__(self, *, ends_process: bool = False, **kwargs):
-        """``ends_process``: its process ends once :meth:`finished` (the console entry point), else it stops."""
+    def __init__(self, *, ends_process: bool = False, shipped=(), **kwargs):
+        """``ends_process``: its process ends once :meth:`finished` (the console entry point), else it stops.
+        ``shipped``: fault lists given by the graph's packaged config, taken as defaults (left out where not on it)."""
         super().__init__("printhead_sim", **kwargs)
         self._ends_process = ends_process
         p = _params.declare_all(self, PARAMS)
         self.config = p
         self.profile = self._load_profile(p)
-        if off := defaults_on_head(p, set(self._parameter_overrides)):
+        if off := defaults_on_head(p, set(self._parameter_overrides) - set(shipped)):
             self.get_logger().warning(f"default fault or drying nozzles {off} are not on this head (nozzles "
                                       f"{p['first_nozzle']}..{p['first_nozzle'] + p['n_nozzles'] - 1}): left out")
         self._scenario = HeadScenario(

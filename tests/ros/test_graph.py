@@ -213,3 +213,28 @@ def test_sigint_as_shutdown_replaces_keyboard_interrupt_and_restores_the_handler
         os.kill(os.getpid(), signal.SIGINT)  # no KeyboardInterrupt: rclpy's handler (if any) does the work
         time.sleep(0.05)
     assert signal.getsignal(signal.SIGINT) is before
+
+
+def test_graph_runs_a_smaller_head_with_the_packaged_faults_on_it(ros, fdi_model):
+    """`-p n_nozzles:=32` was refused: the packaged config's fault list (35, 51; drying 40) counted as the user's
+    (helper-139's review). Those not on the head are left out with a warning; a list the user names is theirs."""
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    base = [sys.executable, "-m", "inkdiag_ros.graph", "--duration", "2", "--model", str(fdi_model), "--ros-args",
+            "-p", "n_nozzles:=32"]
+    pr = subprocess.run(base, env=env, capture_output=True, text=True, timeout=120)
+    assert pr.returncode == 0, pr.stdout + pr.stderr
+    assert "default fault or drying nozzles [35, 51, 40] are not on this head (nozzles 0..31): left out" in pr.stderr
+    pr = subprocess.run(base + ["-p", "drying_nozzles:=[40]"], env=env, capture_output=True, text=True, timeout=120)
+    assert pr.returncode == 2 and "outside this head's nozzles 0..31" in pr.stderr, pr.stdout + pr.stderr
+
+
+def test_the_packaged_fault_lists_are_defaults_unless_the_user_names_one(tmp_path):
+    from inkdiag_ros.graph import SCENARIO_LISTS, default_params_file, shipped_scenario
+
+    pkg = ["graph", "--ros-args", "--params-file", default_params_file()]
+    assert shipped_scenario(pkg + ["-p", "n_nozzles:=32"]) == SCENARIO_LISTS
+    assert shipped_scenario(pkg + ["-p", "fault_classes:=['fully_blocked']"]) == ()
+    mine = tmp_path / "mine.yaml"
+    mine.write_text("/**/printhead_sim:\n  ros__parameters:\n    drying_nozzles: [5]\n")
+    assert shipped_scenario(pkg + ["--params-file", str(mine)]) == ()
+    assert shipped_scenario(["graph", "--ros-args", "-p", "n_nozzles:=32"]) == ()  # not the packaged file: given

@@ -410,7 +410,7 @@ def worker_main(argv=None) -> int:
     from .._spin import TEARDOWN_DEADLINE_S, freeze_startup_objects, make_executor, stop_on_signals, tear_down
     from ..allocator import PeriodicRelease, keep_freed_memory
     from ..blas import limit_blas_threads
-    from ..graph import default_params_file
+    from ..graph import default_params_file, shipped_scenario
 
     argv = list(sys.argv if argv is None else argv)
     ap = argparse.ArgumentParser(prog="inkdiag printer (child)")
@@ -431,6 +431,9 @@ def worker_main(argv=None) -> int:
     else:
         from ..printhead_sim import PrintheadSim as cls
 
+    args = [argv[0], "--ros-args", "--params-file", default_params_file(), *ros]
+    kwargs = {"shipped": shipped_scenario(args)} if ns.role == "sim" else {}  # the packaged faults: defaults
+
     def overrides(i):
         if ns.role == "sim":
             return [Parameter("seed", value=i)]
@@ -441,7 +444,7 @@ def worker_main(argv=None) -> int:
 
     prog = f"inkdiag printer ({ns.role} heads {ns.heads})"
     with stop_on_signals() as stop:
-        rclpy.init(args=[argv[0], "--ros-args", "--params-file", default_params_file(), *ros])
+        rclpy.init(args=args)
         ctx = rclpy.utilities.get_default_context()
         nodes, executor, status = [], None, 0
         try:
@@ -449,7 +452,7 @@ def worker_main(argv=None) -> int:
             shared = (fdi_node.PARAMS, printhead_sim.PARAMS) if ns.role == "sim" or ns.with_sim else (fdi_node.PARAMS,)
             with _params.shared_by(*shared):
                 for i in heads:
-                    nodes.append(cls(namespace=f"/head_{i:02d}", parameter_overrides=overrides(i)))
+                    nodes.append(cls(namespace=f"/head_{i:02d}", parameter_overrides=overrides(i), **kwargs))
             # with the SingleThreadedExecutor a timer callback failing at shutdown raises here
             # (the EventsExecutor logs it as FATAL)
             executor = make_executor(nodes, ns.executor == "events", stop)
