@@ -176,6 +176,9 @@ MAX_SPREAD = {"relative (std)": 1.0, "K": 30.0, "V": 10.0}
 tolerance's, about 0.01-0.1), an ink temperature's spread (K) and the sensor offset's (V). 1e300 had
 overflowed the simulation into NaN traces without a word (helper-137's QA)."""
 
+VP_CAL_KEYS = ("a_sigma", "b_sigma", "a_omega", "b_omega")
+"""The four constants of a ``calibration: vp_cal:`` section (:mod:`inkdiag_core.estimation.vp_calibration`)."""
+
 MAX_VP_CAL = 1e3
 """The largest magnitude of a stored ``calibration: vp_cal:`` constant a profile accepts (dimensionless; the
 heads fitted so far: 1.3-15)."""
@@ -262,7 +265,7 @@ def _check_vp_cal(cal, source: str) -> None:
         return
     if not isinstance(cal, Mapping):
         raise ProfileError(f"{source}: calibration.vp_cal: expected a mapping, got {type(cal).__name__}")
-    for k in ("a_sigma", "b_sigma", "a_omega", "b_omega"):
+    for k in VP_CAL_KEYS:
         v = cal.get(k)
         a = np.asarray(v) if isinstance(v, (numbers.Real, np.generic, np.ndarray)) else None  # 0-d arrays too
         if a is None or a.ndim or a.dtype.kind not in "iuf" or not abs(float(a)) <= MAX_VP_CAL:

@@ -31,7 +31,7 @@ import numpy as np
 from .. import checks
 from .base import T0, model_matrices, scaled, default_bounds
 from .vp import VP_CAL, pair_refit, vp_batch
-from ..head_profile import MAX_VP_CAL
+from ..head_profile import MAX_VP_CAL, VP_CAL_KEYS
 
 __all__ = [
     "EVAL_SEEDS",
@@ -53,7 +53,7 @@ HEAD_SEEDS = (11, 13)
 HEAD_N_PER_CLASS = 60
 """Traces per dried class and seed :func:`vp_cal_for` simulates for a new head (``VP_CAL``: 100)."""
 
-_KEYS = ("a_sigma", "b_sigma", "a_omega", "b_omega")
+_KEYS = VP_CAL_KEYS
 _CACHE: dict = {}
 _LOCK = threading.Lock()
 

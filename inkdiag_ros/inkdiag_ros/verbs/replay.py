@@ -93,8 +93,8 @@ def run(args) -> int:
     from inkdiag_core.recording import RecordingError
 
     from .._spin import stop_on_signals, tear_down
-    from ..bags import (TRACES_TYPE, SalvageReader, check_salvage_has_topics, first_line, listed_note, msg_class,
-                        open_reader, qos_from_rosbags, read_on, salvage_note, storage_files)
+    from ..bags import (TRACES_TYPE, SalvageReader, check_salvage_has_topics, first_line, listed_count, listed_note,
+                        msg_class, open_reader, qos_from_rosbags, read_on, salvage_note, storage_files)
 
     if not args.as_fast_as_possible and not (math.isfinite(args.rate) and args.rate > 0):
         raise ValueError(f"--rate must be a number > 0, got {args.rate!r}")
@@ -118,9 +118,10 @@ def run(args) -> int:
         if not conns:
             has = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
             raise RecordingError(f"{bag}: no topic to replay (it has {has})")
-        # salvaged: not known before it is read; an entry metadata.yaml lists twice (two connections) counts once
-        n_listed = None if salvage else sum(c.msgcount for c in {(c.topic, c.msgtype, c.msgcount, repr(c.ext)): c
-                                                                  for c in conns}.values())
+        # salvaged: not known before it is read; else metadata.yaml's counts as the offline verbs read them (an
+        # entry listed twice, two rosbags connections, counts once)
+        listed = [listed_count(bag, t) for t in sorted({c.topic for c in conns})]
+        n_listed = None if salvage else sum(listed) if None not in listed else sum(c.msgcount for c in conns)
         if n_listed == 0:
             raise RecordingError(f"{bag}: no messages on {', '.join(sorted({c.topic for c in conns}))} to replay")
         targets = _targets(conns, args.namespace)  # bad or colliding names: ValueError, before any node
