@@ -39,7 +39,9 @@ fraction within the bands). A head with another noise level or temperature sprea
 its own numbers (its healthy rows' residual fractions and gains).
 
 The three row sums are one compiled loop per row (:func:`inkdiag_core._kernels.row_sums`,
-accumulated in float64); no ROS.
+accumulated in float64). The gate holds each mean-removed reference as int16 with a power-of-two
+scale (:func:`quantize_references`: within ``2**-14`` of the row's largest magnitude, far below
+a reference's own noise), half the bytes each trace's sums read; no ROS.
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ import numpy as np
 
 from .faults import FaultClass
 
-__all__ = ["CLEARED_HEALTHY", "CLEARED_OK", "GATE_CLASSES", "GateResult", "HealthyGate"]
+__all__ = ["CLEARED_HEALTHY", "CLEARED_OK", "GATE_CLASSES", "GateResult", "HealthyGate", "quantize_references"]
 
 #: Default bound on a cleared row's residual fraction (module docstring).
 DEFAULT_MAX_RESIDUAL_FRACTION = 0.0075
@@ -133,7 +135,10 @@ class HealthyGate:
         rr = np.einsum("ij,ij->i", centred.astype(np.float64), centred.astype(np.float64))
         usable = np.isfinite(rr) & (rr > 0)
         centred[~usable] = 0.0
-        self._ref = centred
+        self._ref, self._scale = quantize_references(centred)  # int16: half the bytes read per trace
+        exact = self._ref * self._scale[:, None]  # float64, exact: what the sums are against
+        rr = np.einsum("ij,ij->i", exact, exact)
+        usable &= rr > 0
         self._rr = np.where(usable, rr, np.nan)
         self._usable = usable
         ids = baselines.nozzle_ids
@@ -187,7 +192,7 @@ class HealthyGate:
         if self._ref is None or n == 0:
             return _nothing_cleared(n)
         pos = self.positions(ids)
-        return self.decide(*_row_sums(x, self._ref, pos), pos)
+        return self.decide(*_row_sums(x, self._ref, pos, self._scale), pos)
 
     def positions(self, nozzle_ids) -> np.ndarray:
         """Each nozzle's row of the gate's reference table, -1 where it has no usable reference.
@@ -232,16 +237,18 @@ class HealthyGate:
     @property
     def verdict_params(self) -> tuple | None:
         """What the compiled verdict takes (:func:`inkdiag_core._kernels.screen_gate_frames`):
-        ``(references, r.r per reference row, n_samples, max_residual_fraction, jetting_gain, ok_gain)``;
-        None without references."""
+        ``(quantized references, r.r per reference row, n_samples, max_residual_fraction, jetting_gain, ok_gain,
+        the references' scales)``; None without references."""
         if self._ref is None:
             return None
-        return self._ref, self._rr, self.n_samples, self.max_residual_fraction, self.jetting_gain, self.ok_gain
+        return (self._ref, self._rr, self.n_samples, self.max_residual_fraction, self.jetting_gain, self.ok_gain,
+                self._scale)
 
     @property
     def references(self) -> np.ndarray | None:
-        """The mean-removed reference traces, float32 (n_nozzles_with_baselines, n_samples), V; None without."""
-        return self._ref
+        """The mean-removed reference traces as the gate fits them (:func:`quantize_references`: each value
+        float32-exact), float32 (n_nozzles_with_baselines, n_samples), V; None without. A new array per call."""
+        return None if self._ref is None else (self._ref * self._scale[:, None]).astype(np.float32)
 
     def decide(self, x1, xx, xr, pos) -> GateResult:
         """Clear rows from their three sums against their references (:meth:`screen` from the sums).
@@ -296,21 +303,48 @@ def _nothing_cleared(n: int) -> GateResult:
     return GateResult(np.zeros(n, bool), np.full(n, "", dtype=object), np.full(n, np.nan), np.full(n, np.nan))
 
 
-def _row_sums(x, ref, pos):
-    """``sum(x)``, ``sum(x * x)``, ``sum(x * ref[pos])`` per row in float64 (NaN where ``pos`` is -1): the
-    compiled kernel (one loop per row)."""
+def _row_sums(x, ref, pos, scale):
+    """``sum(x)``, ``sum(x * x)``, ``sum(x * r)`` per row in float64, ``r = ref[pos] * scale[pos]`` (NaN where
+    ``pos`` is -1): the compiled kernel (one loop per row)."""
     from ._kernels import screen_and_row_sums
 
-    return screen_and_row_sums(x, None, None, None, ref, pos)[1:]
+    return screen_and_row_sums(x, None, None, None, ref, pos, ref_scale=scale)[1:]
 
 
-def _row_sums_numpy(x, ref, pos):
+def _row_sums_numpy(x, ref, pos, scale):
     """:func:`_row_sums` in numpy passes (the baseline ``scripts/bench fdi`` measures the kernel against):
     the references gathered, row-wise dot products as batched (1 x m) @ (m x 1) BLAS products, float32
     rows accumulated in float32."""
-    r = ref[pos].astype(x.dtype, copy=False)
+    r = (ref[pos] * scale[pos, None]).astype(x.dtype)
     xr = np.matmul(x[:, None, :], r[:, :, None]).reshape(-1).astype(np.float64)
     xx = np.matmul(x[:, None, :], x[:, :, None]).reshape(-1).astype(np.float64)
     none = pos < 0
     xr[none] = np.nan
     return x.sum(axis=1).astype(np.float64), xx, xr
+
+
+def quantize_references(ref):
+    """Reference rows as int16 and a power-of-two scale per row: ``q * scale`` (float32-exact) is each row to
+    within half a step, at most ``2**-14`` of the row's largest magnitude.
+
+    The healthy gate's references are read for every trace of a working head; int16 halves what each
+    trace's sums read from memory (``scripts/bench node``). A reference is the median of a few
+    noisy healthy frames: its own noise is orders of magnitude above this rounding.
+
+    Parameters
+    ----------
+    ref : ndarray of float, shape (n_ref, m)
+        Finite rows (a row of zeros stays zeros).
+
+    Returns
+    -------
+    q : ndarray of int16, shape (n_ref, m)
+        ``|q| <= 2**14``.
+    scale : ndarray of float64, shape (n_ref,)
+        Powers of two.
+    """
+    ref = np.asarray(ref, dtype=np.float64)
+    peak = np.abs(ref).max(axis=1) if ref.size else np.zeros(ref.shape[0])
+    scale = np.ldexp(1.0, np.frexp(peak)[1] - 14)  # peak < 2**e: |q| <= 2**14 after rounding
+    q = np.rint(ref / scale[:, None]).astype(np.int16)
+    return q, scale

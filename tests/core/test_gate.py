@@ -9,6 +9,7 @@ import pytest
 from inkdiag_core import (BaselineRecorder, FaultClass, HealthyGate, NozzleBaselines, healthy_twin_frames, simulate,
                           simulate_heldout, simulate_nozzles)
 from inkdiag_core.baselines import BaselineFileError
+from inkdiag_core.gate import quantize_references
 
 HEAD, N = 23, 240
 
@@ -233,3 +234,46 @@ def test_range_positions_are_the_positions_of_the_range(recorded):
         got[:] = -1
         assert (gate.range_positions(0, 5) >= 0).all() or b is sparse
     assert HealthyGate(dataclasses.replace(recorded, reference=None)).range_positions(0, 4).tolist() == [-1] * 4
+
+
+def test_quantized_references_are_within_half_a_step_of_the_rows():
+    """quantize_references: int16 within 2**14, a power-of-two scale per row, each value within 2**-14 of its
+    row's peak and float32-exact; rows of any magnitude, a row of zeros."""
+    rng = np.random.default_rng(3)
+    ref = rng.standard_normal((6, 512)) * np.array([1e-7, 1e-3, 1.0, 7.5, 3e3, 0.0])[:, None]
+    ref[2, 5] = 2.0 ** 3  # a peak that is a power of two: the largest |q|
+    q, scale = quantize_references(ref.astype(np.float32))
+    assert q.dtype == np.int16 and scale.dtype == np.float64 and np.abs(q).max() <= 2 ** 14
+    assert (np.frexp(scale)[0] == 0.5).all()  # powers of two
+    back = q * scale[:, None]
+    peak = np.abs(ref.astype(np.float32)).max(axis=1, keepdims=True)
+    assert (np.abs(back - ref.astype(np.float32)) <= 2.0 ** -14 * peak).all()
+    assert np.abs(q[:5]).max(axis=1).min() >= 2 ** 13  # every row uses its range
+    np.testing.assert_array_equal(back.astype(np.float32).astype(np.float64), back)
+    assert not q[5].any()
+
+
+def test_the_gate_fits_rows_to_its_quantized_references(recorded):
+    """The gate's references are int16 with a scale per row (half the bytes each trace's sums read); its sums are
+    the float sums against them, and those references are the recorded ones to within 2**-14 of each peak."""
+    from inkdiag_core._kernels import row_sums
+
+    gate = HealthyGate(recorded)
+    q, rr, *_, scale = gate.verdict_params
+    assert q.dtype == np.int16 and scale.shape == (len(recorded),)
+    ref = gate.references
+    centred = recorded.reference - recorded.reference.mean(axis=1, keepdims=True)
+    assert (np.abs(ref - centred) <= 2.0 ** -14 * np.abs(centred).max(axis=1, keepdims=True) + 1e-7).all()
+    np.testing.assert_allclose(rr, (ref.astype(np.float64) ** 2).sum(axis=1), rtol=1e-12)
+    x = simulate_nozzles(["healthy_nozzle"] * N, seed=HEAD, frame_seed=9).traces.astype(np.float32)
+    pos = gate.positions(np.arange(N))
+    want = row_sums(x, ref, pos)
+    got = row_sums(x, q, pos, scale)
+    for a, b in zip(got, want):
+        np.testing.assert_allclose(a, b, rtol=1e-12)
+    with pytest.raises(ValueError, match="need their ref_scale"):
+        row_sums(x, q, pos)
+    with pytest.raises(ValueError, match=r"ref_scale must be float64 of shape"):
+        row_sums(x, q, pos, scale[:-1])
+    with pytest.raises(ValueError, match="float32, float64 or int16"):
+        row_sums(x, q.astype(np.int32), pos, scale)
