@@ -117,10 +117,11 @@ def _float_of_bits(typingctx, bits, like):
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_SUMS_FASTMATH)
-def _screen_sums(x, bits, screen, flat_tol, max_abs_v, clip_run, ref, scale, pos, code, s1, s2, sr):
+def _screen_sums(x, bits, screen, flat_tol, max_abs_v, clip_run, ref, scale, mean, pos, code, s1, s2, sr):
     """Per row: its screening code (if ``screen``) and, where ``pos[i] >= 0``, its three sums against
-    ``ref[pos[i]]`` (NaN elsewhere), the last times ``scale[pos[i]]`` where ``scale`` is not empty (int16
-    references, :func:`inkdiag_core.gate.quantize_references`). Each row's loops run back to back, so the row
+    ``ref[pos[i]]`` (NaN elsewhere); where ``scale`` is not empty (int16 references,
+    :func:`inkdiag_core.gate.quantize_references`), against ``ref[p] * scale[p] - mean[p]`` (``p = pos[i]``:
+    ``sum(x) * mean[p]`` off ``scale[p] * sum(x * ref[p])``). Each row's loops run back to back, so the row
     is read from memory once. ``bits`` is ``x`` viewed as signed integers of its width."""
     n, m = x.shape
     top = np.iinfo(bits.dtype).max  # all bits but the sign: flips a negative float's order
@@ -190,7 +191,7 @@ def _screen_sums(x, bits, screen, flat_tol, max_abs_v, clip_run, ref, scale, pos
             c3 += v * np.float64(ref[p, k])
         s1[i] = c1
         s2[i] = c2
-        sr[i] = c3 * scale[p] if scale.shape[0] else c3
+        sr[i] = c3 * scale[p] - c1 * mean[p] if scale.shape[0] else c3
 
 
 @numba.njit(cache=True, nogil=True)
@@ -217,7 +218,7 @@ def _gate_codes(x1, xx, xr, pos, rr, n_samples, max_f, jet_lo, jet_hi, ok_lo, ok
 
 
 @numba.njit(cache=True, nogil=True)
-def _screen_gate_rows(x, bits, flat_tol, max_abs_v, clip_run, ref, scale, pos, rr, n_samples, max_f, jet_lo, jet_hi, ok_lo,
+def _screen_gate_rows(x, bits, flat_tol, max_abs_v, clip_run, ref, scale, mean, pos, rr, n_samples, max_f, jet_lo, jet_hi, ok_lo,
                       ok_hi, first, ids, row0, code, at, nozzle, left, k):
     """One frame of :func:`screen_gate_frames`: each row screened, then gated where it is valid and has a
     reference (``pos`` empty: none has), its code written at ``code[row0 + i]``; the rows left (code 0)
@@ -233,7 +234,7 @@ def _screen_gate_rows(x, bits, flat_tol, max_abs_v, clip_run, ref, scale, pos, r
             return k, False, p[i]
     frame_code = code[row0:row0 + n]
     s1, s2, sr = np.empty(n), np.empty(n), np.empty(n)
-    _screen_sums(x, bits, True, flat_tol, max_abs_v, clip_run, ref, scale, p, frame_code, s1, s2, sr)
+    _screen_sums(x, bits, True, flat_tol, max_abs_v, clip_run, ref, scale, mean, p, frame_code, s1, s2, sr)
     gate = np.zeros(n, np.uint8)
     _gate_codes(s1, s2, sr, p, rr, n_samples, max_f, jet_lo, jet_hi, ok_lo, ok_hi, gate)
     k0 = k
@@ -1063,9 +1064,9 @@ def screen_codes(x, flat_tol, max_abs_v, clip_run):
     return screen_and_row_sums(x, flat_tol, max_abs_v, clip_run, None, None)[0]
 
 
-def row_sums(x, ref, pos, ref_scale=None):
+def row_sums(x, ref, pos, ref_scale=None, ref_mean=None):
     """``sum(x)``, ``sum(x * x)`` and ``sum(x * r)`` of each row, in float64, ``r`` its row of ``ref``
-    (times its ``ref_scale``).
+    (with ``ref_scale``: ``ref * ref_scale - ref_mean``, that row's).
 
     Each row's reference is read where it lies in ``ref`` (row ``pos[i]``): no gathered copy
     of the references (a batch that wraps around the head, or any out-of-order ids, would
@@ -1078,8 +1079,10 @@ def row_sums(x, ref, pos, ref_scale=None):
         The references, one per row of the table (int16: :func:`inkdiag_core.gate.quantize_references`).
     pos : ndarray of int64, shape (n,)
         Each row's reference row, in ``[0, n_ref)``.
-    ref_scale : ndarray of float64, shape (n_ref,), optional
-        Each reference row's scale (its samples are ``ref * ref_scale``); needed with int16 references.
+    ref_scale, ref_mean : ndarray of float64, shape (n_ref,), optional
+        Each reference row's scale and mean: its samples are ``ref * ref_scale - ref_mean`` (the gate's
+        quantized references re-centred); ``ref_scale`` is needed with int16 references, ``ref_mean``
+        None: 0.
 
     Returns
     -------
@@ -1095,10 +1098,10 @@ def row_sums(x, ref, pos, ref_scale=None):
     p = np.asarray(pos)
     if p.size and (p.min() < 0 or p.max() >= len(ref)):
         raise ValueError(f"row_sums: positions must be in [0, {len(ref)}), got {p.min()}..{p.max()}")
-    return screen_and_row_sums(x, None, None, None, ref, pos, ref_scale=ref_scale)[1:]
+    return screen_and_row_sums(x, None, None, None, ref, pos, ref_scale=ref_scale, ref_mean=ref_mean)[1:]
 
 
-def screen_and_row_sums(x, flat_tol, max_abs_v, clip_run, ref, pos, out=None, ref_scale=None):
+def screen_and_row_sums(x, flat_tol, max_abs_v, clip_run, ref, pos, out=None, ref_scale=None, ref_mean=None):
     """:func:`screen_codes` and :func:`row_sums` of the same rows, each row read from memory once.
 
     Parameters
@@ -1113,7 +1116,7 @@ def screen_and_row_sums(x, flat_tol, max_abs_v, clip_run, ref, pos, out=None, re
     out : tuple of 4 ndarray, optional
         ``(code uint8, x1, xx, xr float64)``, each of shape (n,), to write into (e.g. one
         frame's slices of a batch's arrays).
-    ref_scale : ndarray of float64, shape (n_ref,), optional
+    ref_scale, ref_mean : ndarray of float64, shape (n_ref,), optional
         As for :func:`row_sums`.
 
     Returns
@@ -1126,10 +1129,10 @@ def screen_and_row_sums(x, flat_tol, max_abs_v, clip_run, ref, pos, out=None, re
     ValueError
         Other dtypes or shapes, or a position outside ``[-1, n_ref)``.
     """
-    return _screen_and_sum([x], flat_tol, max_abs_v, clip_run, ref, pos, out, ref_scale)
+    return _screen_and_sum([x], flat_tol, max_abs_v, clip_run, ref, pos, out, ref_scale, ref_mean)
 
 
-def screen_frames_and_row_sums(frames, flat_tol, max_abs_v, clip_run, ref, pos, ref_scale=None):
+def screen_frames_and_row_sums(frames, flat_tol, max_abs_v, clip_run, ref, pos, ref_scale=None, ref_mean=None):
     """:func:`screen_and_row_sums` of a batch of frames, each frame's rows in turn into the batch's arrays
     (the frames not concatenated), the arguments checked once for the batch instead of once per frame.
 
@@ -1141,7 +1144,7 @@ def screen_frames_and_row_sums(frames, flat_tol, max_abs_v, clip_run, ref, pos, 
     ref : ndarray of float32, float64 or int16, shape (n_ref, m), or None
     pos : ndarray of int64, shape (sum n_i,), or None
         Each row's reference row in ``[0, n_ref)``, or -1.
-    ref_scale : ndarray of float64, shape (n_ref,), optional
+    ref_scale, ref_mean : ndarray of float64, shape (n_ref,), optional
         As for :func:`row_sums`.
 
     Returns
@@ -1149,10 +1152,10 @@ def screen_frames_and_row_sums(frames, flat_tol, max_abs_v, clip_run, ref, pos, 
     code : ndarray of uint8, shape (sum n_i,)
     x1, xx, xr : ndarray of float64, shape (sum n_i,)
     """
-    return _screen_and_sum(frames, flat_tol, max_abs_v, clip_run, ref, pos, None, ref_scale)
+    return _screen_and_sum(frames, flat_tol, max_abs_v, clip_run, ref, pos, None, ref_scale, ref_mean)
 
 
-def _screen_and_sum(frames, flat_tol, max_abs_v, clip_run, ref, pos, out, ref_scale):
+def _screen_and_sum(frames, flat_tol, max_abs_v, clip_run, ref, pos, out, ref_scale, ref_mean):
     """Both functions above: the arguments checked once, then the kernel frame by frame into one set of arrays."""
     m = frames[0].shape[1] if frames and frames[0].ndim == 2 else 0
     for a in frames:
@@ -1161,12 +1164,12 @@ def _screen_and_sum(frames, flat_tol, max_abs_v, clip_run, ref, pos, out, ref_sc
                              f"width, got {a.dtype} {a.shape}")
     n = sum(a.shape[0] for a in frames)
     if ref is None:
-        ref, pos, ref_scale = np.zeros((1, m), np.float32), np.full(n, -1, np.int64), None
+        ref, pos, ref_scale, ref_mean = np.zeros((1, m), np.float32), np.full(n, -1, np.int64), None, None
     pos = np.asarray(pos)
     if ref.ndim != 2 or ref.shape[1] != m or pos.shape != (n,) or pos.dtype != np.int64:
         raise ValueError(f"the gate's row sums take float rows (n, m), references (n_ref, m) and int64 positions "
                          f"(n,), got {n} rows of {m}, {ref.dtype} {ref.shape} and {pos.dtype} {pos.shape}")
-    scale = _reference_scale(ref, ref_scale)
+    scale, mean = _reference_scale(ref, ref_scale, ref_mean)
     if n and (pos.min() < -1 or pos.max() >= ref.shape[0]):
         raise ValueError(f"the gate's row sums: positions must be in [-1, {ref.shape[0]}) (-1: no reference), "
                          f"got {pos.min()}..{pos.max()}")
@@ -1178,25 +1181,32 @@ def _screen_and_sum(frames, flat_tol, max_abs_v, clip_run, ref, pos, out, ref_sc
         if j > i:
             _screen_sums(a, a.view(np.int32 if a.dtype == np.float32 else np.int64), screen,
                          float(flat_tol) if screen else 0.0, float(max_abs_v) if screen else 0.0,
-                         int(clip_run) if screen else 0, ref, scale, pos[i:j], code[i:j], x1[i:j], xx[i:j], xr[i:j])
+                         int(clip_run) if screen else 0, ref, scale, mean, pos[i:j], code[i:j], x1[i:j], xx[i:j],
+                         xr[i:j])
         i = j
     return code, x1, xx, xr
 
 
-def _reference_scale(ref, ref_scale) -> np.ndarray:
-    """The kernels' ``scale`` of a reference table: ``ref_scale`` checked (float64 (n_ref,), needed with int16
-    references), or empty (float references without one: not scaled)."""
+def _reference_scale(ref, ref_scale, ref_mean) -> tuple:
+    """The kernels' ``scale`` and ``mean`` of a reference table: ``ref_scale`` and ``ref_mean`` checked (float64
+    (n_ref,); a scale is needed with int16 references, a mean None is 0), or both empty (float references
+    without a scale: neither scaled nor shifted)."""
     if ref.dtype not in (np.float32, np.float64, np.int16):
         raise ValueError(f"references must be float32, float64 or int16 (quantized), got {ref.dtype}")
     if ref_scale is None:
         if ref.dtype == np.int16:
             raise ValueError("int16 references need their ref_scale (inkdiag_core.gate.quantize_references)")
-        return np.empty(0)
-    scale = np.asarray(ref_scale)
-    if scale.shape != (ref.shape[0],) or scale.dtype != np.float64:
-        raise ValueError(f"ref_scale must be float64 of shape ({ref.shape[0]},), one per reference row, got "
-                         f"{scale.dtype} {scale.shape}")
-    return np.require(scale, np.float64, ["C"])
+        if ref_mean is not None:
+            raise ValueError("a ref_mean goes with a ref_scale")
+        return np.empty(0), np.empty(0)
+    out = []
+    for name, v in (("ref_scale", ref_scale), ("ref_mean", np.zeros(ref.shape[0]) if ref_mean is None else ref_mean)):
+        v = np.asarray(v)
+        if v.shape != (ref.shape[0],) or v.dtype != np.float64:
+            raise ValueError(f"{name} must be float64 of shape ({ref.shape[0]},), one per reference row, got "
+                             f"{v.dtype} {v.shape}")
+        out.append(np.require(v, np.float64, ["C"]))
+    return tuple(out)
 
 
 def screen_gate_frames(frames, flat_tol, max_abs_v, clip_run, positions, verdict, firsts, nozzles=None):
@@ -1215,7 +1225,8 @@ def screen_gate_frames(frames, flat_tol, max_abs_v, clip_run, positions, verdict
         Each row's reference row (:meth:`inkdiag_core.HealthyGate.positions`, -1: none); None: no gate.
     verdict : tuple or None
         :attr:`inkdiag_core.HealthyGate.verdict_params` (with ``positions``): ``(ref, rr, n_samples,
-        max_residual_fraction, jetting_gain, ok_gain[, ref_scale])``, ``ref_scale`` as for :func:`row_sums`.
+        max_residual_fraction, jetting_gain, ok_gain[, ref_scale[, ref_mean]])``, the last two as for
+        :func:`row_sums`.
     firsts : sequence of int
         Each frame's first nozzle id (its rows consecutive ids), where ``nozzles`` does not give them.
     nozzles : sequence of ndarray of int64, each of shape (n_i,), optional
@@ -1248,13 +1259,13 @@ def screen_gate_frames(frames, flat_tol, max_abs_v, clip_run, positions, verdict
     if positions is None:
         ref, rr, n_samples, max_f, (jet_lo, jet_hi), (ok_lo, ok_hi) = (np.zeros((1, m), np.float32), np.ones(1), m,
                                                                       0.0, (0.0, 0.0), (0.0, 0.0))
-        scale = np.empty(0)
+        scale = mean = np.empty(0)
     else:
         ref, rr, n_samples, max_f, (jet_lo, jet_hi), (ok_lo, ok_hi), *ref_scale = verdict
         if ref.ndim != 2 or ref.shape[1] != m or rr.shape != (ref.shape[0],) or rr.dtype != np.float64:
             raise ValueError(f"screen_gate_frames: references (n_ref, {m}) of float32, float64 or int16 and r.r "
                              f"(n_ref,) float64, got {ref.dtype} {ref.shape} and {rr.dtype} {rr.shape}")
-        scale = _reference_scale(ref, ref_scale[0] if ref_scale else None)
+        scale, mean = _reference_scale(ref, *(ref_scale + [None, None])[:2])
     no_pos, no_ids = np.empty(0, np.int64), np.empty(0, np.int64)
     code, at, nozzle = np.empty(n, np.uint8), np.empty(n, np.int64), np.empty(n, np.int64)
     left = np.empty((n, m), dtype)
@@ -1269,7 +1280,7 @@ def screen_gate_frames(frames, flat_tol, max_abs_v, clip_run, positions, verdict
                              f"ids {p.dtype} {p.shape} and {ids.shape}")
         k0 = k
         k, whole, bad = _screen_gate_rows(a, a.view(bits_type), float(flat_tol), float(max_abs_v), int(clip_run), ref,
-                                          scale, p, rr, float(n_samples), float(max_f), float(jet_lo), float(jet_hi),
+                                          scale, mean, p, rr, float(n_samples), float(max_f), float(jet_lo), float(jet_hi),
                                           float(ok_lo), float(ok_hi), int(firsts[f]) if nozzles is None else 0,
                                           ids, row0, code, at, nozzle, left, k)
         if bad != -1:
@@ -1335,7 +1346,7 @@ def warm_up() -> None:
             x.flags.writeable = writeable
             screen_and_row_sums(x, 1e-6, np.inf, 5, np.zeros((1, 4), np.float32), np.zeros(1, np.int64))
             screen_and_row_sums(x, 1e-6, np.inf, 5, np.zeros((1, 4), np.int16), np.zeros(1, np.int64),
-                                ref_scale=np.ones(1))  # the gate's quantized references
+                                ref_scale=np.ones(1), ref_mean=np.zeros(1))  # the gate's quantized references
     fit_windows(np.ones((1, 16), np.complex128), np.ones(1, np.int64), np.ones(1, np.int64), 64)
     for ctype in (np.complex64, np.complex128):
         kpis_of_spectra(np.ones((1, 33), ctype), 64, 1.0, 1e-12, np.empty((1, 7)))
@@ -1359,7 +1370,8 @@ def warm_up() -> None:
             x.flags.writeable = writeable
             screen_gate_frames([x], 1e-6, np.inf, 5, None, None, [0])
             screen_gate_frames([x], 1e-6, np.inf, 5, [np.zeros(2, np.int64)],  # the gate's quantized references
-                               (np.ones((1, 4), np.int16), np.ones(1), 4, 0.5, (0.9, 1.1), (0.7, 0.8), np.ones(1)), [0])
+                               (np.ones((1, 4), np.int16), np.ones(1), 4, 0.5, (0.9, 1.1), (0.7, 0.8), np.ones(1),
+                                np.zeros(1)), [0])
 
 
 if __name__ == "__main__":  # scripts/_bootstrap.sh: compile at install

@@ -40,8 +40,9 @@ its own numbers (its healthy rows' residual fractions and gains).
 
 The three row sums are one compiled loop per row (:func:`inkdiag_core._kernels.row_sums`,
 accumulated in float64). The gate holds each mean-removed reference as int16 with a power-of-two
-scale (:func:`quantize_references`: within ``2**-14`` of the row's largest magnitude, far below
-a reference's own noise), half the bytes each trace's sums read; no ROS.
+scale (:func:`quantize_references`), half the bytes each trace's sums read, and fits to it re-centred
+(``r.1`` stays 0: a trace's offset still changes no verdict): within ``2**-13`` of the row's largest
+magnitude, far below a reference's own noise; no ROS.
 """
 
 from __future__ import annotations
@@ -135,8 +136,13 @@ class HealthyGate:
         rr = np.einsum("ij,ij->i", centred.astype(np.float64), centred.astype(np.float64))
         usable = np.isfinite(rr) & (rr > 0)
         centred[~usable] = 0.0
+        peak = np.abs(centred).max(axis=1)
+        usable &= (peak >= _PEAK_RANGE[0]) & (peak < _PEAK_RANGE[1])  # else not quantizable: no reference
+        centred[~usable] = 0.0
         self._ref, self._scale = quantize_references(centred)  # int16: half the bytes read per trace
-        exact = self._ref * self._scale[:, None]  # float64, exact: what the sums are against
+        exact = self._ref * self._scale[:, None]  # float64, exact
+        self._mean = exact.mean(axis=1)  # rounding moved each row's mean off 0: the sums are against exact - mean
+        exact -= self._mean[:, None]
         rr = np.einsum("ij,ij->i", exact, exact)
         usable &= rr > 0
         self._rr = np.where(usable, rr, np.nan)
@@ -192,7 +198,7 @@ class HealthyGate:
         if self._ref is None or n == 0:
             return _nothing_cleared(n)
         pos = self.positions(ids)
-        return self.decide(*_row_sums(x, self._ref, pos, self._scale), pos)
+        return self.decide(*_row_sums(x, self._ref, pos, self._scale, self._mean), pos)
 
     def positions(self, nozzle_ids) -> np.ndarray:
         """Each nozzle's row of the gate's reference table, -1 where it has no usable reference.
@@ -238,17 +244,19 @@ class HealthyGate:
     def verdict_params(self) -> tuple | None:
         """What the compiled verdict takes (:func:`inkdiag_core._kernels.screen_gate_frames`):
         ``(quantized references, r.r per reference row, n_samples, max_residual_fraction, jetting_gain, ok_gain,
-        the references' scales)``; None without references."""
+        the references' scales, their means)``; None without references."""
         if self._ref is None:
             return None
         return (self._ref, self._rr, self.n_samples, self.max_residual_fraction, self.jetting_gain, self.ok_gain,
-                self._scale)
+                self._scale, self._mean)
 
     @property
     def references(self) -> np.ndarray | None:
-        """The mean-removed reference traces as the gate fits them (:func:`quantize_references`: each value
-        float32-exact), float32 (n_nozzles_with_baselines, n_samples), V; None without. A new array per call."""
-        return None if self._ref is None else (self._ref * self._scale[:, None]).astype(np.float32)
+        """The mean-removed reference traces as the gate fits them (quantized, :func:`quantize_references`, and
+        re-centred), float32 (n_nozzles_with_baselines, n_samples), V; None without. A new array per call."""
+        if self._ref is None:
+            return None
+        return (self._ref * self._scale[:, None] - self._mean[:, None]).astype(np.float32)
 
     def decide(self, x1, xx, xr, pos) -> GateResult:
         """Clear rows from their three sums against their references (:meth:`screen` from the sums).
@@ -303,19 +311,19 @@ def _nothing_cleared(n: int) -> GateResult:
     return GateResult(np.zeros(n, bool), np.full(n, "", dtype=object), np.full(n, np.nan), np.full(n, np.nan))
 
 
-def _row_sums(x, ref, pos, scale):
-    """``sum(x)``, ``sum(x * x)``, ``sum(x * r)`` per row in float64, ``r = ref[pos] * scale[pos]`` (NaN where
-    ``pos`` is -1): the compiled kernel (one loop per row)."""
+def _row_sums(x, ref, pos, scale, mean):
+    """``sum(x)``, ``sum(x * x)``, ``sum(x * r)`` per row in float64, ``r = ref[pos] * scale[pos] - mean[pos]``
+    (NaN where ``pos`` is -1): the compiled kernel (one loop per row)."""
     from ._kernels import screen_and_row_sums
 
-    return screen_and_row_sums(x, None, None, None, ref, pos, ref_scale=scale)[1:]
+    return screen_and_row_sums(x, None, None, None, ref, pos, ref_scale=scale, ref_mean=mean)[1:]
 
 
-def _row_sums_numpy(x, ref, pos, scale):
+def _row_sums_numpy(x, ref, pos, scale, mean):
     """:func:`_row_sums` in numpy passes (the baseline ``scripts/bench fdi`` measures the kernel against):
     the references gathered, row-wise dot products as batched (1 x m) @ (m x 1) BLAS products, float32
     rows accumulated in float32."""
-    r = (ref[pos] * scale[pos, None]).astype(x.dtype)
+    r = (ref[pos] * scale[pos, None] - mean[pos, None]).astype(x.dtype)
     xr = np.matmul(x[:, None, :], r[:, :, None]).reshape(-1).astype(np.float64)
     xx = np.matmul(x[:, None, :], x[:, :, None]).reshape(-1).astype(np.float64)
     none = pos < 0
@@ -342,9 +350,27 @@ def quantize_references(ref):
         ``|q| <= 2**14``.
     scale : ndarray of float64, shape (n_ref,)
         Powers of two.
+
+    Raises
+    ------
+    ValueError
+        A row that is not finite, or whose values would not be float32-exact (beyond float32's range,
+        or so small that they are subnormal).
     """
     ref = np.asarray(ref, dtype=np.float64)
+    if ref.ndim != 2 or not np.isfinite(ref).all():
+        raise ValueError(f"quantize_references takes finite rows (n_ref, m), got shape {ref.shape}"
+                         + ("" if ref.ndim != 2 else " with a NaN or Inf"))
     peak = np.abs(ref).max(axis=1) if ref.size else np.zeros(ref.shape[0])
     scale = np.ldexp(1.0, np.frexp(peak)[1] - 14)  # peak < 2**e: |q| <= 2**14 after rounding
+    nonzero = peak > 0
+    if np.any(nonzero & ((peak < _PEAK_RANGE[0]) | (peak >= _PEAK_RANGE[1]))):
+        raise ValueError(f"quantize_references: row peaks from {peak[nonzero].min():.3g} to {peak.max():.3g}; "
+                         f"float32-exact steps need peaks in [{_PEAK_RANGE[0]:.3g}, {_PEAK_RANGE[1]:.3g})")
     q = np.rint(ref / scale[:, None]).astype(np.int16)
     return q, scale
+
+
+#: The row peaks :func:`quantize_references` takes (besides 0): steps of ``q * scale`` normal float32 numbers
+#: (scale >= float32's smallest normal), and ``2**14 * scale`` within float32's range.
+_PEAK_RANGE = (2.0 ** 14 * float(np.finfo(np.float32).tiny), float(np.finfo(np.float32).max) / 2)
