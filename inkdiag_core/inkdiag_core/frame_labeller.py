@@ -42,6 +42,7 @@ from .detector import FaultDetector
 from .gate import CLEARED_HEALTHY, CLEARED_OK, GATE_CLASSES, HealthyGate
 from .persistence import load_detector
 from .labelling import FrameLabels
+from .openset import UNKNOWN
 from .screening import INVALID_REASONS, screening_codes, screening_settings
 
 __all__ = ["FrameFailure", "FrameInputError", "FrameLabeller", "LabellerConfigError", "ScreenedFrames", "load_labeller"]
@@ -167,6 +168,11 @@ class FrameLabeller:
                                           "need a detector trained with baselines (`inkdiag train --baseline`, "
                                           "train_detector(baseline=True))")
         self.detector = detector
+        # every class a row can get, once ("" an invalid row's), and each screened row's class code by its code
+        self._class_names = tuple(dict.fromkeys(["", *GATE_CLASSES[1:].tolist(), *map(str, detector.classes_.tolist()),
+                                                 UNKNOWN]))
+        self._class_index = {c: i for i, c in enumerate(self._class_names)}
+        self._class_of_code = np.array([self._class_index[c] for c in _CLASS_OF_CODE.tolist()], np.uint8)
         self.baselines = baselines if baselines is not None and len(baselines) else None
         gate = HealthyGate(self.baselines) if self.baselines is not None and self.baselines.has_reference else None
         self.gate = gate if gate is not None and gate.active else None
@@ -374,7 +380,7 @@ class FrameLabeller:
         offsets = list(accumulate([0] + [p.code.size for p in pending]))
         code = pending[0].code if len(pending) == 1 else np.concatenate([p.code for p in pending])
         cleared = code >= CLEARED_HEALTHY
-        classes, reasons = _CLASS_OF_CODE[code], _REASON_OF_CODE[code]
+        classes, reasons, class_codes = _CLASS_OF_CODE[code], _REASON_OF_CODE[code], self._class_of_code[code]
         confidence, with_base = np.where(cleared, 1.0, np.nan), cleared.copy()
         left = [(p, o) for p, o in zip(pending, offsets) if p.at.size]
         if left:
@@ -388,19 +394,23 @@ class FrameLabeller:
                 kpis[~has] = np.nan  # routed to the plain branch
             got = self.detector.label(rows, baseline_kpis=kpis)
             ok = got.valid
+            index = self._class_index
             if ok.all():  # nearly always: no row's features came out non-finite
                 classes[at], confidence[at] = got.classes.astype(str).astype(object), got.confidence
+                class_codes[at] = [index[c] for c in classes[at].tolist()]
             else:
                 classes[at[ok]] = got.classes[ok].astype(str).astype(object)
+                class_codes[at[ok]] = [index[c] for c in classes[at[ok]].tolist()]
                 confidence[at[ok]] = got.confidence[ok]
                 reasons[at[~ok]] = "non_finite_features"
                 code[at[~ok]] = _NON_FINITE_FEATURES
             with_base[at] = got.baseline
         valid = _VALID_CODE[code]
         with_base &= valid
-        cols = (classes, confidence, valid, reasons, with_base) + ((cleared,) if self.gate is not None else ())
-        return [[FrameLabels(*(col[o + i:o + j] for col in cols)) for i, j in zip(p.starts, p.ends)]  # views
-                for p, o in zip(pending, offsets)]
+        cols = (classes, confidence, valid, reasons, with_base, cleared if self.gate is not None else None, class_codes)
+        names = self._class_names
+        return [[FrameLabels(*(None if col is None else col[o + i:o + j] for col in cols), names)  # views
+                 for i, j in zip(p.starts, p.ends)] for p, o in zip(pending, offsets)]
 
 
 class ScreenedFrames:

@@ -38,6 +38,10 @@ class FrameLabels:
     baseline : ndarray of bool, (n,) -- classified against its nozzle's baseline
     gate_cleared : ndarray of bool, (n,) or None -- cleared as healthy by the healthy
         gate (:class:`inkdiag_core.HealthyGate`) without the full model; None: no gate ran
+    class_codes : ndarray of uint8, (n,) or None -- ``classes`` as indices into ``class_names``
+        (``class_names[class_codes[i]] == classes[i]``): what a report of the frame is built from
+        without reading a string per row (:class:`inkdiag_core.FrameLabeller` gives them); None: not given
+    class_names : tuple of str or None -- the class names ``class_codes`` index, each once
     """
 
     classes: np.ndarray
@@ -46,6 +50,8 @@ class FrameLabels:
     reasons: np.ndarray
     baseline: np.ndarray | None = None
     gate_cleared: np.ndarray | None = None
+    class_codes: np.ndarray | None = None
+    class_names: tuple | None = None
 
 
 def label_traces(pipeline, traces, *, fd_threshold: float = 0.5, nozzle_ids=None,

@@ -34,6 +34,8 @@ PARAMS = (
      "('out_of_range'). 0: 5x the head profile's ADC range (10 V for the default head)", float, (0.0, 1e30)),
     ("labelling_process", False, "label in a child process (its own core and GIL), not on the executor thread", bool, None),
 )
+#: What a labels report is built from (FrameLabels' columns; the class codes: no string read per row).
+_ROWS = ("classes", "confidence", "valid", "reasons", "gate_cleared", "class_codes", "class_names")
 
 
 class FdiNode(Node):
@@ -129,9 +131,8 @@ class FdiNode(Node):
         try:
             if isinstance(result, FrameFailure):
                 raise result.error
-            report = LabelsReport.from_arrays(
-                frame_id=frame.frame_id, stamp=frame.stamp, first_nozzle=frame.first_nozzle, model_id=self.model_id,
-                **{k: getattr(result, k) for k in ("classes", "confidence", "valid", "reasons", "gate_cleared")})
+            report = LabelsReport.from_arrays(frame_id=frame.frame_id, stamp=frame.stamp, first_nozzle=frame.first_nozzle,
+                                              model_id=self.model_id, **{k: getattr(result, k) for k in _ROWS})
             self._labels_pub.publish(serialize_labels(report))  # bytes: no conversion by rclpy
             self._drying_pub.publish(serialize_drying(DryingNozzles.from_labels(report)))
         except Exception as exc:  # noqa: BLE001 - this frame failed; the batch's others go on

@@ -36,6 +36,7 @@ has one. It is not a drying class.
 
 from __future__ import annotations
 
+import functools
 from collections import Counter
 from dataclasses import dataclass, field
 
@@ -106,7 +107,7 @@ class LabelsReport:
 
     @classmethod
     def from_arrays(cls, *, frame_id, stamp, first_nozzle, classes, confidence, valid, reasons,
-                    model_id: str, gate_cleared=None) -> "LabelsReport":
+                    model_id: str, gate_cleared=None, class_codes=None, class_names=None) -> "LabelsReport":
         """Build a report from the per-row arrays of one frame.
 
         Parameters
@@ -120,7 +121,19 @@ class LabelsReport:
             Why a row is invalid (``""`` for valid rows).
         gate_cleared : array_like of bool, shape (n,), optional
             Rows the healthy gate cleared; None: none.
+        class_codes : ndarray of unsigned int, shape (n,), optional
+            ``classes`` as indices into ``class_names`` (``class_names[class_codes[i]] == classes[i]``
+            where ``valid``): with them the report is built from counts of the codes, not a string
+            per row (the fdi node's reports, ``inkdiag_core.FrameLabels.class_codes``); the same report.
+            Used only where every argument is an array of the expected kind (else ``classes``).
+        class_names : tuple of str, optional
+            Distinct class names, with ``class_codes``.
         """
+        if class_codes is not None:
+            report = cls._from_codes(frame_id, stamp, first_nozzle, class_codes, class_names, confidence, valid,
+                                     reasons, model_id, gate_cleared, classes)
+            if report is not None:
+                return report
         classes = np.asarray(classes, dtype=object)
         valid = np.asarray(valid, dtype=bool)
         n = valid.shape[0] if valid.ndim else 0
@@ -181,10 +194,58 @@ class LabelsReport:
         return cls(int(frame_id), float(stamp), int(first_nozzle), int(n), str(model_id), counts,
                    faults, invalid, n_cleared)
 
+    @classmethod
+    def _from_codes(cls, frame_id, stamp, first_nozzle, codes, names, confidence, valid, reasons, model_id,
+                    gate_cleared, classes):
+        """:meth:`from_arrays` from class codes: the report, or None where an argument is not of the kind this
+        takes (then the per-row strings build it, and raise what they raise)."""
+        vocab = _vocabulary(names) if type(names) is tuple else None
+        if (vocab is None or type(codes) is not np.ndarray or codes.dtype.kind != "u" or codes.ndim != 1
+                or type(valid) is not np.ndarray or valid.dtype != bool or valid.shape != codes.shape
+                or type(confidence) is not np.ndarray or confidence.dtype != np.float64
+                or confidence.shape != codes.shape or np.shape(classes) != codes.shape
+                or np.shape(reasons) != codes.shape):
+            return None
+        n = codes.shape[0]
+        if gate_cleared is not None and (type(gate_cleared) is not np.ndarray or gate_cleared.dtype != bool
+                                         or gate_cleared.shape != (n,)):
+            return None
+        fault, order = vocab
+        n_valid = int(np.count_nonzero(valid))
+        every = n_valid == n
+        if not every and n and codes.max() >= len(names):
+            return None
+        counted = np.bincount(codes if every else codes[valid], minlength=len(names)).tolist()
+        if len(counted) != len(names):  # a code past the names
+            return None
+        counts = {names[i]: counted[i] for i in order if counted[i]}  # by class name, as from_arrays sorts
+        counts[INVALID_KEY] = n - n_valid
+        faulty = np.flatnonzero(fault.take(codes) if every else fault.take(codes) & valid)
+        conf = confidence[faulty]
+        conf = np.rint(conf * 1e3, out=conf) / 1e3  # np.round(., 3)
+        f0 = int(first_nozzle)
+        faults = tuple(zip((faulty + f0).tolist(), [names[c] for c in codes[faulty].tolist()], conf.tolist()))
+        invalid = ()
+        if not every:
+            bad = ~valid
+            ids = np.arange(f0, f0 + n)
+            invalid = tuple(zip(ids[bad].tolist(), map(str, np.asarray(reasons, dtype=object)[bad].tolist())))
+        n_cleared = 0 if gate_cleared is None else int(np.count_nonzero(gate_cleared if every else gate_cleared & valid))
+        return cls(int(frame_id), float(stamp), f0, int(n), str(model_id), counts, faults, invalid, n_cleared)
+
     def nozzles_of(self, class_values) -> list:
         """Ids of the listed nozzles whose class is one of ``class_values``."""
         wanted = set(class_values)
         return [nz for nz, c, _ in self.faults if c in wanted]
+
+
+@functools.lru_cache(maxsize=64)
+def _vocabulary(names: tuple):
+    """``(fault, order)`` of a tuple of distinct class names: which are listed as faults (not healthy; a bool
+    array by code), and the codes in the order of their names; None if the names are not distinct strings."""
+    if not all(type(c) is str for c in names) or len(set(names)) != len(names) or not names:
+        return None
+    return np.array([c not in _HEALTHY for c in names]), sorted(range(len(names)), key=names.__getitem__)
 
 
 def encode_labels(report: LabelsReport) -> String:

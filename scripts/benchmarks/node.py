@@ -71,10 +71,11 @@ def child(data: Path, model: str, n_nozzles: int, chunk: int, passes: int = 5) -
         return decode_traces_serialized(m, max_nozzle_id=n_nozzles - 1, n_samples=512, sample_rate_hz=10e6)
 
     def answers(f, r):
+        codes = {k: getattr(r, k) for k in ("class_codes", "class_names") if hasattr(r, k)}  # a tree before them: none
         report = LabelsReport.from_arrays(
             frame_id=f.frame_id, stamp=f.stamp, first_nozzle=f.first_nozzle, classes=r.classes,
             confidence=r.confidence, valid=r.valid, reasons=r.reasons, model_id="bench",
-            gate_cleared=r.gate_cleared)
+            gate_cleared=r.gate_cleared, **codes)
         return serialize_labels(report), serialize_drying(DryingNozzles.from_labels(report))
 
     def run(batch: int) -> list:

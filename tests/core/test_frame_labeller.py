@@ -64,6 +64,14 @@ def _same(got, want):
         np.testing.assert_array_equal(g.confidence, w.confidence)  # bit-identical, NaN where invalid
         np.testing.assert_array_equal(g.valid, w.valid)
         np.testing.assert_array_equal(g.baseline, w.baseline)
+        _codes_are_the_classes(g)
+
+
+def _codes_are_the_classes(labels):
+    """A FrameLabeller's class codes name each row's class (invalid rows: "") from distinct names."""
+    names = labels.class_names
+    assert labels.class_codes.dtype == np.uint8 and len(set(names)) == len(names) and names[0] == ""
+    assert np.array(names, dtype=object)[labels.class_codes].tolist() == labels.classes.tolist()
 
 
 @pytest.mark.parametrize("with_baselines", [False, True])
@@ -198,6 +206,8 @@ def test_gate_clears_healthy_rows_and_leaves_the_rest_to_the_detector(detector):
     np.testing.assert_array_equal(g["confidence"][~cleared], w["confidence"][~cleared])  # bit-identical
     assert (g["classes"][cleared] == classes[cleared]).all() and (g["confidence"][cleared] == 1.0).all()
     assert np.mean(g["classes"][cleared] == w["classes"][cleared]) >= 0.97  # the full model's healthy class
+    for f in got + want:
+        _codes_are_the_classes(f)
 
 
 def test_frames_screened_and_gated_one_by_one_label_as_the_stacked_batch(detector):

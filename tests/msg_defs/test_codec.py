@@ -364,3 +364,49 @@ def test_serialized_fast_prefix_reads_what_the_field_reader_reads(monkeypatch):
         dims, off, data = codec._read_cdr_traces(b)
         assert [tuple(d) for d in dims] == [("nozzle", 3, 12), ("sample", 4, 4)] and off == 8
         assert np.array_equal(data[8:].reshape(3, 4), x)
+
+
+def _random_frame(rng, n, names, p_invalid, gate):
+    codes = rng.integers(0, len(names), n).astype(np.uint8)
+    codes[rng.random(n) < 0.8] = names.index("healthy_nozzle")  # mostly healthy, as a working head
+    valid = rng.random(n) >= p_invalid
+    reasons = np.where(valid, "", rng.choice(["non_finite", "flat", "clipped"], n)).astype(object)
+    classes = np.array(names, dtype=object)[codes]
+    confidence = rng.random(n)
+    cleared = (rng.random(n) < 0.5) & valid & (classes == "healthy_nozzle") if gate else None
+    return codes, classes, confidence, valid, reasons, cleared
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_labels_from_class_codes_are_the_labels_from_strings(seed):
+    """LabelsReport.from_arrays with class codes (the fdi node's reports) gives the report the per-row strings give:
+    random frames with invalid rows or none, the gate's rows or none, unknown and "" classes, a class named like the
+    invalid count, empty frames; arguments it does not take (another dtype, names not distinct, a code past the
+    names) go the strings' way, errors included."""
+    from msg_defs import LabelsReport, MessageError, serialize_labels
+
+    rng = np.random.default_rng(seed)
+    names = ("", "healthy_nozzle", "ok_signal", "deeply_dried", "fully_blocked", "unknown", "invalid", "a")
+    for n, p_invalid, gate in [(200, 0.0, True), (200, 0.05, True), (64, 0.0, False), (64, 0.3, False), (0, 0.0, True),
+                               (1, 1.0, True), (5, 0.0, True)]:
+        codes, classes, confidence, valid, reasons, cleared = _random_frame(rng, n, names, p_invalid, gate)
+        kw = dict(frame_id=7, stamp=12.5, first_nozzle=400, classes=classes, confidence=confidence, valid=valid,
+                  reasons=reasons, model_id="m", gate_cleared=cleared)
+        want = LabelsReport.from_arrays(**kw)
+        got = LabelsReport.from_arrays(**kw, class_codes=codes, class_names=names)
+        assert got == want
+        assert serialize_labels(got) == serialize_labels(want)
+        assert list(got.counts) == list(want.counts)  # the same order: by class name, then "invalid"
+        blind = np.full(n, None, dtype=object)  # the codes are what is read, not the strings
+        assert LabelsReport.from_arrays(**{**kw, "classes": blind}, class_codes=codes, class_names=names) == want
+    codes, classes, confidence, valid, reasons, cleared = _random_frame(rng, 50, names, 0.1, True)
+    kw = dict(frame_id=7, stamp=12.5, first_nozzle=400, classes=classes, confidence=confidence, valid=valid,
+              reasons=reasons, model_id="m", gate_cleared=cleared)
+    want = LabelsReport.from_arrays(**kw)
+    for other in [dict(class_codes=codes.astype(np.int64), class_names=names),
+                  dict(class_codes=codes, class_names=list(names)),
+                  dict(class_codes=np.where(codes == 1, 9, codes).astype(np.uint8), class_names=names[:-1] + ("z",)),
+                  dict(class_codes=codes, class_names=names[:-1] + ("ok_signal",))]:
+        assert LabelsReport.from_arrays(**kw, **other) == want  # not taken: the strings build it
+    with pytest.raises(MessageError, match="must all have shape"):
+        LabelsReport.from_arrays(**{**kw, "reasons": reasons[:-1]}, class_codes=codes, class_names=names)
