@@ -123,9 +123,10 @@ class LabelsReport:
             Rows the healthy gate cleared; None: none.
         class_codes : ndarray of unsigned int, shape (n,), optional
             ``classes`` as indices into ``class_names`` (``class_names[class_codes[i]] == classes[i]``
-            where ``valid``): with them the report is built from counts of the codes, not a string
-            per row (the fdi node's reports, ``inkdiag_core.FrameLabels.class_codes``); the same report.
-            Used only where every argument is an array of the expected kind (else ``classes``).
+            where ``valid``, the caller's promise: ``classes`` is then not read): with them the report is
+            built from counts of the codes, not a string per row (the fdi node's reports,
+            ``inkdiag_core.FrameLabels.class_codes``); the same report. Used only where every argument is
+            an array of the expected kind (else ``classes``, and what they raise).
         class_names : tuple of str, optional
             Distinct class names, with ``class_codes``.
         """
@@ -199,12 +200,13 @@ class LabelsReport:
                     gate_cleared, classes):
         """:meth:`from_arrays` from class codes: the report, or None where an argument is not of the kind this
         takes (then the per-row strings build it, and raise what they raise)."""
-        vocab = _vocabulary(names) if type(names) is tuple else None
+        plain = type(names) is tuple and all(type(c) is str for c in names)  # checked here: the cache keys by ==
+        vocab = _vocabulary(names) if plain else None
         if (vocab is None or type(codes) is not np.ndarray or codes.dtype.kind != "u" or codes.ndim != 1
                 or type(valid) is not np.ndarray or valid.dtype != bool or valid.shape != codes.shape
                 or type(confidence) is not np.ndarray or confidence.dtype != np.float64
-                or confidence.shape != codes.shape or np.shape(classes) != codes.shape
-                or np.shape(reasons) != codes.shape):
+                or confidence.shape != codes.shape or type(classes) is not np.ndarray or classes.shape != codes.shape
+                or type(reasons) is not np.ndarray or reasons.shape != codes.shape):
             return None
         n = codes.shape[0]
         if gate_cleared is not None and (type(gate_cleared) is not np.ndarray or gate_cleared.dtype != bool
@@ -241,9 +243,10 @@ class LabelsReport:
 
 @functools.lru_cache(maxsize=64)
 def _vocabulary(names: tuple):
-    """``(fault, order)`` of a tuple of distinct class names: which are listed as faults (not healthy; a bool
-    array by code), and the codes in the order of their names; None if the names are not distinct strings."""
-    if not all(type(c) is str for c in names) or len(set(names)) != len(names) or not names:
+    """``(fault, order)`` of a tuple of plain ``str`` class names (the caller checks their type: an equal tuple of
+    other strings shares the entry): which are listed as faults (not healthy; a bool array by code), and the codes
+    in the order of their names; None if the names are not distinct."""
+    if len(set(names)) != len(names) or not names:
         return None
     return np.array([c not in _HEALTHY for c in names]), sorted(range(len(names)), key=names.__getitem__)
 

@@ -373,7 +373,7 @@ def _random_frame(rng, n, names, p_invalid, gate):
     reasons = np.where(valid, "", rng.choice(["non_finite", "flat", "clipped"], n)).astype(object)
     classes = np.array(names, dtype=object)[codes]
     confidence = rng.random(n)
-    cleared = (rng.random(n) < 0.5) & valid & (classes == "healthy_nozzle") if gate else None
+    cleared = (rng.random(n) < 0.5) & (classes == "healthy_nozzle") if gate else None  # invalid rows too
     return codes, classes, confidence, valid, reasons, cleared
 
 
@@ -410,3 +410,17 @@ def test_labels_from_class_codes_are_the_labels_from_strings(seed):
         assert LabelsReport.from_arrays(**kw, **other) == want  # not taken: the strings build it
     with pytest.raises(MessageError, match="must all have shape"):
         LabelsReport.from_arrays(**{**kw, "reasons": reasons[:-1]}, class_codes=codes, class_names=names)
+    # helper-144: a code past the names on an invalid row only; names of str subclasses (after the plain ones were
+    # cached: equal tuples); a name that is not hashable; ragged classes (the strings' own error)
+    past = np.where(valid, codes, 200).astype(np.uint8)
+    assert (~valid).any() and LabelsReport.from_arrays(**kw, class_codes=past, class_names=names) == want
+    sub = tuple(np.str_(c) for c in names)
+    got = LabelsReport.from_arrays(**kw, class_codes=codes, class_names=sub)
+    assert got == want and all(type(c) is str for c in got.counts) and all(type(f[1]) is str for f in got.faults)
+    assert LabelsReport.from_arrays(**kw, class_codes=codes, class_names=names[:-1] + (["a"],)) == want
+    ragged = dict(kw, classes=[["x"], "healthy_nozzle", "y"], confidence=np.ones(3), valid=np.ones(3, bool),
+                  reasons=np.array(["", "", ""], dtype=object), gate_cleared=None)
+    with pytest.raises(TypeError, match="unhashable"):
+        LabelsReport.from_arrays(**ragged)
+    with pytest.raises(TypeError, match="unhashable"):
+        LabelsReport.from_arrays(**ragged, class_codes=np.array([1, 1, 1], np.uint8), class_names=names)
