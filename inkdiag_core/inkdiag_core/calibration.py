@@ -86,7 +86,7 @@ from scipy.optimize import brentq, least_squares
 from .checks import InputError
 from .faults import MECHANISMS, FaultClass
 from .head_profile import (EMPTY_MIN_RATIO, MAX_SPREAD, NOMINAL_CHANNEL_KEYS, HeadProfile, ProfileError,
-                           implausible_values)
+                           implausible_values, spread_cap)
 from .kpis import extract_kpis
 from .screening import rings_above_noise, screen_traces
 from .simulation.channels import PHYSICAL_CONSTANTS
@@ -954,6 +954,7 @@ def calibrate(nominal: HeadProfile, traces, sample_rate_hz, *, name: str | None 
                    "spreads.offset_std_v": offset_std,
                    **{f"spreads.{k}": v for k, v in physical.items()}},
         "spread_scales": {"geometry": spread_scale[0], "temperature": spread_scale[1]},
+        "spreads_capped": _capped({"gain_rel": gain_rel, "offset_std_v": offset_std, **physical}),
         "unseen_physics_spreads": unseen,
         "amplitude_convention": convention,
         "mean_trace_recorded_vs_fitted": {
@@ -1200,6 +1201,12 @@ def _scaled_spreads(base, geometry, temperature):
     out = {k: min(float(getattr(base, k) * geometry), MAX_SPREAD["relative (std)"]) for k in GEOMETRY_SPREADS}
     out["temperature_std_k"] = min(float(base.temperature_std_k * temperature), MAX_SPREAD["K"])
     return out
+
+
+def _capped(spreads: dict) -> list:
+    """The ``spreads.*`` keys of ``spreads`` at the largest value a profile takes (``_sensor_spreads`` and
+    ``_scaled_spreads`` cap them there: the recording's spread was wider, or the scales' fit pushed them)."""
+    return [f"spreads.{k}" for k, v in spreads.items() if v >= spread_cap(k)]
 
 
 def _fit_spread_scales(profile, kp_rec, fs, seed, n=600):

@@ -82,6 +82,7 @@ __all__ = [
     "SPREAD_KEYS",
     "implausible_values",
     "same_sample_rate",
+    "spread_cap",
 ]
 
 SCHEMA = "inkdiag.head_profile"
@@ -197,6 +198,12 @@ SPREAD_KEYS = tuple(f.name for f in dataclasses.fields(Spreads)
 _SPREAD_KEYS = SPREAD_KEYS
 _SPREAD_UNITS = {k: ("K" if k.endswith("_k") else "V" if k.endswith("_v") else "relative (std)")
                  for k in _SPREAD_KEYS}
+
+
+def spread_cap(key: str) -> float:
+    """The largest value a profile takes for ``spreads.<key>`` (:data:`MAX_SPREAD` in its unit)."""
+    return MAX_SPREAD[_SPREAD_UNITS[key]]
+
 
 _TOP_KEYS = ("schema", "schema_version", "name", "sampling", "channel", "drive", "sensor", "spreads",
              "calibration")

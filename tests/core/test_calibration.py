@@ -578,3 +578,16 @@ def test_fitted_spreads_stay_within_what_a_profile_takes():
     assert got["nozzle_length_rel"] == pytest.approx(4 * base.nozzle_length_rel)  # within the bound: as scaled
     assert calibration._sensor_spreads(3.0, 50.0) == (1.0, 10.0) and calibration._sensor_spreads(0.05, 0.01) == (0.05, 0.01)
     HeadProfile.default().replace(name="wide", spreads_overrides={**got, "gain_rel": 1.0, "offset_std_v": 10.0})
+
+
+def test_the_fit_report_names_the_spreads_capped_at_what_a_profile_takes():
+    from inkdiag_core.calibration import _capped, _scaled_spreads, _sensor_spreads
+    from inkdiag_core.head_profile import MAX_SPREAD, spread_cap
+
+    gain, offset = _sensor_spreads(3.0, 0.01)  # a gain spread past 1: capped; the offset's is not
+    physical = _scaled_spreads(HeadProfile.default().spreads(), 1e3, 0.5)  # geometry scaled past 1; temperature not
+    capped = _capped({"gain_rel": gain, "offset_std_v": offset, **physical})
+    assert "spreads.gain_rel" in capped and "spreads.offset_std_v" not in capped
+    assert "spreads.nozzle_radius_rel" in capped and "spreads.temperature_std_k" not in capped
+    assert spread_cap("temperature_std_k") == MAX_SPREAD["K"] and spread_cap("offset_std_v") == MAX_SPREAD["V"]
+    assert _capped({"temperature_std_k": 30.0}) == ["spreads.temperature_std_k"]

@@ -561,6 +561,10 @@ def _markdown(r) -> str:
         "|---|---|",
     ]
     lines += [f"| {k} | {v:.6g} |" for k, v in r["fitted"].items()]
+    if capped := r.get("spreads_capped"):
+        lines += ["", f"Capped at the largest value a profile takes (the recording's spread is wider, or the spread "
+                  f"scales' fit pushed them; the report's spread_scales are the fit's, before the cap): "
+                  f"{', '.join(capped)}."]
     lines += ["", f"Amplitude convention (only b x gain is identified): {r['amplitude_convention']}.", "",
               "| parameter | value | posterior sd (log) | prior sd (log) | determined by |", "|---|---|---|---|---|"]
     for p, d in r["identifiability"]["parameters"].items():
