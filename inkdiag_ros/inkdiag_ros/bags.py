@@ -277,7 +277,9 @@ def open_reader(bag_dir, *, salvage: bool = False):
         reader.open()
     except Exception as exc:  # rosbags' ReaderError, or a storage error of a damaged file
         if salvage and any(p.glob("*.mcap")):
-            return SalvageReader(p)
+            salvaged = SalvageReader(p)
+            salvaged.damage.insert(0, f"it did not open as a bag ({first_line(exc)})")  # e.g. its metadata.yaml
+            return salvaged
         raise RecordingError(f"{src}: cannot open the bag{_listed(p)}: {first_line(exc)}") from None
     return reader
 

@@ -153,6 +153,15 @@ def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim, fdi_model):
     assert stats.summary().endswith("3 of 3 messages on /head_00/traces decoded; read from its MCAP files as they "
                                     "are (a bag its recorder did not close, a file cut short, or a damaged chunk): "
                                     "no damage found")
+    # a metadata.yaml that is not YAML (helper-145): read from the MCAP file, and the note says why
+    badmeta = tmp_path / "badmeta"
+    badmeta.mkdir()
+    (badmeta / mcap.name).write_bytes(next(bag.glob("*.mcap")).read_bytes())
+    (badmeta / "metadata.yaml").write_text("garbage: [")
+    stats = BagFrames()
+    assert load_recording(badmeta, stats=stats).traces.shape == (24, x.shape[1])
+    assert stats.summary().endswith("damaged chunk): it did not open as a bag (Could not load YAML from "
+                                    f"{badmeta / 'metadata.yaml'}: while parsing a flow node)"), stats.summary()
     # the storage file given instead of its bag directory (helper-87: "not an .npz archive ... b'\\x89MCAP0'")
     assert _one_line_error(nometa / mcap.name, "a rosbag2 storage file: give the bag's directory").endswith(
         f"({nometa}, with its metadata.yaml), not the file inside it")

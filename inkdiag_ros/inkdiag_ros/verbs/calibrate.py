@@ -98,8 +98,9 @@ def add_arguments(parser) -> None:
 #: A median per-trace residual above this many times the larger of the noise alone and the calibrated head's own
 #: simulated traces' residual is warned about: healthy recordings of the heads of tests/foreign_head.py (with 10 % of
 #: the rows faulty, doubled spreads, or 0.1 mV noise and a 16-bit ADC) give 0.92-1.01, a recording of every class in
-#: equal numbers 5.5-9.6.
-MISFIT_WARNING = 2.5
+#: equal numbers 5.5-9.6, an unlabelled one of 100 deeply dried and 100 small-bubble nozzles of the default head 2.35
+#: (helper-145: under the 2.5 this was, no warning).
+MISFIT_WARNING = 2.0
 
 #: Healthy rows of a bag calibration uses at most (a uniform sample: 20 MB at 512 samples a row).
 MAX_BAG_ROWS = 10000
