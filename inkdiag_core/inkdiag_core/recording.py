@@ -318,6 +318,7 @@ def read_labels_csv(path) -> LabelTable:
         raise RecordingError(f"{src}: is a directory, not a labels CSV")
     ints = {"row": [], "nozzle": [], "frame_id": []}
     classes, lines = [], []
+    line = 0  # the last line read whole: a csv error is in the record after it
     try:
         with open(path, "rb") as f:
             if f.read(2) in (b"\xff\xfe", b"\xfe\xff"):
@@ -326,6 +327,7 @@ def read_labels_csv(path) -> LabelTable:
         with open(path, newline="", encoding="utf-8-sig") as f:
             reader = csv.reader(f, strict=True)  # an unclosed quote is an error, not the rest of the file as one cell
             header = next(reader, None)
+            line = reader.line_num
             cols = [c.strip().lower() for c in (header or [])]
             twice = sorted({c for c in cols if c and cols.count(c) > 1})
             if twice:
@@ -335,9 +337,9 @@ def read_labels_csv(path) -> LabelTable:
                                      f"'nozzle' column (as `inkdiag label` writes), got {header or 'no header'}")
             at = {c: cols.index(c) for c in ("class", *ints) if c in cols}
             for cells in reader:
+                line = reader.line_num
                 if not any(c.strip() for c in cells):
                     continue
-                line = reader.line_num
                 if any(c.strip() for c in cells[len(cols):]):  # empty trailing cells (a spreadsheet's) are fine
                     raise RecordingError(f"{src}:{line}: {len(cells)} fields, the header has {len(cols)}: "
                                          f"{cells[len(cols):]!r} beyond its columns")
@@ -360,7 +362,9 @@ def read_labels_csv(path) -> LabelTable:
                     out.append(iv)
                 classes.append(cls)
                 lines.append(line)
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+    except csv.Error as exc:  # e.g. a quote never closed: where its record began
+        raise RecordingError(f"{src}:{line + 1}: cannot read the labels CSV: {exc}") from None
+    except (OSError, UnicodeDecodeError) as exc:
         raise RecordingError(f"{src}: cannot read the labels CSV: {exc}") from None
     if not classes:  # else "no row is usable" once the recording is read, blaming its rows
         raise RecordingError(f"{src}: a header and no labelled line: it names no row")

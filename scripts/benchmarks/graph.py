@@ -551,6 +551,10 @@ def prepare_ref(commit: str, tmp: Path, cases) -> tuple:
     for case in cases:
         subprocess.run([sys.executable, "-c", RECORD_REF, str(tmp / f"{case}_healthy.npy"), str(tmp / f"{case}_ref.npz")],
                        env=env, cwd=path, check=True)
+    # its compiled kernels into its own cache now (as its bootstrap would), not while the phase waits for its node
+    # (a first start compiling them all outlasted the 30 s wait once); a commit before the kernels has none
+    subprocess.run([sys.executable, "-m", "inkdiag_core._kernels"], env=env, cwd=path, check=False,
+                   stderr=subprocess.DEVNULL)
     cfg = json.loads(Path(f"{model}.manifest.json").read_text()).get("config", {})
     return env, str(model), f"{cfg.get('kind')}, {cfg.get('features')}"
 

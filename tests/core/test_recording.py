@@ -168,7 +168,9 @@ def test_labels_from_csv_by_row_by_nozzle_and_by_nozzle_and_frame(tmp_path):
     ("nozzle,class\n5,ok_signal\n", "l.csv:2: recording has no row of nozzle 5"),
     ("nozzle,frame_id,class\n7,2,ok_signal\n", "l.csv:2: recording has no row of nozzle 7 in frame 2"),
     ("row,class\n0,ok_signal,extra\n", "l.csv:2: 3 fields, the header has 2: ['extra'] beyond its columns"),
-    ('row,class\n"0,ok_signal\n1,ok_signal\n', "cannot read the labels CSV: unexpected end of data"),
+    ('row,class\n"0,ok_signal\n1,ok_signal\n', "l.csv:2: cannot read the labels CSV: unexpected end of data"),
+    # the quote's record begins after a blank line and a good one (helper-145: no line was named)
+    ('row,class\n0,ok_signal\n\n1,"ok_signal\n2,ok_signal\n', "l.csv:4: cannot read the labels CSV: unexpected end"),
     # beyond an int64: was OverflowError, a traceback (helper-106)
     ("row,class\n99999999999999999999999999,ok_signal\n", "l.csv:2: row 99999999999999999999999999 is too large"),
     ("nozzle,frame_id,class\n7,-99999999999999999999,ok_signal\n", "l.csv:2: frame_id -99999999999999999999 is too"),
