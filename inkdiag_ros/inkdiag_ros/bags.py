@@ -278,7 +278,8 @@ def open_reader(bag_dir, *, salvage: bool = False):
     except Exception as exc:  # rosbags' ReaderError, or a storage error of a damaged file
         if salvage and any(p.glob("*.mcap")):
             salvaged = SalvageReader(p)
-            salvaged.damage.insert(0, f"it did not open as a bag ({first_line(exc)})")  # e.g. its metadata.yaml
+            if not _bag_info(p):  # its metadata.yaml is what did not read (not a file cut short): say so
+                salvaged.damage.insert(0, f"its metadata.yaml could not be read ({first_line(exc)})")
             return salvaged
         raise RecordingError(f"{src}: cannot open the bag{_listed(p)}: {first_line(exc)}") from None
     return reader

@@ -215,11 +215,9 @@ class LabelsReport:
         fault, order = vocab
         n_valid = int(np.count_nonzero(valid))
         every = n_valid == n
-        if not every and n and codes.max() >= len(names):
+        if n and codes.max() >= len(names):  # a code past the names (bincount would size its counts by it)
             return None
         counted = np.bincount(codes if every else codes[valid], minlength=len(names)).tolist()
-        if len(counted) != len(names):  # a code past the names
-            return None
         counts = {names[i]: counted[i] for i in order if counted[i]}  # by class name, as from_arrays sorts
         counts[INVALID_KEY] = n - n_valid
         faulty = np.flatnonzero(fault.take(codes) if every else fault.take(codes) & valid)

@@ -418,6 +418,11 @@ def test_labels_from_class_codes_are_the_labels_from_strings(seed):
     got = LabelsReport.from_arrays(**kw, class_codes=codes, class_names=sub)
     assert got == want and all(type(c) is str for c in got.counts) and all(type(f[1]) is str for f in got.faults)
     assert LabelsReport.from_arrays(**kw, class_codes=codes, class_names=names[:-1] + (["a"],)) == want
+    huge = codes.astype(np.uint64)
+    huge[3] = 2**63  # on a valid row (helper-147: bincount raised)
+    assert LabelsReport.from_arrays(**{**kw, "valid": np.ones(codes.size, bool)}, class_codes=huge,
+                                    class_names=names) == LabelsReport.from_arrays(**{**kw, "valid": np.ones(codes.size,
+                                                                                                           bool)})
     ragged = dict(kw, classes=[["x"], "healthy_nozzle", "y"], confidence=np.ones(3), valid=np.ones(3, bool),
                   reasons=np.array(["", "", ""], dtype=object), gate_cleared=None)
     with pytest.raises(TypeError, match="unhashable"):

@@ -160,7 +160,7 @@ def test_bag_errors_are_one_line_naming_the_file(tmp_path, sim, fdi_model):
     (badmeta / "metadata.yaml").write_text("garbage: [")
     stats = BagFrames()
     assert load_recording(badmeta, stats=stats).traces.shape == (24, x.shape[1])
-    assert stats.summary().endswith("damaged chunk): it did not open as a bag (Could not load YAML from "
+    assert stats.summary().endswith("damaged chunk): its metadata.yaml could not be read (Could not load YAML from "
                                     f"{badmeta / 'metadata.yaml'}: while parsing a flow node)"), stats.summary()
     # the storage file given instead of its bag directory (helper-87: "not an .npz archive ... b'\\x89MCAP0'")
     assert _one_line_error(nometa / mcap.name, "a rosbag2 storage file: give the bag's directory").endswith(
