@@ -218,8 +218,8 @@ def _gate_codes(x1, xx, xr, pos, rr, n_samples, max_f, jet_lo, jet_hi, ok_lo, ok
 
 
 @numba.njit(cache=True, nogil=True)
-def _screen_gate_rows(x, bits, flat_tol, max_abs_v, clip_run, ref, scale, mean, pos, rr, n_samples, max_f, jet_lo, jet_hi, ok_lo,
-                      ok_hi, first, ids, row0, code, at, nozzle, left, k):
+def _screen_gate_rows(x, bits, flat_tol, max_abs_v, clip_run, ref, scale, mean, pos, rr, n_samples, max_f, jet_lo,
+                      jet_hi, ok_lo, ok_hi, first, ids, row0, code, at, nozzle, left, k):
     """One frame of :func:`screen_gate_frames`: each row screened, then gated where it is valid and has a
     reference (``pos`` empty: none has), its code written at ``code[row0 + i]``; the rows left (code 0)
     listed from ``at[k]`` on with their nozzle ids (``ids[i]``, or ``first + i`` where ``ids`` is empty) and,
@@ -1280,8 +1280,9 @@ def screen_gate_frames(frames, flat_tol, max_abs_v, clip_run, positions, verdict
                              f"ids {p.dtype} {p.shape} and {ids.shape}")
         k0 = k
         k, whole, bad = _screen_gate_rows(a, a.view(bits_type), float(flat_tol), float(max_abs_v), int(clip_run), ref,
-                                          scale, mean, p, rr, float(n_samples), float(max_f), float(jet_lo), float(jet_hi),
-                                          float(ok_lo), float(ok_hi), int(firsts[f]) if nozzles is None else 0,
+                                          scale, mean, p, rr, float(n_samples), float(max_f), float(jet_lo),
+                                          float(jet_hi), float(ok_lo), float(ok_hi),
+                                          int(firsts[f]) if nozzles is None else 0,
                                           ids, row0, code, at, nozzle, left, k)
         if bad != -1:
             raise ValueError(f"screen_gate_frames: positions must be in [-1, {ref.shape[0]}) (-1: no reference), "

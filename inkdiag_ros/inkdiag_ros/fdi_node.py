@@ -131,8 +131,8 @@ class FdiNode(Node):
         try:
             if isinstance(result, FrameFailure):
                 raise result.error
-            report = LabelsReport.from_arrays(frame_id=frame.frame_id, stamp=frame.stamp, first_nozzle=frame.first_nozzle,
-                                              model_id=self.model_id, **{k: getattr(result, k) for k in _ROWS})
+            report = LabelsReport.from_arrays(frame_id=frame.frame_id, stamp=frame.stamp, model_id=self.model_id,
+                                              first_nozzle=frame.first_nozzle, **{k: getattr(result, k) for k in _ROWS})
             self._labels_pub.publish(serialize_labels(report))  # bytes: no conversion by rclpy
             self._drying_pub.publish(serialize_drying(DryingNozzles.from_labels(report)))
         except Exception as exc:  # noqa: BLE001 - this frame failed; the batch's others go on

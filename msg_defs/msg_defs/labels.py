@@ -230,7 +230,8 @@ class LabelsReport:
             bad = ~valid
             ids = np.arange(f0, f0 + n)
             invalid = tuple(zip(ids[bad].tolist(), map(str, np.asarray(reasons, dtype=object)[bad].tolist())))
-        n_cleared = 0 if gate_cleared is None else int(np.count_nonzero(gate_cleared if every else gate_cleared & valid))
+        n_cleared = 0 if gate_cleared is None else int(np.count_nonzero(gate_cleared if every
+                                                                         else gate_cleared & valid))
         return cls(int(frame_id), float(stamp), f0, int(n), str(model_id), counts, faults, invalid, n_cleared)
 
     def nozzles_of(self, class_values) -> list:
