@@ -48,8 +48,9 @@ VERBS = ("calibrate", "train", "baseline", "label", "estimate", "record", "repla
 """The subcommands, in the order ``inkdiag --help`` lists them."""
 
 
-class _Parser(argparse.ArgumentParser):
-    """argparse's parser with its usage errors on one line (``inkdiag VERB: error: ...``), status 2."""
+class OneLineParser(argparse.ArgumentParser):
+    """argparse's parser with its usage errors on one line (``inkdiag VERB: error: ...``), status 2 (also
+    ``inkdiag_echo``'s)."""
 
     def error(self, message):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
@@ -57,7 +58,7 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``inkdiag`` parser with one subparser per verb."""
-    parser = _Parser(
+    parser = OneLineParser(
         prog="inkdiag", description="inkdiag: fault detection, isolation and estimation for piezo inkjet "
         "printheads. Offline tasks on a head profile and recordings; see docs/cli.md.")
     sub = parser.add_subparsers(dest="verb", metavar="VERB", required=True)

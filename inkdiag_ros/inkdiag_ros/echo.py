@@ -10,7 +10,6 @@ than ``--max-items`` are cut with ``'...'`` (ros2's ``--truncate-length``).
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 
@@ -23,6 +22,7 @@ import msg_defs
 from msg_defs import topics
 
 from ._spin import exit_now, ros_args_error, stop_on_signals
+from .cli import OneLineParser
 
 TYPES = {
     topics.TRACES: (msg_defs.TRACE_MSG_TYPE, msg_defs.TRACES_QOS),
@@ -83,7 +83,7 @@ def to_yaml(msg, indent: int = 0, max_items: int = 16) -> str:
 
 def main(args=None) -> int:
     argv = list(sys.argv if args is None else args)
-    ap = argparse.ArgumentParser(prog="inkdiag_echo", description=__doc__.splitlines()[0])
+    ap = OneLineParser(prog="inkdiag_echo", description=__doc__.splitlines()[0])  # errors: one line, as the verbs'
     ap.add_argument("topic", choices=sorted(TYPES))
     ap.add_argument("--namespace", default="/head_00")
     ap.add_argument("--once", action="store_true")

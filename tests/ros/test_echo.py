@@ -123,3 +123,11 @@ def test_echo_into_a_reader_that_stops_early_ends_quietly(ros):
             pr.kill()
     assert first.startswith(b"data: ") and pr.returncode == 0, (first, pr.returncode, err)
     assert "Traceback" not in err and "BrokenPipe" not in err, err
+
+
+def test_a_bad_argument_is_one_line_and_status_2():
+    """As the inkdiag verbs' (helper-145: a topic it does not know printed argparse's whole usage first)."""
+    r = subprocess.run([sys.executable, "-m", "inkdiag_ros.echo", "nosuchtopic", "--once"], capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert r.stderr.startswith("inkdiag_echo: error: argument topic: invalid choice: 'nosuchtopic'"), r.stderr
