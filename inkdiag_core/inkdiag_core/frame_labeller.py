@@ -171,8 +171,10 @@ class FrameLabeller:
         # every class a row can get, once ("" an invalid row's), and each screened row's class code by its code
         self._class_names = tuple(dict.fromkeys(["", *GATE_CLASSES[1:].tolist(), *map(str, detector.classes_.tolist()),
                                                  UNKNOWN]))
-        self._class_index = {c: i for i, c in enumerate(self._class_names)}
-        self._class_of_code = np.array([self._class_index[c] for c in _CLASS_OF_CODE.tolist()], np.uint8)
+        self._class_of = np.array(self._class_names, dtype=object)  # a row's class by its class code
+        self._sorted_names = np.array(sorted(self._class_names))  # the detector's classes to codes, in one search
+        self._sorted_codes = np.array([self._class_names.index(c) for c in self._sorted_names.tolist()], np.uint8)
+        self._class_of_code = self._sorted_codes[np.searchsorted(self._sorted_names, _CLASS_OF_CODE.astype(str))]
         self.baselines = baselines if baselines is not None and len(baselines) else None
         gate = HealthyGate(self.baselines) if self.baselines is not None and self.baselines.has_reference else None
         self.gate = gate if gate is not None and gate.active else None
@@ -380,7 +382,7 @@ class FrameLabeller:
         offsets = list(accumulate([0] + [p.code.size for p in pending]))
         code = pending[0].code if len(pending) == 1 else np.concatenate([p.code for p in pending])
         cleared = code >= CLEARED_HEALTHY
-        classes, reasons, class_codes = _CLASS_OF_CODE[code], _REASON_OF_CODE[code], self._class_of_code[code]
+        reasons, class_codes = _REASON_OF_CODE[code], self._class_of_code[code]
         confidence, with_base = np.where(cleared, 1.0, np.nan), cleared.copy()
         left = [(p, o) for p, o in zip(pending, offsets) if p.at.size]
         if left:
@@ -394,23 +396,29 @@ class FrameLabeller:
                 kpis[~has] = np.nan  # routed to the plain branch
             got = self.detector.label(rows, baseline_kpis=kpis)
             ok = got.valid
-            index = self._class_index
             if ok.all():  # nearly always: no row's features came out non-finite
-                classes[at], confidence[at] = got.classes.astype(str).astype(object), got.confidence
-                class_codes[at] = [index[c] for c in classes[at].tolist()]
+                class_codes[at], confidence[at] = self._codes_of(got.classes), got.confidence
             else:
-                classes[at[ok]] = got.classes[ok].astype(str).astype(object)
-                class_codes[at[ok]] = [index[c] for c in classes[at[ok]].tolist()]
+                class_codes[at[ok]] = self._codes_of(got.classes[ok])
                 confidence[at[ok]] = got.confidence[ok]
                 reasons[at[~ok]] = "non_finite_features"
                 code[at[~ok]] = _NON_FINITE_FEATURES
             with_base[at] = got.baseline
         valid = _VALID_CODE[code]
         with_base &= valid
+        classes = self._class_of[class_codes]  # the codes name every row's class ("" an invalid row's)
         cols = (classes, confidence, valid, reasons, with_base, cleared if self.gate is not None else None, class_codes)
         names = self._class_names
         return [[FrameLabels(*(None if col is None else col[o + i:o + j] for col in cols), names)  # views
                  for i, j in zip(p.starts, p.ends)] for p, o in zip(pending, offsets)]
+
+    def _codes_of(self, classes) -> np.ndarray:
+        """The class codes of the detector's classes (strings), by one search in the sorted names."""
+        got = np.asarray(classes).astype(str)
+        at = np.minimum(np.searchsorted(self._sorted_names, got), len(self._sorted_names) - 1)
+        if not np.array_equal(self._sorted_names[at], got):  # a class the labeller's names lack: never silently
+            raise ValueError(f"the detector gave a class outside {self._class_names}: {sorted(set(got.tolist()))}")
+        return self._sorted_codes[at]
 
 
 class ScreenedFrames:

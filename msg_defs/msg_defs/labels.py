@@ -177,15 +177,9 @@ class LabelsReport:
             faulty = [i for i, (c, v) in enumerate(zip(cl, ok)) if v and c not in _HEALTHY]
         counts = {str(c): by_class[c] for c in sorted(by_class)}
         counts[INVALID_KEY] = n - n_valid
-        conf = np.asarray(confidence, dtype=float)[faulty]
-        conf = np.rint(conf * 1e3, out=conf) / 1e3  # np.round(., 3)
         f0 = int(first_nozzle)
-        faults = tuple(zip([f0 + i for i in faulty], [str(cl[i]) for i in faulty], conf.tolist()))
-        bad = ~valid
-        invalid = ()
-        if n_valid < n:
-            ids = np.arange(f0, f0 + n)
-            invalid = tuple(zip(ids[bad].tolist(), map(str, np.asarray(reasons, dtype=object)[bad].tolist())))
+        faults = tuple(zip([f0 + i for i in faulty], [str(cl[i]) for i in faulty], _rounded(confidence, faulty)))
+        invalid = () if n_valid == n else _invalid_rows(valid, reasons, f0)
         n_cleared = 0
         if gate_cleared is not None:
             g = hint if hint is not None else np.asarray(gate_cleared, dtype=bool)
@@ -221,15 +215,10 @@ class LabelsReport:
         counts = {names[i]: counted[i] for i in order if counted[i]}  # by class name, as from_arrays sorts
         counts[INVALID_KEY] = n - n_valid
         faulty = np.flatnonzero(fault.take(codes) if every else fault.take(codes) & valid)
-        conf = confidence[faulty]
-        conf = np.rint(conf * 1e3, out=conf) / 1e3  # np.round(., 3)
         f0 = int(first_nozzle)
-        faults = tuple(zip((faulty + f0).tolist(), [names[c] for c in codes[faulty].tolist()], conf.tolist()))
-        invalid = ()
-        if not every:
-            bad = ~valid
-            ids = np.arange(f0, f0 + n)
-            invalid = tuple(zip(ids[bad].tolist(), map(str, np.asarray(reasons, dtype=object)[bad].tolist())))
+        faults = tuple(zip((faulty + f0).tolist(), [names[c] for c in codes[faulty].tolist()],
+                           _rounded(confidence, faulty)))
+        invalid = () if every else _invalid_rows(valid, reasons, f0)
         n_cleared = 0 if gate_cleared is None else int(np.count_nonzero(gate_cleared if every
                                                                          else gate_cleared & valid))
         return cls(int(frame_id), float(stamp), f0, int(n), str(model_id), counts, faults, invalid, n_cleared)
@@ -238,6 +227,19 @@ class LabelsReport:
         """Ids of the listed nozzles whose class is one of ``class_values``."""
         wanted = set(class_values)
         return [nz for nz, c, _ in self.faults if c in wanted]
+
+
+def _rounded(confidence, rows) -> list:
+    """The confidences of ``rows`` rounded to 3 decimals (``np.round(., 3)``), as floats."""
+    conf = np.asarray(confidence, dtype=float)[rows]
+    return (np.rint(conf * 1e3, out=conf) / 1e3).tolist()
+
+
+def _invalid_rows(valid, reasons, first_nozzle: int) -> tuple:
+    """``(nozzle, reason)`` of each row not ``valid``."""
+    bad = ~valid
+    ids = np.arange(first_nozzle, first_nozzle + valid.shape[0])
+    return tuple(zip(ids[bad].tolist(), map(str, np.asarray(reasons, dtype=object)[bad].tolist())))
 
 
 @functools.lru_cache(maxsize=64)

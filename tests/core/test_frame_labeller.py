@@ -368,3 +368,12 @@ def test_a_frame_the_detector_refuses_in_a_joint_finish_fails_alone(detector, mo
     assert got[1][0].frame_index == 0 and got[1][0].why == "RuntimeError: boom"
     _same([got[0][0], got[0][1], got[1][1]], want)
     assert len(calls) == 5  # joint, burst 1, burst 2, then its frames alone
+
+
+def test_a_class_outside_the_labellers_names_is_an_error_not_a_wrong_code(detector):
+    lab = FrameLabeller(detector)
+    names = lab._class_names
+    np.testing.assert_array_equal(lab._codes_of(np.array(["unknown", "deeply_dried"], dtype=object)),
+                                  [names.index("unknown"), names.index("deeply_dried")])
+    with pytest.raises(ValueError, match="outside"):
+        lab._codes_of(np.array(["deeply_dried", "zz_not_a_class"], dtype=object))

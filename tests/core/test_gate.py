@@ -295,7 +295,7 @@ def test_an_offset_changes_no_gain_and_no_residual_fraction(recorded, offset):
     gate = HealthyGate(recorded)
     classes = np.array([c.value for c in FaultClass], dtype=object)[np.arange(N) % len(FaultClass)]
     x = simulate_nozzles(classes, seed=HEAD, frame_seed=5).traces.astype(np.float32)
-    x[0] = gate.references[0] + 0.09 * np.sin(np.arange(x.shape[1]) * 0.37).astype(np.float32)  # f near the bound
+    x[0] = gate.references[0] + 0.09 * np.sin(np.arange(x.shape[1]) * 0.37).astype(np.float32)  # reference + more
     plain, moved = gate.screen(x, 0), gate.screen(x + np.float32(offset), 0)
     np.testing.assert_allclose(moved.gain, plain.gain, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(moved.residual_fraction, plain.residual_fraction, rtol=1e-4, atol=1e-7)
